@@ -1,0 +1,260 @@
+//! Device features and limits, read once when the device is opened.
+
+use std::ffi::CStr;
+
+use ash::vk;
+
+use crate::error::Result;
+
+/// Everything the kernels and the host side need to know about the device.
+#[derive(Clone, Debug)]
+pub struct Caps {
+    pub index: usize,
+    pub name: String,
+    pub kind: &'static str,
+    pub vendor_id: u32,
+    pub api_version: String,
+    pub driver: String,
+    /// Subgroup size the driver reports by default, and the range it can run.
+    pub subgroup_size: u32,
+    pub min_subgroup_size: u32,
+    pub max_subgroup_size: u32,
+    pub subgroup_size_control: bool,
+    pub compute_full_subgroups: bool,
+    pub max_shared_memory: u32,
+    pub max_workgroup_invocations: u32,
+    pub max_workgroup_count: [u32; 3],
+    pub max_storage_buffer_range: u64,
+    pub min_storage_buffer_offset_alignment: u64,
+    pub max_buffer_size: u64,
+    pub max_push_constants: u32,
+    /// f16 arithmetic in shaders, and 16-bit storage buffer access.
+    pub f16_arithmetic: bool,
+    pub f16_storage: bool,
+    pub int64: bool,
+    pub vulkan_memory_model: bool,
+    /// Atomic add on f32 in storage buffers (VK_EXT_shader_atomic_float).
+    pub float_atomic_add: bool,
+    /// Every cooperative-matrix shape the device reports, as text for `velox info`.
+    pub coop_matrix_shapes: Vec<String>,
+    /// The 16x16x16 f16 x f16 -> f32 subgroup shape the f16 matmul uses, if offered.
+    pub coop_matrix_f16: Option<[u32; 3]>,
+    /// Nanoseconds per timestamp tick, and whether the compute queue writes timestamps.
+    pub timestamp_period_ns: f64,
+    pub timestamps: bool,
+    /// Every device-local memory type is host-visible (CPU devices, most integrated GPUs):
+    /// tensors are mapped and read and written without staging.
+    pub unified_memory: bool,
+    /// Total device-local heap size, in bytes.
+    pub device_memory: u64,
+}
+
+fn cstr(bytes: &[c_char_t]) -> String {
+    // The driver strings are NUL-terminated fixed arrays.
+    let raw: Vec<u8> = bytes
+        .iter()
+        .take_while(|&&c| c != 0)
+        .map(|&c| c as u8)
+        .collect();
+    String::from_utf8_lossy(&raw).into_owned()
+}
+
+#[allow(non_camel_case_types)]
+type c_char_t = std::ffi::c_char;
+
+fn has_ext(exts: &[vk::ExtensionProperties], name: &CStr) -> bool {
+    exts.iter().any(|e| e.extension_name_as_c_str() == Ok(name))
+}
+
+fn component_name(t: vk::ComponentTypeKHR) -> &'static str {
+    match t {
+        vk::ComponentTypeKHR::FLOAT16 => "f16",
+        vk::ComponentTypeKHR::FLOAT32 => "f32",
+        vk::ComponentTypeKHR::FLOAT64 => "f64",
+        vk::ComponentTypeKHR::SINT8 => "i8",
+        vk::ComponentTypeKHR::UINT8 => "u8",
+        vk::ComponentTypeKHR::SINT32 => "i32",
+        vk::ComponentTypeKHR::UINT32 => "u32",
+        _ => "other",
+    }
+}
+
+impl Caps {
+    pub(crate) fn query(
+        entry: &ash::Entry,
+        instance: &ash::Instance,
+        pd: vk::PhysicalDevice,
+        index: usize,
+        queue_family: u32,
+    ) -> Result<Caps> {
+        // SAFETY: every query below reads properties of a device of this instance into
+        // structures that live for the duration of the call.
+        unsafe {
+            let exts = instance
+                .enumerate_device_extension_properties(pd)
+                .unwrap_or_default();
+            let has_atomic_ext = has_ext(&exts, ash::ext::shader_atomic_float::NAME);
+            let has_coop_ext = has_ext(&exts, ash::khr::cooperative_matrix::NAME);
+
+            let mut p11 = vk::PhysicalDeviceVulkan11Properties::default();
+            let mut p12 = vk::PhysicalDeviceVulkan12Properties::default();
+            let mut p13 = vk::PhysicalDeviceVulkan13Properties::default();
+            let mut props = vk::PhysicalDeviceProperties2::default()
+                .push_next(&mut p11)
+                .push_next(&mut p12)
+                .push_next(&mut p13);
+            instance.get_physical_device_properties2(pd, &mut props);
+            let p = props.properties;
+            let limits = p.limits;
+
+            let mut f11 = vk::PhysicalDeviceVulkan11Features::default();
+            let mut f12 = vk::PhysicalDeviceVulkan12Features::default();
+            let mut f13 = vk::PhysicalDeviceVulkan13Features::default();
+            let mut fa = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default();
+            let mut fc = vk::PhysicalDeviceCooperativeMatrixFeaturesKHR::default();
+            let mut features = vk::PhysicalDeviceFeatures2::default()
+                .push_next(&mut f11)
+                .push_next(&mut f12)
+                .push_next(&mut f13);
+            if has_atomic_ext {
+                features = features.push_next(&mut fa);
+            }
+            if has_coop_ext {
+                features = features.push_next(&mut fc);
+            }
+            instance.get_physical_device_features2(pd, &mut features);
+            let base = features.features;
+
+            let mut coop_matrix_shapes = Vec::new();
+            let mut coop_matrix_f16 = None;
+            if has_coop_ext && fc.cooperative_matrix == vk::TRUE {
+                let coop = ash::khr::cooperative_matrix::Instance::new(entry, instance);
+                let list = coop
+                    .get_physical_device_cooperative_matrix_properties(pd)
+                    .unwrap_or_default();
+                for c in &list {
+                    coop_matrix_shapes.push(format!(
+                        "{}x{}x{} {}*{}+{}->{}{}",
+                        c.m_size,
+                        c.n_size,
+                        c.k_size,
+                        component_name(c.a_type),
+                        component_name(c.b_type),
+                        component_name(c.c_type),
+                        component_name(c.result_type),
+                        if c.scope == vk::ScopeKHR::SUBGROUP {
+                            ""
+                        } else {
+                            " (non-subgroup scope)"
+                        }
+                    ));
+                    if c.m_size == 16
+                        && c.n_size == 16
+                        && c.k_size == 16
+                        && c.a_type == vk::ComponentTypeKHR::FLOAT16
+                        && c.b_type == vk::ComponentTypeKHR::FLOAT16
+                        && c.c_type == vk::ComponentTypeKHR::FLOAT32
+                        && c.result_type == vk::ComponentTypeKHR::FLOAT32
+                        && c.scope == vk::ScopeKHR::SUBGROUP
+                    {
+                        coop_matrix_f16 = Some([16, 16, 16]);
+                    }
+                }
+            }
+            // naga's cooperative-matrix SPIR-V needs f16 storage and arithmetic too.
+            let f16_arithmetic = f12.shader_float16 == vk::TRUE;
+            let f16_storage = f11.storage_buffer16_bit_access == vk::TRUE;
+            if !(f16_arithmetic && f16_storage) {
+                coop_matrix_f16 = None;
+            }
+
+            let families = instance.get_physical_device_queue_family_properties(pd);
+            let timestamps = limits.timestamp_compute_and_graphics == vk::TRUE
+                || families[queue_family as usize].timestamp_valid_bits > 0;
+
+            let mem = instance.get_physical_device_memory_properties(pd);
+            let types = &mem.memory_types[..mem.memory_type_count as usize];
+            let unified_memory = types
+                .iter()
+                .filter(|t| {
+                    t.property_flags
+                        .contains(vk::MemoryPropertyFlags::DEVICE_LOCAL)
+                })
+                .all(|t| {
+                    t.property_flags
+                        .contains(vk::MemoryPropertyFlags::HOST_VISIBLE)
+                })
+                || p.device_type == vk::PhysicalDeviceType::CPU;
+            let device_memory = mem.memory_heaps[..mem.memory_heap_count as usize]
+                .iter()
+                .filter(|h| h.flags.contains(vk::MemoryHeapFlags::DEVICE_LOCAL))
+                .map(|h| h.size)
+                .sum();
+
+            Ok(Caps {
+                index,
+                name: p
+                    .device_name_as_c_str()
+                    .unwrap_or(c"?")
+                    .to_string_lossy()
+                    .into_owned(),
+                kind: match p.device_type {
+                    vk::PhysicalDeviceType::DISCRETE_GPU => "discrete GPU",
+                    vk::PhysicalDeviceType::INTEGRATED_GPU => "integrated GPU",
+                    vk::PhysicalDeviceType::VIRTUAL_GPU => "virtual GPU",
+                    vk::PhysicalDeviceType::CPU => "CPU",
+                    _ => "other",
+                },
+                vendor_id: p.vendor_id,
+                api_version: format!(
+                    "{}.{}.{}",
+                    vk::api_version_major(p.api_version),
+                    vk::api_version_minor(p.api_version),
+                    vk::api_version_patch(p.api_version)
+                ),
+                driver: format!("{} {}", cstr(&p12.driver_name), cstr(&p12.driver_info))
+                    .trim()
+                    .to_string(),
+                subgroup_size: p11.subgroup_size,
+                min_subgroup_size: p13.min_subgroup_size,
+                max_subgroup_size: p13.max_subgroup_size,
+                subgroup_size_control: f13.subgroup_size_control == vk::TRUE,
+                compute_full_subgroups: f13.compute_full_subgroups == vk::TRUE,
+                max_shared_memory: limits.max_compute_shared_memory_size,
+                max_workgroup_invocations: limits.max_compute_work_group_invocations,
+                max_workgroup_count: limits.max_compute_work_group_count,
+                max_storage_buffer_range: limits.max_storage_buffer_range as u64,
+                min_storage_buffer_offset_alignment: limits.min_storage_buffer_offset_alignment,
+                max_buffer_size: p13.max_buffer_size,
+                max_push_constants: limits.max_push_constants_size,
+                f16_arithmetic,
+                f16_storage,
+                int64: base.shader_int64 == vk::TRUE,
+                vulkan_memory_model: f12.vulkan_memory_model == vk::TRUE
+                    && f12.vulkan_memory_model_device_scope == vk::TRUE,
+                float_atomic_add: has_atomic_ext && fa.shader_buffer_float32_atomic_add == vk::TRUE,
+                coop_matrix_shapes,
+                coop_matrix_f16,
+                timestamp_period_ns: limits.timestamp_period as f64,
+                timestamps,
+                unified_memory,
+                device_memory,
+            })
+        }
+    }
+
+    /// Peak rates for devices whose figures are known: (f16 tensor TFLOP/s, f32 TFLOP/s, GB/s).
+    /// Dense figures from the vendors' data sheets; used only to print a fraction of peak.
+    pub fn known_peaks(&self) -> Option<(f64, f64, f64)> {
+        let n = self.name.to_lowercase();
+        if n.contains("h100") && (n.contains("pcie") || n.contains("nvl")) {
+            Some((756.0, 51.0, 2000.0))
+        } else if n.contains("h100") {
+            Some((989.0, 67.0, 3350.0))
+        } else if n.contains("h200") {
+            Some((989.0, 67.0, 4800.0))
+        } else {
+            None
+        }
+    }
+}

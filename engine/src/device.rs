@@ -1,0 +1,361 @@
+//! The Vulkan instance, the chosen physical device and its logical device.
+//!
+//! Device choice: discrete GPU first, then integrated, virtual, CPU; `VELOX_DEVICE` (an index
+//! from `velox info`, or part of a device name) overrides. Everything the kernels need to know
+//! about the device is read once into [`Caps`].
+
+use std::ffi::{c_char, CStr};
+use std::mem::ManuallyDrop;
+use std::sync::{Arc, Mutex};
+
+use ash::vk;
+use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
+
+use crate::caps::Caps;
+use crate::error::{Error, Result, VkCheck};
+use crate::kernels::PipelineCache;
+
+/// A handle to the device; cheap to clone, shared by every tensor and recorder.
+#[derive(Clone)]
+pub struct Gpu {
+    pub(crate) inner: Arc<GpuInner>,
+}
+
+pub(crate) struct GpuInner {
+    _entry: ash::Entry,
+    pub instance: ash::Instance,
+    pub physical: vk::PhysicalDevice,
+    pub device: ash::Device,
+    pub queue: Mutex<vk::Queue>,
+    pub queue_family: u32,
+    pub command_pool: Mutex<vk::CommandPool>,
+    pub allocator: ManuallyDrop<Mutex<Allocator>>,
+    pub push_descriptor: ash::khr::push_descriptor::Device,
+    pub caps: Caps,
+    pub pipelines: PipelineCache,
+}
+
+/// One line of the device list shown by `velox info`.
+#[derive(Clone, Debug)]
+pub struct DeviceSummary {
+    pub index: usize,
+    pub name: String,
+    pub kind: &'static str,
+    pub api_version: String,
+    /// Why the device cannot be used, if it cannot.
+    pub unusable: Option<String>,
+}
+
+const REQUIRED_EXTENSIONS: &[&CStr] = &[ash::khr::push_descriptor::NAME];
+
+fn load_entry() -> Result<ash::Entry> {
+    // SAFETY: loading the system Vulkan loader; its symbols are resolved by ash.
+    unsafe { ash::Entry::load() }.map_err(|e| Error::NoLoader(e.to_string()))
+}
+
+fn create_instance(entry: &ash::Entry) -> Result<ash::Instance> {
+    let app = vk::ApplicationInfo::default()
+        .application_name(c"velox")
+        .engine_name(c"velox-engine")
+        .api_version(vk::API_VERSION_1_3);
+    // Optional validation for debugging kernels and barriers: VELOX_VALIDATE=1.
+    let mut layers: Vec<*const c_char> = Vec::new();
+    let validation = c"VK_LAYER_KHRONOS_validation";
+    if std::env::var("VELOX_VALIDATE").is_ok_and(|v| v == "1") {
+        // SAFETY: plain enumeration call.
+        let available = unsafe { entry.enumerate_instance_layer_properties() }.unwrap_or_default();
+        if available
+            .iter()
+            .any(|l| l.layer_name_as_c_str() == Ok(validation))
+        {
+            layers.push(validation.as_ptr());
+        } else {
+            eprintln!("velox: VELOX_VALIDATE=1 but the Khronos validation layer is not installed");
+        }
+    }
+    let info = vk::InstanceCreateInfo::default()
+        .application_info(&app)
+        .enabled_layer_names(&layers);
+    // SAFETY: the create info and everything it points to outlive the call.
+    unsafe { entry.create_instance(&info, None) }.map_err(|e| match e {
+        vk::Result::ERROR_INCOMPATIBLE_DRIVER => {
+            Error::NoDevice("the Vulkan loader found no driver (ICD)".into())
+        }
+        other => Error::Vulkan {
+            call: "vkCreateInstance",
+            result: other,
+        },
+    })
+}
+
+fn kind_name(t: vk::PhysicalDeviceType) -> (&'static str, u32) {
+    match t {
+        vk::PhysicalDeviceType::DISCRETE_GPU => ("discrete GPU", 0),
+        vk::PhysicalDeviceType::INTEGRATED_GPU => ("integrated GPU", 1),
+        vk::PhysicalDeviceType::VIRTUAL_GPU => ("virtual GPU", 2),
+        vk::PhysicalDeviceType::CPU => ("CPU", 3),
+        _ => ("other", 4),
+    }
+}
+
+fn version_string(v: u32) -> String {
+    format!(
+        "{}.{}.{}",
+        vk::api_version_major(v),
+        vk::api_version_minor(v),
+        vk::api_version_patch(v)
+    )
+}
+
+/// Why a physical device cannot run the engine, or `None` when it can.
+fn unusable_reason(instance: &ash::Instance, pd: vk::PhysicalDevice) -> Option<String> {
+    // SAFETY: `pd` comes from this instance.
+    let props = unsafe { instance.get_physical_device_properties(pd) };
+    if props.api_version < vk::API_VERSION_1_3 {
+        return Some(format!(
+            "Vulkan {} < 1.3",
+            version_string(props.api_version)
+        ));
+    }
+    if compute_queue_family(instance, pd).is_none() {
+        return Some("no compute queue".into());
+    }
+    // SAFETY: as above.
+    let exts = unsafe { instance.enumerate_device_extension_properties(pd) }.unwrap_or_default();
+    for req in REQUIRED_EXTENSIONS {
+        if !exts.iter().any(|e| e.extension_name_as_c_str() == Ok(*req)) {
+            return Some(format!("missing extension {}", req.to_string_lossy()));
+        }
+    }
+    None
+}
+
+fn compute_queue_family(instance: &ash::Instance, pd: vk::PhysicalDevice) -> Option<u32> {
+    // SAFETY: `pd` comes from this instance.
+    let families = unsafe { instance.get_physical_device_queue_family_properties(pd) };
+    // Prefer a family that does compute; graphics+compute families are fine.
+    families
+        .iter()
+        .position(|f| f.queue_flags.contains(vk::QueueFlags::COMPUTE))
+        .map(|i| i as u32)
+}
+
+fn summaries(instance: &ash::Instance) -> Result<(Vec<vk::PhysicalDevice>, Vec<DeviceSummary>)> {
+    // SAFETY: plain enumeration call.
+    let pds = unsafe { instance.enumerate_physical_devices() }.vk("vkEnumeratePhysicalDevices")?;
+    let list = pds
+        .iter()
+        .enumerate()
+        .map(|(index, &pd)| {
+            // SAFETY: `pd` comes from this instance.
+            let props = unsafe { instance.get_physical_device_properties(pd) };
+            DeviceSummary {
+                index,
+                name: props
+                    .device_name_as_c_str()
+                    .unwrap_or(c"?")
+                    .to_string_lossy()
+                    .into_owned(),
+                kind: kind_name(props.device_type).0,
+                api_version: version_string(props.api_version),
+                unusable: unusable_reason(instance, pd),
+            }
+        })
+        .collect();
+    Ok((pds, list))
+}
+
+/// The index of the device to use, honouring `VELOX_DEVICE`.
+fn choose(
+    instance: &ash::Instance,
+    pds: &[vk::PhysicalDevice],
+    list: &[DeviceSummary],
+) -> Result<usize> {
+    if pds.is_empty() {
+        return Err(Error::NoDevice(
+            "the Vulkan loader reports no physical device".into(),
+        ));
+    }
+    if let Ok(want) = std::env::var("VELOX_DEVICE") {
+        let want = want.trim();
+        let found = match want.parse::<usize>() {
+            Ok(i) => list.get(i).map(|d| d.index),
+            Err(_) => list
+                .iter()
+                .find(|d| d.name.to_lowercase().contains(&want.to_lowercase()))
+                .map(|d| d.index),
+        };
+        let names: Vec<String> = list
+            .iter()
+            .map(|d| format!("{}: {}", d.index, d.name))
+            .collect();
+        let i = found.ok_or_else(|| {
+            Error::NoDevice(format!(
+                "VELOX_DEVICE={want} matches none of [{}]",
+                names.join(", ")
+            ))
+        })?;
+        if let Some(why) = &list[i].unusable {
+            return Err(Error::NoDevice(format!(
+                "VELOX_DEVICE={want} selects {}, which cannot be used: {why}",
+                list[i].name
+            )));
+        }
+        return Ok(i);
+    }
+    list.iter()
+        .filter(|d| d.unusable.is_none())
+        .min_by_key(|d| {
+            // SAFETY: `pds[d.index]` comes from this instance.
+            let props = unsafe { instance.get_physical_device_properties(pds[d.index]) };
+            (kind_name(props.device_type).1, d.index)
+        })
+        .map(|d| d.index)
+        .ok_or_else(|| {
+            let why: Vec<String> = list
+                .iter()
+                .map(|d| format!("{} ({})", d.name, d.unusable.clone().unwrap_or_default()))
+                .collect();
+            Error::NoDevice(format!(
+                "none of the devices can be used: {}",
+                why.join("; ")
+            ))
+        })
+}
+
+/// Lists the devices the loader sees, without creating any logical device.
+pub fn list_devices() -> Result<Vec<DeviceSummary>> {
+    let entry = load_entry()?;
+    let instance = create_instance(&entry)?;
+    let result = summaries(&instance).map(|(_, l)| l);
+    // SAFETY: nothing created from the instance is alive.
+    unsafe { instance.destroy_instance(None) };
+    result
+}
+
+impl Gpu {
+    /// Opens the preferred device (see the module docs).
+    pub fn new() -> Result<Gpu> {
+        let entry = load_entry()?;
+        let instance = create_instance(&entry)?;
+        match Self::open(entry, instance.clone()) {
+            Ok(gpu) => Ok(gpu),
+            Err(e) => {
+                // SAFETY: `open` failed before handing the instance to a GpuInner.
+                unsafe { instance.destroy_instance(None) };
+                Err(e)
+            }
+        }
+    }
+
+    fn open(entry: ash::Entry, instance: ash::Instance) -> Result<Gpu> {
+        let (pds, list) = summaries(&instance)?;
+        let index = choose(&instance, &pds, &list)?;
+        let physical = pds[index];
+        let queue_family = compute_queue_family(&instance, physical).expect("checked");
+        let caps = Caps::query(&entry, &instance, physical, index, queue_family)?;
+
+        // Enable exactly what the caps say is there.
+        let mut f11 = vk::PhysicalDeviceVulkan11Features::default()
+            .storage_buffer16_bit_access(caps.f16_storage);
+        let mut f12 = vk::PhysicalDeviceVulkan12Features::default()
+            .shader_float16(caps.f16_arithmetic)
+            .vulkan_memory_model(caps.vulkan_memory_model)
+            .vulkan_memory_model_device_scope(caps.vulkan_memory_model);
+        let mut f13 = vk::PhysicalDeviceVulkan13Features::default()
+            .subgroup_size_control(caps.subgroup_size_control)
+            .compute_full_subgroups(caps.compute_full_subgroups)
+            .maintenance4(true);
+        let mut atomics = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default()
+            .shader_buffer_float32_atomics(caps.float_atomic_add)
+            .shader_buffer_float32_atomic_add(caps.float_atomic_add);
+        let mut coop = vk::PhysicalDeviceCooperativeMatrixFeaturesKHR::default()
+            .cooperative_matrix(caps.coop_matrix_f16.is_some());
+        let base = vk::PhysicalDeviceFeatures::default().shader_int64(caps.int64);
+
+        let mut extensions: Vec<*const c_char> =
+            REQUIRED_EXTENSIONS.iter().map(|e| e.as_ptr()).collect();
+        let mut features = vk::PhysicalDeviceFeatures2::default()
+            .features(base)
+            .push_next(&mut f11)
+            .push_next(&mut f12)
+            .push_next(&mut f13);
+        if caps.float_atomic_add {
+            extensions.push(ash::ext::shader_atomic_float::NAME.as_ptr());
+            features = features.push_next(&mut atomics);
+        }
+        if caps.coop_matrix_f16.is_some() {
+            extensions.push(ash::khr::cooperative_matrix::NAME.as_ptr());
+            features = features.push_next(&mut coop);
+        }
+        let priorities = [1.0f32];
+        let queues = [vk::DeviceQueueCreateInfo::default()
+            .queue_family_index(queue_family)
+            .queue_priorities(&priorities)];
+        let info = vk::DeviceCreateInfo::default()
+            .queue_create_infos(&queues)
+            .enabled_extension_names(&extensions)
+            .push_next(&mut features);
+        // SAFETY: the create info and its chain outlive the call.
+        let device =
+            unsafe { instance.create_device(physical, &info, None) }.vk("vkCreateDevice")?;
+        // SAFETY: the queue family and index were requested above.
+        let queue = unsafe { device.get_device_queue(queue_family, 0) };
+        let pool_info = vk::CommandPoolCreateInfo::default()
+            .queue_family_index(queue_family)
+            .flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER);
+        // SAFETY: valid device and create info.
+        let command_pool =
+            unsafe { device.create_command_pool(&pool_info, None) }.vk("vkCreateCommandPool")?;
+        let allocator = Allocator::new(&AllocatorCreateDesc {
+            instance: instance.clone(),
+            device: device.clone(),
+            physical_device: physical,
+            debug_settings: Default::default(),
+            buffer_device_address: false,
+            allocation_sizes: Default::default(),
+        })
+        .map_err(|e| Error::OutOfMemory(format!("creating the allocator: {e}")))?;
+        let push_descriptor = ash::khr::push_descriptor::Device::new(&instance, &device);
+        Ok(Gpu {
+            inner: Arc::new(GpuInner {
+                _entry: entry,
+                instance,
+                physical,
+                device,
+                queue: Mutex::new(queue),
+                queue_family,
+                command_pool: Mutex::new(command_pool),
+                allocator: ManuallyDrop::new(Mutex::new(allocator)),
+                push_descriptor,
+                caps,
+                pipelines: PipelineCache::new(),
+            }),
+        })
+    }
+
+    /// What the device offers and what the kernels will use.
+    pub fn caps(&self) -> &Caps {
+        &self.inner.caps
+    }
+
+    pub(crate) fn device(&self) -> &ash::Device {
+        &self.inner.device
+    }
+}
+
+impl Drop for GpuInner {
+    fn drop(&mut self) {
+        // SAFETY: the last handle is going away; no tensor or recorder can still use the
+        // device because each holds a `Gpu` clone.
+        unsafe {
+            let _ = self.device.device_wait_idle();
+            self.pipelines.destroy(&self.device);
+            self.device
+                .destroy_command_pool(*self.command_pool.get_mut().unwrap(), None);
+            ManuallyDrop::drop(&mut self.allocator);
+            self.device.destroy_device(None);
+            self.instance.destroy_instance(None);
+        }
+    }
+}

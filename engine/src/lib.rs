@@ -1,0 +1,23 @@
+//! velox-engine: a small tensor runtime written directly on Vulkan compute.
+//!
+//! - [`Gpu`] opens a device ([`device`]) and reads its features ([`caps`]);
+//! - [`Tensor`] holds device memory ([`tensor`]);
+//! - kernels are WGSL files in `shaders/`, compiled to SPIR-V by naga at build time
+//!   ([`kernels`]);
+//! - a [`Recorder`] batches dispatches into one command buffer with the barriers they need
+//!   ([`recorder`]);
+//! - [`ops`] holds each op's host side next to its f64 CPU reference.
+
+pub mod caps;
+pub mod device;
+pub mod error;
+pub mod kernels;
+pub mod ops;
+pub mod recorder;
+pub mod tensor;
+
+pub use caps::Caps;
+pub use device::{list_devices, DeviceSummary, Gpu};
+pub use error::{Error, Result};
+pub use recorder::{Finished, Recorder};
+pub use tensor::{DType, Element, Tensor};

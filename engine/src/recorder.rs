@@ -1,0 +1,378 @@
+//! Records many dispatches into one command buffer and submits them once.
+//!
+//! A barrier goes in only where a dispatch depends on earlier work in the same command buffer:
+//! it reads or writes a buffer written since the last barrier (read-after-write, write-after-
+//! write), or writes a buffer read since then (write-after-read). What a kernel reads and
+//! writes comes from naga's analysis at build time, so the tracking cannot drift from the
+//! shader. Workgroup counts above the per-dimension limit are folded into a second dimension;
+//! kernels recover the linear workgroup index as `wid.x + wid.y * nwg.x`.
+
+use std::sync::Arc;
+
+use ash::vk;
+
+use crate::device::Gpu;
+use crate::error::{Error, Result, VkCheck};
+use crate::kernels::KernelId;
+use crate::tensor::{Buffer, Tensor};
+
+const MAX_TIMESTAMPS: u32 = 256;
+
+pub struct Recorder {
+    gpu: Gpu,
+    cmd: vk::CommandBuffer,
+    fence: vk::Fence,
+    queries: Option<vk::QueryPool>,
+    timestamps: u32,
+    written: Vec<vk::Buffer>,
+    read: Vec<vk::Buffer>,
+    keep: Vec<Arc<Buffer>>,
+    dispatches: usize,
+    barriers: usize,
+    submitted: bool,
+}
+
+/// What a finished recording reports.
+#[derive(Clone, Debug, Default)]
+pub struct Finished {
+    /// Timestamp values in nanoseconds, in the order they were written (empty when the device
+    /// has no timestamps).
+    pub timestamps_ns: Vec<f64>,
+    pub dispatches: usize,
+    pub barriers: usize,
+}
+
+impl Gpu {
+    /// A new recording; nothing runs until [`Recorder::submit`].
+    pub fn recorder(&self) -> Result<Recorder> {
+        let device = self.device();
+        let pool = self.inner.command_pool.lock().unwrap();
+        let info = vk::CommandBufferAllocateInfo::default()
+            .command_pool(*pool)
+            .level(vk::CommandBufferLevel::PRIMARY)
+            .command_buffer_count(1);
+        // SAFETY: the pool is externally synchronised by its mutex.
+        let cmd =
+            unsafe { device.allocate_command_buffers(&info) }.vk("vkAllocateCommandBuffers")?[0];
+        drop(pool);
+        // SAFETY: valid device.
+        let fence = unsafe { device.create_fence(&vk::FenceCreateInfo::default(), None) }
+            .vk("vkCreateFence")?;
+        let rec = Recorder {
+            gpu: self.clone(),
+            cmd,
+            fence,
+            queries: None,
+            timestamps: 0,
+            written: Vec::new(),
+            read: Vec::new(),
+            keep: Vec::new(),
+            dispatches: 0,
+            barriers: 0,
+            submitted: false,
+        };
+        let begin = vk::CommandBufferBeginInfo::default()
+            .flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
+        // SAFETY: a freshly allocated command buffer.
+        unsafe { device.begin_command_buffer(cmd, &begin) }.vk("vkBeginCommandBuffer")?;
+        Ok(rec.with_timestamps_if_possible())
+    }
+}
+
+impl Recorder {
+    fn with_timestamps_if_possible(mut self) -> Self {
+        if self.gpu.caps().timestamps {
+            let info = vk::QueryPoolCreateInfo::default()
+                .query_type(vk::QueryType::TIMESTAMP)
+                .query_count(MAX_TIMESTAMPS);
+            // SAFETY: valid device; the pool is reset in the command buffer before use.
+            if let Ok(pool) = unsafe { self.gpu.device().create_query_pool(&info, None) } {
+                unsafe {
+                    self.gpu
+                        .device()
+                        .cmd_reset_query_pool(self.cmd, pool, 0, MAX_TIMESTAMPS)
+                };
+                self.queries = Some(pool);
+            }
+        }
+        self
+    }
+
+    /// Inserts a barrier if the next access of `reads` and `writes` depends on earlier work.
+    fn hazard_barrier(&mut self, reads: &[vk::Buffer], writes: &[vk::Buffer]) {
+        let raw_or_waw = reads.iter().chain(writes).any(|b| self.written.contains(b));
+        let war = writes.iter().any(|b| self.read.contains(b));
+        if raw_or_waw || war {
+            self.full_barrier();
+        }
+        self.read.extend_from_slice(reads);
+        self.written.extend_from_slice(writes);
+    }
+
+    /// Makes every earlier shader or transfer write visible to every later access.
+    pub fn full_barrier(&mut self) {
+        let barrier = vk::MemoryBarrier2::default()
+            .src_stage_mask(
+                vk::PipelineStageFlags2::COMPUTE_SHADER | vk::PipelineStageFlags2::TRANSFER,
+            )
+            .src_access_mask(vk::AccessFlags2::SHADER_WRITE | vk::AccessFlags2::TRANSFER_WRITE)
+            .dst_stage_mask(
+                vk::PipelineStageFlags2::COMPUTE_SHADER | vk::PipelineStageFlags2::TRANSFER,
+            )
+            .dst_access_mask(
+                vk::AccessFlags2::SHADER_READ
+                    | vk::AccessFlags2::SHADER_WRITE
+                    | vk::AccessFlags2::TRANSFER_READ
+                    | vk::AccessFlags2::TRANSFER_WRITE,
+            );
+        let barriers = [barrier];
+        let dep = vk::DependencyInfo::default().memory_barriers(&barriers);
+        // SAFETY: recording state.
+        unsafe { self.gpu.device().cmd_pipeline_barrier2(self.cmd, &dep) };
+        self.written.clear();
+        self.read.clear();
+        self.barriers += 1;
+    }
+
+    /// Records `kernel` over `groups` workgroups with `args` bound in binding order and `push`
+    /// as its push constants.
+    pub fn dispatch<P: bytemuck::Pod>(
+        &mut self,
+        kernel: KernelId,
+        groups: [u32; 3],
+        args: &[&Tensor],
+        push: &P,
+    ) -> Result<()> {
+        let info = kernel.info();
+        if args.len() != info.bindings.len() {
+            return Err(Error::Shape(format!(
+                "kernel {} takes {} buffers, {} given",
+                kernel.name(),
+                info.bindings.len(),
+                args.len()
+            )));
+        }
+        let push_bytes = bytemuck::bytes_of(push);
+        if push_bytes.len() as u32 != info.push_bytes {
+            return Err(Error::Shape(format!(
+                "kernel {} takes {} bytes of push constants, {} given",
+                kernel.name(),
+                info.push_bytes,
+                push_bytes.len()
+            )));
+        }
+        let max = self.gpu.caps().max_workgroup_count;
+        if groups.iter().zip(max).any(|(g, m)| *g > m) {
+            return Err(Error::TooLarge(format!(
+                "kernel {}: {groups:?} workgroups, the device allows {max:?}",
+                kernel.name()
+            )));
+        }
+        if groups.contains(&0) {
+            return Ok(());
+        }
+        for t in args {
+            t.check_bindable(&kernel.name())?;
+        }
+        let pipeline = self.gpu.pipeline(kernel)?;
+
+        let reads: Vec<vk::Buffer> = args.iter().map(|t| t.buf.raw).collect();
+        let writes: Vec<vk::Buffer> = args
+            .iter()
+            .zip(info.bindings)
+            .filter(|(_, b)| b.writes)
+            .map(|(t, _)| t.buf.raw)
+            .collect();
+        self.hazard_barrier(&reads, &writes);
+
+        let buffer_infos: Vec<[vk::DescriptorBufferInfo; 1]> = args
+            .iter()
+            .map(|t| {
+                [vk::DescriptorBufferInfo::default()
+                    .buffer(t.buf.raw)
+                    .offset(0)
+                    .range(t.buf.size)]
+            })
+            .collect();
+        let writes_desc: Vec<vk::WriteDescriptorSet> = info
+            .bindings
+            .iter()
+            .zip(&buffer_infos)
+            .map(|(b, bi)| {
+                vk::WriteDescriptorSet::default()
+                    .dst_binding(b.binding)
+                    .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
+                    .buffer_info(bi)
+            })
+            .collect();
+        let device = self.gpu.device();
+        // SAFETY: recording state; every bound buffer is kept alive in `self.keep` until the
+        // command buffer has finished.
+        unsafe {
+            device.cmd_bind_pipeline(self.cmd, vk::PipelineBindPoint::COMPUTE, pipeline.pipeline);
+            self.gpu.inner.push_descriptor.cmd_push_descriptor_set(
+                self.cmd,
+                vk::PipelineBindPoint::COMPUTE,
+                pipeline.layout,
+                0,
+                &writes_desc,
+            );
+            if !push_bytes.is_empty() {
+                device.cmd_push_constants(
+                    self.cmd,
+                    pipeline.layout,
+                    vk::ShaderStageFlags::COMPUTE,
+                    0,
+                    push_bytes,
+                );
+            }
+            device.cmd_dispatch(self.cmd, groups[0], groups[1], groups[2]);
+        }
+        self.keep.extend(args.iter().map(|t| t.buf.clone()));
+        self.dispatches += 1;
+        Ok(())
+    }
+
+    /// Dispatches `total` workgroups of a kernel that linearises `wid.x + wid.y * nwg.x` and
+    /// returns early past `total` (every 1D kernel in shaders/ does).
+    pub fn dispatch_linear<P: bytemuck::Pod>(
+        &mut self,
+        kernel: KernelId,
+        total: u64,
+        args: &[&Tensor],
+        push: &P,
+    ) -> Result<()> {
+        let groups =
+            linear_groups(total, self.gpu.caps().max_workgroup_count).ok_or_else(|| {
+                Error::TooLarge(format!("kernel {}: {total} workgroups", kernel.name()))
+            })?;
+        self.dispatch(kernel, groups, args, push)
+    }
+
+    /// Copies `bytes` bytes between raw buffers (uploads and downloads).
+    pub(crate) fn copy_raw(&mut self, src: &Buffer, dst: &Buffer, bytes: u64) {
+        self.hazard_barrier(&[src.raw], &[dst.raw]);
+        let region = [vk::BufferCopy::default().size(bytes)];
+        // SAFETY: recording state; the caller keeps both buffers alive until submit returns.
+        unsafe {
+            self.gpu
+                .device()
+                .cmd_copy_buffer(self.cmd, src.raw, dst.raw, &region)
+        };
+    }
+
+    /// Copies the whole of `src` into `dst` (same byte size).
+    pub fn copy(&mut self, src: &Tensor, dst: &Tensor) -> Result<()> {
+        if src.bytes() != dst.bytes() {
+            return Err(Error::Shape(format!(
+                "copy {src:?} into {dst:?}: sizes differ"
+            )));
+        }
+        if src.bytes() == 0 {
+            return Ok(());
+        }
+        self.copy_raw(&src.buf, &dst.buf, src.bytes());
+        self.keep.push(src.buf.clone());
+        self.keep.push(dst.buf.clone());
+        Ok(())
+    }
+
+    /// Writes a GPU timestamp after all earlier work; returns its index in
+    /// [`Finished::timestamps_ns`], or `None` if the device cannot time.
+    pub fn timestamp(&mut self) -> Option<usize> {
+        let pool = self.queries?;
+        if self.timestamps >= MAX_TIMESTAMPS {
+            return None;
+        }
+        // SAFETY: recording state, query index within the pool.
+        unsafe {
+            self.gpu.device().cmd_write_timestamp2(
+                self.cmd,
+                vk::PipelineStageFlags2::ALL_COMMANDS,
+                pool,
+                self.timestamps,
+            )
+        };
+        self.timestamps += 1;
+        Some(self.timestamps as usize - 1)
+    }
+
+    pub fn dispatch_count(&self) -> usize {
+        self.dispatches
+    }
+
+    /// Submits the recording and waits for it to finish.
+    pub fn submit(mut self) -> Result<Finished> {
+        let device = self.gpu.device().clone();
+        // SAFETY: recording state; the fence is unsignalled; the queue is externally
+        // synchronised by its mutex.
+        unsafe {
+            device
+                .end_command_buffer(self.cmd)
+                .vk("vkEndCommandBuffer")?;
+            let cmds = [self.cmd];
+            let submit = [vk::SubmitInfo::default().command_buffers(&cmds)];
+            {
+                let queue = self.gpu.inner.queue.lock().unwrap();
+                device
+                    .queue_submit(*queue, &submit, self.fence)
+                    .vk("vkQueueSubmit")?;
+            }
+            self.submitted = true;
+            device
+                .wait_for_fences(&[self.fence], true, u64::MAX)
+                .vk("vkWaitForFences")?;
+        }
+        let mut timestamps_ns = Vec::new();
+        if let (Some(pool), n) = (self.queries, self.timestamps) {
+            if n > 0 {
+                let mut raw = vec![0u64; n as usize];
+                // SAFETY: the work has finished, so every written query is available.
+                unsafe {
+                    device
+                        .get_query_pool_results(pool, 0, &mut raw, vk::QueryResultFlags::TYPE_64)
+                        .vk("vkGetQueryPoolResults")?
+                };
+                let period = self.gpu.caps().timestamp_period_ns;
+                timestamps_ns = raw.iter().map(|&t| t as f64 * period).collect();
+            }
+        }
+        Ok(Finished {
+            timestamps_ns,
+            dispatches: self.dispatches,
+            barriers: self.barriers,
+        })
+    }
+}
+
+impl Drop for Recorder {
+    fn drop(&mut self) {
+        let device = self.gpu.device();
+        // SAFETY: after `submit` the work has completed (or failed to start); without submit
+        // the command buffer never ran.
+        unsafe {
+            if self.submitted {
+                // If waiting failed in `submit`, the GPU may still hold the buffer.
+                let _ = device.wait_for_fences(&[self.fence], true, u64::MAX);
+            }
+            let pool = self.gpu.inner.command_pool.lock().unwrap();
+            device.free_command_buffers(*pool, &[self.cmd]);
+            drop(pool);
+            device.destroy_fence(self.fence, None);
+            if let Some(q) = self.queries {
+                device.destroy_query_pool(q, None);
+            }
+        }
+        self.keep.clear();
+    }
+}
+
+/// Splits `total` workgroups into a 2D grid within the per-dimension limits.
+pub fn linear_groups(total: u64, max: [u32; 3]) -> Option<[u32; 3]> {
+    if total == 0 {
+        return Some([0, 1, 1]);
+    }
+    let x = total.min(max[0] as u64);
+    let y = total.div_ceil(x);
+    (y <= max[1] as u64).then_some([x as u32, y as u32, 1])
+}

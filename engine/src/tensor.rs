@@ -1,0 +1,359 @@
+//! Device buffers and tensors.
+//!
+//! Every tensor owns (a share of) one `VkBuffer` that starts at offset 0, so it can be bound
+//! whole. Memory comes from gpu-allocator: mapped host-visible memory on unified-memory devices
+//! (CPU and most integrated GPUs: reads and writes are plain copies), device-local memory on
+//! discrete GPUs (reads and writes go through a staging buffer).
+
+use std::sync::Arc;
+
+use ash::vk;
+use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
+use gpu_allocator::MemoryLocation;
+
+use crate::device::Gpu;
+use crate::error::{Error, Result, VkCheck};
+
+/// Element type of a tensor.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum DType {
+    F32,
+    F16,
+    U32,
+    I32,
+}
+
+impl DType {
+    pub fn size(self) -> usize {
+        match self {
+            DType::F16 => 2,
+            _ => 4,
+        }
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            DType::F32 => "f32",
+            DType::F16 => "f16",
+            DType::U32 => "u32",
+            DType::I32 => "i32",
+        }
+    }
+}
+
+/// A raw device buffer with its memory.
+pub struct Buffer {
+    gpu: Gpu,
+    pub(crate) raw: vk::Buffer,
+    allocation: Option<Allocation>,
+    /// Size in bytes the buffer was created with (at least 4).
+    pub(crate) size: u64,
+}
+
+impl Buffer {
+    pub(crate) fn new(
+        gpu: &Gpu,
+        size: u64,
+        location: MemoryLocation,
+        name: &str,
+    ) -> Result<Buffer> {
+        let caps = gpu.caps();
+        // Vulkan forbids empty buffers; 16 bytes also keeps f16 tails in whole words.
+        let size = size.max(16).next_multiple_of(4);
+        if size > caps.max_buffer_size {
+            return Err(Error::TooLarge(format!(
+                "{name}: a buffer of {size} bytes exceeds the device's maximum buffer size of {} bytes",
+                caps.max_buffer_size
+            )));
+        }
+        let device = gpu.device();
+        let info = vk::BufferCreateInfo::default()
+            .size(size)
+            .usage(
+                vk::BufferUsageFlags::STORAGE_BUFFER
+                    | vk::BufferUsageFlags::TRANSFER_SRC
+                    | vk::BufferUsageFlags::TRANSFER_DST,
+            )
+            .sharing_mode(vk::SharingMode::EXCLUSIVE);
+        // SAFETY: valid device and create info.
+        let raw = unsafe { device.create_buffer(&info, None) }.vk("vkCreateBuffer")?;
+        // SAFETY: `raw` was just created on this device.
+        let requirements = unsafe { device.get_buffer_memory_requirements(raw) };
+        let allocation = gpu
+            .inner
+            .allocator
+            .lock()
+            .unwrap()
+            .allocate(&AllocationCreateDesc {
+                name,
+                requirements,
+                location,
+                linear: true,
+                allocation_scheme: AllocationScheme::GpuAllocatorManaged,
+            });
+        let allocation = match allocation {
+            Ok(a) => a,
+            Err(e) => {
+                // SAFETY: the buffer has no memory bound and is not in use.
+                unsafe { device.destroy_buffer(raw, None) };
+                return Err(Error::OutOfMemory(format!("{name}: {size} bytes: {e}")));
+            }
+        };
+        // SAFETY: the allocation satisfies the buffer's requirements.
+        if let Err(e) =
+            unsafe { device.bind_buffer_memory(raw, allocation.memory(), allocation.offset()) }
+        {
+            // SAFETY: as above.
+            unsafe { device.destroy_buffer(raw, None) };
+            let _ = gpu.inner.allocator.lock().unwrap().free(allocation);
+            return Err(Error::Vulkan {
+                call: "vkBindBufferMemory",
+                result: e,
+            });
+        }
+        Ok(Buffer {
+            gpu: gpu.clone(),
+            raw,
+            allocation: Some(allocation),
+            size,
+        })
+    }
+
+    /// The mapped bytes, when the buffer lives in host-visible memory.
+    pub(crate) fn mapped(&self) -> Option<*mut u8> {
+        self.allocation
+            .as_ref()
+            .and_then(|a| a.mapped_ptr())
+            .map(|p| p.as_ptr() as *mut u8)
+    }
+}
+
+impl Drop for Buffer {
+    fn drop(&mut self) {
+        // SAFETY: recorders keep an `Arc<Buffer>` of every buffer they bind until their work
+        // has finished, so the last drop happens when no command uses the buffer.
+        unsafe { self.gpu.device().destroy_buffer(self.raw, None) };
+        if let Some(a) = self.allocation.take() {
+            let _ = self.gpu.inner.allocator.lock().unwrap().free(a);
+        }
+    }
+}
+
+/// A dense row-major tensor on the device.
+#[derive(Clone)]
+pub struct Tensor {
+    pub(crate) buf: Arc<Buffer>,
+    shape: Vec<usize>,
+    dtype: DType,
+}
+
+impl std::fmt::Debug for Tensor {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Tensor({:?}, {})", self.shape, self.dtype.name())
+    }
+}
+
+/// Plain element types that map to a [`DType`].
+pub trait Element: bytemuck::Pod {
+    const DTYPE: DType;
+}
+impl Element for f32 {
+    const DTYPE: DType = DType::F32;
+}
+impl Element for u32 {
+    const DTYPE: DType = DType::U32;
+}
+impl Element for i32 {
+    const DTYPE: DType = DType::I32;
+}
+impl Element for half::f16 {
+    const DTYPE: DType = DType::F16;
+}
+
+pub(crate) fn numel_of(shape: &[usize]) -> Result<usize> {
+    shape
+        .iter()
+        .try_fold(1usize, |acc, &d| acc.checked_mul(d))
+        .ok_or_else(|| {
+            Error::TooLarge(format!(
+                "shape {shape:?} has more elements than fit in memory"
+            ))
+        })
+}
+
+impl Tensor {
+    /// An uninitialised tensor.
+    pub fn empty(gpu: &Gpu, shape: &[usize], dtype: DType) -> Result<Tensor> {
+        let n = numel_of(shape)?;
+        let bytes = (n as u64)
+            .checked_mul(dtype.size() as u64)
+            .ok_or_else(|| Error::TooLarge(format!("shape {shape:?}")))?;
+        let location = if gpu.caps().unified_memory {
+            MemoryLocation::CpuToGpu
+        } else {
+            MemoryLocation::GpuOnly
+        };
+        let buf = Buffer::new(gpu, bytes, location, "tensor")?;
+        Ok(Tensor {
+            buf: Arc::new(buf),
+            shape: shape.to_vec(),
+            dtype,
+        })
+    }
+
+    /// A tensor holding `data`, which must have as many elements as `shape`.
+    pub fn from_slice<T: Element>(gpu: &Gpu, shape: &[usize], data: &[T]) -> Result<Tensor> {
+        let n = numel_of(shape)?;
+        if n != data.len() {
+            return Err(Error::Shape(format!(
+                "shape {shape:?} holds {n} elements but {} were given",
+                data.len()
+            )));
+        }
+        let t = Tensor::empty(gpu, shape, T::DTYPE)?;
+        t.write(data)?;
+        Ok(t)
+    }
+
+    /// Overwrites the whole tensor with `data`.
+    pub fn write<T: Element>(&self, data: &[T]) -> Result<()> {
+        self.check_host_type::<T>(data.len())?;
+        self.gpu()
+            .write_buffer(&self.buf, bytemuck::cast_slice(data))
+    }
+
+    /// Reads the whole tensor back.
+    pub fn read<T: Element>(&self) -> Result<Vec<T>> {
+        self.check_host_type::<T>(self.numel())?;
+        let mut out = vec![T::zeroed(); self.numel()];
+        self.gpu()
+            .read_buffer(&self.buf, bytemuck::cast_slice_mut(&mut out))?;
+        Ok(out)
+    }
+
+    fn check_host_type<T: Element>(&self, len: usize) -> Result<()> {
+        if T::DTYPE != self.dtype {
+            return Err(Error::Shape(format!(
+                "tensor is {} but the host data is {}",
+                self.dtype.name(),
+                T::DTYPE.name()
+            )));
+        }
+        if len != self.numel() {
+            return Err(Error::Shape(format!(
+                "tensor {:?} holds {} elements, host data {}",
+                self.shape,
+                self.numel(),
+                len
+            )));
+        }
+        Ok(())
+    }
+
+    pub fn shape(&self) -> &[usize] {
+        &self.shape
+    }
+    pub fn dtype(&self) -> DType {
+        self.dtype
+    }
+    pub fn numel(&self) -> usize {
+        self.shape.iter().product()
+    }
+    pub fn bytes(&self) -> u64 {
+        (self.numel() * self.dtype.size()) as u64
+    }
+    pub fn gpu(&self) -> &Gpu {
+        &self.buf.gpu
+    }
+
+    /// The same data under another shape with the same number of elements.
+    pub fn reshape(&self, shape: &[usize]) -> Result<Tensor> {
+        if numel_of(shape)? != self.numel() {
+            return Err(Error::Shape(format!(
+                "cannot reshape {:?} to {shape:?}",
+                self.shape
+            )));
+        }
+        Ok(Tensor {
+            buf: self.buf.clone(),
+            shape: shape.to_vec(),
+            dtype: self.dtype,
+        })
+    }
+
+    /// Whether two tensors share storage.
+    pub fn same_storage(&self, other: &Tensor) -> bool {
+        Arc::ptr_eq(&self.buf, &other.buf)
+    }
+
+    /// Fails with a clear message when the tensor cannot be bound as one storage buffer.
+    pub(crate) fn check_bindable(&self, what: &str) -> Result<()> {
+        let max = self.gpu().caps().max_storage_buffer_range;
+        if self.bytes() > max {
+            return Err(Error::TooLarge(format!(
+                "{what}: tensor {:?} {} is {} bytes, more than the {} bytes this device binds as one storage buffer",
+                self.shape,
+                self.dtype.name(),
+                self.bytes(),
+                max
+            )));
+        }
+        Ok(())
+    }
+}
+
+impl Gpu {
+    pub(crate) fn write_buffer(&self, buf: &Buffer, bytes: &[u8]) -> Result<()> {
+        if bytes.is_empty() {
+            return Ok(());
+        }
+        if let Some(ptr) = buf.mapped() {
+            // SAFETY: the mapping covers `buf.size >= bytes.len()` bytes, and no GPU work is in
+            // flight: every recorder waits for its work before returning.
+            unsafe { std::ptr::copy_nonoverlapping(bytes.as_ptr(), ptr, bytes.len()) };
+            return Ok(());
+        }
+        let staging = Buffer::new(
+            self,
+            bytes.len() as u64,
+            MemoryLocation::CpuToGpu,
+            "upload staging",
+        )?;
+        let ptr = staging
+            .mapped()
+            .ok_or_else(|| Error::Unsupported("staging memory is not host-visible".into()))?;
+        // SAFETY: the staging mapping holds at least `bytes.len()` bytes.
+        unsafe { std::ptr::copy_nonoverlapping(bytes.as_ptr(), ptr, bytes.len()) };
+        self.copy_now(&staging, buf, bytes.len() as u64)
+    }
+
+    pub(crate) fn read_buffer(&self, buf: &Buffer, out: &mut [u8]) -> Result<()> {
+        if out.is_empty() {
+            return Ok(());
+        }
+        if let Some(ptr) = buf.mapped() {
+            // SAFETY: as in `write_buffer`.
+            unsafe { std::ptr::copy_nonoverlapping(ptr, out.as_mut_ptr(), out.len()) };
+            return Ok(());
+        }
+        let staging = Buffer::new(
+            self,
+            out.len() as u64,
+            MemoryLocation::GpuToCpu,
+            "download staging",
+        )?;
+        self.copy_now(buf, &staging, out.len() as u64)?;
+        let ptr = staging
+            .mapped()
+            .ok_or_else(|| Error::Unsupported("staging memory is not host-visible".into()))?;
+        // SAFETY: the copy has completed; the mapping holds `out.len()` bytes.
+        unsafe { std::ptr::copy_nonoverlapping(ptr, out.as_mut_ptr(), out.len()) };
+        Ok(())
+    }
+
+    fn copy_now(&self, src: &Buffer, dst: &Buffer, bytes: u64) -> Result<()> {
+        let mut rec = self.recorder()?;
+        rec.copy_raw(src, dst, bytes);
+        rec.submit()?;
+        Ok(())
+    }
+}

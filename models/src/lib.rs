@@ -1,0 +1,1 @@
+pub use velox_engine as engine;
