@@ -14,6 +14,8 @@ pub mod error;
 pub mod kernels;
 pub mod ops;
 pub mod recorder;
+pub mod rng;
+pub mod stats;
 pub mod tensor;
 
 pub use caps::Caps;
