@@ -24,10 +24,8 @@ pub struct Gpu {
 pub(crate) struct GpuInner {
     _entry: ash::Entry,
     pub instance: ash::Instance,
-    pub physical: vk::PhysicalDevice,
     pub device: ash::Device,
     pub queue: Mutex<vk::Queue>,
-    pub queue_family: u32,
     pub command_pool: Mutex<vk::CommandPool>,
     pub allocator: ManuallyDrop<Mutex<Allocator>>,
     pub push_descriptor: ash::khr::push_descriptor::Device,
@@ -321,10 +319,8 @@ impl Gpu {
             inner: Arc::new(GpuInner {
                 _entry: entry,
                 instance,
-                physical,
                 device,
                 queue: Mutex::new(queue),
-                queue_family,
                 command_pool: Mutex::new(command_pool),
                 allocator: ManuallyDrop::new(Mutex::new(allocator)),
                 push_descriptor,

@@ -297,6 +297,11 @@ impl Recorder {
         Some(self.timestamps as usize - 1)
     }
 
+    /// The device this recording is for.
+    pub fn gpu(&self) -> &Gpu {
+        &self.gpu
+    }
+
     pub fn dispatch_count(&self) -> usize {
         self.dispatches
     }

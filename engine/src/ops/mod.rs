@@ -1,4 +1,11 @@
 //! Ops: each file holds one op family's host side (validation, dispatch) and its f64 CPU
 //! reference (`reference` submodule), next to `shaders/<op>.wgsl`.
 
+pub mod binary;
+pub mod cast;
 pub mod fill;
+pub mod gather;
+pub mod reduce;
+pub mod scatter_add;
+pub mod softmax;
+pub mod unary;

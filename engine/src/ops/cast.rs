@@ -1,0 +1,53 @@
+//! f32 <-> f16 conversion. Kernel: `shaders/cast.wgsl` (packed halves, runs everywhere).
+
+use crate::error::{Error, Result};
+use crate::kernels::{CAST_F16_TO_F32, CAST_F32_TO_F16};
+use crate::recorder::Recorder;
+use crate::tensor::{DType, Tensor};
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    n: u32,
+}
+
+/// A new tensor of the same shape converted to `dtype` (f32 <-> f16; same dtype copies).
+/// f32 -> f16 rounds to nearest even; values beyond the f16 range become +-Inf, as in IEEE.
+pub fn cast(rec: &mut Recorder, x: &Tensor, dtype: DType) -> Result<Tensor> {
+    let out = Tensor::empty(x.gpu(), x.shape(), dtype)?;
+    cast_into(rec, x, &out)?;
+    Ok(out)
+}
+
+/// Converts `x` into `out` (same shape).
+pub fn cast_into(rec: &mut Recorder, x: &Tensor, out: &Tensor) -> Result<()> {
+    if x.shape() != out.shape() {
+        return Err(Error::Shape(format!(
+            "cast {x:?} into {out:?}: shapes differ"
+        )));
+    }
+    let n = u32::try_from(x.numel()).map_err(|_| Error::TooLarge(format!("cast of {x:?}")))?;
+    let words = (n as u64).div_ceil(2);
+    let params = Params { n };
+    match (x.dtype(), out.dtype()) {
+        (a, b) if a == b => rec.copy(x, out),
+        (DType::F32, DType::F16) => {
+            rec.dispatch_linear(CAST_F32_TO_F16, words.div_ceil(256), &[x, out], &params)
+        }
+        (DType::F16, DType::F32) => {
+            rec.dispatch_linear(CAST_F16_TO_F32, words.div_ceil(256), &[x, out], &params)
+        }
+        (a, b) => Err(Error::Shape(format!(
+            "cast from {} to {} is not supported",
+            a.name(),
+            b.name()
+        ))),
+    }
+}
+
+pub mod reference {
+    /// f32 -> f16 -> f64, round to nearest even (the `half` crate's conversion).
+    pub fn to_f16(x: &[f32]) -> Vec<f64> {
+        x.iter().map(|&v| half::f16::from_f32(v).to_f64()).collect()
+    }
+}

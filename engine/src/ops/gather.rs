@@ -1,0 +1,69 @@
+//! Row gather. Kernel: `shaders/gather.wgsl`.
+
+use crate::error::{Error, Result};
+use crate::kernels::GATHER_MAIN;
+use crate::recorder::Recorder;
+use crate::tensor::{DType, Tensor};
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct RowParams {
+    pub rows: u32,
+    pub width: u32,
+    pub other_rows: u32,
+}
+
+/// Splits a tensor into (rows, width) with width the product of all but the first axis.
+pub(crate) fn rows_width(t: &Tensor) -> Result<(usize, usize)> {
+    match t.shape() {
+        [] => Err(Error::Shape(format!("{t:?} has no row axis"))),
+        [r, rest @ ..] => Ok((*r, rest.iter().product())),
+    }
+}
+
+/// out[r] = src[idx[r]] for every r (rows are the first axis; idx is u32 of any shape whose
+/// elements count the output rows). An index past src's rows gives a row of zeros.
+pub fn gather(rec: &mut Recorder, src: &Tensor, idx: &Tensor) -> Result<Tensor> {
+    let (src_rows, width) = rows_width(src)?;
+    if src.dtype() != DType::F32 || idx.dtype() != DType::U32 {
+        return Err(Error::Shape(format!(
+            "gather needs f32 rows and u32 indices, got {src:?}, {idx:?}"
+        )));
+    }
+    let mut shape = vec![idx.numel()];
+    shape.extend_from_slice(&src.shape()[1..]);
+    let out = Tensor::empty(src.gpu(), &shape, DType::F32)?;
+    let total = out.numel();
+    let fit =
+        |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("gather into {shape:?}")));
+    let p = RowParams {
+        rows: fit(idx.numel())?,
+        width: fit(width)?,
+        other_rows: fit(src_rows)?,
+    };
+    fit(total)?;
+    rec.dispatch_linear(
+        GATHER_MAIN,
+        (total as u64).div_ceil(256),
+        &[src, idx, &out],
+        &p,
+    )?;
+    Ok(out)
+}
+
+pub mod reference {
+    pub fn gather(src: &[f32], width: usize, idx: &[u32]) -> Vec<f64> {
+        let rows = if width == 0 { 0 } else { src.len() / width };
+        let mut out = Vec::with_capacity(idx.len() * width);
+        for &i in idx {
+            for c in 0..width {
+                out.push(if (i as usize) < rows {
+                    src[i as usize * width + c] as f64
+                } else {
+                    0.0
+                });
+            }
+        }
+        out
+    }
+}

@@ -1,0 +1,86 @@
+//! Sum, mean and max along one axis. Kernel: `shaders/reduce.wgsl`.
+
+use crate::error::{Error, Result};
+use crate::kernels::{REDUCE_ROWS, REDUCE_STRIDED};
+use crate::recorder::Recorder;
+use crate::tensor::{DType, Tensor};
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Reduce {
+    Sum,
+    Mean,
+    Max,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    outer: u32,
+    len: u32,
+    inner: u32,
+    op: u32,
+}
+
+/// Reduces `x` along `axis`, which is removed from the shape. The sum and mean of an empty
+/// axis are 0; the max of an empty axis is an error.
+pub fn reduce(rec: &mut Recorder, x: &Tensor, axis: usize, op: Reduce) -> Result<Tensor> {
+    let shape = x.shape();
+    if x.dtype() != DType::F32 {
+        return Err(Error::Shape(format!("reduce {op:?} needs f32, got {x:?}")));
+    }
+    if axis >= shape.len() {
+        return Err(Error::Shape(format!(
+            "reduce {op:?}: axis {axis} out of range for {x:?}"
+        )));
+    }
+    let outer: usize = shape[..axis].iter().product();
+    let len = shape[axis];
+    let inner: usize = shape[axis + 1..].iter().product();
+    if len == 0 && op == Reduce::Max {
+        return Err(Error::Shape(format!("max over an empty axis of {x:?}")));
+    }
+    let mut out_shape = shape.to_vec();
+    out_shape.remove(axis);
+    let out = Tensor::empty(x.gpu(), &out_shape, DType::F32)?;
+    let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("reduce of {x:?}")));
+    let p = Params {
+        outer: fit(outer)?,
+        len: fit(len)?,
+        inner: fit(inner)?,
+        op: op as u32,
+    };
+    fit(x.numel())?;
+    if inner == 1 {
+        rec.dispatch_linear(REDUCE_ROWS, outer as u64, &[x, &out], &p)?;
+    } else {
+        rec.dispatch_linear(
+            REDUCE_STRIDED,
+            ((outer * inner) as u64).div_ceil(256),
+            &[x, &out],
+            &p,
+        )?;
+    }
+    Ok(out)
+}
+
+pub mod reference {
+    use super::Reduce;
+
+    pub fn reduce(x: &[f32], shape: &[usize], axis: usize, op: Reduce) -> Vec<f64> {
+        let outer: usize = shape[..axis].iter().product();
+        let len = shape[axis];
+        let inner: usize = shape[axis + 1..].iter().product();
+        let mut out = Vec::with_capacity(outer * inner);
+        for a in 0..outer {
+            for c in 0..inner {
+                let vals = (0..len).map(|j| x[(a * len + j) * inner + c] as f64);
+                out.push(match op {
+                    Reduce::Sum => vals.sum(),
+                    Reduce::Mean => vals.sum::<f64>() / len.max(1) as f64,
+                    Reduce::Max => vals.fold(f64::NEG_INFINITY, f64::max),
+                });
+            }
+        }
+        out
+    }
+}

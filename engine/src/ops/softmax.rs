@@ -1,0 +1,50 @@
+//! Softmax over the last axis. Kernel: `shaders/softmax.wgsl`.
+
+use crate::error::{Error, Result};
+use crate::kernels::SOFTMAX_MAIN;
+use crate::recorder::Recorder;
+use crate::tensor::{DType, Tensor};
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    rows: u32,
+    len: u32,
+}
+
+/// Softmax of every row (last axis) of `x`, as a new tensor.
+pub fn softmax(rec: &mut Recorder, x: &Tensor) -> Result<Tensor> {
+    if x.dtype() != DType::F32 || x.shape().is_empty() {
+        return Err(Error::Shape(format!(
+            "softmax needs an f32 tensor with at least one axis, got {x:?}"
+        )));
+    }
+    let len = *x.shape().last().unwrap();
+    let rows = if len == 0 { 0 } else { x.numel() / len };
+    let out = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
+    let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("softmax of {x:?}")));
+    fit(x.numel())?;
+    rec.dispatch_linear(
+        SOFTMAX_MAIN,
+        rows as u64,
+        &[x, &out],
+        &Params {
+            rows: fit(rows)?,
+            len: fit(len)?,
+        },
+    )?;
+    Ok(out)
+}
+
+pub mod reference {
+    /// Row softmax in f64 with the maximum subtracted.
+    pub fn softmax(x: &[f32], len: usize) -> Vec<f64> {
+        let mut out = Vec::with_capacity(x.len());
+        for row in x.chunks(len.max(1)) {
+            let m = row.iter().fold(f64::NEG_INFINITY, |m, &v| m.max(v as f64));
+            let s: f64 = row.iter().map(|&v| (v as f64 - m).exp()).sum();
+            out.extend(row.iter().map(|&v| (v as f64 - m).exp() / s));
+        }
+        out
+    }
+}

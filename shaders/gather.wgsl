@@ -1,0 +1,30 @@
+// Row gather: out[r, c] = src[idx[r], c]. An index past the source's rows yields zeros, so a
+// bad index can never read outside the buffer.
+
+struct Params {
+    rows: u32,     // rows of out (= length of idx)
+    width: u32,
+    src_rows: u32,
+}
+
+@group(0) @binding(0) var<storage, read> src: array<f32>;
+@group(0) @binding(1) var<storage, read> idx: array<u32>;
+@group(0) @binding(2) var<storage, read_write> out: array<f32>;
+var<immediate> pc: Params;
+
+@compute @workgroup_size(256)
+fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+        @builtin(local_invocation_index) lid: u32) {
+    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
+    if (i >= pc.rows * pc.width) {
+        return;
+    }
+    let r = i / pc.width;
+    let c = i - r * pc.width;
+    let s = idx[r];
+    var v = 0.0;
+    if (s < pc.src_rows) {
+        v = src[s * pc.width + c];
+    }
+    out[i] = v;
+}

@@ -1,0 +1,67 @@
+// Row softmax: one workgroup per row of any length. Three passes over the row: the maximum,
+// the sum of exp(x - max) (both reduced in workgroup memory), then the normalised output.
+// Subtracting the row maximum keeps every exponent <= 0, so rows with scores of 1e4 or more
+// neither overflow nor lose the largest entries.
+
+struct Params {
+    rows: u32,
+    len: u32,
+}
+
+@group(0) @binding(0) var<storage, read> x: array<f32>;
+@group(0) @binding(1) var<storage, read_write> y: array<f32>;
+var<immediate> pc: Params;
+
+var<workgroup> partial: array<f32, 256>;
+
+fn reduce_max(lid: u32, v: f32) -> f32 {
+    partial[lid] = v;
+    workgroupBarrier();
+    for (var s = 128u; s > 0u; s >>= 1u) {
+        if (lid < s) {
+            partial[lid] = max(partial[lid], partial[lid + s]);
+        }
+        workgroupBarrier();
+    }
+    let r = partial[0];
+    workgroupBarrier();
+    return r;
+}
+
+fn reduce_sum(lid: u32, v: f32) -> f32 {
+    partial[lid] = v;
+    workgroupBarrier();
+    for (var s = 128u; s > 0u; s >>= 1u) {
+        if (lid < s) {
+            partial[lid] = partial[lid] + partial[lid + s];
+        }
+        workgroupBarrier();
+    }
+    let r = partial[0];
+    workgroupBarrier();
+    return r;
+}
+
+@compute @workgroup_size(256)
+fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+        @builtin(local_invocation_index) lid: u32) {
+    let row = wid.x + wid.y * nwg.x;
+    if (row >= pc.rows) {
+        return;
+    }
+    let base = row * pc.len;
+    var m = bitcast<f32>(0xff800000u); // -inf
+    for (var j = lid; j < pc.len; j += 256u) {
+        m = max(m, x[base + j]);
+    }
+    m = reduce_max(lid, m);
+    var s = 0.0;
+    for (var j = lid; j < pc.len; j += 256u) {
+        s += exp(x[base + j] - m);
+    }
+    s = reduce_sum(lid, s);
+    let inv = 1.0 / s;
+    for (var j = lid; j < pc.len; j += 256u) {
+        y[base + j] = exp(x[base + j] - m) * inv;
+    }
+}
