@@ -2,3 +2,5 @@
 //! reference (`reference` submodule), next to `shaders/<op>.wgsl`.
 
 pub mod fill;
+pub mod scan;
+pub mod sort;
