@@ -6,6 +6,8 @@ pub mod cast;
 pub mod fill;
 pub mod gather;
 pub mod reduce;
+pub mod scan;
 pub mod scatter_add;
 pub mod softmax;
+pub mod sort;
 pub mod unary;

@@ -1,0 +1,145 @@
+//! Stable LSD radix sort of u32 keys with 32-bit values. Kernels: `shaders/sort.wgsl`.
+//!
+//! Sorts on the low `key_bits` bits of each key, [`RADIX_BITS`] bits a pass from the least
+//! significant digit up, so fewer key bits mean fewer passes (13 bits: 4 passes, the last on
+//! one bit). Each pass is a histogram per block of [`BLOCK`] elements, an exclusive scan of the
+//! digit-major counts ([`crate::ops::scan`]) that gives every (digit, block) its place, and a
+//! stable scatter; the passes ping-pong between two buffer pairs. Every pass is stable, so the
+//! whole sort is: equal masked keys keep their input order.
+//!
+//! Only the masked bits order the keys, but the keys come back whole, high bits included: a
+//! caller that packs a payload above `key_bits` (the rasteriser packs tile and depth) gets it
+//! back with its key, and one that wants masked keys can mask them.
+
+use crate::error::{Error, Result};
+use crate::kernels::{SORT_HISTOGRAM, SORT_SCATTER};
+use crate::ops::scan::exclusive_scan;
+use crate::recorder::Recorder;
+use crate::tensor::{DType, Tensor};
+
+/// Bits sorted per pass (16 digits); the kernels count and rank 16 digits.
+pub const RADIX_BITS: u32 = 4;
+/// Elements per workgroup; must match `BLOCK` in `shaders/sort.wgsl`.
+pub const BLOCK: usize = 4096;
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    n: u32,
+    num_blocks: u32,
+    shift: u32,
+    mask: u32,
+}
+
+/// Sorts `keys` (u32) with their `values` (u32, i32 or f32, moved as raw bits) by the low
+/// `key_bits` bits of each key (1..=32), stably. Returns new tensors, shaped like the inputs,
+/// holding the whole original keys and their values in sorted order; the inputs are untouched.
+pub fn sort_pairs(
+    rec: &mut Recorder,
+    keys: &Tensor,
+    values: &Tensor,
+    key_bits: u32,
+) -> Result<(Tensor, Tensor)> {
+    if keys.dtype() != DType::U32 {
+        return Err(Error::Shape(format!(
+            "sort_pairs: keys {keys:?} must be u32"
+        )));
+    }
+    if values.dtype().size() != 4 {
+        return Err(Error::Shape(format!(
+            "sort_pairs: values {values:?} must be a 32-bit type"
+        )));
+    }
+    if keys.numel() != values.numel() {
+        return Err(Error::Shape(format!(
+            "sort_pairs: keys {keys:?} and values {values:?} differ in number of elements"
+        )));
+    }
+    if !(1..=32).contains(&key_bits) {
+        return Err(Error::Shape(format!(
+            "sort_pairs: key_bits is {key_bits}, it must be in 1..=32"
+        )));
+    }
+    let n = u32::try_from(keys.numel())
+        .map_err(|_| Error::TooLarge(format!("sort_pairs: {keys:?} has 2^32 elements or more")))?;
+    let gpu = keys.gpu();
+    let new_pair = || -> Result<(Tensor, Tensor)> {
+        Ok((
+            Tensor::empty(gpu, keys.shape(), DType::U32)?,
+            Tensor::empty(gpu, values.shape(), values.dtype())?,
+        ))
+    };
+    let mut out = new_pair()?;
+    if n == 0 {
+        return Ok(out);
+    }
+
+    let num_blocks = (n as usize).div_ceil(BLOCK);
+    let counts = Tensor::empty(gpu, &[16 * num_blocks], DType::U32)?;
+    let offsets = Tensor::empty(gpu, &[16 * num_blocks], DType::U32)?;
+    // A second pair is allocated only when there is a second pass.
+    let mut src = (keys.clone(), values.clone());
+    let mut shift = 0;
+    while shift < key_bits {
+        let bits = RADIX_BITS.min(key_bits - shift);
+        let params = Params {
+            n,
+            num_blocks: num_blocks as u32,
+            shift,
+            mask: (1u32 << bits) - 1,
+        };
+        rec.dispatch_linear(
+            SORT_HISTOGRAM,
+            num_blocks as u64,
+            &[&src.0, &counts],
+            &params,
+        )?;
+        exclusive_scan(rec, &counts, &offsets)?;
+        rec.dispatch_linear(
+            SORT_SCATTER,
+            num_blocks as u64,
+            &[&src.0, &src.1, &offsets, &out.0, &out.1],
+            &params,
+        )?;
+        shift += bits;
+        if shift < key_bits {
+            // This pass's output is the next one's input, and this pass's input is free to be
+            // the next output, unless it is the caller's.
+            let next = if src.0.same_storage(keys) {
+                new_pair()?
+            } else {
+                src.clone()
+            };
+            src = std::mem::replace(&mut out, next);
+        }
+    }
+    Ok(out)
+}
+
+/// Number of passes for `key_bits` bits.
+pub fn passes(key_bits: u32) -> u32 {
+    key_bits.div_ceil(RADIX_BITS)
+}
+
+/// Bytes the sort of `n` pairs reads and writes in device memory (for GB/s in benchmarks):
+/// per pass, the histogram reads the keys and the scatter reads and writes keys and values
+/// (the scan of the counts is small beside them).
+pub fn bytes_moved(n: usize, key_bits: u32) -> u64 {
+    passes(key_bits) as u64 * 5 * 4 * n as u64
+}
+
+/// The CPU version the kernels are checked against.
+pub mod reference {
+    /// Stable sort of (key, value) pairs by `key & mask(key_bits)`; the keys come back whole.
+    pub fn sort_pairs(keys: &[u32], values: &[u32], key_bits: u32) -> (Vec<u32>, Vec<u32>) {
+        let mask = if key_bits >= 32 {
+            u32::MAX
+        } else {
+            (1u32 << key_bits) - 1
+        };
+        let mut pairs: Vec<(u32, u32)> = keys.iter().copied().zip(values.iter().copied()).collect();
+        // `sort_by_key` is stable.
+        pairs.sort_by_key(|&(k, _)| k & mask);
+        pairs.into_iter().unzip()
+    }
+}

@@ -1,0 +1,143 @@
+// One pass of a stable LSD radix sort of u32 keys with 32-bit values, on one digit of up to
+// 4 bits: digit = (key >> shift) & mask.
+//
+// Each workgroup owns a block of 4096 elements (256 invocations x 16 items).
+// `histogram`: counts the digits of the block into counts[digit * num_blocks + block]. The host
+// then takes the exclusive scan of `counts` (ops::scan), which, thanks to that digit-major
+// order, is where the block's first element of each digit goes: after every smaller digit, and
+// after the same digit in every earlier block. That is what makes the pass stable.
+// `scatter`: each invocation owns 16 consecutive elements of the block and counts their digits
+// in one-hot counters, 16 digits x 16 bits packed into 8 u32 (two vec4<u32>), so a single
+// workgroup-wide exclusive scan of those counters gives, for all 16 digits at once, how many
+// elements of each digit the earlier invocations own (a block counts at most 4096 < 2^16 per
+// digit, so the fields never carry into each other). An element's rank within its digit is
+// that count plus the count in the invocation's own earlier elements. One scan a block (rather
+// than one per 256-element chunk) made the scatter 17x faster on lavapipe. The scan uses
+// workgroup memory only: no assumption on the subgroup size.
+
+struct Params {
+    n: u32,
+    num_blocks: u32,
+    shift: u32,
+    mask: u32,
+}
+
+const WG: u32 = 256u;
+const ITEMS: u32 = 16u; // per invocation
+const BLOCK: u32 = 4096u; // WG * ITEMS
+
+@group(0) @binding(0) var<storage, read> keys_in: array<u32>;
+@group(0) @binding(1) var<storage, read> values_in: array<u32>;
+@group(0) @binding(2) var<storage, read_write> counts: array<u32>;
+@group(0) @binding(3) var<storage, read> offsets: array<u32>;
+@group(0) @binding(4) var<storage, read_write> keys_out: array<u32>;
+@group(0) @binding(5) var<storage, read_write> values_out: array<u32>;
+var<immediate> pc: Params;
+
+var<workgroup> hist: array<atomic<u32>, 16>;
+
+@compute @workgroup_size(256)
+fn histogram(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+             @builtin(local_invocation_index) lid: u32) {
+    let block = wid.x + wid.y * nwg.x;
+    if (block >= pc.num_blocks) {
+        return;
+    }
+    if (lid < 16u) {
+        atomicStore(&hist[lid], 0u);
+    }
+    workgroupBarrier();
+    let start = block * BLOCK;
+    // Strided so that neighbouring invocations read neighbouring keys.
+    for (var c = 0u; c < ITEMS; c = c + 1u) {
+        let i = start + c * WG + lid;
+        if (i < pc.n) {
+            atomicAdd(&hist[(keys_in[i] >> pc.shift) & pc.mask], 1u);
+        }
+    }
+    workgroupBarrier();
+    if (lid < 16u) {
+        counts[lid * pc.num_blocks + block] = atomicLoad(&hist[lid]);
+    }
+}
+
+// Packed per-digit counters: word w = digit / 2 of lo (w < 4) or hi (w >= 4), 16 bits at
+// (digit % 2) * 16. Two rows so each scan step reads one and writes the other.
+var<workgroup> scan_lo: array<array<vec4<u32>, WG>, 2>;
+var<workgroup> scan_hi: array<array<vec4<u32>, WG>, 2>;
+// Where the block's first element of each digit goes in the output.
+var<workgroup> base: array<u32, 16>;
+
+// The 16-bit counter of `digit` in a packed pair.
+fn field(lo: vec4<u32>, hi: vec4<u32>, digit: u32) -> u32 {
+    let w = digit >> 1u;
+    let word = select(lo, hi, w >= 4u)[w & 3u];
+    return (word >> ((digit & 1u) * 16u)) & 0xffffu;
+}
+
+// One-hot packed counter of `digit` (see `field`), as its lo and hi halves.
+fn one_hot(digit: u32) -> array<vec4<u32>, 2> {
+    let one = vec4<u32>(1u << ((digit & 1u) * 16u));
+    let w = vec4<u32>(digit >> 1u);
+    let lanes = vec4<u32>(0u, 1u, 2u, 3u);
+    return array<vec4<u32>, 2>(select(vec4<u32>(0u), one, lanes == w),
+                               select(vec4<u32>(0u), one, lanes + 4u == w));
+}
+
+@compute @workgroup_size(256)
+fn scatter(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+           @builtin(local_invocation_index) lid: u32) {
+    let block = wid.x + wid.y * nwg.x;
+    if (block >= pc.num_blocks) {
+        return;
+    }
+    if (lid < 16u) {
+        base[lid] = offsets[lid * pc.num_blocks + block];
+    }
+    // This invocation owns ITEMS consecutive elements of the block, so block order is
+    // invocation-major. The scan's first barrier also publishes `base`.
+    let first = block * BLOCK + lid * ITEMS;
+    var keys: array<u32, ITEMS>;
+    var lo = vec4<u32>(0u);
+    var hi = vec4<u32>(0u);
+    for (var j = 0u; j < ITEMS; j = j + 1u) {
+        if (first + j < pc.n) {
+            keys[j] = keys_in[first + j];
+            let h = one_hot((keys[j] >> pc.shift) & pc.mask);
+            lo = lo + h[0];
+            hi = hi + h[1];
+        }
+    }
+    let own_lo = lo;
+    let own_hi = hi;
+    scan_lo[0][lid] = lo;
+    scan_hi[0][lid] = hi;
+    workgroupBarrier();
+    // Inclusive Hillis-Steele scan over the 256 invocations, all 16 counters at once.
+    var cur = 0u;
+    for (var offset = 1u; offset < WG; offset = offset << 1u) {
+        if (lid >= offset) {
+            lo = lo + scan_lo[cur][lid - offset];
+            hi = hi + scan_hi[cur][lid - offset];
+        }
+        scan_lo[1u - cur][lid] = lo;
+        scan_hi[1u - cur][lid] = hi;
+        cur = 1u - cur;
+        workgroupBarrier();
+    }
+    // Exclusive counts: the elements of each digit in earlier invocations.
+    lo = lo - own_lo;
+    hi = hi - own_hi;
+    for (var j = 0u; j < ITEMS; j = j + 1u) {
+        let i = first + j;
+        if (i < pc.n) {
+            let digit = (keys[j] >> pc.shift) & pc.mask;
+            let dest = base[digit] + field(lo, hi, digit);
+            keys_out[dest] = keys[j];
+            values_out[dest] = values_in[i];
+            let h = one_hot(digit);
+            lo = lo + h[0];
+            hi = hi + h[1];
+        }
+    }
+}
