@@ -80,10 +80,7 @@ fn main() {
         for e in &errors {
             eprintln!("{e}");
         }
-        panic!(
-            "{} shader(s) failed to compile; see the messages above",
-            errors.len()
-        );
+        panic!("{} shader(s) failed to compile; see the messages above", errors.len());
     }
 
     let generated = format!(
@@ -108,15 +105,11 @@ struct Kernel {
 fn compile(path: &Path) -> Result<(Vec<u32>, Vec<Kernel>), String> {
     let source = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
     let shown = path.display().to_string();
-    let module = naga::front::wgsl::parse_str(&source)
-        .map_err(|e| e.emit_to_string_with_path(&source, &shown))?;
+    let module =
+        naga::front::wgsl::parse_str(&source).map_err(|e| e.emit_to_string_with_path(&source, &shown))?;
     let mut validator = naga::valid::Validator::new(ValidationFlags::all(), Capabilities::all());
-    validator
-        .subgroup_stages(ShaderStages::COMPUTE)
-        .subgroup_operations(SubgroupOperationSet::all());
-    let info = validator
-        .validate(&module)
-        .map_err(|e| e.emit_to_string_with_path(&source, &shown))?;
+    validator.subgroup_stages(ShaderStages::COMPUTE).subgroup_operations(SubgroupOperationSet::all());
+    let info = validator.validate(&module).map_err(|e| e.emit_to_string_with_path(&source, &shown))?;
 
     let options = spv::Options {
         lang_version: (1, 5),
@@ -154,9 +147,10 @@ fn compile(path: &Path) -> Result<(Vec<u32>, Vec<Kernel>), String> {
             let usage = ep_info[handle];
             match var.space {
                 naga::AddressSpace::Storage { .. } => {
-                    let b = var.binding.as_ref().ok_or_else(|| {
-                        format!("{shown}: storage variable without @group/@binding")
-                    })?;
+                    let b = var
+                        .binding
+                        .as_ref()
+                        .ok_or_else(|| format!("{shown}: storage variable without @group/@binding"))?;
                     if b.group != 0 {
                         return Err(format!("{shown}: kernels use @group(0) only"));
                     }
@@ -166,10 +160,8 @@ fn compile(path: &Path) -> Result<(Vec<u32>, Vec<Kernel>), String> {
                         bindings.push((b.binding, usage.contains(GlobalUse::WRITE)));
                     }
                 }
-                naga::AddressSpace::Immediate => {
-                    if !usage.is_empty() {
-                        push_bytes = module.types[var.ty].inner.size(module.to_ctx());
-                    }
+                naga::AddressSpace::Immediate if !usage.is_empty() => {
+                    push_bytes = module.types[var.ty].inner.size(module.to_ctx());
                 }
                 naga::AddressSpace::Uniform | naga::AddressSpace::Handle => {
                     return Err(format!(

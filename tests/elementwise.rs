@@ -35,16 +35,8 @@ fn cast_round_trips_f32_f16_f32() {
         let got_h: Vec<half::f16> = h.read().unwrap();
         let got: Vec<f32> = back.read().unwrap();
         for i in 0..n {
-            assert_eq!(
-                got_h[i].to_f64().to_bits(),
-                want[i].to_bits(),
-                "f16 bits at {i} of {n}"
-            );
-            assert_eq!(
-                (got[i] as f64).to_bits(),
-                want[i].to_bits(),
-                "round trip at {i} of {n}"
-            );
+            assert_eq!(got_h[i].to_f64().to_bits(), want[i].to_bits(), "f16 bits at {i} of {n}");
+            assert_eq!((got[i] as f64).to_bits(), want[i].to_bits(), "round trip at {i} of {n}");
         }
     }
 }
@@ -104,10 +96,7 @@ fn unary_on_more_workgroups_than_one_dimension_allows() {
     let y = unary(&mut rec, &t, Unary::Affine(2.0, 1.0)).unwrap();
     rec.submit().unwrap();
     let got: Vec<f32> = y.read().unwrap();
-    assert!(got
-        .iter()
-        .enumerate()
-        .all(|(i, &v)| v == 2.0 * (i % 1000) as f32 + 1.0));
+    assert!(got.iter().enumerate().all(|(i, &v)| v == 2.0 * (i % 1000) as f32 + 1.0));
 }
 
 #[test]
@@ -133,13 +122,7 @@ fn binary_broadcasts_match_reference() {
             let b: Vec<f32> = rng
                 .normal_vec(nb)
                 .iter()
-                .map(|v| {
-                    if op == Binary::Div {
-                        v.signum() * (v.abs() + 0.5)
-                    } else {
-                        *v
-                    }
-                })
+                .map(|v| if op == Binary::Div { v.signum() * (v.abs() + 0.5) } else { *v })
                 .collect();
             let ta = Tensor::from_slice(&gpu, sa, &a).unwrap();
             let tb = Tensor::from_slice(&gpu, sb, &b).unwrap();
@@ -148,12 +131,7 @@ fn binary_broadcasts_match_reference() {
             rec.submit().unwrap();
             let (shape, want) = binary::reference::binary(&a, sa, &b, sb, op);
             assert_eq!(out.shape(), &shape[..]);
-            assert_nmse(
-                &format!("{op:?} {sa:?} {sb:?}"),
-                &out.read::<f32>().unwrap(),
-                &want,
-                1e-13,
-            );
+            assert_nmse(&format!("{op:?} {sa:?} {sb:?}"), &out.read::<f32>().unwrap(), &want, 1e-13);
         }
     }
 }
@@ -164,10 +142,7 @@ fn binary_rejects_bad_shapes_and_too_many_dims() {
     let a = Tensor::empty(&gpu, &[2, 3], DType::F32).unwrap();
     let b = Tensor::empty(&gpu, &[4], DType::F32).unwrap();
     let mut rec = gpu.recorder().unwrap();
-    assert!(binary(&mut rec, &a, &b, Binary::Add)
-        .unwrap_err()
-        .to_string()
-        .contains("broadcast"));
+    assert!(binary(&mut rec, &a, &b, Binary::Add).unwrap_err().to_string().contains("broadcast"));
     // Alternating broadcasts over five dims cannot merge to four.
     let a = Tensor::empty(&gpu, &[2, 1, 2, 1, 2], DType::F32).unwrap();
     let b = Tensor::empty(&gpu, &[1, 2, 1, 2, 1], DType::F32).unwrap();
@@ -180,17 +155,8 @@ fn binary_rejects_bad_shapes_and_too_many_dims() {
 fn reductions_match_reference() {
     let gpu = gpu();
     let mut rng = Rng::new(4);
-    let shapes: &[&[usize]] = &[
-        &[1],
-        &[5],
-        &[3, 0],
-        &[0, 3],
-        &[257, 3],
-        &[3, 1000],
-        &[4, 5, 6],
-        &[2, 3001, 3],
-        &[70_000, 3],
-    ];
+    let shapes: &[&[usize]] =
+        &[&[1], &[5], &[3, 0], &[0, 3], &[257, 3], &[3, 1000], &[4, 5, 6], &[2, 3001, 3], &[70_000, 3]];
     for &shape in shapes {
         for axis in 0..shape.len() {
             for op in [Reduce::Sum, Reduce::Mean, Reduce::Max] {
@@ -233,20 +199,13 @@ fn softmax_matches_reference_and_is_stable() {
         (4, 1000, 1e4),
         (4, 33, 1e6),
     ] {
-        let x: Vec<f32> = rng
-            .normal_vec(rows * len)
-            .iter()
-            .map(|v| v * scale as f32)
-            .collect();
+        let x: Vec<f32> = rng.normal_vec(rows * len).iter().map(|v| v * scale as f32).collect();
         let t = Tensor::from_slice(&gpu, &[rows, len], &x).unwrap();
         let mut rec = gpu.recorder().unwrap();
         let y = softmax(&mut rec, &t).unwrap();
         rec.submit().unwrap();
         let got: Vec<f32> = y.read().unwrap();
-        assert!(
-            got.iter().all(|v| v.is_finite()),
-            "non-finite softmax at scale {scale}"
-        );
+        assert!(got.iter().all(|v| v.is_finite()), "non-finite softmax at scale {scale}");
         assert_nmse(
             &format!("softmax {rows}x{len} scale {scale}"),
             &got,
@@ -260,35 +219,18 @@ fn softmax_matches_reference_and_is_stable() {
 fn gather_and_scatter_add_match_reference() {
     let gpu = gpu();
     let mut rng = Rng::new(6);
-    for &(src_rows, width, n_idx) in &[
-        (1, 1, 0),
-        (1, 1, 1),
-        (5, 3, 17),
-        (100, 64, 1000),
-        (7, 1, 70_001),
-    ] {
+    for &(src_rows, width, n_idx) in &[(1, 1, 0), (1, 1, 1), (5, 3, 17), (100, 64, 1000), (7, 1, 70_001)] {
         let src = rng.normal_vec(src_rows * width);
         // Include out-of-range indices: gather gives zeros, scatter skips them.
         let idx: Vec<u32> = (0..n_idx)
-            .map(|i| {
-                if i % 13 == 12 {
-                    src_rows as u32 + 3
-                } else {
-                    rng.below(src_rows as u32)
-                }
-            })
+            .map(|i| if i % 13 == 12 { src_rows as u32 + 3 } else { rng.below(src_rows as u32) })
             .collect();
         let ts = Tensor::from_slice(&gpu, &[src_rows, width], &src).unwrap();
         let ti = Tensor::from_slice(&gpu, &[n_idx], &idx).unwrap();
         let mut rec = gpu.recorder().unwrap();
         let g = gather(&mut rec, &ts, &ti).unwrap();
         rec.submit().unwrap();
-        assert_nmse(
-            "gather",
-            &g.read::<f32>().unwrap(),
-            &gather::reference::gather(&src, width, &idx),
-            0.0,
-        );
+        assert_nmse("gather", &g.read::<f32>().unwrap(), &gather::reference::gather(&src, width, &idx), 0.0);
 
         // Scatter the gathered rows back, through both kernels: many rows collide.
         let rows_src = rng.normal_vec(n_idx * width);

@@ -14,21 +14,9 @@ fn fill_every_dtype_and_awkward_sizes() {
         fill(&mut rec, &u, 7.0).unwrap();
         fill(&mut rec, &h, 0.5).unwrap();
         rec.submit().unwrap();
-        assert!(
-            t.read::<f32>().unwrap().iter().all(|&v| v == -1.25),
-            "f32 n={n}"
-        );
-        assert!(
-            u.read::<u32>().unwrap().iter().all(|&v| v == 7),
-            "u32 n={n}"
-        );
-        assert!(
-            h.read::<half::f16>()
-                .unwrap()
-                .iter()
-                .all(|&v| v.to_f32() == 0.5),
-            "f16 n={n}"
-        );
+        assert!(t.read::<f32>().unwrap().iter().all(|&v| v == -1.25), "f32 n={n}");
+        assert!(u.read::<u32>().unwrap().iter().all(|&v| v == 7), "u32 n={n}");
+        assert!(h.read::<half::f16>().unwrap().iter().all(|&v| v.to_f32() == 0.5), "f16 n={n}");
     }
 }
 
@@ -68,4 +56,30 @@ fn host_data_of_wrong_size_or_type_is_refused() {
     let t = Tensor::empty(&gpu, &[4], DType::U32).unwrap();
     assert!(t.write(&[1.0f32; 4]).is_err());
     assert!(t.read::<f32>().is_err());
+}
+
+#[test]
+fn views_share_storage_and_bind_their_own_range() {
+    let gpu = gpu();
+    let data: Vec<f32> = (0..1000).map(|i| i as f32).collect();
+    let t = Tensor::from_slice(&gpu, &[1000], &data).unwrap();
+    let a = t.view_alignment();
+    let v = t.view(8 * a, &[5, 3]).unwrap();
+    assert_eq!(v.read::<f32>().unwrap(), data[8 * a..8 * a + 15].to_vec());
+    let w = t.view(16 * a, &[15]).unwrap();
+    let mut rec = gpu.recorder().unwrap();
+    fill(&mut rec, &v, -1.0).unwrap();
+    rec.copy(&v.reshape(&[15]).unwrap(), &w).unwrap();
+    rec.submit().unwrap();
+    let got: Vec<f32> = t.read().unwrap();
+    for (i, &g) in got.iter().enumerate() {
+        let inside = (8 * a..8 * a + 15).contains(&i) || (16 * a..16 * a + 15).contains(&i);
+        assert_eq!(g, if inside { -1.0 } else { i as f32 }, "element {i}");
+    }
+    w.write(&[2.0f32; 15]).unwrap();
+    assert_eq!(t.read::<f32>().unwrap()[16 * a], 2.0);
+    if a > 1 {
+        assert!(t.view(1, &[4]).unwrap_err().to_string().contains("multiple"));
+    }
+    assert!(t.view(996, &[8]).unwrap_err().to_string().contains("past the end"));
 }

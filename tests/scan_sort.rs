@@ -18,10 +18,7 @@ fn check_scan(data: &[u32], items: u32) {
     let (want, want_total) = scan::reference::exclusive_scan(data);
     let got = output.read::<u32>().unwrap();
     if let Some(i) = (0..n).find(|&i| got[i] != want[i]) {
-        panic!(
-            "scan n={n} items={items}: first difference at {i}: {} != {}",
-            got[i], want[i]
-        );
+        panic!("scan n={n} items={items}: first difference at {i}: {} != {}", got[i], want[i]);
     }
     assert_eq!(total.read::<u32>().unwrap(), [want_total], "total n={n}");
 }
@@ -59,9 +56,7 @@ fn scan_with_more_workgroups_than_one_dimension_allows() {
     // dimension is guaranteed to hold (lavapipe allows no more), so the kernels must fold
     // their workgroup index over two dimensions.
     let n = 65_536 * scan::WG + 17;
-    let data: Vec<u32> = (0..n as u32)
-        .map(|i| i.wrapping_mul(2_654_435_761) >> 24)
-        .collect();
+    let data: Vec<u32> = (0..n as u32).map(|i| i.wrapping_mul(2_654_435_761) >> 24).collect();
     check_scan(&data, 1);
     check_scan(&data, scan::ITEMS);
 }
@@ -132,9 +127,7 @@ fn sort_on_few_key_bits_orders_by_the_low_bits_only() {
         }
     }
     // Tile-and-depth style keys: few distinct low parts, many high parts.
-    let keys: Vec<u32> = (0..20_000)
-        .map(|_| (rng.next_u32() << 7) | rng.below(100))
-        .collect();
+    let keys: Vec<u32> = (0..20_000).map(|_| (rng.next_u32() << 7) | rng.below(100)).collect();
     check_sort(&keys, 7, "packed");
 }
 
@@ -163,16 +156,8 @@ fn sort_moves_f32_values_and_keeps_shapes() {
     assert_eq!(sk.shape(), [2, 3]);
     assert_eq!(sv.dtype(), DType::F32);
     assert_eq!(sk.read::<u32>().unwrap(), [0, 1, 1, 2, 3, 3]);
-    let got: Vec<u32> = sv
-        .read::<f32>()
-        .unwrap()
-        .iter()
-        .map(|x| x.to_bits())
-        .collect();
-    let want: Vec<u32> = [7.0f32, -1.0, f32::INFINITY, 2.25, 0.5, -0.0]
-        .iter()
-        .map(|x| x.to_bits())
-        .collect();
+    let got: Vec<u32> = sv.read::<f32>().unwrap().iter().map(|x| x.to_bits()).collect();
+    let want: Vec<u32> = [7.0f32, -1.0, f32::INFINITY, 2.25, 0.5, -0.0].iter().map(|x| x.to_bits()).collect();
     assert_eq!(got, want);
 }
 

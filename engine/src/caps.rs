@@ -51,11 +51,7 @@ pub struct Caps {
 
 fn cstr(bytes: &[c_char_t]) -> String {
     // The driver strings are NUL-terminated fixed arrays.
-    let raw: Vec<u8> = bytes
-        .iter()
-        .take_while(|&&c| c != 0)
-        .map(|&c| c as u8)
-        .collect();
+    let raw: Vec<u8> = bytes.iter().take_while(|&&c| c != 0).map(|&c| c as u8).collect();
     String::from_utf8_lossy(&raw).into_owned()
 }
 
@@ -90,9 +86,7 @@ impl Caps {
         // SAFETY: every query below reads properties of a device of this instance into
         // structures that live for the duration of the call.
         unsafe {
-            let exts = instance
-                .enumerate_device_extension_properties(pd)
-                .unwrap_or_default();
+            let exts = instance.enumerate_device_extension_properties(pd).unwrap_or_default();
             let has_atomic_ext = has_ext(&exts, ash::ext::shader_atomic_float::NAME);
             let has_coop_ext = has_ext(&exts, ash::khr::cooperative_matrix::NAME);
 
@@ -129,9 +123,7 @@ impl Caps {
             let mut coop_matrix_f16 = None;
             if has_coop_ext && fc.cooperative_matrix == vk::TRUE {
                 let coop = ash::khr::cooperative_matrix::Instance::new(entry, instance);
-                let list = coop
-                    .get_physical_device_cooperative_matrix_properties(pd)
-                    .unwrap_or_default();
+                let list = coop.get_physical_device_cooperative_matrix_properties(pd).unwrap_or_default();
                 for c in &list {
                     coop_matrix_shapes.push(format!(
                         "{}x{}x{} {}*{}+{}->{}{}",
@@ -142,11 +134,7 @@ impl Caps {
                         component_name(c.b_type),
                         component_name(c.c_type),
                         component_name(c.result_type),
-                        if c.scope == vk::ScopeKHR::SUBGROUP {
-                            ""
-                        } else {
-                            " (non-subgroup scope)"
-                        }
+                        if c.scope == vk::ScopeKHR::SUBGROUP { "" } else { " (non-subgroup scope)" }
                     ));
                     if c.m_size == 16
                         && c.n_size == 16
@@ -176,14 +164,8 @@ impl Caps {
             let types = &mem.memory_types[..mem.memory_type_count as usize];
             let unified_memory = types
                 .iter()
-                .filter(|t| {
-                    t.property_flags
-                        .contains(vk::MemoryPropertyFlags::DEVICE_LOCAL)
-                })
-                .all(|t| {
-                    t.property_flags
-                        .contains(vk::MemoryPropertyFlags::HOST_VISIBLE)
-                })
+                .filter(|t| t.property_flags.contains(vk::MemoryPropertyFlags::DEVICE_LOCAL))
+                .all(|t| t.property_flags.contains(vk::MemoryPropertyFlags::HOST_VISIBLE))
                 || p.device_type == vk::PhysicalDeviceType::CPU;
             let device_memory = mem.memory_heaps[..mem.memory_heap_count as usize]
                 .iter()
@@ -193,11 +175,7 @@ impl Caps {
 
             Ok(Caps {
                 index,
-                name: p
-                    .device_name_as_c_str()
-                    .unwrap_or(c"?")
-                    .to_string_lossy()
-                    .into_owned(),
+                name: p.device_name_as_c_str().unwrap_or(c"?").to_string_lossy().into_owned(),
                 kind: match p.device_type {
                     vk::PhysicalDeviceType::DISCRETE_GPU => "discrete GPU",
                     vk::PhysicalDeviceType::INTEGRATED_GPU => "integrated GPU",
@@ -212,9 +190,7 @@ impl Caps {
                     vk::api_version_minor(p.api_version),
                     vk::api_version_patch(p.api_version)
                 ),
-                driver: format!("{} {}", cstr(&p12.driver_name), cstr(&p12.driver_info))
-                    .trim()
-                    .to_string(),
+                driver: format!("{} {}", cstr(&p12.driver_name), cstr(&p12.driver_info)).trim().to_string(),
                 subgroup_size: p11.subgroup_size,
                 min_subgroup_size: p13.min_subgroup_size,
                 max_subgroup_size: p13.max_subgroup_size,

@@ -62,27 +62,19 @@ fn create_instance(entry: &ash::Entry) -> Result<ash::Instance> {
     if std::env::var("VELOX_VALIDATE").is_ok_and(|v| v == "1") {
         // SAFETY: plain enumeration call.
         let available = unsafe { entry.enumerate_instance_layer_properties() }.unwrap_or_default();
-        if available
-            .iter()
-            .any(|l| l.layer_name_as_c_str() == Ok(validation))
-        {
+        if available.iter().any(|l| l.layer_name_as_c_str() == Ok(validation)) {
             layers.push(validation.as_ptr());
         } else {
             eprintln!("velox: VELOX_VALIDATE=1 but the Khronos validation layer is not installed");
         }
     }
-    let info = vk::InstanceCreateInfo::default()
-        .application_info(&app)
-        .enabled_layer_names(&layers);
+    let info = vk::InstanceCreateInfo::default().application_info(&app).enabled_layer_names(&layers);
     // SAFETY: the create info and everything it points to outlive the call.
     unsafe { entry.create_instance(&info, None) }.map_err(|e| match e {
         vk::Result::ERROR_INCOMPATIBLE_DRIVER => {
             Error::NoDevice("the Vulkan loader found no driver (ICD)".into())
         }
-        other => Error::Vulkan {
-            call: "vkCreateInstance",
-            result: other,
-        },
+        other => Error::Vulkan { call: "vkCreateInstance", result: other },
     })
 }
 
@@ -97,12 +89,7 @@ fn kind_name(t: vk::PhysicalDeviceType) -> (&'static str, u32) {
 }
 
 fn version_string(v: u32) -> String {
-    format!(
-        "{}.{}.{}",
-        vk::api_version_major(v),
-        vk::api_version_minor(v),
-        vk::api_version_patch(v)
-    )
+    format!("{}.{}.{}", vk::api_version_major(v), vk::api_version_minor(v), vk::api_version_patch(v))
 }
 
 /// Why a physical device cannot run the engine, or `None` when it can.
@@ -110,10 +97,7 @@ fn unusable_reason(instance: &ash::Instance, pd: vk::PhysicalDevice) -> Option<S
     // SAFETY: `pd` comes from this instance.
     let props = unsafe { instance.get_physical_device_properties(pd) };
     if props.api_version < vk::API_VERSION_1_3 {
-        return Some(format!(
-            "Vulkan {} < 1.3",
-            version_string(props.api_version)
-        ));
+        return Some(format!("Vulkan {} < 1.3", version_string(props.api_version)));
     }
     if compute_queue_family(instance, pd).is_none() {
         return Some("no compute queue".into());
@@ -132,10 +116,7 @@ fn compute_queue_family(instance: &ash::Instance, pd: vk::PhysicalDevice) -> Opt
     // SAFETY: `pd` comes from this instance.
     let families = unsafe { instance.get_physical_device_queue_family_properties(pd) };
     // Prefer a family that does compute; graphics+compute families are fine.
-    families
-        .iter()
-        .position(|f| f.queue_flags.contains(vk::QueueFlags::COMPUTE))
-        .map(|i| i as u32)
+    families.iter().position(|f| f.queue_flags.contains(vk::QueueFlags::COMPUTE)).map(|i| i as u32)
 }
 
 fn summaries(instance: &ash::Instance) -> Result<(Vec<vk::PhysicalDevice>, Vec<DeviceSummary>)> {
@@ -149,11 +130,7 @@ fn summaries(instance: &ash::Instance) -> Result<(Vec<vk::PhysicalDevice>, Vec<D
             let props = unsafe { instance.get_physical_device_properties(pd) };
             DeviceSummary {
                 index,
-                name: props
-                    .device_name_as_c_str()
-                    .unwrap_or(c"?")
-                    .to_string_lossy()
-                    .into_owned(),
+                name: props.device_name_as_c_str().unwrap_or(c"?").to_string_lossy().into_owned(),
                 kind: kind_name(props.device_type).0,
                 api_version: version_string(props.api_version),
                 unusable: unusable_reason(instance, pd),
@@ -164,34 +141,21 @@ fn summaries(instance: &ash::Instance) -> Result<(Vec<vk::PhysicalDevice>, Vec<D
 }
 
 /// The index of the device to use, honouring `VELOX_DEVICE`.
-fn choose(
-    instance: &ash::Instance,
-    pds: &[vk::PhysicalDevice],
-    list: &[DeviceSummary],
-) -> Result<usize> {
+fn choose(instance: &ash::Instance, pds: &[vk::PhysicalDevice], list: &[DeviceSummary]) -> Result<usize> {
     if pds.is_empty() {
-        return Err(Error::NoDevice(
-            "the Vulkan loader reports no physical device".into(),
-        ));
+        return Err(Error::NoDevice("the Vulkan loader reports no physical device".into()));
     }
     if let Ok(want) = std::env::var("VELOX_DEVICE") {
         let want = want.trim();
         let found = match want.parse::<usize>() {
             Ok(i) => list.get(i).map(|d| d.index),
-            Err(_) => list
-                .iter()
-                .find(|d| d.name.to_lowercase().contains(&want.to_lowercase()))
-                .map(|d| d.index),
+            Err(_) => {
+                list.iter().find(|d| d.name.to_lowercase().contains(&want.to_lowercase())).map(|d| d.index)
+            }
         };
-        let names: Vec<String> = list
-            .iter()
-            .map(|d| format!("{}: {}", d.index, d.name))
-            .collect();
+        let names: Vec<String> = list.iter().map(|d| format!("{}: {}", d.index, d.name)).collect();
         let i = found.ok_or_else(|| {
-            Error::NoDevice(format!(
-                "VELOX_DEVICE={want} matches none of [{}]",
-                names.join(", ")
-            ))
+            Error::NoDevice(format!("VELOX_DEVICE={want} matches none of [{}]", names.join(", ")))
         })?;
         if let Some(why) = &list[i].unusable {
             return Err(Error::NoDevice(format!(
@@ -214,10 +178,7 @@ fn choose(
                 .iter()
                 .map(|d| format!("{} ({})", d.name, d.unusable.clone().unwrap_or_default()))
                 .collect();
-            Error::NoDevice(format!(
-                "none of the devices can be used: {}",
-                why.join("; ")
-            ))
+            Error::NoDevice(format!("none of the devices can be used: {}", why.join("; ")))
         })
 }
 
@@ -254,8 +215,8 @@ impl Gpu {
         let caps = Caps::query(&entry, &instance, physical, index, queue_family)?;
 
         // Enable exactly what the caps say is there.
-        let mut f11 = vk::PhysicalDeviceVulkan11Features::default()
-            .storage_buffer16_bit_access(caps.f16_storage);
+        let mut f11 =
+            vk::PhysicalDeviceVulkan11Features::default().storage_buffer16_bit_access(caps.f16_storage);
         let mut f12 = vk::PhysicalDeviceVulkan12Features::default()
             .shader_float16(caps.f16_arithmetic)
             .vulkan_memory_model(caps.vulkan_memory_model)
@@ -271,8 +232,7 @@ impl Gpu {
             .cooperative_matrix(caps.coop_matrix_f16.is_some());
         let base = vk::PhysicalDeviceFeatures::default().shader_int64(caps.int64);
 
-        let mut extensions: Vec<*const c_char> =
-            REQUIRED_EXTENSIONS.iter().map(|e| e.as_ptr()).collect();
+        let mut extensions: Vec<*const c_char> = REQUIRED_EXTENSIONS.iter().map(|e| e.as_ptr()).collect();
         let mut features = vk::PhysicalDeviceFeatures2::default()
             .features(base)
             .push_next(&mut f11)
@@ -295,8 +255,7 @@ impl Gpu {
             .enabled_extension_names(&extensions)
             .push_next(&mut features);
         // SAFETY: the create info and its chain outlive the call.
-        let device =
-            unsafe { instance.create_device(physical, &info, None) }.vk("vkCreateDevice")?;
+        let device = unsafe { instance.create_device(physical, &info, None) }.vk("vkCreateDevice")?;
         // SAFETY: the queue family and index were requested above.
         let queue = unsafe { device.get_device_queue(queue_family, 0) };
         let pool_info = vk::CommandPoolCreateInfo::default()
@@ -347,8 +306,7 @@ impl Drop for GpuInner {
         unsafe {
             let _ = self.device.device_wait_idle();
             self.pipelines.destroy(&self.device);
-            self.device
-                .destroy_command_pool(*self.command_pool.get_mut().unwrap(), None);
+            self.device.destroy_command_pool(*self.command_pool.get_mut().unwrap(), None);
             ManuallyDrop::drop(&mut self.allocator);
             self.device.destroy_device(None);
             self.instance.destroy_instance(None);

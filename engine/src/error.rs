@@ -12,10 +12,7 @@ pub enum Error {
     /// The loader works but no usable Vulkan 1.3 compute device was found.
     NoDevice(String),
     /// A Vulkan call failed.
-    Vulkan {
-        call: &'static str,
-        result: vk::Result,
-    },
+    Vulkan { call: &'static str, result: vk::Result },
     /// Device memory could not be allocated.
     OutOfMemory(String),
     /// A tensor or dispatch exceeds what the device allows.

@@ -128,10 +128,7 @@ impl Gpu {
             return Ok(p.clone());
         }
         if let Some(missing) = self.missing_feature(kernel) {
-            return Err(Error::Unsupported(format!(
-                "kernel {} needs {missing}",
-                kernel.name()
-            )));
+            return Err(Error::Unsupported(format!("kernel {} needs {missing}", kernel.name())));
         }
         let info = kernel.info();
         if info.push_bytes > self.caps().max_push_constants {
@@ -150,8 +147,7 @@ impl Gpu {
                     .map_err(|e| Error::Invalid(format!("SPIR-V of {}: {e}", src.name)))?;
                 let ci = vk::ShaderModuleCreateInfo::default().code(&words);
                 // SAFETY: valid SPIR-V produced and validated by naga at build time.
-                let m =
-                    unsafe { device.create_shader_module(&ci, None) }.vk("vkCreateShaderModule")?;
+                let m = unsafe { device.create_shader_module(&ci, None) }.vk("vkCreateShaderModule")?;
                 s.modules[info.module] = Some(m);
                 m
             }
@@ -172,9 +168,8 @@ impl Gpu {
             .bindings(&bindings);
         // SAFETY: valid device and create infos throughout.
         unsafe {
-            let set_layout = device
-                .create_descriptor_set_layout(&set_info, None)
-                .vk("vkCreateDescriptorSetLayout")?;
+            let set_layout =
+                device.create_descriptor_set_layout(&set_info, None).vk("vkCreateDescriptorSetLayout")?;
             let ranges = [vk::PushConstantRange::default()
                 .stage_flags(vk::ShaderStageFlags::COMPUTE)
                 .offset(0)
@@ -188,10 +183,7 @@ impl Gpu {
                 Ok(l) => l,
                 Err(e) => {
                     device.destroy_descriptor_set_layout(set_layout, None);
-                    return Err(Error::Vulkan {
-                        call: "vkCreatePipelineLayout",
-                        result: e,
-                    });
+                    return Err(Error::Vulkan { call: "vkCreatePipelineLayout", result: e });
                 }
             };
             let entry = std::ffi::CString::new(info.entry).expect("entry names have no NUL");
@@ -199,26 +191,16 @@ impl Gpu {
                 .stage(vk::ShaderStageFlags::COMPUTE)
                 .module(module)
                 .name(&entry);
-            let ci = [vk::ComputePipelineCreateInfo::default()
-                .stage(stage)
-                .layout(layout)];
-            let pipeline =
-                match device.create_compute_pipelines(vk::PipelineCache::null(), &ci, None) {
-                    Ok(p) => p[0],
-                    Err((_, e)) => {
-                        device.destroy_pipeline_layout(layout, None);
-                        device.destroy_descriptor_set_layout(set_layout, None);
-                        return Err(Error::Vulkan {
-                            call: "vkCreateComputePipelines",
-                            result: e,
-                        });
-                    }
-                };
-            let p = Arc::new(Pipeline {
-                pipeline,
-                layout,
-                set_layout,
-            });
+            let ci = [vk::ComputePipelineCreateInfo::default().stage(stage).layout(layout)];
+            let pipeline = match device.create_compute_pipelines(vk::PipelineCache::null(), &ci, None) {
+                Ok(p) => p[0],
+                Err((_, e)) => {
+                    device.destroy_pipeline_layout(layout, None);
+                    device.destroy_descriptor_set_layout(set_layout, None);
+                    return Err(Error::Vulkan { call: "vkCreateComputePipelines", result: e });
+                }
+            };
+            let p = Arc::new(Pipeline { pipeline, layout, set_layout });
             s.pipelines[kernel.0] = Some(p.clone());
             Ok(p)
         }

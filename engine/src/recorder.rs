@@ -52,12 +52,11 @@ impl Gpu {
             .level(vk::CommandBufferLevel::PRIMARY)
             .command_buffer_count(1);
         // SAFETY: the pool is externally synchronised by its mutex.
-        let cmd =
-            unsafe { device.allocate_command_buffers(&info) }.vk("vkAllocateCommandBuffers")?[0];
+        let cmd = unsafe { device.allocate_command_buffers(&info) }.vk("vkAllocateCommandBuffers")?[0];
         drop(pool);
         // SAFETY: valid device.
-        let fence = unsafe { device.create_fence(&vk::FenceCreateInfo::default(), None) }
-            .vk("vkCreateFence")?;
+        let fence =
+            unsafe { device.create_fence(&vk::FenceCreateInfo::default(), None) }.vk("vkCreateFence")?;
         let rec = Recorder {
             gpu: self.clone(),
             cmd,
@@ -71,8 +70,7 @@ impl Gpu {
             barriers: 0,
             submitted: false,
         };
-        let begin = vk::CommandBufferBeginInfo::default()
-            .flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
+        let begin = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
         // SAFETY: a freshly allocated command buffer.
         unsafe { device.begin_command_buffer(cmd, &begin) }.vk("vkBeginCommandBuffer")?;
         Ok(rec.with_timestamps_if_possible())
@@ -87,11 +85,7 @@ impl Recorder {
                 .query_count(MAX_TIMESTAMPS);
             // SAFETY: valid device; the pool is reset in the command buffer before use.
             if let Ok(pool) = unsafe { self.gpu.device().create_query_pool(&info, None) } {
-                unsafe {
-                    self.gpu
-                        .device()
-                        .cmd_reset_query_pool(self.cmd, pool, 0, MAX_TIMESTAMPS)
-                };
+                unsafe { self.gpu.device().cmd_reset_query_pool(self.cmd, pool, 0, MAX_TIMESTAMPS) };
                 self.queries = Some(pool);
             }
         }
@@ -112,13 +106,9 @@ impl Recorder {
     /// Makes every earlier shader or transfer write visible to every later access.
     pub fn full_barrier(&mut self) {
         let barrier = vk::MemoryBarrier2::default()
-            .src_stage_mask(
-                vk::PipelineStageFlags2::COMPUTE_SHADER | vk::PipelineStageFlags2::TRANSFER,
-            )
+            .src_stage_mask(vk::PipelineStageFlags2::COMPUTE_SHADER | vk::PipelineStageFlags2::TRANSFER)
             .src_access_mask(vk::AccessFlags2::SHADER_WRITE | vk::AccessFlags2::TRANSFER_WRITE)
-            .dst_stage_mask(
-                vk::PipelineStageFlags2::COMPUTE_SHADER | vk::PipelineStageFlags2::TRANSFER,
-            )
+            .dst_stage_mask(vk::PipelineStageFlags2::COMPUTE_SHADER | vk::PipelineStageFlags2::TRANSFER)
             .dst_access_mask(
                 vk::AccessFlags2::SHADER_READ
                     | vk::AccessFlags2::SHADER_WRITE
@@ -177,21 +167,15 @@ impl Recorder {
         let pipeline = self.gpu.pipeline(kernel)?;
 
         let reads: Vec<vk::Buffer> = args.iter().map(|t| t.buf.raw).collect();
-        let writes: Vec<vk::Buffer> = args
-            .iter()
-            .zip(info.bindings)
-            .filter(|(_, b)| b.writes)
-            .map(|(t, _)| t.buf.raw)
-            .collect();
+        let writes: Vec<vk::Buffer> =
+            args.iter().zip(info.bindings).filter(|(_, b)| b.writes).map(|(t, _)| t.buf.raw).collect();
         self.hazard_barrier(&reads, &writes);
 
         let buffer_infos: Vec<[vk::DescriptorBufferInfo; 1]> = args
             .iter()
             .map(|t| {
-                [vk::DescriptorBufferInfo::default()
-                    .buffer(t.buf.raw)
-                    .offset(0)
-                    .range(t.buf.size)]
+                let (offset, range) = t.binding_range();
+                [vk::DescriptorBufferInfo::default().buffer(t.buf.raw).offset(offset).range(range)]
             })
             .collect();
         let writes_desc: Vec<vk::WriteDescriptorSet> = info
@@ -242,36 +226,35 @@ impl Recorder {
         args: &[&Tensor],
         push: &P,
     ) -> Result<()> {
-        let groups =
-            linear_groups(total, self.gpu.caps().max_workgroup_count).ok_or_else(|| {
-                Error::TooLarge(format!("kernel {}: {total} workgroups", kernel.name()))
-            })?;
+        let groups = linear_groups(total, self.gpu.caps().max_workgroup_count)
+            .ok_or_else(|| Error::TooLarge(format!("kernel {}: {total} workgroups", kernel.name())))?;
         self.dispatch(kernel, groups, args, push)
     }
 
     /// Copies `bytes` bytes between raw buffers (uploads and downloads).
-    pub(crate) fn copy_raw(&mut self, src: &Buffer, dst: &Buffer, bytes: u64) {
+    pub(crate) fn copy_raw(
+        &mut self,
+        src: &Buffer,
+        src_offset: u64,
+        dst: &Buffer,
+        dst_offset: u64,
+        bytes: u64,
+    ) {
         self.hazard_barrier(&[src.raw], &[dst.raw]);
-        let region = [vk::BufferCopy::default().size(bytes)];
+        let region = [vk::BufferCopy::default().src_offset(src_offset).dst_offset(dst_offset).size(bytes)];
         // SAFETY: recording state; the caller keeps both buffers alive until submit returns.
-        unsafe {
-            self.gpu
-                .device()
-                .cmd_copy_buffer(self.cmd, src.raw, dst.raw, &region)
-        };
+        unsafe { self.gpu.device().cmd_copy_buffer(self.cmd, src.raw, dst.raw, &region) };
     }
 
     /// Copies the whole of `src` into `dst` (same byte size).
     pub fn copy(&mut self, src: &Tensor, dst: &Tensor) -> Result<()> {
         if src.bytes() != dst.bytes() {
-            return Err(Error::Shape(format!(
-                "copy {src:?} into {dst:?}: sizes differ"
-            )));
+            return Err(Error::Shape(format!("copy {src:?} into {dst:?}: sizes differ")));
         }
         if src.bytes() == 0 {
             return Ok(());
         }
-        self.copy_raw(&src.buf, &dst.buf, src.bytes());
+        self.copy_raw(&src.buf, src.offset, &dst.buf, dst.offset, src.bytes());
         self.keep.push(src.buf.clone());
         self.keep.push(dst.buf.clone());
         Ok(())
@@ -312,21 +295,15 @@ impl Recorder {
         // SAFETY: recording state; the fence is unsignalled; the queue is externally
         // synchronised by its mutex.
         unsafe {
-            device
-                .end_command_buffer(self.cmd)
-                .vk("vkEndCommandBuffer")?;
+            device.end_command_buffer(self.cmd).vk("vkEndCommandBuffer")?;
             let cmds = [self.cmd];
             let submit = [vk::SubmitInfo::default().command_buffers(&cmds)];
             {
                 let queue = self.gpu.inner.queue.lock().unwrap();
-                device
-                    .queue_submit(*queue, &submit, self.fence)
-                    .vk("vkQueueSubmit")?;
+                device.queue_submit(*queue, &submit, self.fence).vk("vkQueueSubmit")?;
             }
             self.submitted = true;
-            device
-                .wait_for_fences(&[self.fence], true, u64::MAX)
-                .vk("vkWaitForFences")?;
+            device.wait_for_fences(&[self.fence], true, u64::MAX).vk("vkWaitForFences")?;
         }
         let mut timestamps_ns = Vec::new();
         if let (Some(pool), n) = (self.queries, self.timestamps) {
@@ -342,11 +319,7 @@ impl Recorder {
                 timestamps_ns = raw.iter().map(|&t| t as f64 * period).collect();
             }
         }
-        Ok(Finished {
-            timestamps_ns,
-            dispatches: self.dispatches,
-            barriers: self.barriers,
-        })
+        Ok(Finished { timestamps_ns, dispatches: self.dispatches, barriers: self.barriers })
     }
 }
 

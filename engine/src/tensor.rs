@@ -1,7 +1,8 @@
 //! Device buffers and tensors.
 //!
-//! Every tensor owns (a share of) one `VkBuffer` that starts at offset 0, so it can be bound
-//! whole. Memory comes from gpu-allocator: mapped host-visible memory on unified-memory devices
+//! A tensor is a byte range of one `VkBuffer`: a fresh tensor has its own buffer, and views
+//! ([`Tensor::view`]) share one at aligned offsets, so that, for example, every parameter of a
+//! model can live in one buffer that one fused optimiser kernel updates. Memory comes from gpu-allocator: mapped host-visible memory on unified-memory devices
 //! (CPU and most integrated GPUs: reads and writes are plain copies), device-local memory on
 //! discrete GPUs (reads and writes go through a staging buffer).
 
@@ -50,12 +51,7 @@ pub struct Buffer {
 }
 
 impl Buffer {
-    pub(crate) fn new(
-        gpu: &Gpu,
-        size: u64,
-        location: MemoryLocation,
-        name: &str,
-    ) -> Result<Buffer> {
+    pub(crate) fn new(gpu: &Gpu, size: u64, location: MemoryLocation, name: &str) -> Result<Buffer> {
         let caps = gpu.caps();
         // Vulkan forbids empty buffers; 16 bytes also keeps f16 tails in whole words.
         let size = size.max(16).next_multiple_of(4);
@@ -78,18 +74,13 @@ impl Buffer {
         let raw = unsafe { device.create_buffer(&info, None) }.vk("vkCreateBuffer")?;
         // SAFETY: `raw` was just created on this device.
         let requirements = unsafe { device.get_buffer_memory_requirements(raw) };
-        let allocation = gpu
-            .inner
-            .allocator
-            .lock()
-            .unwrap()
-            .allocate(&AllocationCreateDesc {
-                name,
-                requirements,
-                location,
-                linear: true,
-                allocation_scheme: AllocationScheme::GpuAllocatorManaged,
-            });
+        let allocation = gpu.inner.allocator.lock().unwrap().allocate(&AllocationCreateDesc {
+            name,
+            requirements,
+            location,
+            linear: true,
+            allocation_scheme: AllocationScheme::GpuAllocatorManaged,
+        });
         let allocation = match allocation {
             Ok(a) => a,
             Err(e) => {
@@ -99,31 +90,18 @@ impl Buffer {
             }
         };
         // SAFETY: the allocation satisfies the buffer's requirements.
-        if let Err(e) =
-            unsafe { device.bind_buffer_memory(raw, allocation.memory(), allocation.offset()) }
-        {
+        if let Err(e) = unsafe { device.bind_buffer_memory(raw, allocation.memory(), allocation.offset()) } {
             // SAFETY: as above.
             unsafe { device.destroy_buffer(raw, None) };
             let _ = gpu.inner.allocator.lock().unwrap().free(allocation);
-            return Err(Error::Vulkan {
-                call: "vkBindBufferMemory",
-                result: e,
-            });
+            return Err(Error::Vulkan { call: "vkBindBufferMemory", result: e });
         }
-        Ok(Buffer {
-            gpu: gpu.clone(),
-            raw,
-            allocation: Some(allocation),
-            size,
-        })
+        Ok(Buffer { gpu: gpu.clone(), raw, allocation: Some(allocation), size })
     }
 
     /// The mapped bytes, when the buffer lives in host-visible memory.
     pub(crate) fn mapped(&self) -> Option<*mut u8> {
-        self.allocation
-            .as_ref()
-            .and_then(|a| a.mapped_ptr())
-            .map(|p| p.as_ptr() as *mut u8)
+        self.allocation.as_ref().and_then(|a| a.mapped_ptr()).map(|p| p.as_ptr() as *mut u8)
     }
 }
 
@@ -142,6 +120,8 @@ impl Drop for Buffer {
 #[derive(Clone)]
 pub struct Tensor {
     pub(crate) buf: Arc<Buffer>,
+    /// Byte offset of element 0 in `buf`.
+    pub(crate) offset: u64,
     shape: Vec<usize>,
     dtype: DType,
 }
@@ -173,11 +153,7 @@ pub(crate) fn numel_of(shape: &[usize]) -> Result<usize> {
     shape
         .iter()
         .try_fold(1usize, |acc, &d| acc.checked_mul(d))
-        .ok_or_else(|| {
-            Error::TooLarge(format!(
-                "shape {shape:?} has more elements than fit in memory"
-            ))
-        })
+        .ok_or_else(|| Error::TooLarge(format!("shape {shape:?} has more elements than fit in memory")))
 }
 
 impl Tensor {
@@ -187,17 +163,10 @@ impl Tensor {
         let bytes = (n as u64)
             .checked_mul(dtype.size() as u64)
             .ok_or_else(|| Error::TooLarge(format!("shape {shape:?}")))?;
-        let location = if gpu.caps().unified_memory {
-            MemoryLocation::CpuToGpu
-        } else {
-            MemoryLocation::GpuOnly
-        };
+        let location =
+            if gpu.caps().unified_memory { MemoryLocation::CpuToGpu } else { MemoryLocation::GpuOnly };
         let buf = Buffer::new(gpu, bytes, location, "tensor")?;
-        Ok(Tensor {
-            buf: Arc::new(buf),
-            shape: shape.to_vec(),
-            dtype,
-        })
+        Ok(Tensor { buf: Arc::new(buf), offset: 0, shape: shape.to_vec(), dtype })
     }
 
     /// A tensor holding `data`, which must have as many elements as `shape`.
@@ -217,16 +186,14 @@ impl Tensor {
     /// Overwrites the whole tensor with `data`.
     pub fn write<T: Element>(&self, data: &[T]) -> Result<()> {
         self.check_host_type::<T>(data.len())?;
-        self.gpu()
-            .write_buffer(&self.buf, bytemuck::cast_slice(data))
+        self.gpu().write_buffer(&self.buf, self.offset, bytemuck::cast_slice(data))
     }
 
     /// Reads the whole tensor back.
     pub fn read<T: Element>(&self) -> Result<Vec<T>> {
         self.check_host_type::<T>(self.numel())?;
         let mut out = vec![T::zeroed(); self.numel()];
-        self.gpu()
-            .read_buffer(&self.buf, bytemuck::cast_slice_mut(&mut out))?;
+        self.gpu().read_buffer(&self.buf, self.offset, bytemuck::cast_slice_mut(&mut out))?;
         Ok(out)
     }
 
@@ -268,16 +235,42 @@ impl Tensor {
     /// The same data under another shape with the same number of elements.
     pub fn reshape(&self, shape: &[usize]) -> Result<Tensor> {
         if numel_of(shape)? != self.numel() {
+            return Err(Error::Shape(format!("cannot reshape {:?} to {shape:?}", self.shape)));
+        }
+        Ok(Tensor { buf: self.buf.clone(), offset: self.offset, shape: shape.to_vec(), dtype: self.dtype })
+    }
+
+    /// A view of `shape` starting `start` elements into this tensor, sharing its storage. The
+    /// start must be a multiple of [`Tensor::view_alignment`] elements (the device's storage
+    /// offset alignment) so that the view can be bound by itself.
+    pub fn view(&self, start: usize, shape: &[usize]) -> Result<Tensor> {
+        let n = numel_of(shape)?;
+        if start.checked_add(n).is_none_or(|end| end > self.numel()) {
             return Err(Error::Shape(format!(
-                "cannot reshape {:?} to {shape:?}",
-                self.shape
+                "view of {n} elements at {start} runs past the end of {self:?}"
             )));
         }
-        Ok(Tensor {
-            buf: self.buf.clone(),
-            shape: shape.to_vec(),
-            dtype: self.dtype,
-        })
+        let align = self.view_alignment();
+        if start % align != 0 {
+            return Err(Error::Shape(format!(
+                "view start {start} of {self:?} is not a multiple of {align} elements (the device's storage offset alignment)"
+            )));
+        }
+        let offset = if n == 0 { self.offset } else { self.offset + (start * self.dtype.size()) as u64 };
+        Ok(Tensor { buf: self.buf.clone(), offset, shape: shape.to_vec(), dtype: self.dtype })
+    }
+
+    /// Element multiple at which views of this tensor may start.
+    pub fn view_alignment(&self) -> usize {
+        let bytes = self.gpu().caps().min_storage_buffer_offset_alignment.max(4) as usize;
+        bytes.div_ceil(self.dtype.size())
+    }
+
+    /// The byte range to bind: the tensor's bytes rounded up to whole words, at least one word,
+    /// never past the buffer.
+    pub(crate) fn binding_range(&self) -> (u64, u64) {
+        let range = self.bytes().next_multiple_of(4).max(4).min(self.buf.size - self.offset);
+        (self.offset, range)
     }
 
     /// Whether two tensors share storage.
@@ -302,46 +295,37 @@ impl Tensor {
 }
 
 impl Gpu {
-    pub(crate) fn write_buffer(&self, buf: &Buffer, bytes: &[u8]) -> Result<()> {
+    pub(crate) fn write_buffer(&self, buf: &Buffer, offset: u64, bytes: &[u8]) -> Result<()> {
         if bytes.is_empty() {
             return Ok(());
         }
         if let Some(ptr) = buf.mapped() {
-            // SAFETY: the mapping covers `buf.size >= bytes.len()` bytes, and no GPU work is in
-            // flight: every recorder waits for its work before returning.
-            unsafe { std::ptr::copy_nonoverlapping(bytes.as_ptr(), ptr, bytes.len()) };
+            // SAFETY: the mapping covers `buf.size >= offset + bytes.len()` bytes (tensors and
+            // views never extend past their buffer), and no GPU work is in flight: every
+            // recorder waits for its work before returning.
+            unsafe { std::ptr::copy_nonoverlapping(bytes.as_ptr(), ptr.add(offset as usize), bytes.len()) };
             return Ok(());
         }
-        let staging = Buffer::new(
-            self,
-            bytes.len() as u64,
-            MemoryLocation::CpuToGpu,
-            "upload staging",
-        )?;
+        let staging = Buffer::new(self, bytes.len() as u64, MemoryLocation::CpuToGpu, "upload staging")?;
         let ptr = staging
             .mapped()
             .ok_or_else(|| Error::Unsupported("staging memory is not host-visible".into()))?;
         // SAFETY: the staging mapping holds at least `bytes.len()` bytes.
         unsafe { std::ptr::copy_nonoverlapping(bytes.as_ptr(), ptr, bytes.len()) };
-        self.copy_now(&staging, buf, bytes.len() as u64)
+        self.copy_now(&staging, 0, buf, offset, bytes.len() as u64)
     }
 
-    pub(crate) fn read_buffer(&self, buf: &Buffer, out: &mut [u8]) -> Result<()> {
+    pub(crate) fn read_buffer(&self, buf: &Buffer, offset: u64, out: &mut [u8]) -> Result<()> {
         if out.is_empty() {
             return Ok(());
         }
         if let Some(ptr) = buf.mapped() {
             // SAFETY: as in `write_buffer`.
-            unsafe { std::ptr::copy_nonoverlapping(ptr, out.as_mut_ptr(), out.len()) };
+            unsafe { std::ptr::copy_nonoverlapping(ptr.add(offset as usize), out.as_mut_ptr(), out.len()) };
             return Ok(());
         }
-        let staging = Buffer::new(
-            self,
-            out.len() as u64,
-            MemoryLocation::GpuToCpu,
-            "download staging",
-        )?;
-        self.copy_now(buf, &staging, out.len() as u64)?;
+        let staging = Buffer::new(self, out.len() as u64, MemoryLocation::GpuToCpu, "download staging")?;
+        self.copy_now(buf, offset, &staging, 0, out.len() as u64)?;
         let ptr = staging
             .mapped()
             .ok_or_else(|| Error::Unsupported("staging memory is not host-visible".into()))?;
@@ -350,9 +334,16 @@ impl Gpu {
         Ok(())
     }
 
-    fn copy_now(&self, src: &Buffer, dst: &Buffer, bytes: u64) -> Result<()> {
+    fn copy_now(
+        &self,
+        src: &Buffer,
+        src_offset: u64,
+        dst: &Buffer,
+        dst_offset: u64,
+        bytes: u64,
+    ) -> Result<()> {
         let mut rec = self.recorder()?;
-        rec.copy_raw(src, dst, bytes);
+        rec.copy_raw(src, src_offset, dst, dst_offset, bytes);
         rec.submit()?;
         Ok(())
     }

@@ -10,8 +10,7 @@ pub use velox::engine::{DType, Gpu, Tensor};
 /// The device every test of this binary shares (lavapipe in CI).
 pub fn gpu() -> Gpu {
     static GPU: OnceLock<Gpu> = OnceLock::new();
-    GPU.get_or_init(|| Gpu::new().unwrap_or_else(|e| panic!("tests need a Vulkan device: {e}")))
-        .clone()
+    GPU.get_or_init(|| Gpu::new().unwrap_or_else(|e| panic!("tests need a Vulkan device: {e}"))).clone()
 }
 
 /// f32 data to f64 for the references.
@@ -24,8 +23,5 @@ pub fn f64s(x: &[f32]) -> Vec<f64> {
 pub fn assert_nmse(what: &str, got: &[f32], reference: &[f64], bound: f64) {
     let e = nmse(got, reference);
     let m = max_abs_err(got, reference);
-    assert!(
-        e <= bound,
-        "{what}: nmse {e:.3e} > bound {bound:.1e} (max abs err {m:.3e})"
-    );
+    assert!(e <= bound, "{what}: nmse {e:.3e} > bound {bound:.1e} (max abs err {m:.3e})");
 }

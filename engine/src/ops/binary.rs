@@ -16,14 +16,8 @@ pub enum Binary {
 }
 
 impl Binary {
-    pub const ALL: [Binary; 6] = [
-        Binary::Add,
-        Binary::Sub,
-        Binary::Mul,
-        Binary::Div,
-        Binary::Max,
-        Binary::Min,
-    ];
+    pub const ALL: [Binary; 6] =
+        [Binary::Add, Binary::Sub, Binary::Mul, Binary::Div, Binary::Max, Binary::Min];
     fn code(self) -> u32 {
         self as u32
     }
@@ -55,9 +49,7 @@ pub fn broadcast_shape(a: &[usize], b: &[usize]) -> Result<Vec<usize>> {
             (x, y) if x == y => Ok(x),
             (1, y) => Ok(y),
             (x, 1) => Ok(x),
-            _ => Err(Error::Shape(format!(
-                "shapes {a:?} and {b:?} do not broadcast"
-            ))),
+            _ => Err(Error::Shape(format!("shapes {a:?} and {b:?} do not broadcast"))),
         })
         .collect()
 }
@@ -113,34 +105,20 @@ pub fn binary(rec: &mut Recorder, a: &Tensor, b: &Tensor, op: Binary) -> Result<
 }
 
 /// out = op(a, b) into `out`, whose shape must be the broadcast shape (it may alias `a`).
-pub fn binary_into(
-    rec: &mut Recorder,
-    a: &Tensor,
-    b: &Tensor,
-    out: &Tensor,
-    op: Binary,
-) -> Result<()> {
+pub fn binary_into(rec: &mut Recorder, a: &Tensor, b: &Tensor, out: &Tensor, op: Binary) -> Result<()> {
     if [a, b, out].iter().any(|t| t.dtype() != DType::F32) {
-        return Err(Error::Shape(format!(
-            "{op:?} needs f32 tensors: {a:?}, {b:?} -> {out:?}"
-        )));
+        return Err(Error::Shape(format!("{op:?} needs f32 tensors: {a:?}, {b:?} -> {out:?}")));
     }
     let shape = broadcast_shape(a.shape(), b.shape())?;
     if shape != out.shape() {
-        return Err(Error::Shape(format!(
-            "{op:?}: {a:?} and {b:?} broadcast to {shape:?}, not {out:?}"
-        )));
+        return Err(Error::Shape(format!("{op:?}: {a:?} and {b:?} broadcast to {shape:?}, not {out:?}")));
     }
-    let n =
-        u32::try_from(out.numel()).map_err(|_| Error::TooLarge(format!("{op:?} on {out:?}")))?;
+    let n = u32::try_from(out.numel()).map_err(|_| Error::TooLarge(format!("{op:?} on {out:?}")))?;
     if n == 0 {
         return Ok(());
     }
-    let (dims, sa, sb) = collapse(
-        &shape,
-        &broadcast_strides(a.shape(), &shape),
-        &broadcast_strides(b.shape(), &shape),
-    );
+    let (dims, sa, sb) =
+        collapse(&shape, &broadcast_strides(a.shape(), &shape), &broadcast_strides(b.shape(), &shape));
     if dims.len() > 4 {
         return Err(Error::Shape(format!(
             "{op:?}: broadcasting {:?} with {:?} needs {} dimensions after merging, the kernel takes 4",
@@ -150,14 +128,8 @@ pub fn binary_into(
         )));
     }
     let pad = 4 - dims.len();
-    let mut p = Params {
-        shape: [1; 4],
-        a_strides: [0; 4],
-        b_strides: [0; 4],
-        n,
-        op: op.code(),
-        _pad: [0; 2],
-    };
+    let mut p =
+        Params { shape: [1; 4], a_strides: [0; 4], b_strides: [0; 4], n, op: op.code(), _pad: [0; 2] };
     for i in 0..dims.len() {
         p.shape[pad + i] = dims[i] as u32;
         p.a_strides[pad + i] = sa[i] as u32;
@@ -180,13 +152,7 @@ pub mod reference {
         }
     }
 
-    pub fn binary(
-        a: &[f32],
-        sa: &[usize],
-        b: &[f32],
-        sb: &[usize],
-        op: Binary,
-    ) -> (Vec<usize>, Vec<f64>) {
+    pub fn binary(a: &[f32], sa: &[usize], b: &[f32], sb: &[usize], op: Binary) -> (Vec<usize>, Vec<f64>) {
         let shape = broadcast_shape(sa, sb).unwrap();
         let (ta, tb) = (broadcast_strides(sa, &shape), broadcast_strides(sb, &shape));
         let n: usize = shape.iter().product();

@@ -22,9 +22,7 @@ pub fn cast(rec: &mut Recorder, x: &Tensor, dtype: DType) -> Result<Tensor> {
 /// Converts `x` into `out` (same shape).
 pub fn cast_into(rec: &mut Recorder, x: &Tensor, out: &Tensor) -> Result<()> {
     if x.shape() != out.shape() {
-        return Err(Error::Shape(format!(
-            "cast {x:?} into {out:?}: shapes differ"
-        )));
+        return Err(Error::Shape(format!("cast {x:?} into {out:?}: shapes differ")));
     }
     let n = u32::try_from(x.numel()).map_err(|_| Error::TooLarge(format!("cast of {x:?}")))?;
     let words = (n as u64).div_ceil(2);
@@ -37,11 +35,7 @@ pub fn cast_into(rec: &mut Recorder, x: &Tensor, out: &Tensor) -> Result<()> {
         (DType::F16, DType::F32) => {
             rec.dispatch_linear(CAST_F16_TO_F32, words.div_ceil(256), &[x, out], &params)
         }
-        (a, b) => Err(Error::Shape(format!(
-            "cast from {} to {} is not supported",
-            a.name(),
-            b.name()
-        ))),
+        (a, b) => Err(Error::Shape(format!("cast from {} to {} is not supported", a.name(), b.name()))),
     }
 }
 

@@ -29,10 +29,7 @@ pub fn fill(rec: &mut Recorder, t: &Tensor, value: f64) -> Result<()> {
 /// Sets every 32-bit word of `t`'s storage to `bits`.
 pub fn fill_bits(rec: &mut Recorder, t: &Tensor, bits: u32) -> Result<()> {
     let words = t.bytes().div_ceil(4);
-    let params = Params {
-        words: u32::try_from(words).map_err(|_| too_many(t))?,
-        value: bits,
-    };
+    let params = Params { words: u32::try_from(words).map_err(|_| too_many(t))?, value: bits };
     rec.dispatch_linear(FILL_MAIN, words.div_ceil(256), &[t], &params)
 }
 

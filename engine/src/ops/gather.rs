@@ -26,42 +26,26 @@ pub(crate) fn rows_width(t: &Tensor) -> Result<(usize, usize)> {
 pub fn gather(rec: &mut Recorder, src: &Tensor, idx: &Tensor) -> Result<Tensor> {
     let (src_rows, width) = rows_width(src)?;
     if src.dtype() != DType::F32 || idx.dtype() != DType::U32 {
-        return Err(Error::Shape(format!(
-            "gather needs f32 rows and u32 indices, got {src:?}, {idx:?}"
-        )));
+        return Err(Error::Shape(format!("gather needs f32 rows and u32 indices, got {src:?}, {idx:?}")));
     }
     let mut shape = vec![idx.numel()];
     shape.extend_from_slice(&src.shape()[1..]);
     let out = Tensor::empty(src.gpu(), &shape, DType::F32)?;
     let total = out.numel();
-    let fit =
-        |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("gather into {shape:?}")));
-    let p = RowParams {
-        rows: fit(idx.numel())?,
-        width: fit(width)?,
-        other_rows: fit(src_rows)?,
-    };
+    let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("gather into {shape:?}")));
+    let p = RowParams { rows: fit(idx.numel())?, width: fit(width)?, other_rows: fit(src_rows)? };
     fit(total)?;
-    rec.dispatch_linear(
-        GATHER_MAIN,
-        (total as u64).div_ceil(256),
-        &[src, idx, &out],
-        &p,
-    )?;
+    rec.dispatch_linear(GATHER_MAIN, (total as u64).div_ceil(256), &[src, idx, &out], &p)?;
     Ok(out)
 }
 
 pub mod reference {
     pub fn gather(src: &[f32], width: usize, idx: &[u32]) -> Vec<f64> {
-        let rows = if width == 0 { 0 } else { src.len() / width };
+        let rows = src.len().checked_div(width).unwrap_or(0);
         let mut out = Vec::with_capacity(idx.len() * width);
         for &i in idx {
             for c in 0..width {
-                out.push(if (i as usize) < rows {
-                    src[i as usize * width + c] as f64
-                } else {
-                    0.0
-                });
+                out.push(if (i as usize) < rows { src[i as usize * width + c] as f64 } else { 0.0 });
             }
         }
         out

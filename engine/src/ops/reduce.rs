@@ -29,9 +29,7 @@ pub fn reduce(rec: &mut Recorder, x: &Tensor, axis: usize, op: Reduce) -> Result
         return Err(Error::Shape(format!("reduce {op:?} needs f32, got {x:?}")));
     }
     if axis >= shape.len() {
-        return Err(Error::Shape(format!(
-            "reduce {op:?}: axis {axis} out of range for {x:?}"
-        )));
+        return Err(Error::Shape(format!("reduce {op:?}: axis {axis} out of range for {x:?}")));
     }
     let outer: usize = shape[..axis].iter().product();
     let len = shape[axis];
@@ -43,22 +41,12 @@ pub fn reduce(rec: &mut Recorder, x: &Tensor, axis: usize, op: Reduce) -> Result
     out_shape.remove(axis);
     let out = Tensor::empty(x.gpu(), &out_shape, DType::F32)?;
     let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("reduce of {x:?}")));
-    let p = Params {
-        outer: fit(outer)?,
-        len: fit(len)?,
-        inner: fit(inner)?,
-        op: op as u32,
-    };
+    let p = Params { outer: fit(outer)?, len: fit(len)?, inner: fit(inner)?, op: op as u32 };
     fit(x.numel())?;
     if inner == 1 {
         rec.dispatch_linear(REDUCE_ROWS, outer as u64, &[x, &out], &p)?;
     } else {
-        rec.dispatch_linear(
-            REDUCE_STRIDED,
-            ((outer * inner) as u64).div_ceil(256),
-            &[x, &out],
-            &p,
-        )?;
+        rec.dispatch_linear(REDUCE_STRIDED, ((outer * inner) as u64).div_ceil(256), &[x, &out], &p)?;
     }
     Ok(out)
 }

@@ -53,9 +53,7 @@ pub fn exclusive_scan_items(
         )));
     }
     if input.dtype() != DType::U32 || output.dtype() != DType::U32 {
-        return Err(Error::Shape(format!(
-            "exclusive_scan takes u32 tensors, got {input:?} -> {output:?}"
-        )));
+        return Err(Error::Shape(format!("exclusive_scan takes u32 tensors, got {input:?} -> {output:?}")));
     }
     if input.numel() != output.numel() {
         return Err(Error::Shape(format!(
@@ -63,15 +61,10 @@ pub fn exclusive_scan_items(
         )));
     }
     if input.same_storage(output) {
-        return Err(Error::Shape(
-            "exclusive_scan: input and output must be different tensors".into(),
-        ));
+        return Err(Error::Shape("exclusive_scan: input and output must be different tensors".into()));
     }
-    let n = u32::try_from(input.numel()).map_err(|_| {
-        Error::TooLarge(format!(
-            "exclusive_scan: {input:?} has 2^32 elements or more"
-        ))
-    })?;
+    let n = u32::try_from(input.numel())
+        .map_err(|_| Error::TooLarge(format!("exclusive_scan: {input:?} has 2^32 elements or more")))?;
     if n == 0 {
         let total = Tensor::empty(input.gpu(), &[1], DType::U32)?;
         fill_bits(rec, &total, 0)?;
@@ -81,33 +74,17 @@ pub fn exclusive_scan_items(
 }
 
 /// One level: scan blocks, recurse on their totals, add the scanned totals back.
-fn scan_level(
-    rec: &mut Recorder,
-    input: &Tensor,
-    output: &Tensor,
-    n: u32,
-    items: u32,
-) -> Result<Tensor> {
+fn scan_level(rec: &mut Recorder, input: &Tensor, output: &Tensor, n: u32, items: u32) -> Result<Tensor> {
     let blocks = (n as usize).div_ceil(WG * items as usize);
     let params = Params { n, items };
     let sums = Tensor::empty(input.gpu(), &[blocks], DType::U32)?;
-    rec.dispatch_linear(
-        SCAN_BLOCK_SCAN,
-        blocks as u64,
-        &[input, output, &sums],
-        &params,
-    )?;
+    rec.dispatch_linear(SCAN_BLOCK_SCAN, blocks as u64, &[input, output, &sums], &params)?;
     if blocks == 1 {
         return Ok(sums);
     }
     let offsets = Tensor::empty(input.gpu(), &[blocks], DType::U32)?;
     let total = scan_level(rec, &sums, &offsets, blocks as u32, items)?;
-    rec.dispatch_linear(
-        SCAN_ADD_BLOCK_OFFSETS,
-        blocks as u64,
-        &[output, &offsets],
-        &params,
-    )?;
+    rec.dispatch_linear(SCAN_ADD_BLOCK_OFFSETS, blocks as u64, &[output, &offsets], &params)?;
     Ok(total)
 }
 

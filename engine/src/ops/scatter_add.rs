@@ -33,45 +33,21 @@ pub fn scatter_add(rec: &mut Recorder, src: &Tensor, idx: &Tensor, out: &Tensor)
             idx.numel()
         )));
     }
-    let fit =
-        |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("scatter_add of {src:?}")));
+    let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("scatter_add of {src:?}")));
     fit(src.numel())?;
     fit(out.numel())?;
-    let p = RowParams {
-        rows: fit(rows)?,
-        width: fit(width)?,
-        other_rows: fit(dst_rows)?,
-    };
-    let kernel = if rec_supports(rec, SCATTER_ADD_MAIN) {
-        SCATTER_ADD_MAIN
-    } else {
-        SCATTER_ADD_CAS_MAIN
-    };
-    rec.dispatch_linear(
-        kernel,
-        (src.numel() as u64).div_ceil(256),
-        &[src, idx, out],
-        &p,
-    )
+    let p = RowParams { rows: fit(rows)?, width: fit(width)?, other_rows: fit(dst_rows)? };
+    let kernel = if rec_supports(rec, SCATTER_ADD_MAIN) { SCATTER_ADD_MAIN } else { SCATTER_ADD_CAS_MAIN };
+    rec.dispatch_linear(kernel, (src.numel() as u64).div_ceil(256), &[src, idx, out], &p)
 }
 
 /// Forces the compare-and-swap kernel (to test the fallback on devices that have atomics).
 pub fn scatter_add_cas(rec: &mut Recorder, src: &Tensor, idx: &Tensor, out: &Tensor) -> Result<()> {
     let (rows, width) = rows_width(src)?;
     let (dst_rows, _) = rows_width(out)?;
-    let fit =
-        |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("scatter_add of {src:?}")));
-    let p = RowParams {
-        rows: fit(rows)?,
-        width: fit(width)?,
-        other_rows: fit(dst_rows)?,
-    };
-    rec.dispatch_linear(
-        SCATTER_ADD_CAS_MAIN,
-        (src.numel() as u64).div_ceil(256),
-        &[src, idx, out],
-        &p,
-    )
+    let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("scatter_add of {src:?}")));
+    let p = RowParams { rows: fit(rows)?, width: fit(width)?, other_rows: fit(dst_rows)? };
+    rec.dispatch_linear(SCATTER_ADD_CAS_MAIN, (src.numel() as u64).div_ceil(256), &[src, idx, out], &p)
 }
 
 fn rec_supports(rec: &Recorder, k: crate::kernels::KernelId) -> bool {
@@ -81,7 +57,7 @@ fn rec_supports(rec: &Recorder, k: crate::kernels::KernelId) -> bool {
 pub mod reference {
     pub fn scatter_add(src: &[f32], width: usize, idx: &[u32], out: &[f32]) -> Vec<f64> {
         let mut acc: Vec<f64> = out.iter().map(|&v| v as f64).collect();
-        let dst_rows = if width == 0 { 0 } else { out.len() / width };
+        let dst_rows = out.len().checked_div(width).unwrap_or(0);
         for (r, &i) in idx.iter().enumerate() {
             if (i as usize) < dst_rows {
                 for c in 0..width {

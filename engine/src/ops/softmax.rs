@@ -15,24 +15,14 @@ struct Params {
 /// Softmax of every row (last axis) of `x`, as a new tensor.
 pub fn softmax(rec: &mut Recorder, x: &Tensor) -> Result<Tensor> {
     if x.dtype() != DType::F32 || x.shape().is_empty() {
-        return Err(Error::Shape(format!(
-            "softmax needs an f32 tensor with at least one axis, got {x:?}"
-        )));
+        return Err(Error::Shape(format!("softmax needs an f32 tensor with at least one axis, got {x:?}")));
     }
     let len = *x.shape().last().unwrap();
-    let rows = if len == 0 { 0 } else { x.numel() / len };
+    let rows = x.numel().checked_div(len).unwrap_or(0);
     let out = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
     let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("softmax of {x:?}")));
     fit(x.numel())?;
-    rec.dispatch_linear(
-        SOFTMAX_MAIN,
-        rows as u64,
-        &[x, &out],
-        &Params {
-            rows: fit(rows)?,
-            len: fit(len)?,
-        },
-    )?;
+    rec.dispatch_linear(SOFTMAX_MAIN, rows as u64, &[x, &out], &Params { rows: fit(rows)?, len: fit(len)? })?;
     Ok(out)
 }
 

@@ -41,14 +41,10 @@ pub fn sort_pairs(
     key_bits: u32,
 ) -> Result<(Tensor, Tensor)> {
     if keys.dtype() != DType::U32 {
-        return Err(Error::Shape(format!(
-            "sort_pairs: keys {keys:?} must be u32"
-        )));
+        return Err(Error::Shape(format!("sort_pairs: keys {keys:?} must be u32")));
     }
     if values.dtype().size() != 4 {
-        return Err(Error::Shape(format!(
-            "sort_pairs: values {values:?} must be a 32-bit type"
-        )));
+        return Err(Error::Shape(format!("sort_pairs: values {values:?} must be a 32-bit type")));
     }
     if keys.numel() != values.numel() {
         return Err(Error::Shape(format!(
@@ -56,9 +52,7 @@ pub fn sort_pairs(
         )));
     }
     if !(1..=32).contains(&key_bits) {
-        return Err(Error::Shape(format!(
-            "sort_pairs: key_bits is {key_bits}, it must be in 1..=32"
-        )));
+        return Err(Error::Shape(format!("sort_pairs: key_bits is {key_bits}, it must be in 1..=32")));
     }
     let n = u32::try_from(keys.numel())
         .map_err(|_| Error::TooLarge(format!("sort_pairs: {keys:?} has 2^32 elements or more")))?;
@@ -82,18 +76,8 @@ pub fn sort_pairs(
     let mut shift = 0;
     while shift < key_bits {
         let bits = RADIX_BITS.min(key_bits - shift);
-        let params = Params {
-            n,
-            num_blocks: num_blocks as u32,
-            shift,
-            mask: (1u32 << bits) - 1,
-        };
-        rec.dispatch_linear(
-            SORT_HISTOGRAM,
-            num_blocks as u64,
-            &[&src.0, &counts],
-            &params,
-        )?;
+        let params = Params { n, num_blocks: num_blocks as u32, shift, mask: (1u32 << bits) - 1 };
+        rec.dispatch_linear(SORT_HISTOGRAM, num_blocks as u64, &[&src.0, &counts], &params)?;
         exclusive_scan(rec, &counts, &offsets)?;
         rec.dispatch_linear(
             SORT_SCATTER,
@@ -105,11 +89,7 @@ pub fn sort_pairs(
         if shift < key_bits {
             // This pass's output is the next one's input, and this pass's input is free to be
             // the next output, unless it is the caller's.
-            let next = if src.0.same_storage(keys) {
-                new_pair()?
-            } else {
-                src.clone()
-            };
+            let next = if src.0.same_storage(keys) { new_pair()? } else { src.clone() };
             src = std::mem::replace(&mut out, next);
         }
     }
@@ -132,11 +112,7 @@ pub fn bytes_moved(n: usize, key_bits: u32) -> u64 {
 pub mod reference {
     /// Stable sort of (key, value) pairs by `key & mask(key_bits)`; the keys come back whole.
     pub fn sort_pairs(keys: &[u32], values: &[u32], key_bits: u32) -> (Vec<u32>, Vec<u32>) {
-        let mask = if key_bits >= 32 {
-            u32::MAX
-        } else {
-            (1u32 << key_bits) - 1
-        };
+        let mask = if key_bits >= 32 { u32::MAX } else { (1u32 << key_bits) - 1 };
         let mut pairs: Vec<(u32, u32)> = keys.iter().copied().zip(values.iter().copied()).collect();
         // `sort_by_key` is stable.
         pairs.sort_by_key(|&(k, _)| k & mask);

@@ -90,18 +90,11 @@ pub fn unary(rec: &mut Recorder, x: &Tensor, f: Unary) -> Result<Tensor> {
 /// y = f(x) into `y` (which may be `x` itself).
 pub fn unary_into(rec: &mut Recorder, x: &Tensor, y: &Tensor, f: Unary) -> Result<()> {
     if x.dtype() != DType::F32 || y.dtype() != DType::F32 || x.numel() != y.numel() {
-        return Err(Error::Shape(format!(
-            "unary {f:?}: {x:?} -> {y:?} needs f32 tensors of equal size"
-        )));
+        return Err(Error::Shape(format!("unary {f:?}: {x:?} -> {y:?} needs f32 tensors of equal size")));
     }
     let n = u32::try_from(x.numel()).map_err(|_| Error::TooLarge(format!("unary on {x:?}")))?;
     let (op, alpha, beta) = f.code();
-    rec.dispatch_linear(
-        UNARY_MAIN,
-        (n as u64).div_ceil(256),
-        &[x, y],
-        &Params { n, op, alpha, beta },
-    )
+    rec.dispatch_linear(UNARY_MAIN, (n as u64).div_ceil(256), &[x, y], &Params { n, op, alpha, beta })
 }
 
 pub mod reference {
