@@ -2,3 +2,4 @@
 //! reference (`reference` submodule), next to `shaders/<op>.wgsl`.
 
 pub mod fill;
+pub mod matmul;
