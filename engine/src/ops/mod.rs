@@ -5,6 +5,7 @@ pub mod binary;
 pub mod cast;
 pub mod fill;
 pub mod gather;
+pub mod matmul;
 pub mod reduce;
 pub mod scan;
 pub mod scatter_add;

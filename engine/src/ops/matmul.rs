@@ -1,0 +1,292 @@
+//! Batched matrix multiply with f32 accumulation. Kernels: `shaders/matmul.wgsl` (tiled, every
+//! device, f32 or f16 operands) and `shaders/matmul_coop.wgsl` (f16 operands on cooperative
+//! matrices, where the device has them).
+//!
+//! `a` is `[M, K]` (`[K, M]` when `trans_a`), `b` is `[K, N]` (`[N, K]` when `trans_b`), either
+//! with an optional leading batch dimension; an operand without one (or with batch 1) is
+//! broadcast over the other's batch, which is how `x @ W` runs for a batch of `x`. The output is
+//! f32 `[.., M, N]`.
+
+use crate::caps::Caps;
+use crate::device::Gpu;
+use crate::error::{Error, Result};
+use crate::kernels::{KernelId, MATMUL_COOP_MAIN, MATMUL_MAIN, MATMUL_MAIN_F16};
+use crate::recorder::Recorder;
+use crate::tensor::{DType, Tensor};
+
+/// Output tile of one workgroup, in both kernels.
+const TILE: usize = 128;
+/// Workgroup memory the cooperative-matrix kernel declares: two buffers of two 128x40 f16 tiles
+/// (40 KiB) and one 16x16 f32 staging slot per subgroup for edge tiles (8 KiB).
+const COOP_SHARED_BYTES: u32 = 49152;
+/// The cooperative-matrix kernel reads its operands 8 halves (16 bytes) at a time.
+const COOP_VECTOR: usize = 8;
+
+/// Push constants of both kernels (`Params` in the shaders); strides are in elements.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    m: u32,
+    n: u32,
+    k: u32,
+    accumulate: u32,
+    a_row: u32,
+    a_col: u32,
+    a_batch: u32,
+    b_row: u32,
+    b_col: u32,
+    b_batch: u32,
+    /// Bit 0: a transposed, bit 1: b transposed (the cooperative kernel's layout switch).
+    flags: u32,
+    _pad: u32,
+}
+
+/// The sizes of one product, checked.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Plan {
+    pub batch: usize,
+    pub m: usize,
+    pub n: usize,
+    pub k: usize,
+    /// Elements between consecutive batch entries of `a` and `b` (0 when broadcast).
+    pub a_batch_stride: usize,
+    pub b_batch_stride: usize,
+    pub out_shape: Vec<usize>,
+}
+
+/// Checks the shapes of `op(a) @ op(b)` and works out the sizes.
+pub fn plan(a: &[usize], b: &[usize], trans_a: bool, trans_b: bool) -> Result<Plan> {
+    let split = |s: &[usize], what: &str| -> Result<(Option<usize>, usize, usize)> {
+        match *s {
+            [r, c] => Ok((None, r, c)),
+            [bt, r, c] => Ok((Some(bt), r, c)),
+            _ => Err(Error::Shape(format!(
+                "matmul: {what} must be 2D [rows, cols] or 3D [batch, rows, cols], got {s:?}"
+            ))),
+        }
+    };
+    let (a_batch, a_r, a_c) = split(a, "a")?;
+    let (b_batch, b_r, b_c) = split(b, "b")?;
+    let (m, k) = if trans_a { (a_c, a_r) } else { (a_r, a_c) };
+    let (k_b, n) = if trans_b { (b_c, b_r) } else { (b_r, b_c) };
+    if k != k_b {
+        return Err(Error::Shape(format!(
+            "matmul: inner sizes differ: a {a:?}{} has K = {k}, b {b:?}{} has K = {k_b}",
+            if trans_a { " (transposed)" } else { "" },
+            if trans_b { " (transposed)" } else { "" },
+        )));
+    }
+    let batch = match (a_batch, b_batch) {
+        (None, None) => None,
+        (Some(x), None) | (None, Some(x)) => Some(x),
+        (Some(x), Some(y)) if x == y || y == 1 => Some(x),
+        (Some(1), Some(y)) => Some(y),
+        (Some(x), Some(y)) => {
+            return Err(Error::Shape(format!(
+                "matmul: batch sizes differ: a {a:?} has {x}, b {b:?} has {y} (one may be 1 or absent to broadcast)"
+            )))
+        }
+    };
+    let stride = |bt: Option<usize>, size: usize| match bt {
+        Some(x) if x > 1 => size,
+        _ => 0,
+    };
+    let out_shape = match batch {
+        Some(bt) => vec![bt, m, n],
+        None => vec![m, n],
+    };
+    Ok(Plan {
+        batch: batch.unwrap_or(1),
+        m,
+        n,
+        k,
+        a_batch_stride: stride(a_batch, m * k),
+        b_batch_stride: stride(b_batch, k * n),
+        out_shape,
+    })
+}
+
+/// Whether the device can run the cooperative-matrix kernel at all. It is written for
+/// 32-invocation subgroups (eight per 256-invocation workgroup, each owning a 64x32 block of
+/// the tile), so it is chosen only where every subgroup has exactly 32 invocations.
+pub fn coop_eligible(caps: &Caps) -> bool {
+    caps.coop_matrix_f16.is_some()
+        && caps.min_subgroup_size == 32
+        && caps.max_subgroup_size == 32
+        && caps.max_shared_memory >= COOP_SHARED_BYTES
+}
+
+/// Whether one product's layout suits the cooperative-matrix kernel: the contiguous axis of each
+/// operand must be a multiple of 8 so that 16-byte reads never straddle a row.
+pub fn coop_layout_ok(p: &Plan, trans_a: bool, trans_b: bool) -> bool {
+    let a_inner = if trans_a { p.m } else { p.k };
+    let b_inner = if trans_b { p.k } else { p.n };
+    a_inner % COOP_VECTOR == 0 && b_inner % COOP_VECTOR == 0
+}
+
+/// Which kernel a product of `dtype` operands runs on this device, for `velox info`.
+pub fn matmul_variant(gpu: &Gpu, dtype: DType) -> &'static str {
+    match dtype {
+        DType::F32 => "tiled f32: 128x128 tile per 256 invocations, 8x8 per invocation, k step 8",
+        DType::F16 if coop_eligible(gpu.caps()) && gpu.supports(MATMUL_COOP_MAIN) => {
+            "cooperative-matrix f16 x f16 -> f32: 128x128 tile, 16x16x16 fragments, k step 32 \
+             (tiled f16 fallback where an operand's contiguous axis is not a multiple of 8)"
+        }
+        DType::F16 => "tiled f16 x f16 -> f32 (f16 read as packed words, f32 accumulation)",
+        _ => "none: matmul takes f32 or f16 operands",
+    }
+}
+
+/// `op(a) @ op(b)` into a new f32 tensor.
+pub fn matmul(
+    rec: &mut Recorder,
+    a: &Tensor,
+    b: &Tensor,
+    trans_a: bool,
+    trans_b: bool,
+) -> Result<Tensor> {
+    let p = plan(a.shape(), b.shape(), trans_a, trans_b)?;
+    check_dtypes(a, b)?;
+    let out = Tensor::empty(a.gpu(), &p.out_shape, DType::F32)?;
+    matmul_into(rec, a, b, trans_a, trans_b, &out, false)?;
+    Ok(out)
+}
+
+/// `out = op(a) @ op(b)`, or `out += op(a) @ op(b)` when `accumulate` (gradient accumulation).
+/// `out` must be f32 with the product's shape and must not share storage with `a` or `b`.
+pub fn matmul_into(
+    rec: &mut Recorder,
+    a: &Tensor,
+    b: &Tensor,
+    trans_a: bool,
+    trans_b: bool,
+    out: &Tensor,
+    accumulate: bool,
+) -> Result<()> {
+    let p = plan(a.shape(), b.shape(), trans_a, trans_b)?;
+    check_dtypes(a, b)?;
+    if out.dtype() != DType::F32 || out.shape() != p.out_shape.as_slice() {
+        return Err(Error::Shape(format!(
+            "matmul: out must be f32 {:?}, got {out:?}",
+            p.out_shape
+        )));
+    }
+    if out.same_storage(a) || out.same_storage(b) {
+        return Err(Error::Shape(
+            "matmul: out shares storage with an operand; write into a separate tensor".into(),
+        ));
+    }
+    let max = a.gpu().caps().max_workgroup_count;
+    let groups = [
+        p.n.div_ceil(TILE),
+        p.m.div_ceil(TILE),
+        if p.m == 0 || p.n == 0 { 0 } else { p.batch },
+    ];
+    if groups.iter().zip(max).any(|(&g, lim)| g > lim as usize) {
+        return Err(Error::TooLarge(format!(
+            "matmul: batch {} of [{}, {}] outputs needs {groups:?} workgroups of 128x128, the device allows {max:?}",
+            p.batch, p.m, p.n
+        )));
+    }
+    // Every index the kernels form stays below the largest operand, which is bindable and so
+    // below 2^32 bytes; check the element counts anyway so an index can never wrap.
+    for t in [a, b, out] {
+        if t.numel() > u32::MAX as usize {
+            return Err(Error::TooLarge(format!(
+                "matmul: {t:?} has more than 2^32 elements"
+            )));
+        }
+    }
+    let params = Params {
+        m: p.m as u32,
+        n: p.n as u32,
+        k: p.k as u32,
+        accumulate: accumulate as u32,
+        a_row: if trans_a { 1 } else { p.k as u32 },
+        a_col: if trans_a { p.m as u32 } else { 1 },
+        a_batch: p.a_batch_stride as u32,
+        b_row: if trans_b { 1 } else { p.n as u32 },
+        b_col: if trans_b { p.k as u32 } else { 1 },
+        b_batch: p.b_batch_stride as u32,
+        flags: trans_a as u32 | (trans_b as u32) << 1,
+        _pad: 0,
+    };
+    let kernel = choose_kernel(a.gpu(), a.dtype(), &p, trans_a, trans_b);
+    let groups = groups.map(|g| g as u32);
+    rec.dispatch(kernel, groups, &[a, b, out], &params)
+}
+
+/// The kernel for one product.
+fn choose_kernel(gpu: &Gpu, dtype: DType, p: &Plan, trans_a: bool, trans_b: bool) -> KernelId {
+    if dtype == DType::F32 {
+        return MATMUL_MAIN;
+    }
+    if coop_eligible(gpu.caps())
+        && gpu.supports(MATMUL_COOP_MAIN)
+        && coop_layout_ok(p, trans_a, trans_b)
+    {
+        MATMUL_COOP_MAIN
+    } else {
+        MATMUL_MAIN_F16
+    }
+}
+
+fn check_dtypes(a: &Tensor, b: &Tensor) -> Result<()> {
+    match (a.dtype(), b.dtype()) {
+        (DType::F32, DType::F32) | (DType::F16, DType::F16) => Ok(()),
+        (x, y) if x == y => Err(Error::Shape(format!(
+            "matmul: operands must be f32 or f16, got {}",
+            x.name()
+        ))),
+        (x, y) => Err(Error::Shape(format!(
+            "matmul: operand dtypes differ (a is {}, b is {}); convert one first",
+            x.name(),
+            y.name()
+        ))),
+    }
+}
+
+/// Plain f64 loops, the definition the kernels are tested against.
+pub mod reference {
+    use super::plan;
+    use crate::error::Result;
+
+    /// `op(a) @ op(b)` for row-major `a` and `b` of the given shapes (see [`super::plan`]);
+    /// returns the output and its shape.
+    pub fn matmul(
+        a: &[f64],
+        a_shape: &[usize],
+        b: &[f64],
+        b_shape: &[usize],
+        trans_a: bool,
+        trans_b: bool,
+    ) -> Result<(Vec<f64>, Vec<usize>)> {
+        let p = plan(a_shape, b_shape, trans_a, trans_b)?;
+        let (m, n, k) = (p.m, p.n, p.k);
+        let mut out = vec![0.0; p.batch * m * n];
+        for z in 0..p.batch {
+            let a0 = z * p.a_batch_stride;
+            let b0 = z * p.b_batch_stride;
+            for i in 0..m {
+                for j in 0..n {
+                    let mut sum = 0.0;
+                    for kk in 0..k {
+                        let x = if trans_a {
+                            a[a0 + kk * m + i]
+                        } else {
+                            a[a0 + i * k + kk]
+                        };
+                        let y = if trans_b {
+                            b[b0 + j * k + kk]
+                        } else {
+                            b[b0 + kk * n + j]
+                        };
+                        sum += x * y;
+                    }
+                    out[(z * m + i) * n + j] = sum;
+                }
+            }
+        }
+        Ok((out, p.out_shape))
+    }
+}

@@ -1,0 +1,426 @@
+//! Batched matmul (`engine/src/ops/matmul.rs`, `shaders/matmul*.wgsl`) against its f64
+//! reference, on shapes that miss every tile multiple.
+mod common;
+use common::*;
+use half::f16;
+use velox::engine::ops::matmul::{
+    coop_eligible, coop_layout_ok, matmul, matmul_into, matmul_variant, plan, reference,
+};
+use velox::engine::Error;
+
+/// f32 products: measured NMSE is 5e-14 typically and 5e-12 at worst (a 1x1 output whose
+/// 130-term sum cancels); the bound leaves room for another summation order without letting
+/// an indexing error (NMSE near 1) through.
+const F32_BOUND: f64 = 1e-10;
+/// f16 operands against the reference on the same (rounded) operands: the products are exact
+/// in f32, so only the f32 accumulation differs.
+const F16_ROUNDED_BOUND: f64 = 1e-10;
+/// f16 operands against the reference on the unrounded f32 data: the rounding of the inputs.
+const F16_INPUT_BOUND: f64 = 5e-4;
+
+const SIZES: [usize; 6] = [1, 3, 17, 64, 65, 130];
+
+/// Shapes of a and b for op(a) = [m, k], op(b) = [k, n] with optional batch dimensions.
+fn shapes(
+    m: usize,
+    n: usize,
+    k: usize,
+    ta: bool,
+    tb: bool,
+    a_batch: Option<usize>,
+    b_batch: Option<usize>,
+) -> (Vec<usize>, Vec<usize>) {
+    let mut a = if ta { vec![k, m] } else { vec![m, k] };
+    let mut b = if tb { vec![n, k] } else { vec![k, n] };
+    if let Some(x) = a_batch {
+        a.insert(0, x);
+    }
+    if let Some(x) = b_batch {
+        b.insert(0, x);
+    }
+    (a, b)
+}
+
+fn numel(s: &[usize]) -> usize {
+    s.iter().product()
+}
+
+fn round_f16(x: &[f32]) -> Vec<f16> {
+    x.iter().map(|&v| f16::from_f32(v)).collect()
+}
+
+/// m, n, k, a batch, b batch.
+type Sizes = (usize, usize, usize, Option<usize>, Option<usize>);
+
+/// One pending f32 product: the result tensor and its reference.
+struct Case {
+    what: String,
+    out: Tensor,
+    reference: Vec<f64>,
+}
+
+#[test]
+fn f32_awkward_shapes_all_transposes() {
+    let gpu = gpu();
+    let mut rng = Rng::new(1);
+    let mut worst: f64 = 0.0;
+    for &m in &SIZES {
+        for &n in &SIZES {
+            // One submit per (m, n): every k and transpose combination.
+            let mut rec = gpu.recorder().unwrap();
+            let mut cases = Vec::new();
+            for &k in &SIZES {
+                for (ta, tb) in [(false, false), (false, true), (true, false), (true, true)] {
+                    let (sa, sb) = shapes(m, n, k, ta, tb, None, None);
+                    let a = rng.normal_vec(numel(&sa));
+                    let b = rng.normal_vec(numel(&sb));
+                    let ta_ = Tensor::from_slice(&gpu, &sa, &a).unwrap();
+                    let tb_ = Tensor::from_slice(&gpu, &sb, &b).unwrap();
+                    let out = matmul(&mut rec, &ta_, &tb_, ta, tb).unwrap();
+                    assert_eq!(out.shape(), &[m, n]);
+                    let (r, _) = reference::matmul(&f64s(&a), &sa, &f64s(&b), &sb, ta, tb).unwrap();
+                    cases.push(Case {
+                        what: format!("m={m} n={n} k={k} ta={ta} tb={tb}"),
+                        out,
+                        reference: r,
+                    });
+                }
+            }
+            rec.submit().unwrap();
+            for c in cases {
+                let got = c.out.read::<f32>().unwrap();
+                worst = worst.max(nmse(&got, &c.reference));
+                assert_nmse(&c.what, &got, &c.reference, F32_BOUND);
+            }
+        }
+    }
+    eprintln!("f32 awkward shapes: worst nmse {worst:.3e}");
+}
+
+#[test]
+fn f32_batched_and_broadcast() {
+    let gpu = gpu();
+    let mut rng = Rng::new(2);
+    // (a batch, b batch): both batched, b broadcast (absent or 1), a broadcast.
+    let batches = [
+        (Some(1), Some(1)),
+        (Some(3), Some(3)),
+        (Some(3), None),
+        (Some(3), Some(1)),
+        (None, Some(3)),
+        (Some(1), Some(3)),
+    ];
+    let mut worst: f64 = 0.0;
+    let mut rec = gpu.recorder().unwrap();
+    let mut cases = Vec::new();
+    for (i, &(ab, bb)) in batches.iter().enumerate() {
+        for (ta, tb) in [(false, false), (false, true), (true, false), (true, true)] {
+            let (m, n, k) = [(17, 130, 65), (65, 3, 130), (130, 64, 17)][(i + ta as usize) % 3];
+            let (sa, sb) = shapes(m, n, k, ta, tb, ab, bb);
+            let a = rng.normal_vec(numel(&sa));
+            let b = rng.normal_vec(numel(&sb));
+            let ta_ = Tensor::from_slice(&gpu, &sa, &a).unwrap();
+            let tb_ = Tensor::from_slice(&gpu, &sb, &b).unwrap();
+            let out = matmul(&mut rec, &ta_, &tb_, ta, tb).unwrap();
+            let (r, shape) = reference::matmul(&f64s(&a), &sa, &f64s(&b), &sb, ta, tb).unwrap();
+            assert_eq!(out.shape(), shape.as_slice());
+            cases.push(Case {
+                what: format!("a {sa:?} b {sb:?} ta={ta} tb={tb}"),
+                out,
+                reference: r,
+            });
+        }
+    }
+    rec.submit().unwrap();
+    for c in cases {
+        let got = c.out.read::<f32>().unwrap();
+        worst = worst.max(nmse(&got, &c.reference));
+        assert_nmse(&c.what, &got, &c.reference, F32_BOUND);
+    }
+    eprintln!("f32 batched and broadcast: worst nmse {worst:.3e}");
+}
+
+#[test]
+fn accumulate_adds_and_plain_overwrites() {
+    let gpu = gpu();
+    let mut rng = Rng::new(3);
+    for (ta, tb) in [(false, false), (true, true)] {
+        let (m, n, k) = (65, 130, 17);
+        let (sa, sb) = shapes(m, n, k, ta, tb, Some(3), None);
+        let a = rng.normal_vec(numel(&sa));
+        let b = rng.normal_vec(numel(&sb));
+        let old = rng.normal_vec(3 * m * n);
+        let ta_ = Tensor::from_slice(&gpu, &sa, &a).unwrap();
+        let tb_ = Tensor::from_slice(&gpu, &sb, &b).unwrap();
+        let acc = Tensor::from_slice(&gpu, &[3, m, n], &old).unwrap();
+        // Without accumulate every element is written, NaN included.
+        let plain = Tensor::from_slice(&gpu, &[3, m, n], &vec![f32::NAN; 3 * m * n]).unwrap();
+        let mut rec = gpu.recorder().unwrap();
+        matmul_into(&mut rec, &ta_, &tb_, ta, tb, &acc, true).unwrap();
+        matmul_into(&mut rec, &ta_, &tb_, ta, tb, &plain, false).unwrap();
+        rec.submit().unwrap();
+        let (r, _) = reference::matmul(&f64s(&a), &sa, &f64s(&b), &sb, ta, tb).unwrap();
+        let summed: Vec<f64> = r.iter().zip(&old).map(|(x, &o)| x + o as f64).collect();
+        assert_nmse(
+            "accumulate",
+            &acc.read::<f32>().unwrap(),
+            &summed,
+            F32_BOUND,
+        );
+        assert_nmse("overwrite", &plain.read::<f32>().unwrap(), &r, F32_BOUND);
+    }
+}
+
+#[test]
+fn empty_products() {
+    let gpu = gpu();
+    let mut rng = Rng::new(4);
+    // K = 0: zeros, or unchanged under accumulate.
+    for dtype in [DType::F32, DType::F16] {
+        let a = Tensor::empty(&gpu, &[2, 5, 0], dtype).unwrap();
+        let b = Tensor::empty(&gpu, &[0, 7], dtype).unwrap();
+        let old = rng.normal_vec(70);
+        let acc = Tensor::from_slice(&gpu, &[2, 5, 7], &old).unwrap();
+        let mut rec = gpu.recorder().unwrap();
+        let zeros = matmul(&mut rec, &a, &b, false, false).unwrap();
+        matmul_into(&mut rec, &a, &b, false, false, &acc, true).unwrap();
+        rec.submit().unwrap();
+        assert!(zeros.read::<f32>().unwrap().iter().all(|&v| v == 0.0));
+        assert_eq!(acc.read::<f32>().unwrap(), old);
+    }
+    // M = 0 or N = 0 or batch 0: an empty output, no work.
+    for (sa, sb) in [
+        (vec![0, 4], vec![4, 3]),
+        (vec![5, 4], vec![4, 0]),
+        (vec![0, 5, 4], vec![4, 3]),
+    ] {
+        let a = Tensor::empty(&gpu, &sa, DType::F32).unwrap();
+        let b = Tensor::empty(&gpu, &sb, DType::F32).unwrap();
+        let mut rec = gpu.recorder().unwrap();
+        let out = matmul(&mut rec, &a, &b, false, false).unwrap();
+        rec.submit().unwrap();
+        assert_eq!(out.numel(), 0, "{sa:?} @ {sb:?}");
+    }
+}
+
+#[test]
+fn f16_operands_accumulate_in_f32() {
+    let gpu = gpu();
+    let mut rng = Rng::new(5);
+    let mut worst_rounded: f64 = 0.0;
+    let mut worst_input: f64 = 0.0;
+    let mut rec = gpu.recorder().unwrap();
+    let mut cases = Vec::new();
+    // Awkward sizes, shapes whose contiguous axes are multiples of 8 (the cooperative kernel's
+    // layout on devices that have it), batches and broadcast.
+    let list: [Sizes; 6] = [
+        (17, 3, 65, None, None),
+        (130, 65, 1, None, None),
+        (1, 130, 130, Some(3), None),
+        (64, 64, 64, Some(3), Some(3)),
+        (136, 40, 24, Some(2), Some(1)),
+        (3, 17, 64, None, Some(3)),
+    ];
+    for &(m, n, k, ab, bb) in &list {
+        for (ta, tb) in [(false, false), (false, true), (true, false), (true, true)] {
+            let (sa, sb) = shapes(m, n, k, ta, tb, ab, bb);
+            let a = rng.normal_vec(numel(&sa));
+            let b = rng.normal_vec(numel(&sb));
+            let (ah, bh) = (round_f16(&a), round_f16(&b));
+            let ta_ = Tensor::from_slice(&gpu, &sa, &ah).unwrap();
+            let tb_ = Tensor::from_slice(&gpu, &sb, &bh).unwrap();
+            let out = matmul(&mut rec, &ta_, &tb_, ta, tb).unwrap();
+            let widen = |h: &[f16]| h.iter().map(|v| v.to_f64()).collect::<Vec<_>>();
+            let (rounded, _) =
+                reference::matmul(&widen(&ah), &sa, &widen(&bh), &sb, ta, tb).unwrap();
+            let (exact, _) = reference::matmul(&f64s(&a), &sa, &f64s(&b), &sb, ta, tb).unwrap();
+            cases.push((
+                format!("f16 a {sa:?} b {sb:?} ta={ta} tb={tb}"),
+                out,
+                rounded,
+                exact,
+            ));
+        }
+    }
+    rec.submit().unwrap();
+    for (what, out, rounded, exact) in cases {
+        let got = out.read::<f32>().unwrap();
+        worst_rounded = worst_rounded.max(nmse(&got, &rounded));
+        worst_input = worst_input.max(nmse(&got, &exact));
+        assert_nmse(&what, &got, &rounded, F16_ROUNDED_BOUND);
+        assert_nmse(&what, &got, &exact, F16_INPUT_BOUND);
+    }
+    eprintln!(
+        "f16 operands ({}): worst nmse {worst_rounded:.3e} against rounded inputs, {worst_input:.3e} against f32 inputs",
+        matmul_variant(&gpu, DType::F16)
+    );
+}
+
+fn shape_err(r: velox::engine::Result<Tensor>) -> String {
+    match r {
+        Err(e @ Error::Shape(_)) => e.to_string(),
+        other => panic!("expected a shape error, got {other:?}"),
+    }
+}
+
+#[test]
+fn bad_shapes_and_dtypes_are_refused() {
+    let gpu = gpu();
+    let t = |s: &[usize], d: DType| Tensor::empty(&gpu, s, d).unwrap();
+    let f = DType::F32;
+    let mut rec = gpu.recorder().unwrap();
+    let e = shape_err(matmul(
+        &mut rec,
+        &t(&[3, 4], f),
+        &t(&[5, 6], f),
+        false,
+        false,
+    ));
+    assert!(e.contains("inner sizes differ"), "{e}");
+    // A transpose makes them agree or disagree.
+    assert!(matmul(&mut rec, &t(&[4, 3], f), &t(&[4, 6], f), true, false).is_ok());
+    let e = shape_err(matmul(
+        &mut rec,
+        &t(&[3, 4], f),
+        &t(&[6, 4], f),
+        false,
+        false,
+    ));
+    assert!(e.contains("K = 4") && e.contains("K = 6"), "{e}");
+    let e = shape_err(matmul(&mut rec, &t(&[4], f), &t(&[4, 2], f), false, false));
+    assert!(e.contains("2D"), "{e}");
+    let e = shape_err(matmul(
+        &mut rec,
+        &t(&[1, 2, 3, 4], f),
+        &t(&[4, 2], f),
+        false,
+        false,
+    ));
+    assert!(e.contains("3D"), "{e}");
+    let e = shape_err(matmul(
+        &mut rec,
+        &t(&[2, 3, 4], f),
+        &t(&[3, 4, 2], f),
+        false,
+        false,
+    ));
+    assert!(e.contains("batch sizes differ"), "{e}");
+    let e = shape_err(matmul(
+        &mut rec,
+        &t(&[3, 4], f),
+        &t(&[4, 2], DType::F16),
+        false,
+        false,
+    ));
+    assert!(e.contains("dtypes differ"), "{e}");
+    let u = DType::U32;
+    let e = shape_err(matmul(
+        &mut rec,
+        &t(&[3, 4], u),
+        &t(&[4, 2], u),
+        false,
+        false,
+    ));
+    assert!(e.contains("f32 or f16"), "{e}");
+
+    let (a, b) = (t(&[3, 4], f), t(&[4, 2], f));
+    let into = |rec: &mut velox::engine::Recorder, out: &Tensor| {
+        matmul_into(rec, &a, &b, false, false, out, false).map(|_| out.clone())
+    };
+    let e = shape_err(into(&mut rec, &t(&[2, 3], f)));
+    assert!(e.contains("out must be f32 [3, 2]"), "{e}");
+    let e = shape_err(into(&mut rec, &t(&[3, 2], DType::F16)));
+    assert!(e.contains("out must be f32"), "{e}");
+    let sq = t(&[4, 4], f);
+    let e = shape_err(
+        matmul_into(&mut rec, &sq, &t(&[4, 4], f), false, false, &sq, true).map(|_| sq.clone()),
+    );
+    assert!(e.contains("shares storage"), "{e}");
+    // More batches than one dispatch dimension takes.
+    let many = t(&[70_000, 1, 1], f);
+    match matmul(&mut rec, &many, &t(&[1, 1], f), false, false) {
+        Err(Error::TooLarge(e)) => assert!(e.contains("workgroups"), "{e}"),
+        other => panic!("expected too large, got {other:?}"),
+    }
+    rec.submit().unwrap();
+}
+
+#[test]
+fn plan_broadcasts_and_names_sizes() {
+    let p = plan(&[3, 5, 4], &[4, 2], false, false).unwrap();
+    assert_eq!((p.batch, p.m, p.n, p.k), (3, 5, 2, 4));
+    assert_eq!((p.a_batch_stride, p.b_batch_stride), (20, 0));
+    assert_eq!(p.out_shape, vec![3, 5, 2]);
+    let p = plan(&[4, 5], &[3, 2, 4], true, true).unwrap();
+    assert_eq!((p.batch, p.m, p.n, p.k), (3, 5, 2, 4));
+    assert_eq!((p.a_batch_stride, p.b_batch_stride), (0, 8));
+    let p = plan(&[1, 5, 4], &[3, 4, 2], false, false).unwrap();
+    assert_eq!((p.batch, p.a_batch_stride, p.b_batch_stride), (3, 0, 8));
+    assert_eq!(
+        plan(&[5, 4], &[4, 2], false, false).unwrap().out_shape,
+        vec![5, 2]
+    );
+}
+
+#[test]
+fn kernel_choice_follows_the_device() {
+    let gpu = gpu();
+    let caps = gpu.caps().clone();
+    assert!(matmul_variant(&gpu, DType::F32).contains("tiled f32"));
+    if caps.coop_matrix_f16.is_none() {
+        // lavapipe and other devices without cooperative matrices: the portable f16 kernel.
+        assert!(!coop_eligible(&caps));
+        assert!(matmul_variant(&gpu, DType::F16).contains("tiled f16"));
+    }
+    // A device like the H100: 16x16x16 f16 shapes, subgroups of exactly 32, 48 KiB shared.
+    let mut h100 = caps.clone();
+    h100.coop_matrix_f16 = Some([16, 16, 16]);
+    h100.min_subgroup_size = 32;
+    h100.max_subgroup_size = 32;
+    h100.max_shared_memory = 49152;
+    assert!(coop_eligible(&h100));
+    // Subgroups of 64 (AMD) or a variable size: the kernel's layout needs exactly 32.
+    let mut amd = h100.clone();
+    amd.min_subgroup_size = 64;
+    amd.max_subgroup_size = 64;
+    assert!(!coop_eligible(&amd));
+    let mut variable = h100.clone();
+    variable.min_subgroup_size = 8;
+    variable.max_subgroup_size = 64;
+    assert!(!coop_eligible(&variable));
+    let mut small = h100.clone();
+    small.max_shared_memory = 32768;
+    assert!(!coop_eligible(&small));
+    let mut no_coop = h100;
+    no_coop.coop_matrix_f16 = None;
+    assert!(!coop_eligible(&no_coop));
+
+    // The contiguous axis of each operand must be a multiple of 8.
+    let p = plan(&[24, 40], &[40, 16], false, false).unwrap();
+    assert!(coop_layout_ok(&p, false, false));
+    let p = plan(&[17, 40], &[40, 16], false, false).unwrap();
+    assert!(
+        coop_layout_ok(&p, false, false),
+        "M is not a contiguous axis of A"
+    );
+    assert!(!coop_layout_ok(
+        &plan(&[40, 17], &[40, 16], true, false).unwrap(),
+        true,
+        false
+    ));
+    assert!(!coop_layout_ok(
+        &plan(&[24, 41], &[41, 16], false, false).unwrap(),
+        false,
+        false
+    ));
+    assert!(coop_layout_ok(
+        &plan(&[24, 40], &[17, 40], false, true).unwrap(),
+        false,
+        true
+    ));
+    assert!(!coop_layout_ok(
+        &plan(&[24, 40], &[40, 17], false, false).unwrap(),
+        false,
+        false
+    ));
+}
