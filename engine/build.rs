@@ -30,11 +30,21 @@ fn main() {
     let mut errors = Vec::new();
     let mut kernel_index = 0usize;
 
-    for (module_index, path) in files.iter().enumerate() {
+    let mut units = Vec::new();
+    for path in &files {
         println!("cargo:rerun-if-changed={}", path.display());
-        match compile(path) {
+        match std::fs::read_to_string(path) {
+            Ok(source) => match variants(path, &source) {
+                Ok(list) => units.extend(list),
+                Err(e) => errors.push(e),
+            },
+            Err(e) => errors.push(format!("{}: {e}", path.display())),
+        }
+    }
+
+    for (module_index, (path, stem, source)) in units.iter().enumerate() {
+        match compile(path, source) {
             Ok((words, kernels)) => {
-                let stem = path.file_stem().unwrap().to_str().unwrap().to_string();
                 let spv_path = out_dir.join(format!("{stem}.spv"));
                 std::fs::write(&spv_path, bytemuck_words(&words)).unwrap();
                 writeln!(
@@ -58,11 +68,12 @@ fn main() {
                         .collect();
                     writeln!(
                         table,
-                        "    KernelInfo {{ module: {module_index}, file: {stem:?}, entry: {:?}, workgroup_size: {:?}, bindings: &[{}], push_bytes: {}, needs: Needs {{ f16: {}, float_atomics: {}, coop_matrix: {}, subgroups: {} }} }},",
+                        "    KernelInfo {{ module: {module_index}, file: {stem:?}, entry: {:?}, workgroup_size: {:?}, bindings: &[{}], push_bytes: {}, shared_bytes: {}, needs: Needs {{ f16: {}, float_atomics: {}, coop_matrix: {}, subgroups: {} }} }},",
                         k.entry,
                         k.workgroup_size,
                         bindings.join(", "),
                         k.push_bytes,
+                        k.shared_bytes,
                         k.needs_f16,
                         k.needs_float_atomics,
                         k.needs_coop,
@@ -96,17 +107,47 @@ struct Kernel {
     workgroup_size: [u32; 3],
     bindings: Vec<(u32, bool)>,
     push_bytes: u32,
+    shared_bytes: u32,
     needs_f16: bool,
     needs_float_atomics: bool,
     needs_coop: bool,
     needs_subgroups: bool,
 }
 
-fn compile(path: &Path) -> Result<(Vec<u32>, Vec<Kernel>), String> {
-    let source = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+/// Expands a shader into its variants. A file whose first line reads
+/// `// @variants NAME: 16 32 64` is compiled once per value, with its line
+/// `const NAME: u32 = ...;` set to that value, as module `<stem>_<name><value>` (naga's SPIR-V
+/// writer has no specialisation constants, so each variant is its own module).
+fn variants(path: &Path, source: &str) -> Result<Vec<(PathBuf, String, String)>, String> {
+    let stem = path.file_stem().unwrap().to_str().unwrap().to_string();
+    let first = source.lines().next().unwrap_or("");
+    let Some(spec) = first.strip_prefix("// @variants ") else {
+        return Ok(vec![(path.to_path_buf(), stem, source.to_string())]);
+    };
+    let (name, values) = spec
+        .split_once(':')
+        .ok_or_else(|| format!("{}:1: expected `// @variants NAME: v1 v2`", path.display()))?;
+    let name = name.trim();
+    let decl = format!("const {name}: u32 = ");
+    let line = source
+        .lines()
+        .find(|l| l.starts_with(&decl))
+        .ok_or_else(|| format!("{}: variants of {name} need a line `{decl}...;`", path.display()))?;
+    values
+        .split_whitespace()
+        .map(|v| {
+            let value: u32 =
+                v.parse().map_err(|_| format!("{}:1: variant value {v:?} is not a u32", path.display()))?;
+            let text = source.replacen(line, &format!("{decl}{value}u;"), 1);
+            Ok((path.to_path_buf(), format!("{stem}_{}{value}", name.to_lowercase()), text))
+        })
+        .collect()
+}
+
+fn compile(path: &Path, source: &str) -> Result<(Vec<u32>, Vec<Kernel>), String> {
     let shown = path.display().to_string();
     let module =
-        naga::front::wgsl::parse_str(&source).map_err(|e| e.emit_to_string_with_path(&source, &shown))?;
+        naga::front::wgsl::parse_str(source).map_err(|e| e.emit_to_string_with_path(source, &shown))?;
     let mut validator = naga::valid::Validator::new(ValidationFlags::all(), Capabilities::all());
     validator.subgroup_stages(ShaderStages::COMPUTE).subgroup_operations(SubgroupOperationSet::all());
     let info = validator.validate(&module).map_err(|e| e.emit_to_string_with_path(&source, &shown))?;
@@ -129,7 +170,7 @@ fn compile(path: &Path) -> Result<(Vec<u32>, Vec<Kernel>), String> {
     let words = spv::write_vec(&module, &info, &options, None)
         .map_err(|e| format!("{shown}: SPIR-V generation failed: {e}"))?;
 
-    let text = source.as_str();
+    let text = source;
     let needs_f16 = text.contains("enable f16");
     let needs_coop = text.contains("wgpu_cooperative_matrix");
     let needs_float_atomics = text.contains("atomic<f32>");
@@ -143,9 +184,13 @@ fn compile(path: &Path) -> Result<(Vec<u32>, Vec<Kernel>), String> {
         let ep_info = info.get_entry_point(i);
         let mut bindings = Vec::new();
         let mut push_bytes = 0u32;
+        let mut shared_bytes = 0u32;
         for (handle, var) in module.global_variables.iter() {
             let usage = ep_info[handle];
             match var.space {
+                naga::AddressSpace::WorkGroup if !usage.is_empty() => {
+                    shared_bytes += module.types[var.ty].inner.size(module.to_ctx());
+                }
                 naga::AddressSpace::Storage { .. } => {
                     let b = var
                         .binding
@@ -177,6 +222,7 @@ fn compile(path: &Path) -> Result<(Vec<u32>, Vec<Kernel>), String> {
             workgroup_size: ep.workgroup_size,
             bindings,
             push_bytes,
+            shared_bytes,
             needs_f16,
             needs_float_atomics,
             needs_coop,

@@ -124,11 +124,7 @@ fn f32_batched_and_broadcast() {
             let out = matmul(&mut rec, &ta_, &tb_, ta, tb).unwrap();
             let (r, shape) = reference::matmul(&f64s(&a), &sa, &f64s(&b), &sb, ta, tb).unwrap();
             assert_eq!(out.shape(), shape.as_slice());
-            cases.push(Case {
-                what: format!("a {sa:?} b {sb:?} ta={ta} tb={tb}"),
-                out,
-                reference: r,
-            });
+            cases.push(Case { what: format!("a {sa:?} b {sb:?} ta={ta} tb={tb}"), out, reference: r });
         }
     }
     rec.submit().unwrap();
@@ -161,12 +157,7 @@ fn accumulate_adds_and_plain_overwrites() {
         rec.submit().unwrap();
         let (r, _) = reference::matmul(&f64s(&a), &sa, &f64s(&b), &sb, ta, tb).unwrap();
         let summed: Vec<f64> = r.iter().zip(&old).map(|(x, &o)| x + o as f64).collect();
-        assert_nmse(
-            "accumulate",
-            &acc.read::<f32>().unwrap(),
-            &summed,
-            F32_BOUND,
-        );
+        assert_nmse("accumulate", &acc.read::<f32>().unwrap(), &summed, F32_BOUND);
         assert_nmse("overwrite", &plain.read::<f32>().unwrap(), &r, F32_BOUND);
     }
 }
@@ -189,11 +180,7 @@ fn empty_products() {
         assert_eq!(acc.read::<f32>().unwrap(), old);
     }
     // M = 0 or N = 0 or batch 0: an empty output, no work.
-    for (sa, sb) in [
-        (vec![0, 4], vec![4, 3]),
-        (vec![5, 4], vec![4, 0]),
-        (vec![0, 5, 4], vec![4, 3]),
-    ] {
+    for (sa, sb) in [(vec![0, 4], vec![4, 3]), (vec![5, 4], vec![4, 0]), (vec![0, 5, 4], vec![4, 3])] {
         let a = Tensor::empty(&gpu, &sa, DType::F32).unwrap();
         let b = Tensor::empty(&gpu, &sb, DType::F32).unwrap();
         let mut rec = gpu.recorder().unwrap();
@@ -231,15 +218,9 @@ fn f16_operands_accumulate_in_f32() {
             let tb_ = Tensor::from_slice(&gpu, &sb, &bh).unwrap();
             let out = matmul(&mut rec, &ta_, &tb_, ta, tb).unwrap();
             let widen = |h: &[f16]| h.iter().map(|v| v.to_f64()).collect::<Vec<_>>();
-            let (rounded, _) =
-                reference::matmul(&widen(&ah), &sa, &widen(&bh), &sb, ta, tb).unwrap();
+            let (rounded, _) = reference::matmul(&widen(&ah), &sa, &widen(&bh), &sb, ta, tb).unwrap();
             let (exact, _) = reference::matmul(&f64s(&a), &sa, &f64s(&b), &sb, ta, tb).unwrap();
-            cases.push((
-                format!("f16 a {sa:?} b {sb:?} ta={ta} tb={tb}"),
-                out,
-                rounded,
-                exact,
-            ));
+            cases.push((format!("f16 a {sa:?} b {sb:?} ta={ta} tb={tb}"), out, rounded, exact));
         }
     }
     rec.submit().unwrap();
@@ -269,58 +250,22 @@ fn bad_shapes_and_dtypes_are_refused() {
     let t = |s: &[usize], d: DType| Tensor::empty(&gpu, s, d).unwrap();
     let f = DType::F32;
     let mut rec = gpu.recorder().unwrap();
-    let e = shape_err(matmul(
-        &mut rec,
-        &t(&[3, 4], f),
-        &t(&[5, 6], f),
-        false,
-        false,
-    ));
+    let e = shape_err(matmul(&mut rec, &t(&[3, 4], f), &t(&[5, 6], f), false, false));
     assert!(e.contains("inner sizes differ"), "{e}");
     // A transpose makes them agree or disagree.
     assert!(matmul(&mut rec, &t(&[4, 3], f), &t(&[4, 6], f), true, false).is_ok());
-    let e = shape_err(matmul(
-        &mut rec,
-        &t(&[3, 4], f),
-        &t(&[6, 4], f),
-        false,
-        false,
-    ));
+    let e = shape_err(matmul(&mut rec, &t(&[3, 4], f), &t(&[6, 4], f), false, false));
     assert!(e.contains("K = 4") && e.contains("K = 6"), "{e}");
     let e = shape_err(matmul(&mut rec, &t(&[4], f), &t(&[4, 2], f), false, false));
     assert!(e.contains("2D"), "{e}");
-    let e = shape_err(matmul(
-        &mut rec,
-        &t(&[1, 2, 3, 4], f),
-        &t(&[4, 2], f),
-        false,
-        false,
-    ));
+    let e = shape_err(matmul(&mut rec, &t(&[1, 2, 3, 4], f), &t(&[4, 2], f), false, false));
     assert!(e.contains("3D"), "{e}");
-    let e = shape_err(matmul(
-        &mut rec,
-        &t(&[2, 3, 4], f),
-        &t(&[3, 4, 2], f),
-        false,
-        false,
-    ));
+    let e = shape_err(matmul(&mut rec, &t(&[2, 3, 4], f), &t(&[3, 4, 2], f), false, false));
     assert!(e.contains("batch sizes differ"), "{e}");
-    let e = shape_err(matmul(
-        &mut rec,
-        &t(&[3, 4], f),
-        &t(&[4, 2], DType::F16),
-        false,
-        false,
-    ));
+    let e = shape_err(matmul(&mut rec, &t(&[3, 4], f), &t(&[4, 2], DType::F16), false, false));
     assert!(e.contains("dtypes differ"), "{e}");
     let u = DType::U32;
-    let e = shape_err(matmul(
-        &mut rec,
-        &t(&[3, 4], u),
-        &t(&[4, 2], u),
-        false,
-        false,
-    ));
+    let e = shape_err(matmul(&mut rec, &t(&[3, 4], u), &t(&[4, 2], u), false, false));
     assert!(e.contains("f32 or f16"), "{e}");
 
     let (a, b) = (t(&[3, 4], f), t(&[4, 2], f));
@@ -332,9 +277,8 @@ fn bad_shapes_and_dtypes_are_refused() {
     let e = shape_err(into(&mut rec, &t(&[3, 2], DType::F16)));
     assert!(e.contains("out must be f32"), "{e}");
     let sq = t(&[4, 4], f);
-    let e = shape_err(
-        matmul_into(&mut rec, &sq, &t(&[4, 4], f), false, false, &sq, true).map(|_| sq.clone()),
-    );
+    let e =
+        shape_err(matmul_into(&mut rec, &sq, &t(&[4, 4], f), false, false, &sq, true).map(|_| sq.clone()));
     assert!(e.contains("shares storage"), "{e}");
     // More batches than one dispatch dimension takes.
     let many = t(&[70_000, 1, 1], f);
@@ -356,10 +300,7 @@ fn plan_broadcasts_and_names_sizes() {
     assert_eq!((p.a_batch_stride, p.b_batch_stride), (0, 8));
     let p = plan(&[1, 5, 4], &[3, 4, 2], false, false).unwrap();
     assert_eq!((p.batch, p.a_batch_stride, p.b_batch_stride), (3, 0, 8));
-    assert_eq!(
-        plan(&[5, 4], &[4, 2], false, false).unwrap().out_shape,
-        vec![5, 2]
-    );
+    assert_eq!(plan(&[5, 4], &[4, 2], false, false).unwrap().out_shape, vec![5, 2]);
 }
 
 #[test]
@@ -399,28 +340,9 @@ fn kernel_choice_follows_the_device() {
     let p = plan(&[24, 40], &[40, 16], false, false).unwrap();
     assert!(coop_layout_ok(&p, false, false));
     let p = plan(&[17, 40], &[40, 16], false, false).unwrap();
-    assert!(
-        coop_layout_ok(&p, false, false),
-        "M is not a contiguous axis of A"
-    );
-    assert!(!coop_layout_ok(
-        &plan(&[40, 17], &[40, 16], true, false).unwrap(),
-        true,
-        false
-    ));
-    assert!(!coop_layout_ok(
-        &plan(&[24, 41], &[41, 16], false, false).unwrap(),
-        false,
-        false
-    ));
-    assert!(coop_layout_ok(
-        &plan(&[24, 40], &[17, 40], false, true).unwrap(),
-        false,
-        true
-    ));
-    assert!(!coop_layout_ok(
-        &plan(&[24, 40], &[40, 17], false, false).unwrap(),
-        false,
-        false
-    ));
+    assert!(coop_layout_ok(&p, false, false), "M is not a contiguous axis of A");
+    assert!(!coop_layout_ok(&plan(&[40, 17], &[40, 16], true, false).unwrap(), true, false));
+    assert!(!coop_layout_ok(&plan(&[24, 41], &[41, 16], false, false).unwrap(), false, false));
+    assert!(coop_layout_ok(&plan(&[24, 40], &[17, 40], false, true).unwrap(), false, true));
+    assert!(!coop_layout_ok(&plan(&[24, 40], &[40, 17], false, false).unwrap(), false, false));
 }

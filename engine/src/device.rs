@@ -155,7 +155,7 @@ fn choose(instance: &ash::Instance, pds: &[vk::PhysicalDevice], list: &[DeviceSu
         };
         let names: Vec<String> = list.iter().map(|d| format!("{}: {}", d.index, d.name)).collect();
         let i = found.ok_or_else(|| {
-            Error::NoDevice(format!("VELOX_DEVICE={want} matches none of [{}]", names.join(", ")))
+            Error::Invalid(format!("VELOX_DEVICE={want} matches none of [{}]", names.join(", ")))
         })?;
         if let Some(why) = &list[i].unusable {
             return Err(Error::NoDevice(format!(
@@ -197,7 +197,9 @@ impl Gpu {
     pub fn new() -> Result<Gpu> {
         let entry = load_entry()?;
         let instance = create_instance(&entry)?;
-        match Self::open(entry, instance.clone()) {
+        // `entry` stays alive here: dropping it unloads the loader, whose functions the
+        // error path below still calls.
+        match Self::open(entry.clone(), instance.clone()) {
             Ok(gpu) => Ok(gpu),
             Err(e) => {
                 // SAFETY: `open` failed before handing the instance to a GpuInner.

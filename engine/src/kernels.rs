@@ -39,6 +39,8 @@ pub struct KernelInfo {
     pub workgroup_size: [u32; 3],
     pub bindings: &'static [BindingInfo],
     pub push_bytes: u32,
+    /// Workgroup memory the entry point uses, in bytes.
+    pub shared_bytes: u32,
     pub needs: Needs,
 }
 
@@ -116,6 +118,9 @@ impl Gpu {
         }
         if n.coop_matrix && c.coop_matrix_f16.is_none() {
             return Some("16x16x16 f16 cooperative matrices (VK_KHR_cooperative_matrix)");
+        }
+        if kernel.info().shared_bytes > c.max_shared_memory {
+            return Some("more workgroup memory than the device has");
         }
         None
     }

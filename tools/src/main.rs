@@ -1,15 +1,52 @@
-fn main() {
-    let gpu = velox_engine::Gpu::new().unwrap_or_else(|e| {
-        eprintln!("error: {e}");
-        std::process::exit(1)
-    });
-    println!("{:#?}", gpu.caps());
-    let t = velox_engine::Tensor::empty(&gpu, &[1000], velox_engine::DType::F32).unwrap();
-    let mut rec = gpu.recorder().unwrap();
-    rec.timestamp();
-    velox_engine::ops::fill::fill(&mut rec, &t, 2.5).unwrap();
-    rec.timestamp();
-    let f = rec.submit().unwrap();
-    let v: Vec<f32> = t.read().unwrap();
-    println!("{:?} {:?}", &v[..4], f);
+//! The `velox` command.
+
+mod bench;
+mod demo;
+mod info;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(name = "velox", version, about = "Velox 4D dynamic tokens on a Vulkan compute runtime")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
 }
+
+#[derive(Subcommand)]
+enum Command {
+    /// Show the Vulkan devices, the one chosen (VELOX_DEVICE overrides), its features and
+    /// limits, and which kernel variants it will use.
+    Info {
+        /// Also write the report as JSON to this file.
+        #[arg(long)]
+        json: Option<std::path::PathBuf>,
+    },
+    /// Run the demo on whatever device is present: device report and a quick kernel benchmark.
+    Demo {
+        /// Folder for the demo's outputs.
+        #[arg(long, default_value = "velox-demo")]
+        out: std::path::PathBuf,
+    },
+    /// Benchmarks: GPU time against error.
+    Bench {
+        #[command(subcommand)]
+        what: bench::BenchCommand,
+    },
+}
+
+fn main() {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Info { json } => info::run(json.as_deref()),
+        Command::Demo { out } => demo::run(&out),
+        Command::Bench { what } => bench::run(what),
+    };
+    if let Err(e) = result {
+        eprintln!("error: {e}");
+        std::process::exit(1);
+    }
+}
+
+/// Errors of the command: engine errors and I/O, each with what was being done.
+pub type CliResult<T> = Result<T, Box<dyn std::error::Error>>;

@@ -138,13 +138,7 @@ pub fn matmul_variant(gpu: &Gpu, dtype: DType) -> &'static str {
 }
 
 /// `op(a) @ op(b)` into a new f32 tensor.
-pub fn matmul(
-    rec: &mut Recorder,
-    a: &Tensor,
-    b: &Tensor,
-    trans_a: bool,
-    trans_b: bool,
-) -> Result<Tensor> {
+pub fn matmul(rec: &mut Recorder, a: &Tensor, b: &Tensor, trans_a: bool, trans_b: bool) -> Result<Tensor> {
     let p = plan(a.shape(), b.shape(), trans_a, trans_b)?;
     check_dtypes(a, b)?;
     let out = Tensor::empty(a.gpu(), &p.out_shape, DType::F32)?;
@@ -166,10 +160,7 @@ pub fn matmul_into(
     let p = plan(a.shape(), b.shape(), trans_a, trans_b)?;
     check_dtypes(a, b)?;
     if out.dtype() != DType::F32 || out.shape() != p.out_shape.as_slice() {
-        return Err(Error::Shape(format!(
-            "matmul: out must be f32 {:?}, got {out:?}",
-            p.out_shape
-        )));
+        return Err(Error::Shape(format!("matmul: out must be f32 {:?}, got {out:?}", p.out_shape)));
     }
     if out.same_storage(a) || out.same_storage(b) {
         return Err(Error::Shape(
@@ -177,11 +168,7 @@ pub fn matmul_into(
         ));
     }
     let max = a.gpu().caps().max_workgroup_count;
-    let groups = [
-        p.n.div_ceil(TILE),
-        p.m.div_ceil(TILE),
-        if p.m == 0 || p.n == 0 { 0 } else { p.batch },
-    ];
+    let groups = [p.n.div_ceil(TILE), p.m.div_ceil(TILE), if p.m == 0 || p.n == 0 { 0 } else { p.batch }];
     if groups.iter().zip(max).any(|(&g, lim)| g > lim as usize) {
         return Err(Error::TooLarge(format!(
             "matmul: batch {} of [{}, {}] outputs needs {groups:?} workgroups of 128x128, the device allows {max:?}",
@@ -192,9 +179,7 @@ pub fn matmul_into(
     // below 2^32 bytes; check the element counts anyway so an index can never wrap.
     for t in [a, b, out] {
         if t.numel() > u32::MAX as usize {
-            return Err(Error::TooLarge(format!(
-                "matmul: {t:?} has more than 2^32 elements"
-            )));
+            return Err(Error::TooLarge(format!("matmul: {t:?} has more than 2^32 elements")));
         }
     }
     let params = Params {
@@ -221,10 +206,7 @@ fn choose_kernel(gpu: &Gpu, dtype: DType, p: &Plan, trans_a: bool, trans_b: bool
     if dtype == DType::F32 {
         return MATMUL_MAIN;
     }
-    if coop_eligible(gpu.caps())
-        && gpu.supports(MATMUL_COOP_MAIN)
-        && coop_layout_ok(p, trans_a, trans_b)
-    {
+    if coop_eligible(gpu.caps()) && gpu.supports(MATMUL_COOP_MAIN) && coop_layout_ok(p, trans_a, trans_b) {
         MATMUL_COOP_MAIN
     } else {
         MATMUL_MAIN_F16
@@ -234,10 +216,9 @@ fn choose_kernel(gpu: &Gpu, dtype: DType, p: &Plan, trans_a: bool, trans_b: bool
 fn check_dtypes(a: &Tensor, b: &Tensor) -> Result<()> {
     match (a.dtype(), b.dtype()) {
         (DType::F32, DType::F32) | (DType::F16, DType::F16) => Ok(()),
-        (x, y) if x == y => Err(Error::Shape(format!(
-            "matmul: operands must be f32 or f16, got {}",
-            x.name()
-        ))),
+        (x, y) if x == y => {
+            Err(Error::Shape(format!("matmul: operands must be f32 or f16, got {}", x.name())))
+        }
         (x, y) => Err(Error::Shape(format!(
             "matmul: operand dtypes differ (a is {}, b is {}); convert one first",
             x.name(),
@@ -271,16 +252,8 @@ pub mod reference {
                 for j in 0..n {
                     let mut sum = 0.0;
                     for kk in 0..k {
-                        let x = if trans_a {
-                            a[a0 + kk * m + i]
-                        } else {
-                            a[a0 + i * k + kk]
-                        };
-                        let y = if trans_b {
-                            b[b0 + j * k + kk]
-                        } else {
-                            b[b0 + kk * n + j]
-                        };
+                        let x = if trans_a { a[a0 + kk * m + i] } else { a[a0 + i * k + kk] };
+                        let y = if trans_b { b[b0 + j * k + kk] } else { b[b0 + kk * n + j] };
                         sum += x * y;
                     }
                     out[(z * m + i) * n + j] = sum;

@@ -1,0 +1,248 @@
+//! `velox bench kernels`: matmul, softmax, scan, sort and scatter-add.
+//!
+//! Errors: against the f64 reference over the whole output, except for matmuls too large for
+//! a CPU reference, whose error is measured on a fixed random sample of output entries.
+
+use velox_engine::ops::cast::cast;
+use velox_engine::ops::{matmul, scan, scatter_add, softmax, sort};
+use velox_engine::rng::Rng;
+use velox_engine::stats::{max_abs_err, nmse};
+use velox_engine::{DType, Gpu, Result, Tensor};
+
+use super::{print_header, print_row, time_gpu, Record};
+
+struct Sizes {
+    matmul: Vec<usize>,
+    softmax: Vec<(usize, usize)>,
+    scan: Vec<usize>,
+    sort: Vec<(usize, u32)>,
+    scatter: Vec<(usize, usize, usize)>,
+}
+
+fn sizes(gpu: &Gpu, quick: bool) -> Sizes {
+    if quick || gpu.caps().kind == "CPU" {
+        Sizes {
+            matmul: vec![128, 256],
+            softmax: vec![(256, 1024)],
+            scan: vec![1 << 20],
+            sort: vec![(1 << 18, 32), (1 << 18, 16)],
+            scatter: vec![(1 << 16, 8, 1024)],
+        }
+    } else {
+        Sizes {
+            matmul: vec![1024, 2048, 4096, 8192],
+            softmax: vec![(16384, 8192), (65536, 128)],
+            scan: vec![1 << 26],
+            sort: vec![(1 << 24, 32), (1 << 24, 16)],
+            scatter: vec![(1 << 22, 32, 1 << 16)],
+        }
+    }
+}
+
+pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
+    let s = sizes(gpu, quick);
+    let c = gpu.caps();
+    let peaks = c.known_peaks();
+    let device = c.name.clone();
+    let mut out = Vec::new();
+    let mut rng = Rng::new(7);
+    println!("device: {device} ({}); {repeats} timed repeats per case, median shown", c.kind);
+    print_header();
+    let mut push = |r: Record| {
+        print_row(&r);
+        out.push(r);
+    };
+
+    for &n in &s.matmul {
+        for precision in [DType::F32, DType::F16] {
+            let a = rng.normal_vec(n * n);
+            let b = rng.normal_vec(n * n);
+            let ta = Tensor::from_slice(gpu, &[n, n], &a)?;
+            let tb = Tensor::from_slice(gpu, &[n, n], &b)?;
+            let (ta, tb, a64, b64) = if precision == DType::F16 {
+                let mut rec = gpu.recorder()?;
+                let ha = cast(&mut rec, &ta, DType::F16)?;
+                let hb = cast(&mut rec, &tb, DType::F16)?;
+                rec.submit()?;
+                // The reference multiplies the f16-rounded inputs: the error shown is the kernel's.
+                let round =
+                    |v: &[f32]| v.iter().map(|&x| half::f16::from_f32(x).to_f64()).collect::<Vec<f64>>();
+                (ha, hb, round(&a), round(&b))
+            } else {
+                let wide = |v: &[f32]| v.iter().map(|&x| x as f64).collect::<Vec<f64>>();
+                (ta, tb, wide(&a), wide(&b))
+            };
+            let c_out = Tensor::empty(gpu, &[n, n], DType::F32)?;
+            let (median, min, timed) = time_gpu(gpu, repeats, |rec| {
+                matmul::matmul_into(rec, &ta, &tb, false, false, &c_out, false)
+            })?;
+            let got: Vec<f32> = c_out.read()?;
+            // Sample up to 4096 entries (all of them for small n).
+            let samples: Vec<(usize, usize)> = if n * n <= 4096 {
+                (0..n * n).map(|i| (i / n, i % n)).collect()
+            } else {
+                (0..4096).map(|_| (rng.below(n as u32) as usize, rng.below(n as u32) as usize)).collect()
+            };
+            let want: Vec<f64> =
+                samples.iter().map(|&(i, j)| (0..n).map(|k| a64[i * n + k] * b64[k * n + j]).sum()).collect();
+            let have: Vec<f32> = samples.iter().map(|&(i, j)| got[i * n + j]).collect();
+            let tflops = 2.0 * (n as f64).powi(3) / (median * 1e-3) / 1e12;
+            let peak = peaks.map(|p| tflops / if precision == DType::F16 { p.0 } else { p.1 });
+            push(Record {
+                name: "matmul".into(),
+                shape: format!("{n}x{n}x{n}"),
+                precision: if precision == DType::F16 { "f16->f32".into() } else { "f32".into() },
+                device: device.clone(),
+                median_ms: median,
+                min_ms: min,
+                repeats,
+                throughput: tflops,
+                throughput_unit: "TFLOP/s".into(),
+                peak_fraction: peak,
+                nmse: nmse(&have, &want),
+                max_abs_err: max_abs_err(&have, &want),
+                error_over: if samples.len() == n * n {
+                    "all outputs".into()
+                } else {
+                    format!("{} sampled outputs", samples.len())
+                },
+                gpu_timed: timed,
+            });
+        }
+    }
+
+    let gbs = |bytes: f64, ms: f64| bytes / (ms * 1e-3) / 1e9;
+    let bw_peak = |g: f64| peaks.map(|p| g / p.2);
+
+    for &(rows, len) in &s.softmax {
+        let x: Vec<f32> = rng.normal_vec(rows * len).iter().map(|v| v * 10.0).collect();
+        let t = Tensor::from_slice(gpu, &[rows, len], &x)?;
+        let mut y = None;
+        let (median, min, timed) = time_gpu(gpu, repeats, |rec| {
+            y = Some(softmax::softmax(rec, &t)?);
+            Ok(())
+        })?;
+        let got: Vec<f32> = y.unwrap().read()?;
+        let want = softmax::reference::softmax(&x, len);
+        let g = gbs((rows * len * 8) as f64, median);
+        push(Record {
+            name: "softmax".into(),
+            shape: format!("{rows}x{len}"),
+            precision: "f32".into(),
+            device: device.clone(),
+            median_ms: median,
+            min_ms: min,
+            repeats,
+            throughput: g,
+            throughput_unit: "GB/s".into(),
+            peak_fraction: bw_peak(g),
+            nmse: nmse(&got, &want),
+            max_abs_err: max_abs_err(&got, &want),
+            error_over: "all outputs".into(),
+            gpu_timed: timed,
+        });
+    }
+
+    for &n in &s.scan {
+        let x: Vec<u32> = (0..n).map(|_| rng.below(1000)).collect();
+        let t = Tensor::from_slice(gpu, &[n], &x)?;
+        let y = Tensor::empty(gpu, &[n], DType::U32)?;
+        let (median, min, timed) =
+            time_gpu(gpu, repeats, |rec| scan::exclusive_scan(rec, &t, &y).map(|_| ()))?;
+        let got: Vec<u32> = y.read()?;
+        let mut acc = 0u32;
+        let mut wrong = 0usize;
+        for (i, &v) in x.iter().enumerate() {
+            wrong += (got[i] != acc) as usize;
+            acc = acc.wrapping_add(v);
+        }
+        let g = gbs((n * 8) as f64, median);
+        push(Record {
+            name: "exclusive scan".into(),
+            shape: format!("{n}"),
+            precision: "u32".into(),
+            device: device.clone(),
+            median_ms: median,
+            min_ms: min,
+            repeats,
+            throughput: g,
+            throughput_unit: "GB/s".into(),
+            peak_fraction: bw_peak(g),
+            nmse: wrong as f64 / n as f64,
+            max_abs_err: wrong as f64,
+            error_over: "exact: nmse = fraction wrong, max abs = count wrong".into(),
+            gpu_timed: timed,
+        });
+    }
+
+    for &(n, bits) in &s.sort {
+        let mask = if bits == 32 { u32::MAX } else { (1u32 << bits) - 1 };
+        let keys: Vec<u32> = (0..n).map(|_| rng.next_u32() & mask).collect();
+        let vals: Vec<u32> = (0..n as u32).collect();
+        let tk = Tensor::from_slice(gpu, &[n], &keys)?;
+        let tv = Tensor::from_slice(gpu, &[n], &vals)?;
+        let mut res = None;
+        let (median, min, timed) = time_gpu(gpu, repeats, |rec| {
+            res = Some(sort::sort_pairs(rec, &tk, &tv, bits)?);
+            Ok(())
+        })?;
+        let (sk, sv) = res.unwrap();
+        let (gk, gv): (Vec<u32>, Vec<u32>) = (sk.read()?, sv.read()?);
+        let mut order: Vec<u32> = vals.clone();
+        order.sort_by_key(|&i| keys[i as usize]);
+        let wrong = (0..n).filter(|&i| gv[i] != order[i] || gk[i] != keys[order[i] as usize]).count();
+        let mkeys = n as f64 / (median * 1e-3) / 1e6;
+        push(Record {
+            name: "radix sort pairs".into(),
+            shape: format!("{n} x {bits} bits"),
+            precision: "u32".into(),
+            device: device.clone(),
+            median_ms: median,
+            min_ms: min,
+            repeats,
+            throughput: mkeys,
+            throughput_unit: "Mkey/s".into(),
+            peak_fraction: None,
+            nmse: wrong as f64 / n as f64,
+            max_abs_err: wrong as f64,
+            error_over: "exact and stable: nmse = fraction wrong, max abs = count wrong".into(),
+            gpu_timed: timed,
+        });
+    }
+
+    for &(rows, width, dst_rows) in &s.scatter {
+        let src = rng.normal_vec(rows * width);
+        let idx: Vec<u32> = (0..rows).map(|_| rng.below(dst_rows as u32)).collect();
+        let ts = Tensor::from_slice(gpu, &[rows, width], &src)?;
+        let ti = Tensor::from_slice(gpu, &[rows], &idx)?;
+        let out = Tensor::empty(gpu, &[dst_rows, width], DType::F32)?;
+        let (median, min, timed) = time_gpu(gpu, repeats, |rec| {
+            velox_engine::ops::fill::fill(rec, &out, 0.0)?;
+            scatter_add::scatter_add(rec, &ts, &ti, &out)
+        })?;
+        let got: Vec<f32> = out.read()?;
+        let want = scatter_add::reference::scatter_add(&src, width, &idx, &vec![0.0; dst_rows * width]);
+        let g = gbs((rows * width * 8 + rows * 4) as f64, median);
+        push(Record {
+            name: if gpu.supports(velox_engine::kernels::SCATTER_ADD_MAIN) {
+                "scatter-add (atomic)".into()
+            } else {
+                "scatter-add (CAS)".into()
+            },
+            shape: format!("{rows}x{width} -> {dst_rows}"),
+            precision: "f32".into(),
+            device: device.clone(),
+            median_ms: median,
+            min_ms: min,
+            repeats,
+            throughput: g,
+            throughput_unit: "GB/s".into(),
+            peak_fraction: bw_peak(g),
+            nmse: nmse(&got, &want),
+            max_abs_err: max_abs_err(&got, &want),
+            error_over: "all outputs".into(),
+            gpu_timed: timed,
+        });
+    }
+    Ok(out)
+}

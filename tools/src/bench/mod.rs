@@ -1,0 +1,128 @@
+//! `velox bench`: GPU time against error, printed as a table and written as JSON records.
+
+mod kernels;
+
+use std::path::PathBuf;
+
+use clap::Subcommand;
+use serde::Serialize;
+use velox_engine::{Gpu, Recorder, Result};
+
+use crate::CliResult;
+
+#[derive(Subcommand)]
+pub enum BenchCommand {
+    /// Matmul (f32 and f16 inputs), softmax, scan, sort and scatter-add.
+    Kernels {
+        /// Small sizes only (the default on CPU devices such as lavapipe).
+        #[arg(long)]
+        quick: bool,
+        /// Timed repeats per case (the median is reported).
+        #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(1..=1000))]
+        repeats: u32,
+        /// Write the records as JSON to this file.
+        #[arg(long)]
+        json: Option<PathBuf>,
+    },
+}
+
+pub fn run(cmd: BenchCommand) -> CliResult<()> {
+    match cmd {
+        BenchCommand::Kernels { quick, repeats, json } => {
+            let gpu = Gpu::new()?;
+            let records = kernels::run(&gpu, quick, repeats)?;
+            if let Some(path) = json {
+                write_json(&path, &records)?;
+            }
+            Ok(())
+        }
+    }
+}
+
+/// One benchmark result; the JSON schema of every `velox bench` command.
+#[derive(Serialize, Clone, Debug)]
+pub struct Record {
+    pub name: String,
+    pub shape: String,
+    pub precision: String,
+    pub device: String,
+    pub median_ms: f64,
+    pub min_ms: f64,
+    pub repeats: u32,
+    pub throughput: f64,
+    pub throughput_unit: String,
+    /// Throughput over the device's known peak for this kind of work, when known.
+    pub peak_fraction: Option<f64>,
+    pub nmse: f64,
+    pub max_abs_err: f64,
+    /// How the error was measured (full reference, or a sample of outputs).
+    pub error_over: String,
+    /// Whether times come from GPU timestamps (else wall clock around each submit).
+    pub gpu_timed: bool,
+}
+
+pub fn write_json(path: &std::path::Path, records: &[Record]) -> CliResult<()> {
+    std::fs::write(path, serde_json::to_string_pretty(records)?)
+        .map_err(|e| format!("writing {}: {e}", path.display()))?;
+    println!("wrote {}", path.display());
+    Ok(())
+}
+
+/// GPU times in ms of `repeats` runs of `f`, each in its own submission, after one warm-up run.
+/// Returns (median, min, timed on the GPU).
+pub fn time_gpu(
+    gpu: &Gpu,
+    repeats: u32,
+    mut f: impl FnMut(&mut Recorder) -> Result<()>,
+) -> Result<(f64, f64, bool)> {
+    let mut times = Vec::with_capacity(repeats as usize);
+    let mut gpu_timed = true;
+    for i in 0..=repeats {
+        let mut rec = gpu.recorder()?;
+        let t0 = rec.timestamp();
+        f(&mut rec)?;
+        let t1 = rec.timestamp();
+        let wall = std::time::Instant::now();
+        let done = rec.submit()?;
+        let ms = match (t0, t1) {
+            (Some(a), Some(b)) => (done.timestamps_ns[b] - done.timestamps_ns[a]) / 1e6,
+            _ => {
+                gpu_timed = false;
+                wall.elapsed().as_secs_f64() * 1e3
+            }
+        };
+        if i > 0 {
+            times.push(ms);
+        }
+    }
+    times.sort_by(f64::total_cmp);
+    Ok((times[times.len() / 2], times[0], gpu_timed))
+}
+
+pub fn print_header() {
+    println!(
+        "{:<22} {:<22} {:<9} {:>10} {:>18} {:>7} {:>10} {:>10}",
+        "kernel", "shape", "precision", "median ms", "throughput", "% peak", "nmse", "max abs"
+    );
+}
+
+pub fn print_row(r: &Record) {
+    let peak = r.peak_fraction.map(|p| format!("{:.1}", 100.0 * p)).unwrap_or_else(|| "-".into());
+    println!(
+        "{:<22} {:<22} {:<9} {:>10.3} {:>10.2} {:<5} {:>7} {:>10.2e} {:>10.2e}",
+        r.name,
+        r.shape,
+        r.precision,
+        r.median_ms,
+        r.throughput,
+        r.throughput_unit,
+        peak,
+        r.nmse,
+        r.max_abs_err
+    );
+}
+
+/// The quick kernel benchmark (used by the demo).
+pub fn kernels_quick(gpu: &Gpu) -> Result<Vec<Record>> {
+    kernels::run(gpu, true, 5)
+}

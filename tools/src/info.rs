@@ -1,0 +1,106 @@
+//! `velox info`: devices, the chosen one, its features and limits, and the kernel variants.
+
+use std::path::Path;
+
+use serde_json::json;
+use velox_engine::ops::{matmul, scatter_add};
+use velox_engine::{list_devices, DType, Gpu};
+
+use crate::CliResult;
+
+fn mib(bytes: u64) -> String {
+    format!("{:.0} MiB", bytes as f64 / (1024.0 * 1024.0))
+}
+
+pub fn run(json_path: Option<&Path>) -> CliResult<()> {
+    let devices = list_devices()?;
+    println!("Vulkan devices:");
+    for d in &devices {
+        let note = d.unusable.as_ref().map(|w| format!("  [cannot be used: {w}]")).unwrap_or_default();
+        println!("  {}: {} ({}, Vulkan {}){note}", d.index, d.name, d.kind, d.api_version);
+    }
+    let gpu = Gpu::new()?;
+    let c = gpu.caps();
+    let report = report(&gpu);
+    println!();
+    println!("Chosen device {}: {} ({})", c.index, c.name, c.kind);
+    if let Ok(v) = std::env::var("VELOX_DEVICE") {
+        println!("  (chosen by VELOX_DEVICE={v})");
+    }
+    println!("  driver            {}", c.driver);
+    println!("  Vulkan            {}", c.api_version);
+    println!(
+        "  memory            {} device-local{}",
+        mib(c.device_memory),
+        if c.unified_memory { ", host-visible (no staging)" } else { "" }
+    );
+    println!(
+        "  subgroup size     {} (range {}..{}{})",
+        c.subgroup_size,
+        c.min_subgroup_size,
+        c.max_subgroup_size,
+        if c.subgroup_size_control { ", controllable" } else { "" }
+    );
+    println!("  shared memory     {} KiB per workgroup", c.max_shared_memory / 1024);
+    println!(
+        "  workgroups        {} invocations, counts {:?}",
+        c.max_workgroup_invocations, c.max_workgroup_count
+    );
+    println!(
+        "  storage binding   {} max range, buffers up to {}",
+        mib(c.max_storage_buffer_range),
+        mib(c.max_buffer_size)
+    );
+    println!("  push constants    {} bytes", c.max_push_constants);
+    println!("  f16               arithmetic {}, storage {}", yes(c.f16_arithmetic), yes(c.f16_storage));
+    println!("  f32 atomic add    {}", yes(c.float_atomic_add));
+    println!("  timestamps        {} ({} ns per tick)", yes(c.timestamps), c.timestamp_period_ns);
+    if c.coop_matrix_shapes.is_empty() {
+        println!("  coop matrices     none");
+    } else {
+        println!("  coop matrices     {}", c.coop_matrix_shapes.join(", "));
+    }
+    println!();
+    println!("Kernel variants on this device:");
+    for (k, v) in report["variants"].as_object().unwrap() {
+        println!("  {k:<18}{}", v.as_str().unwrap_or(""));
+    }
+    if let Some(path) = json_path {
+        std::fs::write(path, serde_json::to_string_pretty(&report)?)
+            .map_err(|e| format!("writing {}: {e}", path.display()))?;
+        println!("\nwrote {}", path.display());
+    }
+    Ok(())
+}
+
+fn yes(b: bool) -> &'static str {
+    if b {
+        "yes"
+    } else {
+        "no"
+    }
+}
+
+/// The device report as JSON (shared with the demo).
+pub fn report(gpu: &Gpu) -> serde_json::Value {
+    let c = gpu.caps();
+    json!({
+        "device": c.name, "kind": c.kind, "driver": c.driver, "vulkan": c.api_version,
+        "device_memory_bytes": c.device_memory, "unified_memory": c.unified_memory,
+        "subgroup_size": c.subgroup_size, "min_subgroup_size": c.min_subgroup_size,
+        "max_subgroup_size": c.max_subgroup_size, "max_shared_memory": c.max_shared_memory,
+        "max_workgroup_invocations": c.max_workgroup_invocations,
+        "max_workgroup_count": c.max_workgroup_count,
+        "max_storage_buffer_range": c.max_storage_buffer_range, "max_buffer_size": c.max_buffer_size,
+        "f16_arithmetic": c.f16_arithmetic, "f16_storage": c.f16_storage,
+        "float_atomic_add": c.float_atomic_add, "coop_matrix_shapes": c.coop_matrix_shapes,
+        "timestamps": c.timestamps,
+        "variants": {
+            "matmul f32": matmul::matmul_variant(gpu, DType::F32),
+            "matmul f16": matmul::matmul_variant(gpu, DType::F16),
+            "scatter-add": scatter_add::variant(gpu),
+            "sort": "LSD radix, 4 bits a pass",
+            "scan": "workgroup-memory block scan, multi-level",
+        }
+    })
+}

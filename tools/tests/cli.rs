@@ -1,0 +1,79 @@
+//! The `velox` command as a user meets it: its reports, its benchmark JSON, and its errors.
+
+use std::process::Command;
+
+fn velox() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_velox"))
+}
+
+#[test]
+fn info_reports_device_features_and_variants() {
+    let out = velox().arg("info").output().unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}\n{}", String::from_utf8_lossy(&out.stderr));
+    for needle in
+        ["Chosen device", "subgroup size", "shared memory", "coop matrices", "matmul f16", "scatter-add"]
+    {
+        assert!(text.contains(needle), "missing {needle:?} in:\n{text}");
+    }
+}
+
+#[test]
+fn missing_driver_names_the_packages_to_install() {
+    let out = velox()
+        .arg("info")
+        .env("VK_DRIVER_FILES", "/nonexistent/icd.json")
+        .env("VK_ICD_FILENAMES", "/nonexistent/icd.json")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(err.contains("libvulkan1 mesa-vulkan-drivers"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+}
+
+#[test]
+fn unknown_device_choice_is_a_clear_error() {
+    let out = velox().arg("info").env("VELOX_DEVICE", "no-such-device").output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(err.contains("VELOX_DEVICE=no-such-device matches none"), "{err}");
+}
+
+#[test]
+fn bench_kernels_writes_records_with_time_and_error() {
+    let dir = std::env::temp_dir().join(format!("velox-bench-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let json = dir.join("bench.json");
+    let out = velox()
+        .args(["bench", "kernels", "--quick", "--repeats", "1", "--json"])
+        .arg(&json)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let records: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let records = records.as_array().unwrap();
+    for name in ["matmul", "softmax", "exclusive scan", "radix sort pairs", "scatter-add"] {
+        assert!(records.iter().any(|r| r["name"].as_str().unwrap().starts_with(name)), "no {name} record");
+    }
+    for r in records {
+        for field in
+            ["name", "shape", "precision", "device", "median_ms", "throughput", "nmse", "max_abs_err"]
+        {
+            assert!(!r[field].is_null(), "record without {field}: {r}");
+        }
+        assert!(r["median_ms"].as_f64().unwrap() > 0.0);
+        // Every kernel in the quick set is accurate: f32 paths to 1e-9, f16 inputs to 1e-6
+        // (against the product of the rounded inputs), the integer kernels exactly.
+        let bound = if r["precision"] == "f16->f32" { 1e-6 } else { 1e-9 };
+        assert!(r["nmse"].as_f64().unwrap() <= bound, "{r}");
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn bad_arguments_are_refused_with_usage() {
+    let out = velox().args(["bench", "kernels", "--repeats", "0"]).output().unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("repeats"));
+}
