@@ -87,6 +87,7 @@ fn main() {
         }
     }
 
+    errors.dedup(); // variants of one file fail alike
     if !errors.is_empty() {
         for e in &errors {
             eprintln!("{e}");
@@ -150,7 +151,7 @@ fn compile(path: &Path, source: &str) -> Result<(Vec<u32>, Vec<Kernel>), String>
         naga::front::wgsl::parse_str(source).map_err(|e| e.emit_to_string_with_path(source, &shown))?;
     let mut validator = naga::valid::Validator::new(ValidationFlags::all(), Capabilities::all());
     validator.subgroup_stages(ShaderStages::COMPUTE).subgroup_operations(SubgroupOperationSet::all());
-    let info = validator.validate(&module).map_err(|e| e.emit_to_string_with_path(&source, &shown))?;
+    let info = validator.validate(&module).map_err(|e| e.emit_to_string_with_path(source, &shown))?;
 
     let options = spv::Options {
         lang_version: (1, 5),

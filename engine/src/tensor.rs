@@ -251,7 +251,7 @@ impl Tensor {
             )));
         }
         let align = self.view_alignment();
-        if start % align != 0 {
+        if !start.is_multiple_of(align) {
             return Err(Error::Shape(format!(
                 "view start {start} of {self:?} is not a multiple of {align} elements (the device's storage offset alignment)"
             )));

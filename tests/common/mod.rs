@@ -1,5 +1,5 @@
 //! Shared by the test binaries: one device for all tests of a binary.
-#![allow(dead_code)]
+#![allow(dead_code, unused_imports)]
 
 use std::sync::OnceLock;
 
@@ -23,5 +23,8 @@ pub fn f64s(x: &[f32]) -> Vec<f64> {
 pub fn assert_nmse(what: &str, got: &[f32], reference: &[f64], bound: f64) {
     let e = nmse(got, reference);
     let m = max_abs_err(got, reference);
+    if std::env::var_os("VELOX_TEST_VERBOSE").is_some() {
+        eprintln!("{what}: nmse {e:.2e} max abs {m:.2e} (bound {bound:.0e})");
+    }
     assert!(e <= bound, "{what}: nmse {e:.3e} > bound {bound:.1e} (max abs err {m:.3e})");
 }

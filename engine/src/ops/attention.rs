@@ -1,0 +1,361 @@
+//! Fused multi-head attention over variable-length segments, forward and backward.
+//! Kernels: `shaders/attention.wgsl` (one module per head width) and
+//! `shaders/attention_blocks.wgsl` (the work lists).
+//!
+//! Rows are token-major, `[rows, heads, head_dim]`, and sorted by segment: segment `s` owns
+//! query rows `q_offsets[s] .. q_offsets[s+1]` and key rows `k_offsets[s] .. k_offsets[s+1]`,
+//! and its queries see only its keys. Dense self- or cross-attention is one segment; the
+//! encoder's voxel-window self-attention and per-cell cross-attention are many. Empty segments
+//! cost nothing; a query whose segment has no keys gets zeros.
+
+use crate::error::{Error, Result};
+use crate::kernels::{self, KernelId};
+use crate::ops::fill::fill_bits;
+use crate::ops::scan::exclusive_scan;
+use crate::recorder::Recorder;
+use crate::tensor::{DType, Tensor};
+use crate::Gpu;
+
+/// Rows per work item and per staged tile (`B` in the shader).
+pub const BLOCK: usize = 32;
+/// Head widths with a compiled kernel.
+pub const HEAD_DIMS: [usize; 4] = [16, 32, 64, 72];
+
+/// Segment boundaries: two u32 tensors of `S + 1` offsets each.
+#[derive(Clone, Debug)]
+pub struct Segments {
+    pub q_offsets: Tensor,
+    pub k_offsets: Tensor,
+}
+
+impl Segments {
+    /// One segment: every query sees every key.
+    pub fn dense(gpu: &Gpu, nq: usize, nk: usize) -> Result<Segments> {
+        Segments::from_lengths(gpu, &[nq], &[nk])
+    }
+
+    /// Segments of the given query and key lengths (equal counts; zeros allowed).
+    pub fn from_lengths(gpu: &Gpu, q_lens: &[usize], k_lens: &[usize]) -> Result<Segments> {
+        if q_lens.len() != k_lens.len() || q_lens.is_empty() {
+            return Err(Error::Shape(format!(
+                "segments need equal, non-zero numbers of query and key lengths, got {} and {}",
+                q_lens.len(),
+                k_lens.len()
+            )));
+        }
+        let offsets = |lens: &[usize]| -> Result<Vec<u32>> {
+            let mut acc = 0usize;
+            let mut out = vec![0u32];
+            for &l in lens {
+                acc += l;
+                out.push(u32::try_from(acc).map_err(|_| Error::TooLarge("segment offsets".into()))?);
+            }
+            Ok(out)
+        };
+        let (qo, ko) = (offsets(q_lens)?, offsets(k_lens)?);
+        Ok(Segments {
+            q_offsets: Tensor::from_slice(gpu, &[qo.len()], &qo)?,
+            k_offsets: Tensor::from_slice(gpu, &[ko.len()], &ko)?,
+        })
+    }
+
+    pub fn count(&self) -> usize {
+        self.q_offsets.numel().saturating_sub(1)
+    }
+}
+
+/// The forward pass's outputs: `o [Nq, H, D]` and the row log-sum-exp `lse [Nq, H]`, which
+/// the backward pass needs.
+#[derive(Clone, Debug)]
+pub struct AttentionOut {
+    pub o: Tensor,
+    pub lse: Tensor,
+}
+
+#[derive(Clone, Debug)]
+pub struct AttentionGrads {
+    pub dq: Tensor,
+    pub dk: Tensor,
+    pub dv: Tensor,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    heads: u32,
+    items: u32,
+    scale: f32,
+    nq: u32,
+    nk: u32,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct BlockParams {
+    segments: u32,
+    block: u32,
+    rows: u32,
+    capacity: u32,
+}
+
+struct Kernels {
+    fwd: KernelId,
+    dq: KernelId,
+    dkv: KernelId,
+}
+
+fn kernels_for(d: usize) -> Option<Kernels> {
+    use kernels::*;
+    Some(match d {
+        16 => Kernels { fwd: ATTENTION_D16_FWD, dq: ATTENTION_D16_BWD_DQ, dkv: ATTENTION_D16_BWD_DKV },
+        32 => Kernels { fwd: ATTENTION_D32_FWD, dq: ATTENTION_D32_BWD_DQ, dkv: ATTENTION_D32_BWD_DKV },
+        64 => Kernels { fwd: ATTENTION_D64_FWD, dq: ATTENTION_D64_BWD_DQ, dkv: ATTENTION_D64_BWD_DKV },
+        72 => Kernels { fwd: ATTENTION_D72_FWD, dq: ATTENTION_D72_BWD_DQ, dkv: ATTENTION_D72_BWD_DKV },
+        _ => return None,
+    })
+}
+
+/// Shapes (nq, nk, heads, head_dim) after checking q, k, v and the segments.
+fn check(q: &Tensor, k: &Tensor, v: &Tensor, seg: &Segments) -> Result<(usize, usize, usize, usize)> {
+    let (&[nq, h, d], &[nk, hk, dk]) = (q.shape(), k.shape()) else {
+        return Err(Error::Shape(format!("attention needs q [Nq, H, D] and k [Nk, H, D], got {q:?}, {k:?}")));
+    };
+    if (hk, dk) != (h, d) || v.shape() != k.shape() {
+        return Err(Error::Shape(format!(
+            "attention: q {q:?}, k {k:?} and v {v:?} disagree on heads or width"
+        )));
+    }
+    if [q, k, v].iter().any(|t| t.dtype() != DType::F32) {
+        return Err(Error::Shape(format!("attention needs f32 q, k, v, got {q:?}, {k:?}, {v:?}")));
+    }
+    if kernels_for(d).is_none() {
+        return Err(Error::Unsupported(format!(
+            "attention head width {d}: compiled widths are {HEAD_DIMS:?}"
+        )));
+    }
+    let (qo, ko) = (&seg.q_offsets, &seg.k_offsets);
+    if qo.dtype() != DType::U32 || ko.dtype() != DType::U32 || qo.shape() != ko.shape() || qo.numel() < 2 {
+        return Err(Error::Shape(format!(
+            "segment offsets must be two u32 tensors of S + 1 >= 2 entries, got {qo:?} and {ko:?}"
+        )));
+    }
+    for t in [q, k] {
+        if u32::try_from(t.numel()).is_err() {
+            return Err(Error::TooLarge(format!("attention on {t:?}")));
+        }
+    }
+    Ok((nq, nk, h, d))
+}
+
+/// The work list over the rows of `offsets` (blocks of `BLOCK` rows, one segment each):
+/// returns the list and its capacity.
+fn work_list(rec: &mut Recorder, offsets: &Tensor, rows: usize) -> Result<(Tensor, usize)> {
+    let gpu = offsets.gpu().clone();
+    let segments = offsets.numel() - 1;
+    let capacity = segments + rows.div_ceil(BLOCK);
+    let items = Tensor::empty(&gpu, &[segments], DType::U32)?;
+    let first = Tensor::empty(&gpu, &[segments], DType::U32)?;
+    let list = Tensor::empty(&gpu, &[capacity, 2], DType::U32)?;
+    let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("{v} attention work items")));
+    let p = BlockParams {
+        segments: fit(segments)?,
+        block: BLOCK as u32,
+        rows: fit(rows)?,
+        capacity: fit(capacity)?,
+    };
+    let groups = (segments as u64).div_ceil(256);
+    fill_bits(rec, &list, u32::MAX)?;
+    rec.dispatch_linear(kernels::ATTENTION_BLOCKS_COUNT, groups, &[offsets, &items], &p)?;
+    exclusive_scan(rec, &items, &first)?;
+    rec.dispatch_linear(kernels::ATTENTION_BLOCKS_WRITE, groups, &[offsets, &first, &list], &p)?;
+    Ok((list, capacity))
+}
+
+/// Softmax(q k^T * scale) v per segment and head. Records the work; nothing runs until the
+/// recorder is submitted.
+pub fn attention(
+    rec: &mut Recorder,
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    seg: &Segments,
+    scale: f32,
+) -> Result<AttentionOut> {
+    let (nq, nk, h, d) = check(q, k, v, seg)?;
+    let gpu = q.gpu().clone();
+    let o = Tensor::empty(&gpu, &[nq, h, d], DType::F32)?;
+    let lse = Tensor::empty(&gpu, &[nq, h], DType::F32)?;
+    if nq == 0 || h == 0 {
+        return Ok(AttentionOut { o, lse });
+    }
+    let kern = kernels_for(d).expect("checked");
+    let (list, capacity) = work_list(rec, &seg.q_offsets, nq)?;
+    let p = params(h, capacity, scale, nq, nk)?;
+    let args = [q, k, v, &seg.q_offsets, &seg.k_offsets, &list, &o, &lse];
+    rec.dispatch_linear(kern.fwd, (capacity * h) as u64, &args, &p)?;
+    Ok(AttentionOut { o, lse })
+}
+
+fn params(h: usize, capacity: usize, scale: f32, nq: usize, nk: usize) -> Result<Params> {
+    let items = capacity
+        .checked_mul(h)
+        .and_then(|v| u32::try_from(v).ok())
+        .ok_or_else(|| Error::TooLarge(format!("{capacity} attention work items x {h} heads")))?;
+    if !scale.is_finite() {
+        return Err(Error::Invalid(format!("attention scale {scale} is not finite")));
+    }
+    Ok(Params { heads: h as u32, items, scale, nq: nq as u32, nk: nk as u32 })
+}
+
+/// Gradients of a loss with respect to q, k and v, given dO = dL/do and the forward outputs.
+#[allow(clippy::too_many_arguments)]
+pub fn attention_backward(
+    rec: &mut Recorder,
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    out: &AttentionOut,
+    d_o: &Tensor,
+    seg: &Segments,
+    scale: f32,
+) -> Result<AttentionGrads> {
+    let (nq, nk, h, d) = check(q, k, v, seg)?;
+    if d_o.shape() != q.shape() || out.o.shape() != q.shape() || out.lse.shape() != [nq, h] {
+        return Err(Error::Shape(format!(
+            "attention backward: dO {d_o:?}, o {:?} and lse {:?} must match q {q:?}",
+            out.o, out.lse
+        )));
+    }
+    let gpu = q.gpu().clone();
+    let dq = Tensor::empty(&gpu, &[nq, h, d], DType::F32)?;
+    let dk = Tensor::empty(&gpu, &[nk, h, d], DType::F32)?;
+    let dv = Tensor::empty(&gpu, &[nk, h, d], DType::F32)?;
+    if h == 0 {
+        return Ok(AttentionGrads { dq, dk, dv });
+    }
+    // Keys outside every segment get no gradient from the kernels: start from zeros.
+    fill_bits(rec, &dk, 0)?;
+    fill_bits(rec, &dv, 0)?;
+    let delta = Tensor::empty(&gpu, &[nq, h], DType::F32)?;
+    let kern = kernels_for(d).expect("checked");
+    let (o, lse) = (&out.o, &out.lse);
+    if nq > 0 {
+        let (q_list, q_capacity) = work_list(rec, &seg.q_offsets, nq)?;
+        let p = params(h, q_capacity, scale, nq, nk)?;
+        let args = [q, k, v, &seg.q_offsets, &seg.k_offsets, &q_list, o, lse, d_o, &delta, &dq];
+        rec.dispatch_linear(kern.dq, (q_capacity * h) as u64, &args, &p)?;
+    }
+    if nk > 0 {
+        let (k_list, k_capacity) = work_list(rec, &seg.k_offsets, nk)?;
+        let p = params(h, k_capacity, scale, nq, nk)?;
+        let args = [q, k, v, &seg.q_offsets, &seg.k_offsets, &k_list, lse, d_o, &delta, &dk, &dv];
+        rec.dispatch_linear(kern.dkv, (k_capacity * h) as u64, &args, &p)?;
+    }
+    Ok(AttentionGrads { dq, dk, dv })
+}
+
+/// FLOPs of the forward pass (two matmuls of 2 flops per multiply-add) for given segment
+/// lengths, used by benchmarks.
+pub fn forward_flops(q_lens: &[usize], k_lens: &[usize], heads: usize, d: usize) -> f64 {
+    q_lens.iter().zip(k_lens).map(|(&a, &b)| 4.0 * a as f64 * b as f64 * (heads * d) as f64).sum()
+}
+
+pub mod reference {
+    //! Attention in f64 with explicit probabilities, and its backward pass.
+
+    /// Offsets from lengths.
+    pub fn offsets(lens: &[usize]) -> Vec<usize> {
+        let mut out = vec![0];
+        for &l in lens {
+            out.push(out.last().unwrap() + l);
+        }
+        out
+    }
+
+    /// (o, lse) for q [nq,h,d], k/v [nk,h,d] (flat), segment offsets.
+    #[allow(clippy::too_many_arguments)]
+    pub fn attention(
+        q: &[f64],
+        k: &[f64],
+        v: &[f64],
+        q_off: &[usize],
+        k_off: &[usize],
+        h: usize,
+        d: usize,
+        scale: f64,
+    ) -> (Vec<f64>, Vec<f64>) {
+        let nq = q.len() / (h * d);
+        let mut o = vec![0.0; q.len()];
+        let mut lse = vec![f64::NEG_INFINITY; nq * h];
+        for s in 0..q_off.len() - 1 {
+            for i in q_off[s]..q_off[s + 1] {
+                for hh in 0..h {
+                    let qi = &q[(i * h + hh) * d..][..d];
+                    let scores: Vec<f64> = (k_off[s]..k_off[s + 1])
+                        .map(|j| {
+                            scale
+                                * qi.iter().zip(&k[(j * h + hh) * d..][..d]).map(|(a, b)| a * b).sum::<f64>()
+                        })
+                        .collect();
+                    if scores.is_empty() {
+                        continue;
+                    }
+                    let m = scores.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+                    let l: f64 = scores.iter().map(|x| (x - m).exp()).sum();
+                    lse[i * h + hh] = m + l.ln();
+                    for (jj, j) in (k_off[s]..k_off[s + 1]).enumerate() {
+                        let p = (scores[jj] - m).exp() / l;
+                        for c in 0..d {
+                            o[(i * h + hh) * d + c] += p * v[(j * h + hh) * d + c];
+                        }
+                    }
+                }
+            }
+        }
+        (o, lse)
+    }
+
+    /// (dq, dk, dv) given dO, by the chain rule through the explicit softmax.
+    #[allow(clippy::too_many_arguments)]
+    pub fn attention_backward(
+        q: &[f64],
+        k: &[f64],
+        v: &[f64],
+        d_o: &[f64],
+        q_off: &[usize],
+        k_off: &[usize],
+        h: usize,
+        d: usize,
+        scale: f64,
+    ) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+        let (mut dq, mut dk, mut dv) = (vec![0.0; q.len()], vec![0.0; k.len()], vec![0.0; v.len()]);
+        let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
+        for s in 0..q_off.len() - 1 {
+            let keys: Vec<usize> = (k_off[s]..k_off[s + 1]).collect();
+            if keys.is_empty() {
+                continue;
+            }
+            for i in q_off[s]..q_off[s + 1] {
+                for hh in 0..h {
+                    let row = |t: &[f64], r: usize| -> Vec<f64> { t[(r * h + hh) * d..][..d].to_vec() };
+                    let (qi, gi) = (row(q, i), row(d_o, i));
+                    let scores: Vec<f64> = keys.iter().map(|&j| scale * dot(&qi, &row(k, j))).collect();
+                    let m = scores.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+                    let l: f64 = scores.iter().map(|x| (x - m).exp()).sum();
+                    let p: Vec<f64> = scores.iter().map(|x| (x - m).exp() / l).collect();
+                    let dp: Vec<f64> = keys.iter().map(|&j| dot(&gi, &row(v, j))).collect();
+                    let delta: f64 = p.iter().zip(&dp).map(|(a, b)| a * b).sum();
+                    for (jj, &j) in keys.iter().enumerate() {
+                        let ds = p[jj] * (dp[jj] - delta);
+                        for c in 0..d {
+                            dv[(j * h + hh) * d + c] += p[jj] * gi[c];
+                            dq[(i * h + hh) * d + c] += scale * ds * k[(j * h + hh) * d + c];
+                            dk[(j * h + hh) * d + c] += scale * ds * qi[c];
+                        }
+                    }
+                }
+            }
+        }
+        (dq, dk, dv)
+    }
+}

@@ -1,0 +1,181 @@
+//! Fused segment attention against the f64 reference: dense, cross, variable-length segments
+//! with empty and single-token ones, long rows, every compiled head width, huge scores; the
+//! reference backward against finite differences.
+
+mod common;
+use common::*;
+use velox::engine::ops::attention::{self, attention, attention_backward, reference, Segments};
+
+struct Case {
+    q_lens: Vec<usize>,
+    k_lens: Vec<usize>,
+    heads: usize,
+    d: usize,
+    /// Multiplies q and k: 1 for ordinary scores, large for the stability test.
+    magnitude: f32,
+}
+
+fn run(case: &Case, seed: u64) {
+    let gpu = gpu();
+    let mut rng = Rng::new(seed);
+    let (nq, nk): (usize, usize) = (case.q_lens.iter().sum(), case.k_lens.iter().sum());
+    let (h, d) = (case.heads, case.d);
+    let q: Vec<f32> = rng.normal_vec(nq * h * d).iter().map(|x| x * case.magnitude).collect();
+    let k: Vec<f32> = rng.normal_vec(nk * h * d).iter().map(|x| x * case.magnitude).collect();
+    let v = rng.normal_vec(nk * h * d);
+    let g = rng.normal_vec(nq * h * d);
+    let scale = 1.0 / (d as f32).sqrt();
+    let tq = Tensor::from_slice(&gpu, &[nq, h, d], &q).unwrap();
+    let tk = Tensor::from_slice(&gpu, &[nk, h, d], &k).unwrap();
+    let tv = Tensor::from_slice(&gpu, &[nk, h, d], &v).unwrap();
+    let tg = Tensor::from_slice(&gpu, &[nq, h, d], &g).unwrap();
+    let seg = Segments::from_lengths(&gpu, &case.q_lens, &case.k_lens).unwrap();
+    let mut rec = gpu.recorder().unwrap();
+    let out = attention(&mut rec, &tq, &tk, &tv, &seg, scale).unwrap();
+    let grads = attention_backward(&mut rec, &tq, &tk, &tv, &out, &tg, &seg, scale).unwrap();
+    rec.submit().unwrap();
+
+    let (qo, ko) = (reference::offsets(&case.q_lens), reference::offsets(&case.k_lens));
+    let (q64, k64, v64, g64) = (f64s(&q), f64s(&k), f64s(&v), f64s(&g));
+    let (o_ref, lse_ref) = reference::attention(&q64, &k64, &v64, &qo, &ko, h, d, scale as f64);
+    let (dq_ref, dk_ref, dv_ref) =
+        reference::attention_backward(&q64, &k64, &v64, &g64, &qo, &ko, h, d, scale as f64);
+    let what = format!("q {:?} k {:?} h {h} d {d} x{}", case.q_lens, case.k_lens, case.magnitude);
+    // Scores of magnitude 1e4 are rounded to f32 before exp: a relative error of 1e-7 in a
+    // score of 1e4 shifts its weight by 1e-3, so the huge-score case gets a looser bound.
+    // Measured on lavapipe: o <= 2.5e-12 (1.1e-12 huge), gradients <= 2.4e-12 (1.4e-6 huge).
+    let bound = if case.magnitude > 10.0 { 1e-10 } else { 1e-11 };
+    assert_nmse(&format!("o {what}"), &out.o.read::<f32>().unwrap(), &o_ref, bound);
+    let lse: Vec<f32> = out.lse.read().unwrap();
+    for (i, (&a, &b)) in lse.iter().zip(&lse_ref).enumerate() {
+        if b.is_finite() {
+            assert!((a as f64 - b).abs() <= 1e-5 * b.abs().max(1.0), "lse[{i}] {a} vs {b} in {what}");
+        } else {
+            assert_eq!(a, f32::NEG_INFINITY, "lse of a query without keys, {what}");
+        }
+    }
+    let bound = if case.magnitude > 10.0 { 1e-5 } else { 1e-11 };
+    assert_nmse(&format!("dq {what}"), &grads.dq.read::<f32>().unwrap(), &dq_ref, bound);
+    assert_nmse(&format!("dk {what}"), &grads.dk.read::<f32>().unwrap(), &dk_ref, bound);
+    assert_nmse(&format!("dv {what}"), &grads.dv.read::<f32>().unwrap(), &dv_ref, bound);
+}
+
+#[test]
+fn dense_self_and_cross_attention() {
+    run(&Case { q_lens: vec![37], k_lens: vec![37], heads: 2, d: 16, magnitude: 1.0 }, 1);
+    run(&Case { q_lens: vec![5], k_lens: vec![70], heads: 3, d: 32, magnitude: 1.0 }, 2);
+    run(&Case { q_lens: vec![65], k_lens: vec![1], heads: 1, d: 16, magnitude: 1.0 }, 3);
+    run(&Case { q_lens: vec![1], k_lens: vec![1], heads: 1, d: 16, magnitude: 1.0 }, 4);
+}
+
+#[test]
+fn variable_length_segments_with_empty_and_single_ones() {
+    // Segments of 0, 1 and many rows; queries whose segment has no keys (zeros out); keys
+    // whose segment has no queries (zero gradient).
+    run(
+        &Case {
+            q_lens: vec![3, 0, 1, 40, 2, 0, 7, 33, 1],
+            k_lens: vec![5, 4, 0, 33, 1, 0, 64, 2, 1],
+            heads: 2,
+            d: 16,
+            magnitude: 1.0,
+        },
+        5,
+    );
+    // The encoder's per-cell cross-attention: one query per cell, cells of very different sizes.
+    let k_lens: Vec<usize> = (0..40).map(|i| [0, 1, 3, 180, 17][i % 5]).collect();
+    run(&Case { q_lens: vec![1; 40], k_lens, heads: 2, d: 32, magnitude: 1.0 }, 6);
+}
+
+#[test]
+fn every_head_width_and_long_rows() {
+    for (i, &d) in attention::HEAD_DIMS.iter().enumerate() {
+        run(&Case { q_lens: vec![9, 33], k_lens: vec![40, 3], heads: 2, d, magnitude: 1.0 }, 10 + i as u64);
+    }
+    run(&Case { q_lens: vec![2], k_lens: vec![3000], heads: 1, d: 16, magnitude: 1.0 }, 20);
+}
+
+#[test]
+fn huge_scores_stay_finite() {
+    // q, k ~ N(0, 100^2) with d = 16: scores of order 1e4 (softmax is then nearly one-hot).
+    run(&Case { q_lens: vec![20, 13], k_lens: vec![50, 7], heads: 2, d: 16, magnitude: 100.0 }, 30);
+}
+
+#[test]
+fn reference_backward_matches_finite_differences() {
+    let mut rng = Rng::new(40);
+    let (h, d) = (2, 4);
+    let (q_lens, k_lens) = ([2usize, 0, 3], [3usize, 2, 4]);
+    let (qo, ko) = (reference::offsets(&q_lens), reference::offsets(&k_lens));
+    let (nq, nk) = (5, 9);
+    let q: Vec<f64> = (0..nq * h * d).map(|_| rng.normal()).collect();
+    let k: Vec<f64> = (0..nk * h * d).map(|_| rng.normal()).collect();
+    let v: Vec<f64> = (0..nk * h * d).map(|_| rng.normal()).collect();
+    let g: Vec<f64> = (0..nq * h * d).map(|_| rng.normal()).collect();
+    let scale = 0.7;
+    // Loss = sum(o * g); its gradient with respect to o is g.
+    let loss = |q: &[f64], k: &[f64], v: &[f64]| -> f64 {
+        let (o, _) = reference::attention(q, k, v, &qo, &ko, h, d, scale);
+        o.iter().zip(&g).map(|(a, b)| a * b).sum()
+    };
+    let (dq, dk, dv) = reference::attention_backward(&q, &k, &v, &g, &qo, &ko, h, d, scale);
+    let eps = 1e-6;
+    for (which, grad) in [(0, &dq), (1, &dk), (2, &dv)] {
+        for i in 0..grad.len() {
+            let (mut qp, mut kp, mut vp) = (q.clone(), k.clone(), v.clone());
+            let (mut qm, mut km, mut vm) = (q.clone(), k.clone(), v.clone());
+            match which {
+                0 => {
+                    qp[i] += eps;
+                    qm[i] -= eps
+                }
+                1 => {
+                    kp[i] += eps;
+                    km[i] -= eps
+                }
+                _ => {
+                    vp[i] += eps;
+                    vm[i] -= eps
+                }
+            }
+            let fd = (loss(&qp, &kp, &vp) - loss(&qm, &km, &vm)) / (2.0 * eps);
+            assert!(
+                (fd - grad[i]).abs() < 1e-7,
+                "d{which}[{i}]: analytic {} vs finite difference {fd}",
+                grad[i]
+            );
+        }
+    }
+}
+
+#[test]
+fn bad_shapes_widths_and_offsets_are_handled() {
+    let gpu = gpu();
+    let t = |shape: &[usize]| Tensor::empty(&gpu, shape, DType::F32).unwrap();
+    let seg = Segments::dense(&gpu, 4, 4).unwrap();
+    let mut rec = gpu.recorder().unwrap();
+    assert!(attention(&mut rec, &t(&[4, 2, 16]), &t(&[4, 2, 32]), &t(&[4, 2, 32]), &seg, 0.25).is_err());
+    assert!(attention(&mut rec, &t(&[4, 2, 16]), &t(&[4, 2, 16]), &t(&[5, 2, 16]), &seg, 0.25).is_err());
+    let err = attention(&mut rec, &t(&[4, 1, 24]), &t(&[4, 1, 24]), &t(&[4, 1, 24]), &seg, 0.25).unwrap_err();
+    assert!(err.to_string().contains("head width 24"), "{err}");
+    assert!(Segments::from_lengths(&gpu, &[1, 2], &[3]).is_err());
+    drop(rec);
+
+    // Offsets that decrease or run past the rows (as a buggy producer might write) are
+    // clamped by the kernels: no read or write outside the tensors, and finite results.
+    let mut rng = Rng::new(50);
+    let (n, h, d) = (40, 2, 16);
+    let x = Tensor::from_slice(&gpu, &[n, h, d], &rng.normal_vec(n * h * d)).unwrap();
+    let bad = [0u32, 30, 10, 1000, 5];
+    let seg = Segments {
+        q_offsets: Tensor::from_slice(&gpu, &[5], &bad).unwrap(),
+        k_offsets: Tensor::from_slice(&gpu, &[5], &bad).unwrap(),
+    };
+    let mut rec = gpu.recorder().unwrap();
+    let out = attention(&mut rec, &x, &x, &x, &seg, 0.25).unwrap();
+    let g = attention_backward(&mut rec, &x, &x, &x, &out, &x, &seg, 0.25).unwrap();
+    rec.submit().unwrap();
+    for t in [&out.o, &g.dq, &g.dk, &g.dv] {
+        assert!(t.read::<f32>().unwrap().iter().all(|v| v.is_finite()));
+    }
+}
