@@ -77,3 +77,27 @@ fn bad_arguments_are_refused_with_usage() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("repeats"));
 }
+
+#[test]
+fn bench_attention_reports_every_variant_with_small_error() {
+    let dir = std::env::temp_dir().join(format!("velox-bench-attn-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let json = dir.join("attn.json");
+    let out = velox()
+        .args(["bench", "attention", "--quick", "--repeats", "1", "--json"])
+        .arg(&json)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let records: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let records = records.as_array().unwrap();
+    for case in ["dense self", "window self", "cell cross", "global cross"] {
+        for pass in ["fwd", "bwd"] {
+            let name = format!("attn {case} {pass}");
+            let r =
+                records.iter().find(|r| r["name"] == name.as_str()).unwrap_or_else(|| panic!("no {name}"));
+            assert!(r["nmse"].as_f64().unwrap() < 1e-10, "{r}");
+        }
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -1,5 +1,6 @@
 //! `velox bench`: GPU time against error, printed as a table and written as JSON records.
 
+mod attention;
 mod kernels;
 
 use std::path::PathBuf;
@@ -13,30 +14,36 @@ use crate::CliResult;
 #[derive(Subcommand)]
 pub enum BenchCommand {
     /// Matmul (f32 and f16 inputs), softmax, scan, sort and scatter-add.
-    Kernels {
-        /// Small sizes only (the default on CPU devices such as lavapipe).
-        #[arg(long)]
-        quick: bool,
-        /// Timed repeats per case (the median is reported).
-        #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(1..=1000))]
-        repeats: u32,
-        /// Write the records as JSON to this file.
-        #[arg(long)]
-        json: Option<PathBuf>,
-    },
+    Kernels(BenchArgs),
+    /// Fused segment attention, forward and backward: dense, voxel-window self-attention,
+    /// per-cell cross-attention and global cross-attention at the paper's sizes.
+    Attention(BenchArgs),
+}
+
+#[derive(clap::Args)]
+pub struct BenchArgs {
+    /// Small sizes only (the default on CPU devices such as lavapipe).
+    #[arg(long)]
+    quick: bool,
+    /// Timed repeats per case (the median is reported).
+    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(1..=1000))]
+    repeats: u32,
+    /// Write the records as JSON to this file.
+    #[arg(long)]
+    json: Option<PathBuf>,
 }
 
 pub fn run(cmd: BenchCommand) -> CliResult<()> {
-    match cmd {
-        BenchCommand::Kernels { quick, repeats, json } => {
-            let gpu = Gpu::new()?;
-            let records = kernels::run(&gpu, quick, repeats)?;
-            if let Some(path) = json {
-                write_json(&path, &records)?;
-            }
-            Ok(())
-        }
+    let (args, which): (BenchArgs, fn(&Gpu, bool, u32) -> Result<Vec<Record>>) = match cmd {
+        BenchCommand::Kernels(a) => (a, kernels::run),
+        BenchCommand::Attention(a) => (a, attention::run),
+    };
+    let gpu = Gpu::new()?;
+    let records = which(&gpu, args.quick, args.repeats)?;
+    if let Some(path) = args.json {
+        write_json(&path, &records)?;
     }
+    Ok(())
 }
 
 /// One benchmark result; the JSON schema of every `velox bench` command.
@@ -101,7 +108,7 @@ pub fn time_gpu(
 
 pub fn print_header() {
     println!(
-        "{:<22} {:<22} {:<9} {:>10} {:>18} {:>7} {:>10} {:>10}",
+        "{:<26} {:<32} {:<9} {:>10} {:>18} {:>7} {:>10} {:>10}",
         "kernel", "shape", "precision", "median ms", "throughput", "% peak", "nmse", "max abs"
     );
 }
@@ -109,17 +116,26 @@ pub fn print_header() {
 pub fn print_row(r: &Record) {
     let peak = r.peak_fraction.map(|p| format!("{:.1}", 100.0 * p)).unwrap_or_else(|| "-".into());
     println!(
-        "{:<22} {:<22} {:<9} {:>10.3} {:>10.2} {:<5} {:>7} {:>10.2e} {:>10.2e}",
+        "{:<26} {:<32} {:<9} {:>10.3} {:>10} {:<7} {:>7} {:>10.2e} {:>10.2e}",
         r.name,
         r.shape,
         r.precision,
         r.median_ms,
-        r.throughput,
+        significant(r.throughput),
         r.throughput_unit,
         peak,
         r.nmse,
         r.max_abs_err
     );
+}
+
+/// Four significant digits, without an exponent, for the magnitudes benchmarks produce.
+fn significant(v: f64) -> String {
+    if v == 0.0 || !v.is_finite() {
+        return format!("{v}");
+    }
+    let decimals = (3 - v.abs().log10().floor() as i32).clamp(0, 8) as usize;
+    format!("{v:.decimals$}")
 }
 
 /// The quick kernel benchmark (used by the demo).

@@ -1,0 +1,211 @@
+//! `velox bench attention`: fused segment attention at the paper's sizes, forward and
+//! backward, time against the f64 reference.
+//!
+//! Error: the reference is computed on a sample of segments (all their rows, so o, dq, dk and
+//! dv are all exact there), or, for one dense segment too large for a CPU reference, on a
+//! sample of query rows (o and dq, which depend on one query row each).
+
+use velox_engine::ops::attention::{self, attention, attention_backward, reference, Segments};
+use velox_engine::ops::matmul;
+use velox_engine::rng::Rng;
+use velox_engine::stats::{max_abs_err, nmse};
+use velox_engine::{DType, Gpu, Result, Tensor};
+
+use super::{print_header, print_row, time_gpu, Record};
+
+struct Case {
+    name: &'static str,
+    q_lens: Vec<usize>,
+    /// Key lengths; `None` means self-attention (keys are the queries).
+    k_lens: Option<Vec<usize>>,
+    heads: usize,
+    d: usize,
+}
+
+/// `count` segment lengths, each `mean` +- `spread` (at least 1).
+fn lengths(rng: &mut Rng, count: usize, mean: usize, spread: usize) -> Vec<usize> {
+    (0..count)
+        .map(|_| (mean as i64 + rng.below(2 * spread as u32 + 1) as i64 - spread as i64).max(1) as usize)
+        .collect()
+}
+
+fn cases(rng: &mut Rng, small: bool) -> Vec<Case> {
+    if small {
+        vec![
+            Case { name: "dense self", q_lens: vec![512], k_lens: None, heads: 4, d: 32 },
+            Case { name: "window self", q_lens: lengths(rng, 64, 32, 12), k_lens: None, heads: 4, d: 32 },
+            Case {
+                name: "cell cross",
+                q_lens: vec![1; 256],
+                k_lens: Some(lengths(rng, 256, 40, 30)),
+                heads: 4,
+                d: 32,
+            },
+            Case { name: "global cross", q_lens: vec![600], k_lens: Some(vec![512]), heads: 2, d: 64 },
+        ]
+    } else {
+        // The paper's sizes (MODELS.md): 8192 tokens of width 512 in 16 heads; voxel windows of
+        // about 32 tokens; cells of about 180 of 1.44 M points, one query each; Gaussian
+        // decoder queries (10k) over all 8192 tokens in 8 heads of 64.
+        // 8192 cells of 176 +- 120 points: about 1.44 M points.
+        let cells = lengths(rng, 8192, 176, 120);
+        let n_cells = cells.len();
+        vec![
+            Case { name: "dense self", q_lens: vec![8192], k_lens: None, heads: 16, d: 32 },
+            Case { name: "window self", q_lens: lengths(rng, 256, 32, 12), k_lens: None, heads: 16, d: 32 },
+            Case { name: "cell cross", q_lens: vec![1; n_cells], k_lens: Some(cells), heads: 16, d: 32 },
+            Case { name: "global cross", q_lens: vec![10_000], k_lens: Some(vec![8192]), heads: 8, d: 64 },
+        ]
+    }
+}
+
+pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
+    let small = quick || gpu.caps().kind == "CPU";
+    let mut rng = Rng::new(11);
+    let c = gpu.caps();
+    let device = c.name.clone();
+    let f32_peak = c.known_peaks().map(|p| p.1);
+    println!("device: {device} ({}); {repeats} timed repeats per case, median shown", c.kind);
+    print_header();
+    let mut records = Vec::new();
+    for case in cases(&mut rng, small) {
+        let k_lens = case.k_lens.clone().unwrap_or_else(|| case.q_lens.clone());
+        let (h, d) = (case.heads, case.d);
+        let (nq, nk): (usize, usize) = (case.q_lens.iter().sum(), k_lens.iter().sum());
+        let q = rng.normal_vec(nq * h * d);
+        let k = if case.k_lens.is_none() { q.clone() } else { rng.normal_vec(nk * h * d) };
+        let v = rng.normal_vec(nk * h * d);
+        let g = rng.normal_vec(nq * h * d);
+        let tq = Tensor::from_slice(gpu, &[nq, h, d], &q)?;
+        let tk = if case.k_lens.is_none() { tq.clone() } else { Tensor::from_slice(gpu, &[nk, h, d], &k)? };
+        let tv = Tensor::from_slice(gpu, &[nk, h, d], &v)?;
+        let tg = Tensor::from_slice(gpu, &[nq, h, d], &g)?;
+        let seg = Segments::from_lengths(gpu, &case.q_lens, &k_lens)?;
+        let scale = 1.0 / (d as f32).sqrt();
+
+        let mut out = None;
+        let (fwd_ms, fwd_min, timed) = time_gpu(gpu, repeats, |rec| {
+            out = Some(attention(rec, &tq, &tk, &tv, &seg, scale)?);
+            Ok(())
+        })?;
+        let out = out.unwrap();
+        let mut grads = None;
+        let (bwd_ms, bwd_min, _) = time_gpu(gpu, repeats, |rec| {
+            grads = Some(attention_backward(rec, &tq, &tk, &tv, &out, &tg, &seg, scale)?);
+            Ok(())
+        })?;
+        let grads = grads.unwrap();
+
+        // Reference on a sample.
+        let (o, dq, dk, dv): (Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>) =
+            (out.o.read()?, grads.dq.read()?, grads.dk.read()?, grads.dv.read()?);
+        let q_off = reference::offsets(&case.q_lens);
+        let k_off = reference::offsets(&k_lens);
+        let row = h * d;
+        let (mut fwd_got, mut fwd_want, mut bwd_got, mut bwd_want) = (vec![], vec![], vec![], vec![]);
+        let segments = case.q_lens.len();
+        let sampled_rows = segments == 1 && nq * nk > 1 << 22;
+        let picks: Vec<usize> = if segments <= 8 {
+            (0..segments).collect()
+        } else {
+            (0..8).map(|_| rng.below(segments as u32) as usize).collect()
+        };
+        for s in picks {
+            let rows: Vec<usize> = if sampled_rows {
+                (0..32).map(|_| q_off[s] + rng.below(case.q_lens[s] as u32) as usize).collect()
+            } else {
+                (q_off[s]..q_off[s + 1]).collect()
+            };
+            let pick = |t: &[f32], rows: &[usize]| -> Vec<f64> {
+                rows.iter().flat_map(|&r| t[r * row..(r + 1) * row].iter().map(|&x| x as f64)).collect()
+            };
+            let keys: Vec<usize> = (k_off[s]..k_off[s + 1]).collect();
+            let (sq, sg) = (pick(&q, &rows), pick(&g, &rows));
+            let (sk, sv) = (pick(&k, &keys), pick(&v, &keys));
+            let qo = [0, rows.len()];
+            let ko = [0, keys.len()];
+            let (o_ref, _) = reference::attention(&sq, &sk, &sv, &qo, &ko, h, d, scale as f64);
+            let (dq_ref, dk_ref, dv_ref) =
+                reference::attention_backward(&sq, &sk, &sv, &sg, &qo, &ko, h, d, scale as f64);
+            let as32 = |t: &[f32], rows: &[usize]| -> Vec<f32> {
+                rows.iter().flat_map(|&r| t[r * row..(r + 1) * row].iter().copied()).collect()
+            };
+            fwd_got.extend(as32(&o, &rows));
+            fwd_want.extend(o_ref);
+            bwd_got.extend(as32(&dq, &rows));
+            bwd_want.extend(dq_ref);
+            if !sampled_rows {
+                bwd_got.extend(as32(&dk, &keys));
+                bwd_want.extend(dk_ref);
+                bwd_got.extend(as32(&dv, &keys));
+                bwd_want.extend(dv_ref);
+            }
+        }
+        let error_over = if sampled_rows {
+            "o and dq on sampled query rows".to_string()
+        } else {
+            "all outputs of sampled segments".to_string()
+        };
+        let flops = attention::forward_flops(&case.q_lens, &k_lens, h, d);
+        let shape = format!("{nq}x{nk} h{h} d{d} ({segments} seg)");
+        for (pass, ms, min, f, got, want) in [
+            ("fwd", fwd_ms, fwd_min, flops, &fwd_got, &fwd_want),
+            ("bwd", bwd_ms, bwd_min, 2.5 * flops, &bwd_got, &bwd_want),
+        ] {
+            let tflops = f / (ms * 1e-3) / 1e12;
+            let r = Record {
+                name: format!("attn {} {pass}", case.name),
+                shape: shape.clone(),
+                precision: "f32".into(),
+                device: device.clone(),
+                median_ms: ms,
+                min_ms: min,
+                repeats,
+                throughput: tflops,
+                throughput_unit: "TFLOP/s".into(),
+                peak_fraction: f32_peak.map(|p| tflops / p),
+                nmse: nmse(got, want),
+                max_abs_err: max_abs_err(got, want),
+                error_over: error_over.clone(),
+                gpu_timed: timed,
+            };
+            print_row(&r);
+            records.push(r);
+        }
+
+        // Windowed attention against its matmuls alone: a batched S = Q K^T and O = P V over
+        // the same number of 32-token windows and heads.
+        if case.name == "window self" {
+            let b = segments * h;
+            let w = nq.div_ceil(segments);
+            let a = Tensor::from_slice(gpu, &[b, w, d], &rng.normal_vec(b * w * d))?;
+            let s = Tensor::empty(gpu, &[b, w, w], DType::F32)?;
+            let o2 = Tensor::empty(gpu, &[b, w, d], DType::F32)?;
+            let (ms, min, timed) = time_gpu(gpu, repeats, |rec| {
+                matmul::matmul_into(rec, &a, &a, false, true, &s, false)?;
+                matmul::matmul_into(rec, &s, &a, false, false, &o2, false)
+            })?;
+            let f = 4.0 * (b * w * w * d) as f64;
+            let tflops = f / (ms * 1e-3) / 1e12;
+            let r = Record {
+                name: "window matmuls alone".into(),
+                shape: format!("{b} x ({w}x{w}x{d}) x2"),
+                precision: "f32".into(),
+                device: device.clone(),
+                median_ms: ms,
+                min_ms: min,
+                repeats,
+                throughput: tflops,
+                throughput_unit: "TFLOP/s".into(),
+                peak_fraction: f32_peak.map(|p| tflops / p),
+                nmse: 0.0,
+                max_abs_err: 0.0,
+                error_over: "not checked (timing baseline)".into(),
+                gpu_timed: timed,
+            };
+            print_row(&r);
+            records.push(r);
+        }
+    }
+    Ok(records)
+}
