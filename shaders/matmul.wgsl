@@ -34,7 +34,7 @@ struct Params {
     b_batch: u32,
     // Transpose bits, read by the cooperative-matrix kernel only (this one uses the strides).
     flags: u32,
-    _pad1: u32,
+    batch_base: u32, // first batch entry of this dispatch (batches beyond the z limit are split)
 }
 
 @group(0) @binding(0) var<storage, read> a: array<u32>;
@@ -143,7 +143,7 @@ fn write4(c_base: u32, i: u32, j0: u32, v: vec4<f32>) {
 }
 
 fn gemm(wid: vec3<u32>, t: u32, half: bool) {
-    let z = wid.z;
+    let z = wid.z + pc.batch_base;
     let row0 = wid.y * TILE;
     let col0 = wid.x * TILE;
     let tx = t % 16u;

@@ -59,7 +59,7 @@ struct Params {
     b_batch: u32,
     // Bit 0: A is transposed ([K, M] in memory); bit 1: B is transposed ([N, K]).
     flags: u32,
-    _pad1: u32,
+    batch_base: u32, // first batch entry of this dispatch (batches beyond the z limit are split)
 }
 
 @group(0) @binding(0) var<storage, read> a: array<vec4<u32>>;
@@ -219,7 +219,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         @builtin(subgroup_id) sg: u32, @builtin(subgroup_invocation_id) lane: u32) {
     let ta = (pc.flags & 1u) != 0u;
     let tb = (pc.flags & 2u) != 0u;
-    let z = wid.z;
+    let z = wid.z + pc.batch_base;
     let row0 = wid.y * TILE;
     let col0 = wid.x * TILE;
     // This subgroup's 64x32 block of the tile.

@@ -38,7 +38,8 @@ struct Params {
     b_batch: u32,
     /// Bit 0: a transposed, bit 1: b transposed (the cooperative kernel's layout switch).
     flags: u32,
-    _pad: u32,
+    /// First batch entry of this dispatch: batches beyond the z-dimension limit are split.
+    batch_base: u32,
 }
 
 /// The sizes of one product, checked.
@@ -169,10 +170,10 @@ pub fn matmul_into(
     }
     let max = a.gpu().caps().max_workgroup_count;
     let groups = [p.n.div_ceil(TILE), p.m.div_ceil(TILE), if p.m == 0 || p.n == 0 { 0 } else { p.batch }];
-    if groups.iter().zip(max).any(|(&g, lim)| g > lim as usize) {
+    if groups[..2].iter().zip(max).any(|(&g, lim)| g > lim as usize) {
         return Err(Error::TooLarge(format!(
-            "matmul: batch {} of [{}, {}] outputs needs {groups:?} workgroups of 128x128, the device allows {max:?}",
-            p.batch, p.m, p.n
+            "matmul: [{}, {}] outputs need {groups:?} workgroups of 128x128, the device allows {max:?}",
+            p.m, p.n
         )));
     }
     // Every index the kernels form stays below the largest operand, which is bindable and so
@@ -194,11 +195,19 @@ pub fn matmul_into(
         b_col: if trans_b { p.k as u32 } else { 1 },
         b_batch: p.b_batch_stride as u32,
         flags: trans_a as u32 | (trans_b as u32) << 1,
-        _pad: 0,
+        batch_base: 0,
     };
     let kernel = choose_kernel(a.gpu(), a.dtype(), &p, trans_a, trans_b);
-    let groups = groups.map(|g| g as u32);
-    rec.dispatch(kernel, groups, &[a, b, out], &params)
+    // Batches beyond the device's z limit go in several dispatches.
+    let z_max = max[2] as usize;
+    let mut base = 0;
+    while base < groups[2] {
+        let count = (groups[2] - base).min(z_max);
+        let chunk = [groups[0] as u32, groups[1] as u32, count as u32];
+        rec.dispatch(kernel, chunk, &[a, b, out], &Params { batch_base: base as u32, ..params })?;
+        base += count;
+    }
+    Ok(())
 }
 
 /// The kernel for one product.
