@@ -33,8 +33,11 @@ pub struct BenchArgs {
     json: Option<PathBuf>,
 }
 
+/// A benchmark suite: (device, quick, repeats) -> records.
+type Suite = fn(&Gpu, bool, u32) -> Result<Vec<Record>>;
+
 pub fn run(cmd: BenchCommand) -> CliResult<()> {
-    let (args, which): (BenchArgs, fn(&Gpu, bool, u32) -> Result<Vec<Record>>) = match cmd {
+    let (args, which): (BenchArgs, Suite) = match cmd {
         BenchCommand::Kernels(a) => (a, kernels::run),
         BenchCommand::Attention(a) => (a, attention::run),
     };
