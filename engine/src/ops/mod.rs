@@ -1,9 +1,11 @@
 //! Ops: each file holds one op family's host side (validation, dispatch) and its f64 CPU
 //! reference (`reference` submodule), next to `shaders/<op>.wgsl`.
 
+pub mod assign;
 pub mod binary;
 pub mod cast;
 pub mod fill;
+pub mod fps;
 pub mod gather;
 pub mod reduce;
 pub mod scan;
@@ -11,3 +13,4 @@ pub mod scatter_add;
 pub mod softmax;
 pub mod sort;
 pub mod unary;
+pub mod window;
