@@ -47,8 +47,10 @@ fn query_rows(queries: &Tensor) -> Result<u32> {
 /// The index of the nearest query (u32 `[N]`) for every point.
 ///
 /// Cost: brute force, N * k distance evaluations ([`distance_evals`], 11 flops each,
-/// [`flops`]); the queries stream through workgroup memory in tiles of 256, so device memory
-/// traffic is small. 1.44M points against 8192 queries is 1.2e10 evaluations.
+/// [`flops`]); the queries stream through workgroup memory in tiles of 256 and each invocation
+/// measures 4 points per query read, so device memory traffic is small. 1.44M points against
+/// 8192 queries is 1.2e10 evaluations. On lavapipe (2 cores) 100k points against 2048 queries
+/// took 101 ms (2.0e9 evaluations/s, 22 GFLOP/s).
 pub fn assign_nearest(rec: &mut Recorder, points: &Tensor, queries: &Tensor) -> Result<Tensor> {
     let n = point_rows(points, "assign_nearest (points)")?;
     let k = query_rows(queries)?;
