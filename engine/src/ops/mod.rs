@@ -1,10 +1,12 @@
 //! Ops: each file holds one op family's host side (validation, dispatch) and its f64 CPU
 //! reference (`reference` submodule), next to `shaders/<op>.wgsl`.
 
+pub mod assign;
 pub mod attention;
 pub mod binary;
 pub mod cast;
 pub mod fill;
+pub mod fps;
 pub mod gather;
 pub mod matmul;
 pub mod reduce;
@@ -13,3 +15,4 @@ pub mod scatter_add;
 pub mod softmax;
 pub mod sort;
 pub mod unary;
+pub mod window;
