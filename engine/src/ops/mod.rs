@@ -1,10 +1,12 @@
 //! Ops: each file holds one op family's host side (validation, dispatch) and its f64 CPU
 //! reference (`reference` submodule), next to `shaders/<op>.wgsl`.
 
+pub mod adamw;
 pub mod binary;
 pub mod cast;
 pub mod fill;
 pub mod gather;
+pub mod norm;
 pub mod reduce;
 pub mod scan;
 pub mod scatter_add;
