@@ -1,6 +1,7 @@
 //! Ops: each file holds one op family's host side (validation, dispatch) and its f64 CPU
 //! reference (`reference` submodule), next to `shaders/<op>.wgsl`.
 
+pub mod adamw;
 pub mod assign;
 pub mod attention;
 pub mod binary;
@@ -9,6 +10,7 @@ pub mod fill;
 pub mod fps;
 pub mod gather;
 pub mod matmul;
+pub mod norm;
 pub mod reduce;
 pub mod scan;
 pub mod scatter_add;

@@ -1,0 +1,386 @@
+//! The parameter store: every parameter of a model in one f32 buffer, with a gradient buffer and
+//! the AdamW moments `m` and `v` laid out the same way, so that zeroing the gradients, taking
+//! their global norm and the AdamW step are one or two dispatches over flat buffers whatever the
+//! number of tensors.
+//!
+//! Each parameter is a named [`Tensor::view`] at an offset aligned to the device's storage
+//! offset alignment, so a layer binds its weights and gradients like any other tensor. Tensors
+//! that get weight decay come first in the buffer and those that do not (norm gains, biases)
+//! after them, so the AdamW kernel needs only the length of the decayed prefix.
+//!
+//! ```ignore
+//! let mut b = ParamStore::builder();
+//! b.add("enc.w", &[64, 32], Init::Xavier)?; // two or more dims: decayed
+//! b.add("enc.b", &[32], Init::Zeros)?;      // one dim: not decayed
+//! let mut store = b.build(&gpu, seed)?;
+//! ```
+
+use std::collections::HashMap;
+
+use velox_engine::ops::adamw::{adamw, AdamWConfig, AdamWStep, AdamWTensors};
+use velox_engine::ops::fill::fill;
+use velox_engine::ops::norm::{check_finite, chunk_len, global_norm_into, NormScratch};
+use velox_engine::rng::Rng;
+use velox_engine::{DType, Error, Gpu, Recorder, Result, Tensor};
+
+/// How a parameter starts. Random rules draw from [`Rng`] seeded by the store's seed and the
+/// parameter's name, so a parameter's initial values do not depend on which others exist.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Init {
+    Zeros,
+    Ones,
+    Constant(f32),
+    /// Normal with mean 0 and this standard deviation.
+    Normal {
+        std: f64,
+    },
+    /// Uniform in [lo, hi).
+    Uniform {
+        lo: f64,
+        hi: f64,
+    },
+    /// Glorot and Bengio's rule for linear weights: uniform in [-a, a) with
+    /// a = sqrt(6 / (fan_in + fan_out)), where fan_in + fan_out is the sum of the last two
+    /// dimensions (a [.., rows, cols] tensor is a stack of rows x cols matrices; the sum is the
+    /// same whichever way round the weight is stored). A 1-D tensor of length n counts as an
+    /// n-input, one-output map (n + 1).
+    Xavier,
+    /// He et al.'s rule for weights followed by a ReLU-like activation: normal with std
+    /// sqrt(2 / fan_in). The fan-in is given because only the layer knows which dimension is
+    /// its input.
+    Kaiming {
+        fan_in: usize,
+    },
+}
+
+impl Init {
+    fn fill(self, out: &mut [f32], shape: &[usize], rng: &mut Rng) {
+        match self {
+            Init::Zeros => out.fill(0.0),
+            Init::Ones => out.fill(1.0),
+            Init::Constant(c) => out.fill(c),
+            Init::Normal { std } => out.iter_mut().for_each(|x| *x = (rng.normal() * std) as f32),
+            Init::Uniform { lo, hi } => out.iter_mut().for_each(|x| *x = rng.range(lo, hi) as f32),
+            Init::Xavier => {
+                let fans = match shape {
+                    [] => 2,
+                    [n] => n + 1,
+                    [.., r, c] => r + c,
+                };
+                let a = (6.0 / fans.max(1) as f64).sqrt();
+                out.iter_mut().for_each(|x| *x = rng.range(-a, a) as f32);
+            }
+            Init::Kaiming { fan_in } => {
+                let std = (2.0 / fan_in.max(1) as f64).sqrt();
+                out.iter_mut().for_each(|x| *x = (rng.normal() * std) as f32);
+            }
+        }
+    }
+
+    fn check(self, name: &str) -> Result<()> {
+        let bad = match self {
+            Init::Normal { std } => !(std.is_finite() && std >= 0.0),
+            Init::Uniform { lo, hi } => !(lo.is_finite() && hi.is_finite() && lo <= hi),
+            Init::Constant(c) => !c.is_finite(),
+            Init::Kaiming { fan_in } => fan_in == 0,
+            _ => false,
+        };
+        if bad {
+            return Err(Error::Invalid(format!("parameter {name:?}: bad initialisation {self:?}")));
+        }
+        Ok(())
+    }
+}
+
+/// One registered parameter: where it lives in the flat buffers and how it started.
+#[derive(Clone, Debug)]
+pub struct ParamInfo {
+    pub name: String,
+    pub shape: Vec<usize>,
+    /// Element offset in the flat buffers (a multiple of the view alignment).
+    pub offset: usize,
+    pub numel: usize,
+    pub decay: bool,
+    pub init: Init,
+}
+
+/// Collects parameters before the flat buffers are sized and allocated.
+#[derive(Default)]
+pub struct ParamBuilder {
+    specs: Vec<ParamInfo>,
+    index: HashMap<String, usize>,
+}
+
+impl ParamBuilder {
+    /// Registers a parameter. Tensors of two or more dimensions (weight matrices, embeddings)
+    /// get weight decay; vectors and scalars (norm gains, biases) do not. Use
+    /// [`ParamBuilder::add_with_decay`] to choose.
+    pub fn add(&mut self, name: &str, shape: &[usize], init: Init) -> Result<()> {
+        self.add_with_decay(name, shape, init, shape.len() >= 2)
+    }
+
+    /// Registers a parameter with an explicit weight decay choice.
+    pub fn add_with_decay(&mut self, name: &str, shape: &[usize], init: Init, decay: bool) -> Result<()> {
+        if name.is_empty() {
+            return Err(Error::Invalid("a parameter needs a name".into()));
+        }
+        if self.index.contains_key(name) {
+            return Err(Error::Invalid(format!("parameter {name:?} is registered twice")));
+        }
+        init.check(name)?;
+        let numel = shape
+            .iter()
+            .try_fold(1usize, |a, &d| a.checked_mul(d))
+            .ok_or_else(|| Error::TooLarge(format!("parameter {name:?} of shape {shape:?}")))?;
+        self.index.insert(name.to_string(), self.specs.len());
+        self.specs.push(ParamInfo {
+            name: name.to_string(),
+            shape: shape.to_vec(),
+            offset: 0,
+            numel,
+            decay,
+            init,
+        });
+        Ok(())
+    }
+
+    /// Allocates the flat buffers on `gpu` and initialises the parameters on the host with
+    /// `seed`; gradients and moments start at zero and the step counter at 0.
+    pub fn build(self, gpu: &Gpu, seed: u64) -> Result<ParamStore> {
+        let ParamBuilder { mut specs, index } = self;
+        let align = chunk_align(gpu);
+        // Decayed tensors first, each group in registration order.
+        let mut order: Vec<usize> = (0..specs.len()).collect();
+        order.sort_by_key(|&i| !specs[i].decay);
+        let mut end = 0usize;
+        let mut decay_len = 0usize;
+        for &i in &order {
+            let start = end.next_multiple_of(align);
+            specs[i].offset = start;
+            end = start
+                .checked_add(specs[i].numel)
+                .ok_or_else(|| Error::TooLarge(format!("parameters past {start} elements")))?;
+            if specs[i].decay {
+                decay_len = end;
+            }
+        }
+        let total = end;
+        let mut host = vec![0f32; total];
+        for s in &specs {
+            let mut rng = Rng::new(seed ^ name_hash(&s.name));
+            s.init.fill(&mut host[s.offset..s.offset + s.numel], &s.shape, &mut rng);
+        }
+        let params = Tensor::from_slice(gpu, &[total], &host)?;
+        drop(host);
+        let grads = Tensor::empty(gpu, &[total], DType::F32)?;
+        let m = Tensor::empty(gpu, &[total], DType::F32)?;
+        let v = Tensor::empty(gpu, &[total], DType::F32)?;
+        let mut rec = gpu.recorder()?;
+        for t in [&grads, &m, &v] {
+            fill_flat(&mut rec, t, 0.0)?;
+        }
+        rec.submit()?;
+        let views = specs
+            .iter()
+            .map(|s| Ok((params.view(s.offset, &s.shape)?, grads.view(s.offset, &s.shape)?)))
+            .collect::<Result<Vec<_>>>()?;
+        let norm = NormScratch::new(gpu, total)?;
+        Ok(ParamStore { specs, index, views, params, grads, m, v, decay_len, norm, step: 0 })
+    }
+}
+
+/// Every parameter of a model in one buffer, with gradients and AdamW moments alongside.
+pub struct ParamStore {
+    specs: Vec<ParamInfo>,
+    index: HashMap<String, usize>,
+    views: Vec<(Tensor, Tensor)>,
+    params: Tensor,
+    grads: Tensor,
+    m: Tensor,
+    v: Tensor,
+    decay_len: usize,
+    norm: NormScratch,
+    step: u64,
+}
+
+impl ParamStore {
+    pub fn builder() -> ParamBuilder {
+        ParamBuilder::default()
+    }
+
+    /// The parameter called `name`.
+    pub fn param(&self, name: &str) -> Result<&Tensor> {
+        Ok(&self.views[self.find(name)?].0)
+    }
+
+    /// The gradient of the parameter called `name` (same shape, in the flat gradient buffer).
+    pub fn grad(&self, name: &str) -> Result<&Tensor> {
+        Ok(&self.views[self.find(name)?].1)
+    }
+
+    fn find(&self, name: &str) -> Result<usize> {
+        self.index.get(name).copied().ok_or_else(|| {
+            Error::Invalid(format!("no parameter called {name:?} (the store has {})", self.specs.len()))
+        })
+    }
+
+    /// (name, parameter, gradient) in registration order.
+    pub fn iter(&self) -> impl Iterator<Item = (&str, &Tensor, &Tensor)> {
+        self.specs.iter().zip(&self.views).map(|(s, (p, g))| (s.name.as_str(), p, g))
+    }
+
+    /// Where each parameter lives, in registration order.
+    pub fn infos(&self) -> &[ParamInfo] {
+        &self.specs
+    }
+
+    /// Number of parameter tensors.
+    pub fn len(&self) -> usize {
+        self.specs.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.specs.is_empty()
+    }
+
+    /// Number of scalar parameters (without alignment padding).
+    pub fn num_parameters(&self) -> usize {
+        self.specs.iter().map(|s| s.numel).sum()
+    }
+
+    /// The flat buffers, `[total]` with padding between tensors (always zero in all four).
+    pub fn flat_params(&self) -> &Tensor {
+        &self.params
+    }
+    pub fn flat_grads(&self) -> &Tensor {
+        &self.grads
+    }
+    /// AdamW's first and second moments.
+    pub fn moments(&self) -> (&Tensor, &Tensor) {
+        (&self.m, &self.v)
+    }
+
+    /// Elements `[0, decay_len)` of the flat buffers get weight decay.
+    pub fn decay_len(&self) -> usize {
+        self.decay_len
+    }
+
+    /// AdamW steps taken (0 before the first).
+    pub fn step(&self) -> u64 {
+        self.step
+    }
+
+    pub fn set_step(&mut self, step: u64) {
+        self.step = step;
+    }
+
+    /// Overwrites one parameter from the host.
+    pub fn write_param(&self, name: &str, data: &[f32]) -> Result<()> {
+        self.param(name)?.write(data)
+    }
+
+    /// Records zeroing every gradient.
+    pub fn zero_grads(&self, rec: &mut Recorder) -> Result<()> {
+        fill_flat(rec, &self.grads, 0.0)
+    }
+
+    /// Records the global norm of all gradients; [`ParamStore::grad_norm`] reads it after submit.
+    pub fn record_grad_norm(&self, rec: &mut Recorder) -> Result<()> {
+        global_norm_into(rec, &self.grads, &self.norm)
+    }
+
+    /// Records one AdamW step over every parameter: the global gradient norm, then the fused
+    /// update, clipped to `max_norm` when given. Advances the step counter; after submit, call
+    /// [`ParamStore::grad_norm`] to log the norm and to catch NaN or Inf.
+    pub fn adamw_step(
+        &mut self,
+        rec: &mut Recorder,
+        cfg: &AdamWConfig,
+        lr: f64,
+        max_norm: Option<f64>,
+    ) -> Result<()> {
+        self.record_grad_norm(rec)?;
+        let tensors = AdamWTensors {
+            params: &self.params,
+            grads: &self.grads,
+            m: &self.m,
+            v: &self.v,
+            decay_len: self.decay_len,
+            norm: Some(self.norm.result()),
+        };
+        let step = AdamWStep { lr, step: self.step + 1, grad_scale: 1.0, max_norm };
+        adamw(rec, &tensors, cfg, &step)?;
+        self.step += 1;
+        Ok(())
+    }
+
+    /// The global gradient norm recorded last (after the recording was submitted). A NaN or Inf
+    /// norm means the gradients hold NaN or Inf: the AdamW kernel then left everything as it
+    /// was, so the step counter goes back by one and the error says what happened.
+    pub fn grad_norm(&mut self) -> Result<f32> {
+        match check_finite(self.norm.result(), "gradients") {
+            Ok(n) => Ok(n),
+            Err(e) => {
+                self.step = self.step.saturating_sub(1);
+                Err(e)
+            }
+        }
+    }
+}
+
+/// Element multiple at which f32 views may start on `gpu`.
+fn chunk_align(gpu: &Gpu) -> usize {
+    (gpu.caps().min_storage_buffer_offset_alignment.max(4) as usize).div_ceil(4)
+}
+
+/// Fills a flat f32 buffer that may be larger than one storage binding.
+fn fill_flat(rec: &mut Recorder, t: &Tensor, value: f64) -> Result<()> {
+    let n = t.numel();
+    let chunk = chunk_len(t.gpu());
+    let flat = t.reshape(&[n])?;
+    for start in (0..n).step_by(chunk) {
+        fill(rec, &flat.view(start, &[chunk.min(n - start)])?, value)?;
+    }
+    Ok(())
+}
+
+/// FNV-1a: mixes a parameter's name into the store's seed.
+fn name_hash(name: &str) -> u64 {
+    name.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| (h ^ b as u64).wrapping_mul(0x100_0000_01b3))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn init_rules_have_the_documented_spread() {
+        let mut rng = Rng::new(7);
+        let mut w = vec![0f32; 200 * 300];
+        Init::Xavier.fill(&mut w, &[200, 300], &mut rng);
+        let a = (6.0f64 / 500.0).sqrt();
+        assert!(w.iter().all(|&x| (x as f64).abs() <= a));
+        let var = w.iter().map(|&x| x as f64 * x as f64).sum::<f64>() / w.len() as f64;
+        assert!((var / (a * a / 3.0) - 1.0).abs() < 0.03, "xavier variance {var}");
+        Init::Kaiming { fan_in: 300 }.fill(&mut w, &[200, 300], &mut rng);
+        let var = w.iter().map(|&x| x as f64 * x as f64).sum::<f64>() / w.len() as f64;
+        assert!((var / (2.0 / 300.0) - 1.0).abs() < 0.03, "kaiming variance {var}");
+        let mut u = vec![0f32; 1000];
+        Init::Uniform { lo: -2.0, hi: 3.0 }.fill(&mut u, &[1000], &mut rng);
+        assert!(u.iter().all(|&x| (-2.0..3.0).contains(&x)));
+    }
+
+    #[test]
+    fn registration_errors_name_the_problem() {
+        let mut b = ParamStore::builder();
+        b.add("w", &[2, 3], Init::Xavier).unwrap();
+        assert!(b.add("w", &[2], Init::Zeros).unwrap_err().to_string().contains("twice"));
+        assert!(b.add("", &[2], Init::Zeros).is_err());
+        assert!(b.add("s", &[2], Init::Normal { std: -1.0 }).unwrap_err().to_string().contains("\"s\""));
+    }
+
+    #[test]
+    fn name_hash_separates_names() {
+        assert_ne!(name_hash("a.w"), name_hash("a.b"));
+    }
+}
