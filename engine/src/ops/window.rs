@@ -17,7 +17,7 @@
 //! gives the shifted windows of alternate layers: origin moved down by half a cell and one more
 //! cell per axis, so the shifted grid covers the same bounds.
 //!
-//! **Segments** ([`group_by_window`]): the points sorted stably by window id, and the occupied
+//! **Window groups** ([`group_by_window`]): the points sorted stably by window id, and the occupied
 //! windows as a compact list. With `S` occupied windows and `C = min(num_windows, N)` (the
 //! most there can be), the outputs are
 //! - `order`: u32 `[N]`, point indices sorted by window id, ascending point index within a
@@ -198,7 +198,7 @@ pub fn key_bits_for(num_ids: u64) -> u32 {
 }
 
 /// Points grouped into one segment per occupied window; the format is in the module header.
-pub struct Segments {
+pub struct WindowGroups {
     pub order: Tensor,
     pub sorted_ids: Tensor,
     pub offsets: Tensor,
@@ -206,8 +206,10 @@ pub struct Segments {
     pub count: Tensor,
 }
 
-impl Segments {
+impl WindowGroups {
     /// Reads the segment count back (waits for nothing: call after the recording is submitted).
+    /// For attention over the windows, gather the tokens by `order` and use `offsets` as both
+    /// the query and the key offsets of [`crate::ops::attention::Segments`].
     pub fn read_count(&self) -> Result<u32> {
         Ok(self.count.read::<u32>()?[0])
     }
@@ -218,7 +220,7 @@ impl Segments {
 ///
 /// Cost: a stable radix sort of N pairs on [`key_bits_for`]`(num_windows)` bits, plus three
 /// passes over N and one scan of N ([`group_bytes`]).
-pub fn group_by_window(rec: &mut Recorder, ids: &Tensor, num_windows: u64) -> Result<Segments> {
+pub fn group_by_window(rec: &mut Recorder, ids: &Tensor, num_windows: u64) -> Result<WindowGroups> {
     if ids.dtype() != DType::U32 || ids.shape().len() != 1 {
         return Err(Error::Shape(format!("group_by_window: ids must be u32 [N], got {ids:?}")));
     }
@@ -246,7 +248,7 @@ pub fn group_by_window(rec: &mut Recorder, ids: &Tensor, num_windows: u64) -> Re
         &[&sorted_ids, &positions, &offsets, &segment_ids],
         &Params::count(n),
     )?;
-    Ok(Segments { order, sorted_ids, offsets, segment_ids, count })
+    Ok(WindowGroups { order, sorted_ids, offsets, segment_ids, count })
 }
 
 /// Bytes [`window_ids`] reads and writes for `n` points (for GB/s in benchmarks).
