@@ -1,1 +1,2 @@
 pub use velox_engine as engine;
+pub mod layers;
