@@ -1,5 +1,6 @@
 // Per-element losses and their gradients, scaled by `scale` (weight / n for a mean), written
-// side by side (`label` is the target); the host sums the per-element losses with reduce.wgsl. r = pred - target.
+// side by side; the host sums the per-element losses with reduce.wgsl. `label` holds the
+// target (`target` is reserved in WGSL); r = pred - target.
 //   MSE:   r^2,                                   grad 2 r
 //   L1:    |r|,                                   grad sign(r) (0 at r = 0)
 //   Huber: 0.5 r^2 if |r| <= delta, else delta (|r| - 0.5 delta),   grad clamp(r, -delta, delta)
