@@ -1,5 +1,8 @@
+//! velox-models: the layers and models of Velox, their training primitives and checkpoints.
+
 pub use velox_engine as engine;
 
 pub mod checkpoint;
+pub mod layers;
 pub mod params;
 pub mod schedule;

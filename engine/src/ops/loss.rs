@@ -1,0 +1,104 @@
+//! Mean losses with their gradients: MSE, L1, Huber and binary cross-entropy with logits.
+//! Kernel: `shaders/loss.wgsl` (per-element loss and gradient), then a sum by `reduce.wgsl`.
+
+use crate::error::{Error, Result};
+use crate::kernels::LOSS_MAIN;
+use crate::ops::reduce::{reduce, Reduce};
+use crate::recorder::Recorder;
+use crate::tensor::{DType, Tensor};
+
+/// The losses; the discriminants are the codes in `shaders/loss.wgsl`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum LossKind {
+    /// (p - t)^2
+    Mse,
+    /// |p - t|
+    L1,
+    /// 0.5 r^2 for |r| <= delta, delta (|r| - delta / 2) beyond.
+    Huber { delta: f32 },
+    /// Binary cross-entropy of logits p against labels t in [0, 1].
+    BceWithLogits,
+}
+
+impl LossKind {
+    fn code(self) -> (u32, f32) {
+        match self {
+            LossKind::Mse => (0, 0.0),
+            LossKind::L1 => (1, 0.0),
+            LossKind::Huber { delta } => (2, delta),
+            LossKind::BceWithLogits => (3, 0.0),
+        }
+    }
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    n: u32,
+    kind: u32,
+    delta: f32,
+    scale: f32,
+}
+
+/// `weight * mean(loss(pred, target))` as a 1-element tensor, and its gradient with respect to
+/// `pred`. An empty input has loss 0.
+pub fn loss(
+    rec: &mut Recorder,
+    kind: LossKind,
+    pred: &Tensor,
+    target: &Tensor,
+    weight: f32,
+) -> Result<(Tensor, Tensor)> {
+    if pred.dtype() != DType::F32 || target.dtype() != DType::F32 || pred.shape() != target.shape() {
+        return Err(Error::Shape(format!(
+            "{kind:?} loss: pred {pred:?} and target {target:?} must be f32 of one shape"
+        )));
+    }
+    let n = u32::try_from(pred.numel()).map_err(|_| Error::TooLarge(format!("{kind:?} loss of {pred:?}")))?;
+    let (code, delta) = kind.code();
+    let p = Params { n, kind: code, delta, scale: weight / n.max(1) as f32 };
+    let per = Tensor::empty(pred.gpu(), &[n as usize], DType::F32)?;
+    let grad = Tensor::empty(pred.gpu(), pred.shape(), DType::F32)?;
+    rec.dispatch_linear(LOSS_MAIN, (n as u64).div_ceil(256), &[pred, target, &per, &grad], &p)?;
+    let total = reduce(rec, &per, 0, Reduce::Sum)?.reshape(&[1])?;
+    Ok((total, grad))
+}
+
+/// Plain f64 loops.
+pub mod reference {
+    use super::LossKind;
+
+    /// Per-element (loss, d loss / d pred).
+    pub fn pointwise(kind: LossKind, p: f64, t: f64) -> (f64, f64) {
+        let r = p - t;
+        match kind {
+            LossKind::Mse => (r * r, 2.0 * r),
+            LossKind::L1 => (r.abs(), if r == 0.0 { 0.0 } else { r.signum() }),
+            LossKind::Huber { delta } => {
+                let d = delta as f64;
+                if r.abs() <= d {
+                    (0.5 * r * r, r)
+                } else {
+                    (d * (r.abs() - 0.5 * d), d * r.signum())
+                }
+            }
+            LossKind::BceWithLogits => {
+                let l = p.max(0.0) - p * t + (-p.abs()).exp().ln_1p();
+                (l, 1.0 / (1.0 + (-p).exp()) - t)
+            }
+        }
+    }
+
+    /// `weight * mean(loss)` and its gradient.
+    pub fn loss(kind: LossKind, pred: &[f64], target: &[f64], weight: f64) -> (f64, Vec<f64>) {
+        let scale = weight / pred.len().max(1) as f64;
+        let mut total = 0.0;
+        let mut grad = Vec::with_capacity(pred.len());
+        for (&p, &t) in pred.iter().zip(target) {
+            let (l, g) = pointwise(kind, p, t);
+            total += l * scale;
+            grad.push(g * scale);
+        }
+        (total, grad)
+    }
+}

@@ -1,0 +1,130 @@
+//! RMSNorm over the last axis with a learnable scale. Kernel: `shaders/rmsnorm.wgsl`.
+//!
+//! `y = x / sqrt(mean(x^2) + eps) * w`. The forward saves the per-row `rstd` for the backward,
+//! which gives `dx` and adds `dw` into a gradient tensor.
+
+use crate::error::{Error, Result};
+use crate::kernels::{RMSNORM_BACKWARD, RMSNORM_FORWARD, RMSNORM_PARAM_GRADS};
+use crate::ops::binary::{binary_into, Binary};
+use crate::ops::reduce::{reduce, Reduce};
+use crate::recorder::Recorder;
+use crate::tensor::{DType, Tensor};
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    rows: u32,
+    width: u32,
+    eps: f32,
+    rows_per_chunk: u32,
+}
+
+/// Rows of `x` over its last axis, checked against the width of `w` (rows, width).
+pub(crate) fn rows_and_width(what: &str, x: &Tensor, width: usize) -> Result<(u32, u32)> {
+    if x.dtype() != DType::F32 || x.shape().last() != Some(&width) {
+        return Err(Error::Shape(format!("{what}: x must be f32 with last axis {width}, got {x:?}")));
+    }
+    let rows = x.numel().checked_div(width).unwrap_or(0);
+    let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("{what} of {x:?}")));
+    fit(x.numel())?;
+    Ok((fit(rows)?, fit(width)?))
+}
+
+pub(crate) fn check_vector(what: &str, t: &Tensor, width: usize) -> Result<()> {
+    if t.dtype() != DType::F32 || t.numel() != width {
+        return Err(Error::Shape(format!("{what}: needs an f32 tensor of {width} elements, got {t:?}")));
+    }
+    Ok(())
+}
+
+/// Rows each invocation of a `param_grads` kernel sums: at least 256, and few enough chunks to
+/// fit one dispatch dimension. Returns (rows per chunk, chunks).
+pub(crate) fn chunking(rows: u32, max_groups: u32) -> (u32, u32) {
+    let per = 256u32.max(rows.div_ceil(max_groups));
+    (per, rows.div_ceil(per))
+}
+
+/// `grad += sum over axis 0 of partial [chunks, width]`.
+pub(crate) fn add_partials(rec: &mut Recorder, partial: &Tensor, grad: &Tensor) -> Result<()> {
+    let sums = reduce(rec, partial, 0, Reduce::Sum)?.reshape(grad.shape())?;
+    binary_into(rec, grad, &sums, grad, Binary::Add)
+}
+
+/// RMSNorm of every row of `x` (last axis = `w.numel()`): returns `y` and the per-row `rstd`
+/// (shape `x.shape()` without the last axis).
+pub fn rmsnorm(rec: &mut Recorder, x: &Tensor, w: &Tensor, eps: f32) -> Result<(Tensor, Tensor)> {
+    let width = w.numel();
+    check_vector("rmsnorm weight", w, width)?;
+    let (rows, width) = rows_and_width("rmsnorm", x, width)?;
+    let y = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
+    let rstd = Tensor::empty(x.gpu(), &x.shape()[..x.shape().len() - 1], DType::F32)?;
+    let p = Params { rows, width, eps, rows_per_chunk: 0 };
+    rec.dispatch_linear(RMSNORM_FORWARD, rows as u64, &[x, w, &y, &rstd], &p)?;
+    Ok((y, rstd))
+}
+
+/// Backward of [`rmsnorm`]: returns `dx` and, when `dw` is given, adds the weight gradient
+/// into it (accumulation, so a weight used twice sums its gradients).
+pub fn rmsnorm_backward(
+    rec: &mut Recorder,
+    x: &Tensor,
+    w: &Tensor,
+    rstd: &Tensor,
+    dy: &Tensor,
+    dw: Option<&Tensor>,
+) -> Result<Tensor> {
+    let width = w.numel();
+    check_vector("rmsnorm weight", w, width)?;
+    let (rows, width) = rows_and_width("rmsnorm backward", x, width)?;
+    check_vector("rmsnorm rstd", rstd, rows as usize)?;
+    if dy.shape() != x.shape() || dy.dtype() != DType::F32 {
+        return Err(Error::Shape(format!("rmsnorm backward: dy {dy:?} must match x {x:?}")));
+    }
+    let dx = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
+    let mut p = Params { rows, width, eps: 0.0, rows_per_chunk: 0 };
+    rec.dispatch_linear(RMSNORM_BACKWARD, rows as u64, &[x, w, rstd, dy, &dx], &p)?;
+    if let Some(dw) = dw {
+        check_vector("rmsnorm weight gradient", dw, width as usize)?;
+        let (per, chunks) = chunking(rows, x.gpu().caps().max_workgroup_count[1]);
+        p.rows_per_chunk = per;
+        let partial = Tensor::empty(x.gpu(), &[chunks as usize, width as usize], DType::F32)?;
+        rec.dispatch(RMSNORM_PARAM_GRADS, [width.div_ceil(64), chunks, 1], &[x, rstd, dy, &partial], &p)?;
+        add_partials(rec, &partial, dw)?;
+    }
+    Ok(dx)
+}
+
+/// Plain f64 loops.
+pub mod reference {
+    /// Returns (y, rstd) for rows of `w.len()`.
+    pub fn rmsnorm(x: &[f64], w: &[f64], eps: f64) -> (Vec<f64>, Vec<f64>) {
+        let n = w.len();
+        let mut y = Vec::with_capacity(x.len());
+        let mut rstd = Vec::new();
+        for row in x.chunks(n) {
+            let ms = row.iter().map(|v| v * v).sum::<f64>() / n as f64;
+            let r = 1.0 / (ms + eps).sqrt();
+            y.extend(row.iter().zip(w).map(|(v, wj)| v * r * wj));
+            rstd.push(r);
+        }
+        (y, rstd)
+    }
+
+    /// Returns (dx, dw).
+    pub fn rmsnorm_backward(x: &[f64], w: &[f64], eps: f64, dy: &[f64]) -> (Vec<f64>, Vec<f64>) {
+        let n = w.len();
+        let (_, rstd) = rmsnorm(x, w, eps);
+        let mut dx = Vec::with_capacity(x.len());
+        let mut dw = vec![0.0; n];
+        for ((row, g), r) in x.chunks(n).zip(dy.chunks(n)).zip(rstd) {
+            // m = mean_j (dy_j w_j xhat_j)
+            let m = (0..n).map(|j| g[j] * w[j] * row[j] * r).sum::<f64>() / n as f64;
+            for j in 0..n {
+                let xhat = row[j] * r;
+                dx.push(r * (g[j] * w[j] - xhat * m));
+                dw[j] += g[j] * xhat;
+            }
+        }
+        (dx, dw)
+    }
+}

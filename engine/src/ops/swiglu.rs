@@ -1,0 +1,61 @@
+//! The SwiGLU gate `h = silu(a) * b` and its backward, fused. Kernel: `shaders/swiglu.wgsl`.
+
+use crate::error::{Error, Result};
+use crate::kernels::{SWIGLU_BACKWARD, SWIGLU_FORWARD};
+use crate::recorder::Recorder;
+use crate::tensor::{DType, Tensor};
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    n: u32,
+}
+
+fn check(what: &str, ts: &[&Tensor]) -> Result<Params> {
+    let shape = ts[0].shape();
+    if ts.iter().any(|t| t.dtype() != DType::F32 || t.shape() != shape) {
+        return Err(Error::Shape(format!("{what}: needs f32 tensors of one shape, got {ts:?}")));
+    }
+    let n = u32::try_from(ts[0].numel()).map_err(|_| Error::TooLarge(format!("{what} of {:?}", ts[0])))?;
+    Ok(Params { n })
+}
+
+/// `h = silu(a) * b`.
+pub fn swiglu(rec: &mut Recorder, a: &Tensor, b: &Tensor) -> Result<Tensor> {
+    let p = check("swiglu", &[a, b])?;
+    let h = Tensor::empty(a.gpu(), a.shape(), DType::F32)?;
+    rec.dispatch_linear(SWIGLU_FORWARD, (p.n as u64).div_ceil(256), &[a, b, &h], &p)?;
+    Ok(h)
+}
+
+/// Returns `(da, db)` from `dh`.
+pub fn swiglu_backward(rec: &mut Recorder, a: &Tensor, b: &Tensor, dh: &Tensor) -> Result<(Tensor, Tensor)> {
+    let p = check("swiglu backward", &[a, b, dh])?;
+    let da = Tensor::empty(a.gpu(), a.shape(), DType::F32)?;
+    let db = Tensor::empty(a.gpu(), a.shape(), DType::F32)?;
+    rec.dispatch_linear(SWIGLU_BACKWARD, (p.n as u64).div_ceil(256), &[a, b, dh, &da, &db], &p)?;
+    Ok((da, db))
+}
+
+/// Plain f64 loops.
+pub mod reference {
+    fn sigmoid(v: f64) -> f64 {
+        1.0 / (1.0 + (-v).exp())
+    }
+
+    pub fn swiglu(a: &[f64], b: &[f64]) -> Vec<f64> {
+        a.iter().zip(b).map(|(&a, &b)| a * sigmoid(a) * b).collect()
+    }
+
+    /// Returns (da, db).
+    pub fn swiglu_backward(a: &[f64], b: &[f64], dh: &[f64]) -> (Vec<f64>, Vec<f64>) {
+        let mut da = Vec::with_capacity(a.len());
+        let mut db = Vec::with_capacity(a.len());
+        for i in 0..a.len() {
+            let s = sigmoid(a[i]);
+            da.push(dh[i] * b[i] * s * (1.0 + a[i] * (1.0 - s)));
+            db.push(dh[i] * a[i] * s);
+        }
+        (da, db)
+    }
+}

@@ -1,0 +1,111 @@
+//! Feed-forward blocks. Matmuls through [`Linear`], the elementwise parts as fused kernels.
+//!
+//! - [`SwiGlu`]: `y = W2 (silu(x W1) * (x W3))`, no biases (`shaders/swiglu.wgsl`).
+//! - [`GeluMlp`]: `y = W2 gelu(x W1 + b1) + b2`, exact GELU (`shaders/unary.wgsl` forward,
+//!   `shaders/gelu.wgsl` backward).
+
+use velox_engine::ops::gelu::gelu_backward;
+use velox_engine::ops::swiglu::{swiglu, swiglu_backward};
+use velox_engine::ops::unary::{unary, Unary};
+use velox_engine::{Error, Recorder, Result, Tensor};
+
+use super::linear::{Linear, LinearCache};
+use super::Param;
+
+pub struct SwiGlu {
+    /// `[d, hidden]`, the gated branch.
+    pub w1: Linear,
+    /// `[d, hidden]`, the linear branch.
+    pub w3: Linear,
+    /// `[hidden, d_out]`
+    pub w2: Linear,
+}
+
+#[derive(Clone, Debug)]
+pub struct SwiGluCache {
+    x: LinearCache,
+    /// `x W1`, `x W3`.
+    a: Tensor,
+    b: Tensor,
+    h: LinearCache,
+}
+
+impl SwiGlu {
+    pub fn new(w1: Param, w3: Param, w2: Param) -> Result<SwiGlu> {
+        let (w1, w3, w2) = (Linear::new(w1, None)?, Linear::new(w3, None)?, Linear::new(w2, None)?);
+        if w1.in_features != w3.in_features
+            || w1.out_features != w3.out_features
+            || w2.in_features != w1.out_features
+        {
+            return Err(Error::Shape(format!(
+                "swiglu: W1 [{}, {}], W3 [{}, {}] and W2 [{}, {}] do not chain",
+                w1.in_features,
+                w1.out_features,
+                w3.in_features,
+                w3.out_features,
+                w2.in_features,
+                w2.out_features
+            )));
+        }
+        Ok(SwiGlu { w1, w3, w2 })
+    }
+
+    pub fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<(Tensor, SwiGluCache)> {
+        let (a, cx) = self.w1.forward(rec, x)?;
+        let (b, _) = self.w3.forward(rec, x)?;
+        let h = swiglu(rec, &a, &b)?;
+        let (y, ch) = self.w2.forward(rec, &h)?;
+        Ok((y, SwiGluCache { x: cx, a, b, h: ch }))
+    }
+
+    /// Adds `dW1`, `dW3`, `dW2` into the gradients and returns `dx = da W1^T + db W3^T`.
+    pub fn backward(&self, rec: &mut Recorder, cache: &SwiGluCache, dy: &Tensor) -> Result<Tensor> {
+        let dh = self.w2.backward(rec, &cache.h, dy)?;
+        let (da, db) = swiglu_backward(rec, &cache.a, &cache.b, &dh)?;
+        let dx = self.w1.backward(rec, &cache.x, &da)?;
+        self.w3.param_grads(rec, &cache.x, &db)?;
+        self.w3.input_grad_into(rec, &db, &dx, true)?;
+        Ok(dx)
+    }
+}
+
+pub struct GeluMlp {
+    /// `[d, hidden]` with bias.
+    pub fc1: Linear,
+    /// `[hidden, d_out]` with bias.
+    pub fc2: Linear,
+}
+
+#[derive(Clone, Debug)]
+pub struct GeluMlpCache {
+    x: LinearCache,
+    /// The pre-activation `x W1 + b1`.
+    u: Tensor,
+    g: LinearCache,
+}
+
+impl GeluMlp {
+    pub fn new(w1: Param, b1: Param, w2: Param, b2: Param) -> Result<GeluMlp> {
+        let (fc1, fc2) = (Linear::new(w1, Some(b1))?, Linear::new(w2, Some(b2))?);
+        if fc2.in_features != fc1.out_features {
+            return Err(Error::Shape(format!(
+                "gelu mlp: W1 [{}, {}] and W2 [{}, {}] do not chain",
+                fc1.in_features, fc1.out_features, fc2.in_features, fc2.out_features
+            )));
+        }
+        Ok(GeluMlp { fc1, fc2 })
+    }
+
+    pub fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<(Tensor, GeluMlpCache)> {
+        let (u, cx) = self.fc1.forward(rec, x)?;
+        let g = unary(rec, &u, Unary::Gelu)?;
+        let (y, cg) = self.fc2.forward(rec, &g)?;
+        Ok((y, GeluMlpCache { x: cx, u, g: cg }))
+    }
+
+    pub fn backward(&self, rec: &mut Recorder, cache: &GeluMlpCache, dy: &Tensor) -> Result<Tensor> {
+        let dg = self.fc2.backward(rec, &cache.g, dy)?;
+        let du = gelu_backward(rec, &cache.u, &dg)?;
+        self.fc1.backward(rec, &cache.x, &du)
+    }
+}

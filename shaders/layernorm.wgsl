@@ -1,0 +1,149 @@
+// LayerNorm over the last axis: xhat = (x - mean) * rstd, rstd = 1 / sqrt(var + eps),
+// y = xhat * w + b when `affine`, else y = xhat (w and b are then not read; the host binds x in
+// their place). The variance is a second pass over (x - mean)^2, never E[x^2] - mean^2, so rows
+// around 1e4 keep their precision; eps keeps constant rows (variance 0) finite.
+// One row per workgroup for `forward` and `backward` (reduction as in softmax.wgsl);
+// `param_grads` gives each invocation one column and a chunk of rows and writes partial sums of
+// dw = sum_rows dy * xhat and db = sum_rows dy, which the host reduces over chunks.
+//
+// Backward (g = dy * w):  dx = rstd * (g - mean(g) - xhat * mean(g * xhat)).
+
+struct Params {
+    rows: u32,
+    width: u32,
+    eps: f32,
+    rows_per_chunk: u32,
+    affine: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
+}
+
+@group(0) @binding(0) var<storage, read> x: array<f32>;
+@group(0) @binding(1) var<storage, read> w: array<f32>;
+@group(0) @binding(2) var<storage, read> b: array<f32>;
+@group(0) @binding(3) var<storage, read_write> y: array<f32>;
+@group(0) @binding(4) var<storage, read_write> mean: array<f32>;
+@group(0) @binding(5) var<storage, read_write> rstd: array<f32>;
+@group(0) @binding(6) var<storage, read> dy: array<f32>;
+@group(0) @binding(7) var<storage, read_write> dx: array<f32>;
+@group(0) @binding(8) var<storage, read_write> dw_part: array<f32>;
+@group(0) @binding(9) var<storage, read_write> db_part: array<f32>;
+var<immediate> pc: Params;
+
+var<workgroup> partial: array<f32, 256>;
+var<workgroup> partial2: array<f32, 256>;
+
+fn reduce_sum(lid: u32, v: f32) -> f32 {
+    partial[lid] = v;
+    workgroupBarrier();
+    for (var s = 128u; s > 0u; s >>= 1u) {
+        if (lid < s) {
+            partial[lid] = partial[lid] + partial[lid + s];
+        }
+        workgroupBarrier();
+    }
+    let r = partial[0];
+    workgroupBarrier();
+    return r;
+}
+
+// Two sums at once (one set of barriers).
+fn reduce_sum2(lid: u32, v: vec2<f32>) -> vec2<f32> {
+    partial[lid] = v.x;
+    partial2[lid] = v.y;
+    workgroupBarrier();
+    for (var s = 128u; s > 0u; s >>= 1u) {
+        if (lid < s) {
+            partial[lid] = partial[lid] + partial[lid + s];
+            partial2[lid] = partial2[lid] + partial2[lid + s];
+        }
+        workgroupBarrier();
+    }
+    let r = vec2<f32>(partial[0], partial2[0]);
+    workgroupBarrier();
+    return r;
+}
+
+@compute @workgroup_size(256)
+fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+           @builtin(local_invocation_index) lid: u32) {
+    let row = wid.x + wid.y * nwg.x;
+    if (row >= pc.rows) {
+        return;
+    }
+    let base = row * pc.width;
+    let n = f32(pc.width);
+    var s = 0.0;
+    for (var j = lid; j < pc.width; j += 256u) {
+        s += x[base + j];
+    }
+    let mu = reduce_sum(lid, s) / n;
+    var ss = 0.0;
+    for (var j = lid; j < pc.width; j += 256u) {
+        let d = x[base + j] - mu;
+        ss += d * d;
+    }
+    let r = inverseSqrt(reduce_sum(lid, ss) / n + pc.eps);
+    for (var j = lid; j < pc.width; j += 256u) {
+        let xhat = (x[base + j] - mu) * r;
+        if (pc.affine != 0u) {
+            y[base + j] = xhat * w[j] + b[j];
+        } else {
+            y[base + j] = xhat;
+        }
+    }
+    if (lid == 0u) {
+        mean[row] = mu;
+        rstd[row] = r;
+    }
+}
+
+@compute @workgroup_size(256)
+fn backward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+            @builtin(local_invocation_index) lid: u32) {
+    let row = wid.x + wid.y * nwg.x;
+    if (row >= pc.rows) {
+        return;
+    }
+    let base = row * pc.width;
+    let mu = mean[row];
+    let r = rstd[row];
+    var acc = vec2<f32>(0.0, 0.0);
+    for (var j = lid; j < pc.width; j += 256u) {
+        var g = dy[base + j];
+        if (pc.affine != 0u) {
+            g *= w[j];
+        }
+        acc += vec2<f32>(g, g * (x[base + j] - mu) * r);
+    }
+    let m = reduce_sum2(lid, acc) / f32(pc.width);
+    for (var j = lid; j < pc.width; j += 256u) {
+        var g = dy[base + j];
+        if (pc.affine != 0u) {
+            g *= w[j];
+        }
+        let xhat = (x[base + j] - mu) * r;
+        dx[base + j] = r * (g - m.x - xhat * m.y);
+    }
+}
+
+@compute @workgroup_size(64)
+fn param_grads(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    let col = wid.x * 64u + lid;
+    if (col >= pc.width) {
+        return;
+    }
+    let chunk = wid.y;
+    let start = chunk * pc.rows_per_chunk;
+    let end = min(start + pc.rows_per_chunk, pc.rows);
+    var dw_acc = 0.0;
+    var db_acc = 0.0;
+    for (var r = start; r < end; r++) {
+        let i = r * pc.width + col;
+        dw_acc += dy[i] * (x[i] - mean[r]) * rstd[r];
+        db_acc += dy[i];
+    }
+    dw_part[chunk * pc.width + col] = dw_acc;
+    db_part[chunk * pc.width + col] = db_acc;
+}

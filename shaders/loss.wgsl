@@ -1,0 +1,75 @@
+// Per-element losses and their gradients, scaled by `scale` (weight / n for a mean), written
+// side by side; the host sums the per-element losses with reduce.wgsl. `label` holds the
+// target (`target` is reserved in WGSL); r = pred - target.
+//   MSE:   r^2,                                   grad 2 r
+//   L1:    |r|,                                   grad sign(r) (0 at r = 0)
+//   Huber: 0.5 r^2 if |r| <= delta, else delta (|r| - 0.5 delta),   grad clamp(r, -delta, delta)
+//   BCE with logits x = pred, label y = target:
+//          max(x, 0) - x y + log(1 + exp(-|x|))   (never exponentiates a positive number)
+//          grad sigmoid(x) - y
+
+struct Params {
+    n: u32,
+    kind: u32,
+    delta: f32,
+    scale: f32,
+}
+
+@group(0) @binding(0) var<storage, read> pred: array<f32>;
+@group(0) @binding(1) var<storage, read> label: array<f32>;
+@group(0) @binding(2) var<storage, read_write> loss: array<f32>;
+@group(0) @binding(3) var<storage, read_write> grad: array<f32>;
+var<immediate> pc: Params;
+
+const MSE: u32 = 0u;
+const L1: u32 = 1u;
+const HUBER: u32 = 2u;
+const BCE: u32 = 3u;
+
+// log(1 + u) for u >= 0, accurate when u is tiny (where 1 + u rounds to 1).
+fn log1p_pos(u: f32) -> f32 {
+    let v = 1.0 + u;
+    if (v == 1.0) {
+        return u;
+    }
+    return log(v) * (u / (v - 1.0));
+}
+
+@compute @workgroup_size(256)
+fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+        @builtin(local_invocation_index) lid: u32) {
+    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
+    if (i >= pc.n) {
+        return;
+    }
+    let x = pred[i];
+    let t = label[i];
+    let r = x - t;
+    var l = 0.0;
+    var g = 0.0;
+    switch pc.kind {
+        case MSE: {
+            l = r * r;
+            g = 2.0 * r;
+        }
+        case L1: {
+            l = abs(r);
+            g = sign(r);
+        }
+        case HUBER: {
+            let a = abs(r);
+            if (a <= pc.delta) {
+                l = 0.5 * r * r;
+            } else {
+                l = pc.delta * (a - 0.5 * pc.delta);
+            }
+            g = clamp(r, -pc.delta, pc.delta);
+        }
+        default: {
+            l = max(x, 0.0) - x * t + log1p_pos(exp(-abs(x)));
+            g = 1.0 / (1.0 + exp(-x)) - t;
+        }
+    }
+    loss[i] = l * pc.scale;
+    grad[i] = g * pc.scale;
+}

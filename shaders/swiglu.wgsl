@@ -1,0 +1,45 @@
+// The gate of a SwiGLU feed-forward, h = silu(a) * b with a = x W1 and b = x W3, and its
+// backward: da = dh * b * silu'(a), db = dh * silu(a), silu'(a) = s (1 + a (1 - s)), s = sigmoid(a).
+// One invocation per element.
+
+struct Params {
+    n: u32,
+}
+
+@group(0) @binding(0) var<storage, read> a: array<f32>;
+@group(0) @binding(1) var<storage, read> b: array<f32>;
+@group(0) @binding(2) var<storage, read_write> h: array<f32>;
+@group(0) @binding(3) var<storage, read> dh: array<f32>;
+@group(0) @binding(4) var<storage, read_write> da: array<f32>;
+@group(0) @binding(5) var<storage, read_write> db: array<f32>;
+var<immediate> pc: Params;
+
+fn sigmoid(v: f32) -> f32 {
+    // exp(large) is +inf and 1 / inf = 0: saturates without NaN.
+    return 1.0 / (1.0 + exp(-v));
+}
+
+@compute @workgroup_size(256)
+fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+           @builtin(local_invocation_index) lid: u32) {
+    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
+    if (i >= pc.n) {
+        return;
+    }
+    let v = a[i];
+    h[i] = v * sigmoid(v) * b[i];
+}
+
+@compute @workgroup_size(256)
+fn backward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+            @builtin(local_invocation_index) lid: u32) {
+    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
+    if (i >= pc.n) {
+        return;
+    }
+    let v = a[i];
+    let s = sigmoid(v);
+    let g = dh[i];
+    da[i] = g * b[i] * s * (1.0 + v * (1.0 - s));
+    db[i] = g * v * s;
+}
