@@ -8,6 +8,7 @@
 //! layers built from several ops in [`reference`].
 
 pub mod adaln;
+pub mod attention;
 pub mod feedforward;
 pub mod fourier;
 pub mod linear;
@@ -20,6 +21,7 @@ use velox_engine::ops::fill::fill;
 use velox_engine::{DType, Error, Gpu, Recorder, Result, Tensor};
 
 pub use adaln::{GatedResidual, Modulate};
+pub use attention::MultiHeadAttention;
 pub use feedforward::{GeluMlp, SwiGlu};
 pub use fourier::Fourier;
 pub use linear::Linear;
