@@ -41,7 +41,7 @@ pub struct MultiHeadAttentionCache {
 impl MultiHeadAttention {
     pub fn new(q: Linear, k: Linear, v: Linear, o: Linear, heads: usize) -> Result<MultiHeadAttention> {
         let inner = q.out_features;
-        if heads == 0 || inner % heads != 0 {
+        if heads == 0 || !inner.is_multiple_of(heads) {
             return Err(Error::Shape(format!(
                 "attention: {inner} projected features do not split into {heads} heads"
             )));
