@@ -101,3 +101,21 @@ fn bench_attention_reports_every_variant_with_small_error() {
     }
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn bench_layers_reports_forward_and_backward_with_small_error() {
+    let dir = std::env::temp_dir().join(format!("velox-bench-layers-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let json = dir.join("layers.json");
+    let out = velox().args(["bench", "layers", "--quick", "--repeats", "1", "--json"]).arg(&json).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let records: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let records = records.as_array().unwrap();
+    assert_eq!(records.len(), 12, "six layers, forward and forward+backward");
+    for r in records {
+        // The Fourier embedding's top frequency (2^12) costs f32 phase accuracy (DESIGN.md).
+        let bound = if r["name"].as_str().unwrap().starts_with("fourier") { 1e-7 } else { 1e-11 };
+        assert!(r["nmse"].as_f64().unwrap() < bound, "{r}");
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
