@@ -3,6 +3,7 @@
 pub use velox_engine as engine;
 
 pub mod checkpoint;
+pub mod config;
 pub mod layers;
 pub mod params;
 pub mod schedule;

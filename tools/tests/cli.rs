@@ -107,7 +107,8 @@ fn bench_layers_reports_forward_and_backward_with_small_error() {
     let dir = std::env::temp_dir().join(format!("velox-bench-layers-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let json = dir.join("layers.json");
-    let out = velox().args(["bench", "layers", "--quick", "--repeats", "1", "--json"]).arg(&json).output().unwrap();
+    let out =
+        velox().args(["bench", "layers", "--quick", "--repeats", "1", "--json"]).arg(&json).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let records: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     let records = records.as_array().unwrap();

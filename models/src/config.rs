@@ -1,0 +1,294 @@
+//! Model sizes. Every number of MODELS.md is a field here, never a constant in code; `paper`
+//! holds the paper's sizes, `small` a model that trains in minutes on one scene, `tiny` one
+//! for tests. Configs are JSON (serde), stored in every checkpoint.
+
+use serde::{Deserialize, Serialize};
+use velox_engine::{Error, Result};
+
+/// The encoder E: colour point cloud over time -> k dynamic tokens of `token_dim`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EncoderConfig {
+    pub width: usize,
+    pub heads: usize,
+    /// k: the number of queries, hence of dynamic tokens.
+    pub tokens: usize,
+    pub token_dim: usize,
+    /// Fourier frequencies of xyz (log-spaced 2^0 .. 2^xyz_max_octave) and of tau.
+    pub xyz_freqs: usize,
+    pub xyz_max_octave: f64,
+    pub tau_freqs: usize,
+    pub tau_max_octave: f64,
+    pub perceiver_blocks: usize,
+    pub self_layers: usize,
+    pub ffn_ratio: usize,
+    /// Voxel window size in x, y, z and in tau (6 frames = 0.06).
+    pub window: [f32; 4],
+    /// Whether every second self-attention layer shifts its windows by half a cell.
+    pub shift_windows: bool,
+    /// Weight of tau in 4D distances (FPS, cells).
+    pub time_scale: f32,
+    /// FPS draws `oversample * tokens` random candidates.
+    pub oversample: usize,
+    /// Gaussian noise added to the tokens in training, and the weight of L_C = mean(s^2).
+    pub token_noise: f32,
+    pub token_reg: f32,
+}
+
+/// The 4D surface decoder V: a rectified-flow velocity network over points.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SurfaceConfig {
+    pub width: usize,
+    pub heads: usize,
+    pub blocks: usize,
+    pub mlp_ratio: usize,
+    pub xyz_freqs: usize,
+    pub xyz_max_octave: f64,
+    pub tau_freqs: usize,
+    pub tau_max_octave: f64,
+    /// Fourier frequencies of the flow time t, and the width of its embedding MLP.
+    pub time_freqs: usize,
+    pub time_embed: usize,
+    /// Points per training step, and the range of the flow time.
+    pub points_per_step: usize,
+    pub t_min: f32,
+}
+
+/// The Gaussian decoder G: occupied voxels at a frame -> 3D Gaussians.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct GaussianConfig {
+    pub width: usize,
+    pub heads: usize,
+    pub blocks: usize,
+    pub self_layers: usize,
+    pub ffn_ratio: usize,
+    /// Voxel grid resolution over [-1, 1]^3, and Gaussians per occupied voxel.
+    pub grid: usize,
+    pub gaussians_per_voxel: usize,
+    pub xyz_freqs: usize,
+    pub tau_freqs: usize,
+    /// Voxel windows for the query self-attention, in voxels per axis.
+    pub window_voxels: usize,
+    pub offset_range: f32,
+    pub scale_min: f32,
+    pub scale_max: f32,
+}
+
+/// The autoencoder: encoder, surface decoder, Gaussian decoder, and how they train.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AutoencoderConfig {
+    pub name: String,
+    pub encoder: EncoderConfig,
+    pub surface: SurfaceConfig,
+    pub gaussians: GaussianConfig,
+    pub peak_lr: f64,
+    pub warmup: u64,
+    pub max_grad_norm: f64,
+}
+
+impl AutoencoderConfig {
+    /// The paper's sizes (MODELS.md).
+    pub fn paper() -> AutoencoderConfig {
+        AutoencoderConfig {
+            name: "paper".into(),
+            encoder: EncoderConfig {
+                width: 512,
+                heads: 16,
+                tokens: 8192,
+                token_dim: 32,
+                xyz_freqs: 32,
+                xyz_max_octave: 12.0,
+                tau_freqs: 8,
+                tau_max_octave: 7.0,
+                perceiver_blocks: 2,
+                self_layers: 6,
+                ffn_ratio: 4,
+                window: [0.5, 0.5, 0.5, 0.06],
+                shift_windows: true,
+                time_scale: 1.0,
+                oversample: 4,
+                token_noise: 0.001,
+                token_reg: 1e-4,
+            },
+            surface: SurfaceConfig {
+                width: 512,
+                heads: 8,
+                blocks: 3,
+                mlp_ratio: 4,
+                xyz_freqs: 32,
+                xyz_max_octave: 12.0,
+                tau_freqs: 8,
+                tau_max_octave: 7.0,
+                time_freqs: 32,
+                time_embed: 64,
+                points_per_step: 16384,
+                t_min: 1e-3,
+            },
+            gaussians: GaussianConfig {
+                width: 512,
+                heads: 8,
+                blocks: 6,
+                self_layers: 2,
+                ffn_ratio: 4,
+                grid: 64,
+                gaussians_per_voxel: 64,
+                xyz_freqs: 16,
+                tau_freqs: 8,
+                window_voxels: 8,
+                offset_range: 0.05,
+                scale_min: 0.001,
+                scale_max: 0.01,
+            },
+            peak_lr: 4.9e-4,
+            warmup: 4000,
+            max_grad_norm: 1.0,
+        }
+    }
+
+    /// A model that overfits one scene in minutes, lavapipe included.
+    pub fn small() -> AutoencoderConfig {
+        let mut c = AutoencoderConfig::paper();
+        c.name = "small".into();
+        c.encoder = EncoderConfig {
+            width: 64,
+            heads: 4,
+            tokens: 256,
+            perceiver_blocks: 1,
+            self_layers: 2,
+            xyz_freqs: 8,
+            xyz_max_octave: 6.0,
+            tau_freqs: 4,
+            tau_max_octave: 4.0,
+            ..c.encoder
+        };
+        c.surface = SurfaceConfig {
+            width: 64,
+            heads: 4,
+            blocks: 2,
+            xyz_freqs: 8,
+            xyz_max_octave: 6.0,
+            tau_freqs: 4,
+            tau_max_octave: 4.0,
+            time_freqs: 8,
+            time_embed: 32,
+            points_per_step: 2048,
+            ..c.surface
+        };
+        c.gaussians = GaussianConfig {
+            width: 64,
+            heads: 4,
+            blocks: 2,
+            self_layers: 1,
+            grid: 32,
+            gaussians_per_voxel: 8,
+            xyz_freqs: 6,
+            tau_freqs: 4,
+            window_voxels: 8,
+            offset_range: 0.05,
+            scale_min: 0.002,
+            scale_max: 0.03,
+            ..c.gaussians
+        };
+        c.peak_lr = 2e-3;
+        c.warmup = 50;
+        c
+    }
+
+    /// The smallest model that exercises every part: for tests.
+    pub fn tiny() -> AutoencoderConfig {
+        let mut c = AutoencoderConfig::small();
+        c.name = "tiny".into();
+        c.encoder.width = 32;
+        c.encoder.heads = 2;
+        c.encoder.tokens = 32;
+        c.encoder.token_dim = 8;
+        c.encoder.self_layers = 2;
+        c.surface.width = 32;
+        c.surface.heads = 2;
+        c.surface.blocks = 1;
+        c.surface.points_per_step = 256;
+        c.gaussians.width = 32;
+        c.gaussians.heads = 2;
+        c.gaussians.blocks = 1;
+        c.gaussians.grid = 16;
+        c.gaussians.gaussians_per_voxel = 4;
+        c.warmup = 10;
+        c
+    }
+
+    /// A config by name: `paper`, `small`, `tiny`, or a path to a JSON file.
+    pub fn named(name: &str) -> Result<AutoencoderConfig> {
+        match name {
+            "paper" => Ok(AutoencoderConfig::paper()),
+            "small" => Ok(AutoencoderConfig::small()),
+            "tiny" => Ok(AutoencoderConfig::tiny()),
+            path => {
+                let text = std::fs::read_to_string(path).map_err(|e| {
+                    Error::Invalid(format!(
+                        "config {path:?} is not paper, small or tiny, and cannot be read as a file: {e}"
+                    ))
+                })?;
+                let c: AutoencoderConfig = serde_json::from_str(&text)
+                    .map_err(|e| Error::Invalid(format!("config file {path}: {e}")))?;
+                c.validate()?;
+                Ok(c)
+            }
+        }
+    }
+
+    /// Checks that the sizes fit together and that the kernels exist for them.
+    pub fn validate(&self) -> Result<()> {
+        let heads_ok = |what: &str, width: usize, heads: usize| -> Result<()> {
+            if heads == 0 || !width.is_multiple_of(heads) {
+                return Err(Error::Invalid(format!(
+                    "{what}: width {width} does not split into {heads} heads"
+                )));
+            }
+            let d = width / heads;
+            if !velox_engine::ops::attention::HEAD_DIMS.contains(&d) {
+                return Err(Error::Invalid(format!(
+                    "{what}: head width {d} has no attention kernel (compiled: {:?})",
+                    velox_engine::ops::attention::HEAD_DIMS
+                )));
+            }
+            Ok(())
+        };
+        heads_ok("encoder", self.encoder.width, self.encoder.heads)?;
+        heads_ok("surface decoder", self.surface.width, self.surface.heads)?;
+        heads_ok("gaussian decoder", self.gaussians.width, self.gaussians.heads)?;
+        let e = &self.encoder;
+        if e.tokens == 0 || e.token_dim == 0 || e.perceiver_blocks == 0 {
+            return Err(Error::Invalid(
+                "encoder: tokens, token_dim and perceiver_blocks must be positive".into(),
+            ));
+        }
+        if e.window.iter().any(|w| !(w.is_finite() && *w > 0.0)) {
+            return Err(Error::Invalid(format!("encoder: window sizes {:?} must be positive", e.window)));
+        }
+        if !(self.peak_lr.is_finite() && self.peak_lr > 0.0) {
+            return Err(Error::Invalid(format!("peak learning rate {} must be positive", self.peak_lr)));
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn named_configs_are_valid_and_round_trip_through_json() {
+        for name in ["paper", "small", "tiny"] {
+            let c = AutoencoderConfig::named(name).unwrap();
+            c.validate().unwrap();
+            let back: AutoencoderConfig = serde_json::from_str(&serde_json::to_string(&c).unwrap()).unwrap();
+            assert_eq!(back, c);
+        }
+        assert!(AutoencoderConfig::named("/no/such/config.json")
+            .unwrap_err()
+            .to_string()
+            .contains("paper, small or tiny"));
+        let mut c = AutoencoderConfig::tiny();
+        c.encoder.heads = 3;
+        assert!(c.validate().is_err());
+    }
+}
