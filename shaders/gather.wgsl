@@ -10,6 +10,7 @@ struct Params {
 @group(0) @binding(0) var<storage, read> src: array<f32>;
 @group(0) @binding(1) var<storage, read> idx: array<u32>;
 @group(0) @binding(2) var<storage, read_write> out: array<f32>;
+@group(0) @binding(3) var<storage, read_write> inverse: array<u32>;
 var<immediate> pc: Params;
 
 @compute @workgroup_size(256)
@@ -27,4 +28,19 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
         v = src[s * pc.width + c];
     }
     out[i] = v;
+}
+
+// The inverse of a permutation: inverse[idx[i]] = i for i < rows (`rows` = its length).
+// Entries past the end are skipped, so a bad index cannot write outside the buffer.
+@compute @workgroup_size(256)
+fn invert(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+          @builtin(local_invocation_index) lid: u32) {
+    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
+    if (i >= pc.rows) {
+        return;
+    }
+    let j = idx[i];
+    if (j < pc.rows) {
+        inverse[j] = i;
+    }
 }

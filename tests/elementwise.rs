@@ -255,3 +255,50 @@ fn gather_and_scatter_add_match_reference() {
         }
     }
 }
+
+#[test]
+fn column_copies_and_permutation_inverse() {
+    use velox::engine::ops::columns::{self, columns, copy_columns};
+    use velox::engine::ops::gather::invert_permutation;
+    let gpu = gpu();
+    let mut rng = Rng::new(8);
+    for &rows in &[0usize, 1, 257, 70_001] {
+        let src = rng.normal_vec(rows * 7);
+        let t = Tensor::from_slice(&gpu, &[rows, 7], &src).unwrap();
+        let dst = Tensor::from_slice(&gpu, &[rows, 4], &vec![9.0f32; rows * 4]).unwrap();
+        let mut rec = gpu.recorder().unwrap();
+        let xyz = columns(&mut rec, &t, 0, 3, 1.0).unwrap();
+        copy_columns(&mut rec, &t, 0, &dst, 0, 3, 1.0).unwrap();
+        copy_columns(&mut rec, &t, 6, &dst, 3, 1, 2.5).unwrap();
+        rec.submit().unwrap();
+        assert_nmse(
+            "xyz columns",
+            &xyz.read::<f32>().unwrap(),
+            &columns::reference::columns(&src, 7, 0, 3, 1.0),
+            0.0,
+        );
+        let got: Vec<f32> = dst.read().unwrap();
+        for r in 0..rows {
+            assert_eq!(&got[r * 4..r * 4 + 3], &src[r * 7..r * 7 + 3]);
+            assert_eq!(got[r * 4 + 3], 2.5 * src[r * 7 + 6]);
+        }
+        // A random permutation and its inverse.
+        let mut perm: Vec<u32> = (0..rows as u32).collect();
+        for i in (1..rows).rev() {
+            perm.swap(i, rng.below(i as u32 + 1) as usize);
+        }
+        let tp = Tensor::from_slice(&gpu, &[rows], &perm).unwrap();
+        let mut rec = gpu.recorder().unwrap();
+        let inv = invert_permutation(&mut rec, &tp).unwrap();
+        rec.submit().unwrap();
+        assert_eq!(
+            inv.read::<u32>().unwrap(),
+            velox::engine::ops::gather::reference::invert_permutation(&perm)
+        );
+    }
+    let t = Tensor::empty(&gpu, &[3, 7], DType::F32).unwrap();
+    let d = Tensor::empty(&gpu, &[3, 4], DType::F32).unwrap();
+    let mut rec = gpu.recorder().unwrap();
+    assert!(copy_columns(&mut rec, &t, 5, &d, 0, 3, 1.0).is_err());
+    assert!(copy_columns(&mut rec, &t, 0, &d, 2, 3, 1.0).is_err());
+}

@@ -1,7 +1,7 @@
 //! Row gather. Kernel: `shaders/gather.wgsl`.
 
 use crate::error::{Error, Result};
-use crate::kernels::GATHER_MAIN;
+use crate::kernels::{GATHER_INVERT, GATHER_MAIN};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
@@ -39,7 +39,29 @@ pub fn gather(rec: &mut Recorder, src: &Tensor, idx: &Tensor) -> Result<Tensor> 
     Ok(out)
 }
 
+/// The inverse of a permutation `perm` (u32 `[n]` holding each of `0..n` once):
+/// `inverse[perm[i]] = i`, so gathering by `perm` and then by `inverse` restores the order.
+pub fn invert_permutation(rec: &mut Recorder, perm: &Tensor) -> Result<Tensor> {
+    if perm.dtype() != DType::U32 || perm.shape().len() != 1 {
+        return Err(Error::Shape(format!("invert_permutation needs u32 [n], got {perm:?}")));
+    }
+    let n = perm.numel();
+    let fit = u32::try_from(n).map_err(|_| Error::TooLarge(format!("permutation of {n}")))?;
+    let inverse = Tensor::empty(perm.gpu(), &[n], DType::U32)?;
+    let p = RowParams { rows: fit, width: 1, other_rows: fit };
+    rec.dispatch_linear(GATHER_INVERT, (n as u64).div_ceil(256), &[perm, &inverse], &p)?;
+    Ok(inverse)
+}
+
 pub mod reference {
+    pub fn invert_permutation(perm: &[u32]) -> Vec<u32> {
+        let mut inv = vec![0; perm.len()];
+        for (i, &p) in perm.iter().enumerate() {
+            inv[p as usize] = i as u32;
+        }
+        inv
+    }
+
     pub fn gather(src: &[f32], width: usize, idx: &[u32]) -> Vec<f64> {
         let rows = src.len().checked_div(width).unwrap_or(0);
         let mut out = Vec::with_capacity(idx.len() * width);

@@ -6,6 +6,7 @@ pub mod assign;
 pub mod attention;
 pub mod binary;
 pub mod cast;
+pub mod columns;
 pub mod fill;
 pub mod fourier;
 pub mod fps;
