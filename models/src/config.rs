@@ -201,6 +201,7 @@ impl AutoencoderConfig {
         c.encoder.heads = 2;
         c.encoder.tokens = 32;
         c.encoder.token_dim = 8;
+        c.encoder.perceiver_blocks = 2;
         c.encoder.self_layers = 2;
         c.surface.width = 32;
         c.surface.heads = 2;

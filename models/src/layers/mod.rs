@@ -59,6 +59,11 @@ impl Param {
         self.value.shape()
     }
 
+    /// The parameter `name` of a parameter store: views of its value and gradient buffers.
+    pub fn from_store(store: &crate::params::ParamStore, name: &str) -> Result<Param> {
+        Param::from_tensors(store.param(name)?.clone(), store.grad(name)?.clone())
+    }
+
     /// Sets the gradient to zero.
     pub fn zero_grad(&self, rec: &mut Recorder) -> Result<()> {
         fill(rec, &self.grad, 0.0)

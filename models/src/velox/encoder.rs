@@ -1,0 +1,408 @@
+//! The Velox encoder E (paper: section 3.1; MODELS.md, Encoder): a 4D colour point cloud to k
+//! dynamic tokens.
+//!
+//! 1. Every point becomes an input token: Fourier(xyz) ++ rgb ++ Fourier(tau), then a linear
+//!    layer to the model width.
+//! 2. k queries: `oversample * k` random points, farthest point sampling in 4D down to k
+//!    (distance over x, y, z, tau * time_scale); each query starts as its point's token.
+//! 3. Every point joins the cell of its nearest query (computed once, reused by every block).
+//! 4. Perceiver blocks, pre-norm RMSNorm, SwiGLU feed-forwards:
+//!    - localized cross-attention: query c attends to the tokens of cell c only (a query with
+//!      an empty cell gets zeros from the attention);
+//!    - self-attention layers within 4D voxel windows over the query positions; every second
+//!      layer shifts the windows by half a cell when `shift_windows` is set.
+//! 5. RMSNorm and a linear layer to `token_dim`: the tokens s.
+//!
+//! FPS, the cells and the windows depend on the points only, not on the parameters, so the
+//! encoder is a smooth function of its parameters and its backward pass goes through the
+//! attention, the layers and the gathers alone. Tokens are reordered into window order (and
+//! back) with gathers by a permutation and its inverse, which are exact.
+
+use velox_engine::ops::assign::assign_grouped;
+use velox_engine::ops::attention::Segments;
+use velox_engine::ops::binary::{binary, binary_into, Binary};
+use velox_engine::ops::columns::copy_columns;
+use velox_engine::ops::fill::fill;
+use velox_engine::ops::fps::{fps, random_candidates};
+use velox_engine::ops::gather::{gather, invert_permutation};
+use velox_engine::ops::scatter_add::scatter_add;
+use velox_engine::ops::window::{group_by_window, window_ids, WindowGrid};
+use velox_engine::rng::Rng;
+use velox_engine::{DType, Error, Gpu, Recorder, Result, Tensor};
+
+use crate::config::EncoderConfig;
+use crate::layers::attention::{MultiHeadAttention, MultiHeadAttentionCache};
+use crate::layers::feedforward::SwiGluCache;
+use crate::layers::fourier::FourierCache;
+use crate::layers::linear::LinearCache;
+use crate::layers::norm::RmsNormCache;
+use crate::layers::{Fourier, Linear, Param, RmsNorm, SwiGlu};
+use crate::params::{Init, ParamBuilder, ParamStore};
+use crate::velox::cloud::CHANNELS;
+
+/// Frames per clip and the frame rate of tau (MODELS.md): tau spans [0, 0.23].
+const TAU_END: f32 = 0.24;
+const NORM_EPS: f32 = 1e-6;
+
+/// A pre-norm residual feed-forward: `x + SwiGLU(RMSNorm(x))`.
+struct FeedForward {
+    norm: RmsNorm,
+    ffn: SwiGlu,
+}
+
+/// A self-attention layer over voxel windows, then its feed-forward.
+struct WindowLayer {
+    norm: RmsNorm,
+    attn: MultiHeadAttention,
+    ff: FeedForward,
+    shifted: bool,
+}
+
+/// A Perceiver block: cell cross-attention and its feed-forward, then the window layers.
+struct Block {
+    norm_q: RmsNorm,
+    norm_kv: RmsNorm,
+    cross: MultiHeadAttention,
+    cross_ff: FeedForward,
+    layers: Vec<WindowLayer>,
+}
+
+pub struct Encoder {
+    pub cfg: EncoderConfig,
+    fourier_xyz: Fourier,
+    fourier_tau: Fourier,
+    input: Linear,
+    blocks: Vec<Block>,
+    out_norm: RmsNorm,
+    out: Linear,
+}
+
+/// The grouping of one forward pass: which points the queries are, the cells, the windows.
+pub struct Layout {
+    /// Point index of every query, u32 `[k]`.
+    pub queries: Tensor,
+    /// Query positions (x, y, z, tau * time_scale), f32 `[k, 4]`.
+    pub query_points: Tensor,
+    /// Points in cell order, its inverse, and the cross-attention segments.
+    cell_order: Tensor,
+    cell_inverse: Tensor,
+    cells: Segments,
+    /// For plain and shifted windows: query order, inverse, segments.
+    windows: [(Tensor, Tensor, Segments); 2],
+}
+
+struct FeedForwardCache {
+    norm: RmsNormCache,
+    ffn: SwiGluCache,
+}
+
+struct WindowLayerCache {
+    norm: RmsNormCache,
+    attn: MultiHeadAttentionCache,
+    ff: FeedForwardCache,
+}
+
+struct BlockCache {
+    norm_q: RmsNormCache,
+    norm_kv: RmsNormCache,
+    cross: MultiHeadAttentionCache,
+    cross_ff: FeedForwardCache,
+    layers: Vec<WindowLayerCache>,
+}
+
+/// What the backward pass needs from the forward pass.
+pub struct EncoderCache {
+    pub layout: Layout,
+    features: LinearCache,
+    /// Input tokens in cell order, shared by every block's cross-attention.
+    blocks: Vec<BlockCache>,
+    out_norm: RmsNormCache,
+    out: LinearCache,
+    points: usize,
+}
+
+fn linear_params(b: &mut ParamBuilder, name: &str, i: usize, o: usize, bias: bool) -> Result<()> {
+    b.add(&format!("{name}.w"), &[i, o], Init::Xavier)?;
+    if bias {
+        b.add(&format!("{name}.b"), &[o], Init::Zeros)?;
+    }
+    Ok(())
+}
+
+fn linear(store: &ParamStore, name: &str, bias: bool) -> Result<Linear> {
+    let b = if bias { Some(Param::from_store(store, &format!("{name}.b"))?) } else { None };
+    Linear::new(Param::from_store(store, &format!("{name}.w"))?, b)
+}
+
+fn norm(store: &ParamStore, name: &str) -> Result<RmsNorm> {
+    RmsNorm::new(Param::from_store(store, name)?, NORM_EPS)
+}
+
+fn attention_params(b: &mut ParamBuilder, name: &str, width: usize) -> Result<()> {
+    for p in ["q", "k", "v", "o"] {
+        linear_params(b, &format!("{name}.{p}"), width, width, false)?;
+    }
+    Ok(())
+}
+
+fn attention(store: &ParamStore, name: &str, heads: usize) -> Result<MultiHeadAttention> {
+    let l = |p: &str| linear(store, &format!("{name}.{p}"), false);
+    MultiHeadAttention::new(l("q")?, l("k")?, l("v")?, l("o")?, heads)
+}
+
+fn ff_params(b: &mut ParamBuilder, name: &str, width: usize, ratio: usize) -> Result<()> {
+    b.add(&format!("{name}.norm"), &[width], Init::Ones)?;
+    linear_params(b, &format!("{name}.w1"), width, ratio * width, false)?;
+    linear_params(b, &format!("{name}.w3"), width, ratio * width, false)?;
+    linear_params(b, &format!("{name}.w2"), ratio * width, width, false)
+}
+
+fn ff(store: &ParamStore, name: &str) -> Result<FeedForward> {
+    let p = |s: &str| Param::from_store(store, &format!("{name}.{s}.w"));
+    Ok(FeedForward {
+        norm: norm(store, &format!("{name}.norm"))?,
+        ffn: SwiGlu::new(p("w1")?, p("w3")?, p("w2")?)?,
+    })
+}
+
+impl FeedForward {
+    /// `x + SwiGLU(RMSNorm(x))`.
+    fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<(Tensor, FeedForwardCache)> {
+        let (n, norm) = self.norm.forward(rec, x)?;
+        let (f, ffn) = self.ffn.forward(rec, &n)?;
+        Ok((binary(rec, x, &f, Binary::Add)?, FeedForwardCache { norm, ffn }))
+    }
+
+    /// `dx = dy + RMSNorm'(SwiGLU'(dy))`.
+    fn backward(&self, rec: &mut Recorder, cache: &FeedForwardCache, dy: &Tensor) -> Result<Tensor> {
+        let dn = self.ffn.backward(rec, &cache.ffn, dy)?;
+        let dx = self.norm.backward(rec, &cache.norm, &dn)?;
+        binary(rec, dy, &dx, Binary::Add)
+    }
+}
+
+impl Encoder {
+    /// Width of the input features: Fourier(xyz) with xyz, rgb, Fourier(tau) with tau.
+    pub fn feature_width(cfg: &EncoderConfig) -> usize {
+        (3 + 6 * cfg.xyz_freqs) + 3 + (1 + 2 * cfg.tau_freqs)
+    }
+
+    /// Declares the encoder's parameters under `prefix`.
+    pub fn register(b: &mut ParamBuilder, prefix: &str, cfg: &EncoderConfig) -> Result<()> {
+        let w = cfg.width;
+        linear_params(b, &format!("{prefix}.input"), Self::feature_width(cfg), w, true)?;
+        for i in 0..cfg.perceiver_blocks {
+            let blk = format!("{prefix}.block{i}");
+            b.add(&format!("{blk}.norm_q"), &[w], Init::Ones)?;
+            b.add(&format!("{blk}.norm_kv"), &[w], Init::Ones)?;
+            attention_params(b, &format!("{blk}.cross"), w)?;
+            ff_params(b, &format!("{blk}.cross_ff"), w, cfg.ffn_ratio)?;
+            for l in 0..cfg.self_layers {
+                let layer = format!("{blk}.self{l}");
+                b.add(&format!("{layer}.norm"), &[w], Init::Ones)?;
+                attention_params(b, &format!("{layer}.attn"), w)?;
+                ff_params(b, &format!("{layer}.ff"), w, cfg.ffn_ratio)?;
+            }
+        }
+        b.add(&format!("{prefix}.out_norm"), &[w], Init::Ones)?;
+        linear_params(b, &format!("{prefix}.out"), w, cfg.token_dim, true)
+    }
+
+    /// The encoder over the parameters `register` declared.
+    pub fn new(gpu: &Gpu, store: &ParamStore, prefix: &str, cfg: &EncoderConfig) -> Result<Encoder> {
+        let mut blocks = Vec::new();
+        for i in 0..cfg.perceiver_blocks {
+            let blk = format!("{prefix}.block{i}");
+            let layers = (0..cfg.self_layers)
+                .map(|l| {
+                    let layer = format!("{blk}.self{l}");
+                    Ok(WindowLayer {
+                        norm: norm(store, &format!("{layer}.norm"))?,
+                        attn: attention(store, &format!("{layer}.attn"), cfg.heads)?,
+                        ff: ff(store, &format!("{layer}.ff"))?,
+                        shifted: cfg.shift_windows && l % 2 == 1,
+                    })
+                })
+                .collect::<Result<Vec<_>>>()?;
+            blocks.push(Block {
+                norm_q: norm(store, &format!("{blk}.norm_q"))?,
+                norm_kv: norm(store, &format!("{blk}.norm_kv"))?,
+                cross: attention(store, &format!("{blk}.cross"), cfg.heads)?,
+                cross_ff: ff(store, &format!("{blk}.cross_ff"))?,
+                layers,
+            });
+        }
+        Ok(Encoder {
+            cfg: cfg.clone(),
+            fourier_xyz: Fourier::log_spaced(gpu, 3, cfg.xyz_freqs, cfg.xyz_max_octave, true)?,
+            fourier_tau: Fourier::log_spaced(gpu, 1, cfg.tau_freqs, cfg.tau_max_octave, true)?,
+            input: linear(store, &format!("{prefix}.input"), true)?,
+            blocks,
+            out_norm: norm(store, &format!("{prefix}.out_norm"))?,
+            out: linear(store, &format!("{prefix}.out"), true)?,
+        })
+    }
+
+    /// The voxel-window grid over (x, y, z, tau * time_scale).
+    pub fn window_grid(&self) -> Result<WindowGrid> {
+        let ts = self.cfg.time_scale;
+        let w = self.cfg.window;
+        WindowGrid::new([-1.0, -1.0, -1.0, 0.0], [1.0, 1.0, 1.0, TAU_END * ts], [w[0], w[1], w[2], w[3] * ts])
+    }
+
+    /// FPS queries, cells and windows for a cloud (`[N, 7]` on the device, validated).
+    pub fn layout(&self, rec: &mut Recorder, cloud: &Tensor, rng: &mut Rng) -> Result<(Tensor, Layout)> {
+        let n = check_cloud(cloud)?;
+        let k = self.cfg.tokens;
+        if n < k {
+            return Err(Error::Invalid(format!(
+                "the encoder needs at least {k} points for {k} tokens, the cloud has {n}"
+            )));
+        }
+        let gpu = cloud.gpu().clone();
+        let points = Tensor::empty(&gpu, &[n, 4], DType::F32)?;
+        copy_columns(rec, cloud, 0, &points, 0, 3, 1.0)?;
+        copy_columns(rec, cloud, 6, &points, 3, 1, self.cfg.time_scale)?;
+        let candidates = random_candidates(n, k.saturating_mul(self.cfg.oversample), rng)?;
+        let queries = fps(rec, &points, &candidates, k)?;
+        let query_points = gather(rec, &points, &queries)?;
+        let cells = assign_grouped(rec, &points, &query_points)?;
+        let cell_inverse = invert_permutation(rec, &cells.order)?;
+        let one_each: Vec<u32> = (0..=k as u32).collect();
+        let cell_segments = Segments {
+            q_offsets: Tensor::from_slice(&gpu, &[k + 1], &one_each)?,
+            k_offsets: cells.offsets.clone(),
+        };
+        let grid = self.window_grid()?;
+        let mut windows = Vec::new();
+        for g in [grid, grid.shifted()] {
+            let ids = window_ids(rec, &query_points, &g)?;
+            let groups = group_by_window(rec, &ids, g.num_windows())?;
+            let inverse = invert_permutation(rec, &groups.order)?;
+            let seg = Segments { q_offsets: groups.offsets.clone(), k_offsets: groups.offsets.clone() };
+            windows.push((groups.order, inverse, seg));
+        }
+        let shifted = windows.pop().expect("two grids");
+        let plain = windows.pop().expect("two grids");
+        let layout = Layout {
+            queries,
+            query_points,
+            cell_order: cells.order,
+            cell_inverse,
+            cells: cell_segments,
+            windows: [plain, shifted],
+        };
+        Ok((points, layout))
+    }
+
+    /// Input tokens `[N, width]` from the cloud.
+    fn input_tokens(&self, rec: &mut Recorder, cloud: &Tensor) -> Result<(Tensor, LinearCache)> {
+        let n = cloud.shape()[0];
+        let gpu = cloud.gpu().clone();
+        let xyz = Tensor::empty(&gpu, &[n, 3], DType::F32)?;
+        copy_columns(rec, cloud, 0, &xyz, 0, 3, 1.0)?;
+        let tau = Tensor::empty(&gpu, &[n, 1], DType::F32)?;
+        copy_columns(rec, cloud, 6, &tau, 0, 1, 1.0)?;
+        let (fx, _): (Tensor, FourierCache) = self.fourier_xyz.forward(rec, &xyz)?;
+        let (ft, _) = self.fourier_tau.forward(rec, &tau)?;
+        let (wx, wt) = (self.fourier_xyz.out_width(), self.fourier_tau.out_width());
+        let features = Tensor::empty(&gpu, &[n, wx + 3 + wt], DType::F32)?;
+        copy_columns(rec, &fx, 0, &features, 0, wx, 1.0)?;
+        copy_columns(rec, cloud, 3, &features, wx, 3, 1.0)?;
+        copy_columns(rec, &ft, 0, &features, wx + 3, wt, 1.0)?;
+        self.input.forward(rec, &features)
+    }
+
+    /// Tokens s `[k, token_dim]` of a cloud, and what the backward pass needs. The queries and
+    /// the FPS start come from `rng`.
+    pub fn forward(
+        &self,
+        rec: &mut Recorder,
+        cloud: &Tensor,
+        rng: &mut Rng,
+    ) -> Result<(Tensor, EncoderCache)> {
+        let (_, layout) = self.layout(rec, cloud, rng)?;
+        self.forward_with(rec, cloud, layout)
+    }
+
+    /// The forward pass over a layout computed before (the same cloud).
+    pub fn forward_with(
+        &self,
+        rec: &mut Recorder,
+        cloud: &Tensor,
+        layout: Layout,
+    ) -> Result<(Tensor, EncoderCache)> {
+        let points = check_cloud(cloud)?;
+        let (tokens, features) = self.input_tokens(rec, cloud)?;
+        let kv = gather(rec, &tokens, &layout.cell_order)?;
+        let mut q = gather(rec, &tokens, &layout.queries)?;
+        let mut blocks = Vec::new();
+        for blk in &self.blocks {
+            let (qn, norm_q) = blk.norm_q.forward(rec, &q)?;
+            let (kvn, norm_kv) = blk.norm_kv.forward(rec, &kv)?;
+            let (a, cross) = blk.cross.forward(rec, &qn, Some(&kvn), &layout.cells)?;
+            let q1 = binary(rec, &q, &a, Binary::Add)?;
+            let (q2, cross_ff) = blk.cross_ff.forward(rec, &q1)?;
+            q = q2;
+            let mut layers = Vec::new();
+            for layer in &blk.layers {
+                let (order, inverse, seg) = &layout.windows[layer.shifted as usize];
+                let (n, norm) = layer.norm.forward(rec, &q)?;
+                let n_sorted = gather(rec, &n, order)?;
+                let (a_sorted, attn) = layer.attn.forward(rec, &n_sorted, None, seg)?;
+                let a = gather(rec, &a_sorted, inverse)?;
+                let q1 = binary(rec, &q, &a, Binary::Add)?;
+                let (q2, ff) = layer.ff.forward(rec, &q1)?;
+                q = q2;
+                layers.push(WindowLayerCache { norm, attn, ff });
+            }
+            blocks.push(BlockCache { norm_q, norm_kv, cross, cross_ff, layers });
+        }
+        let (n, out_norm) = self.out_norm.forward(rec, &q)?;
+        let (s, out) = self.out.forward(rec, &n)?;
+        Ok((s, EncoderCache { layout, features, blocks, out_norm, out, points }))
+    }
+
+    /// Adds every parameter's gradient for `ds = dL/ds`.
+    pub fn backward(&self, rec: &mut Recorder, cache: &EncoderCache, ds: &Tensor) -> Result<()> {
+        let layout = &cache.layout;
+        let gpu = ds.gpu().clone();
+        let dn = self.out.backward(rec, &cache.out, ds)?;
+        let mut dq = self.out_norm.backward(rec, &cache.out_norm, &dn)?;
+        // Gradient of the cell-ordered input tokens, summed over the blocks.
+        let dkv = Tensor::empty(&gpu, &[cache.points, self.cfg.width], DType::F32)?;
+        fill(rec, &dkv, 0.0)?;
+        for (blk, c) in self.blocks.iter().zip(&cache.blocks).rev() {
+            for (layer, lc) in blk.layers.iter().zip(&c.layers).rev() {
+                let (order, inverse, seg) = &layout.windows[layer.shifted as usize];
+                let dq1 = layer.ff.backward(rec, &lc.ff, &dq)?;
+                // q1 = q + gather(a_sorted, inverse): the sorted gradient is dq1 gathered by order.
+                let da_sorted = gather(rec, &dq1, order)?;
+                let (dn_sorted, _) = layer.attn.backward(rec, &lc.attn, &da_sorted, seg)?;
+                let dn = gather(rec, &dn_sorted, inverse)?;
+                let dx = layer.norm.backward(rec, &lc.norm, &dn)?;
+                dq = binary(rec, &dq1, &dx, Binary::Add)?;
+            }
+            let dq1 = blk.cross_ff.backward(rec, &c.cross_ff, &dq)?;
+            let (dqn, dkvn) = blk.cross.backward(rec, &c.cross, &dq1, &layout.cells)?;
+            let dkvn = dkvn.expect("cross-attention returns a context gradient");
+            let dx = blk.norm_q.backward(rec, &c.norm_q, &dqn)?;
+            dq = binary(rec, &dq1, &dx, Binary::Add)?;
+            let dkv_blk = blk.norm_kv.backward(rec, &c.norm_kv, &dkvn)?;
+            binary_into(rec, &dkv, &dkv_blk, &dkv, Binary::Add)?;
+        }
+        // Input tokens: through the cell order (a permutation) and the query gather.
+        let dtokens = gather(rec, &dkv, &layout.cell_inverse)?;
+        scatter_add(rec, &dq, &layout.queries, &dtokens)?;
+        self.input.param_grads(rec, &cache.features, &dtokens)
+    }
+}
+
+fn check_cloud(cloud: &Tensor) -> Result<usize> {
+    match (cloud.dtype(), cloud.shape()) {
+        (DType::F32, &[n, c]) if c == CHANNELS && n > 0 => Ok(n),
+        _ => Err(Error::Shape(format!(
+            "the encoder reads a cloud of f32 [N, {CHANNELS}] (x, y, z, r, g, b, tau) with N > 0, got {cloud:?}"
+        ))),
+    }
+}

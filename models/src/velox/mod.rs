@@ -1,0 +1,4 @@
+//! The Velox models (paper sections 3.1 to 3.3; sizes in `crate::config`).
+
+pub mod cloud;
+pub mod encoder;

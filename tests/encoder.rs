@@ -1,0 +1,123 @@
+//! The Velox encoder at the tiny config: shapes, determinism, its backward pass against a
+//! directional finite difference over every parameter, and bad clouds.
+
+mod common;
+use common::*;
+use velox::models::config::AutoencoderConfig;
+use velox::models::params::ParamStore;
+use velox::models::velox::cloud;
+use velox::models::velox::encoder::Encoder;
+
+/// A random cloud of `n` points over 24 frames.
+fn random_cloud(rng: &mut Rng, n: usize) -> Vec<f32> {
+    let mut c = Vec::with_capacity(n * 7);
+    for _ in 0..n {
+        for _ in 0..3 {
+            c.push(rng.range(-1.0, 1.0) as f32);
+        }
+        for _ in 0..3 {
+            c.push(rng.uniform() as f32);
+        }
+        c.push(rng.below(24) as f32 / 100.0);
+    }
+    c
+}
+
+fn setup(gpu: &Gpu) -> (ParamStore, Encoder) {
+    let cfg = AutoencoderConfig::tiny().encoder;
+    let mut b = ParamStore::builder();
+    Encoder::register(&mut b, "enc", &cfg).unwrap();
+    let store = b.build(gpu, 5).unwrap();
+    let enc = Encoder::new(gpu, &store, "enc", &cfg).unwrap();
+    (store, enc)
+}
+
+/// sum(s * g) for the encoder's tokens, with the queries drawn from `seed`.
+fn loss(gpu: &Gpu, enc: &Encoder, cloud: &Tensor, g: &[f32], seed: u64) -> f64 {
+    let mut rec = gpu.recorder().unwrap();
+    let (s, _) = enc.forward(&mut rec, cloud, &mut Rng::new(seed)).unwrap();
+    rec.submit().unwrap();
+    s.read::<f32>().unwrap().iter().zip(g).map(|(&a, &b)| a as f64 * b as f64).sum()
+}
+
+#[test]
+fn tokens_are_finite_deterministic_and_shaped() {
+    let gpu = gpu();
+    let (_store, enc) = setup(&gpu);
+    let mut rng = Rng::new(1);
+    let data = random_cloud(&mut rng, 500);
+    let t = cloud::upload(&gpu, &data).unwrap();
+    let run = || {
+        let mut rec = gpu.recorder().unwrap();
+        let (s, _) = enc.forward(&mut rec, &t, &mut Rng::new(9)).unwrap();
+        rec.submit().unwrap();
+        (s.shape().to_vec(), s.read::<f32>().unwrap())
+    };
+    let (shape, a) = run();
+    let (_, b) = run();
+    assert_eq!(shape, [enc.cfg.tokens, enc.cfg.token_dim]);
+    assert!(a.iter().all(|v| v.is_finite()));
+    assert_eq!(a, b, "same cloud, same seed: same tokens");
+    assert!(a.iter().map(|v| v * v).sum::<f32>() > 1e-3, "tokens are not all zero");
+}
+
+#[test]
+fn backward_matches_a_directional_finite_difference() {
+    let gpu = gpu();
+    let (store, enc) = setup(&gpu);
+    let mut rng = Rng::new(2);
+    let data = random_cloud(&mut rng, 300);
+    let cloud = cloud::upload(&gpu, &data).unwrap();
+    let g = rng.normal_vec(enc.cfg.tokens * enc.cfg.token_dim);
+    let tg = Tensor::from_slice(&gpu, &[enc.cfg.tokens, enc.cfg.token_dim], &g).unwrap();
+
+    let mut rec = gpu.recorder().unwrap();
+    store.zero_grads(&mut rec).unwrap();
+    let (_, cache) = enc.forward(&mut rec, &cloud, &mut Rng::new(3)).unwrap();
+    enc.backward(&mut rec, &cache, &tg).unwrap();
+    rec.submit().unwrap();
+    let grad: Vec<f32> = store.flat_grads().read().unwrap();
+    let theta: Vec<f32> = store.flat_params().read().unwrap();
+    assert!(grad.iter().all(|v| v.is_finite()));
+
+    // Directional derivative along a random direction over every parameter.
+    let u = rng.normal_vec(theta.len());
+    let analytic: f64 = grad.iter().zip(&u).map(|(&a, &b)| a as f64 * b as f64).sum();
+    let eps = 2e-3f32;
+    let shifted = |sign: f32| -> f64 {
+        let p: Vec<f32> = theta.iter().zip(&u).map(|(&t, &d)| t + sign * eps * d).collect();
+        store.flat_params().write(&p).unwrap();
+        loss(&gpu, &enc, &cloud, &g, 3)
+    };
+    let (plus, minus) = (shifted(1.0), shifted(-1.0));
+    store.flat_params().write(&theta).unwrap();
+    let numeric = (plus - minus) / (2.0 * eps as f64);
+    let rel = (numeric - analytic).abs() / analytic.abs().max(1e-6);
+    if std::env::var_os("VELOX_TEST_VERBOSE").is_some() {
+        eprintln!("encoder directional derivative: analytic {analytic:.6e}, finite difference {numeric:.6e}, relative {rel:.2e}");
+    }
+    assert!(rel < 5e-3, "analytic {analytic} vs finite difference {numeric} (relative {rel:.2e})");
+}
+
+#[test]
+fn bad_clouds_get_clear_errors() {
+    let gpu = gpu();
+    let (_store, enc) = setup(&gpu);
+    let mut rng = Rng::new(4);
+    // Fewer points than tokens.
+    let few = cloud::upload(&gpu, &random_cloud(&mut rng, enc.cfg.tokens - 1)).unwrap();
+    let mut rec = gpu.recorder().unwrap();
+    let err = enc.forward(&mut rec, &few, &mut Rng::new(1)).err().unwrap().to_string();
+    assert!(err.contains("at least"), "{err}");
+    // Wrong channel count.
+    let six = Tensor::empty(&gpu, &[100, 6], DType::F32).unwrap();
+    let err = enc.forward(&mut rec, &six, &mut Rng::new(1)).err().unwrap().to_string();
+    assert!(err.contains("[N, 7]"), "{err}");
+    // NaN and out-of-bounds points are refused before upload.
+    let mut bad = random_cloud(&mut rng, 50);
+    bad[7 * 10 + 1] = f32::NAN;
+    assert!(cloud::upload(&gpu, &bad).unwrap_err().to_string().contains("point 10"));
+    bad[7 * 10 + 1] = 3.0;
+    assert!(cloud::upload(&gpu, &bad).unwrap_err().to_string().contains("outside"));
+    assert!(cloud::upload(&gpu, &[]).unwrap_err().to_string().contains("empty"));
+}
