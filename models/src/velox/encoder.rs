@@ -26,37 +26,25 @@ use velox_engine::ops::fill::fill;
 use velox_engine::ops::fps::{fps, random_candidates};
 use velox_engine::ops::gather::{gather, invert_permutation};
 use velox_engine::ops::scatter_add::scatter_add;
-use velox_engine::ops::window::{group_by_window, window_ids, WindowGrid};
+use velox_engine::ops::window::WindowGrid;
 use velox_engine::rng::Rng;
 use velox_engine::{DType, Error, Gpu, Recorder, Result, Tensor};
 
 use crate::config::EncoderConfig;
 use crate::layers::attention::{MultiHeadAttention, MultiHeadAttentionCache};
-use crate::layers::feedforward::SwiGluCache;
 use crate::layers::fourier::FourierCache;
 use crate::layers::linear::LinearCache;
 use crate::layers::norm::RmsNormCache;
-use crate::layers::{Fourier, Linear, Param, RmsNorm, SwiGlu};
+use crate::layers::{Fourier, Linear, RmsNorm};
 use crate::params::{Init, ParamBuilder, ParamStore};
+use crate::velox::blocks::{
+    attention, attention_params, ff, ff_params, linear, linear_params, norm, window_layer_params,
+    FeedForward, FeedForwardCache, WindowLayer, WindowLayerCache, WindowLayout,
+};
 use crate::velox::cloud::CHANNELS;
 
 /// Frames per clip and the frame rate of tau (MODELS.md): tau spans [0, 0.23].
-const TAU_END: f32 = 0.24;
-const NORM_EPS: f32 = 1e-6;
-
-/// A pre-norm residual feed-forward: `x + SwiGLU(RMSNorm(x))`.
-struct FeedForward {
-    norm: RmsNorm,
-    ffn: SwiGlu,
-}
-
-/// A self-attention layer over voxel windows, then its feed-forward.
-struct WindowLayer {
-    norm: RmsNorm,
-    attn: MultiHeadAttention,
-    ff: FeedForward,
-    shifted: bool,
-}
+pub const TAU_END: f32 = 0.24;
 
 /// A Perceiver block: cell cross-attention and its feed-forward, then the window layers.
 struct Block {
@@ -87,19 +75,8 @@ pub struct Layout {
     cell_order: Tensor,
     cell_inverse: Tensor,
     cells: Segments,
-    /// For plain and shifted windows: query order, inverse, segments.
-    windows: [(Tensor, Tensor, Segments); 2],
-}
-
-struct FeedForwardCache {
-    norm: RmsNormCache,
-    ffn: SwiGluCache,
-}
-
-struct WindowLayerCache {
-    norm: RmsNormCache,
-    attn: MultiHeadAttentionCache,
-    ff: FeedForwardCache,
+    /// Plain and shifted windows over the queries.
+    windows: [WindowLayout; 2],
 }
 
 struct BlockCache {
@@ -121,66 +98,6 @@ pub struct EncoderCache {
     points: usize,
 }
 
-fn linear_params(b: &mut ParamBuilder, name: &str, i: usize, o: usize, bias: bool) -> Result<()> {
-    b.add(&format!("{name}.w"), &[i, o], Init::Xavier)?;
-    if bias {
-        b.add(&format!("{name}.b"), &[o], Init::Zeros)?;
-    }
-    Ok(())
-}
-
-fn linear(store: &ParamStore, name: &str, bias: bool) -> Result<Linear> {
-    let b = if bias { Some(Param::from_store(store, &format!("{name}.b"))?) } else { None };
-    Linear::new(Param::from_store(store, &format!("{name}.w"))?, b)
-}
-
-fn norm(store: &ParamStore, name: &str) -> Result<RmsNorm> {
-    RmsNorm::new(Param::from_store(store, name)?, NORM_EPS)
-}
-
-fn attention_params(b: &mut ParamBuilder, name: &str, width: usize) -> Result<()> {
-    for p in ["q", "k", "v", "o"] {
-        linear_params(b, &format!("{name}.{p}"), width, width, false)?;
-    }
-    Ok(())
-}
-
-fn attention(store: &ParamStore, name: &str, heads: usize) -> Result<MultiHeadAttention> {
-    let l = |p: &str| linear(store, &format!("{name}.{p}"), false);
-    MultiHeadAttention::new(l("q")?, l("k")?, l("v")?, l("o")?, heads)
-}
-
-fn ff_params(b: &mut ParamBuilder, name: &str, width: usize, ratio: usize) -> Result<()> {
-    b.add(&format!("{name}.norm"), &[width], Init::Ones)?;
-    linear_params(b, &format!("{name}.w1"), width, ratio * width, false)?;
-    linear_params(b, &format!("{name}.w3"), width, ratio * width, false)?;
-    linear_params(b, &format!("{name}.w2"), ratio * width, width, false)
-}
-
-fn ff(store: &ParamStore, name: &str) -> Result<FeedForward> {
-    let p = |s: &str| Param::from_store(store, &format!("{name}.{s}.w"));
-    Ok(FeedForward {
-        norm: norm(store, &format!("{name}.norm"))?,
-        ffn: SwiGlu::new(p("w1")?, p("w3")?, p("w2")?)?,
-    })
-}
-
-impl FeedForward {
-    /// `x + SwiGLU(RMSNorm(x))`.
-    fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<(Tensor, FeedForwardCache)> {
-        let (n, norm) = self.norm.forward(rec, x)?;
-        let (f, ffn) = self.ffn.forward(rec, &n)?;
-        Ok((binary(rec, x, &f, Binary::Add)?, FeedForwardCache { norm, ffn }))
-    }
-
-    /// `dx = dy + RMSNorm'(SwiGLU'(dy))`.
-    fn backward(&self, rec: &mut Recorder, cache: &FeedForwardCache, dy: &Tensor) -> Result<Tensor> {
-        let dn = self.ffn.backward(rec, &cache.ffn, dy)?;
-        let dx = self.norm.backward(rec, &cache.norm, &dn)?;
-        binary(rec, dy, &dx, Binary::Add)
-    }
-}
-
 impl Encoder {
     /// Width of the input features: Fourier(xyz) with xyz, rgb, Fourier(tau) with tau.
     pub fn feature_width(cfg: &EncoderConfig) -> usize {
@@ -198,10 +115,7 @@ impl Encoder {
             attention_params(b, &format!("{blk}.cross"), w)?;
             ff_params(b, &format!("{blk}.cross_ff"), w, cfg.ffn_ratio)?;
             for l in 0..cfg.self_layers {
-                let layer = format!("{blk}.self{l}");
-                b.add(&format!("{layer}.norm"), &[w], Init::Ones)?;
-                attention_params(b, &format!("{layer}.attn"), w)?;
-                ff_params(b, &format!("{layer}.ff"), w, cfg.ffn_ratio)?;
+                window_layer_params(b, &format!("{blk}.self{l}"), w, cfg.ffn_ratio)?;
             }
         }
         b.add(&format!("{prefix}.out_norm"), &[w], Init::Ones)?;
@@ -215,13 +129,12 @@ impl Encoder {
             let blk = format!("{prefix}.block{i}");
             let layers = (0..cfg.self_layers)
                 .map(|l| {
-                    let layer = format!("{blk}.self{l}");
-                    Ok(WindowLayer {
-                        norm: norm(store, &format!("{layer}.norm"))?,
-                        attn: attention(store, &format!("{layer}.attn"), cfg.heads)?,
-                        ff: ff(store, &format!("{layer}.ff"))?,
-                        shifted: cfg.shift_windows && l % 2 == 1,
-                    })
+                    WindowLayer::new(
+                        store,
+                        &format!("{blk}.self{l}"),
+                        cfg.heads,
+                        cfg.shift_windows && l % 2 == 1,
+                    )
                 })
                 .collect::<Result<Vec<_>>>()?;
             blocks.push(Block {
@@ -274,23 +187,17 @@ impl Encoder {
             k_offsets: cells.offsets.clone(),
         };
         let grid = self.window_grid()?;
-        let mut windows = Vec::new();
-        for g in [grid, grid.shifted()] {
-            let ids = window_ids(rec, &query_points, &g)?;
-            let groups = group_by_window(rec, &ids, g.num_windows())?;
-            let inverse = invert_permutation(rec, &groups.order)?;
-            let seg = Segments { q_offsets: groups.offsets.clone(), k_offsets: groups.offsets.clone() };
-            windows.push((groups.order, inverse, seg));
-        }
-        let shifted = windows.pop().expect("two grids");
-        let plain = windows.pop().expect("two grids");
+        let windows = [
+            WindowLayout::new(rec, &query_points, &grid)?,
+            WindowLayout::new(rec, &query_points, &grid.shifted())?,
+        ];
         let layout = Layout {
             queries,
             query_points,
             cell_order: cells.order,
             cell_inverse,
             cells: cell_segments,
-            windows: [plain, shifted],
+            windows,
         };
         Ok((points, layout))
     }
@@ -346,15 +253,9 @@ impl Encoder {
             q = q2;
             let mut layers = Vec::new();
             for layer in &blk.layers {
-                let (order, inverse, seg) = &layout.windows[layer.shifted as usize];
-                let (n, norm) = layer.norm.forward(rec, &q)?;
-                let n_sorted = gather(rec, &n, order)?;
-                let (a_sorted, attn) = layer.attn.forward(rec, &n_sorted, None, seg)?;
-                let a = gather(rec, &a_sorted, inverse)?;
-                let q1 = binary(rec, &q, &a, Binary::Add)?;
-                let (q2, ff) = layer.ff.forward(rec, &q1)?;
-                q = q2;
-                layers.push(WindowLayerCache { norm, attn, ff });
+                let (q1, c) = layer.forward(rec, &q, &layout.windows[layer.shifted as usize])?;
+                q = q1;
+                layers.push(c);
             }
             blocks.push(BlockCache { norm_q, norm_kv, cross, cross_ff, layers });
         }
@@ -374,14 +275,7 @@ impl Encoder {
         fill(rec, &dkv, 0.0)?;
         for (blk, c) in self.blocks.iter().zip(&cache.blocks).rev() {
             for (layer, lc) in blk.layers.iter().zip(&c.layers).rev() {
-                let (order, inverse, seg) = &layout.windows[layer.shifted as usize];
-                let dq1 = layer.ff.backward(rec, &lc.ff, &dq)?;
-                // q1 = q + gather(a_sorted, inverse): the sorted gradient is dq1 gathered by order.
-                let da_sorted = gather(rec, &dq1, order)?;
-                let (dn_sorted, _) = layer.attn.backward(rec, &lc.attn, &da_sorted, seg)?;
-                let dn = gather(rec, &dn_sorted, inverse)?;
-                let dx = layer.norm.backward(rec, &lc.norm, &dn)?;
-                dq = binary(rec, &dq1, &dx, Binary::Add)?;
+                dq = layer.backward(rec, lc, &dq, &layout.windows[layer.shifted as usize])?;
             }
             let dq1 = blk.cross_ff.backward(rec, &c.cross_ff, &dq)?;
             let (dqn, dkvn) = blk.cross.backward(rec, &c.cross, &dq1, &layout.cells)?;
