@@ -11,6 +11,7 @@ pub mod fill;
 pub mod fourier;
 pub mod fps;
 pub mod gather;
+pub mod gaussian_head;
 pub mod gelu;
 pub mod layernorm;
 pub mod loss;

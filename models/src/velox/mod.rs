@@ -3,3 +3,4 @@
 pub mod blocks;
 pub mod cloud;
 pub mod encoder;
+pub mod gaussians;

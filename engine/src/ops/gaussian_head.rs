@@ -1,0 +1,130 @@
+//! The Gaussian decoder's head activations, forward and backward. Kernel:
+//! `shaders/gaussian_head.wgsl` (the formulas are in its header).
+
+use crate::error::{Error, Result};
+use crate::kernels::{GAUSSIAN_HEAD_BACKWARD, GAUSSIAN_HEAD_FORWARD};
+use crate::recorder::Recorder;
+use crate::tensor::{DType, Tensor};
+
+/// Raw numbers per Gaussian: offset 3, scale 3, quaternion 4, opacity 1, rgb 3.
+pub const RAW: usize = 14;
+
+/// The activation's constants (MODELS.md: offset range 0.05, scales 0.001 to 0.01).
+#[derive(Clone, Copy, Debug)]
+pub struct HeadRange {
+    pub offset_range: f32,
+    pub scale_min: f32,
+    pub scale_max: f32,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    gaussians: u32,
+    per_voxel: u32,
+    offset_range: f32,
+    scale_min: f32,
+    scale_max: f32,
+}
+
+/// The rasteriser's parameters of M = V x G Gaussians: means, log-scales `[M, 3]`, quaternions
+/// `[M, 4]`, opacity logits `[M]`, colours `[M, 3]`.
+#[derive(Clone, Debug)]
+pub struct HeadOut {
+    pub means: Tensor,
+    pub log_scales: Tensor,
+    pub quats: Tensor,
+    pub logits: Tensor,
+    pub colours: Tensor,
+}
+
+fn params(raw: &Tensor, centres: &Tensor, r: &HeadRange) -> Result<(usize, Params)> {
+    let (m, v) = match (raw.shape(), centres.shape()) {
+        (&[m, RAW], &[v, 3]) if v > 0 && m % v == 0 => (m, v),
+        _ => {
+            return Err(Error::Shape(format!(
+                "gaussian head: raw must be [V * G, {RAW}] and centres [V, 3], got {raw:?} and {centres:?}"
+            )))
+        }
+    };
+    if !(r.scale_min > 0.0 && r.scale_max > r.scale_min && r.offset_range >= 0.0) {
+        return Err(Error::Invalid(format!("gaussian head: bad ranges {r:?}")));
+    }
+    let fit = u32::try_from(m).map_err(|_| Error::TooLarge(format!("{m} Gaussians")))?;
+    Ok((
+        m,
+        Params {
+            gaussians: fit,
+            per_voxel: (m / v) as u32,
+            offset_range: r.offset_range,
+            scale_min: r.scale_min,
+            scale_max: r.scale_max,
+        },
+    ))
+}
+
+/// Maps the raw head output to the rasteriser's Gaussian parameters.
+pub fn head_forward(
+    rec: &mut Recorder,
+    raw: &Tensor,
+    centres: &Tensor,
+    range: &HeadRange,
+) -> Result<HeadOut> {
+    let (m, p) = params(raw, centres, range)?;
+    let gpu = raw.gpu().clone();
+    let t = |shape: &[usize]| Tensor::empty(&gpu, shape, DType::F32);
+    let out = HeadOut {
+        means: t(&[m, 3])?,
+        log_scales: t(&[m, 3])?,
+        quats: t(&[m, 4])?,
+        logits: t(&[m])?,
+        colours: t(&[m, 3])?,
+    };
+    let args = [raw, centres, &out.means, &out.log_scales, &out.quats, &out.logits, &out.colours];
+    rec.dispatch_linear(GAUSSIAN_HEAD_FORWARD, (m as u64).div_ceil(256), &args, &p)?;
+    Ok(out)
+}
+
+/// The gradient of the raw head output, given the gradients of the head's outputs.
+pub fn head_backward(
+    rec: &mut Recorder,
+    raw: &Tensor,
+    centres: &Tensor,
+    range: &HeadRange,
+    d: &HeadOut,
+) -> Result<Tensor> {
+    let (m, p) = params(raw, centres, range)?;
+    let d_raw = Tensor::empty(raw.gpu(), &[m, RAW], DType::F32)?;
+    let args = [raw, &d.means, &d.log_scales, &d.quats, &d.logits, &d.colours, &d_raw];
+    rec.dispatch_linear(GAUSSIAN_HEAD_BACKWARD, (m as u64).div_ceil(256), &args, &p)?;
+    Ok(d_raw)
+}
+
+pub mod reference {
+    use super::{HeadRange, RAW};
+
+    fn sigmoid(v: f64) -> f64 {
+        1.0 / (1.0 + (-v).exp())
+    }
+
+    /// (means, log_scales, quats, logits, colours) of `raw` [M, 14] with `per_voxel` Gaussians
+    /// per centre.
+    #[allow(clippy::type_complexity)]
+    pub fn head(raw: &[f64], centres: &[f64], per_voxel: usize, r: &HeadRange) -> [Vec<f64>; 5] {
+        let mut out: [Vec<f64>; 5] = Default::default();
+        for (m, g) in raw.chunks(RAW).enumerate() {
+            let v = m / per_voxel;
+            for a in 0..3 {
+                out[0].push(centres[v * 3 + a] + (2.0 * sigmoid(g[a]) - 1.0) * r.offset_range as f64);
+                let span = (r.scale_max - r.scale_min) as f64;
+                out[1].push((r.scale_min as f64 + span * sigmoid(g[3 + a])).ln());
+            }
+            out[2].extend_from_slice(&g[6..10]);
+            out[3].push(g[10]);
+            for a in 0..3 {
+                out[4].push(sigmoid(g[11 + a]));
+            }
+        }
+        out
+    }
+}
