@@ -76,7 +76,7 @@ impl Camera {
 
     /// Camera centre in the world.
     pub fn position(&self) -> V3 {
-        scale(self.unproject(self.cx, self.cy, 0.0), 1.0)
+        self.unproject(self.cx, self.cy, 0.0)
     }
 
     /// The 16 floats the rasteriser reads: rows r0 t0 r1 t1 r2 t2, then fx fy cx cy.

@@ -223,10 +223,10 @@ fn arm(rng: &mut Rng, tex: Vec<Texture>) -> Builder {
         yaw(t, add(start, rotate(p, Z, angle)))
     };
     let pose = std::rc::Rc::new(pose);
-    for i in 0..links {
+    for (i, &length) in link_lengths.iter().enumerate() {
         let radius = 0.08 - 0.01 * i as f32;
         let pose = pose.clone();
-        b.part(Prim::cylinder(radius, link_lengths[i], 4), 1 + (i as u32 % 2), move |t, p| pose(t, i, p));
+        b.part(Prim::cylinder(radius, length, 4), 1 + (i as u32 % 2), move |t, p| pose(t, i, p));
     }
     b
 }
@@ -378,8 +378,8 @@ pub fn scene(seed: u64, images: Option<&ImageFolder>) -> DataResult<(SceneRecipe
         if i > 0 && rng.uniform() < 0.3 {
             let cut = 4 + rng.below(FRAMES as u32 - 8) as usize;
             let appears = rng.uniform() < 0.5;
-            let n = obj.num_vertices();
-            let mut b = Builder { mesh: obj, parts: vec![0..n] };
+            let whole = std::iter::once(0..obj.num_vertices()).collect();
+            let mut b = Builder { mesh: obj, parts: whole };
             b.hide_part(0, move |f| (f >= cut) == appears);
             obj = b.mesh;
         }

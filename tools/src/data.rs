@@ -140,7 +140,7 @@ pub fn run(cmd: DataCommand) -> CliResult<()> {
         match make_scene(&gpu, job, &opts, &common.out, &bar) {
             Ok(()) => written += 1,
             Err(e) => {
-                bar.println(format!("error: {e}"));
+                bar.suspend(|| eprintln!("error: {e}"));
                 failed.push(e);
             }
         }
