@@ -414,3 +414,27 @@ fn dataset_on_disk_reads_back_in_the_background() {
     drop(l);
     let _ = std::fs::remove_dir_all(&root);
 }
+
+#[test]
+fn textures_crop_a_folder_of_images() {
+    let dir = temp_dir("textures");
+    let img = image::RgbImage::from_fn(300, 200, |x, y| image::Rgb([(x % 256) as u8, (y % 256) as u8, 77]));
+    img.save(dir.join("a.png")).unwrap();
+    std::fs::write(dir.join("notes.txt"), "not an image").unwrap();
+    let folder = velox::data::texture::ImageFolder::open(&dir).unwrap();
+    let mut rng = Rng::new(3);
+    let t = folder.random_crop(&mut rng).unwrap();
+    assert_eq!((t.width, t.height, t.texels.len()), (128, 128, 128 * 128));
+    assert!(t.texels.iter().all(|&v| (v >> 16) & 255 == 77), "the crop keeps the image's blue channel");
+    // Scenes with a folder use its crops on some objects.
+    let (_, mesh) = scene(4, Some(&folder)).unwrap();
+    assert!(mesh.textures.iter().any(|t| t.texels.iter().all(|&v| (v >> 16) & 255 == 77)));
+    // A broken image is an error naming it.
+    std::fs::write(dir.join("a.png"), b"\x89PNG broken").unwrap();
+    let err = folder.random_crop(&mut rng).unwrap_err().to_string();
+    assert!(err.contains("a.png"), "{err}");
+    let empty = temp_dir("no-images");
+    assert!(velox::data::texture::ImageFolder::open(&empty).is_err());
+    let _ = std::fs::remove_dir_all(&dir);
+    let _ = std::fs::remove_dir_all(&empty);
+}
