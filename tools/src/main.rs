@@ -1,6 +1,7 @@
 //! The `velox` command.
 
 mod bench;
+mod data;
 mod demo;
 mod info;
 
@@ -28,6 +29,12 @@ enum Command {
         #[arg(long, default_value = "velox-demo")]
         out: std::path::PathBuf,
     },
+    /// Training data: procedural animated scenes and glTF imports, rendered to point clouds,
+    /// images, occupancy and tracks.
+    Data {
+        #[command(subcommand)]
+        what: data::DataCommand,
+    },
     /// Benchmarks: GPU time against error.
     Bench {
         #[command(subcommand)]
@@ -41,6 +48,7 @@ fn main() {
         Command::Info { json } => info::run(json.as_deref()),
         Command::Demo { out } => demo::run(&out),
         Command::Bench { what } => bench::run(what),
+        Command::Data { what } => data::run(what),
     };
     if let Err(e) = result {
         eprintln!("error: {e}");

@@ -1,0 +1,265 @@
+//! The dataset on disk, and reading it back.
+//!
+//! ```text
+//! DIR/scene_00000/
+//!   meta.json                 SceneMeta: format, source (recipe or glTF file and credits),
+//!                             frames, fps, resolution and the counts below
+//!   cameras.json              {"input": [Camera; 35], "supervision": [Camera; 25], "video": Camera}
+//!                             (camera.rs: world-to-camera rows, translation, fx fy cx cy, size)
+//!   points.ply                binary little-endian PLY, float x y z r g b tau per point,
+//!                             xyz in [-1, 1]^3, rgb in [0, 1], tau = frame / 100, frame order
+//!   occupancy.bin             per frame 64^3 bits as 4096 little-endian u64 words; voxel
+//!                             (x, y, z) of [-1, 1]^3 is bit (i % 64) of word i / 64,
+//!                             i = x + 64 (y + 64 z)
+//!   tracks.bin                per track, per frame: x y z as little-endian f32
+//!   tracks_visibility.bin     per track, per frame: a little-endian u64, bit c set when
+//!                             input camera c sees the point
+//!   supervision/fFF_vVV.png   frame FF seen from supervision camera VV (RGB, anti-aliased)
+//!   video/fFF.png             the conditioning video's frame FF (RGB, anti-aliased)
+//! ```
+//! Background pixels are black. Everything needed to read a scene is in its folder; a scene
+//! is written into `scene_XXXXX.partial` and renamed when complete, so a crash never leaves a
+//! half scene under a scene's name.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::camera::Camera;
+use crate::pipeline::{SceneArrays, FPS, OCCUPANCY_WORDS};
+use crate::procedural::FRAMES;
+use crate::{DataError, DataResult};
+
+pub const FORMAT: &str = "velox-data 1";
+
+/// A scene's `meta.json`.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct SceneMeta {
+    pub format: String,
+    /// "procedural seed S: walker, arm" or the glTF file's name.
+    pub source: String,
+    /// Credits of imported assets (glTF `asset.copyright` and `generator`), if any.
+    pub credits: Option<String>,
+    pub frames: usize,
+    pub fps: f32,
+    pub resolution: u32,
+    pub points: usize,
+    pub tracks: usize,
+    pub supervision_views: usize,
+    pub supersample: u32,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct CameraSet {
+    pub input: Vec<Camera>,
+    pub supervision: Vec<Camera>,
+    pub video: Option<Camera>,
+}
+
+fn io(path: &Path, e: impl std::fmt::Display) -> DataError {
+    DataError::Io(format!("{}: {e}", path.display()))
+}
+
+fn write_file(path: &Path, bytes: &[u8]) -> DataResult<()> {
+    std::fs::write(path, bytes).map_err(|e| io(path, e))
+}
+
+/// The folder a scene is rendered into before it is complete.
+pub fn partial_dir(dir: &Path) -> PathBuf {
+    let mut name = dir.file_name().unwrap_or_default().to_os_string();
+    name.push(".partial");
+    dir.with_file_name(name)
+}
+
+/// Writes the arrays and metadata of a scene into `dir` (images are already there).
+pub fn write_arrays(dir: &Path, meta: &SceneMeta, a: &SceneArrays) -> DataResult<()> {
+    std::fs::create_dir_all(dir).map_err(|e| io(dir, e))?;
+    write_file(&dir.join("meta.json"), json(meta).as_bytes())?;
+    let cams = CameraSet {
+        input: a.input_cameras.clone(),
+        supervision: a.supervision_cameras.clone(),
+        video: a.video_camera.clone(),
+    };
+    write_file(&dir.join("cameras.json"), json(&cams).as_bytes())?;
+    write_ply(&dir.join("points.ply"), &a.points)?;
+    write_file(&dir.join("occupancy.bin"), bytemuck::cast_slice(&a.occupancy))?;
+    let tracks: Vec<f32> = a.tracks.iter().flatten().flatten().copied().collect();
+    write_file(&dir.join("tracks.bin"), bytemuck::cast_slice(&tracks))?;
+    let vis: Vec<u64> = a.visibility.iter().flatten().copied().collect();
+    write_file(&dir.join("tracks_visibility.bin"), bytemuck::cast_slice(&vis))?;
+    Ok(())
+}
+
+fn json<T: Serialize>(v: &T) -> String {
+    serde_json::to_string_pretty(v).expect("plain data serialises")
+}
+
+const PLY_PROPS: [&str; 7] = ["x", "y", "z", "r", "g", "b", "tau"];
+
+fn ply_header(n: usize) -> String {
+    let mut h = format!(
+        "ply\nformat binary_little_endian 1.0\ncomment velox 4D colour point cloud\nelement vertex {n}\n"
+    );
+    for p in PLY_PROPS {
+        h.push_str(&format!("property float {p}\n"));
+    }
+    h.push_str("end_header\n");
+    h
+}
+
+pub fn write_ply(path: &Path, points: &[[f32; 7]]) -> DataResult<()> {
+    let file = std::fs::File::create(path).map_err(|e| io(path, e))?;
+    let mut w = std::io::BufWriter::new(file);
+    w.write_all(ply_header(points.len()).as_bytes()).map_err(|e| io(path, e))?;
+    w.write_all(bytemuck::cast_slice(points)).map_err(|e| io(path, e))?;
+    w.flush().map_err(|e| io(path, e))
+}
+
+/// Reads a PLY written by [`write_ply`] (exactly that layout).
+pub fn read_ply(path: &Path) -> DataResult<Vec<[f32; 7]>> {
+    let bytes = std::fs::read(path).map_err(|e| io(path, e))?;
+    let end =
+        bytes.windows(11).position(|w| w == b"end_header\n").ok_or_else(|| {
+            DataError::Invalid(format!("{}: not a PLY file (no end_header)", path.display()))
+        })? + 11;
+    let header = std::str::from_utf8(&bytes[..end])
+        .map_err(|_| DataError::Invalid(format!("{}: PLY header is not text", path.display())))?;
+    let n: usize = header
+        .lines()
+        .find_map(|l| l.strip_prefix("element vertex "))
+        .and_then(|v| v.trim().parse().ok())
+        .ok_or_else(|| DataError::Invalid(format!("{}: PLY header has no vertex count", path.display())))?;
+    if header != ply_header(n) {
+        return Err(DataError::Invalid(format!(
+            "{}: PLY layout is not float x y z r g b tau, binary little-endian",
+            path.display()
+        )));
+    }
+    let body = &bytes[end..];
+    if body.len() != n * 28 {
+        return Err(DataError::Invalid(format!(
+            "{}: {} points declared but {} bytes of data",
+            path.display(),
+            n,
+            body.len()
+        )));
+    }
+    Ok(body
+        .chunks_exact(28)
+        .map(|c| std::array::from_fn(|k| f32::from_le_bytes(c[4 * k..4 * k + 4].try_into().unwrap())))
+        .collect())
+}
+
+/// A scene read back from disk.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    pub dir: PathBuf,
+    pub meta: SceneMeta,
+    pub cameras: CameraSet,
+    pub points: Vec<[f32; 7]>,
+    pub occupancy: Vec<u64>,
+    pub tracks: Vec<[[f32; 3]; FRAMES]>,
+    pub visibility: Vec<[u64; FRAMES]>,
+    /// Supervision images, frame-major then view, 8-bit RGB rows (empty unless asked for).
+    pub supervision: Vec<Vec<u8>>,
+    /// The conditioning video's frames, 8-bit RGB rows (empty unless asked for).
+    pub video: Vec<Vec<u8>>,
+}
+
+impl Scene {
+    /// Whether voxel `index` (x + 64 (y + 64 z)) is occupied at frame `f`.
+    pub fn occupied(&self, f: usize, index: usize) -> bool {
+        self.occupancy[f * OCCUPANCY_WORDS + index / 64] >> (index % 64) & 1 == 1
+    }
+}
+
+fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> DataResult<T> {
+    let text = std::fs::read_to_string(path).map_err(|e| io(path, e))?;
+    serde_json::from_str(&text).map_err(|e| DataError::Invalid(format!("{}: {e}", path.display())))
+}
+
+fn read_words<T: bytemuck::Pod>(path: &Path, count: usize) -> DataResult<Vec<T>> {
+    let bytes = std::fs::read(path).map_err(|e| io(path, e))?;
+    let size = std::mem::size_of::<T>();
+    if bytes.len() != count * size {
+        return Err(DataError::Invalid(format!(
+            "{}: {} bytes, expected {}",
+            path.display(),
+            bytes.len(),
+            count * size
+        )));
+    }
+    Ok(bytes.chunks_exact(size).map(bytemuck::pod_read_unaligned).collect())
+}
+
+fn read_png(path: &Path, res: u32) -> DataResult<Vec<u8>> {
+    let img = image::open(path).map_err(|e| io(path, e))?.to_rgb8();
+    if img.dimensions() != (res, res) {
+        return Err(DataError::Invalid(format!("{}: image is not {res} x {res}", path.display())));
+    }
+    Ok(img.into_raw())
+}
+
+/// Reads the scene in `dir`; images too when `images` is set.
+pub fn read_scene(dir: &Path, images: bool) -> DataResult<Scene> {
+    let meta: SceneMeta = read_json(&dir.join("meta.json"))?;
+    if meta.format != FORMAT {
+        return Err(DataError::Invalid(format!(
+            "{}: format {:?}, expected {FORMAT:?}",
+            dir.display(),
+            meta.format
+        )));
+    }
+    if meta.frames != FRAMES || meta.fps != FPS {
+        return Err(DataError::Invalid(format!(
+            "{}: {} frames at {} fps, expected {FRAMES} at {FPS}",
+            dir.display(),
+            meta.frames,
+            meta.fps
+        )));
+    }
+    let cameras: CameraSet = read_json(&dir.join("cameras.json"))?;
+    let points = read_ply(&dir.join("points.ply"))?;
+    let occupancy = read_words::<u64>(&dir.join("occupancy.bin"), FRAMES * OCCUPANCY_WORDS)?;
+    let flat = read_words::<f32>(&dir.join("tracks.bin"), meta.tracks * FRAMES * 3)?;
+    let tracks = flat
+        .chunks_exact(3 * FRAMES)
+        .map(|c| std::array::from_fn(|f| [c[3 * f], c[3 * f + 1], c[3 * f + 2]]))
+        .collect();
+    let vis = read_words::<u64>(&dir.join("tracks_visibility.bin"), meta.tracks * FRAMES)?;
+    let visibility = vis.chunks_exact(FRAMES).map(|c| std::array::from_fn(|f| c[f])).collect();
+    let (mut supervision, mut video) = (Vec::new(), Vec::new());
+    if images {
+        for f in 0..FRAMES {
+            for v in 0..meta.supervision_views {
+                supervision
+                    .push(read_png(&dir.join(format!("supervision/f{f:02}_v{v:02}.png")), meta.resolution)?);
+            }
+            video.push(read_png(&dir.join(format!("video/f{f:02}.png")), meta.resolution)?);
+        }
+    }
+    Ok(Scene {
+        dir: dir.to_path_buf(),
+        meta,
+        cameras,
+        points,
+        occupancy,
+        tracks,
+        visibility,
+        supervision,
+        video,
+    })
+}
+
+/// The complete scenes under `root` (folders with a `meta.json`, `.partial` ones skipped), in
+/// name order.
+pub fn list_scenes(root: &Path) -> DataResult<Vec<PathBuf>> {
+    let read = std::fs::read_dir(root).map_err(|e| io(root, e))?;
+    let mut dirs: Vec<PathBuf> = read
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.join("meta.json").is_file() && p.extension().is_none_or(|e| e != "partial"))
+        .collect();
+    dirs.sort();
+    Ok(dirs)
+}

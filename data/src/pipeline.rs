@@ -1,0 +1,244 @@
+//! From an animated mesh to a training scene: renders every frame from the input, supervision
+//! and video cameras, back-projects the input views to the 4D colour point cloud, voxelises it
+//! to occupancy, and follows surface points as tracks.
+//!
+//! - **Point cloud** (MODELS.md): every input-view pixel that shows the surface, back-projected
+//!   at its centre with its depth, is a candidate (x, y, z, r, g, b, tau = frame / 100); a
+//!   reservoir sample over all frames keeps the requested number, so each candidate is equally
+//!   likely and frames with more visible surface give more points. When fewer candidates exist
+//!   than were asked for, random candidates are repeated to reach the size. Points come out
+//!   ordered by frame.
+//! - **Occupancy**: the 64^3 voxels of [-1, 1]^3 holding at least one candidate of the frame.
+//! - **Tracks**: the frame-0 render gives, for every input pixel, the triangle and the
+//!   perspective-correct barycentrics of the surface point it shows, which is exactly the
+//!   back-projected pixel: tracks are drawn from those pixels, so each lies on the frame-0
+//!   surface at a back-projected pixel. The same triangle and barycentrics give its position
+//!   in every frame. It is visible from an input camera at a frame when it projects into the
+//!   image, its triangle is not collapsed (a hidden part) and it is not farther than the
+//!   rendered depth there by more than three pixel footprints.
+
+use std::path::Path;
+
+use velox_engine::rng::Rng;
+use velox_engine::Gpu;
+
+use crate::camera::{input_cameras, supervision_cameras, video_camera, Camera};
+use crate::math::{cross, length, sub, V3};
+use crate::mesh::AnimatedMesh;
+use crate::raster::{Frame, MeshRasteriser, NO_TRIANGLE};
+use crate::{DataError, DataResult};
+
+/// Occupancy grid side.
+pub const GRID: usize = 64;
+/// u64 words of one frame's occupancy bits.
+pub const OCCUPANCY_WORDS: usize = GRID * GRID * GRID / 64;
+/// Frame times: tau = frame / FPS.
+pub const FPS: f32 = 100.0;
+
+/// What to make of a scene.
+#[derive(Clone, Debug)]
+pub struct SynthOptions {
+    /// Image side of every camera.
+    pub res: u32,
+    /// Points in the 4D point cloud.
+    pub points: usize,
+    /// Supersampling factor of the anti-aliased views (supervision and video).
+    pub supersample: u32,
+    /// Tracked surface points.
+    pub tracks: usize,
+}
+
+impl Default for SynthOptions {
+    fn default() -> SynthOptions {
+        SynthOptions { res: 128, points: 200_000, supersample: 2, tracks: 1024 }
+    }
+}
+
+/// Everything of a scene but its images (which go straight to disk).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct SceneArrays {
+    /// (x, y, z, r, g, b, tau) per point.
+    pub points: Vec<[f32; 7]>,
+    /// Per frame, [`OCCUPANCY_WORDS`] words; bit `x + 64 (y + 64 z)`.
+    pub occupancy: Vec<u64>,
+    /// Track positions, track-major then frame.
+    pub tracks: Vec<[V3; crate::procedural::FRAMES]>,
+    /// Per track and frame, a bit per input camera: set where the point is visible.
+    pub visibility: Vec<[u64; crate::procedural::FRAMES]>,
+    /// The frame-0 triangle and barycentrics (b1, b2) of each track.
+    pub anchors: Vec<(u32, [f32; 2])>,
+    pub input_cameras: Vec<Camera>,
+    pub supervision_cameras: Vec<Camera>,
+    pub video_camera: Option<Camera>,
+}
+
+/// Back-projects every pixel of `frame` that shows the surface: (world point, rgb, view).
+pub fn back_project(frame: &Frame, cameras: &[Camera]) -> Vec<(V3, [f32; 3], usize)> {
+    let mut out = Vec::new();
+    let px = frame.pixels();
+    for (v, cam) in cameras.iter().enumerate() {
+        for i in 0..px {
+            let k = v * px + i;
+            if frame.ids[k] == NO_TRIANGLE {
+                continue;
+            }
+            let (x, y) = ((i as u32 % frame.width) as f32 + 0.5, (i as u32 / frame.width) as f32 + 0.5);
+            let c = frame.rgb[k];
+            let rgb = [c & 255, (c >> 8) & 255, (c >> 16) & 255].map(|b| b as f32 / 255.0);
+            out.push((cam.unproject(x, y, frame.depth[k]), rgb, v));
+        }
+    }
+    out
+}
+
+/// Index of the 64^3 voxel of [-1, 1]^3 holding `p`.
+pub fn voxel_index(p: V3) -> usize {
+    let c = p.map(|x| (((x + 1.0) * 0.5 * GRID as f32) as isize).clamp(0, GRID as isize - 1) as usize);
+    c[0] + GRID * (c[1] + GRID * c[2])
+}
+
+/// Draws `k` of a stream uniformly at random, whatever its length (reservoir sampling).
+struct Reservoir<T> {
+    k: usize,
+    seen: u64,
+    items: Vec<T>,
+}
+
+impl<T: Clone> Reservoir<T> {
+    fn offer(&mut self, rng: &mut Rng, item: T) {
+        self.seen += 1;
+        if self.items.len() < self.k {
+            self.items.push(item);
+        } else {
+            let j = ((rng.next_u32() as u64) << 32 | rng.next_u32() as u64) % self.seen;
+            if (j as usize) < self.k {
+                self.items[j as usize] = item;
+            }
+        }
+    }
+}
+
+/// Renders a scene. `seed` draws the supervision and video cameras, the point sample and the
+/// tracks. When `dir` is given, the supervision views (`supervision/fFF_vVV.png`) and the
+/// conditioning video (`video/fFF.png`) are written there as they are rendered; `progress`
+/// is called after each frame.
+pub fn render_scene(
+    gpu: &Gpu,
+    mesh: &AnimatedMesh,
+    opts: &SynthOptions,
+    seed: u64,
+    dir: Option<&Path>,
+    progress: &mut dyn FnMut(usize),
+) -> DataResult<SceneArrays> {
+    let frames = mesh.frames.len();
+    if frames != crate::procedural::FRAMES {
+        return Err(DataError::Invalid(format!(
+            "a scene has {} frames, the data needs {}",
+            frames,
+            crate::procedural::FRAMES
+        )));
+    }
+    if opts.res == 0 || opts.supersample == 0 {
+        return Err(DataError::Invalid("resolution and supersampling must be at least 1".into()));
+    }
+    let rast = MeshRasteriser::new(gpu, mesh)?;
+    let mut rng = Rng::new(seed ^ 0x9e37_79b9_7f4a_7c15);
+    let inputs = input_cameras(opts.res);
+    let sup = supervision_cameras(&mut rng, opts.res);
+    let video = video_camera(&mut rng, opts.res);
+    if let Some(dir) = dir {
+        for sub in ["supervision", "video"] {
+            std::fs::create_dir_all(dir.join(sub))
+                .map_err(|e| DataError::Io(format!("{}: {e}", dir.join(sub).display())))?;
+        }
+    }
+    let mut reservoir = Reservoir { k: opts.points, seen: 0, items: Vec::new() };
+    let mut out = SceneArrays {
+        occupancy: vec![0u64; frames * OCCUPANCY_WORDS],
+        input_cameras: inputs.clone(),
+        supervision_cameras: sup.clone(),
+        video_camera: Some(video.clone()),
+        ..Default::default()
+    };
+    for f in 0..frames {
+        let verts = &mesh.frames[f];
+        let frame = rast.render(verts, &inputs)?;
+        let tau = f as f32 / FPS;
+        let occ = &mut out.occupancy[f * OCCUPANCY_WORDS..(f + 1) * OCCUPANCY_WORDS];
+        for (p, rgb, _) in back_project(&frame, &inputs) {
+            let v = voxel_index(p);
+            occ[v / 64] |= 1 << (v % 64);
+            reservoir.offer(&mut rng, [p[0], p[1], p[2], rgb[0], rgb[1], rgb[2], tau]);
+        }
+        if f == 0 {
+            out.anchors = pick_anchors(&frame, opts.tracks, &mut rng);
+            out.tracks = vec![[[0.0; 3]; crate::procedural::FRAMES]; out.anchors.len()];
+            out.visibility = vec![[0; crate::procedural::FRAMES]; out.anchors.len()];
+        }
+        for (t, &(tri, b)) in out.anchors.iter().enumerate() {
+            let p = mesh.surface_point(f, tri, b);
+            out.tracks[t][f] = p;
+            out.visibility[t][f] = visibility(mesh, f, tri, p, &frame, &inputs);
+        }
+        if let Some(dir) = dir {
+            let images = rast.render_rgb_supersampled(verts, &sup, opts.supersample)?;
+            for (v, img) in images.iter().enumerate() {
+                save_png(&dir.join(format!("supervision/f{f:02}_v{v:02}.png")), opts.res, img)?;
+            }
+            let img = rast.render_rgb_supersampled(verts, std::slice::from_ref(&video), opts.supersample)?;
+            save_png(&dir.join(format!("video/f{f:02}.png")), opts.res, &img[0])?;
+        }
+        progress(f);
+    }
+    let mut points = reservoir.items;
+    if points.is_empty() && opts.points > 0 {
+        return Err(DataError::Invalid("no input camera sees the object in any frame".into()));
+    }
+    let have = points.len();
+    while points.len() < opts.points {
+        let p = points[rng.below(have as u32) as usize];
+        points.push(p);
+    }
+    points.sort_by(|a, b| a[6].total_cmp(&b[6]));
+    out.points = points;
+    Ok(out)
+}
+
+/// Up to `n` distinct surface pixels of frame 0, drawn at random over all input views.
+fn pick_anchors(frame: &Frame, n: usize, rng: &mut Rng) -> Vec<(u32, [f32; 2])> {
+    let mut hits: Vec<usize> = (0..frame.ids.len()).filter(|&k| frame.ids[k] != NO_TRIANGLE).collect();
+    let n = n.min(hits.len());
+    // Partial Fisher-Yates: the first n entries become a uniform sample.
+    for i in 0..n {
+        let j = i + rng.below((hits.len() - i) as u32) as usize;
+        hits.swap(i, j);
+    }
+    hits[..n].iter().map(|&k| (frame.ids[k], frame.bary[k])).collect()
+}
+
+/// Visibility bits of surface point `p` (on triangle `tri`) at frame `f` over the cameras.
+fn visibility(mesh: &AnimatedMesh, f: usize, tri: u32, p: V3, frame: &Frame, cams: &[Camera]) -> u64 {
+    let t = mesh.triangles[tri as usize].map(|i| mesh.frames[f][i as usize]);
+    if length(cross(sub(t[1], t[0]), sub(t[2], t[0]))) == 0.0 {
+        return 0;
+    }
+    let mut bits = 0u64;
+    for (c, cam) in cams.iter().enumerate() {
+        let (u, v, z) = cam.project(p);
+        if z <= 0.0 || u < 0.0 || v < 0.0 || u >= cam.width as f32 || v >= cam.height as f32 {
+            continue;
+        }
+        let k = c * frame.pixels() + v as usize * frame.width as usize + u as usize;
+        let d = frame.depth[k];
+        let tol = 3.0 * z / cam.fx;
+        if d > 0.0 && z <= d + tol {
+            bits |= 1 << c;
+        }
+    }
+    bits
+}
+
+pub(crate) fn save_png(path: &Path, res: u32, rgb: &[u8]) -> DataResult<()> {
+    image::save_buffer(path, rgb, res, res, image::ExtendedColorType::Rgb8)
+        .map_err(|e| DataError::Io(format!("{}: {e}", path.display())))
+}

@@ -1,0 +1,440 @@
+//! Training data on lavapipe: the mesh rasteriser against a CPU ray cast, back-projection,
+//! tracks, determinism, glTF import (real exports in ../shared/assets/gltf, whose credits are
+//! in the README there, and files written here), corrupt files, the dataset on disk.
+mod common;
+use common::*;
+
+use std::path::{Path, PathBuf};
+
+use velox::data::camera::{input_cameras, Camera};
+use velox::data::format::{read_scene, write_arrays, SceneMeta, FORMAT};
+use velox::data::gltf_import::import;
+use velox::data::math::{sub, V3};
+use velox::data::pipeline::{back_project, render_scene, FPS};
+use velox::data::procedural::{scene, FRAMES};
+use velox::data::raster::{reference, MeshRasteriser, NO_TRIANGLE};
+use velox::data::{AnimatedMesh, Loader, LoaderOptions, SynthOptions};
+
+fn small_opts() -> SynthOptions {
+    SynthOptions { res: 32, points: 3000, supersample: 1, tracks: 48 }
+}
+
+fn temp_dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("velox-data-test-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn distance_to_mesh(p: V3, mesh: &AnimatedMesh, f: usize) -> f64 {
+    mesh.triangles
+        .iter()
+        .map(|t| {
+            let [a, b, c] = t.map(|i| mesh.frames[f][i as usize]);
+            reference::point_triangle_distance(p, a, b, c)
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+#[test]
+fn rasteriser_matches_cpu_ray_cast() {
+    let (_, mesh) = scene(11, None).unwrap();
+    let rast = MeshRasteriser::new(&gpu(), &mesh).unwrap();
+    let cams: Vec<Camera> = input_cameras(40).into_iter().step_by(9).collect();
+    for f in [0, 17] {
+        let frame = rast.render(&mesh.frames[f], &cams).unwrap();
+        for (v, cam) in cams.iter().enumerate() {
+            let want = reference::depth_and_ids(&mesh.frames[f], &mesh.triangles, cam);
+            let px = frame.pixels();
+            let (mut same, mut covered) = (0usize, 0usize);
+            let (mut got_d, mut want_d) = (Vec::new(), Vec::new());
+            for (i, &(d, id)) in want.iter().enumerate() {
+                let gid = frame.ids[v * px + i];
+                covered += (id != NO_TRIANGLE || gid != NO_TRIANGLE) as usize;
+                if gid == id {
+                    same += (id != NO_TRIANGLE) as usize;
+                    got_d.push(frame.depth[v * px + i]);
+                    want_d.push(d);
+                }
+            }
+            assert!(covered > 50, "frame {f} view {v}: the object covers only {covered} pixels");
+            // Pixel centres on an edge may go either way in f32 against f64.
+            assert!(
+                same as f64 >= 0.97 * covered as f64,
+                "frame {f} view {v}: ids agree on {same} of {covered}"
+            );
+            assert_nmse(&format!("depth f{f} v{v}"), &got_d, &want_d, 1e-9);
+        }
+    }
+}
+
+#[test]
+fn back_projection_round_trip() {
+    let (_, mesh) = scene(5, None).unwrap();
+    let rast = MeshRasteriser::new(&gpu(), &mesh).unwrap();
+    let cams = input_cameras(64);
+    let (a, b) = (&cams[3], &cams[4]);
+    let f = 9;
+    let frame_a = rast.render(&mesh.frames[f], std::slice::from_ref(a)).unwrap();
+    let points = back_project(&frame_a, std::slice::from_ref(a));
+    assert!(points.len() > 200, "only {} pixels show the object", points.len());
+    // Each point lies on the triangle its pixel names, and projects back onto its pixel.
+    let hits: Vec<usize> = (0..frame_a.ids.len()).filter(|&k| frame_a.ids[k] != NO_TRIANGLE).collect();
+    for (&k, (p, _, _)) in hits.iter().zip(&points) {
+        let t = mesh.triangles[frame_a.ids[k] as usize].map(|i| mesh.frames[f][i as usize]);
+        let d = reference::point_triangle_distance(*p, t[0], t[1], t[2]);
+        assert!(d < 1e-4, "back-projected point {d} from its triangle");
+        let (u, v, z) = a.project(*p);
+        let (x, y) = ((k as u32 % 64) as f32 + 0.5, (k as u32 / 64) as f32 + 0.5);
+        assert!((u - x).abs() < 1e-3 && (v - y).abs() < 1e-3 && (z - frame_a.depth[k]).abs() < 1e-4);
+    }
+    // Re-rendered from a second view, no back-projected point may sit in front of the surface
+    // that view sees (beyond a silhouette's pixel), and many coincide with it.
+    let frame_b = rast.render(&mesh.frames[f], std::slice::from_ref(b)).unwrap();
+    let (mut in_front, mut on_surface, mut inside) = (0, 0, 0);
+    for (p, _, _) in &points {
+        let (u, v, z) = b.project(*p);
+        if u < 0.0 || v < 0.0 || u >= 64.0 || v >= 64.0 {
+            continue;
+        }
+        inside += 1;
+        let d = frame_b.depth[v as usize * 64 + u as usize];
+        let tol = 2.0 * z / b.fx;
+        if d == 0.0 || z < d - tol {
+            in_front += 1;
+        } else if (z - d).abs() <= tol {
+            on_surface += 1;
+        }
+    }
+    assert!(
+        in_front as f64 <= 0.03 * inside as f64,
+        "{in_front} of {inside} points in front of view B's surface"
+    );
+    assert!(
+        on_surface as f64 >= 0.3 * inside as f64,
+        "only {on_surface} of {inside} points on view B's surface"
+    );
+}
+
+#[test]
+fn tracks_stay_on_the_surface_and_start_visible() {
+    let (_, mesh) = scene(21, None).unwrap();
+    let a = render_scene(&gpu(), &mesh, &small_opts(), 1, None, &mut |_| {}).unwrap();
+    assert_eq!(a.tracks.len(), 48);
+    for (t, track) in a.tracks.iter().enumerate() {
+        assert_ne!(a.visibility[t][0], 0, "track {t} came from a frame-0 pixel but no camera sees it");
+        for (f, &p) in track.iter().enumerate() {
+            let d = distance_to_mesh(p, &mesh, f);
+            assert!(d < 1e-5, "track {t} is {d} off the surface at frame {f}");
+            let (tri, b) = a.anchors[t];
+            assert_eq!(p, mesh.surface_point(f, tri, b));
+        }
+        // It moves with the surface: frame 0 is where its pixel back-projects.
+        assert!(track[0].iter().all(|x| x.abs() <= 1.0));
+    }
+    let moving = a.tracks.iter().filter(|t| length3(sub(t[FRAMES - 1], t[0])) > 1e-3).count();
+    assert!(moving > 0, "no track moves");
+    // Points and occupancy agree: every point's voxel is occupied in its frame.
+    for p in a.points.iter().step_by(17) {
+        let f = (p[6] * FPS).round() as usize;
+        let v = velox::data::pipeline::voxel_index([p[0], p[1], p[2]]);
+        assert_eq!(a.occupancy[f * 4096 + v / 64] >> (v % 64) & 1, 1);
+        assert!(p[3..6].iter().all(|c| (0.0..=1.0).contains(c)));
+    }
+}
+
+fn length3(v: V3) -> f32 {
+    (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
+}
+
+#[test]
+fn same_seed_same_scene() {
+    let (r1, m1) = scene(42, None).unwrap();
+    let (r2, m2) = scene(42, None).unwrap();
+    let (_, m3) = scene(43, None).unwrap();
+    assert_eq!(r1.objects, r2.objects);
+    assert_eq!(m1, m2);
+    assert_ne!(m1, m3);
+    assert_eq!(m1.frames.len(), FRAMES);
+    assert!(m1.frames.iter().flatten().flatten().all(|x| x.abs() <= 1.0));
+    let opts = small_opts();
+    let a = render_scene(&gpu(), &m1, &opts, 9, None, &mut |_| {}).unwrap();
+    let b = render_scene(&gpu(), &m2, &opts, 9, None, &mut |_| {}).unwrap();
+    assert_eq!(a, b);
+    assert_eq!(a.points.len(), opts.points);
+    assert!(a.points.windows(2).all(|w| w[0][6] <= w[1][6]), "points are ordered by frame");
+}
+
+#[test]
+fn many_seeds_make_valid_varied_scenes() {
+    let mut kinds = std::collections::BTreeSet::new();
+    for seed in 0..40 {
+        let (recipe, mesh) = scene(seed, None).unwrap();
+        mesh.validate().unwrap();
+        kinds.extend(recipe.objects);
+        let moved = mesh.frames[0] != mesh.frames[FRAMES - 1];
+        assert!(moved, "seed {seed}: nothing moves");
+    }
+    assert_eq!(kinds.len(), 5, "kinds seen: {kinds:?}");
+}
+
+fn shared_gltf(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/assets/gltf").join(name)
+}
+
+#[test]
+fn imports_real_skinned_and_morph_exports() {
+    // SimpleSkin: Khronos glTF sample models, CC-BY 4.0. MorphStressTest: Analytical
+    // Graphics, Inc., model and textures by Ed Mackey, CC-BY 4.0.
+    let skin = import(&shared_gltf("SimpleSkin.gltf"), None).unwrap();
+    let morph = import(&shared_gltf("MorphStressTest.gltf"), None).unwrap();
+    for (name, imp) in [("SimpleSkin", &skin), ("MorphStressTest", &morph)] {
+        let m = &imp.mesh;
+        m.validate().unwrap();
+        assert_eq!(m.frames.len(), FRAMES, "{name}");
+        assert!(imp.animation.is_some(), "{name} has an animation");
+        assert!(m.frames.iter().flatten().flatten().all(|x| x.abs() <= 1.0), "{name} is normalised");
+        let moved = (0..FRAMES)
+            .flat_map(|f| (0..m.num_vertices()).map(move |v| length3(sub(m.frames[f][v], m.frames[0][v]))))
+            .fold(0.0f32, f32::max);
+        assert!(moved > 0.05, "{name}: the animation moves vertices by at most {moved}");
+    }
+    assert!(morph.mesh.textures.iter().any(|t| t.width > 1), "MorphStressTest's PNG texture is imported");
+    // A skinned import renders into a scene with tracks on it.
+    let a = render_scene(&gpu(), &skin.mesh, &small_opts(), 3, None, &mut |_| {}).unwrap();
+    assert!(!a.tracks.is_empty());
+}
+
+fn base64(bytes: &[u8]) -> String {
+    const T: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    let mut s = String::new();
+    for c in bytes.chunks(3) {
+        let n = (c[0] as u32) << 16 | (*c.get(1).unwrap_or(&0) as u32) << 8 | *c.get(2).unwrap_or(&0) as u32;
+        for k in 0..4 {
+            if k <= c.len() {
+                s.push(T[(n >> (18 - 6 * k)) as usize & 63] as char);
+            } else {
+                s.push('=');
+            }
+        }
+    }
+    s
+}
+
+/// A quad under a parent node whose translation is animated, with a morph target that lifts
+/// one corner, its weight animated from 0 to 1 over one second. Returns (json, binary).
+fn quad_asset(uri: Option<&str>) -> (String, Vec<u8>) {
+    let f = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+    let mut bin = Vec::new();
+    bin.extend(f(&[0., 0., 0., 1., 0., 0., 1., 1., 0., 0., 1., 0.])); // 0: positions
+    bin.extend(f(&[0., 0., 0., 0., 0., 0., 0., 0., 1., 0., 0., 0.])); // 48: target
+    bin.extend([0u16, 1, 2, 0, 2, 3].iter().flat_map(|i| i.to_le_bytes())); // 96: indices
+    bin.extend(f(&[0., 1.])); // 108: times
+    bin.extend(f(&[0., 1.])); // 116: weights
+    bin.extend(f(&[0., 0., 0., 2., 0., 0.])); // 124: translations
+    let buffer = match uri {
+        Some(u) => format!(r#"{{"byteLength": {}, "uri": "{u}"}}"#, bin.len()),
+        None => format!(r#"{{"byteLength": {}}}"#, bin.len()),
+    };
+    let json = format!(
+        r#"{{
+  "asset": {{"version": "2.0", "copyright": "test asset"}},
+  "scene": 0,
+  "scenes": [{{"nodes": [0]}}],
+  "nodes": [{{"children": [1]}}, {{"mesh": 0, "translation": [0, 1, 0]}}],
+  "meshes": [{{"primitives": [{{"attributes": {{"POSITION": 0}}, "indices": 2, "targets": [{{"POSITION": 1}}]}}], "weights": [0]}}],
+  "buffers": [{buffer}],
+  "bufferViews": [
+    {{"buffer": 0, "byteOffset": 0, "byteLength": 48}},
+    {{"buffer": 0, "byteOffset": 48, "byteLength": 48}},
+    {{"buffer": 0, "byteOffset": 96, "byteLength": 12}},
+    {{"buffer": 0, "byteOffset": 108, "byteLength": 8}},
+    {{"buffer": 0, "byteOffset": 116, "byteLength": 8}},
+    {{"buffer": 0, "byteOffset": 124, "byteLength": 24}}
+  ],
+  "accessors": [
+    {{"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3", "min": [0, 0, 0], "max": [1, 1, 0]}},
+    {{"bufferView": 1, "componentType": 5126, "count": 4, "type": "VEC3", "min": [0, 0, 0], "max": [0, 0, 1]}},
+    {{"bufferView": 2, "componentType": 5123, "count": 6, "type": "SCALAR"}},
+    {{"bufferView": 3, "componentType": 5126, "count": 2, "type": "SCALAR", "min": [0], "max": [1]}},
+    {{"bufferView": 4, "componentType": 5126, "count": 2, "type": "SCALAR"}},
+    {{"bufferView": 5, "componentType": 5126, "count": 2, "type": "VEC3"}}
+  ],
+  "animations": [{{
+    "samplers": [{{"input": 3, "output": 4}}, {{"input": 3, "output": 5}}],
+    "channels": [{{"sampler": 0, "target": {{"node": 1, "path": "weights"}}}},
+                 {{"sampler": 1, "target": {{"node": 0, "path": "translation"}}}}]
+  }}]
+}}"#
+    );
+    (json, bin)
+}
+
+fn glb(json: &str, bin: &[u8]) -> Vec<u8> {
+    let mut j = json.as_bytes().to_vec();
+    while !j.len().is_multiple_of(4) {
+        j.push(b' ');
+    }
+    let mut b = bin.to_vec();
+    while !b.len().is_multiple_of(4) {
+        b.push(0);
+    }
+    let total = 12 + 8 + j.len() + 8 + b.len();
+    let mut out = Vec::new();
+    out.extend(b"glTF");
+    out.extend(2u32.to_le_bytes());
+    out.extend((total as u32).to_le_bytes());
+    out.extend((j.len() as u32).to_le_bytes());
+    out.extend(0x4E4F_534Au32.to_le_bytes());
+    out.extend(j);
+    out.extend((b.len() as u32).to_le_bytes());
+    out.extend(0x004E_4942u32.to_le_bytes());
+    out.extend(b);
+    out
+}
+
+#[test]
+fn imports_written_gltf_and_glb_with_hierarchy_and_morph_animation() {
+    let dir = temp_dir("gltf");
+    let (json, bin) = quad_asset(None);
+    let data_uri = format!("data:application/octet-stream;base64,{}", base64(&bin));
+    let (embedded, _) = quad_asset(Some(&data_uri));
+    std::fs::write(dir.join("quad.gltf"), embedded).unwrap();
+    std::fs::write(dir.join("quad.glb"), glb(&json, &bin)).unwrap();
+    let (side, _) = quad_asset(Some("quad.bin"));
+    std::fs::write(dir.join("side.gltf"), side).unwrap();
+    std::fs::write(dir.join("quad.bin"), &bin).unwrap();
+
+    // What the file says, sampled at 24 times over its one second, then normalised.
+    let mut want = AnimatedMesh::default();
+    let rest: [V3; 4] = [[0., 0., 0.], [1., 0., 0.], [1., 1., 0.], [0., 1., 0.]];
+    want.frames = (0..FRAMES)
+        .map(|f| {
+            let s = f as f32 / (FRAMES - 1) as f32;
+            rest.iter()
+                .enumerate()
+                .map(|(v, p)| [p[0] + 2.0 * s, p[1] + 1.0, p[2] + if v == 2 { s } else { 0.0 }])
+                .collect()
+        })
+        .collect();
+    want.normalise();
+
+    let a = import(&dir.join("quad.gltf"), None).unwrap();
+    let b = import(&dir.join("quad.glb"), None).unwrap();
+    let c = import(&dir.join("side.gltf"), None).unwrap();
+    assert_eq!(a.mesh, b.mesh);
+    assert_eq!(a.mesh, c.mesh);
+    assert_eq!(a.mesh.triangles, vec![[0, 1, 2], [0, 2, 3]]);
+    assert_eq!(a.credits.as_deref(), Some("test asset"));
+    for f in 0..FRAMES {
+        for v in 0..4 {
+            let d = length3(sub(a.mesh.frames[f][v], want.frames[f][v]));
+            assert!(d < 1e-5, "frame {f} vertex {v}: {:?} vs {:?}", a.mesh.frames[f][v], want.frames[f][v]);
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn corrupt_gltf_files_get_errors_that_name_them() {
+    let dir = temp_dir("corrupt");
+    let (json, bin) = quad_asset(None);
+    let good = glb(&json, &bin);
+    let mut bad_bin = bin.clone();
+    bad_bin[98] = 9; // the second index names vertex 9 of 4
+    let cases: Vec<(&str, Vec<u8>)> = vec![
+        ("truncated.glb", good[..good.len() / 2].to_vec()),
+        ("garbage.gltf", b"{ this is not json".to_vec()),
+        ("empty.glb", Vec::new()),
+        ("missing_buffer.gltf", quad_asset(Some("nowhere.bin")).0.into_bytes()),
+        ("no_scene.gltf", br#"{"asset": {"version": "2.0"}}"#.to_vec()),
+        ("bad_index.glb", glb(&json, &bad_bin)),
+    ];
+    std::fs::write(dir.join("quad.bin"), &bin).unwrap();
+    for (name, bytes) in cases {
+        let path = dir.join(name);
+        std::fs::write(&path, bytes).unwrap();
+        let err = import(&path, None).expect_err(name).to_string();
+        assert!(err.contains(name), "{name}: the error does not name the file: {err}");
+    }
+    let err = import(&dir.join("absent.gltf"), None).unwrap_err().to_string();
+    assert!(err.contains("absent.gltf"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn dataset_on_disk_reads_back_in_the_background() {
+    let root = temp_dir("dataset");
+    let opts = SynthOptions { res: 16, points: 500, supersample: 2, tracks: 8 };
+    let mut written = Vec::new();
+    for seed in 0..2u64 {
+        let (_, mesh) = scene(seed, None).unwrap();
+        let dir = root.join(format!("scene_{seed:05}"));
+        let a = render_scene(&gpu(), &mesh, &opts, seed, Some(&dir), &mut |_| {}).unwrap();
+        let meta = SceneMeta {
+            format: FORMAT.into(),
+            source: format!("procedural seed {seed}"),
+            credits: None,
+            frames: FRAMES,
+            fps: FPS,
+            resolution: opts.res,
+            points: a.points.len(),
+            tracks: a.tracks.len(),
+            supervision_views: a.supervision_cameras.len(),
+            supersample: opts.supersample,
+        };
+        write_arrays(&dir, &meta, &a).unwrap();
+        written.push(a);
+    }
+    let s = read_scene(&root.join("scene_00001"), true).unwrap();
+    assert_eq!(s.points, written[1].points);
+    assert_eq!(s.occupancy, written[1].occupancy);
+    assert_eq!(s.tracks, written[1].tracks);
+    assert_eq!(s.visibility, written[1].visibility);
+    assert_eq!(s.cameras.supervision, written[1].supervision_cameras);
+    assert_eq!(s.supervision.len(), FRAMES * 25);
+    assert_eq!(s.video.len(), FRAMES);
+    assert!(s.supervision.iter().any(|img| img.iter().any(|&b| b > 0)), "supervision views show the object");
+
+    // A damaged scene is an error naming it; the loader goes on to the next.
+    std::fs::write(root.join("scene_00000/points.ply"), b"ply\nnonsense").unwrap();
+    let results: Vec<_> =
+        Loader::spawn(&root, LoaderOptions { images: false, ..Default::default() }).unwrap().collect();
+    assert_eq!(results.len(), 2);
+    let err = results[0].as_ref().unwrap_err().to_string();
+    assert!(err.contains("scene_00000") && err.contains("points.ply"), "{err}");
+    assert_eq!(results[1].as_ref().unwrap().points, written[1].points);
+    // Shuffled, several epochs, dropped early: the thread stops.
+    let mut l =
+        Loader::spawn(&root, LoaderOptions { epochs: 0, shuffle: Some(1), images: false, prefetch: 1 })
+            .unwrap();
+    for _ in 0..5 {
+        assert!(l.next().is_some());
+    }
+    drop(l);
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+#[test]
+fn textures_crop_a_folder_of_images() {
+    let dir = temp_dir("textures");
+    let img = image::RgbImage::from_fn(300, 200, |x, y| image::Rgb([(x % 256) as u8, (y % 256) as u8, 77]));
+    img.save(dir.join("a.png")).unwrap();
+    std::fs::write(dir.join("notes.txt"), "not an image").unwrap();
+    let folder = velox::data::texture::ImageFolder::open(&dir).unwrap();
+    let mut rng = Rng::new(3);
+    let t = folder.random_crop(&mut rng).unwrap();
+    assert_eq!((t.width, t.height, t.texels.len()), (128, 128, 128 * 128));
+    assert!(t.texels.iter().all(|&v| (v >> 16) & 255 == 77), "the crop keeps the image's blue channel");
+    // Scenes with a folder use its crops on some objects.
+    let (_, mesh) = scene(4, Some(&folder)).unwrap();
+    assert!(mesh.textures.iter().any(|t| t.texels.iter().all(|&v| (v >> 16) & 255 == 77)));
+    // A broken image is an error naming it.
+    std::fs::write(dir.join("a.png"), b"\x89PNG broken").unwrap();
+    let err = folder.random_crop(&mut rng).unwrap_err().to_string();
+    assert!(err.contains("a.png"), "{err}");
+    let empty = temp_dir("no-images");
+    assert!(velox::data::texture::ImageFolder::open(&empty).is_err());
+    let _ = std::fs::remove_dir_all(&dir);
+    let _ = std::fs::remove_dir_all(&empty);
+}

@@ -1,0 +1,190 @@
+//! `velox data`: makes training scenes (procedural or from glTF files) in the format of
+//! `velox_data::format`, with a progress bar over the frames of all scenes.
+//!
+//! A scene is rendered into `NAME.partial` and renamed when complete. A file that cannot be
+//! imported is reported with its name and the problem, and the other scenes are still made;
+//! the command fails at the end if any scene failed.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use clap::{Args, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+use velox_data::format::{partial_dir, write_arrays, SceneMeta, FORMAT};
+use velox_data::pipeline::FPS;
+use velox_data::procedural::FRAMES;
+use velox_data::{gltf_import, procedural, render_scene, AnimatedMesh, SynthOptions};
+use velox_engine::Gpu;
+
+use crate::CliResult;
+
+#[derive(Subcommand)]
+pub enum DataCommand {
+    /// Procedural animated scenes: walkers, arms, pendulums, deforming and rigid shapes.
+    Synth {
+        #[command(flatten)]
+        common: CommonArgs,
+        /// Number of scenes.
+        #[arg(long, default_value_t = 8)]
+        scenes: usize,
+        /// Seed of the first scene; scene i uses seed + i.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Folder of PNG/JPEG images to crop textures from (else procedural textures only).
+        #[arg(long)]
+        textures: Option<PathBuf>,
+    },
+    /// Scenes from glTF 2.0 files (.gltf or .glb), one per file.
+    Gltf {
+        /// The files to import.
+        #[arg(required = true)]
+        files: Vec<PathBuf>,
+        #[command(flatten)]
+        common: CommonArgs,
+        /// Which animation to sample (default: the first).
+        #[arg(long)]
+        animation: Option<usize>,
+        /// Seed for the cameras, point sample and tracks.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+    },
+}
+
+#[derive(Args)]
+pub struct CommonArgs {
+    /// Output folder (one sub-folder per scene).
+    #[arg(long)]
+    out: PathBuf,
+    /// Image side of every view.
+    #[arg(long, default_value_t = 128, value_parser = clap::value_parser!(u32).range(8..=2048))]
+    res: u32,
+    /// Points in each scene's 4D point cloud.
+    #[arg(long, default_value_t = 200_000)]
+    points: usize,
+    /// Tracked surface points per scene.
+    #[arg(long, default_value_t = 1024)]
+    tracks: usize,
+    /// Supersampling factor of the anti-aliased views.
+    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=4))]
+    supersample: u32,
+}
+
+/// One scene to make: its folder name, a description, a seed and how to get its mesh.
+struct Job {
+    name: String,
+    source: String,
+    seed: u64,
+    make: Box<dyn FnOnce() -> velox_data::DataResult<(AnimatedMesh, Option<String>)>>,
+}
+
+pub fn run(cmd: DataCommand) -> CliResult<()> {
+    let (common, jobs): (CommonArgs, Vec<Job>) = match cmd {
+        DataCommand::Synth { common, scenes, seed, textures } => {
+            let folder = textures.as_deref().map(velox_data::texture::ImageFolder::open).transpose()?;
+            let folder = folder.map(std::sync::Arc::new);
+            let jobs = (0..scenes as u64)
+                .map(|i| {
+                    let s = seed + i;
+                    let folder = folder.clone();
+                    Job {
+                        name: format!("scene_{s:05}"),
+                        source: format!("procedural seed {s}"),
+                        seed: s,
+                        make: Box::new(move || {
+                            let (recipe, mesh) = procedural::scene(s, folder.as_deref())?;
+                            Ok((mesh, Some(recipe.objects.join(", "))))
+                        }),
+                    }
+                })
+                .collect();
+            (common, jobs)
+        }
+        DataCommand::Gltf { files, common, animation, seed } => {
+            let jobs = files
+                .into_iter()
+                .enumerate()
+                .map(|(i, file)| {
+                    let stem = file.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+                    Job {
+                        name: format!("{stem}_{i:03}"),
+                        source: file.display().to_string(),
+                        seed: seed + i as u64,
+                        make: Box::new(move || {
+                            let imported = gltf_import::import(&file, animation)?;
+                            Ok((imported.mesh, imported.credits))
+                        }),
+                    }
+                })
+                .collect();
+            (common, jobs)
+        }
+    };
+    std::fs::create_dir_all(&common.out).map_err(|e| format!("{}: {e}", common.out.display()))?;
+    let gpu = Gpu::new()?;
+    let opts = SynthOptions {
+        res: common.res,
+        points: common.points,
+        supersample: common.supersample,
+        tracks: common.tracks,
+    };
+    let bar = ProgressBar::new((jobs.len() * FRAMES) as u64);
+    bar.set_style(
+        ProgressStyle::with_template("{bar:40} {pos}/{len} frames  {elapsed} (eta {eta})  {msg}")
+            .expect("a valid template"),
+    );
+    let start = Instant::now();
+    let mut failed = Vec::new();
+    let mut written = 0;
+    for job in jobs {
+        bar.set_message(job.name.clone());
+        match make_scene(&gpu, job, &opts, &common.out, &bar) {
+            Ok(()) => written += 1,
+            Err(e) => {
+                bar.suspend(|| eprintln!("error: {e}"));
+                failed.push(e);
+            }
+        }
+    }
+    bar.finish_with_message("done");
+    println!(
+        "wrote {written} scene(s) to {} in {:.1} s",
+        common.out.display(),
+        start.elapsed().as_secs_f64()
+    );
+    if !failed.is_empty() {
+        return Err(format!("{} scene(s) failed; see the errors above", failed.len()).into());
+    }
+    Ok(())
+}
+
+fn make_scene(gpu: &Gpu, job: Job, opts: &SynthOptions, out: &Path, bar: &ProgressBar) -> CliResult<()> {
+    let dir = out.join(&job.name);
+    let partial = partial_dir(&dir);
+    let start_pos = bar.position();
+    let (mesh, detail) = (job.make)().map_err(|e| e.to_string())?;
+    let _ = std::fs::remove_dir_all(&partial);
+    let arrays = render_scene(gpu, &mesh, opts, job.seed, Some(&partial), &mut |f| {
+        bar.set_position(start_pos + f as u64 + 1)
+    })
+    .map_err(|e| format!("{}: {e}", job.source))?;
+    let is_gltf = job.source.ends_with(".gltf") || job.source.ends_with(".glb");
+    let meta = SceneMeta {
+        format: FORMAT.into(),
+        source: match (&detail, is_gltf) {
+            (Some(d), false) => format!("{}: {d}", job.source),
+            _ => job.source.clone(),
+        },
+        credits: if is_gltf { detail } else { None },
+        frames: FRAMES,
+        fps: FPS,
+        resolution: opts.res,
+        points: arrays.points.len(),
+        tracks: arrays.tracks.len(),
+        supervision_views: arrays.supervision_cameras.len(),
+        supersample: opts.supersample,
+    };
+    write_arrays(&partial, &meta, &arrays)?;
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::rename(&partial, &dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+    Ok(())
+}
