@@ -11,6 +11,7 @@ pub mod fps;
 pub mod gather;
 pub mod matmul;
 pub mod norm;
+pub mod raster;
 pub mod reduce;
 pub mod scan;
 pub mod scatter_add;
