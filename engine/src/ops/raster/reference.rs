@@ -9,6 +9,12 @@ use super::{
 
 type M3 = [[f64; 3]; 3];
 
+/// Finite in f32: the GPU computes in f32, so a value beyond f32's range is as non-finite to
+/// the reference as it is to the kernels.
+fn fits(v: f64) -> bool {
+    (v as f32).is_finite()
+}
+
 fn mul(a: &M3, b: &M3) -> M3 {
     let mut c = [[0.0; 3]; 3];
     for i in 0..3 {
@@ -159,7 +165,7 @@ pub fn project_one(s: &Scene, i: usize, cam: &Camera) -> Result<Splat, Dropped> 
     }
     let g = geometry(s, i, cam);
     let t = g.t;
-    if t.iter().any(|v| !v.is_finite()) {
+    if !t.iter().all(|&v| fits(v)) {
         return Err(Dropped::Invalid);
     }
     if t[2] < NEAR as f64 {
@@ -173,7 +179,7 @@ pub fn project_one(s: &Scene, i: usize, cam: &Camera) -> Result<Splat, Dropped> 
     let det = a * c - b * b;
     let u = cam.fx as f64 * t[0] / t[2] + cam.cx as f64;
     let v = cam.fy as f64 * t[1] / t[2] + cam.cy as f64;
-    if ![det, a, c, u, v].iter().all(|x| x.is_finite()) || det < MIN_DET as f64 {
+    if ![det, a, c, u, v].iter().all(|&x| fits(x)) || det < MIN_DET as f64 {
         return Err(Dropped::Invalid);
     }
     let conic = [c / det, -b / det, a / det];
