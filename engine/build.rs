@@ -34,10 +34,12 @@ fn main() {
     for path in &files {
         println!("cargo:rerun-if-changed={}", path.display());
         match std::fs::read_to_string(path) {
-            Ok(source) => match expand_includes(&shader_dir, path, &source).and_then(|s| variants(path, &s)) {
-                Ok(list) => units.extend(list),
-                Err(e) => errors.push(e),
-            },
+            Ok(source) => {
+                match expand_includes(&shader_dir, path, &source).and_then(|s| variants(path, &s)) {
+                    Ok(list) => units.extend(list),
+                    Err(e) => errors.push(e),
+                }
+            }
             Err(e) => errors.push(format!("{}: {e}", path.display())),
         }
     }

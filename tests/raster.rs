@@ -51,7 +51,13 @@ fn check_forward(what: &str, g: &GaussianData, cam: &Camera, bound: f64) -> Forw
 /// Gaussians, a few footprint edges fall on a pixel centre within f32 rounding, and f32 and
 /// f64 then decide apart (the pixels there get alpha 1/255 either way).
 #[track_caller]
-fn check_forward_pairs(what: &str, g: &GaussianData, cam: &Camera, bound: f64, pairs_slack: usize) -> Forward {
+fn check_forward_pairs(
+    what: &str,
+    g: &GaussianData,
+    cam: &Camera,
+    bound: f64,
+    pairs_slack: usize,
+) -> Forward {
     let gpu = gpu();
     let gaussians = g.upload(&gpu).unwrap();
     let rendered = render(&gpu, &gaussians, cam, BG).unwrap();
@@ -67,7 +73,11 @@ fn check_forward_pairs(what: &str, g: &GaussianData, cam: &Camera, bound: f64, p
     ];
     assert_eq!(counts, reference.counts, "{what}: drop counts");
     let pairs = stats.intersections as usize;
-    assert!(pairs.abs_diff(reference.intersections) <= pairs_slack, "{what}: {pairs} tile pairs, reference {}", reference.intersections);
+    assert!(
+        pairs.abs_diff(reference.intersections) <= pairs_slack,
+        "{what}: {pairs} tile pairs, reference {}",
+        reference.intersections
+    );
     let img = &rendered.image;
     let rgb: Vec<f32> = img.rgb.read().unwrap();
     let alpha: Vec<f32> = img.alpha.read().unwrap();
@@ -258,7 +268,7 @@ fn poison_inputs_are_dropped_and_counted() {
     push(ok.0, ok.1, ok.2, ok.3, [0.5, f32::INFINITY, 0.5]);
     push([3e38, 0.0, 3.0], ok.1, ok.2, ok.3, ok.4); // finite, but overflows in projection
     push(ok.0, [40.0; 3], ok.2, ok.3, ok.4); // covariance overflows f32
-    // Dropped for ordinary reasons.
+                                             // Dropped for ordinary reasons.
     push([0.0, 0.0, -3.0], ok.1, ok.2, ok.3, ok.4); // behind the camera
     push([0.0, 0.0, 0.005], ok.1, ok.2, ok.3, ok.4); // before the near plane
     push([50.0, 0.0, 3.0], ok.1, ok.2, ok.3, ok.4); // outside the image
@@ -277,9 +287,15 @@ fn poison_inputs_are_dropped_and_counted() {
     let (dr, da, dd) = image_grads(&cam, 62);
     let t = |v: &[f32], s: &[usize]| Tensor::from_slice(&gpu, s, v).unwrap();
     let mut rec = gpu.recorder().unwrap();
-    let grads =
-        render_backward(&mut rec, &f.gaussians, &f.rendered, &t(&dr, &[48, 64, 3]), &t(&da, &[48, 64]), &t(&dd, &[48, 64]))
-            .unwrap();
+    let grads = render_backward(
+        &mut rec,
+        &f.gaussians,
+        &f.rendered,
+        &t(&dr, &[48, 64, 3]),
+        &t(&da, &[48, 64]),
+        &t(&dd, &[48, 64]),
+    )
+    .unwrap();
     rec.submit().unwrap();
     for (name, (got, width)) in NAMES.iter().zip(read_grads(&grads).iter().zip([3, 3, 4, 1, 3])) {
         assert!(got.iter().all(|v| v.is_finite()), "d{name} has a non-finite value");
@@ -301,4 +317,112 @@ fn bad_shapes_and_cameras_are_errors() {
     cam.fx = f32::NAN;
     assert!(render(&gpu, &t, &cam, BG).is_err());
     let _ = raster::TILE;
+}
+
+mod files {
+    use super::*;
+    use velox::models::files::{image, ply};
+
+    fn temp(name: &str) -> std::path::PathBuf {
+        let dir = std::env::temp_dir().join(format!("velox-raster-test-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        dir.join(name)
+    }
+
+    #[test]
+    fn ply_round_trip_and_layout() {
+        let g = scene(57, 81, (-3.0, -1.0), (-2.0, 2.0));
+        let path = temp("round.ply");
+        ply::write(&path, &g).unwrap();
+        let back = ply::read(&path).unwrap();
+        assert_eq!(back.means, g.means);
+        assert_eq!(back.log_scales, g.log_scales);
+        assert_eq!(back.quats, g.quats);
+        assert_eq!(back.opacities, g.opacities);
+        for (a, b) in back.colours.iter().zip(&g.colours) {
+            assert!((a - b).abs() < 1e-6, "colour {a} vs {b}");
+        }
+        let bytes = std::fs::read(&path).unwrap();
+        let header = String::from_utf8_lossy(&bytes[..600]);
+        assert!(
+            header.starts_with("ply\nformat binary_little_endian 1.0\nelement vertex 57\nproperty float x\n")
+        );
+        assert!(
+            header.contains("property float f_dc_0\n")
+                && header.contains("property float rot_3\nend_header\n")
+        );
+    }
+
+    /// A file as other tools write it: doubles, extra properties in another order, higher
+    /// spherical harmonics, another element before the vertices.
+    #[test]
+    fn ply_reads_other_layouts() {
+        let names = [
+            "rot_0", "rot_1", "rot_2", "rot_3", "x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "f_rest_0",
+            "opacity", "scale_0", "scale_1", "scale_2",
+        ];
+        let mut bytes = b"ply\nformat binary_little_endian 1.0\ncomment made by hand\nelement camera 1\nproperty uchar id\nelement vertex 2\n".to_vec();
+        for n in names {
+            bytes.extend_from_slice(format!("property double {n}\n").as_bytes());
+        }
+        bytes.extend_from_slice(b"end_header\n");
+        bytes.push(7); // the camera element
+        for i in 0..2 {
+            let v =
+                [1.0, 0.0, 0.0, 0.0, 0.5 + i as f64, -1.0, 3.0, 0.0, 1.0, -1.0, 9.0, 2.0, -4.0, -4.5, -5.0];
+            for x in v {
+                bytes.extend_from_slice(&f64::to_le_bytes(x));
+            }
+        }
+        let g = ply::from_bytes(&bytes).unwrap();
+        assert_eq!(g.len(), 2);
+        assert_eq!(&g.means[3..], &[1.5, -1.0, 3.0]);
+        assert_eq!(&g.quats[..4], &[1.0, 0.0, 0.0, 0.0]);
+        assert_eq!(&g.log_scales[..3], &[-4.0, -4.5, -5.0]);
+        assert_eq!(g.opacities, vec![2.0, 2.0]);
+        assert!((g.colours[1] - (0.5 + ply::SH_C0 as f32)).abs() < 1e-7);
+    }
+
+    #[test]
+    fn malformed_ply_files_are_clear_errors() {
+        let good = ply::to_bytes(&scene(3, 91, (-3.0, -1.0), (0.0, 1.0))).unwrap();
+        let expect = |bytes: &[u8], needle: &str| {
+            let e = ply::from_bytes(bytes).unwrap_err().to_string();
+            assert!(e.contains(needle), "error `{e}` should mention `{needle}`");
+        };
+        expect(&good[..good.len() - 5], "truncated");
+        expect(b"hello", "not a PLY file");
+        expect(b"ply\nformat ascii 1.0\nelement vertex 0\nend_header\n", "ascii");
+        expect(
+            b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nend_header\n",
+            "`y`",
+        );
+        expect(
+            b"ply\nformat binary_little_endian 1.0\nelement face 1\nproperty list uchar int v\nend_header\n",
+            "list",
+        );
+        expect(b"ply\nformat binary_little_endian 1.0\nelement vertex many\nend_header\n", "not a number");
+        assert!(ply::read(&temp("missing.ply")).unwrap_err().to_string().contains("missing.ply"));
+    }
+
+    #[test]
+    fn png_and_exr_round_trip() {
+        let (w, h) = (13u32, 7u32);
+        let mut rng = Rng::new(101);
+        let rgb = rng.uniform_vec((w * h * 3) as usize, -0.2, 1.2);
+        let path = temp("img.png");
+        image::write_png(&path, &rgb, w, h).unwrap();
+        let (back, bw, bh) = image::read_png(&path).unwrap();
+        assert_eq!((bw, bh), (w, h));
+        for (a, b) in back.iter().zip(&rgb) {
+            assert!((a - b.clamp(0.0, 1.0)).abs() <= 0.5 / 255.0 + 1e-6);
+        }
+        let depth = rng.uniform_vec((w * h) as usize, 0.0, 10.0);
+        let path = temp("depth.exr");
+        image::write_exr_depth(&path, &depth, w, h).unwrap();
+        let (back, bw, bh) = image::read_exr_depth(&path).unwrap();
+        assert_eq!((bw, bh, back), (w, h, depth));
+        assert!(image::write_png(&path, &rgb[1..], w, h).is_err(), "wrong length");
+        assert!(image::read_exr_depth(&temp("img.png")).is_err());
+    }
 }

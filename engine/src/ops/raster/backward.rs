@@ -6,7 +6,9 @@
 use super::forward::{BlendParams, ProjectParams};
 use super::{Gaussians, Rendered};
 use crate::error::{Error, Result};
-use crate::kernels::{KernelId, RASTER_BACKWARD_CAS_MAIN, RASTER_BACKWARD_MAIN, RASTER_PROJECT_PROJECT_BACKWARD};
+use crate::kernels::{
+    KernelId, RASTER_BACKWARD_CAS_MAIN, RASTER_BACKWARD_MAIN, RASTER_PROJECT_PROJECT_BACKWARD,
+};
 use crate::ops::fill::fill_bits;
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
@@ -27,7 +29,8 @@ pub struct Grads {
 pub fn variant(gpu: &Gpu) -> Result<(KernelId, &'static str)> {
     if !gpu.caps().subgroup_arithmetic {
         return Err(Error::Unsupported(
-            "the rasteriser's backward pass needs subgroup arithmetic and vote operations in compute shaders".into(),
+            "the rasteriser's backward pass needs subgroup arithmetic and vote operations in compute shaders"
+                .into(),
         ));
     }
     Ok(if gpu.supports(RASTER_BACKWARD_MAIN) {
@@ -82,7 +85,9 @@ fn render_backward_with(
         return Err(Error::Shape(format!("render_backward: {n} Gaussians, but {} were rendered", p.n)));
     }
     let (h, w) = (cam.height as usize, cam.width as usize);
-    for (t, shape, name) in [(d_rgb, vec![h, w, 3], "d_rgb"), (d_alpha, vec![h, w], "d_alpha"), (d_depth, vec![h, w], "d_depth")] {
+    for (t, shape, name) in
+        [(d_rgb, vec![h, w, 3], "d_rgb"), (d_alpha, vec![h, w], "d_alpha"), (d_depth, vec![h, w], "d_depth")]
+    {
         if t.dtype() != DType::F32 || t.shape() != shape.as_slice() {
             return Err(Error::Shape(format!("render_backward: {name} {t:?} must be f32 {shape:?}")));
         }

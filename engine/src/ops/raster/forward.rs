@@ -6,9 +6,13 @@
 //! then, once the number of (tile, Gaussian) pairs is known on the host, [`rasterize`] (key
 //! emission into buffers of exactly that size, sort, ranges, blend). [`render`] does both.
 
-use super::{Camera, Gaussians, ALPHA_MAX, DILATION, MAX_TILES_PER_GAUSSIAN, MIN_ALPHA, MIN_DET, NEAR, T_STOP};
+use super::{
+    Camera, Gaussians, ALPHA_MAX, DILATION, MAX_TILES_PER_GAUSSIAN, MIN_ALPHA, MIN_DET, NEAR, T_STOP,
+};
 use crate::error::{Error, Result};
-use crate::kernels::{RASTER_BLEND_BLEND, RASTER_PROJECT_PROJECT, RASTER_TILES_EMIT, RASTER_TILES_RANGES_OF_TILES};
+use crate::kernels::{
+    RASTER_BLEND_BLEND, RASTER_PROJECT_PROJECT, RASTER_TILES_EMIT, RASTER_TILES_RANGES_OF_TILES,
+};
 use crate::ops::fill::fill_bits;
 use crate::ops::scan::exclusive_scan;
 use crate::ops::sort::sort_pairs;
@@ -252,7 +256,16 @@ pub fn rasterize(
     rec.dispatch(
         RASTER_BLEND_BLEND,
         [tiles_x, tiles_y, 1],
-        &[&image.ranges, &image.ids, &p.proj, &image.rgb, &image.alpha, &image.depth, &image.final_t, &image.last],
+        &[
+            &image.ranges,
+            &image.ids,
+            &p.proj,
+            &image.rgb,
+            &image.alpha,
+            &image.depth,
+            &image.final_t,
+            &image.last,
+        ],
         &BlendParams::new(cam, background),
     )?;
     Ok(image)

@@ -122,7 +122,11 @@ impl Camera {
         let y = cross(z, x);
         let rotation = [x, y, z];
         let dot = |r: [f32; 3]| -(r[0] * eye[0] + r[1] * eye[1] + r[2] * eye[2]);
-        Camera { rotation, translation: [dot(x), dot(y), dot(z)], ..Camera::identity(fov_y_deg, width, height) }
+        Camera {
+            rotation,
+            translation: [dot(x), dot(y), dot(z)],
+            ..Camera::identity(fov_y_deg, width, height)
+        }
     }
 
     /// Tiles across and down.
@@ -145,10 +149,14 @@ impl Camera {
                 self.width, self.height
             )));
         }
-        let all =
-            [self.fx, self.fy, self.cx, self.cy].into_iter().chain(self.rotation.into_iter().flatten()).chain(self.translation);
+        let all = [self.fx, self.fy, self.cx, self.cy]
+            .into_iter()
+            .chain(self.rotation.into_iter().flatten())
+            .chain(self.translation);
         if all.into_iter().any(|v| !v.is_finite()) || self.fx <= 0.0 || self.fy <= 0.0 {
-            return Err(Error::Invalid(format!("camera has non-finite or non-positive focal lengths: {self:?}")));
+            return Err(Error::Invalid(format!(
+                "camera has non-finite or non-positive focal lengths: {self:?}"
+            )));
         }
         Ok(())
     }
@@ -198,7 +206,14 @@ impl GaussianData {
     }
 
     /// Appends one Gaussian.
-    pub fn push(&mut self, mean: [f32; 3], log_scale: [f32; 3], quat: [f32; 4], logit: f32, colour: [f32; 3]) {
+    pub fn push(
+        &mut self,
+        mean: [f32; 3],
+        log_scale: [f32; 3],
+        quat: [f32; 4],
+        logit: f32,
+        colour: [f32; 3],
+    ) {
         self.means.extend(mean);
         self.log_scales.extend(log_scale);
         self.quats.extend(quat);

@@ -421,7 +421,8 @@ fn project_backward(s: &Scene, i: usize, cam: &Camera, sp: &Splat, g: &[f64; 10]
     let mut gcov = [[0.0; 2]; 2];
     for r in 0..2 {
         for cc in 0..2 {
-            gcov[r][cc] = -(0..2).map(|k| (0..2).map(|l| q[r][k] * gq[k][l] * q[l][cc]).sum::<f64>()).sum::<f64>();
+            gcov[r][cc] =
+                -(0..2).map(|k| (0..2).map(|l| q[r][k] * gq[k][l] * q[l][cc]).sum::<f64>()).sum::<f64>();
         }
     }
     // dJ = 2 G2 J Sc; dSc = J^T G2 J.
@@ -457,7 +458,8 @@ fn project_backward(s: &Scene, i: usize, cam: &Camera, sp: &Splat, g: &[f64; 10]
     let r = grot;
     let gqn = [
         2.0 * (-z * r[0][1] + y * r[0][2] + z * r[1][0] - x * r[1][2] - y * r[2][0] + x * r[2][1]),
-        2.0 * (y * r[0][1] + z * r[0][2] + y * r[1][0] - 2.0 * x * r[1][1] - w * r[1][2] + z * r[2][0]
+        2.0 * (y * r[0][1] + z * r[0][2] + y * r[1][0] - 2.0 * x * r[1][1] - w * r[1][2]
+            + z * r[2][0]
             + w * r[2][1]
             - 2.0 * x * r[2][2]),
         2.0 * (-2.0 * y * r[0][0] + x * r[0][1] + w * r[0][2] + x * r[1][0] + z * r[1][2] - w * r[2][0]
@@ -475,11 +477,8 @@ fn project_backward(s: &Scene, i: usize, cam: &Camera, sp: &Splat, g: &[f64; 10]
     let (fx, fy) = (cam.fx as f64, cam.fy as f64);
     let t = geo.t;
     let iz = 1.0 / t[2];
-    let mut gt = [
-        fx * iz * g[0],
-        fy * iz * g[1],
-        -fx * t[0] * iz * iz * g[0] - fy * t[1] * iz * iz * g[1] + g[9],
-    ];
+    let mut gt =
+        [fx * iz * g[0], fy * iz * g[1], -fx * t[0] * iz * iz * g[0] - fy * t[1] * iz * iz * g[1] + g[9]];
     gt[2] += -fx * iz * iz * gj[0][0] - fy * iz * iz * gj[1][1]
         + fx * geo.ratios[0] * iz * iz * gj[0][2]
         + fy * geo.ratios[1] * iz * iz * gj[1][2];
