@@ -3,6 +3,7 @@
 mod bench;
 mod demo;
 mod info;
+mod render;
 
 use clap::{Parser, Subcommand};
 
@@ -28,6 +29,9 @@ enum Command {
         #[arg(long, default_value = "velox-demo")]
         out: std::path::PathBuf,
     },
+    /// Render Gaussians (a 3D Gaussian splatting PLY) from a camera orbit to PNG frames and
+    /// depth EXRs.
+    Render(render::RenderArgs),
     /// Benchmarks: GPU time against error.
     Bench {
         #[command(subcommand)]
@@ -40,6 +44,7 @@ fn main() {
     let result = match cli.command {
         Command::Info { json } => info::run(json.as_deref()),
         Command::Demo { out } => demo::run(&out),
+        Command::Render(args) => render::run(&args),
         Command::Bench { what } => bench::run(what),
     };
     if let Err(e) = result {

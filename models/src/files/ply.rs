@@ -156,9 +156,11 @@ pub fn from_bytes(bytes: &[u8]) -> Result<GaussianData> {
         match words.as_slice() {
             [] | ["comment", ..] | ["obj_info", ..] => {}
             ["format", "binary_little_endian", _] => format_seen = true,
-            ["format", other, _] => return Err(bad(format!(
+            ["format", other, _] => {
+                return Err(bad(format!(
                 "PLY format `{other}` is not supported: Gaussians are read from binary_little_endian files"
-            ))),
+            )))
+            }
             ["element", name, count] => elements.push(Element {
                 name: name.to_string(),
                 count: count
