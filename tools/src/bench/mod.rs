@@ -2,6 +2,7 @@
 
 mod attention;
 mod kernels;
+mod raster;
 
 use std::path::PathBuf;
 
@@ -18,6 +19,9 @@ pub enum BenchCommand {
     /// Fused segment attention, forward and backward: dense, voxel-window self-attention,
     /// per-cell cross-attention and global cross-attention at the paper's sizes.
     Attention(BenchArgs),
+    /// Gaussian rasteriser, forward and forward + backward, against the number of Gaussians
+    /// and the resolution, on the scene gsplat is compared on; error against the reference.
+    Raster(BenchArgs),
 }
 
 #[derive(clap::Args)]
@@ -40,6 +44,7 @@ pub fn run(cmd: BenchCommand) -> CliResult<()> {
     let (args, which): (BenchArgs, Suite) = match cmd {
         BenchCommand::Kernels(a) => (a, kernels::run),
         BenchCommand::Attention(a) => (a, attention::run),
+        BenchCommand::Raster(a) => (a, raster::run),
     };
     let gpu = Gpu::new()?;
     let records = which(&gpu, args.quick, args.repeats)?;

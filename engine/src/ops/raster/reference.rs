@@ -283,31 +283,60 @@ pub fn render(s: &Scene, cam: &Camera, background: [f32; 3]) -> Image {
     };
     for py in 0..h {
         for px in 0..w {
-            let list = &lists[(py / TILE as usize) * tx + px / TILE as usize];
-            let pix = [px as f64 + 0.5, py as f64 + 0.5];
-            let (mut t, mut c, mut d) = (1.0, [0.0; 3], 0.0);
-            for &i in list {
-                let sp = splats[i].as_ref().unwrap();
-                let Some((alpha, _, _)) = alpha_at(sp, pix) else { continue };
-                let next = t * (1.0 - alpha);
-                if next < T_STOP as f64 {
-                    break;
-                }
-                for k in 0..3 {
-                    c[k] += alpha * t * sp.colour[k];
-                }
-                d += alpha * t * sp.depth;
-                t = next;
-            }
+            let (c, a, d) =
+                pixel(&splats, &lists[(py / TILE as usize) * tx + px / TILE as usize], px, py, bg);
             let p = py * w + px;
-            for k in 0..3 {
-                img.rgb[3 * p + k] = c[k] + t * bg[k];
-            }
-            img.alpha[p] = 1.0 - t;
+            img.rgb[3 * p..3 * p + 3].copy_from_slice(&c);
+            img.alpha[p] = a;
             img.depth[p] = d;
         }
     }
     img
+}
+
+/// One pixel's (rgb, alpha, depth) from its tile's list.
+fn pixel(
+    splats: &[Result<Splat, Dropped>],
+    list: &[usize],
+    px: usize,
+    py: usize,
+    bg: [f64; 3],
+) -> ([f64; 3], f64, f64) {
+    let pix = [px as f64 + 0.5, py as f64 + 0.5];
+    let (mut t, mut c, mut d) = (1.0, [0.0; 3], 0.0);
+    for &i in list {
+        let sp = splats[i].as_ref().unwrap();
+        let Some((alpha, _, _)) = alpha_at(sp, pix) else { continue };
+        let next = t * (1.0 - alpha);
+        if next < T_STOP as f64 {
+            break;
+        }
+        for k in 0..3 {
+            c[k] += alpha * t * sp.colour[k];
+        }
+        d += alpha * t * sp.depth;
+        t = next;
+    }
+    ([0, 1, 2].map(|k| c[k] + t * bg[k]), 1.0 - t, d)
+}
+
+/// (rgb, alpha, depth) of the given (x, y) pixels only: for checking large images on a sample.
+pub fn render_pixels(
+    s: &Scene,
+    cam: &Camera,
+    background: [f32; 3],
+    pixels: &[(u32, u32)],
+) -> Vec<([f64; 3], f64, f64)> {
+    let (splats, _) = project(s, cam);
+    let lists = tile_lists(&splats, cam);
+    let tx = cam.tiles().0;
+    let bg = background.map(|v| v as f64);
+    pixels
+        .iter()
+        .map(|&(x, y)| {
+            pixel(&splats, &lists[((y / TILE) * tx + x / TILE) as usize], x as usize, y as usize, bg)
+        })
+        .collect()
 }
 
 /// Gradients with respect to the scene's parameters (flat, like [`Scene`]).
