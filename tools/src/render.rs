@@ -90,7 +90,8 @@ fn orbit_camera(a: &RenderArgs, i: u32) -> CliResult<Camera> {
 }
 
 pub fn run(a: &RenderArgs) -> CliResult<()> {
-    if !(a.fov > 0.0 && a.fov < 180.0) || !(a.radius > 0.0) {
+    let sound = a.fov > 0.0 && a.fov < 180.0 && a.radius > 0.0;
+    if !sound {
         return Err(format!(
             "--fov must be in (0, 180) and --radius positive, got {} and {}",
             a.fov, a.radius

@@ -2,6 +2,9 @@
 //! same culling order and guards, the same tile lists, the same depth keys and so the same
 //! blending order), in plain loops, forward and backward.
 
+// Index loops read as the formulas they implement.
+#![allow(clippy::needless_range_loop)]
+
 use super::{
     Camera, GaussianData, ALPHA_MAX, DILATION, MAX_TILES_PER_GAUSSIAN, MIN_ALPHA, MIN_DET, MIN_QUAT_NORM2,
     NEAR, TILE, T_STOP,
