@@ -11,7 +11,9 @@ struct Params {
     n: u32,          // Gaussians (emit) or pairs (ranges)
     tiles_x: u32,
     depth_bits: u32, // 32 - tile bits
-    pad: u32,
+    // emit: pairs the key buffers hold (writes past it are dropped, never out of bounds);
+    // ranges: the number of tiles (keys of other tiles are ignored).
+    limit: u32,
 }
 
 @group(0) @binding(0) var<storage, read> counts: array<u32>;
@@ -41,8 +43,10 @@ fn emit(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
     var at = offsets[g];
     for (var y = y0; y < y1; y = y + 1u) {
         for (var x = x0; x < x1; x = x + 1u) {
-            keys[at] = ((y * pc.tiles_x + x) << pc.depth_bits) | depth;
-            values[at] = g;
+            if (at < pc.limit) {
+                keys[at] = ((y * pc.tiles_x + x) << pc.depth_bits) | depth;
+                values[at] = g;
+            }
             at = at + 1u;
         }
     }
@@ -56,6 +60,9 @@ fn ranges_of_tiles(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroup
         return;
     }
     let tile = sorted_keys[i] >> pc.depth_bits;
+    if (tile >= pc.limit) {
+        return;
+    }
     if (i == 0u || (sorted_keys[i - 1u] >> pc.depth_bits) != tile) {
         ranges[2u * tile] = i;
     }

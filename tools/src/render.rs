@@ -173,3 +173,58 @@ fn camera_position(c: &Camera) -> [f32; 3] {
     let (r, t) = (c.rotation, c.translation);
     [0, 1, 2].map(|k| -(r[0][k] * t[0] + r[1][k] * t[1] + r[2][k] * t[2]))
 }
+
+#[cfg(test)]
+mod tests {
+    use clap::Parser;
+    use velox_engine::ops::raster::GaussianData;
+
+    use super::*;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: RenderArgs,
+    }
+
+    #[test]
+    fn renders_an_orbit_to_png_exr_and_json() {
+        let dir = std::env::temp_dir().join(format!("velox-render-test-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let mut g = GaussianData::benchmark_scene(500, 3);
+        // Centre the scene on the origin, where the orbit looks.
+        g.means.iter_mut().skip(2).step_by(3).for_each(|z| *z -= 3.0);
+        let ply_path = dir.join("scene.ply");
+        ply::write(&ply_path, &g).unwrap();
+        let out = dir.join("frames");
+        let argv = [
+            "velox-render",
+            ply_path.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--frames",
+            "2",
+            "--width",
+            "40",
+            "--height",
+            "24",
+            "--elevation",
+            "-10",
+            "--background",
+            "1,1,1",
+            "--up",
+            "-y",
+        ];
+        let cli = Cli::try_parse_from(argv).unwrap();
+        run(&cli.args).unwrap();
+        let (rgb, w, h) = image::read_png(&out.join("frame_0001.png")).unwrap();
+        assert_eq!((w, h, rgb.len()), (40, 24, 40 * 24 * 3));
+        assert!(rgb.iter().any(|&v| v < 0.9), "something is drawn over the white background");
+        let (z, _, _) = image::read_exr_depth(&out.join("depth_0000.exr")).unwrap();
+        assert!(z.iter().any(|&d| d > 2.0 && d < 6.0), "depths near the orbit radius");
+        let frames: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("render.json")).unwrap()).unwrap();
+        assert_eq!(frames.as_array().unwrap().len(), 2);
+        assert!(Cli::try_parse_from(["velox-render", "x.ply", "--background", "1,2"]).is_err());
+    }
+}

@@ -86,7 +86,7 @@ fn time_case(gpu: &Gpu, g: &GaussianData, cam: &Camera, repeats: u32) -> Result<
     for i in 0..=repeats {
         let (p, t_project, a) = timed(gpu, |rec| project(rec, &t, cam))?;
         pairs = p.intersections()?;
-        let (image, t_raster, b) = timed(gpu, |rec| rasterize(rec, &p, pairs, [0.0; 3]))?;
+        let (image, t_raster, b) = timed(gpu, |rec| rasterize(rec, &p, [0.0; 3]))?;
         let r = raster::Rendered { projected: p, image };
         let (_, t_back, c) = timed(gpu, |rec| render_backward(rec, &t, &r, &ones, &zeros, &zeros))?;
         gpu_timed &= a && b && c;

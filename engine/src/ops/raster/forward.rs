@@ -97,7 +97,8 @@ struct TileParams {
     n: u32,
     tiles_x: u32,
     depth_bits: u32,
-    pad: u32,
+    /// emit: pairs the buffers hold; ranges: tiles.
+    limit: u32,
 }
 
 /// What [`project`] records: per-Gaussian screen-space data, tile counts and rectangles,
@@ -197,14 +198,11 @@ pub struct Image {
     pub intersections: usize,
 }
 
-/// Records key emission, the sort, the tile ranges and the blending, for `intersections`
-/// pairs (from [`Projected::intersections`] after [`project`]'s recording has run).
-pub fn rasterize(
-    rec: &mut Recorder,
-    p: &Projected,
-    intersections: usize,
-    background: [f32; 3],
-) -> Result<Image> {
+/// Records key emission, the sort, the tile ranges and the blending. The recording of
+/// [`project`] must have been submitted: the number of (tile, Gaussian) pairs it counted sizes
+/// the buffers here.
+pub fn rasterize(rec: &mut Recorder, p: &Projected, background: [f32; 3]) -> Result<Image> {
+    let intersections = p.intersections()?;
     let gpu = rec.gpu().clone();
     let cam = &p.camera;
     let max_pairs = gpu.caps().max_storage_buffer_range / 4;
@@ -223,7 +221,7 @@ pub fn rasterize(
     let ids = if intersections > 0 {
         let keys = Tensor::empty(&gpu, &[intersections], DType::U32)?;
         let values = Tensor::empty(&gpu, &[intersections], DType::U32)?;
-        let tp = TileParams { n: p.n as u32, tiles_x, depth_bits, pad: 0 };
+        let tp = TileParams { n: p.n as u32, tiles_x, depth_bits, limit: intersections as u32 };
         rec.dispatch_linear(
             RASTER_TILES_EMIT,
             (p.n as u64).div_ceil(256),
@@ -231,7 +229,7 @@ pub fn rasterize(
             &tp,
         )?;
         let (sorted_keys, ids) = sort_pairs(rec, &keys, &values, 32)?;
-        let tp = TileParams { n: intersections as u32, ..tp };
+        let tp = TileParams { n: intersections as u32, limit: tiles as u32, ..tp };
         rec.dispatch_linear(
             RASTER_TILES_RANGES_OF_TILES,
             (intersections as u64).div_ceil(256),
@@ -289,9 +287,8 @@ pub fn render(gpu: &Gpu, g: &Gaussians, cam: &Camera, background: [f32; 3]) -> R
     let mut rec = gpu.recorder()?;
     let projected = project(&mut rec, g, cam)?;
     rec.submit()?;
-    let pairs = projected.intersections()?;
     let mut rec = gpu.recorder()?;
-    let image = rasterize(&mut rec, &projected, pairs, background)?;
+    let image = rasterize(&mut rec, &projected, background)?;
     rec.submit()?;
     Ok(Rendered { projected, image })
 }
