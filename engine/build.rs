@@ -34,10 +34,12 @@ fn main() {
     for path in &files {
         println!("cargo:rerun-if-changed={}", path.display());
         match std::fs::read_to_string(path) {
-            Ok(source) => match variants(path, &source) {
-                Ok(list) => units.extend(list),
-                Err(e) => errors.push(e),
-            },
+            Ok(source) => {
+                match expand_includes(&shader_dir, path, &source).and_then(|s| variants(path, &s)) {
+                    Ok(list) => units.extend(list),
+                    Err(e) => errors.push(e),
+                }
+            }
             Err(e) => errors.push(format!("{}: {e}", path.display())),
         }
     }
@@ -113,6 +115,26 @@ struct Kernel {
     needs_float_atomics: bool,
     needs_coop: bool,
     needs_subgroups: bool,
+}
+
+/// Replaces each line `// @include NAME` with the text of `shaders/include/NAME`, so that
+/// kernels that differ in one declaration (say, the atomic type of an output) share their body.
+/// The folder is not compiled on its own.
+fn expand_includes(shader_dir: &Path, path: &Path, source: &str) -> Result<String, String> {
+    let mut out = String::with_capacity(source.len());
+    for line in source.lines() {
+        if let Some(name) = line.strip_prefix("// @include ") {
+            let inc = shader_dir.join("include").join(name.trim());
+            println!("cargo:rerun-if-changed={}", inc.display());
+            let text = std::fs::read_to_string(&inc)
+                .map_err(|e| format!("{}: @include {}: {e}", path.display(), inc.display()))?;
+            out.push_str(&text);
+        } else {
+            out.push_str(line);
+        }
+        out.push('\n');
+    }
+    Ok(out)
 }
 
 /// Expands a shader into its variants. A file whose first line reads

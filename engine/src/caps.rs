@@ -21,6 +21,8 @@ pub struct Caps {
     pub max_subgroup_size: u32,
     pub subgroup_size_control: bool,
     pub compute_full_subgroups: bool,
+    /// Subgroup arithmetic (subgroupAdd and friends) in compute shaders.
+    pub subgroup_arithmetic: bool,
     pub max_shared_memory: u32,
     pub max_workgroup_invocations: u32,
     pub max_workgroup_count: [u32; 3],
@@ -196,6 +198,10 @@ impl Caps {
                 max_subgroup_size: p13.max_subgroup_size,
                 subgroup_size_control: f13.subgroup_size_control == vk::TRUE,
                 compute_full_subgroups: f13.compute_full_subgroups == vk::TRUE,
+                subgroup_arithmetic: p11
+                    .subgroup_supported_operations
+                    .contains(vk::SubgroupFeatureFlags::ARITHMETIC | vk::SubgroupFeatureFlags::VOTE)
+                    && p11.subgroup_supported_stages.contains(vk::ShaderStageFlags::COMPUTE),
                 max_shared_memory: limits.max_compute_shared_memory_size,
                 max_workgroup_invocations: limits.max_compute_work_group_invocations,
                 max_workgroup_count: limits.max_compute_work_group_count,

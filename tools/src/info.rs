@@ -93,7 +93,7 @@ pub fn report(gpu: &Gpu) -> serde_json::Value {
         "max_workgroup_count": c.max_workgroup_count,
         "max_storage_buffer_range": c.max_storage_buffer_range, "max_buffer_size": c.max_buffer_size,
         "f16_arithmetic": c.f16_arithmetic, "f16_storage": c.f16_storage,
-        "float_atomic_add": c.float_atomic_add, "coop_matrix_shapes": c.coop_matrix_shapes,
+        "float_atomic_add": c.float_atomic_add, "subgroup_arithmetic": c.subgroup_arithmetic, "coop_matrix_shapes": c.coop_matrix_shapes,
         "timestamps": c.timestamps,
         "variants": {
             "matmul f32": matmul::matmul_variant(gpu, DType::F32),
@@ -101,6 +101,9 @@ pub fn report(gpu: &Gpu) -> serde_json::Value {
             "scatter-add": scatter_add::variant(gpu),
             "sort": "LSD radix, 4 bits a pass",
             "scan": "workgroup-memory block scan, multi-level",
+            "raster backward": velox_engine::ops::raster::backward::variant(gpu)
+                .map(|v| v.1)
+                .unwrap_or("unsupported (no subgroup arithmetic)"),
         }
     })
 }

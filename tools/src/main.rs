@@ -4,6 +4,7 @@ mod bench;
 mod data;
 mod demo;
 mod info;
+mod render;
 
 use clap::{Parser, Subcommand};
 
@@ -35,6 +36,9 @@ enum Command {
         #[command(subcommand)]
         what: data::DataCommand,
     },
+    /// Render Gaussians (a 3D Gaussian splatting PLY) from a camera orbit to PNG frames and
+    /// depth EXRs.
+    Render(render::RenderArgs),
     /// Benchmarks: GPU time against error.
     Bench {
         #[command(subcommand)]
@@ -47,6 +51,7 @@ fn main() {
     let result = match cli.command {
         Command::Info { json } => info::run(json.as_deref()),
         Command::Demo { out } => demo::run(&out),
+        Command::Render(args) => render::run(&args),
         Command::Bench { what } => bench::run(what),
         Command::Data { what } => data::run(what),
     };

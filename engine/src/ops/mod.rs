@@ -17,6 +17,7 @@ pub mod layernorm;
 pub mod loss;
 pub mod matmul;
 pub mod norm;
+pub mod raster;
 pub mod reduce;
 pub mod rmsnorm;
 pub mod scan;

@@ -3,6 +3,7 @@
 mod attention;
 mod kernels;
 mod layers;
+mod raster;
 
 use std::path::PathBuf;
 
@@ -22,6 +23,9 @@ pub enum BenchCommand {
     /// Each layer's forward and forward+backward: linear, RMSNorm, LayerNorm, SwiGLU and GELU
     /// feed-forwards at 8192 tokens of width 512, the Fourier embedding of 1.44 M points.
     Layers(BenchArgs),
+    /// Gaussian rasteriser, forward and forward + backward, against the number of Gaussians
+    /// and the resolution, on the scene gsplat is compared on; error against the reference.
+    Raster(BenchArgs),
 }
 
 #[derive(clap::Args)]
@@ -45,6 +49,7 @@ pub fn run(cmd: BenchCommand) -> CliResult<()> {
         BenchCommand::Kernels(a) => (a, kernels::run),
         BenchCommand::Attention(a) => (a, attention::run),
         BenchCommand::Layers(a) => (a, layers::run),
+        BenchCommand::Raster(a) => (a, raster::run),
     };
     let gpu = Gpu::new()?;
     let records = which(&gpu, args.quick, args.repeats)?;

@@ -1,0 +1,294 @@
+//! The forward pass: project, list the tiles each Gaussian touches, sort, find each tile's
+//! range, blend. Kernels: `shaders/raster_project.wgsl`, `raster_tiles.wgsl`,
+//! `raster_blend.wgsl`.
+//!
+//! It runs in two recordings: [`project`] (projection, tile counts and their exclusive scan),
+//! then, once the number of (tile, Gaussian) pairs is known on the host, [`rasterize`] (key
+//! emission into buffers of exactly that size, sort, ranges, blend). [`render`] does both.
+
+use super::{
+    Camera, Gaussians, ALPHA_MAX, DILATION, MAX_TILES_PER_GAUSSIAN, MIN_ALPHA, MIN_DET, NEAR, T_STOP,
+};
+use crate::error::{Error, Result};
+use crate::kernels::{
+    RASTER_BLEND_BLEND, RASTER_PROJECT_PROJECT, RASTER_TILES_EMIT, RASTER_TILES_RANGES_OF_TILES,
+};
+use crate::ops::fill::fill_bits;
+use crate::ops::scan::exclusive_scan;
+use crate::ops::sort::sort_pairs;
+use crate::recorder::Recorder;
+use crate::tensor::{DType, Tensor};
+use crate::Gpu;
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct ProjectParams {
+    rot: [[f32; 4]; 3],
+    intr: [f32; 4],
+    width: u32,
+    height: u32,
+    tiles_x: u32,
+    tiles_y: u32,
+    n: u32,
+    near: f32,
+    min_alpha: f32,
+    max_tiles: u32,
+    dilation: f32,
+    min_det: f32,
+    pad: [u32; 2],
+}
+
+impl ProjectParams {
+    pub(crate) fn new(cam: &Camera, n: usize) -> ProjectParams {
+        let r = cam.rotation;
+        let t = cam.translation;
+        let (tiles_x, tiles_y) = cam.tiles();
+        ProjectParams {
+            rot: [0, 1, 2].map(|i| [r[i][0], r[i][1], r[i][2], t[i]]),
+            intr: [cam.fx, cam.fy, cam.cx, cam.cy],
+            width: cam.width,
+            height: cam.height,
+            tiles_x,
+            tiles_y,
+            n: n as u32,
+            near: NEAR,
+            min_alpha: MIN_ALPHA,
+            max_tiles: MAX_TILES_PER_GAUSSIAN,
+            dilation: DILATION,
+            min_det: MIN_DET,
+            pad: [0; 2],
+        }
+    }
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct BlendParams {
+    background: [f32; 4],
+    width: u32,
+    height: u32,
+    tiles_x: u32,
+    pad0: u32,
+    alpha_max: f32,
+    min_alpha: f32,
+    t_stop: f32,
+    pad1: f32,
+}
+
+impl BlendParams {
+    pub(crate) fn new(cam: &Camera, background: [f32; 3]) -> BlendParams {
+        BlendParams {
+            background: [background[0], background[1], background[2], 0.0],
+            width: cam.width,
+            height: cam.height,
+            tiles_x: cam.tiles().0,
+            pad0: 0,
+            alpha_max: ALPHA_MAX,
+            min_alpha: MIN_ALPHA,
+            t_stop: T_STOP,
+            pad1: 0.0,
+        }
+    }
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct TileParams {
+    n: u32,
+    tiles_x: u32,
+    depth_bits: u32,
+    /// emit: pairs the buffers hold; ranges: tiles.
+    limit: u32,
+}
+
+/// What [`project`] records: per-Gaussian screen-space data, tile counts and rectangles,
+/// their exclusive scan, and the culling counters.
+#[derive(Clone, Debug)]
+pub struct Projected {
+    pub n: usize,
+    pub camera: Camera,
+    /// `[N, 12]`: (u, v, depth, opacity), (conic a, b, c, 0), (r, g, b, 0).
+    pub proj: Tensor,
+    /// `[N]` tiles touched (0 for a dropped Gaussian).
+    pub counts: Tensor,
+    rects: Tensor,
+    offsets: Tensor,
+    /// `[8]` u32: drawn, invalid, behind, faint, outside, too many tiles.
+    pub stats: Tensor,
+    total: Tensor,
+}
+
+/// How many Gaussians were drawn and why the others were dropped.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct RenderStats {
+    pub drawn: u32,
+    /// NaN or Inf anywhere, zero quaternion, or a degenerate projection.
+    pub invalid: u32,
+    pub behind_near_plane: u32,
+    pub too_faint: u32,
+    pub outside_image: u32,
+    pub too_many_tiles: u32,
+    /// (tile, Gaussian) pairs sorted and blended.
+    pub intersections: u64,
+}
+
+impl Projected {
+    /// The number of (tile, Gaussian) pairs; valid once the recording of [`project`] has been
+    /// submitted.
+    pub fn intersections(&self) -> Result<usize> {
+        Ok(self.total.read::<u32>()?[0] as usize)
+    }
+
+    /// The culling counters; valid once the recording of [`project`] has been submitted.
+    pub fn stats(&self) -> Result<RenderStats> {
+        let s: Vec<u32> = self.stats.read()?;
+        Ok(RenderStats {
+            drawn: s[0],
+            invalid: s[1],
+            behind_near_plane: s[2],
+            too_faint: s[3],
+            outside_image: s[4],
+            too_many_tiles: s[5],
+            intersections: self.intersections()? as u64,
+        })
+    }
+}
+
+/// Records the projection of every Gaussian, its tile count and the exclusive scan of the
+/// counts. Submit, then read [`Projected::intersections`] and call [`rasterize`].
+pub fn project(rec: &mut Recorder, g: &Gaussians, cam: &Camera) -> Result<Projected> {
+    let n = g.check()?;
+    cam.check()?;
+    let gpu = rec.gpu().clone();
+    let proj = Tensor::empty(&gpu, &[n, 12], DType::F32)?;
+    let counts = Tensor::empty(&gpu, &[n], DType::U32)?;
+    let rects = Tensor::empty(&gpu, &[n, 2], DType::U32)?;
+    let offsets = Tensor::empty(&gpu, &[n], DType::U32)?;
+    let stats = Tensor::empty(&gpu, &[8], DType::U32)?;
+    fill_bits(rec, &stats, 0)?;
+    let p = ProjectParams::new(cam, n);
+    rec.dispatch_linear(
+        RASTER_PROJECT_PROJECT,
+        (n as u64).div_ceil(256),
+        &[&g.means, &g.log_scales, &g.quats, &g.opacities, &g.colours, &proj, &counts, &rects, &stats],
+        &p,
+    )?;
+    let total = exclusive_scan(rec, &counts, &offsets)?;
+    Ok(Projected { n, camera: *cam, proj, counts, rects, offsets, stats, total })
+}
+
+/// The forward pass's outputs, and what the backward pass needs.
+#[derive(Clone, Debug)]
+pub struct Image {
+    /// `[H, W, 3]`.
+    pub rgb: Tensor,
+    /// `[H, W]`: 1 - final transmittance.
+    pub alpha: Tensor,
+    /// `[H, W]`: sum of depth x blending weight.
+    pub depth: Tensor,
+    /// `[H, W]` final transmittance.
+    pub final_t: Tensor,
+    /// `[H, W]` u32: tile entries up to the pixel's last blended Gaussian.
+    pub last: Tensor,
+    /// `[tiles, 2]` u32: each tile's range of sorted pairs.
+    pub ranges: Tensor,
+    /// `[pairs]` u32: Gaussian index of each sorted pair.
+    pub ids: Tensor,
+    pub background: [f32; 3],
+    pub intersections: usize,
+}
+
+/// Records key emission, the sort, the tile ranges and the blending. The recording of
+/// [`project`] must have been submitted: the number of (tile, Gaussian) pairs it counted sizes
+/// the buffers here.
+pub fn rasterize(rec: &mut Recorder, p: &Projected, background: [f32; 3]) -> Result<Image> {
+    let intersections = p.intersections()?;
+    let gpu = rec.gpu().clone();
+    let cam = &p.camera;
+    let max_pairs = gpu.caps().max_storage_buffer_range / 4;
+    if intersections as u64 > max_pairs.min(u32::MAX as u64) {
+        return Err(Error::TooLarge(format!(
+            "{intersections} (tile, Gaussian) pairs: this device sorts at most {max_pairs} in one buffer; \
+             render at a lower resolution or with fewer or smaller Gaussians"
+        )));
+    }
+    let (tiles_x, tiles_y) = cam.tiles();
+    let tiles = (tiles_x * tiles_y) as usize;
+    let depth_bits = 32 - cam.tile_bits();
+    let (h, w) = (cam.height as usize, cam.width as usize);
+    let ranges = Tensor::empty(&gpu, &[tiles, 2], DType::U32)?;
+    fill_bits(rec, &ranges, 0)?;
+    let ids = if intersections > 0 {
+        let keys = Tensor::empty(&gpu, &[intersections], DType::U32)?;
+        let values = Tensor::empty(&gpu, &[intersections], DType::U32)?;
+        let tp = TileParams { n: p.n as u32, tiles_x, depth_bits, limit: intersections as u32 };
+        rec.dispatch_linear(
+            RASTER_TILES_EMIT,
+            (p.n as u64).div_ceil(256),
+            &[&p.counts, &p.offsets, &p.rects, &p.proj, &keys, &values],
+            &tp,
+        )?;
+        let (sorted_keys, ids) = sort_pairs(rec, &keys, &values, 32)?;
+        let tp = TileParams { n: intersections as u32, limit: tiles as u32, ..tp };
+        rec.dispatch_linear(
+            RASTER_TILES_RANGES_OF_TILES,
+            (intersections as u64).div_ceil(256),
+            &[&sorted_keys, &ranges],
+            &tp,
+        )?;
+        ids
+    } else {
+        Tensor::empty(&gpu, &[0], DType::U32)?
+    };
+    let image = Image {
+        rgb: Tensor::empty(&gpu, &[h, w, 3], DType::F32)?,
+        alpha: Tensor::empty(&gpu, &[h, w], DType::F32)?,
+        depth: Tensor::empty(&gpu, &[h, w], DType::F32)?,
+        final_t: Tensor::empty(&gpu, &[h, w], DType::F32)?,
+        last: Tensor::empty(&gpu, &[h, w], DType::U32)?,
+        ranges,
+        ids,
+        background,
+        intersections,
+    };
+    rec.dispatch(
+        RASTER_BLEND_BLEND,
+        [tiles_x, tiles_y, 1],
+        &[
+            &image.ranges,
+            &image.ids,
+            &p.proj,
+            &image.rgb,
+            &image.alpha,
+            &image.depth,
+            &image.final_t,
+            &image.last,
+        ],
+        &BlendParams::new(cam, background),
+    )?;
+    Ok(image)
+}
+
+/// A finished forward pass.
+#[derive(Clone, Debug)]
+pub struct Rendered {
+    pub projected: Projected,
+    pub image: Image,
+}
+
+impl Rendered {
+    pub fn stats(&self) -> Result<RenderStats> {
+        self.projected.stats()
+    }
+}
+
+/// Renders `g` from `cam` over `background`: [`project`], submit, [`rasterize`], submit.
+pub fn render(gpu: &Gpu, g: &Gaussians, cam: &Camera, background: [f32; 3]) -> Result<Rendered> {
+    let mut rec = gpu.recorder()?;
+    let projected = project(&mut rec, g, cam)?;
+    rec.submit()?;
+    let mut rec = gpu.recorder()?;
+    let image = rasterize(&mut rec, &projected, background)?;
+    rec.submit()?;
+    Ok(Rendered { projected, image })
+}

@@ -1,0 +1,283 @@
+//! Tile-based differentiable rasteriser of 3D Gaussians, forward and backward.
+//!
+//! It is one op family, so it follows the op layout of DESIGN.md: kernels in
+//! `shaders/raster_*.wgsl`, host side here, f64 CPU reference in [`reference`]. It is a folder
+//! rather than one file because the host side has two passes of several kernels each
+//! ([`forward`]: project, tile lists, sort, ranges, blend; [`backward`]: blend backward, then
+//! projection backward), and the reference, which holds both passes' rules, is as long again.
+//!
+//! # Conventions
+//! - Gaussians: means `[N, 3]` (world), log-scales `[N, 3]` (scale = exp), quaternions
+//!   `[N, 4]` as (w, x, y, z), normalised by the rasteriser (any non-zero length), opacities
+//!   `[N]` as logits (opacity = sigmoid), colours `[N, 3]` used as given (no clamp).
+//!   Gradients are with respect to these same quantities.
+//! - Camera: pinhole, world-to-camera rotation `R` and translation `t` (x right, y down, z
+//!   forward), intrinsics fx, fy, cx, cy in pixels; pixel (x, y) has its centre at
+//!   (x + 0.5, y + 0.5).
+//! - Outputs: RGB `[H, W, 3]` = sum c_i w_i + T bg, alpha `[H, W]` = 1 - T, and the expected
+//!   depth `[H, W]` = sum z_i w_i with w_i = alpha_i T_i (camera z, not normalised by alpha:
+//!   divide by alpha for the depth of the covered part).
+//!
+//! # Guards
+//! [`DILATION`], [`ALPHA_MAX`], [`MIN_ALPHA`], [`T_STOP`], [`MIN_DET`], [`NEAR`],
+//! [`MAX_TILES_PER_GAUSSIAN`], [`MIN_QUAT_NORM2`]. A Gaussian with a NaN or Inf anywhere, a
+//! zero quaternion or a degenerate projection is dropped and counted ([`RenderStats`]); so are
+//! those behind the near plane, too faint, outside the image or over the tile limit. No
+//! dropped Gaussian reaches a pixel or receives a gradient.
+
+pub mod backward;
+pub mod forward;
+pub mod reference;
+
+pub use backward::{render_backward, render_backward_cas, Grads};
+pub use forward::{project, rasterize, render, Image, Projected, RenderStats, Rendered};
+
+use crate::error::{Error, Result};
+use crate::rng::Rng;
+use crate::tensor::{DType, Tensor};
+use crate::Gpu;
+
+/// Tile side in pixels; one workgroup blends one tile.
+pub const TILE: u32 = 16;
+/// Variance in px^2 added to the diagonal of every projected covariance: a low-pass filter
+/// about one pixel wide (standard deviation 0.55 px) so that sub-pixel Gaussians still cover a
+/// pixel centre instead of aliasing. The value 3D Gaussian splatting and gsplat use.
+pub const DILATION: f32 = 0.3;
+/// Largest alpha a Gaussian may have at a pixel, so that one Gaussian never makes a pixel
+/// fully opaque and 1 - alpha stays invertible in the backward pass.
+pub const ALPHA_MAX: f32 = 0.99;
+/// Contributions with alpha below 1/255 (invisible in an 8-bit image) are skipped; it also
+/// bounds each Gaussian's footprint and culls Gaussians with opacity below it.
+pub const MIN_ALPHA: f32 = 1.0 / 255.0;
+/// A pixel stops blending when the next Gaussian would bring its transmittance below this.
+pub const T_STOP: f32 = 1e-4;
+/// Projected 2D covariances with a determinant below this (px^4) are degenerate and dropped.
+/// The dilation keeps a sound one above 0.09, so only lost precision gets here.
+pub const MIN_DET: f32 = 1e-6;
+/// Camera-space depth below which a Gaussian is behind the near plane and dropped.
+pub const NEAR: f32 = 0.01;
+/// Most tiles one Gaussian may touch (a 4096 x 4096 image has 65536): keeps one runaway
+/// Gaussian from filling the key buffer. Larger ones are dropped and counted.
+pub const MAX_TILES_PER_GAUSSIAN: u32 = 1 << 16;
+/// Quaternions with a squared length below this are invalid.
+pub const MIN_QUAT_NORM2: f32 = 1e-24;
+
+/// A pinhole camera: world-to-camera rotation (rows) and translation, intrinsics in pixels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Camera {
+    pub width: u32,
+    pub height: u32,
+    pub fx: f32,
+    pub fy: f32,
+    pub cx: f32,
+    pub cy: f32,
+    pub rotation: [[f32; 3]; 3],
+    pub translation: [f32; 3],
+}
+
+fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+}
+fn normalise(a: [f32; 3]) -> [f32; 3] {
+    let l = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
+    [a[0] / l, a[1] / l, a[2] / l]
+}
+
+impl Camera {
+    /// Focal length for a vertical field of view, principal point at the image centre.
+    fn intrinsics(fov_y_deg: f32, width: u32, height: u32) -> (f32, f32, f32, f32) {
+        let f = 0.5 * height as f32 / (0.5 * fov_y_deg.to_radians()).tan();
+        (f, f, 0.5 * width as f32, 0.5 * height as f32)
+    }
+
+    /// At the origin looking down +z (y down), with a vertical field of view in degrees.
+    pub fn identity(fov_y_deg: f32, width: u32, height: u32) -> Camera {
+        let (fx, fy, cx, cy) = Camera::intrinsics(fov_y_deg, width, height);
+        Camera {
+            width,
+            height,
+            fx,
+            fy,
+            cx,
+            cy,
+            rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            translation: [0.0; 3],
+        }
+    }
+
+    /// At `eye` looking at `target`, with `up` pointing up in the image.
+    pub fn look_at(
+        eye: [f32; 3],
+        target: [f32; 3],
+        up: [f32; 3],
+        fov_y_deg: f32,
+        width: u32,
+        height: u32,
+    ) -> Camera {
+        let z = normalise(sub(target, eye));
+        let x = normalise(cross(z, up));
+        let y = cross(z, x);
+        let rotation = [x, y, z];
+        let dot = |r: [f32; 3]| -(r[0] * eye[0] + r[1] * eye[1] + r[2] * eye[2]);
+        Camera {
+            rotation,
+            translation: [dot(x), dot(y), dot(z)],
+            ..Camera::identity(fov_y_deg, width, height)
+        }
+    }
+
+    /// Tiles across and down.
+    pub fn tiles(&self) -> (u32, u32) {
+        (self.width.div_ceil(TILE), self.height.div_ceil(TILE))
+    }
+
+    /// Bits of a sort key that hold the tile index (at least one); the rest hold the depth.
+    pub fn tile_bits(&self) -> u32 {
+        let (tx, ty) = self.tiles();
+        let tiles = tx * ty;
+        (32 - (tiles.max(2) - 1).leading_zeros()).max(1)
+    }
+
+    pub(crate) fn check(&self) -> Result<()> {
+        let (tx, ty) = self.tiles();
+        if self.width == 0 || self.height == 0 || tx > 65535 || ty > 65535 || tx * ty > 1 << 24 {
+            return Err(Error::Shape(format!(
+                "camera image {}x{}: both sides must be non-zero and at most 2^24 tiles in all",
+                self.width, self.height
+            )));
+        }
+        let all = [self.fx, self.fy, self.cx, self.cy]
+            .into_iter()
+            .chain(self.rotation.into_iter().flatten())
+            .chain(self.translation);
+        if all.into_iter().any(|v| !v.is_finite()) || self.fx <= 0.0 || self.fy <= 0.0 {
+            return Err(Error::Invalid(format!(
+                "camera has non-finite or non-positive focal lengths: {self:?}"
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// Gaussians on the host, one flat f32 vector per quantity (see the module conventions).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct GaussianData {
+    pub means: Vec<f32>,
+    pub log_scales: Vec<f32>,
+    pub quats: Vec<f32>,
+    pub opacities: Vec<f32>,
+    pub colours: Vec<f32>,
+}
+
+impl GaussianData {
+    pub fn len(&self) -> usize {
+        self.opacities.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.opacities.is_empty()
+    }
+
+    /// Fails unless every quantity has the length N Gaussians need.
+    pub fn check(&self) -> Result<()> {
+        let n = self.len();
+        let lens = [self.means.len(), self.log_scales.len(), self.quats.len(), self.colours.len()];
+        if lens != [3 * n, 3 * n, 4 * n, 3 * n] {
+            return Err(Error::Shape(format!(
+                "Gaussians: {n} opacities need 3N means, log-scales and colours and 4N quaternions, got {lens:?}"
+            )));
+        }
+        Ok(())
+    }
+
+    /// The tensors the rasteriser takes.
+    pub fn upload(&self, gpu: &Gpu) -> Result<Gaussians> {
+        self.check()?;
+        let n = self.len();
+        Ok(Gaussians {
+            means: Tensor::from_slice(gpu, &[n, 3], &self.means)?,
+            log_scales: Tensor::from_slice(gpu, &[n, 3], &self.log_scales)?,
+            quats: Tensor::from_slice(gpu, &[n, 4], &self.quats)?,
+            opacities: Tensor::from_slice(gpu, &[n], &self.opacities)?,
+            colours: Tensor::from_slice(gpu, &[n, 3], &self.colours)?,
+        })
+    }
+
+    /// Appends one Gaussian.
+    pub fn push(
+        &mut self,
+        mean: [f32; 3],
+        log_scale: [f32; 3],
+        quat: [f32; 4],
+        logit: f32,
+        colour: [f32; 3],
+    ) {
+        self.means.extend(mean);
+        self.log_scales.extend(log_scale);
+        self.quats.extend(quat);
+        self.opacities.push(logit);
+        self.colours.extend(colour);
+    }
+
+    /// The benchmark scene gsplat is compared on, for a camera at the origin looking down +z:
+    /// means ~ N(0, 0.6^2) per axis shifted to z = 3, log-scales ~ N(ln 0.01, 0.3^2), random
+    /// unit quaternions, opacity sigmoid(N(0, 1)) (so logits ~ N(0, 1)), colours uniform in
+    /// [0, 1).
+    pub fn benchmark_scene(n: usize, seed: u64) -> GaussianData {
+        let mut rng = Rng::new(seed);
+        let mut g = GaussianData::default();
+        for _ in 0..n {
+            let mean = [0.6 * rng.normal(), 0.6 * rng.normal(), 3.0 + 0.6 * rng.normal()].map(|v| v as f32);
+            let log_scale = [0; 3].map(|_| (0.01f64.ln() + 0.3 * rng.normal()) as f32);
+            let q = [0; 4].map(|_| rng.normal());
+            let l = q.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-12);
+            let quat = q.map(|v| (v / l) as f32);
+            let logit = rng.normal() as f32;
+            let colour = [0; 3].map(|_| rng.uniform() as f32);
+            g.push(mean, log_scale, quat, logit, colour);
+        }
+        g
+    }
+}
+
+/// Gaussians on the device (see the module conventions for shapes).
+#[derive(Clone, Debug)]
+pub struct Gaussians {
+    pub means: Tensor,
+    pub log_scales: Tensor,
+    pub quats: Tensor,
+    pub opacities: Tensor,
+    pub colours: Tensor,
+}
+
+impl Gaussians {
+    pub fn len(&self) -> usize {
+        self.opacities.numel()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Number of Gaussians after checking every shape and dtype.
+    pub(crate) fn check(&self) -> Result<usize> {
+        let n = self.len();
+        let want: [(&Tensor, usize, &str); 5] = [
+            (&self.means, 3, "means"),
+            (&self.log_scales, 3, "log_scales"),
+            (&self.quats, 4, "quats"),
+            (&self.opacities, 1, "opacities"),
+            (&self.colours, 3, "colours"),
+        ];
+        for (t, width, name) in want {
+            if t.dtype() != DType::F32 || t.numel() != n * width {
+                return Err(Error::Shape(format!(
+                    "Gaussians: {name} {t:?} must be f32 with {width} values for each of the {n} Gaussians"
+                )));
+            }
+        }
+        u32::try_from(n).map_err(|_| Error::TooLarge(format!("{n} Gaussians")))?;
+        Ok(n)
+    }
+}

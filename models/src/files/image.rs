@@ -1,0 +1,76 @@
+//! Images as PNG (8 bits per channel, values in [0, 1] clamped and rounded, no gamma curve
+//! applied: the rasteriser's colours are written as they are) and depth maps as single-channel
+//! f32 OpenEXR (channel `Z`).
+
+use std::path::Path;
+
+use velox_engine::{Error, Result};
+
+use super::{io_error, write_atomically};
+
+fn check_len(what: &str, len: usize, width: u32, height: u32, channels: usize) -> Result<()> {
+    if len != width as usize * height as usize * channels || width == 0 || height == 0 {
+        return Err(Error::Shape(format!(
+            "{what}: {len} values for a {width}x{height} image of {channels} channel(s)"
+        )));
+    }
+    Ok(())
+}
+
+/// Writes row-major RGB `[H, W, 3]` in [0, 1] as an 8-bit PNG.
+pub fn write_png(path: &Path, rgb: &[f32], width: u32, height: u32) -> Result<()> {
+    check_len("write_png", rgb.len(), width, height, 3)?;
+    let bytes: Vec<u8> =
+        rgb.iter().map(|&v| if v.is_nan() { 0 } else { (v.clamp(0.0, 1.0) * 255.0).round() as u8 }).collect();
+    write_atomically(path, |tmp| {
+        image::save_buffer_with_format(
+            tmp,
+            &bytes,
+            width,
+            height,
+            image::ColorType::Rgb8,
+            image::ImageFormat::Png,
+        )
+        .map_err(|e| io_error(tmp, e))
+    })
+}
+
+/// Reads a PNG as row-major RGB in [0, 1], with its width and height.
+pub fn read_png(path: &Path) -> Result<(Vec<f32>, u32, u32)> {
+    let img = image::ImageReader::open(path)
+        .map_err(|e| io_error(path, e))?
+        .with_guessed_format()
+        .map_err(|e| io_error(path, e))?
+        .decode()
+        .map_err(|e| io_error(path, e))?
+        .to_rgb8();
+    let (w, h) = img.dimensions();
+    Ok((img.into_raw().into_iter().map(|b| b as f32 / 255.0).collect(), w, h))
+}
+
+/// Writes a row-major depth map `[H, W]` as a one-channel (`Z`) f32 EXR.
+pub fn write_exr_depth(path: &Path, depth: &[f32], width: u32, height: u32) -> Result<()> {
+    use exr::prelude::*;
+    check_len("write_exr_depth", depth.len(), width, height, 1)?;
+    let w = width as usize;
+    let channels = SpecificChannels::build()
+        .with_channel("Z")
+        .with_pixel_fn(|p: Vec2<usize>| (depth[p.y() * w + p.x()],));
+    let img = Image::from_channels((w, height as usize), channels);
+    write_atomically(path, |tmp| img.write().to_file(tmp).map_err(|e| io_error(tmp, e)))
+}
+
+/// Reads the `Z` channel (or the only channel) of an EXR as f32, with its width and height.
+pub fn read_exr_depth(path: &Path) -> Result<(Vec<f32>, u32, u32)> {
+    let img = exr::prelude::read_first_flat_layer_from_file(path).map_err(|e| io_error(path, e))?;
+    let size = img.layer_data.size;
+    let list = &img.layer_data.channel_data.list;
+    let ch = list
+        .iter()
+        .find(|c| c.name.to_string() == "Z")
+        .or(if list.len() == 1 { list.first() } else { None })
+        .ok_or_else(|| {
+            Error::Invalid(format!("{}: no `Z` channel among {} channels", path.display(), list.len()))
+        })?;
+    Ok((ch.sample_data.values_as_f32().collect(), size.x() as u32, size.y() as u32))
+}

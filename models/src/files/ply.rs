@@ -1,0 +1,242 @@
+//! Gaussians as binary little-endian PLY in the layout of 3D Gaussian splatting, which common
+//! splat viewers open: one `vertex` element with float properties x, y, z, nx, ny, nz (zeros),
+//! f_dc_0..2 (degree-0 spherical harmonics: colour = 0.5 + C0 f_dc), opacity (logit),
+//! scale_0..2 (log), rot_0..3 (w, x, y, z).
+//!
+//! The reader takes any property order, float or double (and integer) properties, and ignores
+//! properties it does not use (higher spherical harmonics f_rest_*, for instance: only the
+//! degree-0 colour is kept) and elements after the vertices.
+
+use std::path::Path;
+
+use velox_engine::ops::raster::GaussianData;
+use velox_engine::{Error, Result};
+
+use super::{io_error, write_bytes};
+
+/// The degree-0 spherical harmonic, 1 / (2 sqrt(pi)).
+pub const SH_C0: f64 = 0.28209479177387814;
+
+const PROPERTIES: [&str; 17] = [
+    "x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1",
+    "scale_2", "rot_0", "rot_1", "rot_2", "rot_3",
+];
+
+/// The file's bytes for `g`.
+pub fn to_bytes(g: &GaussianData) -> Result<Vec<u8>> {
+    g.check()?;
+    let n = g.len();
+    let mut out = format!("ply\nformat binary_little_endian 1.0\nelement vertex {n}\n").into_bytes();
+    for p in PROPERTIES {
+        out.extend_from_slice(format!("property float {p}\n").as_bytes());
+    }
+    out.extend_from_slice(b"end_header\n");
+    out.reserve(n * PROPERTIES.len() * 4);
+    for i in 0..n {
+        let dc = |k: usize| ((g.colours[3 * i + k] as f64 - 0.5) / SH_C0) as f32;
+        let row = [
+            g.means[3 * i],
+            g.means[3 * i + 1],
+            g.means[3 * i + 2],
+            0.0,
+            0.0,
+            0.0,
+            dc(0),
+            dc(1),
+            dc(2),
+            g.opacities[i],
+            g.log_scales[3 * i],
+            g.log_scales[3 * i + 1],
+            g.log_scales[3 * i + 2],
+            g.quats[4 * i],
+            g.quats[4 * i + 1],
+            g.quats[4 * i + 2],
+            g.quats[4 * i + 3],
+        ];
+        for v in row {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    Ok(out)
+}
+
+/// Writes `g` to `path` (atomically).
+pub fn write(path: &Path, g: &GaussianData) -> Result<()> {
+    write_bytes(path, &to_bytes(g)?)
+}
+
+/// Reads Gaussians from `path`.
+pub fn read(path: &Path) -> Result<GaussianData> {
+    let bytes = std::fs::read(path).map_err(|e| io_error(path, e))?;
+    from_bytes(&bytes).map_err(|e| match e {
+        Error::Invalid(why) => Error::Invalid(format!("{}: {why}", path.display())),
+        other => other,
+    })
+}
+
+#[derive(Clone, Copy)]
+enum Scalar {
+    I8,
+    U8,
+    I16,
+    U16,
+    I32,
+    U32,
+    F32,
+    F64,
+}
+
+impl Scalar {
+    fn parse(s: &str) -> Option<Scalar> {
+        Some(match s {
+            "char" | "int8" => Scalar::I8,
+            "uchar" | "uint8" => Scalar::U8,
+            "short" | "int16" => Scalar::I16,
+            "ushort" | "uint16" => Scalar::U16,
+            "int" | "int32" => Scalar::I32,
+            "uint" | "uint32" => Scalar::U32,
+            "float" | "float32" => Scalar::F32,
+            "double" | "float64" => Scalar::F64,
+            _ => return None,
+        })
+    }
+    fn size(self) -> usize {
+        match self {
+            Scalar::I8 | Scalar::U8 => 1,
+            Scalar::I16 | Scalar::U16 => 2,
+            Scalar::I32 | Scalar::U32 | Scalar::F32 => 4,
+            Scalar::F64 => 8,
+        }
+    }
+    fn read(self, b: &[u8]) -> f64 {
+        match self {
+            Scalar::I8 => b[0] as i8 as f64,
+            Scalar::U8 => b[0] as f64,
+            Scalar::I16 => i16::from_le_bytes([b[0], b[1]]) as f64,
+            Scalar::U16 => u16::from_le_bytes([b[0], b[1]]) as f64,
+            Scalar::I32 => i32::from_le_bytes(b[..4].try_into().unwrap()) as f64,
+            Scalar::U32 => u32::from_le_bytes(b[..4].try_into().unwrap()) as f64,
+            Scalar::F32 => f32::from_le_bytes(b[..4].try_into().unwrap()) as f64,
+            Scalar::F64 => f64::from_le_bytes(b[..8].try_into().unwrap()),
+        }
+    }
+}
+
+struct Element {
+    name: String,
+    count: usize,
+    properties: Vec<(String, Scalar)>,
+}
+
+fn bad(why: impl Into<String>) -> Error {
+    Error::Invalid(why.into())
+}
+
+/// Parses a PLY file's bytes.
+pub fn from_bytes(bytes: &[u8]) -> Result<GaussianData> {
+    const END: &[u8] = b"end_header";
+    let end = bytes
+        .windows(END.len())
+        .position(|w| w == END)
+        .ok_or_else(|| bad("not a PLY file: no `end_header` line"))?;
+    let body_start = bytes[end..]
+        .iter()
+        .position(|&b| b == b'\n')
+        .map(|p| end + p + 1)
+        .ok_or_else(|| bad("the header's `end_header` line has no line end"))?;
+    let header = std::str::from_utf8(&bytes[..end]).map_err(|_| bad("the PLY header is not text"))?;
+    let mut lines = header.lines().map(str::trim);
+    if lines.next() != Some("ply") {
+        return Err(bad("not a PLY file: it does not start with `ply`"));
+    }
+    let mut elements: Vec<Element> = Vec::new();
+    let mut format_seen = false;
+    for line in lines {
+        let words: Vec<&str> = line.split_whitespace().collect();
+        match words.as_slice() {
+            [] | ["comment", ..] | ["obj_info", ..] => {}
+            ["format", "binary_little_endian", _] => format_seen = true,
+            ["format", other, _] => {
+                return Err(bad(format!(
+                "PLY format `{other}` is not supported: Gaussians are read from binary_little_endian files"
+            )))
+            }
+            ["element", name, count] => elements.push(Element {
+                name: name.to_string(),
+                count: count
+                    .parse()
+                    .map_err(|_| bad(format!("element {name}: count `{count}` is not a number")))?,
+                properties: Vec::new(),
+            }),
+            ["property", "list", ..] => {
+                return Err(bad(format!("list property `{line}` is not supported in a Gaussian file")))
+            }
+            ["property", ty, name] => {
+                let e = elements
+                    .last_mut()
+                    .ok_or_else(|| bad(format!("property `{name}` before any element")))?;
+                let s =
+                    Scalar::parse(ty).ok_or_else(|| bad(format!("property {name}: unknown type `{ty}`")))?;
+                e.properties.push((name.to_string(), s));
+            }
+            _ => return Err(bad(format!("unreadable PLY header line `{line}`"))),
+        }
+    }
+    if !format_seen {
+        return Err(bad("the PLY header has no `format binary_little_endian 1.0` line"));
+    }
+    // Skip the elements before the vertices.
+    let mut at = body_start;
+    let mut vertex = None;
+    for e in &elements {
+        let stride: usize = e.properties.iter().map(|p| p.1.size()).sum();
+        if e.name == "vertex" {
+            vertex = Some((e, stride));
+            break;
+        }
+        at = e
+            .count
+            .checked_mul(stride)
+            .and_then(|b| b.checked_add(at))
+            .ok_or_else(|| bad(format!("element {} is too large", e.name)))?;
+    }
+    let (e, stride) = vertex.ok_or_else(|| bad("the PLY file has no `vertex` element"))?;
+    let column = |name: &str| -> Result<(usize, Scalar)> {
+        let mut offset = 0;
+        for (p, s) in &e.properties {
+            if p == name {
+                return Ok((offset, *s));
+            }
+            offset += s.size();
+        }
+        Err(bad(format!(
+            "the vertex element has no `{name}` property: a 3D Gaussian splatting file needs x, y, z, f_dc_0..2, opacity, scale_0..2 and rot_0..3"
+        )))
+    };
+    let used: Vec<(usize, Scalar)> =
+        PROPERTIES.iter().filter(|p| !p.starts_with('n')).map(|p| column(p)).collect::<Result<_>>()?;
+    let n = e.count;
+    let need = n.checked_mul(stride).and_then(|b| b.checked_add(at));
+    if need.is_none_or(|need| need > bytes.len()) {
+        return Err(bad(format!(
+            "the file is truncated: {n} vertices of {stride} bytes need {} bytes after the header, it has {}",
+            n.saturating_mul(stride),
+            bytes.len().saturating_sub(at)
+        )));
+    }
+    let mut g = GaussianData::default();
+    for i in 0..n {
+        let row = &bytes[at + i * stride..at + (i + 1) * stride];
+        let v: Vec<f64> = used.iter().map(|&(o, s)| s.read(&row[o..])).collect();
+        // v: x y z, f_dc 0..2, opacity, scale 0..2, rot 0..3
+        let colour = [v[3], v[4], v[5]].map(|dc| (0.5 + SH_C0 * dc) as f32);
+        g.push(
+            [v[0] as f32, v[1] as f32, v[2] as f32],
+            [v[7] as f32, v[8] as f32, v[9] as f32],
+            [v[10] as f32, v[11] as f32, v[12] as f32, v[13] as f32],
+            v[6] as f32,
+            colour,
+        );
+    }
+    Ok(g)
+}
