@@ -7,3 +7,4 @@ pub mod config;
 pub mod layers;
 pub mod params;
 pub mod schedule;
+pub mod velox;

@@ -1,0 +1,3 @@
+//! The Velox models built from the layers (MODELS.md).
+
+pub mod surface;
