@@ -283,6 +283,11 @@ fn overfits_a_circle_and_samples_it_back() {
         }
         after.push(c);
     }
+    // Chunks of 64 points integrate exactly what one chunk of all points does.
+    let spec = SampleSpec { points: 150, steps: 3, sampler: Sampler::Heun, seed: 5 };
+    let whole = dec.sample(&tokens, tau, &spec).unwrap().read::<f32>().unwrap();
+    let chunked = dec.sample_in_chunks(&tokens, tau, &spec, 64).unwrap().read::<f32>().unwrap();
+    assert!(max_abs_err(&chunked, &f64s(&whole)) < 1e-5);
     if verbose() {
         eprintln!(
             "L_V {first:.4} (mean of first 10 steps) -> {last:.4} (mean of last 30) in {steps} steps, \
@@ -361,6 +366,7 @@ fn bad_input_gets_clear_errors() {
     assert!(msg(dec.sample(&tokens, 0.5, &spec(8, 0))).contains("step"));
     assert!(msg(dec.sample(&tokens, 0.5, &spec(0, 4))).contains("point"));
     assert!(msg(dec.sample(&tokens, f32::NAN, &spec(8, 4))).contains("tau"));
+    assert!(msg(dec.sample_in_chunks(&tokens, 0.5, &spec(8, 4), 100)).contains("multiple of 64"));
     assert!(msg(integrate(&x, 0, Sampler::Euler, |_, x, _| Ok(x.clone()))).contains("step"));
     assert!(msg(integrate(&x, 2, Sampler::Euler, |_, _, _| Ok(t.clone()))).contains("velocity"));
 

@@ -680,17 +680,31 @@ impl SurfaceDecoder {
     /// Samples `spec.points` surface points at frame time `tau` from `x_0 ~ N(0, I)` (seeded)
     /// by integrating the velocity from `t = 0` to `1`: `[points, 3]`.
     pub fn sample(&self, tokens: &Tensor, tau: f32, spec: &SampleSpec) -> Result<Tensor> {
+        self.sample_in_chunks(tokens, tau, spec, self.sample_chunk())
+    }
+
+    /// [`SurfaceDecoder::sample`] integrating `chunk` points at a time (a positive multiple of
+    /// 64); point `i` starts from the same noise whatever the chunk.
+    pub fn sample_in_chunks(
+        &self,
+        tokens: &Tensor,
+        tau: f32,
+        spec: &SampleSpec,
+        chunk: usize,
+    ) -> Result<Tensor> {
         if spec.points == 0 {
             return Err(Error::Invalid("sampling needs at least one point".into()));
         }
         if spec.steps == 0 {
             return Err(Error::Invalid("sampling needs at least one integration step".into()));
         }
+        if chunk == 0 || !chunk.is_multiple_of(64) {
+            return Err(Error::Invalid(format!("sampling chunk {chunk} is not a positive multiple of 64")));
+        }
         self.check_condition(tau, tokens)?;
         let gpu = tokens.gpu().clone();
         let noise = Rng::new(spec.seed).normal_vec(spec.points * 3);
         let out = Tensor::empty(&gpu, &[spec.points, 3], DType::F32)?;
-        let chunk = self.sample_chunk();
         for start in (0..spec.points).step_by(chunk) {
             let len = chunk.min(spec.points - start);
             let x0 = Tensor::from_slice(&gpu, &[len, 3], &noise[3 * start..3 * (start + len)])?;
