@@ -45,12 +45,21 @@ pub struct SurfaceConfig {
     pub xyz_max_octave: f64,
     pub tau_freqs: usize,
     pub tau_max_octave: f64,
-    /// Fourier frequencies of the flow time t, and the width of its embedding MLP.
+    /// Fourier frequencies of the flow time t (log-spaced 2^0 .. 2^time_max_octave), and the
+    /// width of its embedding MLP.
     pub time_freqs: usize,
+    #[serde(default = "default_time_max_octave")]
+    pub time_max_octave: f64,
     pub time_embed: usize,
     /// Points per training step, and the range of the flow time.
     pub points_per_step: usize,
     pub t_min: f32,
+}
+
+/// The flow time lies in [0, 1], like tau: the same octave range (configs written before the
+/// field existed read this).
+fn default_time_max_octave() -> f64 {
+    7.0
 }
 
 /// The Gaussian decoder G: occupied voxels at a frame -> 3D Gaussians.
@@ -119,6 +128,7 @@ impl AutoencoderConfig {
                 tau_freqs: 8,
                 tau_max_octave: 7.0,
                 time_freqs: 32,
+                time_max_octave: 7.0,
                 time_embed: 64,
                 points_per_step: 16384,
                 t_min: 1e-3,

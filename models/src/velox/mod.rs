@@ -4,3 +4,4 @@ pub mod blocks;
 pub mod cloud;
 pub mod encoder;
 pub mod gaussians;
+pub mod surface;

@@ -1,0 +1,721 @@
+//! The 4D surface decoder V (MODELS.md, "4D surface decoder V"; paper section on the 4D surface
+//! decoder): a rectified-flow velocity network over points, conditioned on the dynamic tokens.
+//!
+//! Training (rectified flow): for points `x` of one frame time `tau`, noise `eps ~ N(0, I)` and
+//! flow times `t` uniform in `[t_min, 1 - t_min]`, the network sees `x_t = t x + (1 - t) eps`
+//! and is asked for the velocity `u = x - eps`; `L_V = mean |v - u|^2` (mean over points and
+//! coordinates). Sampling integrates `v` from `t = 0` (`x_0 ~ N(0, I)`) to `t = 1` with Euler
+//! or Heun steps.
+//!
+//! The network, per point (points never see each other):
+//! ```text
+//! h = [x_t ++ Fourier(x_t) ++ Fourier(tau)] W_in + b_in
+//! e = silu(MLP(Fourier(t)))                         time embedding, [time_embed]
+//! each block:  h += gate_a * CrossAttn(LN(h) * (1 + scale_a) + shift_a, tokens)
+//!              h += gate_m * GeluMlp(LN(h) * (1 + scale_m) + shift_m)
+//! v = (LN(h) * (1 + scale_f) + shift_f) W_out + b_out
+//! ```
+//! where every shift, scale and gate is a linear map of `e` (adaLN-Zero: those maps and `W_out`
+//! start at zero, so the untrained network outputs 0). The maps are one `Linear` per role,
+//! which is the paper's single `time_embed -> 6 x width` linear split by its output columns.
+//! `W_in` is stored as two parameters, the rows that read the point's features and those that
+//! read `Fourier(tau)`: tau is one number per call, so its rows give one `[1, width]` row added
+//! to every point.
+//!
+//! Each point has its own `t` in training, so the modulation is per point (`Modulate` with
+//! `B = points, T = 1`); in sampling every point shares one `t`, and the modulation is computed
+//! once (`B = 1, T = points`).
+
+use velox_engine::ops::attention::Segments;
+use velox_engine::ops::binary::{binary, binary_into, Binary};
+use velox_engine::ops::fill::fill;
+use velox_engine::ops::reduce::{reduce, Reduce};
+use velox_engine::ops::swiglu::swiglu_backward;
+use velox_engine::ops::unary::{unary, Unary};
+use velox_engine::rng::Rng;
+use velox_engine::{DType, Error, Gpu, Recorder, Result, Tensor};
+
+use crate::config::SurfaceConfig;
+use crate::layers::adaln::{GatedResidualCache, ModulateCache};
+use crate::layers::attention::MultiHeadAttentionCache;
+use crate::layers::feedforward::GeluMlpCache;
+use crate::layers::linear::LinearCache;
+use crate::layers::norm::LayerNormCache;
+use crate::layers::{
+    Fourier, GatedResidual, GeluMlp, LayerNorm, Linear, Loss, Modulate, MultiHeadAttention, Param,
+};
+use crate::params::{Init, ParamBuilder, ParamStore};
+
+/// LayerNorm epsilon under adaLN (DiT's value).
+const LN_EPS: f32 = 1e-6;
+/// The largest activation one sampling chunk may hold, in bytes.
+const SAMPLE_CHUNK_BYTES: usize = 32 << 20;
+
+/// The six modulation roles of a block, in the order of the paper's `6 x width` output.
+const BLOCK_ROLES: [&str; 6] =
+    ["shift_attn", "scale_attn", "gate_attn", "shift_mlp", "scale_mlp", "gate_mlp"];
+/// The final layer's two.
+const FINAL_ROLES: [&str; 2] = ["shift", "scale"];
+
+/// Widths of the input features.
+fn feature_widths(cfg: &SurfaceConfig) -> (usize, usize, usize) {
+    let xyz = 3 + 3 * 2 * cfg.xyz_freqs;
+    let tau = 2 * cfg.tau_freqs;
+    let time = 1 + 2 * cfg.time_freqs;
+    (xyz, tau, time)
+}
+
+fn check_config(cfg: &SurfaceConfig, token_dim: usize) -> Result<()> {
+    if cfg.width == 0 || cfg.heads == 0 || !cfg.width.is_multiple_of(cfg.heads) {
+        return Err(Error::Invalid(format!(
+            "surface decoder: width {} does not split into {} heads",
+            cfg.width, cfg.heads
+        )));
+    }
+    let d = cfg.width / cfg.heads;
+    if !velox_engine::ops::attention::HEAD_DIMS.contains(&d) {
+        return Err(Error::Invalid(format!(
+            "surface decoder: head width {d} has no attention kernel (compiled: {:?})",
+            velox_engine::ops::attention::HEAD_DIMS
+        )));
+    }
+    if cfg.mlp_ratio == 0 || cfg.time_embed == 0 || token_dim == 0 {
+        return Err(Error::Invalid(format!(
+            "surface decoder: mlp_ratio {}, time_embed {} and token_dim {token_dim} must be positive",
+            cfg.mlp_ratio, cfg.time_embed
+        )));
+    }
+    if !(cfg.t_min.is_finite() && (0.0..0.5).contains(&cfg.t_min)) {
+        return Err(Error::Invalid(format!("surface decoder: t_min {} must lie in [0, 0.5)", cfg.t_min)));
+    }
+    Ok(())
+}
+
+/// The adaLN-modulated cross-attention and MLP of one block.
+struct Block {
+    attn: MultiHeadAttention,
+    mlp: GeluMlp,
+    /// `BLOCK_ROLES`, each `time_embed -> width`.
+    adaln: Vec<Linear>,
+}
+
+pub struct SurfaceDecoder {
+    pub cfg: SurfaceConfig,
+    pub token_dim: usize,
+    xyz_fourier: Fourier,
+    tau_fourier: Option<Fourier>,
+    time_fourier: Fourier,
+    /// The rows of the input linear that read `x_t ++ Fourier(x_t)` (with the bias), and those
+    /// that read `Fourier(tau)`.
+    input: Linear,
+    input_tau: Option<Linear>,
+    time_fc1: Linear,
+    time_fc2: Linear,
+    blocks: Vec<Block>,
+    final_adaln: Vec<Linear>,
+    out: Linear,
+    norm: LayerNorm,
+}
+
+struct BlockCache {
+    ln1: LayerNormCache,
+    mod1: ModulateCache,
+    attn: MultiHeadAttentionCache,
+    res1: GatedResidualCache,
+    ln2: LayerNormCache,
+    mod2: ModulateCache,
+    mlp: GeluMlpCache,
+    res2: GatedResidualCache,
+}
+
+/// What [`SurfaceDecoder::backward`] needs from the forward pass.
+pub struct SurfaceCache {
+    n: usize,
+    /// The modulation batch: `(B, T)` = `(points, 1)` with per-point `t`, `(1, points)` shared.
+    b: usize,
+    tt: usize,
+    k: usize,
+    seg: Segments,
+    time_fc1: LinearCache,
+    /// Pre-activations of the two SiLUs of the time embedding, and the embedding `e`.
+    a1: Tensor,
+    a2: Tensor,
+    e: LinearCache,
+    input: LinearCache,
+    input_tau: Option<LinearCache>,
+    time_fc2: LinearCache,
+    blocks: Vec<BlockCache>,
+    ln_final: LayerNormCache,
+    mod_final: ModulateCache,
+    out: LinearCache,
+}
+
+/// The noise of one rectified-flow step: `eps [N, 3]` and per-point flow times `t [N]`.
+pub struct FlowNoise {
+    pub eps: Tensor,
+    pub t: Tensor,
+}
+
+impl FlowNoise {
+    /// `eps ~ N(0, I)` and `t` uniform in `[t_min, 1 - t_min]`, drawn on the host from `rng`.
+    pub fn draw(gpu: &Gpu, points: usize, t_min: f32, rng: &mut Rng) -> Result<FlowNoise> {
+        let eps = rng.normal_vec(points * 3);
+        let t = rng.uniform_vec(points, t_min as f64, 1.0 - t_min as f64);
+        FlowNoise::from_host(gpu, &eps, &t)
+    }
+
+    /// Given noise (for deterministic checks).
+    pub fn from_host(gpu: &Gpu, eps: &[f32], t: &[f32]) -> Result<FlowNoise> {
+        if eps.len() != 3 * t.len() {
+            return Err(Error::Shape(format!(
+                "flow noise: {} noise values for {} flow times (need 3 per point)",
+                eps.len(),
+                t.len()
+            )));
+        }
+        Ok(FlowNoise {
+            eps: Tensor::from_slice(gpu, &[t.len(), 3], eps)?,
+            t: Tensor::from_slice(gpu, &[t.len()], t)?,
+        })
+    }
+}
+
+/// One training step's outputs: `L_V` as a 1-element tensor (read it after submit) and its
+/// gradient with respect to the tokens, for the encoder.
+pub struct FlowLoss {
+    pub loss: Tensor,
+    pub dtokens: Tensor,
+}
+
+/// ODE integrators for sampling.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Sampler {
+    /// `x += dt v(x, t)`: one velocity per step.
+    Euler,
+    /// Heun's (trapezoidal predictor-corrector) method: two velocities per step, second order.
+    Heun,
+}
+
+/// What to sample: `points` points, `steps` integration steps, noise from `seed`.
+#[derive(Clone, Copy, Debug)]
+pub struct SampleSpec {
+    pub points: usize,
+    pub steps: usize,
+    pub sampler: Sampler,
+    pub seed: u64,
+}
+
+/// Host points `[N, 3]` as a tensor, refusing empty, ragged or non-finite input with a message
+/// that names the first bad point.
+pub fn points_tensor(gpu: &Gpu, points: &[f32]) -> Result<Tensor> {
+    if points.is_empty() || !points.len().is_multiple_of(3) {
+        return Err(Error::Invalid(format!(
+            "surface decoder: points must be a non-empty list of xyz triples, got {} values",
+            points.len()
+        )));
+    }
+    if let Some(i) = points.iter().position(|v| !v.is_finite()) {
+        return Err(Error::Invalid(format!(
+            "surface decoder: point {} has a non-finite coordinate ({})",
+            i / 3,
+            points[i]
+        )));
+    }
+    Tensor::from_slice(gpu, &[points.len() / 3, 3], points)
+}
+
+/// `silu'(a) * dy`: SiLU is the SwiGLU gate with `b = 1`, so its backward is the gate's `da`.
+fn silu_backward(rec: &mut Recorder, a: &Tensor, dy: &Tensor) -> Result<Tensor> {
+    let ones = Tensor::empty(a.gpu(), a.shape(), DType::F32)?;
+    fill(rec, &ones, 1.0)?;
+    Ok(swiglu_backward(rec, a, &ones, dy)?.0)
+}
+
+/// Integrates `dx/dt = velocity(x, t)` from `t = 0` to `t = 1` in `steps` equal steps, one
+/// submission per step (so activations of a step are freed before the next). `velocity`
+/// records its work on the recorder it is given and returns `v` of `x`'s shape.
+pub fn integrate<F>(x0: &Tensor, steps: usize, sampler: Sampler, mut velocity: F) -> Result<Tensor>
+where
+    F: FnMut(&mut Recorder, &Tensor, f32) -> Result<Tensor>,
+{
+    if steps == 0 {
+        return Err(Error::Invalid("sampling needs at least one integration step".into()));
+    }
+    let gpu = x0.gpu().clone();
+    let dt = 1.0 / steps as f32;
+    let mut x = x0.clone();
+    for i in 0..steps {
+        let t = i as f32 * dt;
+        let mut rec = gpu.recorder()?;
+        let v1 = velocity(&mut rec, &x, t)?;
+        check_velocity(&x, &v1)?;
+        let next = match sampler {
+            Sampler::Euler => {
+                let step = unary(&mut rec, &v1, Unary::Affine(dt, 0.0))?;
+                binary(&mut rec, &x, &step, Binary::Add)?
+            }
+            Sampler::Heun => {
+                let step = unary(&mut rec, &v1, Unary::Affine(dt, 0.0))?;
+                let predicted = binary(&mut rec, &x, &step, Binary::Add)?;
+                let v2 = velocity(&mut rec, &predicted, (i + 1) as f32 * dt)?;
+                check_velocity(&x, &v2)?;
+                let sum = binary(&mut rec, &v1, &v2, Binary::Add)?;
+                unary_inplace(&mut rec, &sum, Unary::Affine(0.5 * dt, 0.0))?;
+                binary(&mut rec, &x, &sum, Binary::Add)?
+            }
+        };
+        rec.submit()?;
+        x = next;
+    }
+    Ok(x)
+}
+
+fn unary_inplace(rec: &mut Recorder, x: &Tensor, f: Unary) -> Result<()> {
+    velox_engine::ops::unary::unary_into(rec, x, x, f)
+}
+
+fn check_velocity(x: &Tensor, v: &Tensor) -> Result<()> {
+    if v.shape() != x.shape() || v.dtype() != DType::F32 {
+        return Err(Error::Shape(format!("sampler: velocity {v:?} does not match the points {x:?}")));
+    }
+    Ok(())
+}
+
+impl SurfaceDecoder {
+    /// Declares the decoder's parameters under `prefix` (names `prefix.input.w`, ...).
+    pub fn register(b: &mut ParamBuilder, prefix: &str, cfg: &SurfaceConfig, token_dim: usize) -> Result<()> {
+        check_config(cfg, token_dim)?;
+        let (xyz, tau, time) = feature_widths(cfg);
+        let w = cfg.width;
+        let te = cfg.time_embed;
+        let hidden = cfg.mlp_ratio * w;
+        let name = |s: &str| format!("{prefix}.{s}");
+        // Glorot over the whole input linear, whose rows are split into two parameters.
+        let a = (6.0 / (xyz + tau + w) as f64).sqrt();
+        b.add(&name("input.w"), &[xyz, w], Init::Uniform { lo: -a, hi: a })?;
+        b.add(&name("input.b"), &[w], Init::Zeros)?;
+        if tau > 0 {
+            b.add(&name("input_tau.w"), &[tau, w], Init::Uniform { lo: -a, hi: a })?;
+        }
+        b.add(&name("time.fc1.w"), &[time, te], Init::Xavier)?;
+        b.add(&name("time.fc1.b"), &[te], Init::Zeros)?;
+        b.add(&name("time.fc2.w"), &[te, te], Init::Xavier)?;
+        b.add(&name("time.fc2.b"), &[te], Init::Zeros)?;
+        let adaln = |b: &mut ParamBuilder, p: &str| -> Result<()> {
+            b.add(&format!("{p}.w"), &[te, w], Init::Zeros)?;
+            b.add(&format!("{p}.b"), &[w], Init::Zeros)
+        };
+        for i in 0..cfg.blocks {
+            let blk = |s: &str| name(&format!("blocks.{i}.{s}"));
+            b.add(&blk("attn.q.w"), &[w, w], Init::Xavier)?;
+            b.add(&blk("attn.k.w"), &[token_dim, w], Init::Xavier)?;
+            b.add(&blk("attn.v.w"), &[token_dim, w], Init::Xavier)?;
+            b.add(&blk("attn.o.w"), &[w, w], Init::Xavier)?;
+            b.add(&blk("mlp.fc1.w"), &[w, hidden], Init::Xavier)?;
+            b.add(&blk("mlp.fc1.b"), &[hidden], Init::Zeros)?;
+            b.add(&blk("mlp.fc2.w"), &[hidden, w], Init::Xavier)?;
+            b.add(&blk("mlp.fc2.b"), &[w], Init::Zeros)?;
+            for role in BLOCK_ROLES {
+                adaln(b, &blk(&format!("adaln.{role}")))?;
+            }
+        }
+        for role in FINAL_ROLES {
+            adaln(b, &name(&format!("final.adaln.{role}")))?;
+        }
+        b.add(&name("out.w"), &[w, 3], Init::Zeros)?;
+        b.add(&name("out.b"), &[3], Init::Zeros)
+    }
+
+    /// Builds the decoder from the parameters [`SurfaceDecoder::register`] declared.
+    pub fn new(
+        store: &ParamStore,
+        prefix: &str,
+        cfg: &SurfaceConfig,
+        token_dim: usize,
+    ) -> Result<SurfaceDecoder> {
+        check_config(cfg, token_dim)?;
+        let gpu = store.flat_params().gpu().clone();
+        let p = |s: &str| -> Result<Param> {
+            let n = format!("{prefix}.{s}");
+            Param::from_tensors(store.param(&n)?.clone(), store.grad(&n)?.clone())
+        };
+        let lin = |w: &str, b: Option<&str>| -> Result<Linear> { Linear::new(p(w)?, b.map(p).transpose()?) };
+        let adaln = |base: &str| lin(&format!("{base}.w"), Some(&format!("{base}.b")));
+        let mut blocks = Vec::with_capacity(cfg.blocks);
+        for i in 0..cfg.blocks {
+            let blk = |s: &str| format!("blocks.{i}.{s}");
+            let attn = MultiHeadAttention::new(
+                lin(&blk("attn.q.w"), None)?,
+                lin(&blk("attn.k.w"), None)?,
+                lin(&blk("attn.v.w"), None)?,
+                lin(&blk("attn.o.w"), None)?,
+                cfg.heads,
+            )?;
+            let mlp = GeluMlp::new(
+                p(&blk("mlp.fc1.w"))?,
+                p(&blk("mlp.fc1.b"))?,
+                p(&blk("mlp.fc2.w"))?,
+                p(&blk("mlp.fc2.b"))?,
+            )?;
+            let adaln =
+                BLOCK_ROLES.iter().map(|r| adaln(&blk(&format!("adaln.{r}")))).collect::<Result<Vec<_>>>()?;
+            blocks.push(Block { attn, mlp, adaln });
+        }
+        let tau_fourier = (cfg.tau_freqs > 0)
+            .then(|| Fourier::log_spaced(&gpu, 1, cfg.tau_freqs, cfg.tau_max_octave, false))
+            .transpose()?;
+        let input_tau = (cfg.tau_freqs > 0).then(|| lin("input_tau.w", None)).transpose()?;
+        Ok(SurfaceDecoder {
+            cfg: cfg.clone(),
+            token_dim,
+            xyz_fourier: Fourier::log_spaced(&gpu, 3, cfg.xyz_freqs, cfg.xyz_max_octave, true)?,
+            tau_fourier,
+            time_fourier: Fourier::log_spaced(&gpu, 1, cfg.time_freqs, cfg.time_max_octave, true)?,
+            input: lin("input.w", Some("input.b"))?,
+            input_tau,
+            time_fc1: lin("time.fc1.w", Some("time.fc1.b"))?,
+            time_fc2: lin("time.fc2.w", Some("time.fc2.b"))?,
+            blocks,
+            final_adaln: FINAL_ROLES
+                .iter()
+                .map(|r| adaln(&format!("final.adaln.{r}")))
+                .collect::<Result<Vec<_>>>()?,
+            out: lin("out.w", Some("out.b"))?,
+            norm: LayerNorm::new(cfg.width, None, LN_EPS)?,
+        })
+    }
+
+    /// A decoder in a store of its own (for benchmarks and tests), initialised with `seed`.
+    pub fn standalone(
+        gpu: &Gpu,
+        cfg: &SurfaceConfig,
+        token_dim: usize,
+        seed: u64,
+    ) -> Result<(ParamStore, SurfaceDecoder)> {
+        let mut b = ParamStore::builder();
+        SurfaceDecoder::register(&mut b, "surface", cfg, token_dim)?;
+        let store = b.build(gpu, seed)?;
+        let dec = SurfaceDecoder::new(&store, "surface", cfg, token_dim)?;
+        Ok((store, dec))
+    }
+
+    /// Multiply-adds of one forward pass over `points` points and `tokens` tokens, times two
+    /// (FLOPs): the matmuls and attention that grow with the points, plus each block's key and
+    /// value projections of the tokens. The time embedding and modulation (one row when `t` is
+    /// shared, as in sampling) are left out.
+    pub fn forward_flops(cfg: &SurfaceConfig, token_dim: usize, points: usize, tokens: usize) -> u64 {
+        let (xyz, _, _) = feature_widths(cfg);
+        let (n, k, w) = (points as u64, tokens as u64, cfg.width as u64);
+        let hidden = cfg.mlp_ratio as u64 * w;
+        let per_block = n * (2 * w * w + 2 * w * hidden) + 2 * k * token_dim as u64 * w + 2 * n * k * w;
+        2 * (n * xyz as u64 * w + cfg.blocks as u64 * per_block + n * w * 3)
+    }
+
+    fn check_inputs(&self, x_t: &Tensor, tau: f32, t: &Tensor, tokens: &Tensor) -> Result<(usize, usize)> {
+        let n = match x_t.shape() {
+            [n, 3] if *n > 0 && x_t.dtype() == DType::F32 => *n,
+            _ => {
+                return Err(Error::Shape(format!(
+                    "surface decoder: points must be f32 [N, 3] with N > 0, got {x_t:?}"
+                )))
+            }
+        };
+        if t.dtype() != DType::F32 || (t.shape() != [n] && t.shape() != [1]) {
+            return Err(Error::Shape(format!(
+                "surface decoder: flow times must be f32 [{n}] (one per point) or [1] (shared), got {t:?}"
+            )));
+        }
+        Ok((n, self.check_condition(tau, tokens)?))
+    }
+
+    /// Checks the frame time and the tokens; returns the number of tokens.
+    fn check_condition(&self, tau: f32, tokens: &Tensor) -> Result<usize> {
+        if !tau.is_finite() {
+            return Err(Error::Invalid(format!("surface decoder: frame time tau is {tau}")));
+        }
+        match tokens.shape() {
+            [k, d] if *k > 0 && *d == self.token_dim && tokens.dtype() == DType::F32 => Ok(*k),
+            _ => Err(Error::Shape(format!(
+                "surface decoder: tokens must be f32 [k, {}] with k > 0, got {tokens:?}",
+                self.token_dim
+            ))),
+        }
+    }
+
+    /// The velocity `v [N, 3]` at points `x_t [N, 3]` of frame time `tau`, flow times `t [N]`
+    /// (or `[1]`, shared by every point), given the tokens `[k, token_dim]`.
+    pub fn forward(
+        &self,
+        rec: &mut Recorder,
+        x_t: &Tensor,
+        tau: f32,
+        t: &Tensor,
+        tokens: &Tensor,
+    ) -> Result<(Tensor, SurfaceCache)> {
+        let (n, k) = self.check_inputs(x_t, tau, t, tokens)?;
+        let gpu = x_t.gpu().clone();
+        let w = self.cfg.width;
+        let nt = t.numel();
+        let (b, tt) = if nt == n { (n, 1) } else { (1, n) };
+
+        // Time embedding e [nt, time_embed] and the modulation chunks [nt, width].
+        let (ft, _) = self.time_fourier.forward(rec, &t.reshape(&[nt, 1])?)?;
+        let (a1, time_fc1) = self.time_fc1.forward(rec, &ft)?;
+        let s1 = unary(rec, &a1, Unary::Silu)?;
+        let (a2, time_fc2) = self.time_fc2.forward(rec, &s1)?;
+        let e = unary(rec, &a2, Unary::Silu)?;
+        let mut e_cache = None;
+        let mut modulation = |rec: &mut Recorder, l: &Linear| -> Result<Tensor> {
+            let (m, c) = l.forward(rec, &e)?;
+            e_cache.get_or_insert(c);
+            Ok(m)
+        };
+
+        // Input features.
+        let (fx, _) = self.xyz_fourier.forward(rec, x_t)?;
+        let (h, input) = self.input.forward(rec, &fx)?;
+        let input_tau = match (&self.tau_fourier, &self.input_tau) {
+            (Some(f), Some(l)) => {
+                let tau_t = Tensor::from_slice(&gpu, &[1, 1], &[tau])?;
+                let (ftau, _) = f.forward(rec, &tau_t)?;
+                let (row, c) = l.forward(rec, &ftau)?;
+                binary_into(rec, &h, &row, &h, Binary::Add)?;
+                Some(c)
+            }
+            _ => None,
+        };
+
+        let seg = Segments::dense(&gpu, n, k)?;
+        let mut h = h.reshape(&[b, tt, w])?;
+        let mut blocks = Vec::with_capacity(self.blocks.len());
+        for blk in &self.blocks {
+            let m: Vec<Tensor> = blk.adaln.iter().map(|l| modulation(rec, l)).collect::<Result<_>>()?;
+            let (n1, ln1) = self.norm.forward(rec, &h)?;
+            let (m1, mod1) = Modulate.forward(rec, &n1, &m[0], &m[1])?;
+            let (a, attn) = blk.attn.forward(rec, &m1.reshape(&[n, w])?, Some(tokens), &seg)?;
+            let (h1, res1) = GatedResidual.forward(rec, &h, &m[2], &a.reshape(&[b, tt, w])?)?;
+            let (n2, ln2) = self.norm.forward(rec, &h1)?;
+            let (m2, mod2) = Modulate.forward(rec, &n2, &m[3], &m[4])?;
+            let (f, mlp) = blk.mlp.forward(rec, &m2)?;
+            let (h2, res2) = GatedResidual.forward(rec, &h1, &m[5], &f)?;
+            blocks.push(BlockCache { ln1, mod1, attn, res1, ln2, mod2, mlp, res2 });
+            h = h2;
+        }
+        let m: Vec<Tensor> = self.final_adaln.iter().map(|l| modulation(rec, l)).collect::<Result<_>>()?;
+        let (nf, ln_final) = self.norm.forward(rec, &h)?;
+        let (mf, mod_final) = Modulate.forward(rec, &nf, &m[0], &m[1])?;
+        let (v, out) = self.out.forward(rec, &mf.reshape(&[n, w])?)?;
+        let cache = SurfaceCache {
+            n,
+            b,
+            tt,
+            k,
+            seg,
+            time_fc1,
+            a1,
+            a2,
+            e: e_cache.expect("the final layer always has a modulation"),
+            input,
+            input_tau,
+            time_fc2,
+            blocks,
+            ln_final,
+            mod_final,
+            out,
+        };
+        Ok((v, cache))
+    }
+
+    /// Adds every parameter gradient for `dv [N, 3]`; returns the tokens' gradient `[k, token_dim]`.
+    pub fn backward(&self, rec: &mut Recorder, cache: &SurfaceCache, dv: &Tensor) -> Result<Tensor> {
+        let (n, b, tt, w) = (cache.n, cache.b, cache.tt, self.cfg.width);
+        if dv.shape() != [n, 3] || dv.dtype() != DType::F32 {
+            return Err(Error::Shape(format!(
+                "surface decoder backward: dv must be f32 [{n}, 3], got {dv:?}"
+            )));
+        }
+        let gpu = dv.gpu().clone();
+        let nt = b; // the modulation rows: one per point, or one shared by all
+        let te = self.cfg.time_embed;
+        // The time embedding's gradient, summed over every modulation that reads it.
+        let de = Tensor::empty(&gpu, &[nt, te], DType::F32)?;
+        let mut de_started = false;
+        let mut modulation_grad = |rec: &mut Recorder, l: &Linear, dm: &Tensor| -> Result<()> {
+            l.param_grads(rec, &cache.e, dm)?;
+            l.input_grad_into(rec, dm, &de, de_started)?;
+            de_started = true;
+            Ok(())
+        };
+
+        let dmf = self.out.backward(rec, &cache.out, dv)?;
+        let g = Modulate.backward(rec, &cache.mod_final, &dmf.reshape(&[b, tt, w])?)?;
+        modulation_grad(rec, &self.final_adaln[0], &g.dshift)?;
+        modulation_grad(rec, &self.final_adaln[1], &g.dscale)?;
+        let mut dh = self.norm.backward(rec, &cache.ln_final, &g.dx)?;
+
+        let dtokens = Tensor::empty(&gpu, &[cache.k, self.token_dim], DType::F32)?;
+        let mut dtokens_started = false;
+        for (blk, c) in self.blocks.iter().zip(&cache.blocks).rev() {
+            // MLP branch: h2 = h1 + gate_m * mlp(mod(LN(h1))).
+            let r = GatedResidual.backward(rec, &c.res2, &dh)?;
+            modulation_grad(rec, &blk.adaln[5], &r.dgate)?;
+            let dm2 = blk.mlp.backward(rec, &c.mlp, &r.dy)?;
+            let g = Modulate.backward(rec, &c.mod2, &dm2)?;
+            modulation_grad(rec, &blk.adaln[3], &g.dshift)?;
+            modulation_grad(rec, &blk.adaln[4], &g.dscale)?;
+            let dn2 = self.norm.backward(rec, &c.ln2, &g.dx)?;
+            let dh1 = binary(rec, &r.dres, &dn2, Binary::Add)?;
+            // Attention branch: h1 = h + gate_a * attn(mod(LN(h)), tokens).
+            let r = GatedResidual.backward(rec, &c.res1, &dh1)?;
+            modulation_grad(rec, &blk.adaln[2], &r.dgate)?;
+            let (dm1, dc) = blk.attn.backward(rec, &c.attn, &r.dy.reshape(&[n, w])?, &cache.seg)?;
+            let dc = dc.expect("cross-attention returns the context gradient");
+            if dtokens_started {
+                binary_into(rec, &dtokens, &dc, &dtokens, Binary::Add)?;
+            } else {
+                rec.copy(&dc, &dtokens)?;
+                dtokens_started = true;
+            }
+            let g = Modulate.backward(rec, &c.mod1, &dm1.reshape(&[b, tt, w])?)?;
+            modulation_grad(rec, &blk.adaln[0], &g.dshift)?;
+            modulation_grad(rec, &blk.adaln[1], &g.dscale)?;
+            let dn1 = self.norm.backward(rec, &c.ln1, &g.dx)?;
+            dh = binary(rec, &r.dres, &dn1, Binary::Add)?;
+        }
+        if !dtokens_started {
+            fill(rec, &dtokens, 0.0)?;
+        }
+
+        // Input linear: the point rows see every point's gradient, the tau rows their sum.
+        let dh = dh.reshape(&[n, w])?;
+        self.input.param_grads(rec, &cache.input, &dh)?;
+        if let (Some(l), Some(c)) = (&self.input_tau, &cache.input_tau) {
+            let sum = reduce(rec, &dh, 0, Reduce::Sum)?.reshape(&[1, w])?;
+            l.param_grads(rec, c, &sum)?;
+        }
+
+        // Time embedding: e = silu(fc2(silu(fc1(Fourier(t))))).
+        let da2 = silu_backward(rec, &cache.a2, &de)?;
+        let ds1 = self.time_fc2.backward(rec, &cache.time_fc2, &da2)?;
+        let da1 = silu_backward(rec, &cache.a1, &ds1)?;
+        self.time_fc1.param_grads(rec, &cache.time_fc1, &da1)?; // t itself gets no gradient
+        Ok(dtokens)
+    }
+
+    /// `x_t = t x + (1 - t) eps` and the target velocity `u = x - eps`.
+    pub fn flow_pair(rec: &mut Recorder, x: &Tensor, noise: &FlowNoise) -> Result<(Tensor, Tensor)> {
+        if x.shape() != noise.eps.shape() {
+            return Err(Error::Shape(format!(
+                "rectified flow: points {x:?} and noise {:?} differ",
+                noise.eps.shape()
+            )));
+        }
+        let t = noise.t.reshape(&[noise.t.numel(), 1])?;
+        let x_t = binary(rec, x, &t, Binary::Mul)?;
+        let one_minus_t = unary(rec, &t, Unary::Affine(-1.0, 1.0))?;
+        let noise_part = binary(rec, &noise.eps, &one_minus_t, Binary::Mul)?;
+        binary_into(rec, &x_t, &noise_part, &x_t, Binary::Add)?;
+        let u = binary(rec, x, &noise.eps, Binary::Sub)?;
+        Ok((x_t, u))
+    }
+
+    /// The forward pass of `L_V` under given noise: `(loss [1], dL/dv, cache)`. Adds no
+    /// gradients (finite-difference checks use it alone).
+    pub fn flow_loss(
+        &self,
+        rec: &mut Recorder,
+        x: &Tensor,
+        tau: f32,
+        tokens: &Tensor,
+        noise: &FlowNoise,
+    ) -> Result<(Tensor, Tensor, SurfaceCache)> {
+        let (x_t, u) = SurfaceDecoder::flow_pair(rec, x, noise)?;
+        let (v, cache) = self.forward(rec, &x_t, tau, &noise.t, tokens)?;
+        let (loss, dv) = Loss::mse().forward_backward(rec, &v, &u)?;
+        Ok((loss, dv, cache))
+    }
+
+    /// One training step of `L_V` under given noise: forward, loss and backward (parameter
+    /// gradients added into the store).
+    pub fn loss_step_with(
+        &self,
+        rec: &mut Recorder,
+        x: &Tensor,
+        tau: f32,
+        tokens: &Tensor,
+        noise: &FlowNoise,
+    ) -> Result<FlowLoss> {
+        let (loss, dv, cache) = self.flow_loss(rec, x, tau, tokens, noise)?;
+        let dtokens = self.backward(rec, &cache, &dv)?;
+        Ok(FlowLoss { loss, dtokens })
+    }
+
+    /// One training step of `L_V` on points `x [N, 3]` of frame time `tau`: draws `eps` and `t`
+    /// from `rng` on the host, then as [`SurfaceDecoder::loss_step_with`].
+    pub fn loss_step(
+        &self,
+        rec: &mut Recorder,
+        x: &Tensor,
+        tau: f32,
+        tokens: &Tensor,
+        rng: &mut Rng,
+    ) -> Result<FlowLoss> {
+        let n = match x.shape() {
+            [n, 3] if *n > 0 => *n,
+            _ => {
+                return Err(Error::Shape(format!("surface decoder: points must be [N, 3], N > 0, got {x:?}")))
+            }
+        };
+        let noise = FlowNoise::draw(x.gpu(), n, self.cfg.t_min, rng)?;
+        self.loss_step_with(rec, x, tau, tokens, &noise)
+    }
+
+    /// Points per sampling chunk: the MLP's hidden activation of a chunk stays under 32 MiB,
+    /// and chunks start at offsets every device can bind.
+    pub fn sample_chunk(&self) -> usize {
+        let per_point = 4 * self.cfg.mlp_ratio.max(1) * self.cfg.width;
+        (SAMPLE_CHUNK_BYTES / per_point).max(64) / 64 * 64
+    }
+
+    /// Samples `spec.points` surface points at frame time `tau` from `x_0 ~ N(0, I)` (seeded)
+    /// by integrating the velocity from `t = 0` to `1`: `[points, 3]`.
+    pub fn sample(&self, tokens: &Tensor, tau: f32, spec: &SampleSpec) -> Result<Tensor> {
+        self.sample_in_chunks(tokens, tau, spec, self.sample_chunk())
+    }
+
+    /// [`SurfaceDecoder::sample`] integrating `chunk` points at a time (a positive multiple of
+    /// 64); point `i` starts from the same noise whatever the chunk.
+    pub fn sample_in_chunks(
+        &self,
+        tokens: &Tensor,
+        tau: f32,
+        spec: &SampleSpec,
+        chunk: usize,
+    ) -> Result<Tensor> {
+        if spec.points == 0 {
+            return Err(Error::Invalid("sampling needs at least one point".into()));
+        }
+        if spec.steps == 0 {
+            return Err(Error::Invalid("sampling needs at least one integration step".into()));
+        }
+        if chunk == 0 || !chunk.is_multiple_of(64) {
+            return Err(Error::Invalid(format!("sampling chunk {chunk} is not a positive multiple of 64")));
+        }
+        self.check_condition(tau, tokens)?;
+        let gpu = tokens.gpu().clone();
+        let noise = Rng::new(spec.seed).normal_vec(spec.points * 3);
+        let out = Tensor::empty(&gpu, &[spec.points, 3], DType::F32)?;
+        for start in (0..spec.points).step_by(chunk) {
+            let len = chunk.min(spec.points - start);
+            let x0 = Tensor::from_slice(&gpu, &[len, 3], &noise[3 * start..3 * (start + len)])?;
+            let x1 = integrate(&x0, spec.steps, spec.sampler, |rec, x, t| {
+                let tt = Tensor::from_slice(&gpu, &[1], &[t])?;
+                Ok(self.forward(rec, x, tau, &tt, tokens)?.0)
+            })?;
+            let mut rec = gpu.recorder()?;
+            rec.copy(&x1, &out.view(3 * start, &[len, 3])?)?;
+            rec.submit()?;
+        }
+        Ok(out)
+    }
+}
