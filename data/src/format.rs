@@ -65,6 +65,46 @@ fn write_file(path: &Path, bytes: &[u8]) -> DataResult<()> {
     std::fs::write(path, bytes).map_err(|e| io(path, e))
 }
 
+/// Renders `mesh` into the scene folder `dir` (through `dir.partial`, renamed when complete, so
+/// a crash never leaves a half scene under the scene's name). `source` names where the mesh
+/// came from (a recipe, or a glTF file whose credits are `detail`); `progress` is called after
+/// each frame.
+#[allow(clippy::too_many_arguments)]
+pub fn write_scene(
+    gpu: &velox_engine::Gpu,
+    mesh: &crate::mesh::AnimatedMesh,
+    source: &str,
+    detail: Option<String>,
+    seed: u64,
+    opts: &crate::pipeline::SynthOptions,
+    dir: &Path,
+    progress: &mut dyn FnMut(usize),
+) -> DataResult<SceneMeta> {
+    let partial = partial_dir(dir);
+    let _ = std::fs::remove_dir_all(&partial);
+    let arrays = crate::pipeline::render_scene(gpu, mesh, opts, seed, Some(&partial), progress)?;
+    let is_gltf = source.ends_with(".gltf") || source.ends_with(".glb");
+    let meta = SceneMeta {
+        format: FORMAT.into(),
+        source: match (&detail, is_gltf) {
+            (Some(d), false) => format!("{source}: {d}"),
+            _ => source.to_string(),
+        },
+        credits: if is_gltf { detail } else { None },
+        frames: FRAMES,
+        fps: FPS,
+        resolution: opts.res,
+        points: arrays.points.len(),
+        tracks: arrays.tracks.len(),
+        supervision_views: arrays.supervision_cameras.len(),
+        supersample: opts.supersample,
+    };
+    write_arrays(&partial, &meta, &arrays)?;
+    let _ = std::fs::remove_dir_all(dir);
+    std::fs::rename(&partial, dir).map_err(|e| io(dir, e))?;
+    Ok(meta)
+}
+
 /// The folder a scene is rendered into before it is complete.
 pub fn partial_dir(dir: &Path) -> PathBuf {
     let mut name = dir.file_name().unwrap_or_default().to_os_string();

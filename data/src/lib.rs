@@ -29,6 +29,7 @@ pub mod pipeline;
 pub mod procedural;
 pub mod raster;
 pub mod texture;
+pub mod training;
 
 pub use camera::Camera;
 pub use format::{read_scene, Scene, SceneMeta};

@@ -135,15 +135,18 @@ fn sync_dir(_dir: &Path) -> std::io::Result<()> {
 /// Loads a checkpoint written by [`save`] into `store` (parameters, moments and step) and
 /// returns its metadata. Every tensor is checked first: a missing or unexpected tensor, a wrong
 /// dtype or shape, a truncated or corrupt file gives an error naming it, and the store is left
-/// unchanged.
-pub fn load(path: &Path, store: &mut ParamStore) -> Result<CheckpointInfo> {
+
+/// The step and config a checkpoint holds, without loading its tensors (to build the model the
+/// checkpoint fits before [`load`]).
+pub fn peek(path: &Path) -> Result<CheckpointInfo> {
+    let bytes = std::fs::read(path)
+        .map_err(|e| Error::Invalid(format!("cannot read checkpoint {}: {e}", path.display())))?;
+    read_info(&bytes, path)
+}
+
+fn read_info(bytes: &[u8], path: &Path) -> Result<CheckpointInfo> {
     let shown = path.display();
-    let bytes =
-        std::fs::read(path).map_err(|e| Error::Invalid(format!("cannot read checkpoint {shown}: {e}")))?;
-    let file = SafeTensors::deserialize(&bytes).map_err(|e| {
-        Error::Invalid(format!("checkpoint {shown} is corrupt or truncated ({} bytes): {e}", bytes.len()))
-    })?;
-    let (_, header) = SafeTensors::read_metadata(&bytes)
+    let (_, header) = SafeTensors::read_metadata(bytes)
         .map_err(|e| Error::Invalid(format!("checkpoint {shown} is corrupt: {e}")))?;
     let meta = header.metadata().clone().unwrap_or_default();
     let field = |k: &str| {
@@ -165,6 +168,18 @@ pub fn load(path: &Path, store: &mut ParamStore) -> Result<CheckpointInfo> {
         Error::Invalid(format!("checkpoint {shown}: step {:?} is not a number", meta["step"]))
     })?;
     let config = field("config")?.clone();
+    Ok(CheckpointInfo { step, config })
+}
+
+/// unchanged.
+pub fn load(path: &Path, store: &mut ParamStore) -> Result<CheckpointInfo> {
+    let shown = path.display();
+    let bytes =
+        std::fs::read(path).map_err(|e| Error::Invalid(format!("cannot read checkpoint {shown}: {e}")))?;
+    let file = SafeTensors::deserialize(&bytes).map_err(|e| {
+        Error::Invalid(format!("checkpoint {shown} is corrupt or truncated ({} bytes): {e}", bytes.len()))
+    })?;
+    let CheckpointInfo { step, config } = read_info(&bytes, path)?;
 
     let total = store.flat_params().numel();
     let mut host = [vec![0f32; total], vec![0f32; total], vec![0f32; total]];

@@ -222,6 +222,11 @@ impl AutoencoderConfig {
         c.gaussians.blocks = 1;
         c.gaussians.grid = 16;
         c.gaussians.gaussians_per_voxel = 4;
+        // Voxels of 0.125 and images of tens of pixels: Gaussians of a pixel or more.
+        c.gaussians.scale_min = 0.01;
+        c.gaussians.scale_max = 0.1;
+        c.gaussians.offset_range = 0.1;
+        c.peak_lr = 5e-3;
         c.warmup = 10;
         c
     }

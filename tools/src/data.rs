@@ -10,10 +10,9 @@ use std::time::Instant;
 
 use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
-use velox_data::format::{partial_dir, write_arrays, SceneMeta, FORMAT};
-use velox_data::pipeline::FPS;
+use velox_data::format::write_scene;
 use velox_data::procedural::FRAMES;
-use velox_data::{gltf_import, procedural, render_scene, AnimatedMesh, SynthOptions};
+use velox_data::{gltf_import, procedural, AnimatedMesh, SynthOptions};
 use velox_engine::Gpu;
 
 use crate::CliResult;
@@ -158,33 +157,11 @@ pub fn run(cmd: DataCommand) -> CliResult<()> {
 }
 
 fn make_scene(gpu: &Gpu, job: Job, opts: &SynthOptions, out: &Path, bar: &ProgressBar) -> CliResult<()> {
-    let dir = out.join(&job.name);
-    let partial = partial_dir(&dir);
     let start_pos = bar.position();
     let (mesh, detail) = (job.make)().map_err(|e| e.to_string())?;
-    let _ = std::fs::remove_dir_all(&partial);
-    let arrays = render_scene(gpu, &mesh, opts, job.seed, Some(&partial), &mut |f| {
+    write_scene(gpu, &mesh, &job.source, detail, job.seed, opts, &out.join(&job.name), &mut |f| {
         bar.set_position(start_pos + f as u64 + 1)
     })
     .map_err(|e| format!("{}: {e}", job.source))?;
-    let is_gltf = job.source.ends_with(".gltf") || job.source.ends_with(".glb");
-    let meta = SceneMeta {
-        format: FORMAT.into(),
-        source: match (&detail, is_gltf) {
-            (Some(d), false) => format!("{}: {d}", job.source),
-            _ => job.source.clone(),
-        },
-        credits: if is_gltf { detail } else { None },
-        frames: FRAMES,
-        fps: FPS,
-        resolution: opts.res,
-        points: arrays.points.len(),
-        tracks: arrays.tracks.len(),
-        supervision_views: arrays.supervision_cameras.len(),
-        supersample: opts.supersample,
-    };
-    write_arrays(&partial, &meta, &arrays)?;
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::rename(&partial, &dir).map_err(|e| format!("{}: {e}", dir.display()))?;
     Ok(())
 }

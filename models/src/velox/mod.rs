@@ -1,5 +1,6 @@
 //! The Velox models (paper sections 3.1 to 3.3; sizes in `crate::config`).
 
+pub mod autoencoder;
 pub mod blocks;
 pub mod cloud;
 pub mod encoder;

@@ -1,0 +1,298 @@
+//! The Velox autoencoder: encoder E, 4D surface decoder V and Gaussian decoder G over one
+//! parameter store, and one training step of L = L_V + L_GS + gamma L_C (MODELS.md).
+//!
+//! A step, on one scene:
+//! 1. E encodes the whole cloud to tokens s; L_C = gamma mean(s^2); the decoders read
+//!    s + noise (the noise passes gradients through unchanged).
+//! 2. A frame f is drawn: V's flow-matching loss on `points_per_step` of its points gives L_V
+//!    and dL_V/ds.
+//! 3. G decodes the frame's occupied voxels (from the cloud) to Gaussians; one supervision view
+//!    of that frame is rendered and compared: L_GS = mean |I_gt - I|^2, whose gradient flows
+//!    back through the rasteriser and G into dL_GS/ds.
+//! 4. E's backward takes the summed token gradient; AdamW updates every parameter (noam
+//!    schedule, global-norm clipping), and a NaN or Inf gradient stops the step with an error
+//!    before anything is changed.
+
+use velox_engine::ops::adamw::AdamWConfig;
+use velox_engine::ops::binary::{binary, binary_into, Binary};
+use velox_engine::ops::fill::fill;
+use velox_engine::ops::gaussian_head::HeadOut;
+use velox_engine::ops::raster::{render, render_backward, Camera, Gaussians};
+use velox_engine::rng::Rng;
+use velox_engine::{DType, Error, Gpu, Result, Tensor};
+
+use crate::config::AutoencoderConfig;
+use crate::layers::Loss;
+use crate::params::ParamStore;
+use crate::schedule::noam;
+use crate::velox::cloud::{self, CHANNELS};
+use crate::velox::encoder::Encoder;
+use crate::velox::gaussians::{occupied_voxels, GaussianDecoder};
+use crate::velox::surface::{SampleSpec, Sampler, SurfaceDecoder};
+
+/// Frames of a clip; tau = frame / 100.
+pub const FRAMES: usize = 24;
+
+pub fn tau_of(frame: usize) -> f32 {
+    frame as f32 / 100.0
+}
+
+/// What a training step needs of a scene, on the host and the device.
+pub struct TrainScene {
+    /// The cloud `[N, 7]` as host rows and on the device.
+    pub cloud_host: Vec<f32>,
+    pub cloud: Tensor,
+    /// xyz of each frame's points.
+    pub frame_points: Vec<Vec<f32>>,
+    /// Supervision cameras (the same for every frame) and images, frame-major then view,
+    /// RGB in [0, 1], `[H, W, 3]` each.
+    pub cameras: Vec<Camera>,
+    pub images: Vec<Vec<f32>>,
+}
+
+impl TrainScene {
+    /// Checks and uploads a scene: the cloud must be valid (see [`cloud::validate`]), there
+    /// must be `FRAMES x cameras` images of each camera's size.
+    pub fn new(
+        gpu: &Gpu,
+        cloud_host: Vec<f32>,
+        cameras: Vec<Camera>,
+        images: Vec<Vec<f32>>,
+    ) -> Result<TrainScene> {
+        cloud::validate(&cloud_host)?;
+        if cameras.is_empty() || images.len() != FRAMES * cameras.len() {
+            return Err(Error::Invalid(format!(
+                "a training scene needs {FRAMES} x {} supervision images, got {}",
+                cameras.len(),
+                images.len()
+            )));
+        }
+        for (i, img) in images.iter().enumerate() {
+            let c = &cameras[i % cameras.len()];
+            if img.len() != (c.width * c.height * 3) as usize {
+                return Err(Error::Invalid(format!(
+                    "supervision image {i} does not match its camera's size"
+                )));
+            }
+        }
+        let mut frame_points = vec![Vec::new(); FRAMES];
+        for p in cloud_host.chunks(CHANNELS) {
+            let f = (p[6] * 100.0).round() as usize;
+            if f >= FRAMES {
+                return Err(Error::Invalid(format!(
+                    "a point has frame time {} beyond frame {}",
+                    p[6],
+                    FRAMES - 1
+                )));
+            }
+            frame_points[f].extend_from_slice(&p[..3]);
+        }
+        let cloud = cloud::upload(gpu, &cloud_host)?;
+        Ok(TrainScene { cloud_host, cloud, frame_points, cameras, images })
+    }
+
+    /// Frames that have points.
+    pub fn frames(&self) -> Vec<usize> {
+        (0..FRAMES).filter(|&f| !self.frame_points[f].is_empty()).collect()
+    }
+}
+
+/// The losses of one step (as read back after it ran).
+#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+pub struct StepLosses {
+    pub total: f64,
+    pub surface: f64,
+    pub gaussians: f64,
+    pub tokens: f64,
+    pub grad_norm: f64,
+    pub lr: f64,
+    pub frame: usize,
+    pub view: usize,
+}
+
+pub struct Autoencoder {
+    pub cfg: AutoencoderConfig,
+    pub store: ParamStore,
+    pub encoder: Encoder,
+    pub surface: SurfaceDecoder,
+    pub gaussians: GaussianDecoder,
+    pub adamw: AdamWConfig,
+}
+
+impl Autoencoder {
+    /// A freshly initialised autoencoder (parameters from `seed`).
+    pub fn new(gpu: &Gpu, cfg: &AutoencoderConfig, seed: u64) -> Result<Autoencoder> {
+        cfg.validate()?;
+        let mut b = ParamStore::builder();
+        Encoder::register(&mut b, "encoder", &cfg.encoder)?;
+        SurfaceDecoder::register(&mut b, "surface", &cfg.surface, cfg.encoder.token_dim)?;
+        GaussianDecoder::register(&mut b, "gaussians", &cfg.gaussians, cfg.encoder.token_dim)?;
+        let store = b.build(gpu, seed)?;
+        let encoder = Encoder::new(gpu, &store, "encoder", &cfg.encoder)?;
+        let surface = SurfaceDecoder::new(&store, "surface", &cfg.surface, cfg.encoder.token_dim)?;
+        let gaussians = GaussianDecoder::new(gpu, &store, "gaussians", &cfg.gaussians)?;
+        Ok(Autoencoder {
+            cfg: cfg.clone(),
+            store,
+            encoder,
+            surface,
+            gaussians,
+            adamw: AdamWConfig::default(),
+        })
+    }
+
+    /// Tokens of a cloud (no noise), with the queries drawn from `seed`.
+    pub fn encode(&self, cloud: &Tensor, seed: u64) -> Result<Tensor> {
+        let gpu = cloud.gpu();
+        let mut rec = gpu.recorder()?;
+        let (s, _) = self.encoder.forward(&mut rec, cloud, &mut Rng::new(seed))?;
+        rec.submit()?;
+        Ok(s)
+    }
+
+    /// Surface points `[n, 3]` at frame `tau`, sampled by the flow.
+    pub fn decode_points(&self, tokens: &Tensor, tau: f32, spec: &SampleSpec) -> Result<Tensor> {
+        self.surface.sample(tokens, tau, spec)
+    }
+
+    /// Gaussians at frame `tau` over the occupied voxels `centres` (host, `[V * 3]`).
+    pub fn decode_gaussians(&self, tokens: &Tensor, centres: &[f32], tau: f32) -> Result<Gaussians> {
+        if centres.is_empty() {
+            return Err(Error::Invalid(format!("no occupied voxels at frame time {tau}: nothing to decode")));
+        }
+        let gpu = tokens.gpu();
+        let c = Tensor::from_slice(gpu, &[centres.len() / 3, 3], centres)?;
+        let mut rec = gpu.recorder()?;
+        let (out, _) = self.gaussians.forward(&mut rec, tokens, &c, tau)?;
+        rec.submit()?;
+        Ok(to_gaussians(out))
+    }
+
+    /// Occupied voxel centres of a frame from points (the ground truth in training; surface
+    /// samples at inference).
+    pub fn voxels_from_points(&self, xyz: &[f32], tau: f32) -> Vec<f32> {
+        let cloud: Vec<f32> = xyz.chunks(3).flat_map(|p| [p[0], p[1], p[2], 0.0, 0.0, 0.0, tau]).collect();
+        occupied_voxels(&cloud, tau, self.cfg.gaussians.grid)
+    }
+
+    /// One training step (see the module docs). `step` counts from 1.
+    pub fn train_step(&mut self, scene: &TrainScene, step: u64, rng: &mut Rng) -> Result<StepLosses> {
+        let gpu = scene.cloud.gpu().clone();
+        let frames = scene.frames();
+        let frame = frames[rng.below(frames.len() as u32) as usize];
+        let view = rng.below(scene.cameras.len() as u32) as usize;
+        let tau = tau_of(frame);
+        let k = self.cfg.encoder.tokens;
+        let dim = self.cfg.encoder.token_dim;
+
+        // Forward: encoder, token loss, surface loss, Gaussian decoder.
+        let mut rec = gpu.recorder()?;
+        self.store.zero_grads(&mut rec)?;
+        let (s, enc_cache) = self.encoder.forward(&mut rec, &scene.cloud, rng)?;
+        let zeros = Tensor::empty(&gpu, &[k, dim], DType::F32)?;
+        fill(&mut rec, &zeros, 0.0)?;
+        let (token_loss, ds) =
+            Loss::mse().weighted(self.cfg.encoder.token_reg).forward_backward(&mut rec, &s, &zeros)?;
+        let noise: Vec<f32> =
+            (0..k * dim).map(|_| (rng.normal() * self.cfg.encoder.token_noise as f64) as f32).collect();
+        let noise = Tensor::from_slice(&gpu, &[k, dim], &noise)?;
+        let s_noisy = binary(&mut rec, &s, &noise, Binary::Add)?;
+        let pts = &scene.frame_points[frame];
+        let n = self.cfg.surface.points_per_step;
+        let x: Vec<f32> = (0..n)
+            .flat_map(|_| {
+                let i = rng.below((pts.len() / 3) as u32) as usize;
+                [pts[3 * i], pts[3 * i + 1], pts[3 * i + 2]]
+            })
+            .collect();
+        let x = Tensor::from_slice(&gpu, &[n, 3], &x)?;
+        let flow = self.surface.loss_step(&mut rec, &x, tau, &s_noisy, rng)?;
+        let centres = self.voxels_from_points(pts, tau);
+        let c = Tensor::from_slice(&gpu, &[centres.len() / 3, 3], &centres)?;
+        let (head, g_cache) = self.gaussians.forward(&mut rec, &s_noisy, &c, tau)?;
+        rec.submit()?;
+
+        // Render the frame from one supervision view and compare.
+        let cam = &scene.cameras[view];
+        let gaussians = to_gaussians(head);
+        let rendered = render(&gpu, &gaussians, cam, [0.0; 3])?;
+        let (h, w) = (cam.height as usize, cam.width as usize);
+        let gt = Tensor::from_slice(&gpu, &[h, w, 3], &scene.images[frame * scene.cameras.len() + view])?;
+
+        // Backward: image loss, rasteriser, Gaussian decoder, encoder; then AdamW.
+        let mut rec = gpu.recorder()?;
+        let (image_loss, d_rgb) = Loss::mse().forward_backward(&mut rec, &rendered.image.rgb, &gt)?;
+        let d_zero = Tensor::empty(&gpu, &[h, w], DType::F32)?;
+        fill(&mut rec, &d_zero, 0.0)?;
+        let g = render_backward(&mut rec, &gaussians, &rendered, &d_rgb, &d_zero, &d_zero)?;
+        let d_head = HeadOut {
+            means: g.means,
+            log_scales: g.log_scales,
+            quats: g.quats,
+            logits: g.opacities,
+            colours: g.colours,
+        };
+        let ds_gauss = self.gaussians.backward(&mut rec, &g_cache, &d_head)?;
+        binary_into(&mut rec, &ds, &ds_gauss, &ds, Binary::Add)?;
+        binary_into(&mut rec, &ds, &flow.dtokens, &ds, Binary::Add)?;
+        self.encoder.backward(&mut rec, &enc_cache, &ds)?;
+        let lr = noam(self.cfg.peak_lr, self.cfg.warmup, step);
+        self.store.adamw_step(&mut rec, &self.adamw, lr, Some(self.cfg.max_grad_norm))?;
+        rec.submit()?;
+        let grad_norm = self.store.grad_norm()? as f64;
+
+        let read = |t: &Tensor| -> Result<f64> { Ok(t.read::<f32>()?[0] as f64) };
+        let (surface, gaussians_loss, tokens) = (read(&flow.loss)?, read(&image_loss)?, read(&token_loss)?);
+        let total = surface + gaussians_loss + tokens;
+        if !total.is_finite() {
+            return Err(Error::Invalid(format!(
+                "the loss became non-finite at step {step} (surface {surface}, image {gaussians_loss}, tokens {tokens})"
+            )));
+        }
+        Ok(StepLosses { total, surface, gaussians: gaussians_loss, tokens, grad_norm, lr, frame, view })
+    }
+
+    /// Writes parameters, AdamW moments, the step and the config to `path` (atomically).
+    pub fn save(&self, path: &std::path::Path) -> Result<()> {
+        let config = serde_json::json!({ "model": "velox autoencoder", "config": self.cfg }).to_string();
+        crate::checkpoint::save(path, &self.store, &config)
+    }
+
+    /// The autoencoder a checkpoint holds, with its config, moments and step.
+    pub fn load(gpu: &Gpu, path: &std::path::Path) -> Result<Autoencoder> {
+        let info = crate::checkpoint::peek(path)?;
+        let json: serde_json::Value = serde_json::from_str(&info.config)
+            .map_err(|e| Error::Invalid(format!("checkpoint {}: config is not JSON: {e}", path.display())))?;
+        let cfg: AutoencoderConfig = serde_json::from_value(json["config"].clone()).map_err(|e| {
+            Error::Invalid(format!(
+                "checkpoint {} does not hold a Velox autoencoder config: {e}",
+                path.display()
+            ))
+        })?;
+        let mut ae = Autoencoder::new(gpu, &cfg, 0)?;
+        crate::checkpoint::load(path, &mut ae.store)?;
+        Ok(ae)
+    }
+
+    /// The generator of step `step` of a run seeded with `seed`: a resumed run draws exactly
+    /// what an uninterrupted one would.
+    pub fn step_rng(seed: u64, step: u64) -> Rng {
+        Rng::new(seed ^ step.wrapping_mul(0x9e37_79b9_7f4a_7c15))
+    }
+
+    /// Samples surface points with the config's default sampler: Heun, 20 steps.
+    pub fn default_sampling(points: usize, seed: u64) -> SampleSpec {
+        SampleSpec { points, steps: 20, sampler: Sampler::Heun, seed }
+    }
+}
+
+/// The head's outputs as the rasteriser's Gaussians.
+pub fn to_gaussians(h: HeadOut) -> Gaussians {
+    Gaussians {
+        means: h.means,
+        log_scales: h.log_scales,
+        quats: h.quats,
+        opacities: h.logits,
+        colours: h.colours,
+    }
+}
