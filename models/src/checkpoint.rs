@@ -132,10 +132,6 @@ fn sync_dir(_dir: &Path) -> std::io::Result<()> {
     Ok(())
 }
 
-/// Loads a checkpoint written by [`save`] into `store` (parameters, moments and step) and
-/// returns its metadata. Every tensor is checked first: a missing or unexpected tensor, a wrong
-/// dtype or shape, a truncated or corrupt file gives an error naming it, and the store is left
-
 /// The step and config a checkpoint holds, without loading its tensors (to build the model the
 /// checkpoint fits before [`load`]).
 pub fn peek(path: &Path) -> Result<CheckpointInfo> {
@@ -171,6 +167,9 @@ fn read_info(bytes: &[u8], path: &Path) -> Result<CheckpointInfo> {
     Ok(CheckpointInfo { step, config })
 }
 
+/// Loads a checkpoint written by [`save`] into `store` (parameters, moments and step) and
+/// returns its metadata. Every tensor is checked first: a missing or unexpected tensor, a wrong
+/// dtype or shape, a truncated or corrupt file gives an error naming it, and the store is left
 /// unchanged.
 pub fn load(path: &Path, store: &mut ParamStore) -> Result<CheckpointInfo> {
     let shown = path.display();
