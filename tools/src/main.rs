@@ -4,7 +4,9 @@ mod bench;
 mod data;
 mod demo;
 mod info;
+mod plot;
 mod render;
+mod train;
 
 use clap::{Parser, Subcommand};
 
@@ -36,6 +38,11 @@ enum Command {
         #[command(subcommand)]
         what: data::DataCommand,
     },
+    /// Train a Velox model.
+    Train {
+        #[command(subcommand)]
+        what: train::TrainCommand,
+    },
     /// Render Gaussians (a 3D Gaussian splatting PLY) from a camera orbit to PNG frames and
     /// depth EXRs.
     Render(render::RenderArgs),
@@ -54,6 +61,7 @@ fn main() {
         Command::Render(args) => render::run(&args),
         Command::Bench { what } => bench::run(what),
         Command::Data { what } => data::run(what),
+        Command::Train { what } => train::run(what),
     };
     if let Err(e) = result {
         eprintln!("error: {e}");
