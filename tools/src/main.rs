@@ -2,6 +2,7 @@
 
 mod bench;
 mod data;
+mod decode;
 mod demo;
 mod info;
 mod render;
@@ -39,6 +40,12 @@ enum Command {
     /// Render Gaussians (a 3D Gaussian splatting PLY) from a camera orbit to PNG frames and
     /// depth EXRs.
     Render(render::RenderArgs),
+    /// Encode a 4D point cloud with a trained autoencoder and decode surface points or
+    /// Gaussians per frame to PLY.
+    Decode {
+        #[command(subcommand)]
+        what: decode::DecodeCommand,
+    },
     /// Benchmarks: GPU time against error.
     Bench {
         #[command(subcommand)]
@@ -54,6 +61,7 @@ fn main() {
         Command::Render(args) => render::run(&args),
         Command::Bench { what } => bench::run(what),
         Command::Data { what } => data::run(what),
+        Command::Decode { what } => decode::run(what),
     };
     if let Err(e) = result {
         eprintln!("error: {e}");
