@@ -4,6 +4,7 @@ mod bench;
 mod data;
 mod decode;
 mod demo;
+mod eval;
 mod info;
 mod render;
 
@@ -46,6 +47,11 @@ enum Command {
         #[command(subcommand)]
         what: decode::DecodeCommand,
     },
+    /// Evaluate a trained autoencoder: PSNR, SSIM and Chamfer on held-out scenes.
+    Eval {
+        #[command(subcommand)]
+        what: eval::EvalCommand,
+    },
     /// Benchmarks: GPU time against error.
     Bench {
         #[command(subcommand)]
@@ -62,6 +68,7 @@ fn main() {
         Command::Bench { what } => bench::run(what),
         Command::Data { what } => data::run(what),
         Command::Decode { what } => decode::run(what),
+        Command::Eval { what } => eval::run(what),
     };
     if let Err(e) = result {
         eprintln!("error: {e}");
