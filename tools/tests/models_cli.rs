@@ -110,7 +110,7 @@ fn decode_gaussians_writes_splat_files_from_surface_or_cloud_voxels() {
         ));
         let g = ply::read(&out.join("gaussians_f03.ply")).unwrap();
         // The tiny config decodes 4 Gaussians per voxel.
-        assert!(!g.is_empty() && g.len() % 4 == 0, "{} Gaussians", g.len());
+        assert!(!g.is_empty() && g.len().is_multiple_of(4), "{} Gaussians", g.len());
         assert!(g.means.iter().all(|v| v.is_finite()));
         let report: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(out.join("decode.json")).unwrap()).unwrap();
