@@ -85,8 +85,9 @@ mod tests {
         let a = vec![0.5f32; 16 * 16 * 3];
         let mut b = a.clone();
         b[0] = 0.6;
-        // One pixel off by 0.1 in 768 values: mse = 0.01 / 768.
-        assert!((psnr(&b, &a) - 10.0 * (768.0f64 / 0.01).log10()).abs() < 1e-9);
+        // One pixel off by 0.1 (as f32 rounds it) in 768 values: mse = d^2 / 768.
+        let d = 0.6f32 as f64 - 0.5f32 as f64;
+        assert!((psnr(&b, &a) - 10.0 * (768.0 / (d * d)).log10()).abs() < 1e-9);
         assert_eq!(psnr(&a, &a), f64::INFINITY);
         assert!((ssim(&a, &a, 16, 16, 3) - 1.0).abs() < 1e-12);
         let noisy: Vec<f32> = (0..16 * 16 * 3).map(|i| if i % 2 == 0 { 0.0 } else { 1.0 }).collect();
