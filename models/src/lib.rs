@@ -6,6 +6,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod files;
 pub mod layers;
+pub mod metrics;
 pub mod params;
 pub mod schedule;
 pub mod velox;

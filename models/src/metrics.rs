@@ -19,7 +19,8 @@ pub fn ssim(image: &[f32], reference: &[f32], h: usize, w: usize, c: usize) -> f
     let size = 11.min(h).min(w).max(1);
     let sigma = 1.5;
     let half = (size as f64 - 1.0) / 2.0;
-    let g: Vec<f64> = (0..size).map(|i| (-((i as f64 - half).powi(2)) / (2.0 * sigma * sigma)).exp()).collect();
+    let g: Vec<f64> =
+        (0..size).map(|i| (-((i as f64 - half).powi(2)) / (2.0 * sigma * sigma)).exp()).collect();
     let total: f64 = g.iter().sum::<f64>().powi(2);
     let (c1, c2) = (0.01f64.powi(2), 0.03f64.powi(2));
     let mut sum = 0.0;
@@ -41,7 +42,8 @@ pub fn ssim(image: &[f32], reference: &[f32], h: usize, w: usize, c: usize) -> f
                     }
                 }
                 let (va, vb, cov) = (va - ma * ma, vb - mb * mb, cov - ma * mb);
-                sum += ((2.0 * ma * mb + c1) * (2.0 * cov + c2)) / ((ma * ma + mb * mb + c1) * (va + vb + c2));
+                sum +=
+                    ((2.0 * ma * mb + c1) * (2.0 * cov + c2)) / ((ma * ma + mb * mb + c1) * (va + vb + c2));
                 count += 1;
             }
         }
@@ -83,8 +85,9 @@ mod tests {
         let a = vec![0.5f32; 16 * 16 * 3];
         let mut b = a.clone();
         b[0] = 0.6;
-        // One pixel off by 0.1 in 768 values: mse = 0.01 / 768.
-        assert!((psnr(&b, &a) - 10.0 * (768.0f64 / 0.01).log10()).abs() < 1e-9);
+        // One pixel off by 0.1 (as f32 rounds it) in 768 values: mse = d^2 / 768.
+        let d = 0.6f32 as f64 - 0.5f32 as f64;
+        assert!((psnr(&b, &a) - 10.0 * (768.0 / (d * d)).log10()).abs() < 1e-9);
         assert_eq!(psnr(&a, &a), f64::INFINITY);
         assert!((ssim(&a, &a, 16, 16, 3) - 1.0).abs() < 1e-12);
         let noisy: Vec<f32> = (0..16 * 16 * 3).map(|i| if i % 2 == 0 { 0.0 } else { 1.0 }).collect();

@@ -2,7 +2,9 @@
 
 mod bench;
 mod data;
+mod decode;
 mod demo;
+mod eval;
 mod info;
 mod plot;
 mod render;
@@ -26,12 +28,9 @@ enum Command {
         #[arg(long)]
         json: Option<std::path::PathBuf>,
     },
-    /// Run the demo on whatever device is present: device report and a quick kernel benchmark.
-    Demo {
-        /// Folder for the demo's outputs.
-        #[arg(long, default_value = "velox-demo")]
-        out: std::path::PathBuf,
-    },
+    /// The demo, on whatever device is present: make a scene, train a small autoencoder on it,
+    /// decode its points and Gaussians, render and measure them.
+    Demo(demo::DemoArgs),
     /// Training data: procedural animated scenes and glTF imports, rendered to point clouds,
     /// images, occupancy and tracks.
     Data {
@@ -46,6 +45,17 @@ enum Command {
     /// Render Gaussians (a 3D Gaussian splatting PLY) from a camera orbit to PNG frames and
     /// depth EXRs.
     Render(render::RenderArgs),
+    /// Encode a 4D point cloud with a trained autoencoder and decode surface points or
+    /// Gaussians per frame to PLY.
+    Decode {
+        #[command(subcommand)]
+        what: decode::DecodeCommand,
+    },
+    /// Evaluate a trained autoencoder: PSNR, SSIM and Chamfer on held-out scenes.
+    Eval {
+        #[command(subcommand)]
+        what: eval::EvalCommand,
+    },
     /// Benchmarks: GPU time against error.
     Bench {
         #[command(subcommand)]
@@ -54,19 +64,30 @@ enum Command {
 }
 
 fn main() {
-    let cli = Cli::parse();
-    let result = match cli.command {
+    if let Err(e) = dispatch(Cli::parse().command) {
+        eprintln!("error: {e}");
+        std::process::exit(1);
+    }
+}
+
+fn dispatch(command: Command) -> CliResult<()> {
+    match command {
         Command::Info { json } => info::run(json.as_deref()),
-        Command::Demo { out } => demo::run(&out),
+        Command::Demo(args) => demo::run(&args),
         Command::Render(args) => render::run(&args),
         Command::Bench { what } => bench::run(what),
         Command::Data { what } => data::run(what),
         Command::Train { what } => train::run(what),
-    };
-    if let Err(e) = result {
-        eprintln!("error: {e}");
-        std::process::exit(1);
+        Command::Decode { what } => decode::run(what),
+        Command::Eval { what } => eval::run(what),
     }
+}
+
+/// Runs `velox ARGS...` in this process, exactly as a user would type it (the demo chains
+/// commands this way).
+pub fn run_command(args: &[&str]) -> CliResult<()> {
+    let cli = Cli::try_parse_from(std::iter::once("velox").chain(args.iter().copied()))?;
+    dispatch(cli.command)
 }
 
 /// Errors of the command: engine errors and I/O, each with what was being done.

@@ -120,3 +120,45 @@ fn bench_layers_reports_forward_and_backward_with_small_error() {
     }
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn demo_runs_end_to_end_and_says_where_its_outputs_are() {
+    let dir = std::env::temp_dir().join(format!("velox-demo-{}", std::process::id()));
+    let out = velox()
+        .args(["demo", "--steps", "4", "--res", "32", "--points", "2000", "--config", "tiny", "--out"])
+        .arg(&dir)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}\n{}", String::from_utf8_lossy(&out.stderr));
+    assert!(text.contains("Outputs in"), "{text}");
+    for f in [
+        "train/loss.png",
+        "train/checkpoint.safetensors",
+        "decoded/points_f12.ply",
+        "decoded/gaussians_f23.ply",
+        "eval/eval.json",
+        "demo.json",
+    ] {
+        assert!(dir.join(f).exists(), "the demo did not write {f}");
+    }
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("demo.json")).unwrap()).unwrap();
+    assert!(summary["metrics"]["psnr"].as_f64().unwrap().is_finite());
+    // A second run replaces the first demo's outputs; a folder that is not a demo's is refused.
+    let again = velox()
+        .args(["demo", "--steps", "1", "--res", "16", "--points", "500", "--config", "tiny", "--out"])
+        .arg(&dir)
+        .output()
+        .unwrap();
+    assert!(again.status.success(), "{}", String::from_utf8_lossy(&again.stderr));
+    let other = std::env::temp_dir().join(format!("velox-not-a-demo-{}", std::process::id()));
+    std::fs::create_dir_all(&other).unwrap();
+    std::fs::write(other.join("precious.txt"), "keep").unwrap();
+    let refused = velox().args(["demo", "--out"]).arg(&other).output().unwrap();
+    assert!(!refused.status.success());
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("not a previous demo"));
+    assert!(other.join("precious.txt").exists());
+    std::fs::remove_dir_all(&dir).ok();
+    std::fs::remove_dir_all(&other).ok();
+}

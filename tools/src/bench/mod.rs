@@ -3,6 +3,7 @@
 mod attention;
 mod kernels;
 mod layers;
+mod models;
 mod raster;
 
 use std::path::PathBuf;
@@ -26,6 +27,10 @@ pub enum BenchCommand {
     /// Gaussian rasteriser, forward and forward + backward, against the number of Gaussians
     /// and the resolution, on the scene gsplat is compared on; error against the reference.
     Raster(BenchArgs),
+    /// The autoencoder's parts at the paper config with random weights: encoder (1.44 M
+    /// points), Gaussian decoder (one frame), surface decoder (16384 points, 20 and 100 Heun
+    /// steps), against the paper's H100 times.
+    Models(BenchArgs),
 }
 
 #[derive(clap::Args)]
@@ -50,6 +55,7 @@ pub fn run(cmd: BenchCommand) -> CliResult<()> {
         BenchCommand::Attention(a) => (a, attention::run),
         BenchCommand::Layers(a) => (a, layers::run),
         BenchCommand::Raster(a) => (a, raster::run),
+        BenchCommand::Models(a) => (a, models::run),
     };
     let gpu = Gpu::new()?;
     let records = which(&gpu, args.quick, args.repeats)?;
@@ -149,9 +155,4 @@ fn significant(v: f64) -> String {
     }
     let decimals = (3 - v.abs().log10().floor() as i32).clamp(0, 8) as usize;
     format!("{v:.decimals$}")
-}
-
-/// The quick kernel benchmark (used by the demo).
-pub fn kernels_quick(gpu: &Gpu) -> Result<Vec<Record>> {
-    kernels::run(gpu, true, 5)
 }

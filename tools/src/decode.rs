@@ -1,0 +1,396 @@
+//! `velox decode points|gaussians`: encodes a 4D colour point cloud with a trained autoencoder
+//! and decodes the tokens, one file per requested frame.
+//!
+//! - `decode points` samples the 4D surface decoder (Heun or Euler, N steps) at each frame time
+//!   and writes `points_fFF.ply`: binary little-endian PLY, one `vertex` element with the float
+//!   properties `x y z tau` (tau = frame / 100, the same for every point of a file).
+//! - `decode gaussians` decodes the Gaussians of each frame and writes `gaussians_fFF.ply` in
+//!   the 3D Gaussian splatting layout (`velox_models::files::ply`; `velox render` reads it).
+//!   The Gaussian decoder's queries are the occupied voxels of the frame: by default those of
+//!   surface points sampled from the tokens (`--voxels surface`, samples outside [-1, 1]^3
+//!   dropped), or those of the input cloud's points of that frame (`--voxels cloud`, as in
+//!   training).
+//!
+//! Both write `decode.json` beside the files: the checkpoint, the frames, each file and its
+//! count. The input is a scene folder (its `points.ply`) or a PLY of float `x y z r g b tau`
+//! (`velox_data::format::write_ply`'s layout), checked by `cloud::validate`.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use indicatif::{ProgressBar, ProgressStyle};
+use serde::Serialize;
+use velox_engine::ops::raster::{GaussianData, Gaussians};
+use velox_engine::{Gpu, Tensor};
+use velox_models::files::ply;
+use velox_models::velox::autoencoder::{tau_of, Autoencoder, FRAMES};
+use velox_models::velox::cloud::{self, CHANNELS};
+use velox_models::velox::surface::{SampleSpec, Sampler};
+
+use crate::CliResult;
+
+#[derive(clap::Subcommand)]
+pub enum DecodeCommand {
+    /// Surface points of each requested frame, sampled by the 4D surface decoder, as PLY.
+    Points(PointsArgs),
+    /// 3D Gaussians of each requested frame, as 3D Gaussian splatting PLY.
+    Gaussians(GaussiansArgs),
+}
+
+#[derive(clap::Args)]
+pub struct CommonArgs {
+    /// Autoencoder checkpoint (safetensors, as `Autoencoder::save` writes it).
+    #[arg(long)]
+    checkpoint: PathBuf,
+    /// The input 4D cloud: a scene folder (its points.ply) or a PLY of float x y z r g b tau.
+    #[arg(long)]
+    cloud: PathBuf,
+    /// Output folder.
+    #[arg(long)]
+    out: PathBuf,
+    /// Frames to decode: comma-separated indices in 0..=23, or `all`.
+    #[arg(long, default_value = "all", value_parser = parse_frames)]
+    frames: Frames,
+    /// Seed of the encoder's queries and of the sampler's noise.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+}
+
+#[derive(clap::Args)]
+pub struct SamplingArgs {
+    /// Surface points sampled per frame.
+    #[arg(long, default_value_t = 16384, value_parser = clap::value_parser!(u64).range(1..=100_000_000))]
+    points: u64,
+    /// Integration steps of the sampler.
+    #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u64).range(1..=10_000))]
+    steps: u64,
+    #[arg(long, value_enum, default_value_t = SamplerArg::Heun)]
+    sampler: SamplerArg,
+}
+
+impl SamplingArgs {
+    fn spec(&self, seed: u64, frame: usize) -> SampleSpec {
+        SampleSpec {
+            points: self.points as usize,
+            steps: self.steps as usize,
+            sampler: match self.sampler {
+                SamplerArg::Heun => Sampler::Heun,
+                SamplerArg::Euler => Sampler::Euler,
+            },
+            // Each frame its own noise, reproducible from the seed.
+            seed: seed ^ (frame as u64 + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15),
+        }
+    }
+}
+
+#[derive(clap::Args)]
+pub struct PointsArgs {
+    #[command(flatten)]
+    common: CommonArgs,
+    #[command(flatten)]
+    sampling: SamplingArgs,
+}
+
+#[derive(clap::Args)]
+pub struct GaussiansArgs {
+    #[command(flatten)]
+    common: CommonArgs,
+    /// Where the Gaussian decoder's occupied voxels come from.
+    #[arg(long, value_enum, default_value_t = VoxelSource::Surface)]
+    voxels: VoxelSource,
+    /// Sampling of the surface points whose voxels are the queries (`--voxels surface`).
+    #[command(flatten)]
+    sampling: SamplingArgs,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SamplerArg {
+    /// Heun's method: two velocities per step, second order.
+    Heun,
+    /// Euler's method: one velocity per step.
+    Euler,
+}
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum VoxelSource {
+    /// Voxels of surface points sampled from the tokens (needs nothing but the tokens).
+    Surface,
+    /// Voxels of the input cloud's points of the frame (as in training).
+    Cloud,
+}
+
+/// Requested frames, checked against the clip length when parsed.
+#[derive(Clone, Debug)]
+pub struct Frames(pub Vec<usize>);
+
+pub fn parse_frames(s: &str) -> Result<Frames, String> {
+    if s.trim() == "all" {
+        return Ok(Frames((0..FRAMES).collect()));
+    }
+    let mut frames = Vec::new();
+    for part in s.split(',') {
+        let f: usize = part.trim().parse().map_err(|_| {
+            format!("`{}` is not a frame index (use numbers like 0,5,10 or `all`)", part.trim())
+        })?;
+        if f >= FRAMES {
+            return Err(format!("frame {f} is out of range: a clip has frames 0 to {}", FRAMES - 1));
+        }
+        if !frames.contains(&f) {
+            frames.push(f);
+        }
+    }
+    Ok(Frames(frames))
+}
+
+/// The cloud of a scene folder (its points.ply) or of a PLY file, as validated host rows.
+pub fn read_cloud(path: &Path) -> CliResult<Vec<f32>> {
+    let file = if path.is_dir() { path.join("points.ply") } else { path.to_path_buf() };
+    let points = velox_data::format::read_ply(&file).map_err(|e| format!("reading the cloud: {e}"))?;
+    let flat: Vec<f32> = points.iter().flatten().copied().collect();
+    cloud::validate(&flat).map_err(|e| format!("{}: {e}", file.display()))?;
+    if let Some(p) = flat.chunks(CHANNELS).find(|p| (p[6] * 100.0).round() as usize >= FRAMES) {
+        return Err(format!(
+            "{}: a point has frame time {} beyond the last frame ({})",
+            file.display(),
+            p[6],
+            FRAMES - 1
+        )
+        .into());
+    }
+    Ok(flat)
+}
+
+/// xyz of each frame's points of a validated cloud.
+pub fn frame_points(cloud: &[f32]) -> Vec<Vec<f32>> {
+    let mut frames = vec![Vec::new(); FRAMES];
+    for p in cloud.chunks(CHANNELS) {
+        frames[((p[6] * 100.0).round() as usize).min(FRAMES - 1)].extend_from_slice(&p[..3]);
+    }
+    frames
+}
+
+/// The tokens of a host cloud.
+pub fn encode(gpu: &Gpu, ae: &Autoencoder, cloud_host: &[f32], seed: u64) -> CliResult<Tensor> {
+    let k = ae.cfg.encoder.tokens;
+    let n = cloud_host.len() / CHANNELS;
+    if n < k {
+        return Err(format!("the cloud has {n} points; this model's encoder needs at least {k}").into());
+    }
+    let t = cloud::upload(gpu, cloud_host)?;
+    Ok(ae.encode(&t, seed)?)
+}
+
+/// Sampled surface points of a frame, read back as xyz rows.
+pub fn sample_surface(
+    ae: &Autoencoder,
+    tokens: &Tensor,
+    frame: usize,
+    spec: &SampleSpec,
+) -> CliResult<Vec<f32>> {
+    Ok(ae.decode_points(tokens, tau_of(frame), spec)?.read()?)
+}
+
+/// Occupied voxel centres of surface samples, dropping samples outside [-1, 1]^3 (where no
+/// normalised surface lies; the grid would clamp them onto its border voxels).
+pub fn surface_voxels(ae: &Autoencoder, samples: &[f32], frame: usize) -> Vec<f32> {
+    let inside: Vec<f32> =
+        samples.chunks(3).filter(|p| p.iter().all(|v| v.abs() <= 1.0)).flatten().copied().collect();
+    ae.voxels_from_points(&inside, tau_of(frame))
+}
+
+/// Gaussians read back from the device.
+pub fn download(g: &Gaussians) -> CliResult<GaussianData> {
+    Ok(GaussianData {
+        means: g.means.read()?,
+        log_scales: g.log_scales.read()?,
+        quats: g.quats.read()?,
+        opacities: g.opacities.read()?,
+        colours: g.colours.read()?,
+    })
+}
+
+/// Writes xyz rows at frame time `tau` as binary little-endian PLY (float x y z tau), through
+/// a temporary file renamed over the target.
+pub fn write_points_ply(path: &Path, xyz: &[f32], tau: f32) -> CliResult<()> {
+    let n = xyz.len() / 3;
+    let mut bytes = format!(
+        "ply\nformat binary_little_endian 1.0\ncomment velox decoded surface points\nelement vertex {n}\n\
+         property float x\nproperty float y\nproperty float z\nproperty float tau\nend_header\n"
+    )
+    .into_bytes();
+    bytes.reserve(16 * n);
+    for p in xyz.chunks(3) {
+        for v in [p[0], p[1], p[2], tau] {
+            bytes.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    write_atomically(path, &bytes)
+}
+
+/// Writes `bytes` to `path` through `.NAME.tmp` in the same folder.
+pub fn write_atomically(path: &Path, bytes: &[u8]) -> CliResult<()> {
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let tmp = path.with_file_name(format!(".{name}.tmp"));
+    std::fs::write(&tmp, bytes).and_then(|()| std::fs::rename(&tmp, path)).map_err(|e| {
+        let _ = std::fs::remove_file(&tmp);
+        format!("writing {}: {e}", path.display())
+    })?;
+    Ok(())
+}
+
+/// A progress bar over `len` items of `what`.
+pub fn progress(len: usize, what: &str) -> ProgressBar {
+    let bar = ProgressBar::new(len as u64);
+    let template = format!("{{bar:40}} {{pos}}/{{len}} {what}, {{elapsed}} elapsed, {{eta}} left {{msg}}");
+    bar.set_style(ProgressStyle::with_template(&template).unwrap_or_else(|_| ProgressStyle::default_bar()));
+    bar
+}
+
+#[derive(Serialize)]
+struct FrameFile {
+    frame: usize,
+    tau: f32,
+    file: String,
+    /// Points (decode points) or Gaussians (decode gaussians) in the file.
+    count: usize,
+    /// Occupied voxels the Gaussians were decoded from (decode gaussians).
+    voxels: Option<usize>,
+    seconds: f64,
+}
+
+#[derive(Serialize)]
+struct Report {
+    command: &'static str,
+    checkpoint: String,
+    cloud: String,
+    config: String,
+    input_points: usize,
+    voxels: Option<VoxelSource>,
+    sampler: SamplerArg,
+    steps: u64,
+    points: u64,
+    encode_seconds: f64,
+    frames: Vec<FrameFile>,
+}
+
+pub fn run(cmd: DecodeCommand) -> CliResult<()> {
+    let (common, sampling, voxels) = match &cmd {
+        DecodeCommand::Points(a) => (&a.common, &a.sampling, None),
+        DecodeCommand::Gaussians(a) => (&a.common, &a.sampling, Some(a.voxels)),
+    };
+    let cloud_host = read_cloud(&common.cloud)?;
+    let per_frame = frame_points(&cloud_host);
+    if voxels == Some(VoxelSource::Cloud) {
+        if let Some(f) = common.frames.0.iter().find(|&&f| per_frame[f].is_empty()) {
+            return Err(format!(
+                "frame {f} has no points in {}, so it has no voxels: choose other frames or --voxels surface",
+                common.cloud.display()
+            )
+            .into());
+        }
+    }
+    let gpu = Gpu::new()?;
+    let ae = Autoencoder::load(&gpu, &common.checkpoint)?;
+    std::fs::create_dir_all(&common.out).map_err(|e| format!("creating {}: {e}", common.out.display()))?;
+    let what = if voxels.is_some() { "Gaussians" } else { "surface points" };
+    println!(
+        "decoding {what} of {} frames of {} ({} points) with the {} autoencoder on {}",
+        common.frames.0.len(),
+        common.cloud.display(),
+        cloud_host.len() / CHANNELS,
+        ae.cfg.name,
+        gpu.caps().name
+    );
+    let start = Instant::now();
+    let tokens = encode(&gpu, &ae, &cloud_host, common.seed)?;
+    let encode_seconds = start.elapsed().as_secs_f64();
+    let bar = progress(common.frames.0.len(), "frames");
+    let mut files = Vec::new();
+    for &f in &common.frames.0 {
+        bar.set_message(format!("frame {f}"));
+        let t0 = Instant::now();
+        let spec = sampling.spec(common.seed, f);
+        let file = match voxels {
+            None => {
+                let xyz = sample_surface(&ae, &tokens, f, &spec)?;
+                let path = common.out.join(format!("points_f{f:02}.ply"));
+                write_points_ply(&path, &xyz, tau_of(f))?;
+                FrameFile {
+                    frame: f,
+                    tau: tau_of(f),
+                    file: name(&path),
+                    count: xyz.len() / 3,
+                    voxels: None,
+                    seconds: 0.0,
+                }
+            }
+            Some(source) => {
+                let centres = match source {
+                    VoxelSource::Cloud => ae.voxels_from_points(&per_frame[f], tau_of(f)),
+                    VoxelSource::Surface => surface_voxels(&ae, &sample_surface(&ae, &tokens, f, &spec)?, f),
+                };
+                if centres.is_empty() {
+                    return Err(format!(
+                        "frame {f}: no surface sample fell inside [-1, 1]^3, so there are no voxels to decode"
+                    )
+                    .into());
+                }
+                let g = download(&ae.decode_gaussians(&tokens, &centres, tau_of(f))?)?;
+                let path = common.out.join(format!("gaussians_f{f:02}.ply"));
+                ply::write(&path, &g)?;
+                FrameFile {
+                    frame: f,
+                    tau: tau_of(f),
+                    file: name(&path),
+                    count: g.len(),
+                    voxels: Some(centres.len() / 3),
+                    seconds: 0.0,
+                }
+            }
+        };
+        files.push(FrameFile { seconds: t0.elapsed().as_secs_f64(), ..file });
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let report = Report {
+        command: if voxels.is_some() { "decode gaussians" } else { "decode points" },
+        checkpoint: common.checkpoint.display().to_string(),
+        cloud: common.cloud.display().to_string(),
+        config: ae.cfg.name.clone(),
+        input_points: cloud_host.len() / CHANNELS,
+        voxels,
+        sampler: sampling.sampler,
+        steps: sampling.steps,
+        points: sampling.points,
+        encode_seconds,
+        frames: files,
+    };
+    let json = common.out.join("decode.json");
+    write_atomically(&json, serde_json::to_string_pretty(&report)?.as_bytes())?;
+    println!(
+        "wrote {} files to {} in {:.1} s (decode.json lists them)",
+        report.frames.len(),
+        common.out.display(),
+        start.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+pub fn name(p: &Path) -> String {
+    p.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frames_parse_with_clear_errors() {
+        assert_eq!(parse_frames("all").unwrap().0.len(), FRAMES);
+        assert_eq!(parse_frames("0, 5,10,5").unwrap().0, vec![0, 5, 10]);
+        assert!(parse_frames("99").unwrap_err().contains("frame 99 is out of range"));
+        assert!(parse_frames("x").unwrap_err().contains("not a frame index"));
+    }
+}

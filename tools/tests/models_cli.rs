@@ -1,0 +1,228 @@
+//! The model commands as a user meets them, on a tiny scene and a tiny autoencoder trained a
+//! few steps in-process: `decode points`, `decode gaussians`, `eval recon`, `bench models`,
+//! and their errors.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::sync::OnceLock;
+
+use velox_data::format::write_scene;
+use velox_data::training::train_scene;
+use velox_data::{procedural, read_scene, SynthOptions};
+use velox_engine::rng::Rng;
+use velox_engine::Gpu;
+use velox_models::config::AutoencoderConfig;
+use velox_models::files::ply;
+use velox_models::velox::autoencoder::Autoencoder;
+
+fn velox(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_velox")).args(args).output().unwrap()
+}
+
+fn ok(out: &Output) -> String {
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    stdout
+}
+
+fn fails(out: &Output) -> String {
+    assert!(!out.status.success(), "{}", String::from_utf8_lossy(&out.stdout));
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(!err.contains("panicked"), "{err}");
+    err
+}
+
+/// One tiny scene (`DIR/data/scene_00000`, 32 px, 4000 points) and a tiny autoencoder trained
+/// on it for a few steps (`DIR/ae.safetensors`), made once for every test of this file.
+fn fixture() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let dir = std::env::temp_dir().join(format!("velox-models-cli-{}", std::process::id()));
+        let scene_dir = dir.join("data").join("scene_00000");
+        let gpu = Gpu::new().unwrap();
+        let (_, mesh) = procedural::scene(3, None).unwrap();
+        let opts = SynthOptions { res: 32, points: 4000, supersample: 1, tracks: 8 };
+        write_scene(&gpu, &mesh, "test", None, 3, &opts, &scene_dir, &mut |_| {}).unwrap();
+        let scene = train_scene(&gpu, &read_scene(&scene_dir, true).unwrap()).unwrap();
+        let mut ae = Autoencoder::new(&gpu, &AutoencoderConfig::tiny(), 1).unwrap();
+        let mut rng = Rng::new(2);
+        for step in 1..=5 {
+            ae.train_step(&scene, step, &mut rng).unwrap();
+        }
+        ae.save(&dir.join("ae.safetensors")).unwrap();
+        dir
+    })
+}
+
+fn arg(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// The vertex count and the body of a binary PLY.
+fn ply_vertices(path: &Path) -> (String, usize, usize) {
+    let bytes = std::fs::read(path).unwrap();
+    let end = bytes.windows(11).position(|w| w == b"end_header\n").unwrap() + 11;
+    let header = String::from_utf8(bytes[..end].to_vec()).unwrap();
+    let n = header.lines().find_map(|l| l.strip_prefix("element vertex ")).unwrap().parse().unwrap();
+    (header, n, bytes.len() - end)
+}
+
+#[test]
+fn decode_points_writes_a_cloud_per_frame() {
+    let dir = fixture();
+    let out = dir.join("points");
+    let scene = dir.join("data/scene_00000");
+    let ckpt = dir.join("ae.safetensors");
+    let args = ["decode", "points", "--checkpoint", arg(&ckpt), "--cloud", arg(&scene)];
+    let text = ok(&velox(
+        &[&args[..], &["--out", arg(&out), "--frames", "0,5", "--points", "300", "--steps", "3"]].concat(),
+    ));
+    assert!(text.contains("wrote 2 files"), "{text}");
+    for f in [0, 5] {
+        let (header, n, body) = ply_vertices(&out.join(format!("points_f{f:02}.ply")));
+        assert!(header.contains("property float tau"), "{header}");
+        assert_eq!((n, body), (300, 300 * 16));
+    }
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("decode.json")).unwrap()).unwrap();
+    assert_eq!(report["frames"].as_array().unwrap().len(), 2);
+    // A PLY of x y z r g b tau is accepted as well as a scene folder; Euler too.
+    let cloud = scene.join("points.ply");
+    let args = ["decode", "points", "--checkpoint", arg(&ckpt), "--cloud", arg(&cloud)];
+    let euler = dir.join("points_euler");
+    let rest =
+        ["--out", arg(&euler), "--frames", "23", "--points", "64", "--steps", "2", "--sampler", "euler"];
+    ok(&velox(&[&args[..], &rest[..]].concat()));
+    assert_eq!(ply_vertices(&euler.join("points_f23.ply")).1, 64);
+}
+
+#[test]
+fn decode_gaussians_writes_splat_files_from_surface_or_cloud_voxels() {
+    let dir = fixture();
+    let ckpt = dir.join("ae.safetensors");
+    let scene = dir.join("data/scene_00000");
+    for voxels in ["surface", "cloud"] {
+        let out = dir.join(format!("gaussians_{voxels}"));
+        let args =
+            ["decode", "gaussians", "--checkpoint", arg(&ckpt), "--cloud", arg(&scene), "--out", arg(&out)];
+        ok(&velox(
+            &[&args[..], &["--frames", "3", "--voxels", voxels, "--points", "512", "--steps", "3"]].concat(),
+        ));
+        let g = ply::read(&out.join("gaussians_f03.ply")).unwrap();
+        // The tiny config decodes 4 Gaussians per voxel.
+        assert!(!g.is_empty() && g.len().is_multiple_of(4), "{} Gaussians", g.len());
+        assert!(g.means.iter().all(|v| v.is_finite()));
+        let report: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("decode.json")).unwrap()).unwrap();
+        assert_eq!(report["frames"][0]["voxels"].as_u64().unwrap() * 4, g.len() as u64);
+    }
+}
+
+#[test]
+fn eval_recon_reports_psnr_ssim_and_chamfer_per_scene_and_mean() {
+    let dir = fixture();
+    let out = dir.join("eval");
+    let json = dir.join("eval.json");
+    let (data, ckpt) = (dir.join("data"), dir.join("ae.safetensors"));
+    let args = ["eval", "recon", "--data", arg(&data), "--checkpoint", arg(&ckpt)];
+    let text = ok(&velox(
+        &[
+            &args[..],
+            &[
+                "--out",
+                arg(&out),
+                "--json",
+                arg(&json),
+                "--views",
+                "2",
+                "--frame-step",
+                "8",
+                "--points",
+                "500",
+            ],
+        ]
+        .concat(),
+    ));
+    assert!(text.contains("PSNR") && text.contains("mean"), "{text}");
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let scenes = report["scenes"].as_array().unwrap();
+    assert_eq!(scenes.len(), 1);
+    for m in [&scenes[0], &report["mean"]] {
+        let (psnr, ssim, cd) =
+            (m["psnr"].as_f64().unwrap(), m["ssim"].as_f64().unwrap(), m["chamfer"].as_f64().unwrap());
+        assert!(psnr > 0.0 && psnr < 100.0, "psnr {psnr}");
+        assert!(ssim > -1.0 && ssim <= 1.0, "ssim {ssim}");
+        assert!(cd > 0.0 && cd.is_finite(), "chamfer {cd}");
+    }
+    // Frames 0, 8 and 16, two views each.
+    let frames = scenes[0]["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), 3);
+    assert_eq!(frames[0]["views"].as_array().unwrap().len(), 2);
+    let images = scenes[0]["images"].as_array().unwrap();
+    assert_eq!(images.len(), 4);
+    let (rgb, w, h) = velox_models::files::image::read_png(&out.join(images[0].as_str().unwrap())).unwrap();
+    assert_eq!((w, h, rgb.len()), (64, 32, 64 * 32 * 3), "ground truth | ours, side by side");
+}
+
+#[test]
+fn bad_checkpoints_clouds_and_frames_get_clear_errors() {
+    let dir = fixture();
+    let scene = dir.join("data/scene_00000");
+    let ckpt = dir.join("ae.safetensors");
+    let decode = |ckpt: &Path, cloud: &Path, frames: &str| {
+        velox(&[
+            "decode",
+            "points",
+            "--checkpoint",
+            arg(ckpt),
+            "--cloud",
+            arg(cloud),
+            "--out",
+            arg(&dir.join("bad")),
+            "--frames",
+            frames,
+            "--points",
+            "64",
+            "--steps",
+            "1",
+        ])
+    };
+    let err = fails(&decode(&dir.join("missing.safetensors"), &scene, "0"));
+    assert!(err.contains("cannot read checkpoint") && err.contains("missing.safetensors"), "{err}");
+    let corrupt = dir.join("corrupt.safetensors");
+    std::fs::write(&corrupt, b"not a checkpoint").unwrap();
+    let err = fails(&decode(&corrupt, &scene, "0"));
+    assert!(err.contains("corrupt"), "{err}");
+    let err = fails(&decode(&ckpt, &scene, "0,99"));
+    assert!(err.contains("frame 99 is out of range"), "{err}");
+    // A cloud with a point outside [-1, 1]^3.
+    let mut points = velox_data::format::read_ply(&scene.join("points.ply")).unwrap();
+    points[7][0] = 3.0;
+    let far = dir.join("far.ply");
+    velox_data::format::write_ply(&far, &points).unwrap();
+    let err = fails(&decode(&ckpt, &far, "0"));
+    assert!(err.contains("point 7") && err.contains("outside [-1, 1]^3"), "{err}");
+    let err = fails(&decode(&ckpt, &dir.join("nothing.ply"), "0"));
+    assert!(err.contains("nothing.ply"), "{err}");
+    let err = fails(&velox(&["eval", "recon", "--data", arg(&dir.join("bad")), "--checkpoint", arg(&ckpt)]));
+    assert!(err.contains("bad"), "{err}");
+}
+
+#[test]
+fn bench_models_writes_records() {
+    let dir = std::env::temp_dir().join(format!("velox-bench-models-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let json = dir.join("models.json");
+    let text = ok(&velox(&["bench", "models", "--quick", "--repeats", "1", "--json", arg(&json)]));
+    assert!(text.contains("387.66"), "the paper's figures are shown:\n{text}");
+    let records: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let records = records.as_array().unwrap();
+    for name in ["encoder", "gaussian decoder frame", "surface decoder heun 4", "surface decoder heun 20"] {
+        let r = records.iter().find(|r| r["name"] == name).unwrap_or_else(|| panic!("no {name} record"));
+        assert!(r["median_ms"].as_f64().unwrap() > 0.0, "{r}");
+        assert!(r["error_over"].as_str().unwrap().contains("no f16 model path"), "{r}");
+        // Same input, same weights: the repeated run agrees with the first.
+        assert!(r["nmse"].as_f64().unwrap() < 1e-10, "{r}");
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
