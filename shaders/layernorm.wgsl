@@ -31,22 +31,9 @@ struct Params {
 @group(0) @binding(9) var<storage, read_write> db_part: array<f32>;
 var<immediate> pc: Params;
 
-var<workgroup> partial: array<f32, 256>;
-var<workgroup> partial2: array<f32, 256>;
+// @include row_reduce.wgsl
 
-fn reduce_sum(lid: u32, v: f32) -> f32 {
-    partial[lid] = v;
-    workgroupBarrier();
-    for (var s = 128u; s > 0u; s >>= 1u) {
-        if (lid < s) {
-            partial[lid] = partial[lid] + partial[lid + s];
-        }
-        workgroupBarrier();
-    }
-    let r = partial[0];
-    workgroupBarrier();
-    return r;
-}
+var<workgroup> partial2: array<f32, 256>;
 
 // Two sums at once (one set of barriers).
 fn reduce_sum2(lid: u32, v: vec2<f32>) -> vec2<f32> {
