@@ -1,5 +1,7 @@
 //! Loss curves as a PNG: log-scale y with a line per decade, steps on x, one coloured line per
-//! series with a legend, labels in a small built-in bitmap font (no font files needed).
+//! series with a legend, labels in a small built-in bitmap font (no font files needed). Each
+//! series is drawn faint as logged and bold as an exponential moving average (weight 0.1), since
+//! losses of single random views and frames are noisy.
 
 use std::path::Path;
 
@@ -130,17 +132,32 @@ pub fn loss_plot(path: &Path, series: &[(&str, Vec<(f64, f64)>)]) -> CliResult<(
     line(&mut img, (LEFT as f64, (H - BOTTOM) as f64), ((W - RIGHT) as f64, (H - BOTTOM) as f64), AXIS);
     for (i, (name, points)) in series.iter().enumerate() {
         let colour = Rgb(COLOURS[i % COLOURS.len()]);
-        let mut prev: Option<(f64, f64)> = None;
+        // Two thirds of the way to white.
+        let faint = Rgb(colour.0.map(|c| ((c as u16 + 2 * 255) / 3) as u8));
+        let mut smooth: Vec<(f64, f64)> = Vec::with_capacity(points.len());
+        let mut ema: Option<f64> = None;
         for &(x, v) in points {
-            if !(v.is_finite() && v > 0.0) {
-                prev = None;
-                continue;
+            if v.is_finite() && v > 0.0 {
+                // Averaged in log space, as the axis is.
+                let l = v.ln();
+                let e = ema.map_or(l, |e| 0.9 * e + 0.1 * l);
+                ema = Some(e);
+                smooth.push((x, e.exp()));
             }
-            let p = (px(x), py(v));
-            if let Some(q) = prev {
-                line(&mut img, q, p, colour);
+        }
+        for (pts, c) in [(points.as_slice(), faint), (smooth.as_slice(), colour)] {
+            let mut prev: Option<(f64, f64)> = None;
+            for &(x, v) in pts {
+                if !(v.is_finite() && v > 0.0) {
+                    prev = None;
+                    continue;
+                }
+                let p = (px(x), py(v));
+                if let Some(q) = prev {
+                    line(&mut img, q, p, c);
+                }
+                prev = Some(p);
             }
-            prev = Some(p);
         }
         let (lx, ly) = (W - RIGHT - 150, TOP + 10 + 16 * i as u32);
         for dy in 0..8 {
