@@ -30,6 +30,9 @@ pub(crate) struct GpuInner {
     pub allocator: ManuallyDrop<Mutex<Allocator>>,
     pub push_descriptor: ash::khr::push_descriptor::Device,
     pub caps: Caps,
+    /// Reads and writes go through staging buffers even where memory is mapped
+    /// (`VELOX_FORCE_STAGING=1`): the path discrete GPUs take, testable on any device.
+    pub force_staging: bool,
     pub pipelines: PipelineCache,
 }
 
@@ -286,6 +289,7 @@ impl Gpu {
                 allocator: ManuallyDrop::new(Mutex::new(allocator)),
                 push_descriptor,
                 caps,
+                force_staging: std::env::var("VELOX_FORCE_STAGING").is_ok_and(|v| v == "1"),
                 pipelines: PipelineCache::new(),
             }),
         })

@@ -299,7 +299,7 @@ impl Gpu {
         if bytes.is_empty() {
             return Ok(());
         }
-        if let Some(ptr) = buf.mapped() {
+        if let Some(ptr) = buf.mapped().filter(|_| !self.inner.force_staging) {
             // SAFETY: the mapping covers `buf.size >= offset + bytes.len()` bytes (tensors and
             // views never extend past their buffer), and no GPU work is in flight: every
             // recorder waits for its work before returning.
@@ -319,7 +319,7 @@ impl Gpu {
         if out.is_empty() {
             return Ok(());
         }
-        if let Some(ptr) = buf.mapped() {
+        if let Some(ptr) = buf.mapped().filter(|_| !self.inner.force_staging) {
             // SAFETY: as in `write_buffer`.
             unsafe { std::ptr::copy_nonoverlapping(ptr.add(offset as usize), out.as_mut_ptr(), out.len()) };
             return Ok(());
