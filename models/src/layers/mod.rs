@@ -29,6 +29,39 @@ pub use loss::Loss;
 pub use norm::{LayerNorm, RmsNorm};
 pub use residual::Residual;
 
+/// A layer that maps `x [.., in]` to `y [.., out]` and back: what every single-input layer
+/// here offers, so generic code (benchmarks, stacks) can drive any of them.
+pub trait Layer {
+    /// What the backward pass needs from the forward pass.
+    type Cache;
+    fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<(Tensor, Self::Cache)>;
+    /// Adds the parameter gradients and returns `dx`.
+    fn backward(&self, rec: &mut Recorder, cache: &Self::Cache, dy: &Tensor) -> Result<Tensor>;
+}
+
+macro_rules! layer {
+    ($($t:ty => $cache:ty),* $(,)?) => {$(
+        impl Layer for $t {
+            type Cache = $cache;
+            fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<(Tensor, $cache)> {
+                <$t>::forward(self, rec, x)
+            }
+            fn backward(&self, rec: &mut Recorder, cache: &$cache, dy: &Tensor) -> Result<Tensor> {
+                <$t>::backward(self, rec, cache, dy)
+            }
+        }
+    )*};
+}
+
+layer!(
+    Linear => linear::LinearCache,
+    RmsNorm => norm::RmsNormCache,
+    LayerNorm => norm::LayerNormCache,
+    SwiGlu => feedforward::SwiGluCache,
+    GeluMlp => feedforward::GeluMlpCache,
+    Fourier => fourier::FourierCache,
+);
+
 /// A trainable tensor and its gradient, of one shape. Both are plain f32 tensors: their own
 /// buffers, or views into a parameter store's one big buffer.
 #[derive(Clone, Debug)]

@@ -11,29 +11,51 @@ use velox_engine::ops::rmsnorm::reference as rmsnorm_ref;
 use velox_engine::rng::Rng;
 use velox_engine::stats::{max_abs_err, nmse};
 use velox_engine::{Gpu, Recorder, Result, Tensor};
-use velox_models::layers::{reference, Fourier, GeluMlp, LayerNorm, Linear, Param, RmsNorm, SwiGlu};
+use velox_models::layers::{reference, Fourier, GeluMlp, Layer, LayerNorm, Linear, Param, RmsNorm, SwiGlu};
 
 use super::{print_header, print_row, time_gpu, Record};
 
-/// What one layer offers the benchmark: a forward, a backward, and the f64 reference of both
-/// on given rows.
+/// A benchmarked layer's sizes, the work of a pass, and its f64 reference (outputs and input
+/// gradients of given rows).
+struct Info {
+    name: &'static str,
+    shape: String,
+    rows: usize,
+    in_width: usize,
+    out_width: usize,
+    /// Forward and backward work, and the unit of their rate.
+    work: (f64, f64, &'static str),
+    /// Inputs are coordinates in [-1, 1] (else standard normal).
+    coordinates: bool,
+    reference: Reference,
+}
+
+/// `(x, dy, rows) -> (y, dx)` in f64.
+type Reference = Box<dyn Fn(&[f64], &[f64], usize) -> (Vec<f64>, Vec<f64>)>;
+
+struct Case<L: Layer> {
+    layer: L,
+    info: Info,
+}
+
+/// What the benchmark needs of a case, whatever its layer type.
 trait Bench {
-    fn name(&self) -> String;
-    fn shape(&self) -> String;
-    /// (forward flops or bytes, backward flops or bytes, unit).
-    fn work(&self) -> (f64, f64, &'static str);
+    fn info(&self) -> &Info;
     fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<Tensor>;
     /// Records forward then backward; returns dx.
     fn forward_backward(&self, rec: &mut Recorder, x: &Tensor, dy: &Tensor) -> Result<Tensor>;
-    /// Reference (y, dx) of the given input rows.
-    fn reference(&self, x: &[f64], dy: &[f64], rows: usize) -> (Vec<f64>, Vec<f64>);
-    fn in_width(&self) -> usize;
-    fn out_width(&self) -> usize;
-    /// Rows of the benchmark's input.
-    fn rows(&self) -> usize;
-    /// An input of `rows` rows: standard normal unless the layer wants coordinates.
-    fn input(&self, rng: &mut Rng) -> Vec<f32> {
-        rng.normal_vec(self.rows() * self.in_width())
+}
+
+impl<L: Layer> Bench for Case<L> {
+    fn info(&self) -> &Info {
+        &self.info
+    }
+    fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<Tensor> {
+        Ok(self.layer.forward(rec, x)?.0)
+    }
+    fn forward_backward(&self, rec: &mut Recorder, x: &Tensor, dy: &Tensor) -> Result<Tensor> {
+        let (_, cache) = self.layer.forward(rec, x)?;
+        self.layer.backward(rec, &cache, dy)
     }
 }
 
@@ -43,289 +65,140 @@ fn param(gpu: &Gpu, rng: &mut Rng, shape: &[usize], std: f64) -> Result<(Param, 
     Ok((Param::new(gpu, shape, &v)?, v.iter().map(|&x| x as f64).collect()))
 }
 
-struct LinearBench {
-    layer: Linear,
-    w: Vec<f64>,
-    b: Vec<f64>,
-    n: usize,
-}
-
-impl Bench for LinearBench {
-    fn name(&self) -> String {
-        "linear (bias)".into()
-    }
-    fn shape(&self) -> String {
-        format!("{}x{} -> {}", self.n, self.in_width(), self.out_width())
-    }
-    fn work(&self) -> (f64, f64, &'static str) {
-        let f = 2.0 * (self.n * self.in_width() * self.out_width()) as f64;
-        (f, 2.0 * f, "TFLOP/s")
-    }
-    fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<Tensor> {
-        Ok(self.layer.forward(rec, x)?.0)
-    }
-    fn forward_backward(&self, rec: &mut Recorder, x: &Tensor, dy: &Tensor) -> Result<Tensor> {
-        let (_, c) = self.layer.forward(rec, x)?;
-        self.layer.backward(rec, &c, dy)
-    }
-    fn reference(&self, x: &[f64], dy: &[f64], rows: usize) -> (Vec<f64>, Vec<f64>) {
-        let (i, o) = (self.in_width(), self.out_width());
-        let y = reference::linear(x, &self.w, Some(&self.b), rows, i, o);
-        (y, reference::linear_backward(x, &self.w, dy, rows, i, o).0)
-    }
-    fn rows(&self) -> usize {
-        self.n
-    }
-    fn in_width(&self) -> usize {
-        self.layer.in_features
-    }
-    fn out_width(&self) -> usize {
-        self.layer.out_features
-    }
-}
-
-struct RmsBench {
-    layer: RmsNorm,
-    w: Vec<f64>,
-    n: usize,
-}
-
-impl Bench for RmsBench {
-    fn name(&self) -> String {
-        "rmsnorm".into()
-    }
-    fn shape(&self) -> String {
-        format!("{}x{}", self.n, self.w.len())
-    }
-    fn work(&self) -> (f64, f64, &'static str) {
-        let e = (self.n * self.w.len()) as f64 * 4.0;
-        (2.0 * e, 4.0 * e, "GB/s")
-    }
-    fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<Tensor> {
-        Ok(self.layer.forward(rec, x)?.0)
-    }
-    fn forward_backward(&self, rec: &mut Recorder, x: &Tensor, dy: &Tensor) -> Result<Tensor> {
-        let (_, c) = self.layer.forward(rec, x)?;
-        self.layer.backward(rec, &c, dy)
-    }
-    fn reference(&self, x: &[f64], dy: &[f64], _rows: usize) -> (Vec<f64>, Vec<f64>) {
-        let (y, _) = rmsnorm_ref::rmsnorm(x, &self.w, 1e-6);
-        (y, rmsnorm_ref::rmsnorm_backward(x, &self.w, 1e-6, dy).0)
-    }
-    fn rows(&self) -> usize {
-        self.n
-    }
-    fn in_width(&self) -> usize {
-        self.w.len()
-    }
-    fn out_width(&self) -> usize {
-        self.w.len()
-    }
-}
-
-struct LayerNormBench {
-    layer: LayerNorm,
-    w: Vec<f64>,
-    b: Vec<f64>,
-    n: usize,
-}
-
-impl Bench for LayerNormBench {
-    fn name(&self) -> String {
-        "layernorm (affine)".into()
-    }
-    fn shape(&self) -> String {
-        format!("{}x{}", self.n, self.w.len())
-    }
-    fn work(&self) -> (f64, f64, &'static str) {
-        let e = (self.n * self.w.len()) as f64 * 4.0;
-        (2.0 * e, 4.0 * e, "GB/s")
-    }
-    fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<Tensor> {
-        Ok(self.layer.forward(rec, x)?.0)
-    }
-    fn forward_backward(&self, rec: &mut Recorder, x: &Tensor, dy: &Tensor) -> Result<Tensor> {
-        let (_, c) = self.layer.forward(rec, x)?;
-        self.layer.backward(rec, &c, dy)
-    }
-    fn reference(&self, x: &[f64], dy: &[f64], _rows: usize) -> (Vec<f64>, Vec<f64>) {
-        let width = self.w.len();
-        let (y, _, _) = layernorm_ref::layernorm(x, width, Some((&self.w, &self.b)), 1e-6);
-        (y, layernorm_ref::layernorm_backward(x, width, Some(&self.w), 1e-6, dy).0)
-    }
-    fn rows(&self) -> usize {
-        self.n
-    }
-    fn in_width(&self) -> usize {
-        self.w.len()
-    }
-    fn out_width(&self) -> usize {
-        self.w.len()
-    }
-}
-
-struct SwiGluBench {
-    layer: SwiGlu,
-    w: [Vec<f64>; 3],
-    n: usize,
-    d: usize,
-    h: usize,
-}
-
-impl Bench for SwiGluBench {
-    fn name(&self) -> String {
-        "swiglu feed-forward".into()
-    }
-    fn shape(&self) -> String {
-        format!("{}x{} -> {} -> {}", self.n, self.d, self.h, self.d)
-    }
-    fn work(&self) -> (f64, f64, &'static str) {
-        let f = 2.0 * (self.n * self.d * self.h * 3) as f64;
-        (f, 2.0 * f, "TFLOP/s")
-    }
-    fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<Tensor> {
-        Ok(self.layer.forward(rec, x)?.0)
-    }
-    fn forward_backward(&self, rec: &mut Recorder, x: &Tensor, dy: &Tensor) -> Result<Tensor> {
-        let (_, c) = self.layer.forward(rec, x)?;
-        self.layer.backward(rec, &c, dy)
-    }
-    fn reference(&self, x: &[f64], dy: &[f64], rows: usize) -> (Vec<f64>, Vec<f64>) {
-        let [w1, w3, w2] = &self.w;
-        let y = reference::swiglu_ff(x, w1, w3, w2, rows, self.d, self.h, self.d);
-        let [dx, ..] = reference::swiglu_ff_backward(x, w1, w3, w2, dy, rows, self.d, self.h, self.d);
-        (y, dx)
-    }
-    fn rows(&self) -> usize {
-        self.n
-    }
-    fn in_width(&self) -> usize {
-        self.d
-    }
-    fn out_width(&self) -> usize {
-        self.d
-    }
-}
-
-struct GeluBench {
-    layer: GeluMlp,
-    w: [Vec<f64>; 4],
-    n: usize,
-    d: usize,
-    h: usize,
-}
-
-impl Bench for GeluBench {
-    fn name(&self) -> String {
-        "gelu feed-forward".into()
-    }
-    fn shape(&self) -> String {
-        format!("{}x{} -> {} -> {}", self.n, self.d, self.h, self.d)
-    }
-    fn work(&self) -> (f64, f64, &'static str) {
-        let f = 2.0 * (self.n * self.d * self.h * 2) as f64;
-        (f, 2.0 * f, "TFLOP/s")
-    }
-    fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<Tensor> {
-        Ok(self.layer.forward(rec, x)?.0)
-    }
-    fn forward_backward(&self, rec: &mut Recorder, x: &Tensor, dy: &Tensor) -> Result<Tensor> {
-        let (_, c) = self.layer.forward(rec, x)?;
-        self.layer.backward(rec, &c, dy)
-    }
-    fn reference(&self, x: &[f64], dy: &[f64], rows: usize) -> (Vec<f64>, Vec<f64>) {
-        let [w1, b1, w2, b2] = &self.w;
-        let y = reference::gelu_mlp(x, w1, b1, w2, b2, rows, self.d, self.h, self.d);
-        let [dx, ..] = reference::gelu_mlp_backward(x, w1, b1, w2, dy, rows, self.d, self.h, self.d);
-        (y, dx)
-    }
-    fn rows(&self) -> usize {
-        self.n
-    }
-    fn in_width(&self) -> usize {
-        self.d
-    }
-    fn out_width(&self) -> usize {
-        self.d
-    }
-}
-
-struct FourierBench {
-    layer: Fourier,
-    /// The layer's f32 frequencies, widened: the reference uses the same ones.
-    freqs: Vec<f64>,
-    n: usize,
-}
-
-impl Bench for FourierBench {
-    fn name(&self) -> String {
-        "fourier embedding".into()
-    }
-    fn shape(&self) -> String {
-        format!("{}x3 -> {}", self.n, self.layer.out_width())
-    }
-    fn work(&self) -> (f64, f64, &'static str) {
-        let b = (self.n * (3 + self.layer.out_width())) as f64 * 4.0;
-        (b, 2.0 * b, "GB/s")
-    }
-    fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<Tensor> {
-        Ok(self.layer.forward(rec, x)?.0)
-    }
-    fn forward_backward(&self, rec: &mut Recorder, x: &Tensor, dy: &Tensor) -> Result<Tensor> {
-        let (_, c) = self.layer.forward(rec, x)?;
-        self.layer.backward(rec, &c, dy)
-    }
-    fn reference(&self, x: &[f64], dy: &[f64], _rows: usize) -> (Vec<f64>, Vec<f64>) {
-        let y = fourier_ref::fourier(x, 3, &self.freqs, true);
-        (y, fourier_ref::fourier_backward(x, 3, &self.freqs, true, dy))
-    }
-    fn rows(&self) -> usize {
-        self.n
-    }
-    fn input(&self, rng: &mut Rng) -> Vec<f32> {
-        rng.uniform_vec(self.n * 3, -1.0, 1.0)
-    }
-    fn in_width(&self) -> usize {
-        3
-    }
-    fn out_width(&self) -> usize {
-        self.layer.out_width()
-    }
-}
-
 fn benches(gpu: &Gpu, rng: &mut Rng, small: bool) -> Result<Vec<Box<dyn Bench>>> {
     let (n, d, points) = if small { (256, 64, 16_384) } else { (8192, 512, 1_440_000) };
     let h = 4 * d;
     let std = 1.0 / (d as f64).sqrt();
+    let matmul = |flops: f64| (flops, 2.0 * flops, "TFLOP/s");
+    // Row layers move each element in and out forward, and about twice that backward.
+    let bytes = |elements: usize| (8.0 * elements as f64, 16.0 * elements as f64, "GB/s");
+    let mut out: Vec<Box<dyn Bench>> = Vec::new();
+
     let (w, wv) = param(gpu, rng, &[d, d], std)?;
     let (b, bv) = param(gpu, rng, &[d], 0.1)?;
-    let linear = LinearBench { layer: Linear::new(w, Some(b))?, w: wv, b: bv, n };
+    out.push(Box::new(Case {
+        layer: Linear::new(w, Some(b))?,
+        info: Info {
+            name: "linear (bias)",
+            shape: format!("{n}x{d} -> {d}"),
+            rows: n,
+            in_width: d,
+            out_width: d,
+            work: matmul(2.0 * (n * d * d) as f64),
+            coordinates: false,
+            reference: Box::new(move |x, dy, r| {
+                (
+                    reference::linear(x, &wv, Some(&bv), r, d, d),
+                    reference::linear_backward(x, &wv, dy, r, d, d).0,
+                )
+            }),
+        },
+    }));
+
     let (g, gv) = param(gpu, rng, &[d], 1.0)?;
-    let rms = RmsBench { layer: RmsNorm::new(g, 1e-6)?, w: gv, n };
+    out.push(Box::new(Case {
+        layer: RmsNorm::new(g, 1e-6)?,
+        info: Info {
+            name: "rmsnorm",
+            shape: format!("{n}x{d}"),
+            rows: n,
+            in_width: d,
+            out_width: d,
+            work: bytes(n * d),
+            coordinates: false,
+            reference: Box::new(move |x, dy, _| {
+                (rmsnorm_ref::rmsnorm(x, &gv, 1e-6).0, rmsnorm_ref::rmsnorm_backward(x, &gv, 1e-6, dy).0)
+            }),
+        },
+    }));
+
     let (g, gv) = param(gpu, rng, &[d], 1.0)?;
     let (bb, bbv) = param(gpu, rng, &[d], 0.1)?;
-    let ln = LayerNormBench { layer: LayerNorm::new(d, Some((g, bb)), 1e-6)?, w: gv, b: bbv, n };
+    out.push(Box::new(Case {
+        layer: LayerNorm::new(d, Some((g, bb)), 1e-6)?,
+        info: Info {
+            name: "layernorm (affine)",
+            shape: format!("{n}x{d}"),
+            rows: n,
+            in_width: d,
+            out_width: d,
+            work: bytes(n * d),
+            coordinates: false,
+            reference: Box::new(move |x, dy, _| {
+                let y = layernorm_ref::layernorm(x, d, Some((&gv, &bbv)), 1e-6).0;
+                (y, layernorm_ref::layernorm_backward(x, d, Some(&gv), 1e-6, dy).0)
+            }),
+        },
+    }));
+
     let (w1, w1v) = param(gpu, rng, &[d, h], std)?;
     let (w3, w3v) = param(gpu, rng, &[d, h], std)?;
     let (w2, w2v) = param(gpu, rng, &[h, d], 1.0 / (h as f64).sqrt())?;
-    let swiglu = SwiGluBench { layer: SwiGlu::new(w1, w3, w2)?, w: [w1v, w3v, w2v], n, d, h };
+    out.push(Box::new(Case {
+        layer: SwiGlu::new(w1, w3, w2)?,
+        info: Info {
+            name: "swiglu feed-forward",
+            shape: format!("{n}x{d} -> {h} -> {d}"),
+            rows: n,
+            in_width: d,
+            out_width: d,
+            work: matmul(2.0 * (n * d * h * 3) as f64),
+            coordinates: false,
+            reference: Box::new(move |x, dy, r| {
+                let y = reference::swiglu_ff(x, &w1v, &w3v, &w2v, r, d, h, d);
+                let [dx, ..] = reference::swiglu_ff_backward(x, &w1v, &w3v, &w2v, dy, r, d, h, d);
+                (y, dx)
+            }),
+        },
+    }));
+
     let (w1, w1v) = param(gpu, rng, &[d, h], std)?;
     let (b1, b1v) = param(gpu, rng, &[h], 0.1)?;
     let (w2, w2v) = param(gpu, rng, &[h, d], 1.0 / (h as f64).sqrt())?;
     let (b2, b2v) = param(gpu, rng, &[d], 0.1)?;
-    let gelu = GeluBench { layer: GeluMlp::new(w1, b1, w2, b2)?, w: [w1v, b1v, w2v, b2v], n, d, h };
-    // MODELS.md: 32 frequencies 2^0 .. 2^12 for xyz, sin and cos, with the input itself.
+    out.push(Box::new(Case {
+        layer: GeluMlp::new(w1, b1, w2, b2)?,
+        info: Info {
+            name: "gelu feed-forward",
+            shape: format!("{n}x{d} -> {h} -> {d}"),
+            rows: n,
+            in_width: d,
+            out_width: d,
+            work: matmul(2.0 * (n * d * h * 2) as f64),
+            coordinates: false,
+            reference: Box::new(move |x, dy, r| {
+                let y = reference::gelu_mlp(x, &w1v, &b1v, &w2v, &b2v, r, d, h, d);
+                let [dx, ..] = reference::gelu_mlp_backward(x, &w1v, &b1v, &w2v, dy, r, d, h, d);
+                (y, dx)
+            }),
+        },
+    }));
+
+    // MODELS.md: 32 frequencies 2^0 .. 2^12 for xyz, sin and cos, with the input itself. The
+    // reference uses the layer's own f32 frequencies, widened.
     let layer = Fourier::log_spaced(gpu, 3, 32, 12.0, true)?;
-    let freqs = layer.freqs.iter().map(|&w| w as f64).collect();
-    let fourier = FourierBench { layer, freqs, n: points };
-    Ok(vec![
-        Box::new(linear),
-        Box::new(rms),
-        Box::new(ln),
-        Box::new(swiglu),
-        Box::new(gelu),
-        Box::new(fourier),
-    ])
+    let freqs: Vec<f64> = layer.freqs.iter().map(|&w| w as f64).collect();
+    let width = layer.out_width();
+    out.push(Box::new(Case {
+        layer,
+        info: Info {
+            name: "fourier embedding",
+            shape: format!("{points}x3 -> {width}"),
+            rows: points,
+            in_width: 3,
+            out_width: width,
+            // Reads 3 and writes `width` floats per point forward; twice that backward.
+            work: (4.0 * (points * (3 + width)) as f64, 8.0 * (points * (3 + width)) as f64, "GB/s"),
+            coordinates: true,
+            reference: Box::new(move |x, dy, _| {
+                (
+                    fourier_ref::fourier(x, 3, &freqs, true),
+                    fourier_ref::fourier_backward(x, 3, &freqs, true, dy),
+                )
+            }),
+        },
+    }));
+    Ok(out)
 }
 
 pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
@@ -338,8 +211,10 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
     print_header();
     let mut records = Vec::new();
     for b in benches(gpu, &mut rng, small)? {
-        let (rows, wi, wo) = (b.rows(), b.in_width(), b.out_width());
-        let x = b.input(&mut rng);
+        let info = b.info();
+        let (rows, wi, wo) = (info.rows, info.in_width, info.out_width);
+        let x =
+            if info.coordinates { rng.uniform_vec(rows * wi, -1.0, 1.0) } else { rng.normal_vec(rows * wi) };
         let dy = rng.normal_vec(rows * wo);
         let tx = Tensor::from_slice(gpu, &[rows, wi], &x)?;
         let tdy = Tensor::from_slice(gpu, &[rows, wo], &dy)?;
@@ -361,9 +236,9 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         };
         let x64: Vec<f64> = pick(&x, wi).iter().map(|&v| v as f64).collect();
         let dy64: Vec<f64> = pick(&dy, wo).iter().map(|&v| v as f64).collect();
-        let (y_ref, dx_ref) = b.reference(&x64, &dy64, sample.len());
+        let (y_ref, dx_ref) = (info.reference)(&x64, &dy64, sample.len());
         let (y_got, dx_got) = (pick(&y, wo), pick(&dx, wi));
-        let (fwd_work, bwd_work, unit) = b.work();
+        let (fwd_work, bwd_work, unit) = info.work;
         let scale = if unit == "TFLOP/s" { 1e12 } else { 1e9 };
         let peak = |t: f64| peaks.map(|p| if unit == "TFLOP/s" { t / p.1 } else { t / p.2 });
         for (pass, ms, min, work, got, want) in [
@@ -372,8 +247,8 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         ] {
             let t = work / (ms * 1e-3) / scale;
             let r = Record {
-                name: format!("{} {pass}", b.name()),
-                shape: b.shape(),
+                name: format!("{} {pass}", info.name),
+                shape: info.shape.clone(),
                 precision: "f32".into(),
                 device: device.clone(),
                 median_ms: ms,
@@ -387,7 +262,7 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
                 error_over: format!(
                     "{} of {} on {} sampled rows",
                     if pass == "fwd" { "y" } else { "dx" },
-                    b.name(),
+                    info.name,
                     sample.len()
                 ),
                 gpu_timed: timed,
