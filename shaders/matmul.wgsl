@@ -21,21 +21,7 @@
 // of one buffer, step s+1 is read from memory into registers and then written to the other, so
 // one barrier per step suffices and the memory latency hides behind the arithmetic.
 
-struct Params {
-    m: u32,
-    n: u32,
-    k: u32,
-    accumulate: u32,
-    a_row: u32,
-    a_col: u32,
-    a_batch: u32,
-    b_row: u32,
-    b_col: u32,
-    b_batch: u32,
-    // Transpose bits, read by the cooperative-matrix kernel only (this one uses the strides).
-    flags: u32,
-    batch_base: u32, // first batch entry of this dispatch (batches beyond the z limit are split)
-}
+// @include matmul_params.wgsl
 
 @group(0) @binding(0) var<storage, read> a: array<u32>;
 @group(0) @binding(1) var<storage, read> b: array<u32>;

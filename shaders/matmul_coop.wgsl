@@ -46,21 +46,7 @@
 enable f16;
 enable wgpu_cooperative_matrix;
 
-struct Params {
-    m: u32,
-    n: u32,
-    k: u32,
-    accumulate: u32,
-    a_row: u32,
-    a_col: u32,
-    a_batch: u32,
-    b_row: u32,
-    b_col: u32,
-    b_batch: u32,
-    // Bit 0: A is transposed ([K, M] in memory); bit 1: B is transposed ([N, K]).
-    flags: u32,
-    batch_base: u32, // first batch entry of this dispatch (batches beyond the z limit are split)
-}
+// @include matmul_params.wgsl
 
 @group(0) @binding(0) var<storage, read> a: array<vec4<u32>>;
 @group(0) @binding(1) var<storage, read> b: array<vec4<u32>>;

@@ -1,29 +1,10 @@
-// Row scatter-add with native f32 atomics: out[idx[r], c] += src[r, c]. Indices past the
-// destination's rows are skipped. Needs VK_EXT_shader_atomic_float; `scatter_add_cas.wgsl` is
-// the fallback for devices without it.
+// Row scatter-add with native f32 atomics (VK_EXT_shader_atomic_float); `scatter_add_cas.wgsl`
+// is the fallback for devices without them. The kernel is in include/scatter_add_body.wgsl.
 
-struct Params {
-    rows: u32,     // rows of src (= length of idx)
-    width: u32,
-    dst_rows: u32,
-}
-
-@group(0) @binding(0) var<storage, read> src: array<f32>;
-@group(0) @binding(1) var<storage, read> idx: array<u32>;
 @group(0) @binding(2) var<storage, read_write> out: array<atomic<f32>>;
-var<immediate> pc: Params;
 
-@compute @workgroup_size(256)
-fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-        @builtin(local_invocation_index) lid: u32) {
-    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
-    if (i >= pc.rows * pc.width) {
-        return;
-    }
-    let r = i / pc.width;
-    let c = i - r * pc.width;
-    let d = idx[r];
-    if (d < pc.dst_rows) {
-        atomicAdd(&out[d * pc.width + c], src[i]);
-    }
+fn add_at(j: u32, v: f32) {
+    atomicAdd(&out[j], v);
 }
+
+// @include scatter_add_body.wgsl

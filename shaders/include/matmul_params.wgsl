@@ -1,0 +1,20 @@
+// The push constants of both matmul kernels (`matmul.wgsl`, `matmul_coop.wgsl`), mirrored by
+// `Params` in engine/src/ops/matmul.rs. Strides are in elements; a batch stride of 0
+// broadcasts an operand over the batch.
+
+struct Params {
+    m: u32,
+    n: u32,
+    k: u32,
+    accumulate: u32,
+    a_row: u32,
+    a_col: u32,
+    a_batch: u32,
+    b_row: u32,
+    b_col: u32,
+    b_batch: u32,
+    // Bit 0: A is transposed ([K, M] in memory); bit 1: B is transposed ([N, K]). The tiled f32
+    // kernel uses the strides alone; the cooperative-matrix kernel switches layouts on them.
+    flags: u32,
+    batch_base: u32, // first batch entry of this dispatch (batches beyond the z limit are split)
+}
