@@ -8,7 +8,6 @@
 use velox_engine::ops::attention::{self, attention, attention_backward, reference, Segments};
 use velox_engine::ops::matmul;
 use velox_engine::rng::Rng;
-use velox_engine::stats::{max_abs_err, nmse};
 use velox_engine::{DType, Gpu, Result, Tensor};
 
 use super::{print_header, print_row, time_gpu, Record};
@@ -153,22 +152,19 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
             ("bwd", bwd_ms, bwd_min, 2.5 * flops, &bwd_got, &bwd_want),
         ] {
             let tflops = f / (ms * 1e-3) / 1e12;
-            let r = Record {
-                name: format!("attn {} {pass}", case.name),
-                shape: shape.clone(),
-                precision: "f32".into(),
-                device: device.clone(),
-                median_ms: ms,
-                min_ms: min,
+            let name = format!("attn {} {pass}", case.name);
+            let r = Record::timed(
+                name,
+                shape.clone(),
+                "f32",
+                &device,
+                (ms, min, timed),
                 repeats,
-                throughput: tflops,
-                throughput_unit: "TFLOP/s".into(),
-                peak_fraction: f32_peak.map(|p| tflops / p),
-                nmse: nmse(got, want),
-                max_abs_err: max_abs_err(got, want),
-                error_over: error_over.clone(),
-                gpu_timed: timed,
-            };
+                tflops,
+                "TFLOP/s",
+            )
+            .peak(f32_peak.map(|p| tflops / p))
+            .against(got, want, error_over.clone());
             print_row(&r);
             records.push(r);
         }
@@ -181,28 +177,25 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
             let a = Tensor::from_slice(gpu, &[b, w, d], &rng.normal_vec(b * w * d))?;
             let s = Tensor::empty(gpu, &[b, w, w], DType::F32)?;
             let o2 = Tensor::empty(gpu, &[b, w, d], DType::F32)?;
-            let (ms, min, timed) = time_gpu(gpu, repeats, |rec| {
+            let timing = time_gpu(gpu, repeats, |rec| {
                 matmul::matmul_into(rec, &a, &a, false, true, &s, false)?;
                 matmul::matmul_into(rec, &s, &a, false, false, &o2, false)
             })?;
             let f = 4.0 * (b * w * w * d) as f64;
-            let tflops = f / (ms * 1e-3) / 1e12;
-            let r = Record {
-                name: "window matmuls alone".into(),
-                shape: format!("{b} x ({w}x{w}x{d}) x2"),
-                precision: "f32".into(),
-                device: device.clone(),
-                median_ms: ms,
-                min_ms: min,
+            let tflops = f / (timing.0 * 1e-3) / 1e12;
+            let shape = format!("{b} x ({w}x{w}x{d}) x2");
+            let r = Record::timed(
+                "window matmuls alone",
+                shape,
+                "f32",
+                &device,
+                timing,
                 repeats,
-                throughput: tflops,
-                throughput_unit: "TFLOP/s".into(),
-                peak_fraction: f32_peak.map(|p| tflops / p),
-                nmse: 0.0,
-                max_abs_err: 0.0,
-                error_over: "not checked (timing baseline)".into(),
-                gpu_timed: timed,
-            };
+                tflops,
+                "TFLOP/s",
+            )
+            .peak(f32_peak.map(|p| tflops / p))
+            .error(0.0, 0.0, "not checked (timing baseline)");
             print_row(&r);
             records.push(r);
         }

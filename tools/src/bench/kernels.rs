@@ -6,7 +6,6 @@
 use velox_engine::ops::cast::cast;
 use velox_engine::ops::{matmul, scan, scatter_add, softmax, sort};
 use velox_engine::rng::Rng;
-use velox_engine::stats::{max_abs_err, nmse};
 use velox_engine::{DType, Gpu, Result, Tensor};
 
 use super::{print_header, print_row, time_gpu, Record};
@@ -73,7 +72,7 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
                 (ta, tb, wide(&a), wide(&b))
             };
             let c_out = Tensor::empty(gpu, &[n, n], DType::F32)?;
-            let (median, min, timed) = time_gpu(gpu, repeats, |rec| {
+            let timing = time_gpu(gpu, repeats, |rec| {
                 matmul::matmul_into(rec, &ta, &tb, false, false, &c_out, false)
             })?;
             let got: Vec<f32> = c_out.read()?;
@@ -86,28 +85,25 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
             let want: Vec<f64> =
                 samples.iter().map(|&(i, j)| (0..n).map(|k| a64[i * n + k] * b64[k * n + j]).sum()).collect();
             let have: Vec<f32> = samples.iter().map(|&(i, j)| got[i * n + j]).collect();
-            let tflops = 2.0 * (n as f64).powi(3) / (median * 1e-3) / 1e12;
+            let tflops = 2.0 * (n as f64).powi(3) / (timing.0 * 1e-3) / 1e12;
             let peak = peaks.map(|p| tflops / if precision == DType::F16 { p.0 } else { p.1 });
-            push(Record {
-                name: "matmul".into(),
-                shape: format!("{n}x{n}x{n}"),
-                precision: if precision == DType::F16 { "f16->f32".into() } else { "f32".into() },
-                device: device.clone(),
-                median_ms: median,
-                min_ms: min,
+            let label = if precision == DType::F16 { "f16->f32" } else { "f32" };
+            let over = if samples.len() == n * n {
+                "all outputs".to_string()
+            } else {
+                format!("{} sampled outputs", samples.len())
+            };
+            let r = Record::timed(
+                "matmul",
+                format!("{n}x{n}x{n}"),
+                label,
+                &device,
+                timing,
                 repeats,
-                throughput: tflops,
-                throughput_unit: "TFLOP/s".into(),
-                peak_fraction: peak,
-                nmse: nmse(&have, &want),
-                max_abs_err: max_abs_err(&have, &want),
-                error_over: if samples.len() == n * n {
-                    "all outputs".into()
-                } else {
-                    format!("{} sampled outputs", samples.len())
-                },
-                gpu_timed: timed,
-            });
+                tflops,
+                "TFLOP/s",
+            );
+            push(r.peak(peak).against(&have, &want, over));
         }
     }
 
@@ -118,37 +114,22 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         let x: Vec<f32> = rng.normal_vec(rows * len).iter().map(|v| v * 10.0).collect();
         let t = Tensor::from_slice(gpu, &[rows, len], &x)?;
         let mut y = None;
-        let (median, min, timed) = time_gpu(gpu, repeats, |rec| {
+        let timing = time_gpu(gpu, repeats, |rec| {
             y = Some(softmax::softmax(rec, &t)?);
             Ok(())
         })?;
         let got: Vec<f32> = y.unwrap().read()?;
         let want = softmax::reference::softmax(&x, len);
-        let g = gbs((rows * len * 8) as f64, median);
-        push(Record {
-            name: "softmax".into(),
-            shape: format!("{rows}x{len}"),
-            precision: "f32".into(),
-            device: device.clone(),
-            median_ms: median,
-            min_ms: min,
-            repeats,
-            throughput: g,
-            throughput_unit: "GB/s".into(),
-            peak_fraction: bw_peak(g),
-            nmse: nmse(&got, &want),
-            max_abs_err: max_abs_err(&got, &want),
-            error_over: "all outputs".into(),
-            gpu_timed: timed,
-        });
+        let g = gbs((rows * len * 8) as f64, timing.0);
+        let r = Record::timed("softmax", format!("{rows}x{len}"), "f32", &device, timing, repeats, g, "GB/s");
+        push(r.peak(bw_peak(g)).against(&got, &want, "all outputs"));
     }
 
     for &n in &s.scan {
         let x: Vec<u32> = (0..n).map(|_| rng.below(1000)).collect();
         let t = Tensor::from_slice(gpu, &[n], &x)?;
         let y = Tensor::empty(gpu, &[n], DType::U32)?;
-        let (median, min, timed) =
-            time_gpu(gpu, repeats, |rec| scan::exclusive_scan(rec, &t, &y).map(|_| ()))?;
+        let timing = time_gpu(gpu, repeats, |rec| scan::exclusive_scan(rec, &t, &y).map(|_| ()))?;
         let got: Vec<u32> = y.read()?;
         let mut acc = 0u32;
         let mut wrong = 0usize;
@@ -156,23 +137,10 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
             wrong += (got[i] != acc) as usize;
             acc = acc.wrapping_add(v);
         }
-        let g = gbs((n * 8) as f64, median);
-        push(Record {
-            name: "exclusive scan".into(),
-            shape: format!("{n}"),
-            precision: "u32".into(),
-            device: device.clone(),
-            median_ms: median,
-            min_ms: min,
-            repeats,
-            throughput: g,
-            throughput_unit: "GB/s".into(),
-            peak_fraction: bw_peak(g),
-            nmse: wrong as f64 / n as f64,
-            max_abs_err: wrong as f64,
-            error_over: "exact: nmse = fraction wrong, max abs = count wrong".into(),
-            gpu_timed: timed,
-        });
+        let g = gbs((n * 8) as f64, timing.0);
+        let r = Record::timed("exclusive scan", format!("{n}"), "u32", &device, timing, repeats, g, "GB/s");
+        let over = "exact: nmse = fraction wrong, max abs = count wrong";
+        push(r.peak(bw_peak(g)).error(wrong as f64 / n as f64, wrong as f64, over));
     }
 
     for &(n, bits) in &s.sort {
@@ -182,7 +150,7 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         let tk = Tensor::from_slice(gpu, &[n], &keys)?;
         let tv = Tensor::from_slice(gpu, &[n], &vals)?;
         let mut res = None;
-        let (median, min, timed) = time_gpu(gpu, repeats, |rec| {
+        let timing = time_gpu(gpu, repeats, |rec| {
             res = Some(sort::sort_pairs(rec, &tk, &tv, bits)?);
             Ok(())
         })?;
@@ -191,23 +159,19 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         let mut order: Vec<u32> = vals.clone();
         order.sort_by_key(|&i| keys[i as usize]);
         let wrong = (0..n).filter(|&i| gv[i] != order[i] || gk[i] != keys[order[i] as usize]).count();
-        let mkeys = n as f64 / (median * 1e-3) / 1e6;
-        push(Record {
-            name: "radix sort pairs".into(),
-            shape: format!("{n} x {bits} bits"),
-            precision: "u32".into(),
-            device: device.clone(),
-            median_ms: median,
-            min_ms: min,
+        let mkeys = n as f64 / (timing.0 * 1e-3) / 1e6;
+        let r = Record::timed(
+            "radix sort pairs",
+            format!("{n} x {bits} bits"),
+            "u32",
+            &device,
+            timing,
             repeats,
-            throughput: mkeys,
-            throughput_unit: "Mkey/s".into(),
-            peak_fraction: None,
-            nmse: wrong as f64 / n as f64,
-            max_abs_err: wrong as f64,
-            error_over: "exact and stable: nmse = fraction wrong, max abs = count wrong".into(),
-            gpu_timed: timed,
-        });
+            mkeys,
+            "Mkey/s",
+        );
+        let over = "exact and stable: nmse = fraction wrong, max abs = count wrong";
+        push(r.error(wrong as f64 / n as f64, wrong as f64, over));
     }
 
     for &(rows, width, dst_rows) in &s.scatter {
@@ -216,33 +180,29 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         let ts = Tensor::from_slice(gpu, &[rows, width], &src)?;
         let ti = Tensor::from_slice(gpu, &[rows], &idx)?;
         let out = Tensor::empty(gpu, &[dst_rows, width], DType::F32)?;
-        let (median, min, timed) = time_gpu(gpu, repeats, |rec| {
+        let timing = time_gpu(gpu, repeats, |rec| {
             velox_engine::ops::fill::fill(rec, &out, 0.0)?;
             scatter_add::scatter_add(rec, &ts, &ti, &out)
         })?;
         let got: Vec<f32> = out.read()?;
         let want = scatter_add::reference::scatter_add(&src, width, &idx, &vec![0.0; dst_rows * width]);
-        let g = gbs((rows * width * 8 + rows * 4) as f64, median);
-        push(Record {
-            name: if gpu.supports(velox_engine::kernels::SCATTER_ADD_MAIN) {
-                "scatter-add (atomic)".into()
-            } else {
-                "scatter-add (CAS)".into()
-            },
-            shape: format!("{rows}x{width} -> {dst_rows}"),
-            precision: "f32".into(),
-            device: device.clone(),
-            median_ms: median,
-            min_ms: min,
+        let g = gbs((rows * width * 8 + rows * 4) as f64, timing.0);
+        let name = if gpu.supports(velox_engine::kernels::SCATTER_ADD_MAIN) {
+            "scatter-add (atomic)"
+        } else {
+            "scatter-add (CAS)"
+        };
+        let r = Record::timed(
+            name,
+            format!("{rows}x{width} -> {dst_rows}"),
+            "f32",
+            &device,
+            timing,
             repeats,
-            throughput: g,
-            throughput_unit: "GB/s".into(),
-            peak_fraction: bw_peak(g),
-            nmse: nmse(&got, &want),
-            max_abs_err: max_abs_err(&got, &want),
-            error_over: "all outputs".into(),
-            gpu_timed: timed,
-        });
+            g,
+            "GB/s",
+        );
+        push(r.peak(bw_peak(g)).against(&got, &want, "all outputs"));
     }
     Ok(out)
 }

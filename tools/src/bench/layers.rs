@@ -9,7 +9,6 @@ use velox_engine::ops::fourier::reference as fourier_ref;
 use velox_engine::ops::layernorm::reference as layernorm_ref;
 use velox_engine::ops::rmsnorm::reference as rmsnorm_ref;
 use velox_engine::rng::Rng;
-use velox_engine::stats::{max_abs_err, nmse};
 use velox_engine::{Gpu, Recorder, Result, Tensor};
 use velox_models::layers::{reference, Fourier, GeluMlp, Layer, LayerNorm, Linear, Param, RmsNorm, SwiGlu};
 
@@ -246,27 +245,13 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
             ("fwd+bwd", all_ms, all_min, fwd_work + bwd_work, &dx_got, &dx_ref),
         ] {
             let t = work / (ms * 1e-3) / scale;
-            let r = Record {
-                name: format!("{} {pass}", info.name),
-                shape: info.shape.clone(),
-                precision: "f32".into(),
-                device: device.clone(),
-                median_ms: ms,
-                min_ms: min,
-                repeats,
-                throughput: t,
-                throughput_unit: unit.into(),
-                peak_fraction: peak(t),
-                nmse: nmse(got, want),
-                max_abs_err: max_abs_err(got, want),
-                error_over: format!(
-                    "{} of {} on {} sampled rows",
-                    if pass == "fwd" { "y" } else { "dx" },
-                    info.name,
-                    sample.len()
-                ),
-                gpu_timed: timed,
-            };
+            let what = if pass == "fwd" { "y" } else { "dx" };
+            let over = format!("{what} of {} on {} sampled rows", info.name, sample.len());
+            let name = format!("{} {pass}", info.name);
+            let r =
+                Record::timed(name, info.shape.clone(), "f32", &device, (ms, min, timed), repeats, t, unit)
+                    .peak(peak(t))
+                    .against(got, want, over);
             print_row(&r);
             records.push(r);
         }

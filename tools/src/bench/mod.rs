@@ -10,6 +10,7 @@ use std::path::PathBuf;
 
 use clap::Subcommand;
 use serde::Serialize;
+use velox_engine::stats::{max_abs_err, nmse};
 use velox_engine::{Gpu, Recorder, Result};
 
 use crate::CliResult;
@@ -85,6 +86,54 @@ pub struct Record {
     pub error_over: String,
     /// Whether times come from GPU timestamps (else wall clock around each submit).
     pub gpu_timed: bool,
+}
+
+impl Record {
+    /// A timed case: `timing` as [`time_gpu`] returns it, and its rate in `unit`. The error is
+    /// set with [`Record::against`] or [`Record::error`], the fraction of peak with
+    /// [`Record::peak`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn timed(
+        name: impl Into<String>,
+        shape: impl Into<String>,
+        precision: impl Into<String>,
+        device: &str,
+        (median_ms, min_ms, gpu_timed): (f64, f64, bool),
+        repeats: u32,
+        throughput: f64,
+        unit: &str,
+    ) -> Record {
+        Record {
+            name: name.into(),
+            shape: shape.into(),
+            precision: precision.into(),
+            device: device.into(),
+            median_ms,
+            min_ms,
+            repeats,
+            throughput,
+            throughput_unit: unit.into(),
+            peak_fraction: None,
+            nmse: 0.0,
+            max_abs_err: 0.0,
+            error_over: "not measured".into(),
+            gpu_timed,
+        }
+    }
+
+    pub fn peak(self, peak_fraction: Option<f64>) -> Record {
+        Record { peak_fraction, ..self }
+    }
+
+    /// Error figures measured elsewhere, and what they were measured over.
+    pub fn error(self, nmse: f64, max_abs_err: f64, over: impl Into<String>) -> Record {
+        Record { nmse, max_abs_err, error_over: over.into(), ..self }
+    }
+
+    /// The error of `got` against the reference `want`.
+    pub fn against<T: Copy + Into<f64>>(self, got: &[T], want: &[f64], over: impl Into<String>) -> Record {
+        self.error(nmse(got, want), max_abs_err(got, want), over)
+    }
 }
 
 pub fn write_json(path: &std::path::Path, records: &[Record]) -> CliResult<()> {

@@ -106,23 +106,10 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         print_row(&r);
         out.push(r);
     };
-    let record =
-        |name: &str, shape: String, (median, min, timed): (f64, f64, bool), work: f64, unit: &str| Record {
-            name: name.into(),
-            shape,
-            precision: "f32".into(),
-            device: device.clone(),
-            median_ms: median,
-            min_ms: min,
-            repeats,
-            throughput: work / (median * 1e-3),
-            throughput_unit: unit.into(),
-            peak_fraction: None,
-            nmse: 0.0,
-            max_abs_err: 0.0,
-            error_over: ERROR_OVER.into(),
-            gpu_timed: timed,
-        };
+    let record = |name: &str, shape: String, t: (f64, f64, bool), work: f64, unit: &str| {
+        Record::timed(name, shape, "f32", &device, t, repeats, work / (t.0 * 1e-3), unit)
+            .error(0.0, 0.0, ERROR_OVER)
+    };
 
     // Encoder.
     {

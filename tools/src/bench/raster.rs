@@ -143,22 +143,11 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         for (name, (median, min)) in
             [("raster forward", timing.forward), ("raster forward+backward", timing.forward_backward)]
         {
-            let r = Record {
-                name: name.into(),
-                shape: shape.clone(),
-                precision: "f32".into(),
-                device: device.clone(),
-                median_ms: median,
-                min_ms: min,
-                repeats,
-                throughput: n as f64 / (median * 1e-3) / 1e6,
-                throughput_unit: "MGauss/s".into(),
-                peak_fraction: None,
-                nmse: e,
-                max_abs_err: m,
-                error_over: format!("forward rgb on {sampled} sampled pixels; {} tile pairs", timing.pairs),
-                gpu_timed: timing.gpu_timed,
-            };
+            let rate = n as f64 / (median * 1e-3) / 1e6;
+            let over = format!("forward rgb on {sampled} sampled pixels; {} tile pairs", timing.pairs);
+            let t = (median, min, timing.gpu_timed);
+            let r = Record::timed(name, shape.clone(), "f32", &device, t, repeats, rate, "MGauss/s")
+                .error(e, m, over);
             print_row(&r);
             out.push(r);
         }
@@ -216,20 +205,17 @@ fn backward_error(gpu: &Gpu, repeats: u32, device: &str) -> Result<Record> {
         have.extend(t.read::<f32>()?);
         wanted.extend_from_slice(w);
     }
-    Ok(Record {
-        name: "raster backward".into(),
-        shape: format!("{n} gaussians {w}x{h}"),
-        precision: "f32".into(),
-        device: device.into(),
-        median_ms: median,
-        min_ms: min,
+    let rate = n as f64 / (median * 1e-3) / 1e6;
+    let t = (median, min, gpu_timed);
+    let r = Record::timed(
+        "raster backward",
+        format!("{n} gaussians {w}x{h}"),
+        "f32",
+        device,
+        t,
         repeats,
-        throughput: n as f64 / (median * 1e-3) / 1e6,
-        throughput_unit: "MGauss/s".into(),
-        peak_fraction: None,
-        nmse: nmse(&have, &wanted),
-        max_abs_err: max_abs_err(&have, &wanted),
-        error_over: "every parameter gradient, loss = sum of the image".into(),
-        gpu_timed,
-    })
+        rate,
+        "MGauss/s",
+    );
+    Ok(r.against(&have, &wanted, "every parameter gradient, loss = sum of the image"))
 }
