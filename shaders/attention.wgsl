@@ -19,142 +19,38 @@
 // dK_j = scale sum_i dS_ij Q_i. `bwd_dq` walks keys for each query block, `bwd_dkv` walks
 // queries for each key block: no atomics, and the result does not depend on scheduling.
 // A query row without keys gets o = 0, lse = -inf and dq = 0.
+//
+// The forward pass is `include/attention_forward.wgsl`, shared with `attention_f16.wgsl`, the
+// forward pass on f16 inputs.
 
 const D: u32 = 32u;
 const D4: u32 = D / 4u;
 const B: u32 = 32u; // rows per work item, and rows per staged tile
 
-struct Params {
-    heads: u32,
-    items: u32, // work-list entries x heads: the workgroups that have work
-    scale: f32,
-    nq: u32,    // rows of q; offsets are clamped to it, so bad offsets cannot read past it
-    nk: u32,    // rows of k and v
-}
-
 @group(0) @binding(0) var<storage, read> q: array<vec4<f32>>;
 @group(0) @binding(1) var<storage, read> k: array<vec4<f32>>;
 @group(0) @binding(2) var<storage, read> v: array<vec4<f32>>;
-@group(0) @binding(3) var<storage, read> q_off: array<u32>;
-@group(0) @binding(4) var<storage, read> k_off: array<u32>;
-@group(0) @binding(5) var<storage, read> work: array<vec2<u32>>;
-@group(0) @binding(6) var<storage, read_write> o: array<vec4<f32>>;
-@group(0) @binding(7) var<storage, read_write> lse: array<f32>;
+
+fn load_q(i: u32) -> vec4<f32> {
+    return q[i];
+}
+
+fn load_k(i: u32) -> vec4<f32> {
+    return k[i];
+}
+
+fn load_v(i: u32) -> vec4<f32> {
+    return v[i];
+}
+
+// @include attention_forward.wgsl
+
+// The backward pass (f32 only).
 @group(0) @binding(8) var<storage, read> d_o: array<vec4<f32>>;
 @group(0) @binding(9) var<storage, read_write> delta: array<f32>;
 @group(0) @binding(10) var<storage, read_write> dq: array<vec4<f32>>;
 @group(0) @binding(11) var<storage, read_write> dk: array<vec4<f32>>;
 @group(0) @binding(12) var<storage, read_write> dv: array<vec4<f32>>;
-var<immediate> pc: Params;
-
-// Staged tiles: keys and values (forward, dq), or queries, output gradients, lse and delta
-// (dk, dv).
-var<workgroup> tile_a: array<vec4<f32>, B * D4>;
-var<workgroup> tile_b: array<vec4<f32>, B * D4>;
-var<workgroup> tile_lse: array<f32, B>;
-var<workgroup> tile_delta: array<f32, B>;
-
-fn neg_inf() -> f32 {
-    return bitcast<f32>(0xff800000u);
-}
-
-// The work item of this workgroup: (segment, first row, head), or segment 0xffffffff.
-fn work_item(wid: vec3<u32>, nwg: vec3<u32>) -> vec3<u32> {
-    let id = wid.x + wid.y * nwg.x;
-    if (id >= pc.items) {
-        return vec3<u32>(0xffffffffu, 0u, 0u);
-    }
-    let w = work[id / pc.heads];
-    return vec3<u32>(w.x, w.y, id % pc.heads);
-}
-
-// Stages rows first .. first + count of a [rows, H, D] tensor, head h, into a tile.
-fn stage_k(first: u32, count: u32, h: u32, lid: u32) {
-    for (var i = lid; i < B * D4; i += B) {
-        let r = i / D4;
-        if (r < count) {
-            let src = ((first + r) * pc.heads + h) * D4 + (i % D4);
-            tile_a[i] = k[src];
-            tile_b[i] = v[src];
-        }
-    }
-}
-
-@compute @workgroup_size(32)
-fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-       @builtin(local_invocation_index) lid: u32) {
-    let item = work_item(wid, nwg);
-    // Uniform across the workgroup: unused list entries leave together, before any barrier.
-    if (item.x == 0xffffffffu) {
-        return;
-    }
-    let seg = item.x;
-    let h = item.z;
-    let row = item.y + lid;
-    let live = row < min(q_off[seg + 1u], pc.nq);
-    let k_begin = min(k_off[seg], pc.nk);
-    let k_end = clamp(k_off[seg + 1u], k_begin, pc.nk);
-
-    var qr: array<vec4<f32>, D4>;
-    var acc: array<vec4<f32>, D4>;
-    for (var c = 0u; c < D4; c++) {
-        acc[c] = vec4<f32>(0.0);
-        qr[c] = vec4<f32>(0.0);
-        if (live) {
-            qr[c] = q[(row * pc.heads + h) * D4 + c] * pc.scale;
-        }
-    }
-    var m = neg_inf();
-    var l = 0.0;
-    var s: array<f32, B>;
-    for (var kt = k_begin; kt < k_end; kt += B) {
-        let count = min(B, k_end - kt);
-        workgroupBarrier(); // the previous tile is consumed
-        stage_k(kt, count, h, lid);
-        workgroupBarrier();
-        if (live) {
-            var tile_max = neg_inf();
-            for (var j = 0u; j < B; j++) {
-                if (j < count) {
-                    var d = 0.0;
-                    for (var c = 0u; c < D4; c++) {
-                        d += dot(qr[c], tile_a[j * D4 + c]);
-                    }
-                    s[j] = d;
-                    tile_max = max(tile_max, d);
-                }
-            }
-            let m_new = max(m, tile_max);
-            let correction = exp(m - m_new);
-            l *= correction;
-            for (var c = 0u; c < D4; c++) {
-                acc[c] *= correction;
-            }
-            for (var j = 0u; j < B; j++) {
-                if (j < count) {
-                    let p = exp(s[j] - m_new);
-                    l += p;
-                    for (var c = 0u; c < D4; c++) {
-                        acc[c] += p * tile_b[j * D4 + c];
-                    }
-                }
-            }
-            m = m_new;
-        }
-    }
-    if (live) {
-        var inv = 0.0;
-        var row_lse = neg_inf();
-        if (l > 0.0) {
-            inv = 1.0 / l;
-            row_lse = m + log(l);
-        }
-        for (var c = 0u; c < D4; c++) {
-            o[(row * pc.heads + h) * D4 + c] = acc[c] * inv;
-        }
-        lse[row * pc.heads + h] = row_lse;
-    }
-}
 
 @compute @workgroup_size(32)
 fn bwd_dq(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
@@ -181,7 +77,7 @@ fn bwd_dq(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: v
         gr[c] = vec4<f32>(0.0);
         if (live) {
             let at = (row * pc.heads + h) * D4 + c;
-            qr[c] = q[at] * pc.scale;
+            qr[c] = load_q(at) * pc.scale;
             gr[c] = d_o[at];
             row_delta += dot(gr[c], o[at]);
         }
@@ -246,8 +142,8 @@ fn bwd_dkv(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
         vr[c] = vec4<f32>(0.0);
         if (live) {
             let at = (row * pc.heads + h) * D4 + c;
-            kr[c] = k[at] * pc.scale;
-            vr[c] = v[at];
+            kr[c] = load_k(at) * pc.scale;
+            vr[c] = load_v(at);
         }
     }
     for (var qt = q_begin; qt < q_end; qt += B) {
@@ -257,7 +153,7 @@ fn bwd_dkv(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
             let r = i / D4;
             if (r < count) {
                 let src = ((qt + r) * pc.heads + h) * D4 + (i % D4);
-                tile_a[i] = q[src];
+                tile_a[i] = load_q(src);
                 tile_b[i] = d_o[src];
             }
         }

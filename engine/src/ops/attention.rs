@@ -100,6 +100,8 @@ struct BlockParams {
 
 struct Kernels {
     fwd: KernelId,
+    /// The forward pass on f16 q, k, v.
+    fwd_f16: KernelId,
     dq: KernelId,
     dkv: KernelId,
 }
@@ -107,10 +109,30 @@ struct Kernels {
 fn kernels_for(d: usize) -> Option<Kernels> {
     use kernels::*;
     Some(match d {
-        16 => Kernels { fwd: ATTENTION_D16_FWD, dq: ATTENTION_D16_BWD_DQ, dkv: ATTENTION_D16_BWD_DKV },
-        32 => Kernels { fwd: ATTENTION_D32_FWD, dq: ATTENTION_D32_BWD_DQ, dkv: ATTENTION_D32_BWD_DKV },
-        64 => Kernels { fwd: ATTENTION_D64_FWD, dq: ATTENTION_D64_BWD_DQ, dkv: ATTENTION_D64_BWD_DKV },
-        72 => Kernels { fwd: ATTENTION_D72_FWD, dq: ATTENTION_D72_BWD_DQ, dkv: ATTENTION_D72_BWD_DKV },
+        16 => Kernels {
+            fwd: ATTENTION_D16_FWD,
+            fwd_f16: ATTENTION_F16_D16_FWD,
+            dq: ATTENTION_D16_BWD_DQ,
+            dkv: ATTENTION_D16_BWD_DKV,
+        },
+        32 => Kernels {
+            fwd: ATTENTION_D32_FWD,
+            fwd_f16: ATTENTION_F16_D32_FWD,
+            dq: ATTENTION_D32_BWD_DQ,
+            dkv: ATTENTION_D32_BWD_DKV,
+        },
+        64 => Kernels {
+            fwd: ATTENTION_D64_FWD,
+            fwd_f16: ATTENTION_F16_D64_FWD,
+            dq: ATTENTION_D64_BWD_DQ,
+            dkv: ATTENTION_D64_BWD_DKV,
+        },
+        72 => Kernels {
+            fwd: ATTENTION_D72_FWD,
+            fwd_f16: ATTENTION_F16_D72_FWD,
+            dq: ATTENTION_D72_BWD_DQ,
+            dkv: ATTENTION_D72_BWD_DKV,
+        },
         _ => return None,
     })
 }
@@ -125,8 +147,10 @@ fn check(q: &Tensor, k: &Tensor, v: &Tensor, seg: &Segments) -> Result<(usize, u
             "attention: q {q:?}, k {k:?} and v {v:?} disagree on heads or width"
         )));
     }
-    if [q, k, v].iter().any(|t| t.dtype() != DType::F32) {
-        return Err(Error::Shape(format!("attention needs f32 q, k, v, got {q:?}, {k:?}, {v:?}")));
+    if [k, v].iter().any(|t| t.dtype() != q.dtype()) || !matches!(q.dtype(), DType::F32 | DType::F16) {
+        return Err(Error::Shape(format!(
+            "attention needs q, k, v all f32 or all f16, got {q:?}, {k:?}, {v:?}"
+        )));
     }
     if kernels_for(d).is_none() {
         return Err(Error::Unsupported(format!(
@@ -172,7 +196,8 @@ fn work_list(rec: &mut Recorder, offsets: &Tensor, rows: usize) -> Result<(Tenso
 }
 
 /// Softmax(q k^T * scale) v per segment and head. Records the work; nothing runs until the
-/// recorder is submitted.
+/// recorder is submitted. q, k and v are all f32, or all f16 (the f16 model path: the inputs
+/// are read as f16, everything else is f32, and o and lse are f32 either way).
 pub fn attention(
     rec: &mut Recorder,
     q: &Tensor,
@@ -192,7 +217,8 @@ pub fn attention(
     let (list, capacity) = work_list(rec, &seg.q_offsets, nq)?;
     let p = params(h, capacity, scale, nq, nk)?;
     let args = [q, k, v, &seg.q_offsets, &seg.k_offsets, &list, &o, &lse];
-    rec.dispatch_linear(kern.fwd, (capacity * h) as u64, &args, &p)?;
+    let kernel = if q.dtype() == DType::F16 { kern.fwd_f16 } else { kern.fwd };
+    rec.dispatch_linear(kernel, (capacity * h) as u64, &args, &p)?;
     Ok(AttentionOut { o, lse })
 }
 
@@ -220,6 +246,12 @@ pub fn attention_backward(
     scale: f32,
 ) -> Result<AttentionGrads> {
     let (nq, nk, h, d) = check(q, k, v, seg)?;
+    if q.dtype() != DType::F32 {
+        return Err(Error::Invalid(format!(
+            "attention backward runs on f32 q, k, v only, got {:?}",
+            q.dtype()
+        )));
+    }
     if d_o.shape() != q.shape() || out.o.shape() != q.shape() || out.lse.shape() != [nq, h] {
         return Err(Error::Shape(format!(
             "attention backward: dO {d_o:?}, o {:?} and lse {:?} must match q {q:?}",

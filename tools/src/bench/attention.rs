@@ -1,11 +1,17 @@
 //! `velox bench attention`: fused segment attention at the paper's sizes, forward and
-//! backward, time against the f64 reference.
+//! backward in f32 and forward on f16 inputs, time against the f64 reference (on the exact
+//! inputs, so the f16 rows' errors include the rounding of q, k and v).
+//!
+//! The f16 rows run the portable f16-input kernel (f16 reads, f32 arithmetic); there is no
+//! cooperative-matrix attention kernel yet, so their fraction of the f16 tensor peak shows
+//! how far that path is from the hardware.
 //!
 //! Error: the reference is computed on a sample of segments (all their rows, so o, dq, dk and
 //! dv are all exact there), or, for one dense segment too large for a CPU reference, on a
 //! sample of query rows (o and dq, which depend on one query row each).
 
 use velox_engine::ops::attention::{self, attention, attention_backward, reference, Segments};
+use velox_engine::ops::cast::cast;
 use velox_engine::ops::matmul;
 use velox_engine::rng::Rng;
 use velox_engine::{DType, Gpu, Result, Tensor};
@@ -64,6 +70,7 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
     let c = gpu.caps();
     let device = c.name.clone();
     let f32_peak = c.known_peaks().map(|p| p.1);
+    let f16_peak = c.known_peaks().map(|p| p.0);
     println!("device: {device} ({}); {repeats} timed repeats per case, median shown", c.kind);
     print_header();
     let mut records = Vec::new();
@@ -88,6 +95,19 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
             Ok(())
         })?;
         let out = out.unwrap();
+        let mut rec = gpu.recorder()?;
+        let (q16, k16, v16) = (
+            cast(&mut rec, &tq, DType::F16)?,
+            cast(&mut rec, &tk, DType::F16)?,
+            cast(&mut rec, &tv, DType::F16)?,
+        );
+        rec.submit()?;
+        let mut out16 = None;
+        let (f16_ms, f16_min, _) = time_gpu(gpu, repeats, |rec| {
+            out16 = Some(attention(rec, &q16, &k16, &v16, &seg, scale)?);
+            Ok(())
+        })?;
+        let o16: Vec<f32> = out16.unwrap().o.read()?;
         let mut grads = None;
         let (bwd_ms, bwd_min, _) = time_gpu(gpu, repeats, |rec| {
             grads = Some(attention_backward(rec, &tq, &tk, &tv, &out, &tg, &seg, scale)?);
@@ -102,6 +122,7 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         let k_off = reference::offsets(&k_lens);
         let row = h * d;
         let (mut fwd_got, mut fwd_want, mut bwd_got, mut bwd_want) = (vec![], vec![], vec![], vec![]);
+        let mut f16_got = vec![];
         let segments = case.q_lens.len();
         let sampled_rows = segments == 1 && nq * nk > 1 << 22;
         let picks: Vec<usize> = if segments <= 8 {
@@ -130,6 +151,7 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
                 rows.iter().flat_map(|&r| t[r * row..(r + 1) * row].iter().copied()).collect()
             };
             fwd_got.extend(as32(&o, &rows));
+            f16_got.extend(as32(&o16, &rows));
             fwd_want.extend(o_ref);
             bwd_got.extend(as32(&dq, &rows));
             bwd_want.extend(dq_ref);
@@ -147,23 +169,25 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         };
         let flops = attention::forward_flops(&case.q_lens, &k_lens, h, d);
         let shape = format!("{nq}x{nk} h{h} d{d} ({segments} seg)");
-        for (pass, ms, min, f, got, want) in [
-            ("fwd", fwd_ms, fwd_min, flops, &fwd_got, &fwd_want),
-            ("bwd", bwd_ms, bwd_min, 2.5 * flops, &bwd_got, &bwd_want),
+        for (pass, precision, ms, min, f, got, want) in [
+            ("fwd", "f32", fwd_ms, fwd_min, flops, &fwd_got, &fwd_want),
+            ("fwd", "f16", f16_ms, f16_min, flops, &f16_got, &fwd_want),
+            ("bwd", "f32", bwd_ms, bwd_min, 2.5 * flops, &bwd_got, &bwd_want),
         ] {
             let tflops = f / (ms * 1e-3) / 1e12;
             let name = format!("attn {} {pass}", case.name);
+            let peak = if precision == "f16" { f16_peak } else { f32_peak };
             let r = Record::timed(
                 name,
                 shape.clone(),
-                "f32",
+                precision,
                 &device,
                 (ms, min, timed),
                 repeats,
                 tflops,
                 "TFLOP/s",
             )
-            .peak(f32_peak.map(|p| tflops / p))
+            .peak(peak.map(|p| tflops / p))
             .against(got, want, error_over.clone());
             print_row(&r);
             records.push(r);
