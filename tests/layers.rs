@@ -105,6 +105,30 @@ fn linear_matches_reference() {
 }
 
 #[test]
+fn linear_in_an_f16_recording_reads_rounded_operands() {
+    // The f16 path: x and W rounded to f16, f32 accumulation, the bias added in f32. A weight
+    // without an f16 copy (Param::new) is rounded as the layer runs.
+    use velox::engine::ops::cast::reference::to_f16;
+    let mut rng = Rng::new(2);
+    for (n, din, dout) in [(1, 2, 5), (17, 130, 6), (33, 64, 130)] {
+        let what = format!("f16 linear n={n} in={din} out={dout}");
+        let (x, w, b) = (rng.normal_vec(n * din), normal(&mut rng, din * dout, 0.2), rng.normal_vec(dout));
+        let zeros = vec![0.0; din * dout];
+        let layer = Linear::new(param(&[din, dout], &w, &zeros), Some(param(&[dout], &b, &b))).unwrap();
+        let mut rec = rec();
+        rec.set_precision(velox::engine::Precision::F16);
+        let (y, _) = layer.forward(&mut rec, &upload(&[n, din], &x)).unwrap();
+        rec.submit().unwrap();
+        let y_ref = r::linear(&to_f16(&x), &to_f16(&w), Some(&f64s(&b)), n, din, dout);
+        // Measured on lavapipe: <= 2.6e-14.
+        assert_nmse(&format!("y {what}, rounded operands"), &read(&y), &y_ref, 2e-13);
+        let exact = r::linear(&f64s(&x), &f64s(&w), Some(&f64s(&b)), n, din, dout);
+        let e = nmse(&read(&y), &exact);
+        assert!(e > 0.0 && e < 1e-5, "{what}: NMSE {e} against exact operands: not an f16 product");
+    }
+}
+
+#[test]
 fn rmsnorm_matches_reference() {
     let mut rng = Rng::new(2);
     let eps = 1e-6;

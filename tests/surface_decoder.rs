@@ -10,6 +10,7 @@ use common::*;
 use velox::engine::ops::adamw::AdamWConfig;
 use velox::engine::ops::binary::{binary, Binary};
 use velox::engine::ops::unary::{unary, Unary};
+use velox::engine::Precision;
 use velox::models::config::{AutoencoderConfig, SurfaceConfig};
 use velox::models::params::ParamStore;
 use velox::models::schedule::noam;
@@ -272,7 +273,7 @@ fn overfits_a_circle_and_samples_it_back() {
     let mut after = Vec::new();
     for (sampler, k) in [(Sampler::Euler, 20), (Sampler::Heun, 10)] {
         let t0 = Instant::now();
-        let spec = SampleSpec { points: 256, steps: k, sampler, seed: 99 };
+        let spec = SampleSpec { points: 256, steps: k, sampler, seed: 99, precision: Precision::F32 };
         let pts = dec.sample(&tokens, tau, &spec).unwrap().read::<f32>().unwrap();
         let c = chamfer(&pts, &target);
         if verbose() {
@@ -284,7 +285,8 @@ fn overfits_a_circle_and_samples_it_back() {
         after.push(c);
     }
     // Chunks of 64 points integrate exactly what one chunk of all points does.
-    let spec = SampleSpec { points: 150, steps: 3, sampler: Sampler::Heun, seed: 5 };
+    let spec =
+        SampleSpec { points: 150, steps: 3, sampler: Sampler::Heun, seed: 5, precision: Precision::F32 };
     let whole = dec.sample(&tokens, tau, &spec).unwrap().read::<f32>().unwrap();
     let chunked = dec.sample_in_chunks(&tokens, tau, &spec, 64).unwrap().read::<f32>().unwrap();
     assert!(max_abs_err(&chunked, &f64s(&whole)) < 1e-5);
@@ -362,7 +364,13 @@ fn bad_input_gets_clear_errors() {
     assert!(msg(forward(&x, 0.5, &t, &bad_tokens)).contains("tokens"));
     assert!(msg(forward(&x, f32::NAN, &t, &tokens)).contains("tau"));
 
-    let spec = |points, steps| SampleSpec { points, steps, sampler: Sampler::Heun, seed: 1 };
+    let spec = |points, steps| SampleSpec {
+        points,
+        steps,
+        sampler: Sampler::Heun,
+        seed: 1,
+        precision: Precision::F32,
+    };
     assert!(msg(dec.sample(&tokens, 0.5, &spec(8, 0))).contains("step"));
     assert!(msg(dec.sample(&tokens, 0.5, &spec(0, 4))).contains("point"));
     assert!(msg(dec.sample(&tokens, f32::NAN, &spec(8, 4))).contains("tau"));

@@ -18,6 +18,27 @@ use crate::tensor::{Buffer, Tensor};
 
 const MAX_TIMESTAMPS: u32 = 256;
 
+/// The precision a recording's layers compute in. The ops take their operands' types as given;
+/// the model layers read this to choose (`velox_models::layers`): `F32` everywhere, or `F16`,
+/// where matrix products and attention read f16 operands (weights from a store's f16 mirror,
+/// activations cast before the product) and accumulate in f32, and everything else stays f32.
+/// Training runs in f32; the f16 path is for inference.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Precision {
+    #[default]
+    F32,
+    F16,
+}
+
+impl Precision {
+    pub fn name(self) -> &'static str {
+        match self {
+            Precision::F32 => "f32",
+            Precision::F16 => "f16",
+        }
+    }
+}
+
 pub struct Recorder {
     gpu: Gpu,
     cmd: vk::CommandBuffer,
@@ -30,6 +51,7 @@ pub struct Recorder {
     dispatches: usize,
     barriers: usize,
     submitted: bool,
+    precision: Precision,
 }
 
 /// What a finished recording reports.
@@ -69,6 +91,7 @@ impl Gpu {
             dispatches: 0,
             barriers: 0,
             submitted: false,
+            precision: Precision::F32,
         };
         let begin = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
         // SAFETY: a freshly allocated command buffer.
@@ -90,6 +113,15 @@ impl Recorder {
             }
         }
         self
+    }
+
+    /// The precision the layers recorded from now on compute in (f32 unless set).
+    pub fn precision(&self) -> Precision {
+        self.precision
+    }
+
+    pub fn set_precision(&mut self, precision: Precision) {
+        self.precision = precision;
     }
 
     /// Inserts a barrier if the next access of `reads` and `writes` depends on earlier work.

@@ -18,6 +18,7 @@
 use std::collections::HashMap;
 
 use velox_engine::ops::adamw::{adamw, AdamWConfig, AdamWStep, AdamWTensors};
+use velox_engine::ops::cast::cast_into;
 use velox_engine::ops::fill::fill;
 use velox_engine::ops::norm::{check_finite, chunk_len, global_norm_into, NormScratch};
 use velox_engine::rng::Rng;
@@ -184,8 +185,27 @@ impl ParamBuilder {
             .iter()
             .map(|s| Ok((params.view(s.offset, &s.shape)?, grads.view(s.offset, &s.shape)?)))
             .collect::<Result<Vec<_>>>()?;
+        let half = Tensor::empty(gpu, &[total], DType::F16)?;
+        let half_views = specs.iter().map(|s| half.view(s.offset, &s.shape)).collect::<Result<Vec<_>>>()?;
         let norm = NormScratch::new(gpu, total)?;
-        Ok(ParamStore { specs, index, views, params, grads, m, v, decay_len, norm, step: 0 })
+        let store = ParamStore {
+            specs,
+            index,
+            views,
+            params,
+            grads,
+            m,
+            v,
+            decay_len,
+            norm,
+            step: 0,
+            half,
+            half_views,
+        };
+        let mut rec = gpu.recorder()?;
+        store.sync_half(&mut rec)?;
+        rec.submit()?;
+        Ok(store)
     }
 }
 
@@ -201,6 +221,10 @@ pub struct ParamStore {
     decay_len: usize,
     norm: NormScratch,
     step: u64,
+    /// An f16 copy of `params` at the same offsets, for the f16 inference path; it follows
+    /// `params` only through [`ParamStore::sync_half`].
+    half: Tensor,
+    half_views: Vec<Tensor>,
 }
 
 impl ParamStore {
@@ -211,6 +235,25 @@ impl ParamStore {
     /// The parameter called `name`.
     pub fn param(&self, name: &str) -> Result<&Tensor> {
         Ok(&self.views[self.find(name)?].0)
+    }
+
+    /// The f16 copy of the parameter called `name` (as of the last [`ParamStore::sync_half`]).
+    pub fn param_half(&self, name: &str) -> Result<&Tensor> {
+        Ok(&self.half_views[self.find(name)?])
+    }
+
+    /// Records the rounding of every parameter to its f16 copy: one pass over the store. The
+    /// f16 path reads those copies, so call this after the parameters change (a checkpoint
+    /// loaded, a training step) and before an f16 forward pass.
+    pub fn sync_half(&self, rec: &mut Recorder) -> Result<()> {
+        let n = self.params.numel();
+        let align = chunk_align(rec.gpu());
+        let chunk = (chunk_len(rec.gpu()) / align * align).max(align);
+        for start in (0..n).step_by(chunk) {
+            let len = chunk.min(n - start);
+            cast_into(rec, &self.params.view(start, &[len])?, &self.half.view(start, &[len])?)?;
+        }
+        Ok(())
     }
 
     /// The gradient of the parameter called `name` (same shape, in the flat gradient buffer).
@@ -328,9 +371,11 @@ impl ParamStore {
     }
 }
 
-/// Element multiple at which f32 views may start on `gpu`.
+/// Element multiple at which views may start on `gpu`, both the f32 views of the parameters
+/// and the f16 views of their copies (hence half the alignment in bytes, at least 2: the f16
+/// kernels read whole 32-bit words).
 fn chunk_align(gpu: &Gpu) -> usize {
-    (gpu.caps().min_storage_buffer_offset_alignment.max(4) as usize).div_ceil(4)
+    (gpu.caps().min_storage_buffer_offset_alignment.max(4) as usize).div_ceil(2)
 }
 
 /// Fills a flat f32 buffer that may be larger than one storage binding.

@@ -21,7 +21,7 @@ use std::time::Instant;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 use velox_engine::ops::raster::{GaussianData, Gaussians};
-use velox_engine::{Gpu, Tensor};
+use velox_engine::{Gpu, Precision, Tensor};
 use velox_models::files::ply;
 use velox_models::velox::autoencoder::{tau_of, Autoencoder, FRAMES};
 use velox_models::velox::cloud::{self, CHANNELS};
@@ -54,6 +54,26 @@ pub struct CommonArgs {
     /// Seed of the encoder's queries and of the sampler's noise.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Precision of the networks: f32, or f16 (matrix products and attention on f16 operands
+    /// with f32 accumulation).
+    #[arg(long, value_enum, default_value_t = PrecisionArg::F32)]
+    precision: PrecisionArg,
+}
+
+/// `--precision` of the commands that run a trained model.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum PrecisionArg {
+    F32,
+    F16,
+}
+
+impl From<PrecisionArg> for Precision {
+    fn from(p: PrecisionArg) -> Precision {
+        match p {
+            PrecisionArg::F32 => Precision::F32,
+            PrecisionArg::F16 => Precision::F16,
+        }
+    }
 }
 
 #[derive(clap::Args)]
@@ -79,6 +99,7 @@ impl SamplingArgs {
             },
             // Each frame its own noise, reproducible from the seed.
             seed: seed ^ (frame as u64 + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15),
+            precision: Precision::F32, // the autoencoder's own precision applies
         }
     }
 }
@@ -266,6 +287,7 @@ struct Report {
     checkpoint: String,
     cloud: String,
     config: String,
+    precision: &'static str,
     input_points: usize,
     voxels: Option<VoxelSource>,
     sampler: SamplerArg,
@@ -292,15 +314,17 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
         }
     }
     let gpu = Gpu::new()?;
-    let ae = Autoencoder::load(&gpu, &common.checkpoint)?;
+    let mut ae = Autoencoder::load(&gpu, &common.checkpoint)?;
+    ae.set_precision(common.precision.into())?;
     std::fs::create_dir_all(&common.out).map_err(|e| format!("creating {}: {e}", common.out.display()))?;
     let what = if voxels.is_some() { "Gaussians" } else { "surface points" };
     println!(
-        "decoding {what} of {} frames of {} ({} points) with the {} autoencoder on {}",
+        "decoding {what} of {} frames of {} ({} points) with the {} autoencoder in {} on {}",
         common.frames.0.len(),
         common.cloud.display(),
         cloud_host.len() / CHANNELS,
         ae.cfg.name,
+        ae.precision().name(),
         gpu.caps().name
     );
     let start = Instant::now();
@@ -359,6 +383,7 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
         checkpoint: common.checkpoint.display().to_string(),
         cloud: common.cloud.display().to_string(),
         config: ae.cfg.name.clone(),
+        precision: ae.precision().name(),
         input_points: cloud_host.len() / CHANNELS,
         voxels,
         sampler: sampling.sampler,

@@ -30,7 +30,8 @@ use velox_models::velox::autoencoder::{tau_of, Autoencoder, FRAMES};
 use velox_models::velox::cloud::CHANNELS;
 
 use crate::decode::{
-    encode, frame_points, progress, sample_surface, surface_voxels, write_atomically, VoxelSource,
+    encode, frame_points, progress, sample_surface, surface_voxels, write_atomically, PrecisionArg,
+    VoxelSource,
 };
 use crate::CliResult;
 
@@ -75,6 +76,10 @@ pub struct ReconArgs {
     /// Seed of the encoder's queries and the sampler's noise.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Precision of the networks: f32, or f16 (matrix products and attention on f16 operands
+    /// with f32 accumulation).
+    #[arg(long, value_enum, default_value_t = PrecisionArg::F32)]
+    precision: PrecisionArg,
 }
 
 #[derive(Serialize)]
@@ -120,6 +125,7 @@ struct Mean {
 struct Report {
     checkpoint: String,
     config: String,
+    precision: &'static str,
     data: String,
     device: String,
     voxels: VoxelSource,
@@ -152,13 +158,15 @@ fn run_recon(a: &ReconArgs) -> CliResult<()> {
         return Err(format!("no scenes under {} (folders with a meta.json)", a.data.display()).into());
     }
     let gpu = Gpu::new()?;
-    let ae = Autoencoder::load(&gpu, &a.checkpoint)?;
+    let mut ae = Autoencoder::load(&gpu, &a.checkpoint)?;
+    ae.set_precision(a.precision.into())?;
     std::fs::create_dir_all(&a.out).map_err(|e| format!("creating {}: {e}", a.out.display()))?;
     let json = a.json.clone().unwrap_or_else(|| a.out.join("eval.json"));
     let frames_per_scene = (0..FRAMES).step_by(a.frame_step as usize).count();
     println!(
-        "evaluating the {} autoencoder ({}) on {} scenes of {} on {}",
+        "evaluating the {} autoencoder ({}, {}) on {} scenes of {} on {}",
         ae.cfg.name,
+        ae.precision().name(),
         a.checkpoint.display(),
         dirs.len(),
         a.data.display(),
@@ -268,6 +276,7 @@ fn run_recon(a: &ReconArgs) -> CliResult<()> {
     let report = Report {
         checkpoint: a.checkpoint.display().to_string(),
         config: ae.cfg.name.clone(),
+        precision: ae.precision().name(),
         data: a.data.display().to_string(),
         device: gpu.caps().name.clone(),
         voxels: a.voxels,

@@ -101,13 +101,24 @@ fn decode_gaussians_writes_splat_files_from_surface_or_cloud_voxels() {
     let dir = fixture();
     let ckpt = dir.join("ae.safetensors");
     let scene = dir.join("data/scene_00000");
-    for voxels in ["surface", "cloud"] {
+    // The cloud's voxels in f16, to run the CLI's f16 path too.
+    for (voxels, precision) in [("surface", "f32"), ("cloud", "f16")] {
         let out = dir.join(format!("gaussians_{voxels}"));
         let args =
             ["decode", "gaussians", "--checkpoint", arg(&ckpt), "--cloud", arg(&scene), "--out", arg(&out)];
-        ok(&velox(
-            &[&args[..], &["--frames", "3", "--voxels", voxels, "--points", "512", "--steps", "3"]].concat(),
-        ));
+        let rest = [
+            "--frames",
+            "3",
+            "--voxels",
+            voxels,
+            "--points",
+            "512",
+            "--steps",
+            "3",
+            "--precision",
+            precision,
+        ];
+        ok(&velox(&[&args[..], &rest[..]].concat()));
         let g = ply::read(&out.join("gaussians_f03.ply")).unwrap();
         // The tiny config decodes 4 Gaussians per voxel.
         assert!(!g.is_empty() && g.len().is_multiple_of(4), "{} Gaussians", g.len());
@@ -115,6 +126,7 @@ fn decode_gaussians_writes_splat_files_from_surface_or_cloud_voxels() {
         let report: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(out.join("decode.json")).unwrap()).unwrap();
         assert_eq!(report["frames"][0]["voxels"].as_u64().unwrap() * 4, g.len() as u64);
+        assert_eq!(report["precision"], precision);
     }
 }
 
@@ -218,11 +230,23 @@ fn bench_models_writes_records() {
     let records: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     let records = records.as_array().unwrap();
     for name in ["encoder", "gaussian decoder frame", "surface decoder heun 4", "surface decoder heun 20"] {
-        let r = records.iter().find(|r| r["name"] == name).unwrap_or_else(|| panic!("no {name} record"));
-        assert!(r["median_ms"].as_f64().unwrap() > 0.0, "{r}");
-        assert!(r["error_over"].as_str().unwrap().contains("no f16 model path"), "{r}");
-        // Same input, same weights: the repeated run agrees with the first.
-        assert!(r["nmse"].as_f64().unwrap() < 1e-10, "{r}");
+        let find = |precision: &str| {
+            records
+                .iter()
+                .find(|r| r["name"] == name && r["precision"] == precision)
+                .unwrap_or_else(|| panic!("no {precision} {name} record"))
+        };
+        let (r32, r16) = (find("f32"), find("f16"));
+        for r in [r32, r16] {
+            assert!(r["median_ms"].as_f64().unwrap() > 0.0, "{r}");
+        }
+        // Same input, same weights: the repeated f32 run agrees with the first.
+        assert!(r32["error_over"].as_str().unwrap().contains("determinism"), "{r32}");
+        assert!(r32["nmse"].as_f64().unwrap() < 1e-10, "{r32}");
+        // The f16 path is measured against the f32 path: close, but not the same numbers.
+        assert!(r16["error_over"].as_str().unwrap().contains("f32 path"), "{r16}");
+        let e = r16["nmse"].as_f64().unwrap();
+        assert!(e > 0.0 && e < 1e-3, "{r16}");
     }
     std::fs::remove_dir_all(&dir).ok();
 }

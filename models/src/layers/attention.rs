@@ -8,9 +8,13 @@
 //!
 //! Backward: `do = dy W_o^T`; the fused kernels give `dq, dk, dv`; `dx = dq W_q^T` (plus
 //! `dk W_k^T + dv W_v^T` for self-attention), `dc = dk W_k^T + dv W_v^T` for cross-attention.
+//!
+//! In an f16 recording the projections run on f16 operands (see [`Linear::forward`]) and the
+//! attention reads q, k, v rounded to f16; the backward pass is f32 only.
 
 use velox_engine::ops::attention::{attention, attention_backward, AttentionOut, Segments};
-use velox_engine::{DType, Error, Recorder, Result, Tensor};
+use velox_engine::ops::cast::cast;
+use velox_engine::{DType, Error, Precision, Recorder, Result, Tensor};
 
 use super::linear::{Linear, LinearCache};
 
@@ -79,7 +83,14 @@ impl MultiHeadAttention {
         let (k, k_in) = self.k.forward(rec, c)?;
         let (v, v_in) = self.v.forward(rec, c)?;
         let (q, k, v) = (self.split_heads(&q)?, self.split_heads(&k)?, self.split_heads(&v)?);
-        let out = attention(rec, &q, &k, &v, seg, self.scale())?;
+        let out = match rec.precision() {
+            Precision::F32 => attention(rec, &q, &k, &v, seg, self.scale())?,
+            Precision::F16 => {
+                let (q16, k16, v16) =
+                    (cast(rec, &q, DType::F16)?, cast(rec, &k, DType::F16)?, cast(rec, &v, DType::F16)?);
+                attention(rec, &q16, &k16, &v16, seg, self.scale())?
+            }
+        };
         let flat = out.o.reshape(&[out.o.shape()[0], self.heads * self.head_dim])?;
         let (y, o_in) = self.o.forward(rec, &flat)?;
         let cache = MultiHeadAttentionCache {

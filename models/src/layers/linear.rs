@@ -3,9 +3,10 @@
 //! Backward: `dx = dy @ W^T`, `dW += x^T @ dy`, `db += sum over rows of dy`.
 
 use velox_engine::ops::binary::{binary_into, Binary};
+use velox_engine::ops::cast::cast;
 use velox_engine::ops::matmul::{matmul, matmul_into};
 use velox_engine::ops::reduce::{reduce, Reduce};
-use velox_engine::{Recorder, Result, Tensor};
+use velox_engine::{DType, Precision, Recorder, Result, Tensor};
 
 use super::{as_rows, expect_shape, Param};
 
@@ -41,10 +42,19 @@ impl Linear {
         Ok(Linear { weight, bias, in_features: shape[0], out_features: shape[1] })
     }
 
-    /// `y [.., out]` for `x [.., in]`.
+    /// `y [.., out]` for `x [.., in]`. In an f16 recording (see [`Precision`]) the product reads
+    /// `x` rounded to f16 and the weight's f16 copy, and accumulates in f32; `y` is f32 either
+    /// way.
     pub fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<(Tensor, LinearCache)> {
         let x2 = as_rows("linear", x, self.in_features)?;
-        let y = matmul(rec, &x2, &self.weight.value, false, false)?;
+        let y = match rec.precision() {
+            Precision::F32 => matmul(rec, &x2, &self.weight.value, false, false)?,
+            Precision::F16 => {
+                let x16 = cast(rec, &x2, DType::F16)?;
+                let w16 = self.weight.value_f16(rec)?;
+                matmul(rec, &x16, &w16, false, false)?
+            }
+        };
         if let Some(b) = &self.bias {
             binary_into(rec, &y, &b.value, &y, Binary::Add)?;
         }

@@ -17,6 +17,7 @@ pub mod norm;
 pub mod reference;
 pub mod residual;
 
+use velox_engine::ops::cast::cast;
 use velox_engine::ops::fill::fill;
 use velox_engine::{DType, Error, Gpu, Recorder, Result, Tensor};
 
@@ -68,6 +69,10 @@ layer!(
 pub struct Param {
     pub value: Tensor,
     pub grad: Tensor,
+    /// An f16 copy of `value` for the f16 path (a store's, see
+    /// [`crate::params::ParamStore::sync_half`]); without one, the f16 path rounds `value` as
+    /// it goes.
+    pub half: Option<Tensor>,
 }
 
 impl Param {
@@ -75,7 +80,7 @@ impl Param {
     pub fn new(gpu: &Gpu, shape: &[usize], init: &[f32]) -> Result<Param> {
         let value = Tensor::from_slice(gpu, shape, init)?;
         let grad = Tensor::from_slice(gpu, shape, &vec![0.0f32; init.len()])?;
-        Ok(Param { value, grad })
+        Ok(Param { value, grad, half: None })
     }
 
     /// A parameter from existing tensors (for example views of a parameter store).
@@ -85,7 +90,7 @@ impl Param {
                 "a parameter needs f32 value and grad of one shape: {value:?}, {grad:?}"
             )));
         }
-        Ok(Param { value, grad })
+        Ok(Param { value, grad, half: None })
     }
 
     pub fn shape(&self) -> &[usize] {
@@ -94,7 +99,16 @@ impl Param {
 
     /// The parameter `name` of a parameter store: views of its value and gradient buffers.
     pub fn from_store(store: &crate::params::ParamStore, name: &str) -> Result<Param> {
-        Param::from_tensors(store.param(name)?.clone(), store.grad(name)?.clone())
+        let p = Param::from_tensors(store.param(name)?.clone(), store.grad(name)?.clone())?;
+        Ok(Param { half: Some(store.param_half(name)?.clone()), ..p })
+    }
+
+    /// The value as f16: the copy when there is one, else rounded now, in `rec`.
+    pub fn value_f16(&self, rec: &mut Recorder) -> Result<Tensor> {
+        match &self.half {
+            Some(h) => Ok(h.clone()),
+            None => cast(rec, &self.value, DType::F16),
+        }
     }
 
     /// Sets the gradient to zero.

@@ -19,7 +19,7 @@ use velox_engine::ops::fill::fill;
 use velox_engine::ops::gaussian_head::HeadOut;
 use velox_engine::ops::raster::{render, render_backward, Camera, Gaussians};
 use velox_engine::rng::Rng;
-use velox_engine::{DType, Error, Gpu, Result, Tensor};
+use velox_engine::{DType, Error, Gpu, Precision, Result, Tensor};
 
 use crate::config::AutoencoderConfig;
 use crate::layers::Loss;
@@ -117,6 +117,9 @@ pub struct Autoencoder {
     pub surface: SurfaceDecoder,
     pub gaussians: GaussianDecoder,
     pub adamw: AdamWConfig,
+    /// The precision of encoding and decoding (training is f32 whatever this says); set it with
+    /// [`Autoencoder::set_precision`].
+    precision: Precision,
 }
 
 impl Autoencoder {
@@ -138,21 +141,41 @@ impl Autoencoder {
             surface,
             gaussians,
             adamw: AdamWConfig::default(),
+            precision: Precision::F32,
         })
+    }
+
+    /// Makes `encode`, `decode_points` and `decode_gaussians` run in `precision`. Choosing f16
+    /// rounds the current parameters to the store's f16 copies; choose it again after the
+    /// parameters change.
+    pub fn set_precision(&mut self, precision: Precision) -> Result<()> {
+        if precision == Precision::F16 {
+            let mut rec = self.store.flat_params().gpu().recorder()?;
+            self.store.sync_half(&mut rec)?;
+            rec.submit()?;
+        }
+        self.precision = precision;
+        Ok(())
+    }
+
+    pub fn precision(&self) -> Precision {
+        self.precision
     }
 
     /// Tokens of a cloud (no noise), with the queries drawn from `seed`.
     pub fn encode(&self, cloud: &Tensor, seed: u64) -> Result<Tensor> {
         let gpu = cloud.gpu();
         let mut rec = gpu.recorder()?;
+        rec.set_precision(self.precision);
         let (s, _) = self.encoder.forward(&mut rec, cloud, &mut Rng::new(seed))?;
         rec.submit()?;
         Ok(s)
     }
 
-    /// Surface points `[n, 3]` at frame `tau`, sampled by the flow.
+    /// Surface points `[n, 3]` at frame `tau`, sampled by the flow (in the autoencoder's
+    /// precision, whatever `spec` says).
     pub fn decode_points(&self, tokens: &Tensor, tau: f32, spec: &SampleSpec) -> Result<Tensor> {
-        self.surface.sample(tokens, tau, spec)
+        self.surface.sample(tokens, tau, &SampleSpec { precision: self.precision, ..*spec })
     }
 
     /// Gaussians at frame `tau` over the occupied voxels `centres` (host, `[V * 3]`).
@@ -163,6 +186,7 @@ impl Autoencoder {
         let gpu = tokens.gpu();
         let c = Tensor::from_slice(gpu, &[centres.len() / 3, 3], centres)?;
         let mut rec = gpu.recorder()?;
+        rec.set_precision(self.precision);
         let (out, _) = self.gaussians.forward(&mut rec, tokens, &c, tau)?;
         rec.submit()?;
         Ok(to_gaussians(out))
@@ -282,7 +306,7 @@ impl Autoencoder {
 
     /// Samples surface points with the config's default sampler: Heun, 20 steps.
     pub fn default_sampling(points: usize, seed: u64) -> SampleSpec {
-        SampleSpec { points, steps: 20, sampler: Sampler::Heun, seed }
+        SampleSpec { points, steps: 20, sampler: Sampler::Heun, seed, precision: Precision::F32 }
     }
 }
 

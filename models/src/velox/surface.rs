@@ -33,7 +33,7 @@ use velox_engine::ops::reduce::{reduce, Reduce};
 use velox_engine::ops::swiglu::swiglu_backward;
 use velox_engine::ops::unary::{unary, Unary};
 use velox_engine::rng::Rng;
-use velox_engine::{DType, Error, Gpu, Recorder, Result, Tensor};
+use velox_engine::{DType, Error, Gpu, Precision, Recorder, Result, Tensor};
 
 use crate::config::SurfaceConfig;
 use crate::layers::adaln::{GatedResidualCache, ModulateCache};
@@ -196,13 +196,15 @@ pub enum Sampler {
     Heun,
 }
 
-/// What to sample: `points` points, `steps` integration steps, noise from `seed`.
+/// What to sample: `points` points, `steps` integration steps, noise from `seed`, the velocity
+/// network run in `precision` (the f16 path needs the store's f16 copies synced first).
 #[derive(Clone, Copy, Debug)]
 pub struct SampleSpec {
     pub points: usize,
     pub steps: usize,
     pub sampler: Sampler,
     pub seed: u64,
+    pub precision: Precision,
 }
 
 /// Host points `[N, 3]` as a tensor, refusing empty, ragged or non-finite input with a message
@@ -709,6 +711,7 @@ impl SurfaceDecoder {
             let len = chunk.min(spec.points - start);
             let x0 = Tensor::from_slice(&gpu, &[len, 3], &noise[3 * start..3 * (start + len)])?;
             let x1 = integrate(&x0, spec.steps, spec.sampler, |rec, x, t| {
+                rec.set_precision(spec.precision);
                 let tt = Tensor::from_slice(&gpu, &[1], &[t])?;
                 Ok(self.forward(rec, x, tau, &tt, tokens)?.0)
             })?;

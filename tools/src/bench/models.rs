@@ -5,7 +5,7 @@
 //! - encoder: a random 4D cloud (points on a sphere whose radius changes over the 24 frames,
 //!   random colours; 1.44 M points at the paper config) to k x 32 tokens, one recording timed
 //!   by GPU timestamps;
-//! - Gaussian decoder, one frame: its queries are the occupied voxels of a sphere of radius 0.8
+//! - Gaussian decoder, one frame (all of the head's outputs): its queries are the occupied voxels of a sphere of radius 0.8
 //!   at the config's grid, a realistic surface count: about 11.3k of 64^3 at the paper config
 //!   (x 64 = 725k Gaussians), about 2.9k of 32^3 at the small one; the record's shape gives
 //!   it. One recording timed by GPU timestamps;
@@ -15,13 +15,18 @@
 //!
 //! Weights: the store's initialisation, with every parameter that starts at zero (adaLN-Zero
 //! maps, output layers, biases) drawn from N(0, 0.02^2) instead, so that no path is a
-//! constant. Error: there is no f16 model path yet, so no f16-against-f32 error exists; each
-//! record reports instead the NMSE of its last timed run against a first run on the same
-//! input (a determinism check: atomics may reorder sums), and says so in `error_over`.
+//! constant.
+//!
+//! Each part runs in f32 and in f16 (matrix products and attention on f16 operands, f32
+//! accumulation; `velox_engine::Precision`). The f16 record's error is its output against the
+//! f32 path's on the same input (encoder: the tokens; Gaussian decoder: the means; surface
+//! decoder: the sampled points). The f32 record's is the NMSE of its last timed run against
+//! a first run (a determinism check: atomics may reorder sums); `error_over` says which.
 
+use velox_engine::ops::columns::copy_columns;
 use velox_engine::rng::Rng;
 use velox_engine::stats::{max_abs_err, nmse};
-use velox_engine::{Gpu, Result, Tensor};
+use velox_engine::{Gpu, Precision, Result, Tensor};
 use velox_models::config::AutoencoderConfig;
 use velox_models::params::ParamStore;
 use velox_models::velox::autoencoder::{tau_of, FRAMES};
@@ -40,8 +45,21 @@ const PAPER_H100_MS: [(&str, f64); 3] = [
     ("4D surface decoder, 16384 points", 24_800.0),
 ];
 
-const ERROR_OVER: &str =
-    "no f16 model path yet: NMSE of the last timed run against a first run (determinism check)";
+const F32_ERROR_OVER: &str = "the f32 path's first run (determinism check of the last timed run)";
+const F16_ERROR_OVER: &str = "the f32 path's output on the same input";
+const PRECISIONS: [Precision; 2] = [Precision::F32, Precision::F16];
+
+/// The error column of a record: f32 against its own first run, f16 against f32.
+fn error_reference<'a>(
+    p: Precision,
+    f32_first: &'a [f32],
+    own_first: &'a [f32],
+) -> (&'a [f32], &'static str) {
+    match p {
+        Precision::F32 => (own_first, F32_ERROR_OVER),
+        Precision::F16 => (f32_first, F16_ERROR_OVER),
+    }
+}
 
 struct Sizes {
     cfg: AutoencoderConfig,
@@ -61,13 +79,18 @@ fn sizes(gpu: &Gpu, quick: bool) -> Sizes {
     }
 }
 
-/// Draws every parameter that starts at exactly zero from N(0, 0.02^2).
+/// Draws every parameter that starts at exactly zero from N(0, 0.02^2), and rounds the result
+/// to the store's f16 copies.
 fn liven(store: &ParamStore, rng: &mut Rng) -> Result<()> {
     let mut p: Vec<f32> = store.flat_params().read()?;
     for v in p.iter_mut().filter(|v| **v == 0.0) {
         *v = (0.02 * rng.normal()) as f32;
     }
-    store.flat_params().write(&p)
+    store.flat_params().write(&p)?;
+    let mut rec = store.flat_params().gpu().recorder()?;
+    store.sync_half(&mut rec)?;
+    rec.submit()?;
+    Ok(())
 }
 
 /// `n` points on a sphere of radius 0.6 to 0.8 (growing over the frames), frame-major, with
@@ -83,6 +106,29 @@ fn sphere_cloud(n: usize, rng: &mut Rng) -> Vec<f32> {
         out.extend([rng.uniform() as f32, rng.uniform() as f32, rng.uniform() as f32, tau_of(f)]);
     }
     out
+}
+
+/// A timing as `time_gpu` gives it (median ms, min ms, GPU-timed), the output of a first
+/// untimed run, and the output of the last timed run.
+type TimedOutputs = ((f64, f64, bool), Vec<f32>, Vec<f32>);
+
+/// Times `f` (GPU timestamps) and returns its [`TimedOutputs`].
+fn timed_outputs(
+    gpu: &Gpu,
+    repeats: u32,
+    mut f: impl FnMut(&mut velox_engine::Recorder) -> Result<Tensor>,
+) -> Result<TimedOutputs> {
+    let mut rec = gpu.recorder()?;
+    let first = f(&mut rec)?;
+    rec.submit()?;
+    let first: Vec<f32> = first.read()?;
+    let mut last = None;
+    let t = time_gpu(gpu, repeats, |rec| {
+        last = Some(f(rec)?);
+        Ok(())
+    })?;
+    let last: Vec<f32> = last.expect("time_gpu runs at least once").read()?;
+    Ok((t, first, last))
 }
 
 fn errors(first: &[f32], last: &[f32]) -> (f64, f64) {
@@ -106,9 +152,8 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         print_row(&r);
         out.push(r);
     };
-    let record = |name: &str, shape: String, t: (f64, f64, bool), work: f64, unit: &str| {
-        Record::timed(name, shape, "f32", &device, t, repeats, work / (t.0 * 1e-3), unit)
-            .error(0.0, 0.0, ERROR_OVER)
+    let record = |name: &str, shape: String, p: Precision, t: (f64, f64, bool), work: f64, unit: &str| {
+        Record::timed(name, shape, p.name(), &device, t, repeats, work / (t.0 * 1e-3), unit)
     };
 
     // Encoder.
@@ -119,31 +164,22 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         liven(&store, &mut rng)?;
         let encoder = Encoder::new(gpu, &store, "encoder", &cfg.encoder)?;
         let cloud = cloud::upload(gpu, &sphere_cloud(s.points, &mut rng))?;
-        let encode =
-            |rec: &mut velox_engine::Recorder| encoder.forward(rec, &cloud, &mut Rng::new(5)).map(|o| o.0);
-        let mut rec = gpu.recorder()?;
-        let first_t = encode(&mut rec)?;
-        rec.submit()?;
-        let first: Vec<f32> = first_t.read()?;
-        let mut last = None;
-        let t = time_gpu(gpu, repeats, |rec| {
-            last = Some(encode(rec)?);
-            Ok(())
-        })?;
-        let last: Vec<f32> = last.expect("time_gpu runs at least once").read()?;
-        let (e, m) = errors(&first, &last);
+        let encode = |rec: &mut velox_engine::Recorder, p: Precision| {
+            rec.set_precision(p);
+            encoder.forward(rec, &cloud, &mut Rng::new(5)).map(|o| o.0)
+        };
         let (k, d) = (cfg.encoder.tokens, cfg.encoder.token_dim);
-        push(Record {
-            nmse: e,
-            max_abs_err: m,
-            ..record(
-                "encoder",
-                format!("{} points -> {k}x{d}", s.points),
-                t,
-                s.points as f64 / 1e6,
-                "Mpoint/s",
-            )
-        });
+        let mut f32_first = Vec::new();
+        for p in PRECISIONS {
+            let (t, first, last) = timed_outputs(gpu, repeats, |rec| encode(rec, p))?;
+            if p == Precision::F32 {
+                f32_first = first.clone();
+            }
+            let (reference, over) = error_reference(p, &f32_first, &first);
+            let (e, m) = errors(reference, &last);
+            let shape = format!("{} points -> {k}x{d}", s.points);
+            push(record("encoder", shape, p, t, s.points as f64 / 1e6, "Mpoint/s").error(e, m, over));
+        }
     }
 
     // Gaussian decoder, one frame.
@@ -169,31 +205,34 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         let centres = occupied_voxels(&sphere, 0.0, g.grid);
         let v = centres.len() / 3;
         let c = Tensor::from_slice(gpu, &[v, 3], &centres)?;
-        let decode =
-            |rec: &mut velox_engine::Recorder| decoder.forward(rec, &tokens, &c, 0.0).map(|o| o.0.means);
-        let mut rec = gpu.recorder()?;
-        let first_t = decode(&mut rec)?;
-        rec.submit()?;
-        let first: Vec<f32> = first_t.read()?;
-        let mut last = None;
-        let t = time_gpu(gpu, repeats, |rec| {
-            last = Some(decode(rec)?);
-            Ok(())
-        })?;
-        let last: Vec<f32> = last.expect("time_gpu runs at least once").read()?;
-        let (e, m) = errors(&first, &last);
         let n = v * g.gaussians_per_voxel;
-        push(Record {
-            nmse: e,
-            max_abs_err: m,
-            ..record(
-                "gaussian decoder frame",
-                format!("{v} vox of {0}^3 -> {n} Gaussians", g.grid),
-                t,
-                n as f64 / 1e6,
-                "MGauss/s",
-            )
-        });
+        let decode = |rec: &mut velox_engine::Recorder, p: Precision| {
+            rec.set_precision(p);
+            let (h, _) = decoder.forward(rec, &tokens, &c, 0.0)?;
+            // Every output of the head, side by side: the means alone would hide errors
+            // behind their voxel centres.
+            let parts = [&h.means, &h.log_scales, &h.quats, &h.logits, &h.colours];
+            let cols: usize = parts.iter().map(|t| t.numel() / n).sum();
+            let all = Tensor::empty(gpu, &[n, cols], velox_engine::DType::F32)?;
+            let mut at = 0;
+            for t in parts {
+                let w = t.numel() / n;
+                copy_columns(rec, &t.reshape(&[n, w])?, 0, &all, at, w, 1.0)?;
+                at += w;
+            }
+            Ok(all)
+        };
+        let mut f32_first = Vec::new();
+        for p in PRECISIONS {
+            let (t, first, last) = timed_outputs(gpu, repeats, |rec| decode(rec, p))?;
+            if p == Precision::F32 {
+                f32_first = first.clone();
+            }
+            let (reference, over) = error_reference(p, &f32_first, &first);
+            let (e, m) = errors(reference, &last);
+            let shape = format!("{v} vox of {0}^3 -> {n} Gaussians", g.grid);
+            push(record("gaussian decoder frame", shape, p, t, n as f64 / 1e6, "MGauss/s").error(e, m, over));
+        }
     }
 
     // 4D surface decoder: full sampling runs.
@@ -207,38 +246,51 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         let tokens =
             Tensor::from_slice(gpu, &[k, cfg.encoder.token_dim], &rng.normal_vec(k * cfg.encoder.token_dim))?;
         for steps in s.steps {
-            let spec = SampleSpec { points: s.surface_points, steps, sampler: Sampler::Heun, seed: 9 };
-            let sample = || -> Result<(Vec<f32>, f64)> {
-                let t0 = std::time::Instant::now();
-                let x = decoder.sample(&tokens, 0.1, &spec)?;
-                let v: Vec<f32> = x.read()?;
-                Ok((v, t0.elapsed().as_secs_f64() * 1e3))
-            };
-            let (first, _) = sample()?;
-            let mut times = Vec::new();
-            let mut last = Vec::new();
-            for _ in 0..repeats {
-                let (v, ms) = sample()?;
-                times.push(ms);
-                last = v;
+            let mut f32_first = Vec::new();
+            for p in PRECISIONS {
+                let spec = SampleSpec {
+                    points: s.surface_points,
+                    steps,
+                    sampler: Sampler::Heun,
+                    seed: 9,
+                    precision: p,
+                };
+                let sample = || -> Result<(Vec<f32>, f64)> {
+                    let t0 = std::time::Instant::now();
+                    let x = decoder.sample(&tokens, 0.1, &spec)?;
+                    let v: Vec<f32> = x.read()?;
+                    Ok((v, t0.elapsed().as_secs_f64() * 1e3))
+                };
+                let (first, _) = sample()?;
+                if p == Precision::F32 {
+                    f32_first = first.clone();
+                }
+                let mut times = Vec::new();
+                let mut last = Vec::new();
+                for _ in 0..repeats {
+                    let (v, ms) = sample()?;
+                    times.push(ms);
+                    last = v;
+                }
+                times.sort_by(f64::total_cmp);
+                let (reference, over) = error_reference(p, &f32_first, &first);
+                let (e, m) = errors(reference, &last);
+                let flops = 2.0
+                    * steps as f64
+                    * SurfaceDecoder::forward_flops(&cfg.surface, cfg.encoder.token_dim, s.surface_points, k)
+                        as f64;
+                push(
+                    record(
+                        &format!("surface decoder heun {steps}"),
+                        format!("{} points, {} evaluations", s.surface_points, 2 * steps),
+                        p,
+                        (times[times.len() / 2], times[0], false),
+                        flops / 1e12,
+                        "TFLOP/s",
+                    )
+                    .error(e, m, over),
+                );
             }
-            times.sort_by(f64::total_cmp);
-            let (e, m) = errors(&first, &last);
-            let flops = 2.0
-                * steps as f64
-                * SurfaceDecoder::forward_flops(&cfg.surface, cfg.encoder.token_dim, s.surface_points, k)
-                    as f64;
-            push(Record {
-                nmse: e,
-                max_abs_err: m,
-                ..record(
-                    &format!("surface decoder heun {steps}"),
-                    format!("{} points, {} evaluations", s.surface_points, 2 * steps),
-                    (times[times.len() / 2], times[0], false),
-                    flops / 1e12,
-                    "TFLOP/s",
-                )
-            });
         }
     }
 
