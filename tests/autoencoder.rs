@@ -46,6 +46,27 @@ fn tiny_autoencoder_overfits_one_scene() {
 }
 
 #[test]
+fn several_views_per_step_and_an_encoder_subset_train() {
+    // Every view of the frame each step (more than the scene has: clamped to all of them),
+    // and the encoder on a fresh quarter of the cloud each step.
+    let gpu = gpu();
+    let data = scene(&gpu, "views");
+    let mut cfg = AutoencoderConfig::tiny();
+    cfg.views_per_step = 1000;
+    cfg.encoder_points = 1000;
+    let mut ae = Autoencoder::new(&gpu, &cfg, 1).unwrap();
+    let mut rng = Rng::new(2);
+    let losses: Vec<StepLosses> = (1..=40).map(|s| ae.train_step(&data, s, &mut rng).unwrap()).collect();
+    let (g0, g1) = (mean(&losses[..5], |l| l.gaussians), mean(&losses[35..], |l| l.gaussians));
+    if std::env::var_os("VELOX_TEST_VERBOSE").is_some() {
+        eprintln!("all views per step, 1000 encoder points, 40 steps: image {g0:.5} -> {g1:.5}");
+    }
+    assert!(g1 < 0.5 * g0, "image loss {g0} -> {g1}");
+    cfg.views_per_step = 0;
+    assert!(cfg.validate().unwrap_err().to_string().contains("views_per_step"));
+}
+
+#[test]
 fn a_resumed_run_continues_like_an_uninterrupted_one() {
     let gpu = gpu();
     let data = scene(&gpu, "resume");

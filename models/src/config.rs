@@ -92,6 +92,21 @@ pub struct AutoencoderConfig {
     pub peak_lr: f64,
     pub warmup: u64,
     pub max_grad_norm: f64,
+    /// Supervision views rendered and compared per training step (of one frame): more image
+    /// signal for one pass of the networks.
+    #[serde(default = "one")]
+    pub views_per_step: usize,
+    /// Points of the cloud the encoder reads per training step: a fresh random subset each
+    /// step (0: the whole cloud, the paper's setting). Encoding costs time in proportion to
+    /// the points, and a subset of a dense cloud keeps its shape; evaluation encodes the
+    /// whole cloud.
+    #[serde(default)]
+    pub encoder_points: usize,
+}
+
+/// One view per step: the paper's setting, and what configs written before the field read.
+fn one() -> usize {
+    1
 }
 
 impl AutoencoderConfig {
@@ -151,6 +166,8 @@ impl AutoencoderConfig {
             peak_lr: 4.9e-4,
             warmup: 4000,
             max_grad_norm: 1.0,
+            views_per_step: 1,
+            encoder_points: 0,
         }
     }
 
@@ -279,6 +296,9 @@ impl AutoencoderConfig {
         }
         if e.window.iter().any(|w| !(w.is_finite() && *w > 0.0)) {
             return Err(Error::Invalid(format!("encoder: window sizes {:?} must be positive", e.window)));
+        }
+        if self.views_per_step == 0 {
+            return Err(Error::Invalid("views_per_step must be at least 1".into()));
         }
         if !(self.peak_lr.is_finite() && self.peak_lr > 0.0) {
             return Err(Error::Invalid(format!("peak learning rate {} must be positive", self.peak_lr)));

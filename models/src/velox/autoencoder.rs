@@ -2,13 +2,15 @@
 //! parameter store, and one training step of L = L_V + L_GS + gamma L_C (MODELS.md).
 //!
 //! A step, on one scene:
-//! 1. E encodes the whole cloud to tokens s; L_C = gamma mean(s^2); the decoders read
-//!    s + noise (the noise passes gradients through unchanged).
+//! 1. E encodes the whole cloud (or a random `encoder_points` of it) to tokens s;
+//!    L_C = gamma mean(s^2); the decoders read s + noise (the noise passes gradients through
+//!    unchanged).
 //! 2. A frame f is drawn: V's flow-matching loss on `points_per_step` of its points gives L_V
 //!    and dL_V/ds.
-//! 3. G decodes the frame's occupied voxels (from the cloud) to Gaussians; one supervision view
-//!    of that frame is rendered and compared: L_GS = mean |I_gt - I|^2, whose gradient flows
-//!    back through the rasteriser and G into dL_GS/ds.
+//! 3. G decodes the frame's occupied voxels (from the cloud) to Gaussians; `views_per_step`
+//!    supervision views of that frame (one by default) are rendered and compared:
+//!    L_GS = mean over views and pixels of |I_gt - I|^2, whose gradient flows back through the
+//!    rasteriser and G into dL_GS/ds.
 //! 4. E's backward takes the summed token gradient; AdamW updates every parameter (noam
 //!    schedule, global-norm clipping), and a NaN or Inf gradient stops the step with an error
 //!    before anything is changed.
@@ -212,7 +214,8 @@ impl Autoencoder {
         // Forward: encoder, token loss, surface loss, Gaussian decoder.
         let mut rec = gpu.recorder()?;
         self.store.zero_grads(&mut rec)?;
-        let (s, enc_cache) = self.encoder.forward(&mut rec, &scene.cloud, rng)?;
+        let subset = self.encoder_subset(scene, rng)?;
+        let (s, enc_cache) = self.encoder.forward(&mut rec, subset.as_ref().unwrap_or(&scene.cloud), rng)?;
         let zeros = Tensor::empty(&gpu, &[k, dim], DType::F32)?;
         fill(&mut rec, &zeros, 0.0)?;
         let (token_loss, ds) =
@@ -236,26 +239,56 @@ impl Autoencoder {
         let (head, g_cache) = self.gaussians.forward(&mut rec, &s_noisy, &c, tau)?;
         rec.submit()?;
 
-        // Render the frame from one supervision view and compare.
-        let cam = &scene.cameras[view];
+        // Render the frame from `views_per_step` supervision views (spread evenly from the drawn
+        // one) and compare.
+        let cams = scene.cameras.len();
+        let nv = self.cfg.views_per_step.clamp(1, cams);
+        let views: Vec<usize> = (0..nv).map(|i| (view + i * cams / nv) % cams).collect();
         let gaussians = to_gaussians(head);
-        let rendered = render(&gpu, &gaussians, cam, [0.0; 3])?;
-        let (h, w) = (cam.height as usize, cam.width as usize);
-        let gt = Tensor::from_slice(&gpu, &[h, w, 3], &scene.images[frame * scene.cameras.len() + view])?;
+        let mut rendered = Vec::with_capacity(nv);
+        for &v in &views {
+            let cam = &scene.cameras[v];
+            let (h, w) = (cam.height as usize, cam.width as usize);
+            let gt = Tensor::from_slice(&gpu, &[h, w, 3], &scene.images[frame * cams + v])?;
+            rendered.push((render(&gpu, &gaussians, cam, [0.0; 3])?, gt));
+        }
 
-        // Backward: image loss, rasteriser, Gaussian decoder, encoder; then AdamW.
+        // Backward: image loss (the mean over the views), rasteriser, Gaussian decoder, encoder;
+        // then AdamW.
         let mut rec = gpu.recorder()?;
-        let (image_loss, d_rgb) = Loss::mse().forward_backward(&mut rec, &rendered.image.rgb, &gt)?;
-        let d_zero = Tensor::empty(&gpu, &[h, w], DType::F32)?;
-        fill(&mut rec, &d_zero, 0.0)?;
-        let g = render_backward(&mut rec, &gaussians, &rendered, &d_rgb, &d_zero, &d_zero)?;
-        let d_head = HeadOut {
-            means: g.means,
-            log_scales: g.log_scales,
-            quats: g.quats,
-            logits: g.opacities,
-            colours: g.colours,
-        };
+        let image_loss = Tensor::empty(&gpu, &[1], DType::F32)?;
+        fill(&mut rec, &image_loss, 0.0)?;
+        let mut d_head: Option<HeadOut> = None;
+        for (r, gt) in &rendered {
+            let (loss, d_rgb) =
+                Loss::mse().weighted(1.0 / nv as f32).forward_backward(&mut rec, &r.image.rgb, gt)?;
+            binary_into(&mut rec, &image_loss, &loss, &image_loss, Binary::Add)?;
+            let d_zero = Tensor::empty(&gpu, gt.shape()[..2].as_ref(), DType::F32)?;
+            fill(&mut rec, &d_zero, 0.0)?;
+            let g = render_backward(&mut rec, &gaussians, r, &d_rgb, &d_zero, &d_zero)?;
+            let g = HeadOut {
+                means: g.means,
+                log_scales: g.log_scales,
+                quats: g.quats,
+                logits: g.opacities,
+                colours: g.colours,
+            };
+            match &d_head {
+                None => d_head = Some(g),
+                Some(acc) => {
+                    for (a, b) in [
+                        (&acc.means, &g.means),
+                        (&acc.log_scales, &g.log_scales),
+                        (&acc.quats, &g.quats),
+                        (&acc.logits, &g.logits),
+                        (&acc.colours, &g.colours),
+                    ] {
+                        binary_into(&mut rec, a, b, a, Binary::Add)?;
+                    }
+                }
+            }
+        }
+        let d_head = d_head.expect("at least one view");
         let ds_gauss = self.gaussians.backward(&mut rec, &g_cache, &d_head)?;
         binary_into(&mut rec, &ds, &ds_gauss, &ds, Binary::Add)?;
         binary_into(&mut rec, &ds, &flow.dtokens, &ds, Binary::Add)?;
@@ -274,6 +307,29 @@ impl Autoencoder {
             )));
         }
         Ok(StepLosses { total, surface, gaussians: gaussians_loss, tokens, grad_norm, lr, frame, view })
+    }
+
+    /// The encoder's input of a step when `encoder_points` asks for a subset: that many points
+    /// drawn without replacement, in their order in the cloud.
+    fn encoder_subset(&self, scene: &TrainScene, rng: &mut Rng) -> Result<Option<Tensor>> {
+        let n = scene.cloud_host.len() / CHANNELS;
+        let k = self.cfg.encoder_points;
+        if k == 0 || k >= n {
+            return Ok(None);
+        }
+        // Partial Fisher-Yates over the indices.
+        let mut idx: Vec<u32> = (0..n as u32).collect();
+        for i in 0..k {
+            let j = i + rng.below((n - i) as u32) as usize;
+            idx.swap(i, j);
+        }
+        let mut pick = idx[..k].to_vec();
+        pick.sort_unstable();
+        let rows: Vec<f32> = pick
+            .iter()
+            .flat_map(|&i| scene.cloud_host[i as usize * CHANNELS..][..CHANNELS].iter().copied())
+            .collect();
+        Ok(Some(Tensor::from_slice(scene.cloud.gpu(), &[k, CHANNELS], &rows)?))
     }
 
     /// Writes parameters, AdamW moments, the step and the config to `path` (atomically).
