@@ -37,6 +37,13 @@ enum Command {
         #[command(subcommand)]
         what: data::DataCommand,
     },
+    /// Print an autoencoder config as JSON (paper, small, tiny, a JSON file, or the config a
+    /// .safetensors checkpoint was trained with): a start for a config file of one's own.
+    Config {
+        /// The config's name or path.
+        #[arg(default_value = "small")]
+        name: String,
+    },
     /// Train a Velox model.
     Train {
         #[command(subcommand)]
@@ -63,6 +70,21 @@ enum Command {
     },
 }
 
+fn print_config(name: &str) -> CliResult<()> {
+    let path = std::path::Path::new(name);
+    let cfg = if path.extension().is_some_and(|e| e == "safetensors") {
+        velox_models::velox::autoencoder::Autoencoder::checkpoint_config(path)?
+    } else {
+        velox_models::config::AutoencoderConfig::named(name)?
+    };
+    // Written, not printed: a reader that stops early (`| head`) is not an error.
+    use std::io::Write;
+    match writeln!(std::io::stdout().lock(), "{}", serde_json::to_string_pretty(&cfg)?) {
+        Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(e.into()),
+        _ => Ok(()),
+    }
+}
+
 fn main() {
     if let Err(e) = dispatch(Cli::parse().command) {
         eprintln!("error: {e}");
@@ -77,6 +99,7 @@ fn dispatch(command: Command) -> CliResult<()> {
         Command::Render(args) => render::run(&args),
         Command::Bench { what } => bench::run(what),
         Command::Data { what } => data::run(what),
+        Command::Config { name } => print_config(&name),
         Command::Train { what } => train::run(what),
         Command::Decode { what } => decode::run(what),
         Command::Eval { what } => eval::run(what),

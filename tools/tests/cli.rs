@@ -33,6 +33,26 @@ fn missing_driver_names_the_packages_to_install() {
 }
 
 #[test]
+fn config_prints_json_that_reads_back() {
+    let out = velox().args(["config", "tiny"]).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let mut cfg: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(cfg["name"], "tiny");
+    assert_eq!(cfg["views_per_step"], 1);
+    // An edited copy is a config file.
+    cfg["views_per_step"] = 3.into();
+    let path = std::env::temp_dir().join(format!("velox-config-{}.json", std::process::id()));
+    std::fs::write(&path, cfg.to_string()).unwrap();
+    let out = velox().args(["config", path.to_str().unwrap()]).output().unwrap();
+    let back: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(back["views_per_step"], 3);
+    std::fs::remove_file(&path).ok();
+    let out = velox().args(["config", "no-such-config"]).output().unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("paper, small or tiny"));
+}
+
+#[test]
 fn unknown_device_choice_is_a_clear_error() {
     let out = velox().arg("info").env("VELOX_DEVICE", "no-such-device").output().unwrap();
     let err = String::from_utf8_lossy(&out.stderr);

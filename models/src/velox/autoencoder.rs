@@ -338,17 +338,22 @@ impl Autoencoder {
         crate::checkpoint::save(path, &self.store, &config)
     }
 
-    /// The autoencoder a checkpoint holds, with its config, moments and step.
-    pub fn load(gpu: &Gpu, path: &std::path::Path) -> Result<Autoencoder> {
+    /// The config stored in an autoencoder checkpoint.
+    pub fn checkpoint_config(path: &std::path::Path) -> Result<AutoencoderConfig> {
         let info = crate::checkpoint::peek(path)?;
         let json: serde_json::Value = serde_json::from_str(&info.config)
             .map_err(|e| Error::Invalid(format!("checkpoint {}: config is not JSON: {e}", path.display())))?;
-        let cfg: AutoencoderConfig = serde_json::from_value(json["config"].clone()).map_err(|e| {
+        serde_json::from_value(json["config"].clone()).map_err(|e| {
             Error::Invalid(format!(
                 "checkpoint {} does not hold a Velox autoencoder config: {e}",
                 path.display()
             ))
-        })?;
+        })
+    }
+
+    /// The autoencoder a checkpoint holds, with its config, moments and step.
+    pub fn load(gpu: &Gpu, path: &std::path::Path) -> Result<Autoencoder> {
+        let cfg = Autoencoder::checkpoint_config(path)?;
         let mut ae = Autoencoder::new(gpu, &cfg, 0)?;
         crate::checkpoint::load(path, &mut ae.store)?;
         Ok(ae)
