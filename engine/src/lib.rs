@@ -13,6 +13,7 @@ pub mod device;
 pub mod error;
 pub mod kernels;
 pub mod ops;
+pub mod profile;
 pub mod recorder;
 pub mod rng;
 pub mod stats;

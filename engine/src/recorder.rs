@@ -14,9 +14,12 @@ use ash::vk;
 use crate::device::Gpu;
 use crate::error::{Error, Result, VkCheck};
 use crate::kernels::KernelId;
+use crate::profile;
 use crate::tensor::{Buffer, Tensor};
 
 const MAX_TIMESTAMPS: u32 = 256;
+/// Queries of a recorder when profiling: two per dispatch or so, for the longest recordings.
+const PROFILE_TIMESTAMPS: u32 = 16384;
 
 /// The precision a recording's layers compute in. The ops take their operands' types as given;
 /// the model layers read this to choose (`velox_models::layers`): `F32` everywhere, or `F16`,
@@ -52,6 +55,10 @@ pub struct Recorder {
     barriers: usize,
     submitted: bool,
     precision: Precision,
+    /// Queries in the pool.
+    capacity: u32,
+    /// With `VELOX_PROFILE`: the query written before each dispatch, and its kernel.
+    profiled: Vec<(u32, KernelId)>,
 }
 
 /// What a finished recording reports.
@@ -92,6 +99,8 @@ impl Gpu {
             barriers: 0,
             submitted: false,
             precision: Precision::F32,
+            capacity: 0,
+            profiled: Vec::new(),
         };
         let begin = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
         // SAFETY: a freshly allocated command buffer.
@@ -103,13 +112,14 @@ impl Gpu {
 impl Recorder {
     fn with_timestamps_if_possible(mut self) -> Self {
         if self.gpu.caps().timestamps {
-            let info = vk::QueryPoolCreateInfo::default()
-                .query_type(vk::QueryType::TIMESTAMP)
-                .query_count(MAX_TIMESTAMPS);
+            let count = if profile::enabled() { PROFILE_TIMESTAMPS } else { MAX_TIMESTAMPS };
+            let info =
+                vk::QueryPoolCreateInfo::default().query_type(vk::QueryType::TIMESTAMP).query_count(count);
             // SAFETY: valid device; the pool is reset in the command buffer before use.
             if let Ok(pool) = unsafe { self.gpu.device().create_query_pool(&info, None) } {
-                unsafe { self.gpu.device().cmd_reset_query_pool(self.cmd, pool, 0, MAX_TIMESTAMPS) };
+                unsafe { self.gpu.device().cmd_reset_query_pool(self.cmd, pool, 0, count) };
                 self.queries = Some(pool);
+                self.capacity = count;
             }
         }
         self
@@ -221,6 +231,11 @@ impl Recorder {
                     .buffer_info(bi)
             })
             .collect();
+        if profile::enabled() && self.timestamps + 2 < self.capacity {
+            if let Some(q) = self.timestamp() {
+                self.profiled.push((q as u32, kernel));
+            }
+        }
         let device = self.gpu.device();
         // SAFETY: recording state; every bound buffer is kept alive in `self.keep` until the
         // command buffer has finished.
@@ -296,7 +311,7 @@ impl Recorder {
     /// [`Finished::timestamps_ns`], or `None` if the device cannot time.
     pub fn timestamp(&mut self) -> Option<usize> {
         let pool = self.queries?;
-        if self.timestamps >= MAX_TIMESTAMPS {
+        if self.timestamps >= self.capacity {
             return None;
         }
         // SAFETY: recording state, query index within the pool.
@@ -324,6 +339,8 @@ impl Recorder {
     /// Submits the recording and waits for it to finish.
     pub fn submit(mut self) -> Result<Finished> {
         let device = self.gpu.device().clone();
+        // The end of the last profiled dispatch.
+        let profile_end = if self.profiled.is_empty() { None } else { self.timestamp() };
         // SAFETY: recording state; the fence is unsignalled; the queue is externally
         // synchronised by its mutex.
         unsafe {
@@ -349,6 +366,12 @@ impl Recorder {
                 };
                 let period = self.gpu.caps().timestamp_period_ns;
                 timestamps_ns = raw.iter().map(|&t| t as f64 * period).collect();
+            }
+        }
+        if let Some(end) = profile_end {
+            for (i, &(q, kernel)) in self.profiled.iter().enumerate() {
+                let next = self.profiled.get(i + 1).map_or(end, |p| p.0 as usize);
+                profile::add(kernel.name(), timestamps_ns[next] - timestamps_ns[q as usize]);
             }
         }
         Ok(Finished { timestamps_ns, dispatches: self.dispatches, barriers: self.barriers })

@@ -86,7 +86,11 @@ fn print_config(name: &str) -> CliResult<()> {
 }
 
 fn main() {
-    if let Err(e) = dispatch(Cli::parse().command) {
+    let result = dispatch(Cli::parse().command);
+    if let Some(table) = velox_engine::profile::report() {
+        eprintln!("\n{table}");
+    }
+    if let Err(e) = result {
         eprintln!("error: {e}");
         std::process::exit(1);
     }
