@@ -2,7 +2,7 @@
 // y = xhat * w + b when `affine`, else y = xhat (w and b are then not read; the host binds x in
 // their place). The variance is a second pass over (x - mean)^2, never E[x^2] - mean^2, so rows
 // around 1e4 keep their precision; eps keeps constant rows (variance 0) finite.
-// One row per workgroup for `forward` and `backward` (reduction as in softmax.wgsl);
+// `forward` and `backward` give each row `pc.lanes` invocations (row_reduce.wgsl);
 // `param_grads` gives each invocation one column and a chunk of rows and writes partial sums of
 // dw = sum_rows dy * xhat and db = sum_rows dy, which the host reduces over chunks.
 //
@@ -14,7 +14,7 @@ struct Params {
     eps: f32,
     rows_per_chunk: u32,
     affine: u32,
-    _pad0: u32,
+    lanes: u32,
     _pad1: u32,
     _pad2: u32,
 }
@@ -36,18 +36,19 @@ var<immediate> pc: Params;
 var<workgroup> partial2: array<f32, 256>;
 
 // Two sums at once (one set of barriers).
-fn reduce_sum2(lid: u32, v: vec2<f32>) -> vec2<f32> {
+fn reduce_sum2(lid: u32, lanes: u32, v: vec2<f32>) -> vec2<f32> {
     partial[lid] = v.x;
     partial2[lid] = v.y;
     workgroupBarrier();
-    for (var s = 128u; s > 0u; s >>= 1u) {
-        if (lid < s) {
+    for (var s = lanes / 2u; s > 0u; s >>= 1u) {
+        if ((lid & (lanes - 1u)) < s) {
             partial[lid] = partial[lid] + partial[lid + s];
             partial2[lid] = partial2[lid] + partial2[lid + s];
         }
         workgroupBarrier();
     }
-    let r = vec2<f32>(partial[0], partial2[0]);
+    let first = lid & ~(lanes - 1u);
+    let r = vec2<f32>(partial[first], partial2[first]);
     workgroupBarrier();
     return r;
 }
@@ -55,24 +56,26 @@ fn reduce_sum2(lid: u32, v: vec2<f32>) -> vec2<f32> {
 @compute @workgroup_size(256)
 fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
            @builtin(local_invocation_index) lid: u32) {
-    let row = wid.x + wid.y * nwg.x;
-    if (row >= pc.rows) {
+    let at = row_slot(wid, nwg, lid, pc.lanes, pc.rows);
+    if (at.first_row >= pc.rows) {
         return;
     }
+    let row = at.row;
     let base = row * pc.width;
+    let end = select(0u, pc.width, at.live);
     let n = f32(pc.width);
     var s = 0.0;
-    for (var j = lid; j < pc.width; j += 256u) {
+    for (var j = at.lane; j < end; j += pc.lanes) {
         s += x[base + j];
     }
-    let mu = reduce_sum(lid, s) / n;
+    let mu = reduce_sum(lid, pc.lanes, s) / n;
     var ss = 0.0;
-    for (var j = lid; j < pc.width; j += 256u) {
+    for (var j = at.lane; j < end; j += pc.lanes) {
         let d = x[base + j] - mu;
         ss += d * d;
     }
-    let r = inverseSqrt(reduce_sum(lid, ss) / n + pc.eps);
-    for (var j = lid; j < pc.width; j += 256u) {
+    let r = inverseSqrt(reduce_sum(lid, pc.lanes, ss) / n + pc.eps);
+    for (var j = at.lane; j < end; j += pc.lanes) {
         let xhat = (x[base + j] - mu) * r;
         if (pc.affine != 0u) {
             y[base + j] = xhat * w[j] + b[j];
@@ -80,7 +83,7 @@ fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
             y[base + j] = xhat;
         }
     }
-    if (lid == 0u) {
+    if (at.live && at.lane == 0u) {
         mean[row] = mu;
         rstd[row] = r;
     }
@@ -89,23 +92,25 @@ fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
 @compute @workgroup_size(256)
 fn backward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
             @builtin(local_invocation_index) lid: u32) {
-    let row = wid.x + wid.y * nwg.x;
-    if (row >= pc.rows) {
+    let at = row_slot(wid, nwg, lid, pc.lanes, pc.rows);
+    if (at.first_row >= pc.rows) {
         return;
     }
-    let base = row * pc.width;
-    let mu = mean[row];
-    let r = rstd[row];
+    let base = at.row * pc.width;
+    let end = select(0u, pc.width, at.live);
+    let safe = min(at.row, pc.rows - 1u);
+    let mu = mean[safe];
+    let r = rstd[safe];
     var acc = vec2<f32>(0.0, 0.0);
-    for (var j = lid; j < pc.width; j += 256u) {
+    for (var j = at.lane; j < end; j += pc.lanes) {
         var g = dy[base + j];
         if (pc.affine != 0u) {
             g *= w[j];
         }
         acc += vec2<f32>(g, g * (x[base + j] - mu) * r);
     }
-    let m = reduce_sum2(lid, acc) / f32(pc.width);
-    for (var j = lid; j < pc.width; j += 256u) {
+    let m = reduce_sum2(lid, pc.lanes, acc) / f32(pc.width);
+    for (var j = at.lane; j < end; j += pc.lanes) {
         var g = dy[base + j];
         if (pc.affine != 0u) {
             g *= w[j];

@@ -1,6 +1,6 @@
 // RMSNorm over the last axis: y = x * rstd * w, rstd = 1 / sqrt(mean(x^2) + eps).
-// `forward` and `backward` take one row per workgroup and reduce in workgroup memory (the
-// pattern of softmax.wgsl). `param_grads` gives each invocation one column and a chunk of rows
+// `forward` and `backward` give each row `pc.lanes` invocations and reduce in workgroup memory
+// (row_reduce.wgsl). `param_grads` gives each invocation one column and a chunk of rows
 // and writes partial sums of dw = sum_rows dy * x * rstd, which the host reduces over chunks.
 //
 // Backward (xhat = x * rstd, g = dy * w):  dx = rstd * (g - xhat * mean(g * xhat)).
@@ -10,6 +10,7 @@ struct Params {
     width: u32,
     eps: f32,
     rows_per_chunk: u32,
+    lanes: u32,
 }
 
 @group(0) @binding(0) var<storage, read> x: array<f32>;
@@ -26,41 +27,43 @@ var<immediate> pc: Params;
 @compute @workgroup_size(256)
 fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
            @builtin(local_invocation_index) lid: u32) {
-    let row = wid.x + wid.y * nwg.x;
-    if (row >= pc.rows) {
+    let at = row_slot(wid, nwg, lid, pc.lanes, pc.rows);
+    if (at.first_row >= pc.rows) {
         return;
     }
-    let base = row * pc.width;
+    let base = at.row * pc.width;
+    let end = select(0u, pc.width, at.live);
     var ss = 0.0;
-    for (var j = lid; j < pc.width; j += 256u) {
+    for (var j = at.lane; j < end; j += pc.lanes) {
         let v = x[base + j];
         ss += v * v;
     }
-    ss = reduce_sum(lid, ss);
+    ss = reduce_sum(lid, pc.lanes, ss);
     let r = inverseSqrt(ss / f32(pc.width) + pc.eps);
-    for (var j = lid; j < pc.width; j += 256u) {
+    for (var j = at.lane; j < end; j += pc.lanes) {
         y[base + j] = x[base + j] * r * w[j];
     }
-    if (lid == 0u) {
-        rstd[row] = r;
+    if (at.live && at.lane == 0u) {
+        rstd[at.row] = r;
     }
 }
 
 @compute @workgroup_size(256)
 fn backward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
             @builtin(local_invocation_index) lid: u32) {
-    let row = wid.x + wid.y * nwg.x;
-    if (row >= pc.rows) {
+    let at = row_slot(wid, nwg, lid, pc.lanes, pc.rows);
+    if (at.first_row >= pc.rows) {
         return;
     }
-    let base = row * pc.width;
-    let r = rstd[row];
+    let base = at.row * pc.width;
+    let end = select(0u, pc.width, at.live);
+    let r = select(0.0, rstd[min(at.row, pc.rows - 1u)], at.live);
     var dot = 0.0;
-    for (var j = lid; j < pc.width; j += 256u) {
+    for (var j = at.lane; j < end; j += pc.lanes) {
         dot += dy[base + j] * w[j] * x[base + j] * r;
     }
-    let m = reduce_sum(lid, dot) / f32(pc.width);
-    for (var j = lid; j < pc.width; j += 256u) {
+    let m = reduce_sum(lid, pc.lanes, dot) / f32(pc.width);
+    for (var j = at.lane; j < end; j += pc.lanes) {
         let xhat = x[base + j] * r;
         dx[base + j] = r * (dy[base + j] * w[j] - xhat * m);
     }

@@ -1,11 +1,12 @@
-// Row softmax: one workgroup per row of any length. Three passes over the row: the maximum,
-// the sum of exp(x - max) (both reduced in workgroup memory), then the normalised output.
-// Subtracting the row maximum keeps every exponent <= 0, so rows with scores of 1e4 or more
-// neither overflow nor lose the largest entries.
+// Row softmax over rows of any length, `pc.lanes` invocations per row (row_reduce.wgsl). Three
+// passes over the row: the maximum, the sum of exp(x - max) (both reduced in workgroup
+// memory), then the normalised output. Subtracting the row maximum keeps every exponent <= 0,
+// so rows with scores of 1e4 or more neither overflow nor lose the largest entries.
 
 struct Params {
     rows: u32,
     len: u32,
+    lanes: u32,
 }
 
 @group(0) @binding(0) var<storage, read> x: array<f32>;
@@ -17,23 +18,24 @@ var<immediate> pc: Params;
 @compute @workgroup_size(256)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
         @builtin(local_invocation_index) lid: u32) {
-    let row = wid.x + wid.y * nwg.x;
-    if (row >= pc.rows) {
+    let at = row_slot(wid, nwg, lid, pc.lanes, pc.rows);
+    if (at.first_row >= pc.rows) {
         return;
     }
-    let base = row * pc.len;
+    let base = at.row * pc.len;
+    let end = select(0u, pc.len, at.live);
     var m = bitcast<f32>(0xff800000u); // -inf
-    for (var j = lid; j < pc.len; j += 256u) {
+    for (var j = at.lane; j < end; j += pc.lanes) {
         m = max(m, x[base + j]);
     }
-    m = reduce_max(lid, m);
+    m = reduce_max(lid, pc.lanes, m);
     var s = 0.0;
-    for (var j = lid; j < pc.len; j += 256u) {
+    for (var j = at.lane; j < end; j += pc.lanes) {
         s += exp(x[base + j] - m);
     }
-    s = reduce_sum(lid, s);
+    s = reduce_sum(lid, pc.lanes, s);
     let inv = 1.0 / s;
-    for (var j = lid; j < pc.len; j += 256u) {
+    for (var j = at.lane; j < end; j += pc.lanes) {
         y[base + j] = exp(x[base + j] - m) * inv;
     }
 }

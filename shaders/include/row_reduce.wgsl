@@ -1,33 +1,55 @@
-// Workgroup-wide sum and maximum over 256 invocations (one row per workgroup), by a tree in
-// workgroup memory. Every invocation must call them (they hold barriers), and every one gets
-// the result. Included by the row kernels: softmax, RMSNorm, LayerNorm.
+// Rows of a workgroup, and sums and maxima over each row. The 256 invocations form groups of
+// `lanes` consecutive invocations (a power of two from 1 to 256, the same for the whole
+// dispatch: a push constant), and each group owns one row, its invocations striding over it
+// by `lanes`. Narrow rows then share a workgroup instead of leaving most of 256 invocations
+// idle: `row_lanes` in engine/src/ops/rmsnorm.rs picks about 4 elements per invocation.
+// Included by the row kernels: softmax, RMSNorm, LayerNorm.
+//
+// The reductions are trees in workgroup memory within each group; every invocation of the
+// workgroup must call them (they hold barriers), and every one gets its own row's result.
 
 var<workgroup> partial: array<f32, 256>;
 
-fn reduce_sum(lid: u32, v: f32) -> f32 {
+// Where invocation `lid` works: its row, its lane within the row's group, and whether the row
+// exists. `first_row` of the workgroup is uniform, so a workgroup past the end can return
+// before any barrier.
+struct RowSlot {
+    first_row: u32,
+    row: u32,
+    lane: u32,
+    live: bool,
+}
+
+fn row_slot(wid: vec3<u32>, nwg: vec3<u32>, lid: u32, lanes: u32, rows: u32) -> RowSlot {
+    let first = (wid.x + wid.y * nwg.x) * (256u / lanes);
+    let row = first + lid / lanes;
+    return RowSlot(first, row, lid % lanes, row < rows);
+}
+
+fn reduce_sum(lid: u32, lanes: u32, v: f32) -> f32 {
     partial[lid] = v;
     workgroupBarrier();
-    for (var s = 128u; s > 0u; s >>= 1u) {
-        if (lid < s) {
+    for (var s = lanes / 2u; s > 0u; s >>= 1u) {
+        if ((lid & (lanes - 1u)) < s) {
             partial[lid] = partial[lid] + partial[lid + s];
         }
         workgroupBarrier();
     }
-    let r = partial[0];
+    let r = partial[lid & ~(lanes - 1u)];
     workgroupBarrier();
     return r;
 }
 
-fn reduce_max(lid: u32, v: f32) -> f32 {
+fn reduce_max(lid: u32, lanes: u32, v: f32) -> f32 {
     partial[lid] = v;
     workgroupBarrier();
-    for (var s = 128u; s > 0u; s >>= 1u) {
-        if (lid < s) {
+    for (var s = lanes / 2u; s > 0u; s >>= 1u) {
+        if ((lid & (lanes - 1u)) < s) {
             partial[lid] = max(partial[lid], partial[lid + s]);
         }
         workgroupBarrier();
     }
-    let r = partial[0];
+    let r = partial[lid & ~(lanes - 1u)];
     workgroupBarrier();
     return r;
 }

@@ -6,7 +6,7 @@
 
 use crate::error::{Error, Result};
 use crate::kernels::{LAYERNORM_BACKWARD, LAYERNORM_FORWARD, LAYERNORM_PARAM_GRADS};
-use crate::ops::rmsnorm::{add_partials, check_vector, chunking, rows_and_width};
+use crate::ops::rmsnorm::{add_partials, check_vector, chunking, row_groups, row_lanes, rows_and_width};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
@@ -18,7 +18,8 @@ struct Params {
     eps: f32,
     rows_per_chunk: u32,
     affine: u32,
-    _pad: [u32; 3],
+    lanes: u32,
+    _pad: [u32; 2],
 }
 
 /// What the forward saves for the backward.
@@ -49,9 +50,10 @@ pub fn layernorm(
     let y = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
     let mean = Tensor::empty(x.gpu(), stats_shape, DType::F32)?;
     let rstd = Tensor::empty(x.gpu(), stats_shape, DType::F32)?;
-    let p =
-        Params { rows, width: w32, eps, rows_per_chunk: 0, affine: affine.is_some() as u32, _pad: [0; 3] };
-    rec.dispatch_linear(LAYERNORM_FORWARD, rows as u64, &[x, w, b, &y, &mean, &rstd], &p)?;
+    let lanes = row_lanes(w32);
+    let affine = affine.is_some() as u32;
+    let p = Params { rows, width: w32, eps, rows_per_chunk: 0, affine, lanes, _pad: [0; 2] };
+    rec.dispatch_linear(LAYERNORM_FORWARD, row_groups(rows, lanes), &[x, w, b, &y, &mean, &rstd], &p)?;
     Ok(LayerNormOut { y, mean, rstd })
 }
 
@@ -88,9 +90,11 @@ pub fn layernorm_backward(
         eps: 0.0,
         rows_per_chunk: 0,
         affine: affine.is_some() as u32,
-        _pad: [0; 3],
+        lanes: row_lanes(w32),
+        _pad: [0; 2],
     };
-    rec.dispatch_linear(LAYERNORM_BACKWARD, rows as u64, &[x, w, mean, rstd, dy, &dx], &p)?;
+    let groups = row_groups(rows, p.lanes);
+    rec.dispatch_linear(LAYERNORM_BACKWARD, groups, &[x, w, mean, rstd, dy, &dx], &p)?;
     if let Some((_, dw, db)) = affine {
         let (per, chunks) = chunking(rows, x.gpu().caps().max_workgroup_count[1]);
         p.rows_per_chunk = per;

@@ -17,6 +17,7 @@ struct Params {
     width: u32,
     eps: f32,
     rows_per_chunk: u32,
+    lanes: u32,
 }
 
 /// Rows of `x` over its last axis, checked against the width of `w` (rows, width).
@@ -35,6 +36,18 @@ pub(crate) fn check_vector(what: &str, t: &Tensor, width: usize) -> Result<()> {
         return Err(Error::Shape(format!("{what}: needs an f32 tensor of {width} elements, got {t:?}")));
     }
     Ok(())
+}
+
+/// Invocations per row of the row kernels (`shaders/include/row_reduce.wgsl`): a power of two
+/// giving each about 4 elements, at most 256 (one row per workgroup). Narrow rows (the widths
+/// of 32 to 128 of the small models) then share a workgroup instead of idling most of it.
+pub(crate) fn row_lanes(width: u32) -> u32 {
+    width.div_ceil(4).next_power_of_two().clamp(1, 256)
+}
+
+/// Workgroups of a row kernel over `rows` rows of `lanes` invocations each.
+pub(crate) fn row_groups(rows: u32, lanes: u32) -> u64 {
+    rows.div_ceil(256 / lanes) as u64
 }
 
 /// Rows each invocation of a `param_grads` kernel sums: at least 256, and few enough chunks to
@@ -58,8 +71,9 @@ pub fn rmsnorm(rec: &mut Recorder, x: &Tensor, w: &Tensor, eps: f32) -> Result<(
     let (rows, width) = rows_and_width("rmsnorm", x, width)?;
     let y = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
     let rstd = Tensor::empty(x.gpu(), &x.shape()[..x.shape().len() - 1], DType::F32)?;
-    let p = Params { rows, width, eps, rows_per_chunk: 0 };
-    rec.dispatch_linear(RMSNORM_FORWARD, rows as u64, &[x, w, &y, &rstd], &p)?;
+    let lanes = row_lanes(width);
+    let p = Params { rows, width, eps, rows_per_chunk: 0, lanes };
+    rec.dispatch_linear(RMSNORM_FORWARD, row_groups(rows, lanes), &[x, w, &y, &rstd], &p)?;
     Ok((y, rstd))
 }
 
@@ -81,8 +95,9 @@ pub fn rmsnorm_backward(
         return Err(Error::Shape(format!("rmsnorm backward: dy {dy:?} must match x {x:?}")));
     }
     let dx = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
-    let mut p = Params { rows, width, eps: 0.0, rows_per_chunk: 0 };
-    rec.dispatch_linear(RMSNORM_BACKWARD, rows as u64, &[x, w, rstd, dy, &dx], &p)?;
+    let lanes = row_lanes(width);
+    let mut p = Params { rows, width, eps: 0.0, rows_per_chunk: 0, lanes };
+    rec.dispatch_linear(RMSNORM_BACKWARD, row_groups(rows, lanes), &[x, w, rstd, dy, &dx], &p)?;
     if let Some(dw) = dw {
         check_vector("rmsnorm weight gradient", dw, width as usize)?;
         let (per, chunks) = chunking(rows, x.gpu().caps().max_workgroup_count[1]);

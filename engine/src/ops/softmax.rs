@@ -2,6 +2,7 @@
 
 use crate::error::{Error, Result};
 use crate::kernels::SOFTMAX_MAIN;
+use crate::ops::rmsnorm::{row_groups, row_lanes};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
@@ -10,6 +11,7 @@ use crate::tensor::{DType, Tensor};
 struct Params {
     rows: u32,
     len: u32,
+    lanes: u32,
 }
 
 /// Softmax of every row (last axis) of `x`, as a new tensor.
@@ -22,7 +24,9 @@ pub fn softmax(rec: &mut Recorder, x: &Tensor) -> Result<Tensor> {
     let out = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
     let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("softmax of {x:?}")));
     fit(x.numel())?;
-    rec.dispatch_linear(SOFTMAX_MAIN, rows as u64, &[x, &out], &Params { rows: fit(rows)?, len: fit(len)? })?;
+    let (rows, len) = (fit(rows)?, fit(len)?);
+    let lanes = row_lanes(len);
+    rec.dispatch_linear(SOFTMAX_MAIN, row_groups(rows, lanes), &[x, &out], &Params { rows, len, lanes })?;
     Ok(out)
 }
 
