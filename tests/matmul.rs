@@ -163,6 +163,42 @@ fn accumulate_adds_and_plain_overwrites() {
 }
 
 #[test]
+fn long_k_products_are_split_along_k() {
+    // Few output tiles and a long K (a weight gradient x^T dy over many rows) are cut into
+    // pieces of K summed afterwards: pieces that divide K and ones that leave a remainder,
+    // every transpose, f32 and f16 operands, plain and accumulating.
+    let gpu = gpu();
+    let mut rng = Rng::new(8);
+    for (i, &(m, n, k)) in
+        [(32, 32, 10_000), (5, 130, 3001), (130, 129, 1024), (1, 1, 700)].iter().enumerate()
+    {
+        let (ta, tb) = [(true, false), (false, false), (false, true), (true, true)][i];
+        let (sa, sb) = shapes(m, n, k, ta, tb, None, None);
+        let a = rng.normal_vec(numel(&sa));
+        let b = rng.normal_vec(numel(&sb));
+        let old = rng.normal_vec(m * n);
+        let (a32, b32) =
+            (Tensor::from_slice(&gpu, &sa, &a).unwrap(), Tensor::from_slice(&gpu, &sb, &b).unwrap());
+        let a16 = Tensor::from_slice(&gpu, &sa, &round_f16(&a)).unwrap();
+        let b16 = Tensor::from_slice(&gpu, &sb, &round_f16(&b)).unwrap();
+        let acc = Tensor::from_slice(&gpu, &[m, n], &old).unwrap();
+        let mut rec = gpu.recorder().unwrap();
+        let plain = matmul(&mut rec, &a32, &b32, ta, tb).unwrap();
+        matmul_into(&mut rec, &a32, &b32, ta, tb, &acc, true).unwrap();
+        let half = matmul(&mut rec, &a16, &b16, ta, tb).unwrap();
+        rec.submit().unwrap();
+        let what = format!("m {m} n {n} k {k} ta {ta} tb {tb}");
+        let (r, _) = reference::matmul(&f64s(&a), &sa, &f64s(&b), &sb, ta, tb).unwrap();
+        let summed: Vec<f64> = r.iter().zip(&old).map(|(x, &o)| x + o as f64).collect();
+        assert_nmse(&format!("split {what}"), &plain.read::<f32>().unwrap(), &r, F32_BOUND);
+        assert_nmse(&format!("split accumulate {what}"), &acc.read::<f32>().unwrap(), &summed, F32_BOUND);
+        let rounded = |x: &[f32]| -> Vec<f64> { round_f16(x).iter().map(|h| h.to_f64()).collect() };
+        let (r16, _) = reference::matmul(&rounded(&a), &sa, &rounded(&b), &sb, ta, tb).unwrap();
+        assert_nmse(&format!("split f16 {what}"), &half.read::<f32>().unwrap(), &r16, F16_ROUNDED_BOUND);
+    }
+}
+
+#[test]
 fn empty_products() {
     let gpu = gpu();
     let mut rng = Rng::new(4);

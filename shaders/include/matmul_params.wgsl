@@ -1,6 +1,6 @@
-// The push constants of both matmul kernels (`matmul.wgsl`, `matmul_coop.wgsl`), mirrored by
-// `Params` in engine/src/ops/matmul.rs. Strides are in elements; a batch stride of 0
-// broadcasts an operand over the batch.
+// The push constants of the matmul kernels (`matmul.wgsl`, `matmul_small.wgsl`,
+// `matmul_coop.wgsl`), mirrored by `Params` in engine/src/ops/matmul.rs. Strides are in
+// elements; a batch stride of 0 broadcasts an operand over the batch.
 
 struct Params {
     m: u32,

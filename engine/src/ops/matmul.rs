@@ -1,6 +1,9 @@
 //! Batched matrix multiply with f32 accumulation. Kernels: `shaders/matmul.wgsl` (tiled, every
-//! device, f32 or f16 operands) and `shaders/matmul_coop.wgsl` (f16 operands on cooperative
-//! matrices, where the device has them).
+//! device, f32 or f16 operands), `shaders/matmul_small.wgsl` (f32 operands when M or N is 64 or
+//! less: 32x32 tiles) and `shaders/matmul_coop.wgsl` (f16 operands on cooperative matrices,
+//! where the device has them). A product with few output tiles and a long K (a weight gradient
+//! over many rows) is split along K into pieces summed afterwards ([`split_k`]), so the whole
+//! device works on it.
 //!
 //! `a` is `[M, K]` (`[K, M]` when `trans_a`), `b` is `[K, N]` (`[N, K]` when `trans_b`), either
 //! with an optional leading batch dimension; an operand without one (or with batch 1) is
@@ -10,12 +13,19 @@
 use crate::caps::Caps;
 use crate::device::Gpu;
 use crate::error::{Error, Result};
-use crate::kernels::{KernelId, MATMUL_COOP_MAIN, MATMUL_MAIN, MATMUL_MAIN_F16};
+use crate::kernels::{KernelId, MATMUL_COOP_MAIN, MATMUL_MAIN, MATMUL_MAIN_F16, MATMUL_SMALL_MAIN};
+use crate::ops::binary::{binary_into, Binary};
+use crate::ops::reduce::{reduce, Reduce};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
-/// Output tile of one workgroup, in both kernels.
+/// Output tile of one workgroup: the tiled and cooperative-matrix kernels, and the small-tile
+/// kernel for products with a narrow side.
 const TILE: usize = 128;
+const SMALL_TILE: usize = 32;
+/// A product whose M or N is at most this uses the small-tile kernel (f32 operands): a
+/// 128x128 tile would be mostly empty.
+const NARROW: usize = 64;
 /// Workgroup memory the cooperative-matrix kernel declares: two buffers of two 128x40 f16 tiles
 /// (40 KiB) and one 16x16 f32 staging slot per subgroup for edge tiles (8 KiB).
 const COOP_SHARED_BYTES: u32 = 49152;
@@ -128,7 +138,10 @@ pub fn coop_layout_ok(p: &Plan, trans_a: bool, trans_b: bool) -> bool {
 /// Which kernel a product of `dtype` operands runs on this device, for `velox info`.
 pub fn matmul_variant(gpu: &Gpu, dtype: DType) -> &'static str {
     match dtype {
-        DType::F32 => "tiled f32: 128x128 tile per 256 invocations, 8x8 per invocation, k step 8",
+        DType::F32 => {
+            "tiled f32: 128x128 tile per 256 invocations, 8x8 per invocation, k step 8 \
+             (32x32 tiles when M or N <= 64)"
+        }
         DType::F16 if coop_eligible(gpu.caps()) && gpu.supports(MATMUL_COOP_MAIN) => {
             "cooperative-matrix f16 x f16 -> f32: 128x128 tile, 16x16x16 fragments, k step 32 \
              (tiled f16 fallback where an operand's contiguous axis is not a multiple of 8)"
@@ -169,10 +182,12 @@ pub fn matmul_into(
         ));
     }
     let max = a.gpu().caps().max_workgroup_count;
-    let groups = [p.n.div_ceil(TILE), p.m.div_ceil(TILE), if p.m == 0 || p.n == 0 { 0 } else { p.batch }];
+    let kernel = choose_kernel(a.gpu(), a.dtype(), &p, trans_a, trans_b);
+    let tile = if kernel == MATMUL_SMALL_MAIN { SMALL_TILE } else { TILE };
+    let groups = [p.n.div_ceil(tile), p.m.div_ceil(tile), if p.m == 0 || p.n == 0 { 0 } else { p.batch }];
     if groups[..2].iter().zip(max).any(|(&g, lim)| g > lim as usize) {
         return Err(Error::TooLarge(format!(
-            "matmul: [{}, {}] outputs need {groups:?} workgroups of 128x128, the device allows {max:?}",
+            "matmul: [{}, {}] outputs need {groups:?} workgroups of {tile}x{tile}, the device allows {max:?}",
             p.m, p.n
         )));
     }
@@ -197,7 +212,12 @@ pub fn matmul_into(
         flags: trans_a as u32 | (trans_b as u32) << 1,
         batch_base: 0,
     };
-    let kernel = choose_kernel(a.gpu(), a.dtype(), &p, trans_a, trans_b);
+    let tiles = groups[0] * groups[1];
+    let splits = split_k(p.batch, tiles, p.k);
+    if splits > 1 && kernel != MATMUL_COOP_MAIN {
+        let grid = [groups[0] as u32, groups[1] as u32];
+        return split_k_into(rec, kernel, grid, [a, b, out], &p, params, splits, accumulate);
+    }
     // Batches beyond the device's z limit go in several dispatches.
     let z_max = max[2] as usize;
     let mut base = 0;
@@ -210,10 +230,68 @@ pub fn matmul_into(
     Ok(())
 }
 
+/// Workgroups a product should have at least: a few per compute unit of a large GPU.
+const SPLIT_TARGET_GROUPS: usize = 256;
+/// The shortest stretch of K one workgroup of a split product sums.
+const SPLIT_MIN_K: usize = 256;
+/// Most partial products of a split.
+const SPLIT_MAX: usize = 64;
+
+/// How many pieces to cut K into: a product with few output tiles and a long K (the weight
+/// gradient `x^T dy` over thousands of rows is 1 tile of 128x128 with K in the thousands)
+/// would leave all but a few workgroups of the device idle while each walks all of K. 1 means
+/// no split.
+fn split_k(batch: usize, tiles: usize, k: usize) -> usize {
+    if batch != 1 || tiles == 0 || tiles >= SPLIT_TARGET_GROUPS {
+        return 1;
+    }
+    (SPLIT_TARGET_GROUPS / tiles).min(k / SPLIT_MIN_K).clamp(1, SPLIT_MAX)
+}
+
+/// A product split along K: piece z of `chunk = K / splits` (the last piece also takes the
+/// remainder, in a second dispatch) is a batch entry whose operands start z * chunk along K,
+/// written to its own slice of a `[pieces, M, N]` buffer; the pieces are then summed into
+/// `out` (added to it when accumulating).
+#[allow(clippy::too_many_arguments)]
+fn split_k_into(
+    rec: &mut Recorder,
+    kernel: KernelId,
+    [gx, gy]: [u32; 2],
+    [a, b, out]: [&Tensor; 3],
+    p: &Plan,
+    params: Params,
+    splits: usize,
+    accumulate: bool,
+) -> Result<()> {
+    let chunk = p.k / splits;
+    let rem = p.k - chunk * splits;
+    let pieces = splits + (rem > 0) as usize;
+    let partial = Tensor::empty(a.gpu(), &[pieces, p.m, p.n], DType::F32)?;
+    let split = Params {
+        k: chunk as u32,
+        accumulate: 0,
+        // Along K, a moves by a_col and b by b_row.
+        a_batch: chunk as u32 * params.a_col,
+        b_batch: chunk as u32 * params.b_row,
+        ..params
+    };
+    rec.dispatch(kernel, [gx, gy, splits as u32], &[a, b, &partial], &split)?;
+    if rem > 0 {
+        let tail = Params { k: rem as u32, batch_base: splits as u32, ..split };
+        rec.dispatch(kernel, [gx, gy, 1], &[a, b, &partial], &tail)?;
+    }
+    let sums = reduce(rec, &partial, 0, Reduce::Sum)?.reshape(out.shape())?;
+    if accumulate {
+        binary_into(rec, out, &sums, out, Binary::Add)
+    } else {
+        rec.copy(&sums, out)
+    }
+}
+
 /// The kernel for one product.
 fn choose_kernel(gpu: &Gpu, dtype: DType, p: &Plan, trans_a: bool, trans_b: bool) -> KernelId {
     if dtype == DType::F32 {
-        return MATMUL_MAIN;
+        return if p.m.min(p.n) <= NARROW { MATMUL_SMALL_MAIN } else { MATMUL_MAIN };
     }
     if coop_eligible(gpu.caps()) && gpu.supports(MATMUL_COOP_MAIN) && coop_layout_ok(p, trans_a, trans_b) {
         MATMUL_COOP_MAIN
