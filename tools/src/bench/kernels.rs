@@ -10,8 +10,14 @@ use velox_engine::{DType, Gpu, Result, Tensor};
 
 use super::{print_header, print_row, time_gpu, Record};
 
+/// A model-shaped f32 product: (what, m, n, k, a transposed).
+type Shaped = (&'static str, usize, usize, usize, bool);
+
 struct Sizes {
     matmul: Vec<usize>,
+    /// Products shaped like the models' (narrow activations, weight gradients over many rows):
+    /// the 32x32-tile kernel and the split along K.
+    shaped: Vec<Shaped>,
     softmax: Vec<(usize, usize)>,
     scan: Vec<usize>,
     sort: Vec<(usize, u32)>,
@@ -22,6 +28,10 @@ fn sizes(gpu: &Gpu, quick: bool) -> Sizes {
     if quick || gpu.caps().kind == "CPU" {
         Sizes {
             matmul: vec![128, 256],
+            shaped: vec![
+                ("narrow x@W", 10_000, 128, 32, false),
+                ("weight grad x^T dy", 32, 32, 10_000, true),
+            ],
             softmax: vec![(256, 1024)],
             scan: vec![1 << 20],
             sort: vec![(1 << 18, 32), (1 << 18, 16)],
@@ -30,6 +40,11 @@ fn sizes(gpu: &Gpu, quick: bool) -> Sizes {
     } else {
         Sizes {
             matmul: vec![1024, 2048, 4096, 8192],
+            shaped: vec![
+                ("narrow x@W", 1 << 18, 32, 32, false),
+                ("tokens x@W", 8192, 2048, 512, false),
+                ("weight grad x^T dy", 512, 512, 1 << 18, true),
+            ],
             softmax: vec![(16384, 8192), (65536, 128)],
             scan: vec![1 << 26],
             sort: vec![(1 << 24, 32), (1 << 24, 16)],
@@ -105,6 +120,37 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
             );
             push(r.peak(peak).against(&have, &want, over));
         }
+    }
+
+    for &(what, m, n, k, trans_a) in &s.shaped {
+        let a = rng.normal_vec(m * k);
+        let b = rng.normal_vec(k * n);
+        let a_shape = if trans_a { [k, m] } else { [m, k] };
+        let ta = Tensor::from_slice(gpu, &a_shape, &a)?;
+        let tb = Tensor::from_slice(gpu, &[k, n], &b)?;
+        let c_out = Tensor::empty(gpu, &[m, n], DType::F32)?;
+        let timing =
+            time_gpu(gpu, repeats, |rec| matmul::matmul_into(rec, &ta, &tb, trans_a, false, &c_out, false))?;
+        let got: Vec<f32> = c_out.read()?;
+        let samples: Vec<(usize, usize)> =
+            (0..1024).map(|_| (rng.below(m as u32) as usize, rng.below(n as u32) as usize)).collect();
+        let a_at = |i: usize, kk: usize| if trans_a { a[kk * m + i] } else { a[i * k + kk] } as f64;
+        let want: Vec<f64> =
+            samples.iter().map(|&(i, j)| (0..k).map(|kk| a_at(i, kk) * b[kk * n + j] as f64).sum()).collect();
+        let have: Vec<f32> = samples.iter().map(|&(i, j)| got[i * n + j]).collect();
+        let tflops = 2.0 * (m * n * k) as f64 / (timing.0 * 1e-3) / 1e12;
+        let shape = format!("{m}x{n}x{k}{}", if trans_a { " (a^T)" } else { "" });
+        let r = Record::timed(
+            format!("matmul {what}"),
+            shape,
+            "f32",
+            &device,
+            timing,
+            repeats,
+            tflops,
+            "TFLOP/s",
+        );
+        push(r.peak(peaks.map(|p| tflops / p.1)).against(&have, &want, "1024 sampled outputs"));
     }
 
     let gbs = |bytes: f64, ms: f64| bytes / (ms * 1e-3) / 1e9;
