@@ -108,6 +108,29 @@ fn sphere_cloud(n: usize, rng: &mut Rng) -> Vec<f32> {
     out
 }
 
+/// A precision's record figures: timing, NMSE, max abs error, what the error is against.
+type PrecisionRun = (Precision, (f64, f64, bool), f64, f64, &'static str);
+
+/// Times `run` (one recording) in f32 and in f16; errors as [`error_reference`] says.
+fn both_precisions(
+    gpu: &Gpu,
+    repeats: u32,
+    run: impl Fn(&mut velox_engine::Recorder, Precision) -> Result<Tensor>,
+) -> Result<Vec<PrecisionRun>> {
+    let mut f32_first = Vec::new();
+    let mut out = Vec::new();
+    for p in PRECISIONS {
+        let (t, first, last) = timed_outputs(gpu, repeats, |rec| run(rec, p))?;
+        if p == Precision::F32 {
+            f32_first = first.clone();
+        }
+        let (reference, over) = error_reference(p, &f32_first, &first);
+        let (e, m) = errors(reference, &last);
+        out.push((p, t, e, m, over));
+    }
+    Ok(out)
+}
+
 /// A timing as `time_gpu` gives it (median ms, min ms, GPU-timed), the output of a first
 /// untimed run, and the output of the last timed run.
 type TimedOutputs = ((f64, f64, bool), Vec<f32>, Vec<f32>);
@@ -169,14 +192,7 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
             encoder.forward(rec, &cloud, &mut Rng::new(5)).map(|o| o.0)
         };
         let (k, d) = (cfg.encoder.tokens, cfg.encoder.token_dim);
-        let mut f32_first = Vec::new();
-        for p in PRECISIONS {
-            let (t, first, last) = timed_outputs(gpu, repeats, |rec| encode(rec, p))?;
-            if p == Precision::F32 {
-                f32_first = first.clone();
-            }
-            let (reference, over) = error_reference(p, &f32_first, &first);
-            let (e, m) = errors(reference, &last);
+        for (p, t, e, m, over) in both_precisions(gpu, repeats, encode)? {
             let shape = format!("{} points -> {k}x{d}", s.points);
             push(record("encoder", shape, p, t, s.points as f64 / 1e6, "Mpoint/s").error(e, m, over));
         }
@@ -222,14 +238,7 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
             }
             Ok(all)
         };
-        let mut f32_first = Vec::new();
-        for p in PRECISIONS {
-            let (t, first, last) = timed_outputs(gpu, repeats, |rec| decode(rec, p))?;
-            if p == Precision::F32 {
-                f32_first = first.clone();
-            }
-            let (reference, over) = error_reference(p, &f32_first, &first);
-            let (e, m) = errors(reference, &last);
+        for (p, t, e, m, over) in both_precisions(gpu, repeats, decode)? {
             let shape = format!("{v} vox of {0}^3 -> {n} Gaussians", g.grid);
             push(record("gaussian decoder frame", shape, p, t, n as f64 / 1e6, "MGauss/s").error(e, m, over));
         }
