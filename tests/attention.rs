@@ -16,14 +16,22 @@ struct Case {
     magnitude: f32,
 }
 
-fn run(case: &Case, seed: u64) {
-    let gpu = gpu();
-    let mut rng = Rng::new(seed);
+/// A case's rows (nq, nk) and random q, k, v drawn from `rng` (q and k scaled by the
+/// magnitude).
+fn inputs(case: &Case, rng: &mut Rng) -> ((usize, usize), [Vec<f32>; 3]) {
     let (nq, nk): (usize, usize) = (case.q_lens.iter().sum(), case.k_lens.iter().sum());
     let (h, d) = (case.heads, case.d);
     let q: Vec<f32> = rng.normal_vec(nq * h * d).iter().map(|x| x * case.magnitude).collect();
     let k: Vec<f32> = rng.normal_vec(nk * h * d).iter().map(|x| x * case.magnitude).collect();
     let v = rng.normal_vec(nk * h * d);
+    ((nq, nk), [q, k, v])
+}
+
+fn run(case: &Case, seed: u64) {
+    let gpu = gpu();
+    let mut rng = Rng::new(seed);
+    let ((nq, nk), [q, k, v]) = inputs(case, &mut rng);
+    let (h, d) = (case.heads, case.d);
     let g = rng.normal_vec(nq * h * d);
     let scale = 1.0 / (d as f32).sqrt();
     let tq = Tensor::from_slice(&gpu, &[nq, h, d], &q).unwrap();
@@ -153,12 +161,8 @@ fn reference_backward_matches_finite_differences() {
 /// the reference on the rounded inputs, and within f16 rounding of the f32 result.
 fn run_f16(case: &Case, seed: u64) {
     let gpu = gpu();
-    let mut rng = Rng::new(seed);
-    let (nq, nk): (usize, usize) = (case.q_lens.iter().sum(), case.k_lens.iter().sum());
+    let ((nq, nk), [q, k, v]) = inputs(case, &mut Rng::new(seed));
     let (h, d) = (case.heads, case.d);
-    let q: Vec<f32> = rng.normal_vec(nq * h * d).iter().map(|x| x * case.magnitude).collect();
-    let k: Vec<f32> = rng.normal_vec(nk * h * d).iter().map(|x| x * case.magnitude).collect();
-    let v = rng.normal_vec(nk * h * d);
     let scale = 1.0 / (d as f32).sqrt();
     let seg = Segments::from_lengths(&gpu, &case.q_lens, &case.k_lens).unwrap();
     let mut rec = gpu.recorder().unwrap();
