@@ -59,12 +59,12 @@ fn bwd_dq(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: v
     if (item.x == 0xffffffffu) {
         return;
     }
-    let seg = item.x;
     let h = item.z;
     let row = item.y + lid;
-    let live = row < min(q_off[seg + 1u], pc.nq);
-    let k_begin = min(k_off[seg], pc.nk);
-    let k_end = clamp(k_off[seg + 1u], k_begin, pc.nk);
+    let rows = segment_rows(item.x, false);
+    let live = row < rows.x;
+    let k_begin = rows.y;
+    let k_end = rows.z;
 
     var qr: array<vec4<f32>, D4>;
     var gr: array<vec4<f32>, D4>; // dO row
@@ -124,12 +124,12 @@ fn bwd_dkv(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
     if (item.x == 0xffffffffu) {
         return;
     }
-    let seg = item.x;
     let h = item.z;
     let row = item.y + lid;
-    let live = row < min(k_off[seg + 1u], pc.nk);
-    let q_begin = min(q_off[seg], pc.nq);
-    let q_end = clamp(q_off[seg + 1u], q_begin, pc.nq);
+    let rows = segment_rows(item.x, true);
+    let live = row < rows.x;
+    let q_begin = rows.y;
+    let q_end = rows.z;
 
     var kr: array<vec4<f32>, D4>;
     var vr: array<vec4<f32>, D4>;

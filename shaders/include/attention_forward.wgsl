@@ -39,6 +39,19 @@ fn work_item(wid: vec3<u32>, nwg: vec3<u32>) -> vec3<u32> {
     return vec3<u32>(w.x, w.y, id % pc.heads);
 }
 
+// The rows of segment `seg` on each side, clamped to the tensors (so bad offsets cannot reach
+// past them): (own end, other begin, other end). The block's own side is the queries' in
+// `fwd` and `bwd_dq`, the keys' in `bwd_dkv` (`keys_own`). Nothing here depends on the
+// invocation, so loops bounded by it stay uniform for their barriers.
+fn segment_rows(seg: u32, keys_own: bool) -> vec3<u32> {
+    if keys_own {
+        let begin = min(q_off[seg], pc.nq);
+        return vec3<u32>(min(k_off[seg + 1u], pc.nk), begin, clamp(q_off[seg + 1u], begin, pc.nq));
+    }
+    let begin = min(k_off[seg], pc.nk);
+    return vec3<u32>(min(q_off[seg + 1u], pc.nq), begin, clamp(k_off[seg + 1u], begin, pc.nk));
+}
+
 // Stages rows first .. first + count of a [rows, H, D] tensor, head h, into a tile.
 fn stage_k(first: u32, count: u32, h: u32, lid: u32) {
     for (var i = lid; i < B * D4; i += B) {
@@ -59,12 +72,12 @@ fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     if (item.x == 0xffffffffu) {
         return;
     }
-    let seg = item.x;
     let h = item.z;
     let row = item.y + lid;
-    let live = row < min(q_off[seg + 1u], pc.nq);
-    let k_begin = min(k_off[seg], pc.nk);
-    let k_end = clamp(k_off[seg + 1u], k_begin, pc.nk);
+    let rows = segment_rows(item.x, false);
+    let live = row < rows.x;
+    let k_begin = rows.y;
+    let k_end = rows.z;
 
     var qr: array<vec4<f32>, D4>;
     var acc: array<vec4<f32>, D4>;
