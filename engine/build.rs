@@ -121,6 +121,10 @@ struct Kernel {
 /// kernels that differ in one declaration (say, the atomic type of an output) share their body.
 /// The folder is not compiled on its own.
 fn expand_includes(shader_dir: &Path, path: &Path, source: &str) -> Result<String, String> {
+    expand_includes_at(shader_dir, path, source, 0)
+}
+
+fn expand_includes_at(shader_dir: &Path, path: &Path, source: &str, depth: usize) -> Result<String, String> {
     let mut out = String::with_capacity(source.len());
     for line in source.lines() {
         if let Some(name) = line.strip_prefix("// @include ") {
@@ -128,7 +132,15 @@ fn expand_includes(shader_dir: &Path, path: &Path, source: &str) -> Result<Strin
             println!("cargo:rerun-if-changed={}", inc.display());
             let text = std::fs::read_to_string(&inc)
                 .map_err(|e| format!("{}: @include {}: {e}", path.display(), inc.display()))?;
-            out.push_str(&text);
+            // Included files may include others; a cycle would never end, so depth is bounded.
+            if depth >= 4 {
+                return Err(format!(
+                    "{}: @include {}: nested too deep (a cycle?)",
+                    path.display(),
+                    name.trim()
+                ));
+            }
+            out.push_str(&expand_includes_at(shader_dir, &inc, &text, depth + 1)?);
         } else {
             out.push_str(line);
         }

@@ -3,8 +3,9 @@
 mod common;
 use common::*;
 use half::f16;
+use velox::engine::kernels::{MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN};
 use velox::engine::ops::matmul::{
-    coop_eligible, coop_layout_ok, matmul, matmul_into, matmul_variant, plan, reference,
+    coop_eligible, coop_kernel, coop_layout_ok, matmul, matmul_into, matmul_variant, plan, reference,
 };
 use velox::engine::Error;
 
@@ -159,6 +160,36 @@ fn accumulate_adds_and_plain_overwrites() {
         let summed: Vec<f64> = r.iter().zip(&old).map(|(x, &o)| x + o as f64).collect();
         assert_nmse("accumulate", &acc.read::<f32>().unwrap(), &summed, F32_BOUND);
         assert_nmse("overwrite", &plain.read::<f32>().unwrap(), &r, F32_BOUND);
+    }
+}
+
+#[test]
+fn f16_accumulate_on_interior_and_edge_tiles() {
+    // 256 x 136 outputs: two whole 128x128 tiles, which the cooperative kernels store straight
+    // to memory, and two edge tiles, which they stage through workgroup memory; plain and
+    // accumulating, every transpose. On devices without cooperative matrices this exercises
+    // the portable f16 kernel the same way.
+    let gpu = gpu();
+    let mut rng = Rng::new(9);
+    let (m, n, k) = (256, 136, 48);
+    for (ta, tb) in [(false, false), (false, true), (true, false), (true, true)] {
+        let (sa, sb) = shapes(m, n, k, ta, tb, Some(2), None);
+        let (ah, bh) = (round_f16(&rng.normal_vec(numel(&sa))), round_f16(&rng.normal_vec(numel(&sb))));
+        let old = rng.normal_vec(2 * m * n);
+        let a = Tensor::from_slice(&gpu, &sa, &ah).unwrap();
+        let b = Tensor::from_slice(&gpu, &sb, &bh).unwrap();
+        let acc = Tensor::from_slice(&gpu, &[2, m, n], &old).unwrap();
+        let plain = Tensor::from_slice(&gpu, &[2, m, n], &vec![f32::NAN; 2 * m * n]).unwrap();
+        let mut rec = gpu.recorder().unwrap();
+        matmul_into(&mut rec, &a, &b, ta, tb, &acc, true).unwrap();
+        matmul_into(&mut rec, &a, &b, ta, tb, &plain, false).unwrap();
+        rec.submit().unwrap();
+        let widen = |h: &[f16]| h.iter().map(|v| v.to_f64()).collect::<Vec<_>>();
+        let (r, _) = reference::matmul(&widen(&ah), &sa, &widen(&bh), &sb, ta, tb).unwrap();
+        let summed: Vec<f64> = r.iter().zip(&old).map(|(x, &o)| x + o as f64).collect();
+        let what = format!("f16 ta={ta} tb={tb} ({})", matmul_variant(&gpu, DType::F16));
+        assert_nmse(&format!("{what} accumulate"), &acc.read::<f32>().unwrap(), &summed, F16_ROUNDED_BOUND);
+        assert_nmse(&format!("{what} overwrite"), &plain.read::<f32>().unwrap(), &r, F16_ROUNDED_BOUND);
     }
 }
 
@@ -366,9 +397,12 @@ fn kernel_choice_follows_the_device() {
     let caps = gpu.caps().clone();
     assert!(matmul_variant(&gpu, DType::F32).contains("tiled f32"));
     if caps.coop_matrix_f16.is_none() {
-        // lavapipe and other devices without cooperative matrices: the portable f16 kernel.
+        // lavapipe before Mesa 26 and other devices without cooperative matrices: the portable
+        // f16 kernel.
         assert!(!coop_eligible(&caps));
         assert!(matmul_variant(&gpu, DType::F16).contains("tiled f16"));
+    } else if coop_eligible(&caps) {
+        assert!(matmul_variant(&gpu, DType::F16).contains("cooperative-matrix"));
     }
     // A device like the H100: 16x16x16 f16 shapes, subgroups of exactly 32, 48 KiB shared.
     let mut h100 = caps.clone();
@@ -389,9 +423,21 @@ fn kernel_choice_follows_the_device() {
     let mut small = h100.clone();
     small.max_shared_memory = 32768;
     assert!(!coop_eligible(&small));
-    let mut no_coop = h100;
+    let mut no_coop = h100.clone();
     no_coop.coop_matrix_f16 = None;
     assert!(!coop_eligible(&no_coop));
+    assert_eq!(coop_kernel(&h100), Some(MATMUL_COOP_MAIN));
+    // A device like lavapipe from Mesa 26: 8x8x8 shapes, subgroups of 8, 32 KiB shared.
+    let mut lvp = caps.clone();
+    lvp.coop_matrix_f16 = Some([8, 8, 8]);
+    lvp.min_subgroup_size = 8;
+    lvp.max_subgroup_size = 8;
+    lvp.max_shared_memory = 32768;
+    assert_eq!(coop_kernel(&lvp), Some(MATMUL_COOP8_MAIN));
+    let mut wide = lvp.clone();
+    wide.min_subgroup_size = 32;
+    wide.max_subgroup_size = 32;
+    assert_eq!(coop_kernel(&wide), None, "8x8 fragments need subgroups of 8");
 
     // The contiguous axis of each operand must be a multiple of 8.
     let p = plan(&[24, 40], &[40, 16], false, false).unwrap();

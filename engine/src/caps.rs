@@ -39,7 +39,8 @@ pub struct Caps {
     pub float_atomic_add: bool,
     /// Every cooperative-matrix shape the device reports, as text for `velox info`.
     pub coop_matrix_shapes: Vec<String>,
-    /// The 16x16x16 f16 x f16 -> f32 subgroup shape the f16 matmul uses, if offered.
+    /// The FxFxF f16 x f16 -> f32 subgroup shape the cooperative kernels use, if offered:
+    /// F = 16 where the device has it, else F = 8.
     pub coop_matrix_f16: Option<[u32; 3]>,
     /// Nanoseconds per timestamp tick, and whether the compute queue writes timestamps.
     pub timestamp_period_ns: f64,
@@ -138,16 +139,19 @@ impl Caps {
                         component_name(c.result_type),
                         if c.scope == vk::ScopeKHR::SUBGROUP { "" } else { " (non-subgroup scope)" }
                     ));
-                    if c.m_size == 16
-                        && c.n_size == 16
-                        && c.k_size == 16
+                    // The matmul and attention kernels exist for 16x16x16 (NVIDIA) and 8x8x8
+                    // (lavapipe) fragments; 16 is preferred where both are offered.
+                    let size = c.m_size;
+                    if (size == 16 || (size == 8 && coop_matrix_f16.is_none()))
+                        && c.n_size == size
+                        && c.k_size == size
                         && c.a_type == vk::ComponentTypeKHR::FLOAT16
                         && c.b_type == vk::ComponentTypeKHR::FLOAT16
                         && c.c_type == vk::ComponentTypeKHR::FLOAT32
                         && c.result_type == vk::ComponentTypeKHR::FLOAT32
                         && c.scope == vk::ScopeKHR::SUBGROUP
                     {
-                        coop_matrix_f16 = Some([16, 16, 16]);
+                        coop_matrix_f16 = Some([size; 3]);
                     }
                 }
             }

@@ -13,7 +13,9 @@
 use crate::caps::Caps;
 use crate::device::Gpu;
 use crate::error::{Error, Result};
-use crate::kernels::{KernelId, MATMUL_COOP_MAIN, MATMUL_MAIN, MATMUL_MAIN_F16, MATMUL_SMALL_MAIN};
+use crate::kernels::{
+    KernelId, MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN, MATMUL_MAIN, MATMUL_MAIN_F16, MATMUL_SMALL_MAIN,
+};
 use crate::ops::binary::{binary_into, Binary};
 use crate::ops::reduce::{reduce, Reduce};
 use crate::recorder::Recorder;
@@ -26,9 +28,11 @@ const SMALL_TILE: usize = 32;
 /// A product whose M or N is at most this uses the small-tile kernel (f32 operands): a
 /// 128x128 tile would be mostly empty.
 const NARROW: usize = 64;
-/// Workgroup memory the cooperative-matrix kernel declares: two buffers of two 128x40 f16 tiles
-/// (40 KiB) and one 16x16 f32 staging slot per subgroup for edge tiles (8 KiB).
-const COOP_SHARED_BYTES: u32 = 49152;
+/// Workgroup memory the cooperative-matrix kernels declare. 16x16 fragments: two buffers of two
+/// 128x40 f16 tiles (40 KiB) and one 16x16 f32 staging slot per subgroup for edge tiles (8 KiB).
+/// 8x8 fragments: k step 16, so two buffers of two 128x24 tiles (24 KiB), and 8 KiB of slots.
+const COOP_SHARED_BYTES_16: u32 = 49152;
+const COOP_SHARED_BYTES_8: u32 = 32768;
 /// The cooperative-matrix kernel reads its operands 8 halves (16 bytes) at a time.
 const COOP_VECTOR: usize = 8;
 
@@ -117,14 +121,26 @@ pub fn plan(a: &[usize], b: &[usize], trans_a: bool, trans_b: bool) -> Result<Pl
     })
 }
 
-/// Whether the device can run the cooperative-matrix kernel at all. It is written for
-/// 32-invocation subgroups (eight per 256-invocation workgroup, each owning a 64x32 block of
-/// the tile), so it is chosen only where every subgroup has exactly 32 invocations.
+/// The cooperative-matrix kernel this device can run, if any. The kernels exist for FxFxF
+/// fragments with F = 16 (`matmul_coop.wgsl`) and F = 8 (`matmul_coop8.wgsl`). Each splits its
+/// 256 invocations into subgroups of exactly F*F/8 (32 or 8), each subgroup owning 4x2
+/// fragments of the 128x128 tile, so it is chosen only where every subgroup has that size.
+pub fn coop_kernel(caps: &Caps) -> Option<KernelId> {
+    let [f, _, _] = caps.coop_matrix_f16?;
+    let (kernel, shared) = match f {
+        16 => (MATMUL_COOP_MAIN, COOP_SHARED_BYTES_16),
+        8 => (MATMUL_COOP8_MAIN, COOP_SHARED_BYTES_8),
+        _ => return None,
+    };
+    let sg = f * f / 8;
+    let fits =
+        caps.min_subgroup_size == sg && caps.max_subgroup_size == sg && caps.max_shared_memory >= shared;
+    fits.then_some(kernel)
+}
+
+/// Whether the device can run a cooperative-matrix matmul kernel at all.
 pub fn coop_eligible(caps: &Caps) -> bool {
-    caps.coop_matrix_f16.is_some()
-        && caps.min_subgroup_size == 32
-        && caps.max_subgroup_size == 32
-        && caps.max_shared_memory >= COOP_SHARED_BYTES
+    coop_kernel(caps).is_some()
 }
 
 /// Whether one product's layout suits the cooperative-matrix kernel: the contiguous axis of each
@@ -142,9 +158,14 @@ pub fn matmul_variant(gpu: &Gpu, dtype: DType) -> &'static str {
             "tiled f32: 128x128 tile per 256 invocations, 8x8 per invocation, k step 8 \
              (32x32 tiles when M or N <= 64)"
         }
-        DType::F16 if coop_eligible(gpu.caps()) && gpu.supports(MATMUL_COOP_MAIN) => {
-            "cooperative-matrix f16 x f16 -> f32: 128x128 tile, 16x16x16 fragments, k step 32 \
-             (tiled f16 fallback where an operand's contiguous axis is not a multiple of 8)"
+        DType::F16 if coop_kernel(gpu.caps()).is_some_and(|k| gpu.supports(k)) => {
+            if coop_kernel(gpu.caps()) == Some(MATMUL_COOP_MAIN) {
+                "cooperative-matrix f16 x f16 -> f32: 128x128 tile, 16x16x16 fragments, k step 32 \
+                 (tiled f16 fallback where an operand's contiguous axis is not a multiple of 8)"
+            } else {
+                "cooperative-matrix f16 x f16 -> f32: 128x128 tile, 8x8x8 fragments, k step 16 \
+                 (tiled f16 fallback where an operand's contiguous axis is not a multiple of 8)"
+            }
         }
         DType::F16 => "tiled f16 x f16 -> f32 (f16 read as packed words, f32 accumulation)",
         _ => "none: matmul takes f32 or f16 operands",
@@ -214,7 +235,7 @@ pub fn matmul_into(
     };
     let tiles = groups[0] * groups[1];
     let splits = split_k(p.batch, tiles, p.k);
-    if splits > 1 && kernel != MATMUL_COOP_MAIN {
+    if splits > 1 && kernel != MATMUL_COOP_MAIN && kernel != MATMUL_COOP8_MAIN {
         let grid = [groups[0] as u32, groups[1] as u32];
         return split_k_into(rec, kernel, grid, [a, b, out], &p, params, splits, accumulate);
     }
@@ -293,10 +314,9 @@ fn choose_kernel(gpu: &Gpu, dtype: DType, p: &Plan, trans_a: bool, trans_b: bool
     if dtype == DType::F32 {
         return if p.m.min(p.n) <= NARROW { MATMUL_SMALL_MAIN } else { MATMUL_MAIN };
     }
-    if coop_eligible(gpu.caps()) && gpu.supports(MATMUL_COOP_MAIN) && coop_layout_ok(p, trans_a, trans_b) {
-        MATMUL_COOP_MAIN
-    } else {
-        MATMUL_MAIN_F16
+    match coop_kernel(gpu.caps()) {
+        Some(k) if gpu.supports(k) && coop_layout_ok(p, trans_a, trans_b) => k,
+        _ => MATMUL_MAIN_F16,
     }
 }
 

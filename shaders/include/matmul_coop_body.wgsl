@@ -1,0 +1,304 @@
+// Batched matrix multiply of f16 operands with f32 accumulation on cooperative matrices
+// (VK_KHR_cooperative_matrix, FxFxF f16 x f16 -> f32 at subgroup scope). Same operation, push
+// constants and bindings as `main_f16` in shaders/matmul.wgsl; host side and f64 reference in
+// engine/src/ops/matmul.rs, which picks this kernel only where it fits (see below).
+//
+// Two front files set the fragment size and the shapes that follow from it, then include this
+// body:
+//   matmul_coop.wgsl   F = 16, subgroups of 32 (NVIDIA), k step BK = 32, 48 KiB shared;
+//   matmul_coop8.wgsl  F = 8, subgroups of 8 (lavapipe 26 and later), BK = 16, 32 KiB shared.
+// Each defines FragA, FragB, FragC (the fragment types), F, BK, RS_K, RS_R and REGION.
+//
+// Requirements the host checks before choosing it:
+// - subgroups of exactly F*F/8 invocations (32 for F = 16, 8 for F = 8): the 256-invocation
+//   workgroup is 2048/(F*F) subgroups, each owning one 4F x 2F block of the 128x128 output tile
+//   (4 x 2 fragments), and each lane holds 8 elements of a fragment;
+// - the contiguous axis of each operand (K, or M for a transposed A; N, or K for a transposed
+//   B) a multiple of 8, so every 16-byte read of 8 halves lies inside one row;
+// - the workgroup memory the front file declares.
+// naga requires every cooperative operation to sit in control flow it can prove uniform, which
+// rules out branching on function arguments or on the subgroup id: hence one entry point with
+// the body inline, the transposes as push-constant flags, and one staging slot per subgroup.
+//
+// Addressing (strides in halves; A batch stride 0 broadcasts):
+//   op(A)[i, kk] = A[z * a_batch + i * a_row + kk * a_col]
+//   op(B)[kk, j] = B[z * b_batch + kk * b_row + j * b_col]
+//   out[z, i, j] = out[(z * m + i) * n + j]
+//
+// Data flow per workgroup (output tile rows row0.., columns col0..):
+// 1. K advances BK at a time. Each step, the 256 invocations copy the 128xBK op(A) tile and the
+//    BKx128 op(B) tile from memory into workgroup memory, 16 bytes (8 halves) per read, BK/16
+//    reads per operand per invocation; chunks past the matrix edge are zero.
+// 2. Each operand tile keeps the layout it has in memory, so the copy never transposes: the
+//    contiguous axis stays contiguous. The fragment loads absorb the transposes instead, with
+//    row-major (coopLoadT) or column-major (coopLoad) addressing:
+//      "along-k" layout  (A not transposed, B transposed): tile[r * RS_K + kk], r < 128, kk < BK
+//      "along-r" layout  (A transposed, B not transposed): tile[kk * RS_R + r]
+//    where r is the row of op(A) or the column of op(B) within the tile. Rows are padded by 8
+//    halves (RS_K = BK + 8, RS_R = 136), so consecutive rows start at different 16-byte offsets
+//    modulo 128 bytes and a fragment read spreads over the banks. Both strides are multiples of
+//    16 bytes and every fragment origin is 16-byte aligned, as cooperative loads want.
+// 3. Subgroup sg owns tile rows wr + [0, 4F) and columns wc + [0, 2F), with
+//    wr = (sg / (64 / F)) * 4F and wc = (sg % (64 / F)) * 2F (subgroup_id, not the invocation
+//    index, so nothing assumes how the driver groups invocations): 4x2 accumulators of FxF.
+//    Per F-wide k slice it loads 4 A and 2 B fragments and issues 8 multiply-adds, so each
+//    fragment load feeds 2 or 4 products.
+// 4. Two workgroup-memory buffers alternate: while step s is multiplied out of one, step s+1 is
+//    read from memory into registers and then written to the other; one barrier per step.
+// 5. Output: a tile entirely inside the matrix, with n a multiple of 4 (16-byte row stride),
+//    stores its accumulators straight to memory (coopStoreT, row stride n), adding what is there
+//    when accumulating. An edge tile stages each FxF fragment through workgroup memory (one slot
+//    per subgroup, 8 KiB in all) and writes only the elements inside the matrix.
+
+// @include matmul_params.wgsl
+
+@group(0) @binding(0) var<storage, read> a: array<vec4<u32>>;
+@group(0) @binding(1) var<storage, read> b: array<vec4<u32>>;
+@group(0) @binding(2) var<storage, read_write> out: array<f32>;
+var<immediate> pc: Params;
+
+const TILE: u32 = 128u;
+// Chunks of 8 halves per invocation and operand tile (128 * BK / 8 chunks over 256 invocations).
+const CPI: u32 = BK / 16u;
+// Invocations per subgroup, and subgroups per row of blocks.
+const SG: u32 = F * F / 8u;
+const BLOCKS_PER_ROW: u32 = 64u / F;
+
+// [buffer 0..1][operand A = 0, B = 1][REGION halves].
+var<workgroup> tiles: array<f16, 4u * REGION>;
+// One FxF f32 fragment per subgroup for the edge epilogue: 8 KiB.
+var<workgroup> stage: array<f32, 2048>;
+
+// Position (r, kk) in the tile of the first half of chunk c. Along-k: BK/8 chunks per row of BK
+// k, so neighbouring invocations read one row's 2*BK bytes. Along-r: 16 chunks per k row of 128,
+// so 16 neighbouring invocations read 256 consecutive bytes.
+fn chunk_pos(c: u32, along_k: bool) -> vec2<u32> {
+    if along_k {
+        return vec2<u32>(c / (BK / 8u), (c % (BK / 8u)) * 8u);
+    }
+    return vec2<u32>((c % 16u) * 8u, c / 16u);
+}
+
+fn tile_offset(pos: vec2<u32>, along_k: bool) -> u32 {
+    if along_k {
+        return pos.x * RS_K + pos.y;
+    }
+    return pos.y * RS_R + pos.x;
+}
+
+// Chunk c of the op(A) tile at rows row0.., k k0.. (zero outside the matrix). A chunk is either
+// wholly inside or wholly outside, because the contiguous axis is a multiple of 8; its first
+// element index is a multiple of 8 for the same reason, so index / 8 addresses it exactly.
+fn load_a(z: u32, row0: u32, k0: u32, c: u32, ta: bool) -> vec4<u32> {
+    let pos = chunk_pos(c, !ta);
+    let i = row0 + pos.x;
+    let kk = k0 + pos.y;
+    if i < pc.m && kk < pc.k {
+        return a[(z * pc.a_batch + i * pc.a_row + kk * pc.a_col) / 8u];
+    }
+    return vec4<u32>(0u);
+}
+
+// Chunk c of the op(B) tile at columns col0.., k k0...
+fn load_b(z: u32, col0: u32, k0: u32, c: u32, tb: bool) -> vec4<u32> {
+    let pos = chunk_pos(c, tb);
+    let j = col0 + pos.x;
+    let kk = k0 + pos.y;
+    if j < pc.n && kk < pc.k {
+        return b[(z * pc.b_batch + kk * pc.b_row + j * pc.b_col) / 8u];
+    }
+    return vec4<u32>(0u);
+}
+
+// Writes the 8 halves of a chunk at tiles[o..o+8]; the lower half of each word comes first in
+// memory, and unpack2x16float returns it as component 0. (naga 30 does not accept the
+// size-changing bitcast<vec2<f16>>(u32); the round trip through f32 is exact for every half.)
+fn put(o: u32, v: vec4<u32>) {
+    let h0 = vec2<f16>(unpack2x16float(v.x));
+    let h1 = vec2<f16>(unpack2x16float(v.y));
+    let h2 = vec2<f16>(unpack2x16float(v.z));
+    let h3 = vec2<f16>(unpack2x16float(v.w));
+    tiles[o] = h0.x;
+    tiles[o + 1u] = h0.y;
+    tiles[o + 2u] = h1.x;
+    tiles[o + 3u] = h1.y;
+    tiles[o + 4u] = h2.x;
+    tiles[o + 5u] = h2.y;
+    tiles[o + 6u] = h3.x;
+    tiles[o + 7u] = h3.y;
+}
+
+// The chunks one invocation moves per step: chunk t + 256q of each operand, q < CPI.
+struct Chunks {
+    a: array<vec4<u32>, CPI>,
+    b: array<vec4<u32>, CPI>,
+}
+
+// Reads this invocation's chunks of the step at k k0.
+fn load_chunks(z: u32, row0: u32, col0: u32, k0: u32, t: u32, ta: bool, tb: bool) -> Chunks {
+    var c: Chunks;
+    for (var q = 0u; q < CPI; q++) {
+        c.a[q] = load_a(z, row0, k0, t + 256u * q, ta);
+        c.b[q] = load_b(z, col0, k0, t + 256u * q, tb);
+    }
+    return c;
+}
+
+// Stores this invocation's chunks into buffer buf.
+fn put_chunks(buf: u32, t: u32, ta: bool, tb: bool, c: Chunks) {
+    let base_a = buf * 2u * REGION;
+    let base_b = base_a + REGION;
+    for (var q = 0u; q < CPI; q++) {
+        put(base_a + tile_offset(chunk_pos(t + 256u * q, !ta), !ta), c.a[q]);
+        put(base_b + tile_offset(chunk_pos(t + 256u * q, tb), tb), c.b[q]);
+    }
+}
+
+// The FxF op(A) fragment at tile rows r.., k kk.. from the A tile at `base`.
+// Along-k (A not transposed): element (row x, col y) at base + (r + x) * RS_K + kk + y:
+// row-major. Along-r (A transposed): element (x, y) at base + (kk + y) * RS_R + r + x:
+// column-major.
+fn frag_a(base: u32, r: u32, kk: u32) -> FragA {
+    if (pc.flags & 1u) != 0u {
+        return coopLoad<FragA>(&tiles[base + kk * RS_R + r], RS_R);
+    }
+    return coopLoadT<FragA>(&tiles[base + r * RS_K + kk], RS_K);
+}
+
+// The FxF op(B) fragment at k kk.., tile columns c.. from the B tile at `base`.
+// Along-r (B not transposed): element (row x = k, col y = n) at base + (kk + x) * RS_R + c + y:
+// row-major. Along-k (B transposed): at base + (c + y) * RS_K + kk + x: column-major.
+fn frag_b(base: u32, c: u32, kk: u32) -> FragB {
+    if (pc.flags & 2u) != 0u {
+        return coopLoad<FragB>(&tiles[base + c * RS_K + kk], RS_K);
+    }
+    return coopLoadT<FragB>(&tiles[base + kk * RS_R + c], RS_R);
+}
+
+// Stores one accumulator of an interior tile straight to out at element o (row stride n).
+fn emit_direct(v: FragC, o: u32) {
+    var r = v;
+    if pc.accumulate != 0u {
+        r = r + coopLoadT<FragC>(&out[o], pc.n);
+    }
+    // naga 30 lowers coopStore without first emitting the expressions in its arguments (the
+    // SPIR-V writer then panics), so each argument is bound by an earlier `let`.
+    let value = r;
+    let dst = &out[o];
+    let stride = pc.n;
+    coopStoreT(value, dst, stride);
+}
+
+// Writes one accumulator of an edge tile whose top-left element is out row i0, column j0: each
+// subgroup stores its fragment row-major into its own slot of F*F floats, then each of its SG
+// lanes writes the 8 of the F*F elements it reads (lane, lane + SG, ...) that lie inside the
+// matrix. The workgroup barriers (a subgroup-scope one would do, but naga's subgroupBarrier
+// orders only subgroup memory) make the slot's contents visible to the lanes, and keep the next
+// store from overwriting it early.
+fn emit_staged(v: FragC, i0: u32, j0: u32, c_base: u32, sg: u32, lane: u32) {
+    let slot = sg * F * F;
+    let dst = &stage[slot];
+    let stride = F;
+    coopStoreT(v, dst, stride);
+    workgroupBarrier();
+    for (var q = 0u; q < 8u; q++) {
+        let e = lane + SG * q;
+        let i = i0 + e / F;
+        let j = j0 + e % F;
+        if i < pc.m && j < pc.n {
+            let o = c_base + i * pc.n + j;
+            var x = stage[slot + e];
+            if pc.accumulate != 0u {
+                x += out[o];
+            }
+            out[o] = x;
+        }
+    }
+    workgroupBarrier();
+}
+
+@compute @workgroup_size(256)
+fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) t: u32,
+        @builtin(subgroup_id) sg: u32, @builtin(subgroup_invocation_id) lane: u32) {
+    let ta = (pc.flags & 1u) != 0u;
+    let tb = (pc.flags & 2u) != 0u;
+    let z = wid.z + pc.batch_base;
+    let row0 = wid.y * TILE;
+    let col0 = wid.x * TILE;
+    // This subgroup's 4F x 2F block of the tile.
+    let wr = (sg / BLOCKS_PER_ROW) * 4u * F;
+    let wc = (sg % BLOCKS_PER_ROW) * 2u * F;
+
+    // acc<i><j>: rows wr + F*i.., columns wc + F*j... Declared without initialiser: zero.
+    var acc00: FragC;
+    var acc01: FragC;
+    var acc10: FragC;
+    var acc11: FragC;
+    var acc20: FragC;
+    var acc21: FragC;
+    var acc30: FragC;
+    var acc31: FragC;
+
+    let steps = (pc.k + BK - 1u) / BK;
+    put_chunks(0u, t, ta, tb, load_chunks(z, row0, col0, 0u, t, ta, tb));
+    workgroupBarrier();
+
+    for (var s = 0u; s < steps; s++) {
+        let cur = s & 1u;
+        let more = s + 1u < steps;
+        // Prefetch step s+1 into registers while step s is multiplied out.
+        var next: Chunks;
+        if more {
+            next = load_chunks(z, row0, col0, (s + 1u) * BK, t, ta, tb);
+        }
+        let base_a = cur * 2u * REGION;
+        let base_b = base_a + REGION;
+        for (var kk = 0u; kk < BK; kk += F) {
+            let f0 = frag_a(base_a, wr, kk);
+            let f1 = frag_a(base_a, wr + F, kk);
+            let f2 = frag_a(base_a, wr + 2u * F, kk);
+            let f3 = frag_a(base_a, wr + 3u * F, kk);
+            let g0 = frag_b(base_b, wc, kk);
+            let g1 = frag_b(base_b, wc + F, kk);
+            acc00 = coopMultiplyAdd(f0, g0, acc00);
+            acc01 = coopMultiplyAdd(f0, g1, acc01);
+            acc10 = coopMultiplyAdd(f1, g0, acc10);
+            acc11 = coopMultiplyAdd(f1, g1, acc11);
+            acc20 = coopMultiplyAdd(f2, g0, acc20);
+            acc21 = coopMultiplyAdd(f2, g1, acc21);
+            acc30 = coopMultiplyAdd(f3, g0, acc30);
+            acc31 = coopMultiplyAdd(f3, g1, acc31);
+        }
+        // The other buffer was last read in step s-1, before the barrier that ended it.
+        if more {
+            put_chunks(cur ^ 1u, t, ta, tb, next);
+        }
+        workgroupBarrier();
+    }
+
+    let c_base = z * pc.m * pc.n;
+    let i0 = row0 + wr;
+    let j0 = col0 + wc;
+    // Workgroup-uniform: depends only on the tile position and the push constants.
+    let interior = row0 + TILE <= pc.m && col0 + TILE <= pc.n && pc.n % 4u == 0u;
+    if interior {
+        let n = pc.n;
+        emit_direct(acc00, c_base + i0 * n + j0);
+        emit_direct(acc01, c_base + i0 * n + j0 + F);
+        emit_direct(acc10, c_base + (i0 + F) * n + j0);
+        emit_direct(acc11, c_base + (i0 + F) * n + j0 + F);
+        emit_direct(acc20, c_base + (i0 + 2u * F) * n + j0);
+        emit_direct(acc21, c_base + (i0 + 2u * F) * n + j0 + F);
+        emit_direct(acc30, c_base + (i0 + 3u * F) * n + j0);
+        emit_direct(acc31, c_base + (i0 + 3u * F) * n + j0 + F);
+    } else {
+        emit_staged(acc00, i0, j0, c_base, sg, lane);
+        emit_staged(acc01, i0, j0 + F, c_base, sg, lane);
+        emit_staged(acc10, i0 + F, j0, c_base, sg, lane);
+        emit_staged(acc11, i0 + F, j0 + F, c_base, sg, lane);
+        emit_staged(acc20, i0 + 2u * F, j0, c_base, sg, lane);
+        emit_staged(acc21, i0 + 2u * F, j0 + F, c_base, sg, lane);
+        emit_staged(acc30, i0 + 3u * F, j0, c_base, sg, lane);
+        emit_staged(acc31, i0 + 3u * F, j0 + F, c_base, sg, lane);
+    }
+}
