@@ -284,12 +284,19 @@ fn overfits_a_circle_and_samples_it_back() {
         }
         after.push(c);
     }
-    // Chunks of 64 points integrate exactly what one chunk of all points does.
+    // Chunks of 64 points integrate what one chunk of all points does. Not bit for bit: a
+    // 64-row product takes the 32x32-tile matmul kernel and a 150-row one the 128x128 kernel,
+    // which may round differently (lavapipe 25: 0 difference; lavapipe 26, whose LLVM contracts
+    // differently: 3.4e-5 after 3 Heun steps). A chunking error would move points by ~1.
     let spec =
         SampleSpec { points: 150, steps: 3, sampler: Sampler::Heun, seed: 5, precision: Precision::F32 };
     let whole = dec.sample(&tokens, tau, &spec).unwrap().read::<f32>().unwrap();
     let chunked = dec.sample_in_chunks(&tokens, tau, &spec, 64).unwrap().read::<f32>().unwrap();
-    assert!(max_abs_err(&chunked, &f64s(&whole)) < 1e-5);
+    let chunk_err = max_abs_err(&chunked, &f64s(&whole));
+    assert!(chunk_err < 2e-4, "chunked sampling differs from whole by {chunk_err:.3e}");
+    if verbose() {
+        eprintln!("chunks of 64 against one chunk: max difference {chunk_err:.3e}");
+    }
     if verbose() {
         eprintln!(
             "L_V {first:.4} (mean of first 10 steps) -> {last:.4} (mean of last 30) in {steps} steps, \

@@ -23,6 +23,8 @@ pub struct Caps {
     pub compute_full_subgroups: bool,
     /// Subgroup arithmetic (subgroupAdd and friends) in compute shaders.
     pub subgroup_arithmetic: bool,
+    /// Subgroup shuffles (subgroupShuffleXor) in compute shaders.
+    pub subgroup_shuffle: bool,
     pub max_shared_memory: u32,
     pub max_workgroup_invocations: u32,
     pub max_workgroup_count: [u32; 3],
@@ -202,6 +204,10 @@ impl Caps {
                 max_subgroup_size: p13.max_subgroup_size,
                 subgroup_size_control: f13.subgroup_size_control == vk::TRUE,
                 compute_full_subgroups: f13.compute_full_subgroups == vk::TRUE,
+                subgroup_shuffle: p11
+                    .subgroup_supported_operations
+                    .contains(vk::SubgroupFeatureFlags::SHUFFLE)
+                    && p11.subgroup_supported_stages.contains(vk::ShaderStageFlags::COMPUTE),
                 subgroup_arithmetic: p11
                     .subgroup_supported_operations
                     .contains(vk::SubgroupFeatureFlags::ARITHMETIC | vk::SubgroupFeatureFlags::VOTE)

@@ -117,7 +117,7 @@ impl Gpu {
             return Some("f32 atomic add (VK_EXT_shader_atomic_float)");
         }
         if n.coop_matrix && c.coop_matrix_f16.is_none() {
-            return Some("16x16x16 f16 cooperative matrices (VK_KHR_cooperative_matrix)");
+            return Some("f16 cooperative matrices (VK_KHR_cooperative_matrix)");
         }
         if kernel.info().shared_bytes > c.max_shared_memory {
             return Some("more workgroup memory than the device has");

@@ -3,20 +3,10 @@
 // 0..2 of q, k and v, and `load_q`, `load_k`, `load_v`, which return element i of its
 // tensor (a vec4 of 4 consecutive features) as f32. Everything after the load is f32.
 
-struct Params {
-    heads: u32,
-    items: u32, // work-list entries x heads: the workgroups that have work
-    scale: f32,
-    nq: u32,    // rows of q; offsets are clamped to it, so bad offsets cannot read past it
-    nk: u32,    // rows of k and v
-}
+// @include attention_common.wgsl
 
-@group(0) @binding(3) var<storage, read> q_off: array<u32>;
-@group(0) @binding(4) var<storage, read> k_off: array<u32>;
-@group(0) @binding(5) var<storage, read> work: array<vec2<u32>>;
 @group(0) @binding(6) var<storage, read_write> o: array<vec4<f32>>;
 @group(0) @binding(7) var<storage, read_write> lse: array<f32>;
-var<immediate> pc: Params;
 
 // Staged tiles: keys and values (forward, dq), or queries, output gradients, lse and delta
 // (dk, dv).
@@ -24,33 +14,6 @@ var<workgroup> tile_a: array<vec4<f32>, B * D4>;
 var<workgroup> tile_b: array<vec4<f32>, B * D4>;
 var<workgroup> tile_lse: array<f32, B>;
 var<workgroup> tile_delta: array<f32, B>;
-
-fn neg_inf() -> f32 {
-    return bitcast<f32>(0xff800000u);
-}
-
-// The work item of this workgroup: (segment, first row, head), or segment 0xffffffff.
-fn work_item(wid: vec3<u32>, nwg: vec3<u32>) -> vec3<u32> {
-    let id = wid.x + wid.y * nwg.x;
-    if (id >= pc.items) {
-        return vec3<u32>(0xffffffffu, 0u, 0u);
-    }
-    let w = work[id / pc.heads];
-    return vec3<u32>(w.x, w.y, id % pc.heads);
-}
-
-// The rows of segment `seg` on each side, clamped to the tensors (so bad offsets cannot reach
-// past them): (own end, other begin, other end). The block's own side is the queries' in
-// `fwd` and `bwd_dq`, the keys' in `bwd_dkv` (`keys_own`). Nothing here depends on the
-// invocation, so loops bounded by it stay uniform for their barriers.
-fn segment_rows(seg: u32, keys_own: bool) -> vec3<u32> {
-    if keys_own {
-        let begin = min(q_off[seg], pc.nq);
-        return vec3<u32>(min(k_off[seg + 1u], pc.nk), begin, clamp(q_off[seg + 1u], begin, pc.nq));
-    }
-    let begin = min(k_off[seg], pc.nk);
-    return vec3<u32>(min(q_off[seg + 1u], pc.nq), begin, clamp(k_off[seg + 1u], begin, pc.nk));
-}
 
 // Stages rows first .. first + count of a [rows, H, D] tensor, head h, into a tile.
 fn stage_k(first: u32, count: u32, h: u32, lid: u32) {

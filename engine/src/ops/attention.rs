@@ -102,6 +102,9 @@ struct Kernels {
     fwd: KernelId,
     /// The forward pass on f16 q, k, v.
     fwd_f16: KernelId,
+    /// The same on cooperative matrices: 16x16x16 and 8x8x8 fragments.
+    fwd_coop16: KernelId,
+    fwd_coop8: KernelId,
     dq: KernelId,
     dkv: KernelId,
 }
@@ -112,24 +115,32 @@ fn kernels_for(d: usize) -> Option<Kernels> {
         16 => Kernels {
             fwd: ATTENTION_D16_FWD,
             fwd_f16: ATTENTION_F16_D16_FWD,
+            fwd_coop16: ATTENTION_COOP_D16_FWD,
+            fwd_coop8: ATTENTION_COOP8_D16_FWD,
             dq: ATTENTION_D16_BWD_DQ,
             dkv: ATTENTION_D16_BWD_DKV,
         },
         32 => Kernels {
             fwd: ATTENTION_D32_FWD,
             fwd_f16: ATTENTION_F16_D32_FWD,
+            fwd_coop16: ATTENTION_COOP_D32_FWD,
+            fwd_coop8: ATTENTION_COOP8_D32_FWD,
             dq: ATTENTION_D32_BWD_DQ,
             dkv: ATTENTION_D32_BWD_DKV,
         },
         64 => Kernels {
             fwd: ATTENTION_D64_FWD,
             fwd_f16: ATTENTION_F16_D64_FWD,
+            fwd_coop16: ATTENTION_COOP_D64_FWD,
+            fwd_coop8: ATTENTION_COOP8_D64_FWD,
             dq: ATTENTION_D64_BWD_DQ,
             dkv: ATTENTION_D64_BWD_DKV,
         },
         72 => Kernels {
             fwd: ATTENTION_D72_FWD,
             fwd_f16: ATTENTION_F16_D72_FWD,
+            fwd_coop16: ATTENTION_COOP_D72_FWD,
+            fwd_coop8: ATTENTION_COOP8_D72_FWD,
             dq: ATTENTION_D72_BWD_DQ,
             dkv: ATTENTION_D72_BWD_DKV,
         },
@@ -169,6 +180,45 @@ fn check(q: &Tensor, k: &Tensor, v: &Tensor, seg: &Segments) -> Result<(usize, u
         }
     }
     Ok((nq, nk, h, d))
+}
+
+/// The cooperative-matrix forward kernel for f16 inputs of head width `d` on this device, if
+/// it has one: FxFxF f16 fragments with F = 16 or 8 (see `Caps::coop_matrix_f16`), subgroups of
+/// exactly F*F/8 invocations (each row of a block belongs to 8 lanes of one subgroup), subgroup
+/// shuffles, and the kernel's workgroup memory.
+pub fn coop_forward_kernel(gpu: &Gpu, d: usize) -> Option<KernelId> {
+    let caps = gpu.caps();
+    let kern = kernels_for(d)?;
+    let [f, _, _] = caps.coop_matrix_f16?;
+    let kernel = match f {
+        16 => kern.fwd_coop16,
+        8 => kern.fwd_coop8,
+        _ => return None,
+    };
+    let sg = f * f / 8;
+    let fits = caps.min_subgroup_size == sg && caps.max_subgroup_size == sg && caps.subgroup_shuffle;
+    (fits && gpu.supports(kernel)).then_some(kernel)
+}
+
+/// A cooperative-matrix workgroup always computes 32 query rows, so segments averaging fewer
+/// rows than this (the encoder's per-cell cross-attention has one query per cell) run the
+/// portable kernel, whose invocations each own one row.
+pub const COOP_MIN_ROWS_PER_SEGMENT: usize = 8;
+
+/// Whether f16 inputs of head width `d`, `nq` query rows over `segments` segments, run the
+/// cooperative-matrix forward kernel on this device.
+pub fn coop_forward_chosen(gpu: &Gpu, d: usize, nq: usize, segments: usize) -> bool {
+    coop_forward_kernel(gpu, d).is_some() && nq >= COOP_MIN_ROWS_PER_SEGMENT * segments
+}
+
+/// Which forward kernel f16 inputs of head width `d` run on this device, for `velox info` and
+/// the benchmarks (segments of at least [`COOP_MIN_ROWS_PER_SEGMENT`] rows on average).
+pub fn f16_forward_variant(gpu: &Gpu, d: usize) -> &'static str {
+    if coop_forward_kernel(gpu, d).is_some() {
+        "cooperative-matrix: S = QK^T and PV on f16 fragments, f32 softmax; P rounded to f16"
+    } else {
+        "portable: f16 inputs widened to f32, f32 arithmetic"
+    }
 }
 
 /// The work list over the rows of `offsets` (blocks of `BLOCK` rows, one segment each):
@@ -217,7 +267,13 @@ pub fn attention(
     let (list, capacity) = work_list(rec, &seg.q_offsets, nq)?;
     let p = params(h, capacity, scale, nq, nk)?;
     let args = [q, k, v, &seg.q_offsets, &seg.k_offsets, &list, &o, &lse];
-    let kernel = if q.dtype() == DType::F16 { kern.fwd_f16 } else { kern.fwd };
+    let kernel = match q.dtype() {
+        DType::F16 => match coop_forward_kernel(&gpu, d) {
+            Some(k) if coop_forward_chosen(&gpu, d, nq, seg.count()) => k,
+            _ => kern.fwd_f16,
+        },
+        _ => kern.fwd,
+    };
     rec.dispatch_linear(kernel, (capacity * h) as u64, &args, &p)?;
     Ok(AttentionOut { o, lse })
 }

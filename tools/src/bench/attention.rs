@@ -2,9 +2,9 @@
 //! backward in f32 and forward on f16 inputs, time against the f64 reference (on the exact
 //! inputs, so the f16 rows' errors include the rounding of q, k and v).
 //!
-//! The f16 rows run the portable f16-input kernel (f16 reads, f32 arithmetic); there is no
-//! cooperative-matrix attention kernel yet, so their fraction of the f16 tensor peak shows
-//! how far that path is from the hardware.
+//! The f16 rows run the cooperative-matrix kernel where the device has one (precision
+//! "f16 coop": both products on f16 fragments, the softmax weights rounded to f16), else the
+//! portable f16-input kernel (precision "f16": f16 reads, f32 arithmetic).
 //!
 //! Error: the reference is computed on a sample of segments (all their rows, so o, dq, dk and
 //! dv are all exact there), or, for one dense segment too large for a CPU reference, on a
@@ -168,15 +168,17 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
             "all outputs of sampled segments".to_string()
         };
         let flops = attention::forward_flops(&case.q_lens, &k_lens, h, d);
+        let coop = attention::coop_forward_chosen(gpu, d, nq, case.q_lens.len());
+        let f16_name = if coop { "f16 coop" } else { "f16" };
         let shape = format!("{nq}x{nk} h{h} d{d} ({segments} seg)");
         for (pass, precision, ms, min, f, got, want) in [
             ("fwd", "f32", fwd_ms, fwd_min, flops, &fwd_got, &fwd_want),
-            ("fwd", "f16", f16_ms, f16_min, flops, &f16_got, &fwd_want),
+            ("fwd", f16_name, f16_ms, f16_min, flops, &f16_got, &fwd_want),
             ("bwd", "f32", bwd_ms, bwd_min, 2.5 * flops, &bwd_got, &bwd_want),
         ] {
             let tflops = f / (ms * 1e-3) / 1e12;
             let name = format!("attn {} {pass}", case.name);
-            let peak = if precision == "f16" { f16_peak } else { f32_peak };
+            let peak = if precision.starts_with("f16") { f16_peak } else { f32_peak };
             let r = Record::timed(
                 name,
                 shape.clone(),
