@@ -99,6 +99,36 @@ fn f32_awkward_shapes_all_transposes() {
 }
 
 #[test]
+fn narrow_sides_between_32_and_64_take_partial_64_tiles() {
+    // A narrow side of 33 to 64 takes the 64x64-tile kernel (4x4 outputs per invocation):
+    // sides that leave its tiles partly filled, in both directions, with every transpose.
+    let gpu = gpu();
+    let mut rng = Rng::new(12);
+    let mut rec = gpu.recorder().unwrap();
+    let mut cases = Vec::new();
+    for (m, n, k) in [(40, 47, 5), (100, 40, 33), (47, 200, 17), (33, 33, 70)] {
+        for (ta, tb) in [(false, false), (false, true), (true, false), (true, true)] {
+            let (sa, sb) = shapes(m, n, k, ta, tb, None, None);
+            let (a, b) = (rng.normal_vec(numel(&sa)), rng.normal_vec(numel(&sb)));
+            let out = matmul(
+                &mut rec,
+                &Tensor::from_slice(&gpu, &sa, &a).unwrap(),
+                &Tensor::from_slice(&gpu, &sb, &b).unwrap(),
+                ta,
+                tb,
+            )
+            .unwrap();
+            let (r, _) = reference::matmul(&f64s(&a), &sa, &f64s(&b), &sb, ta, tb).unwrap();
+            cases.push((format!("m={m} n={n} k={k} ta={ta} tb={tb}"), out, r));
+        }
+    }
+    rec.submit().unwrap();
+    for (what, out, r) in cases {
+        assert_nmse(&what, &out.read::<f32>().unwrap(), &r, F32_BOUND);
+    }
+}
+
+#[test]
 fn f32_batched_and_broadcast() {
     let gpu = gpu();
     let mut rng = Rng::new(2);

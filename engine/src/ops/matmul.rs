@@ -1,6 +1,6 @@
 //! Batched matrix multiply with f32 accumulation. Kernels: `shaders/matmul.wgsl` (tiled, every
 //! device, f32 or f16 operands), `shaders/matmul_small.wgsl` (f32 operands when M or N is 64 or
-//! less: 32x32 tiles) and `shaders/matmul_coop.wgsl` (f16 operands on cooperative matrices,
+//! less: 32x32 or 64x64 tiles) and `shaders/matmul_coop.wgsl` (f16 operands on cooperative matrices,
 //! where the device has them). A product with few output tiles and a long K (a weight gradient
 //! over many rows) is split along K into pieces summed afterwards ([`split_k`]), so the whole
 //! device works on it.
@@ -14,20 +14,21 @@ use crate::caps::Caps;
 use crate::device::Gpu;
 use crate::error::{Error, Result};
 use crate::kernels::{
-    KernelId, MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN, MATMUL_MAIN, MATMUL_MAIN_F16, MATMUL_SMALL_MAIN,
+    KernelId, MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN, MATMUL_MAIN, MATMUL_MAIN_F16, MATMUL_SMALL_TS32_MAIN,
+    MATMUL_SMALL_TS64_MAIN,
 };
 use crate::ops::binary::{binary_into, Binary};
 use crate::ops::reduce::{reduce, Reduce};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
-/// Output tile of one workgroup: the tiled and cooperative-matrix kernels, and the small-tile
-/// kernel for products with a narrow side.
+/// Output tile of one workgroup: the tiled and cooperative-matrix kernels.
 const TILE: usize = 128;
-const SMALL_TILE: usize = 32;
-/// A product whose M or N is at most this uses the small-tile kernel (f32 operands): a
-/// 128x128 tile would be mostly empty.
+/// A product whose M or N is at most this uses the narrow-tile kernel (f32 operands): a
+/// 128x128 tile would be mostly empty. Its tile is 32x32 when the narrow side is 32 or less,
+/// else 64x64 (4x4 outputs per invocation, twice the arithmetic per shared-memory read).
 const NARROW: usize = 64;
+const NARROW_32: usize = 32;
 /// Workgroup memory the cooperative-matrix kernels declare. 16x16 fragments: two buffers of two
 /// 128x40 f16 tiles (40 KiB) and one 16x16 f32 staging slot per subgroup for edge tiles (8 KiB).
 /// 8x8 fragments: k step 16, so two buffers of two 128x24 tiles (24 KiB), and 8 KiB of slots.
@@ -156,7 +157,7 @@ pub fn matmul_variant(gpu: &Gpu, dtype: DType) -> &'static str {
     match dtype {
         DType::F32 => {
             "tiled f32: 128x128 tile per 256 invocations, 8x8 per invocation, k step 8 \
-             (32x32 tiles when M or N <= 64)"
+             (32x32 tiles when M or N <= 32, 64x64 when <= 64)"
         }
         DType::F16 if coop_kernel(gpu.caps()).is_some_and(|k| gpu.supports(k)) => {
             if coop_kernel(gpu.caps()) == Some(MATMUL_COOP_MAIN) {
@@ -204,7 +205,11 @@ pub fn matmul_into(
     }
     let max = a.gpu().caps().max_workgroup_count;
     let kernel = choose_kernel(a.gpu(), a.dtype(), &p, trans_a, trans_b);
-    let tile = if kernel == MATMUL_SMALL_MAIN { SMALL_TILE } else { TILE };
+    let tile = match kernel {
+        MATMUL_SMALL_TS32_MAIN => 32,
+        MATMUL_SMALL_TS64_MAIN => 64,
+        _ => TILE,
+    };
     let groups = [p.n.div_ceil(tile), p.m.div_ceil(tile), if p.m == 0 || p.n == 0 { 0 } else { p.batch }];
     if groups[..2].iter().zip(max).any(|(&g, lim)| g > lim as usize) {
         return Err(Error::TooLarge(format!(
@@ -312,7 +317,14 @@ fn split_k_into(
 /// The kernel for one product.
 fn choose_kernel(gpu: &Gpu, dtype: DType, p: &Plan, trans_a: bool, trans_b: bool) -> KernelId {
     if dtype == DType::F32 {
-        return if p.m.min(p.n) <= NARROW { MATMUL_SMALL_MAIN } else { MATMUL_MAIN };
+        let narrow = p.m.min(p.n);
+        return if narrow <= NARROW_32 {
+            MATMUL_SMALL_TS32_MAIN
+        } else if narrow <= NARROW {
+            MATMUL_SMALL_TS64_MAIN
+        } else {
+            MATMUL_MAIN
+        };
     }
     match coop_kernel(gpu.caps()) {
         Some(k) if gpu.supports(k) && coop_layout_ok(p, trans_a, trans_b) => k,

@@ -16,7 +16,7 @@ type Shaped = (&'static str, usize, usize, usize, bool);
 struct Sizes {
     matmul: Vec<usize>,
     /// Products shaped like the models' (narrow activations, weight gradients over many rows):
-    /// the 32x32-tile kernel and the split along K.
+    /// the narrow-tile kernels and the split along K.
     shaped: Vec<Shaped>,
     softmax: Vec<(usize, usize)>,
     scan: Vec<usize>,
@@ -30,6 +30,8 @@ fn sizes(gpu: &Gpu, quick: bool) -> Sizes {
             matmul: vec![128, 256],
             shaped: vec![
                 ("narrow x@W", 10_000, 128, 32, false),
+                ("narrow 64 x@W", 10_000, 64, 256, false),
+                ("narrow 32 x@W", 10_000, 32, 128, false),
                 ("weight grad x^T dy", 32, 32, 10_000, true),
             ],
             softmax: vec![(256, 1024)],
@@ -42,6 +44,7 @@ fn sizes(gpu: &Gpu, quick: bool) -> Sizes {
             matmul: vec![1024, 2048, 4096, 8192],
             shaped: vec![
                 ("narrow x@W", 1 << 18, 32, 32, false),
+                ("narrow 64 x@W", 1 << 18, 64, 256, false),
                 ("tokens x@W", 8192, 2048, 512, false),
                 ("weight grad x^T dy", 512, 512, 1 << 18, true),
             ],
