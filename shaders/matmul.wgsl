@@ -1,5 +1,5 @@
-// Batched matrix multiply on every device: out[z] = op(A)[z] @ op(B)[z], or out[z] += ... when
-// accumulating, with f32 accumulation. Host side and f64 reference: engine/src/ops/matmul.rs.
+// Batched matrix multiply on every device: out[z] = op(A)[z] @ op(B)[z] (+ a bias row), or
+// out[z] += ... when accumulating, with f32 accumulation. Host side and f64 reference: engine/src/ops/matmul.rs.
 // The f16 path on devices with cooperative matrices is shaders/matmul_coop.wgsl.
 //
 // Entry points: `main` reads f32 operands; `main_f16` reads f16 operands stored two to a 32-bit
@@ -26,6 +26,9 @@
 @group(0) @binding(0) var<storage, read> a: array<u32>;
 @group(0) @binding(1) var<storage, read> b: array<u32>;
 @group(0) @binding(2) var<storage, read_write> out: array<f32>;
+// [n] f32, added to each row when flags bit 2 is set (the bias of a linear layer); otherwise
+// the host binds any buffer here and nothing reads it.
+@group(0) @binding(3) var<storage, read> bias: array<f32>;
 var<immediate> pc: Params;
 
 const TILE: u32 = 128u;
@@ -120,6 +123,9 @@ fn write4(c_base: u32, i: u32, j0: u32, v: vec4<f32>) {
         if j < pc.n {
             let o = c_base + i * pc.n + j;
             var x = v[c];
+            if (pc.flags & 4u) != 0u {
+                x += bias[j];
+            }
             if pc.accumulate != 0u {
                 x += out[o];
             }

@@ -18,6 +18,8 @@
 @group(0) @binding(0) var<storage, read> a: array<f32>;
 @group(0) @binding(1) var<storage, read> b: array<f32>;
 @group(0) @binding(2) var<storage, read_write> out: array<f32>;
+// [n] f32, added to each row when flags bit 2 is set (as in matmul.wgsl).
+@group(0) @binding(3) var<storage, read> bias: array<f32>;
 var<immediate> pc: Params;
 
 const TS: u32 = 32u;
@@ -91,6 +93,9 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid
             if row < pc.m && col < pc.n {
                 let o = c_base + row * pc.n + col;
                 var x = acc[i * R + j];
+                if (pc.flags & 4u) != 0u {
+                    x += bias[col];
+                }
                 if pc.accumulate != 0u {
                     x += out[o];
                 }

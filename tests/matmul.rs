@@ -5,7 +5,8 @@ use common::*;
 use half::f16;
 use velox::engine::kernels::{MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN};
 use velox::engine::ops::matmul::{
-    coop_eligible, coop_kernel, coop_layout_ok, matmul, matmul_into, matmul_variant, plan, reference,
+    coop_eligible, coop_kernel, coop_layout_ok, matmul, matmul_bias, matmul_into, matmul_variant, plan,
+    reference,
 };
 use velox::engine::Error;
 
@@ -125,6 +126,65 @@ fn narrow_sides_between_32_and_64_take_partial_64_tiles() {
     rec.submit().unwrap();
     for (what, out, r) in cases {
         assert_nmse(&what, &out.read::<f32>().unwrap(), &r, F32_BOUND);
+    }
+}
+
+#[test]
+fn bias_is_added_to_every_row() {
+    // A bias per output column, added by every kernel: the tiled kernel (sides over 64), both
+    // narrow-tile kernels, batches, a product split along K (added after the pieces are
+    // summed), and f16 operands (the portable kernel adds it itself; the cooperative kernels
+    // by a separate pass).
+    let gpu = gpu();
+    let mut rng = Rng::new(13);
+    let mut rec = gpu.recorder().unwrap();
+    let mut cases = Vec::new();
+    let list: [(usize, usize, usize, Option<usize>, bool, bool); 7] = [
+        (130, 70, 20, None, false, false),
+        (100, 17, 9, None, false, true),
+        (40, 47, 33, None, true, false),
+        (65, 66, 8, Some(3), false, false),
+        (40, 24, 4000, None, true, false),
+        (136, 40, 24, Some(2), false, false),
+        (9, 16, 40, None, true, true),
+    ];
+    for (i, &(m, n, k, batch, ta, tb)) in list.iter().enumerate() {
+        let (sa, sb) = shapes(m, n, k, ta, tb, batch, None);
+        let (a, b) = (rng.normal_vec(numel(&sa)), rng.normal_vec(numel(&sb)));
+        let bias = rng.normal_vec(n);
+        let half = i >= 5;
+        let (ta_, tb_, a64, b64) = if half {
+            let (ah, bh) = (round_f16(&a), round_f16(&b));
+            let widen = |h: &[f16]| h.iter().map(|v| v.to_f64()).collect::<Vec<_>>();
+            let (a64, b64) = (widen(&ah), widen(&bh));
+            (
+                Tensor::from_slice(&gpu, &sa, &ah).unwrap(),
+                Tensor::from_slice(&gpu, &sb, &bh).unwrap(),
+                a64,
+                b64,
+            )
+        } else {
+            (
+                Tensor::from_slice(&gpu, &sa, &a).unwrap(),
+                Tensor::from_slice(&gpu, &sb, &b).unwrap(),
+                f64s(&a),
+                f64s(&b),
+            )
+        };
+        let tbias = Tensor::from_slice(&gpu, &[n], &bias).unwrap();
+        let out = matmul_bias(&mut rec, &ta_, &tb_, ta, tb, &tbias).unwrap();
+        let (r, _) = reference::matmul(&a64, &sa, &b64, &sb, ta, tb).unwrap();
+        let want: Vec<f64> = r.iter().enumerate().map(|(e, x)| x + bias[e % n] as f64).collect();
+        cases.push((format!("bias m={m} n={n} k={k} batch={batch:?} ta={ta} tb={tb} f16={half}"), out, want));
+    }
+    let a = Tensor::from_slice(&gpu, &[4, 3], &[0.0f32; 12]).unwrap();
+    let b = Tensor::from_slice(&gpu, &[3, 5], &[0.0f32; 15]).unwrap();
+    let wrong = Tensor::from_slice(&gpu, &[4], &[0.0f32; 4]).unwrap();
+    let err = matmul_bias(&mut rec, &a, &b, false, false, &wrong).unwrap_err();
+    assert!(err.to_string().contains("bias must be f32 with 5 values"), "{err}");
+    rec.submit().unwrap();
+    for (what, out, want) in cases {
+        assert_nmse(&what, &out.read::<f32>().unwrap(), &want, F16_ROUNDED_BOUND);
     }
 }
 

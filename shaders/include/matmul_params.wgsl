@@ -15,6 +15,7 @@ struct Params {
     b_batch: u32,
     // Bit 0: A is transposed ([K, M] in memory); bit 1: B is transposed ([N, K]). The tiled f32
     // kernel uses the strides alone; the cooperative-matrix kernel switches layouts on them.
+    // Bit 2 (tiled and narrow-tile kernels): add bias[j] (binding 3) to every output of column j.
     flags: u32,
     batch_base: u32, // first batch entry of this dispatch (batches beyond the z limit are split)
 }

@@ -182,6 +182,25 @@ pub fn matmul(rec: &mut Recorder, a: &Tensor, b: &Tensor, trans_a: bool, trans_b
     Ok(out)
 }
 
+/// `op(a) @ op(b) + bias` into a new f32 tensor: `bias` is f32 with one value per output column
+/// (a linear layer's bias), added to every row. The tiled and narrow-tile kernels add it as
+/// they write their outputs; elsewhere (cooperative matrices, products split along K) it is a
+/// separate add.
+pub fn matmul_bias(
+    rec: &mut Recorder,
+    a: &Tensor,
+    b: &Tensor,
+    trans_a: bool,
+    trans_b: bool,
+    bias: &Tensor,
+) -> Result<Tensor> {
+    let p = plan(a.shape(), b.shape(), trans_a, trans_b)?;
+    check_dtypes(a, b)?;
+    let out = Tensor::empty(a.gpu(), &p.out_shape, DType::F32)?;
+    product(rec, a, b, trans_a, trans_b, &out, false, Some(bias))?;
+    Ok(out)
+}
+
 /// `out = op(a) @ op(b)`, or `out += op(a) @ op(b)` when `accumulate` (gradient accumulation).
 /// `out` must be f32 with the product's shape and must not share storage with `a` or `b`.
 pub fn matmul_into(
@@ -193,7 +212,31 @@ pub fn matmul_into(
     out: &Tensor,
     accumulate: bool,
 ) -> Result<()> {
+    product(rec, a, b, trans_a, trans_b, out, accumulate, None)
+}
+
+/// Kernels that take a bias (binding 3, flags bit 2); the others have three bindings.
+fn takes_bias(kernel: KernelId) -> bool {
+    [MATMUL_MAIN, MATMUL_MAIN_F16, MATMUL_SMALL_TS32_MAIN, MATMUL_SMALL_TS64_MAIN].contains(&kernel)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn product(
+    rec: &mut Recorder,
+    a: &Tensor,
+    b: &Tensor,
+    trans_a: bool,
+    trans_b: bool,
+    out: &Tensor,
+    accumulate: bool,
+    bias: Option<&Tensor>,
+) -> Result<()> {
     let p = plan(a.shape(), b.shape(), trans_a, trans_b)?;
+    if let Some(bias) = bias {
+        if bias.dtype() != DType::F32 || bias.numel() != p.n {
+            return Err(Error::Shape(format!("matmul: bias must be f32 with {} values, got {bias:?}", p.n)));
+        }
+    }
     check_dtypes(a, b)?;
     if out.dtype() != DType::F32 || out.shape() != p.out_shape.as_slice() {
         return Err(Error::Shape(format!("matmul: out must be f32 {:?}, got {out:?}", p.out_shape)));
@@ -240,20 +283,39 @@ pub fn matmul_into(
     };
     let tiles = groups[0] * groups[1];
     let splits = split_k(p.batch, tiles, p.k);
-    if splits > 1 && kernel != MATMUL_COOP_MAIN && kernel != MATMUL_COOP8_MAIN {
+    if splits > 1 && takes_bias(kernel) {
         let grid = [groups[0] as u32, groups[1] as u32];
-        return split_k_into(rec, kernel, grid, [a, b, out], &p, params, splits, accumulate);
+        split_k_into(rec, kernel, grid, [a, b, out], &p, params, splits, accumulate)?;
+        return add_bias(rec, out, bias);
     }
+    // The bias binding: the bias itself, or any buffer when there is none (nothing reads it).
+    let fused = bias.filter(|_| takes_bias(kernel));
+    let params = Params { flags: params.flags | if fused.is_some() { 4 } else { 0 }, ..params };
+    let with_bias = [a, b, out, fused.unwrap_or(b)];
+    let args: &[&Tensor] = if takes_bias(kernel) { &with_bias } else { &with_bias[..3] };
     // Batches beyond the device's z limit go in several dispatches.
     let z_max = max[2] as usize;
     let mut base = 0;
     while base < groups[2] {
         let count = (groups[2] - base).min(z_max);
         let chunk = [groups[0] as u32, groups[1] as u32, count as u32];
-        rec.dispatch(kernel, chunk, &[a, b, out], &Params { batch_base: base as u32, ..params })?;
+        rec.dispatch(kernel, chunk, args, &Params { batch_base: base as u32, ..params })?;
         base += count;
     }
+    if fused.is_none() {
+        add_bias(rec, out, bias)?;
+    }
     Ok(())
+}
+
+/// `out += bias` along its rows, for the kernels that cannot add it themselves.
+fn add_bias(rec: &mut Recorder, out: &Tensor, bias: Option<&Tensor>) -> Result<()> {
+    match bias {
+        Some(bias) if out.numel() > 0 => {
+            binary_into(rec, out, &bias.reshape(&[bias.numel()])?, out, Binary::Add)
+        }
+        _ => Ok(()),
+    }
 }
 
 /// Workgroups a product should have at least: a few per compute unit of a large GPU.
@@ -301,10 +363,11 @@ fn split_k_into(
         b_batch: chunk as u32 * params.b_row,
         ..params
     };
-    rec.dispatch(kernel, [gx, gy, splits as u32], &[a, b, &partial], &split)?;
+    // The kernels' bias binding is unused here (flags bit 2 clear): b stands in.
+    rec.dispatch(kernel, [gx, gy, splits as u32], &[a, b, &partial, b], &split)?;
     if rem > 0 {
         let tail = Params { k: rem as u32, batch_base: splits as u32, ..split };
-        rec.dispatch(kernel, [gx, gy, 1], &[a, b, &partial], &tail)?;
+        rec.dispatch(kernel, [gx, gy, 1], &[a, b, &partial, b], &tail)?;
     }
     let sums = reduce(rec, &partial, 0, Reduce::Sum)?.reshape(out.shape())?;
     if accumulate {

@@ -4,7 +4,7 @@
 
 use velox_engine::ops::binary::{binary_into, Binary};
 use velox_engine::ops::cast::cast;
-use velox_engine::ops::matmul::{matmul, matmul_into};
+use velox_engine::ops::matmul::{matmul, matmul_bias, matmul_into};
 use velox_engine::ops::reduce::{reduce, Reduce};
 use velox_engine::{DType, Precision, Recorder, Result, Tensor};
 
@@ -47,17 +47,15 @@ impl Linear {
     /// way.
     pub fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<(Tensor, LinearCache)> {
         let x2 = as_rows("linear", x, self.in_features)?;
-        let y = match rec.precision() {
-            Precision::F32 => matmul(rec, &x2, &self.weight.value, false, false)?,
-            Precision::F16 => {
-                let x16 = cast(rec, &x2, DType::F16)?;
-                let w16 = self.weight.value_f16(rec)?;
-                matmul(rec, &x16, &w16, false, false)?
-            }
+        let (xm, w) = match rec.precision() {
+            Precision::F32 => (x2.clone(), self.weight.value.clone()),
+            Precision::F16 => (cast(rec, &x2, DType::F16)?, self.weight.value_f16(rec)?),
         };
-        if let Some(b) = &self.bias {
-            binary_into(rec, &y, &b.value, &y, Binary::Add)?;
-        }
+        // The bias is added by the matmul kernel as it writes (a separate pass where it cannot).
+        let y = match &self.bias {
+            Some(b) => matmul_bias(rec, &xm, &w, false, false, &b.value)?,
+            None => matmul(rec, &xm, &w, false, false)?,
+        };
         let mut y_shape = x.shape().to_vec();
         *y_shape.last_mut().unwrap() = self.out_features;
         Ok((y.reshape(&y_shape)?, LinearCache { x: x2, x_shape: x.shape().to_vec() }))
