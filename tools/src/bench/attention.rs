@@ -224,6 +224,38 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
             .error(0.0, 0.0, "not checked (timing baseline)");
             print_row(&r);
             records.push(r);
+
+            // The same on f16 operands, the baseline of the f16 attention rows. Windows are
+            // rounded up to a multiple of 8 rows so both products suit the cooperative-matrix
+            // kernel where there is one (its operands' contiguous axes must be multiples of 8).
+            let w8 = w.next_multiple_of(8);
+            let mut rec = gpu.recorder()?;
+            let a32 = Tensor::from_slice(gpu, &[b, w8, d], &rng.normal_vec(b * w8 * d))?;
+            let p32 = Tensor::from_slice(gpu, &[b, w8, w8], &rng.normal_vec(b * w8 * w8))?;
+            let (a16, p16) = (cast(&mut rec, &a32, DType::F16)?, cast(&mut rec, &p32, DType::F16)?);
+            rec.submit()?;
+            let s = Tensor::empty(gpu, &[b, w8, w8], DType::F32)?;
+            let o2 = Tensor::empty(gpu, &[b, w8, d], DType::F32)?;
+            let timing = time_gpu(gpu, repeats, |rec| {
+                matmul::matmul_into(rec, &a16, &a16, false, true, &s, false)?;
+                matmul::matmul_into(rec, &p16, &a16, false, false, &o2, false)
+            })?;
+            let f = 4.0 * (b * w8 * w8 * d) as f64;
+            let tflops = f / (timing.0 * 1e-3) / 1e12;
+            let r = Record::timed(
+                "window matmuls alone",
+                format!("{b} x ({w8}x{w8}x{d}) x2"),
+                "f16",
+                &device,
+                timing,
+                repeats,
+                tflops,
+                "TFLOP/s",
+            )
+            .peak(f16_peak.map(|p| tflops / p))
+            .error(0.0, 0.0, "not checked (timing baseline)");
+            print_row(&r);
+            records.push(r);
         }
     }
     Ok(records)
