@@ -22,7 +22,8 @@
 //    maximum with three xor shuffles, rescale their running sums, and write P = exp(S*scale - m)
 //    to `ps` as f16; the running sum adds the rounded P, so the weights that multiply V are
 //    exactly the ones the output is divided by;
-// 4. O_tile = P V: (BQ/F) x (DP/F) fragments, stored to `so` as f32 (S is consumed);
+// 4. O_tile = P V: (BQ/F) x (DP/F) fragments, stored to `so` as f32 (S is consumed); where
+//    there are fewer fragments than subgroups the keys are split among them (KS below);
 // 5. each row's 8 lanes keep its running output in registers, features j, j+8, ..., and update
 //    it as o = o * exp(m_old - m_new) + O_tile. WGSL cooperative matrices give no access to
 //    their elements, so this rescaling is why O_tile goes through workgroup memory.
@@ -54,9 +55,16 @@ const NSG: u32 = 256u / SG;
 const NSF: u32 = (BQ / F) * (BK / F);
 const NOF: u32 = (BQ / F) * (DP / F);
 const S_ROUNDS: u32 = (NSF + NSG - 1u) / NSG;
-const O_ROUNDS: u32 = (NOF + NSG - 1u) / NSG;
-// `so` holds S or O_tile, then one FxF scratch slot for the stores of spare subgroups.
-const SO_MAIN: u32 = max(BQ * RS, BQ * RO);
+// Where O_tile has fewer fragments than there are subgroups (narrow heads: D = 16 or 32), the
+// keys of a tile are split into KS parts, each subgroup multiplying one part into its own
+// partial O_tile, and the output pass adds the parts: no subgroup idles or repeats work.
+// (NOF divides NSG whenever it is smaller, and BK / KS stays a multiple of F.)
+const KS: u32 = max(1u, NSG / NOF);
+const KB: u32 = BK / KS;
+const O_ROUNDS: u32 = (NOF * KS + NSG - 1u) / NSG;
+// `so` holds S, or the KS partial O_tiles; then one FxF scratch slot for the stores of spare
+// subgroups.
+const SO_MAIN: u32 = max(BQ * RS, KS * BQ * RO);
 
 var<workgroup> qs: array<f16, BQ * RQ>;
 var<workgroup> ks: array<f16, BK * RQ>;
@@ -203,19 +211,24 @@ fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
         m = m_new;
         workgroupBarrier();
 
-        // 4. O_tile = P V. V's fragment (k = key, n = feature) is V read row-major.
+        // 4. O_tile = P V, in KS parts over the keys. V's fragment (k = key, n = feature) is V
+        // read row-major.
         for (var i = 0u; i < O_ROUNDS; i++) {
             let f = sg + i * NSG;
-            let fc = min(f, NOF - 1u);
-            let ri = (fc / (DP / F)) * F;
-            let ci = (fc % (DP / F)) * F;
+            let fc = min(f, NOF * KS - 1u);
+            let part = fc / NOF;
+            let fo = fc % NOF;
+            let ri = (fo / (DP / F)) * F;
+            let ci = (fo % (DP / F)) * F;
             var acc_f = zero;
-            for (var kk = 0u; kk < BK; kk += F) {
+            for (var kk = part * KB; kk < (part + 1u) * KB; kk += F) {
                 let a = coopLoadT<FragA>(&ps[ri * RP + kk], RP);
                 let b = coopLoadT<FragB>(&vs[kk * RQ + ci], RQ);
                 acc_f = coopMultiplyAdd(a, b, acc_f);
             }
-            let slot = so_slot(f, NOF, DP / F, RO);
+            var slot = so_slot(fo, NOF, DP / F, RO);
+            slot.x += part * BQ * RO;
+            slot = select(vec2<u32>(SO_MAIN, F), slot, f < NOF * KS);
             let value = acc_f;
             let dst = &so[slot.x];
             let stride = slot.y;
@@ -223,9 +236,13 @@ fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
         }
         workgroupBarrier();
 
-        // 5. Rescale the running output and add this tile's.
+        // 5. Rescale the running output and add this tile's parts.
         for (var c = 0u; c < D / 8u; c++) {
-            acc[c] = acc[c] * correction + so[r * RO + j + 8u * c];
+            var tile = 0.0;
+            for (var p = 0u; p < KS; p++) {
+                tile += so[p * BQ * RO + r * RO + j + 8u * c];
+            }
+            acc[c] = acc[c] * correction + tile;
         }
     }
 
