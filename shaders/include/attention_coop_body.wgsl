@@ -55,6 +55,8 @@ const NSG: u32 = 256u / SG;
 const NSF: u32 = (BQ / F) * (BK / F);
 const NOF: u32 = (BQ / F) * (DP / F);
 const S_ROUNDS: u32 = (NSF + NSG - 1u) / NSG;
+// Each subgroup computes the same S fragment every tile, which lets it keep its Q fragments.
+const_assert S_ROUNDS == 1u;
 // Where O_tile has fewer fragments than there are subgroups (narrow heads: D = 16 or 32), the
 // keys of a tile are split into KS parts, each subgroup multiplying one part into its own
 // partial O_tile, and the output pass adds the parts: no subgroup idles or repeats work.
@@ -159,6 +161,14 @@ fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
         acc[c] = 0.0;
     }
     stage_q(q0, nrows, h, t);
+    workgroupBarrier();
+    // The S fragments of a subgroup keep their rows from tile to tile (one round: NSF <= NSG),
+    // so its Q fragments are read from workgroup memory once, here, and kept.
+    let q_rows = (min(sg, NSF - 1u) / (BK / F)) * F;
+    var qf: array<FragA, DP / F>;
+    for (var d = 0u; d < DP / F; d++) {
+        qf[d] = coopLoadT<FragA>(&qs[q_rows * RQ + d * F], RQ);
+    }
 
     for (var kt = k_begin; kt < k_end; kt += BK) {
         let count = min(BK, k_end - kt);
@@ -171,13 +181,11 @@ fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
         for (var i = 0u; i < S_ROUNDS; i++) {
             let f = sg + i * NSG;
             let fc = min(f, NSF - 1u);
-            let ri = (fc / (BK / F)) * F;
-            let ci = (fc % (BK / F)) * F;
+            let ci = (fc % (BK / F)) * F; // its rows are q_rows
             var s = zero;
-            for (var d0 = 0u; d0 < DP; d0 += F) {
-                let a = coopLoadT<FragA>(&qs[ri * RQ + d0], RQ);
-                let b = coopLoad<FragB>(&ks[ci * RQ + d0], RQ);
-                s = coopMultiplyAdd(a, b, s);
+            for (var d = 0u; d < DP / F; d++) {
+                let b = coopLoad<FragB>(&ks[ci * RQ + d * F], RQ);
+                s = coopMultiplyAdd(qf[d], b, s);
             }
             // naga 30 lowers coopStore without first emitting the expressions in its arguments,
             // so each argument is bound by an earlier `let`.
