@@ -10,26 +10,30 @@
 // tiles, in elements, which spreads rows over the banks where that matters).
 //
 // One workgroup of 256 invocations takes one work item: BQ = 32 query rows of one segment and
-// one head. For each tile of BK keys of the segment:
+// one head. The queries are staged into workgroup memory as f16 once, and each subgroup keeps
+// the Q fragments of its S rows in registers; its output fragments (the running, unnormalised
+// O) also stay in registers from the first key tile to the last. For each tile of BK keys:
 // 1. the keys and values are staged into workgroup memory as f16 (rows past the segment and
-//    features past D zero; the queries were staged once, the same way, before the loop);
-// 2. S = Q K^T: (BQ/F) x (BK/F) fragments, each subgroup computing one (or, where there are
-//    fewer fragments than subgroups, computing a copy it stores to a scratch slot: naga wants
-//    every cooperative operation in uniform control flow, so no subgroup branches around them),
-//    stored row-major to `so` as f32;
+//    features past D zero);
+// 2. S = Q K^T: (BQ/F) x (BK/F) fragments, one per subgroup (or, where there are fewer
+//    fragments than subgroups, a copy stored to a scratch slot: naga wants every cooperative
+//    operation in uniform control flow, so no subgroup branches around them), stored
+//    row-major to `so` as f32;
 // 3. the online softmax, in f32: each row belongs to 8 lanes of one subgroup (row
 //    r = sg * SG/8 + lane/8, lane j = lane % 8 owning keys j, j+8, ...), which take the tile's
-//    maximum with three xor shuffles, rescale their running sums, and write P = exp(S*scale - m)
-//    to `ps` as f16; the running sum adds the rounded P, so the weights that multiply V are
-//    exactly the ones the output is divided by;
-// 4. O_tile = P V: (BQ/F) x (DP/F) fragments, stored to `so` as f32 (S is consumed); where
-//    there are fewer fragments than subgroups the keys are split among them (KS below);
-// 5. each row's 8 lanes keep its running output in registers, features j, j+8, ..., and update
-//    it as o = o * exp(m_old - m_new) + O_tile. WGSL cooperative matrices give no access to
-//    their elements, so this rescaling is why O_tile goes through workgroup memory.
-// Four barriers per tile. After the last tile each lane divides by the row's sum (its 8 lanes'
-// partial sums, added by shuffles) and writes its features; lane 0 writes the log-sum-exp.
-// A segment with no keys gets zeros and lse = -inf, as in the portable kernels.
+//    maximum with three xor shuffles. The running maximum m moves lazily: only when some row's
+//    tile maximum exceeds its m by more than RESCALE_MARGIN, and then for every row at once (a
+//    workgroup vote read by workgroupUniformLoad, so the decision is uniform). Moving it
+//    rescales the output fragments, through workgroup memory since WGSL cooperative matrices
+//    give no element access; with typical scores that happens on the first tile only.
+//    P = exp(S*scale - m) (below e^8) goes to `ps` as f16, and the running sum adds the
+//    rounded P, so the weights that multiply V are exactly the ones the output is divided by;
+// 4. O += P V on the output fragments. Where O has fewer fragments than there are subgroups
+//    (D = 16 or 32) the tile's keys are split KS ways, each subgroup holding a partial O.
+// Five barriers per tile. After the last tile the partial outputs go through workgroup memory;
+// each row's lanes add them, divide by the row's sum (its 8 lanes' partial sums, added by
+// shuffles) and write their features j, j+8, ...; lane 0 writes the log-sum-exp. A segment
+// with no keys gets zeros and lse = -inf, as in the portable kernels.
 
 // @include attention_common.wgsl
 
@@ -73,6 +77,12 @@ var<workgroup> ks: array<f16, BK * RQ>;
 var<workgroup> vs: array<f16, BK * RQ>;
 var<workgroup> ps: array<f16, BQ * RP>;
 var<workgroup> so: array<f32, SO_MAIN + F * F>;
+// Whether any row wants to move the running maxima, for even and odd tiles (step 3).
+var<workgroup> rescale_flags: array<atomic<u32>, 2>;
+
+// How far a score may exceed the running maximum before the maxima move: P stays below
+// e^8 (about 3000), far inside f16's range, with f16's relative precision.
+const RESCALE_MARGIN: f32 = 8.0;
 
 fn unpack4(w: vec2<u32>) -> vec4<f16> {
     return vec4<f16>(vec2<f16>(unpack2x16float(w.x)), vec2<f16>(unpack2x16float(w.y)));
@@ -130,6 +140,15 @@ fn so_slot(f: u32, count: u32, cols: u32, stride: u32) -> vec2<u32> {
     return select(vec2<u32>(SO_MAIN, F), vec2<u32>(at, stride), f < count);
 }
 
+// Where subgroup fragment f (sg + round * NSG) of the output keeps its values in `so`: its part's
+// partial tile, or the scratch slot for spare subgroups.
+fn o_slot(f: u32) -> vec2<u32> {
+    let fc = min(f, NOF * KS - 1u);
+    var slot = so_slot(fc % NOF, NOF, DP / F, RO);
+    slot.x += (fc / NOF) * BQ * RO;
+    return select(vec2<u32>(SO_MAIN, F), slot, f < NOF * KS);
+}
+
 @compute @workgroup_size(256)
 fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
        @builtin(local_invocation_index) t: u32, @builtin(subgroup_id) sg: u32,
@@ -152,15 +171,16 @@ fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     let j = lane % 8u;
 
     // A zero fragment to start each product from (a variable declared without initialiser is
-    // zero; copying it makes that explicit in every loop iteration).
+    // zero; copying it makes that explicit).
     var zero: FragC;
     var m = neg_inf();
     var l = 0.0;
-    var acc: array<f32, D / 8u>;
-    for (var c = 0u; c < D / 8u; c++) {
-        acc[c] = 0.0;
-    }
     stage_q(q0, nrows, h, t);
+    // Workgroup memory starts undefined: clear the flags of step 3 before the first tile.
+    if t == 0u {
+        atomicStore(&rescale_flags[0], 0u);
+        atomicStore(&rescale_flags[1], 0u);
+    }
     workgroupBarrier();
     // The S fragments of a subgroup keep their rows from tile to tile (one round: NSF <= NSG),
     // so its Q fragments are read from workgroup memory once, here, and kept.
@@ -169,11 +189,16 @@ fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     for (var d = 0u; d < DP / F; d++) {
         qf[d] = coopLoadT<FragA>(&qs[q_rows * RQ + d * F], RQ);
     }
+    // Likewise each subgroup's output fragments (and key part) are the same for every tile: the
+    // running output stays in them, in registers, across all tiles.
+    var oacc: array<FragC, O_ROUNDS>;
+    for (var i = 0u; i < O_ROUNDS; i++) {
+        oacc[i] = zero;
+    }
 
     for (var kt = k_begin; kt < k_end; kt += BK) {
         let count = min(BK, k_end - kt);
-        // ks and vs were last read before the previous tile's third barrier; so was last written
-        // by this tile's products, which follow the barrier below.
+        // ks, vs and ps were last read before the previous tile's last barrier.
         stage_kv(kt, count, h, t);
         workgroupBarrier();
 
@@ -197,7 +222,11 @@ fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
         }
         workgroupBarrier();
 
-        // 3. Online softmax of row r over this tile's keys.
+        // 3. Online softmax of row r over this tile's keys, with a lazy maximum: the running
+        // maximum m moves only when a score exceeds it by more than RESCALE_MARGIN, and then
+        // for every row of the block at once (the decision must be uniform, since rescaling
+        // touches the output fragments). Until then P = exp(S - m) stays below e^8, well
+        // inside f16.
         var sv: array<f32, BK / 8u>;
         var tile_max = neg_inf();
         for (var i = 0u; i < BK / 8u; i++) {
@@ -208,7 +237,19 @@ fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
         tile_max = max(tile_max, subgroupShuffleXor(tile_max, 1u));
         tile_max = max(tile_max, subgroupShuffleXor(tile_max, 2u));
         tile_max = max(tile_max, subgroupShuffleXor(tile_max, 4u));
-        let m_new = max(m, tile_max);
+        // Tiles alternate between two flags: this tile's is raised by the subgroups that want
+        // to move, read by all after a barrier (a uniform decision), and the other one,
+        // last read a tile ago, is cleared for the next tile.
+        let parity = ((kt - k_begin) / BK) & 1u;
+        let wants = subgroupAny(tile_max > m + RESCALE_MARGIN);
+        if lane == 0u && wants {
+            atomicOr(&rescale_flags[parity], 1u);
+        }
+        if t == 0u {
+            atomicStore(&rescale_flags[parity ^ 1u], 0u);
+        }
+        let rescale = workgroupUniformLoad(&rescale_flags[parity]) != 0u;
+        let m_new = select(m, max(m, tile_max), rescale);
         let correction = exp(m - m_new);
         l *= correction;
         for (var i = 0u; i < BK / 8u; i++) {
@@ -217,40 +258,65 @@ fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
             l += f32(p);
         }
         m = m_new;
+        // Rescaling the output fragments goes through workgroup memory (no element access):
+        // every S score was read before the vote's barrier, so `so` is free. (The first tile
+        // always moves the maxima from -inf and scales the zero output by zero: naga cannot
+        // prove a test of the loop counter uniform, so that one round trip stays.)
+        if rescale {
+            for (var i = 0u; i < O_ROUNDS; i++) {
+                let slot = o_slot(sg + i * NSG);
+                let value = oacc[i];
+                let dst = &so[slot.x];
+                let stride = slot.y;
+                coopStoreT(value, dst, stride);
+            }
+            workgroupBarrier();
+            for (var p = 0u; p < KS; p++) {
+                for (var c = 0u; c < D / 8u; c++) {
+                    let e = p * BQ * RO + r * RO + j + 8u * c;
+                    so[e] *= correction;
+                }
+            }
+            workgroupBarrier();
+            for (var i = 0u; i < O_ROUNDS; i++) {
+                let slot = o_slot(sg + i * NSG);
+                oacc[i] = coopLoadT<FragC>(&so[slot.x], slot.y);
+            }
+        }
         workgroupBarrier();
 
-        // 4. O_tile = P V, in KS parts over the keys. V's fragment (k = key, n = feature) is V
-        // read row-major.
+        // 4. O += P V, in KS parts over the keys. V's fragment (k = key, n = feature) is V read
+        // row-major.
         for (var i = 0u; i < O_ROUNDS; i++) {
-            let f = sg + i * NSG;
-            let fc = min(f, NOF * KS - 1u);
+            let fc = min(sg + i * NSG, NOF * KS - 1u);
             let part = fc / NOF;
             let fo = fc % NOF;
             let ri = (fo / (DP / F)) * F;
             let ci = (fo % (DP / F)) * F;
-            var acc_f = zero;
             for (var kk = part * KB; kk < (part + 1u) * KB; kk += F) {
                 let a = coopLoadT<FragA>(&ps[ri * RP + kk], RP);
                 let b = coopLoadT<FragB>(&vs[kk * RQ + ci], RQ);
-                acc_f = coopMultiplyAdd(a, b, acc_f);
+                oacc[i] = coopMultiplyAdd(a, b, oacc[i]);
             }
-            var slot = so_slot(fo, NOF, DP / F, RO);
-            slot.x += part * BQ * RO;
-            slot = select(vec2<u32>(SO_MAIN, F), slot, f < NOF * KS);
-            let value = acc_f;
-            let dst = &so[slot.x];
-            let stride = slot.y;
-            coopStoreT(value, dst, stride);
         }
+        // The next tile's staging overwrites ks, vs and ps.
         workgroupBarrier();
+    }
 
-        // 5. Rescale the running output and add this tile's parts.
-        for (var c = 0u; c < D / 8u; c++) {
-            var tile = 0.0;
-            for (var p = 0u; p < KS; p++) {
-                tile += so[p * BQ * RO + r * RO + j + 8u * c];
-            }
-            acc[c] = acc[c] * correction + tile;
+    // 5. The output: the KS partial outputs through workgroup memory, summed per row.
+    for (var i = 0u; i < O_ROUNDS; i++) {
+        let slot = o_slot(sg + i * NSG);
+        let value = oacc[i];
+        let dst = &so[slot.x];
+        let stride = slot.y;
+        coopStoreT(value, dst, stride);
+    }
+    workgroupBarrier();
+    var acc: array<f32, D / 8u>;
+    for (var c = 0u; c < D / 8u; c++) {
+        acc[c] = 0.0;
+        for (var p = 0u; p < KS; p++) {
+            acc[c] += so[p * BQ * RO + r * RO + j + 8u * c];
         }
     }
 

@@ -185,7 +185,7 @@ fn check(q: &Tensor, k: &Tensor, v: &Tensor, seg: &Segments) -> Result<(usize, u
 /// The cooperative-matrix forward kernel for f16 inputs of head width `d` on this device, if
 /// it has one: FxFxF f16 fragments with F = 16 or 8 (see `Caps::coop_matrix_f16`), subgroups of
 /// exactly F*F/8 invocations (each row of a block belongs to 8 lanes of one subgroup), subgroup
-/// shuffles, and the kernel's workgroup memory.
+/// shuffles and votes, and the kernel's workgroup memory.
 pub fn coop_forward_kernel(gpu: &Gpu, d: usize) -> Option<KernelId> {
     let caps = gpu.caps();
     let kern = kernels_for(d)?;
@@ -196,7 +196,10 @@ pub fn coop_forward_kernel(gpu: &Gpu, d: usize) -> Option<KernelId> {
         _ => return None,
     };
     let sg = f * f / 8;
-    let fits = caps.min_subgroup_size == sg && caps.max_subgroup_size == sg && caps.subgroup_shuffle;
+    let fits = caps.min_subgroup_size == sg
+        && caps.max_subgroup_size == sg
+        && caps.subgroup_shuffle
+        && caps.subgroup_arithmetic;
     (fits && gpu.supports(kernel)).then_some(kernel)
 }
 
