@@ -93,6 +93,13 @@ fn a_resumed_run_continues_like_an_uninterrupted_one() {
     // two runs agree to rounding rather than bit for bit.
     assert_nmse("resumed parameters", &b, &f64s(&a), 1e-10);
     assert_eq!(whole.store.step(), resumed.store.step());
+
+    // The learning-rate factor (`velox train --cooldown`) reaches the update: at 0 a step
+    // leaves every parameter as it was, and the step reports the scaled rate.
+    resumed.lr_scale = 0.0;
+    let l = resumed.train_step(&data, 5, &mut Autoencoder::step_rng(7, 5)).unwrap();
+    assert_eq!(l.lr, 0.0);
+    assert_eq!(resumed.store.flat_params().read::<f32>().unwrap(), b, "lr 0 moved the parameters");
 }
 
 #[test]

@@ -35,6 +35,18 @@ pub fn noam(peak: f64, warmup: u64, step: u64) -> f64 {
     peak * (s / w).min((w / s).sqrt())
 }
 
+/// The factor of a linear cooldown over the last `cooldown` steps of a run of `total` steps: 1
+/// until `total - cooldown`, then falling in equal steps to 1 / (cooldown + 1) at the last
+/// step; 1 throughout when `cooldown` is 0. Depends on the step alone, so a resumed run
+/// continues the same curve.
+pub fn cooldown(total: u64, cooldown: u64, step: u64) -> f64 {
+    let left = total.saturating_sub(step); // steps after this one
+    if cooldown == 0 || left >= cooldown {
+        return 1.0;
+    }
+    (left + 1) as f64 / (cooldown + 1) as f64
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -55,6 +67,20 @@ mod tests {
         for k in 4000..10_000 {
             assert!(s.lr(k) > s.lr(k + 1));
         }
+    }
+
+    #[test]
+    fn cooldown_falls_linearly_over_the_last_steps() {
+        assert_eq!(cooldown(100, 0, 100), 1.0);
+        assert_eq!(cooldown(100, 10, 1), 1.0);
+        assert_eq!(cooldown(100, 10, 90), 1.0);
+        assert!((cooldown(100, 10, 91) - 10.0 / 11.0).abs() < 1e-15);
+        assert!((cooldown(100, 10, 100) - 1.0 / 11.0).abs() < 1e-15);
+        for k in 90..100 {
+            assert!(cooldown(100, 10, k + 1) < cooldown(100, 10, k));
+        }
+        // Longer than the run: it starts at once.
+        assert!(cooldown(5, 10, 1) < 1.0);
     }
 
     #[test]

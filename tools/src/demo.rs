@@ -102,6 +102,7 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
         steps_per_scene: 8,
         checkpoint_every: steps,
         plot_every: 10,
+        cooldown: 0,
     };
     let summary = train_autoencoder(&gpu, &train)?;
     let ckpt = summary.checkpoint.display().to_string();

@@ -11,6 +11,7 @@ use velox_data::training::train_scene;
 use velox_data::{Loader, LoaderOptions};
 use velox_engine::Gpu;
 use velox_models::config::AutoencoderConfig;
+use velox_models::schedule::cooldown;
 use velox_models::velox::autoencoder::{Autoencoder, StepLosses, TrainScene};
 
 use crate::plot::loss_plot;
@@ -51,6 +52,11 @@ pub struct AutoencoderArgs {
     /// Steps between redraws of the loss plot.
     #[arg(long, default_value_t = 25, value_parser = clap::value_parser!(u64).range(1..))]
     pub plot_every: u64,
+    /// Bring the learning rate down linearly over the last N steps of the run (to 1/(N+1) of
+    /// the schedule's at the last step); 0 keeps the config's schedule to the end. A resumed
+    /// run with the same --steps and --cooldown follows the same curve.
+    #[arg(long, default_value_t = 0)]
+    pub cooldown: u64,
 }
 
 /// What a finished run reports.
@@ -197,6 +203,7 @@ pub fn train_autoencoder(gpu: &Gpu, args: &AutoencoderArgs) -> CliResult<TrainSu
         }
         let (name, data) = scene.as_ref().expect("loaded above");
         step += 1;
+        model.lr_scale = cooldown(args.steps, args.cooldown, step);
         let losses = match model.train_step(data, step, &mut Autoencoder::step_rng(args.seed, step)) {
             Ok(l) => l,
             Err(e) => {

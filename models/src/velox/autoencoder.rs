@@ -122,6 +122,9 @@ pub struct Autoencoder {
     /// The precision of encoding and decoding (training is f32 whatever this says); set it with
     /// [`Autoencoder::set_precision`].
     precision: Precision,
+    /// A factor on the scheduled learning rate (a cooldown at the end of a run); 1 by default,
+    /// not saved with the model.
+    pub lr_scale: f64,
 }
 
 impl Autoencoder {
@@ -144,6 +147,7 @@ impl Autoencoder {
             gaussians,
             adamw: AdamWConfig::default(),
             precision: Precision::F32,
+            lr_scale: 1.0,
         })
     }
 
@@ -293,7 +297,7 @@ impl Autoencoder {
         binary_into(&mut rec, &ds, &ds_gauss, &ds, Binary::Add)?;
         binary_into(&mut rec, &ds, &flow.dtokens, &ds, Binary::Add)?;
         self.encoder.backward(&mut rec, &enc_cache, &ds)?;
-        let lr = noam(self.cfg.peak_lr, self.cfg.warmup, step);
+        let lr = noam(self.cfg.peak_lr, self.cfg.warmup, step) * self.lr_scale;
         self.store.adamw_step(&mut rec, &self.adamw, lr, Some(self.cfg.max_grad_norm))?;
         rec.submit()?;
         let grad_norm = self.store.grad_norm()? as f64;
