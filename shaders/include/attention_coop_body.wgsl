@@ -149,6 +149,16 @@ fn o_slot(f: u32) -> vec2<u32> {
     return select(vec2<u32>(SO_MAIN, F), slot, f < NOF * KS);
 }
 
+// Stores output fragment f (sg + round * NSG) to its place in `so` (see o_slot). naga 30
+// lowers coopStore without first emitting the expressions in its arguments, so each argument
+// is bound by an earlier `let`.
+fn store_o(value: FragC, f: u32) {
+    let slot = o_slot(f);
+    let dst = &so[slot.x];
+    let stride = slot.y;
+    coopStoreT(value, dst, stride);
+}
+
 @compute @workgroup_size(256)
 fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
        @builtin(local_invocation_index) t: u32, @builtin(subgroup_id) sg: u32,
@@ -264,11 +274,7 @@ fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
         // prove a test of the loop counter uniform, so that one round trip stays.)
         if rescale {
             for (var i = 0u; i < O_ROUNDS; i++) {
-                let slot = o_slot(sg + i * NSG);
-                let value = oacc[i];
-                let dst = &so[slot.x];
-                let stride = slot.y;
-                coopStoreT(value, dst, stride);
+                store_o(oacc[i], sg + i * NSG);
             }
             workgroupBarrier();
             for (var p = 0u; p < KS; p++) {
@@ -305,11 +311,7 @@ fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
 
     // 5. The output: the KS partial outputs through workgroup memory, summed per row.
     for (var i = 0u; i < O_ROUNDS; i++) {
-        let slot = o_slot(sg + i * NSG);
-        let value = oacc[i];
-        let dst = &so[slot.x];
-        let stride = slot.y;
-        coopStoreT(value, dst, stride);
+        store_o(oacc[i], sg + i * NSG);
     }
     workgroupBarrier();
     var acc: array<f32, D / 8u>;

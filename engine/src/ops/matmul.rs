@@ -175,11 +175,7 @@ pub fn matmul_variant(gpu: &Gpu, dtype: DType) -> &'static str {
 
 /// `op(a) @ op(b)` into a new f32 tensor.
 pub fn matmul(rec: &mut Recorder, a: &Tensor, b: &Tensor, trans_a: bool, trans_b: bool) -> Result<Tensor> {
-    let p = plan(a.shape(), b.shape(), trans_a, trans_b)?;
-    check_dtypes(a, b)?;
-    let out = Tensor::empty(a.gpu(), &p.out_shape, DType::F32)?;
-    matmul_into(rec, a, b, trans_a, trans_b, &out, false)?;
-    Ok(out)
+    new_product(rec, a, b, trans_a, trans_b, None)
 }
 
 /// `op(a) @ op(b) + bias` into a new f32 tensor: `bias` is f32 with one value per output column
@@ -194,10 +190,21 @@ pub fn matmul_bias(
     trans_b: bool,
     bias: &Tensor,
 ) -> Result<Tensor> {
+    new_product(rec, a, b, trans_a, trans_b, Some(bias))
+}
+
+fn new_product(
+    rec: &mut Recorder,
+    a: &Tensor,
+    b: &Tensor,
+    trans_a: bool,
+    trans_b: bool,
+    bias: Option<&Tensor>,
+) -> Result<Tensor> {
     let p = plan(a.shape(), b.shape(), trans_a, trans_b)?;
     check_dtypes(a, b)?;
     let out = Tensor::empty(a.gpu(), &p.out_shape, DType::F32)?;
-    product(rec, a, b, trans_a, trans_b, &out, false, Some(bias))?;
+    product(rec, a, b, trans_a, trans_b, &out, false, bias)?;
     Ok(out)
 }
 
