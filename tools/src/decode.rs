@@ -93,10 +93,7 @@ impl SamplingArgs {
         SampleSpec {
             points: self.points as usize,
             steps: self.steps as usize,
-            sampler: match self.sampler {
-                SamplerArg::Heun => Sampler::Heun,
-                SamplerArg::Euler => Sampler::Euler,
-            },
+            sampler: self.sampler.into(),
             // Each frame its own noise, reproducible from the seed.
             seed: seed ^ (frame as u64 + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15),
             precision: Precision::F32, // the autoencoder's own precision applies
@@ -131,6 +128,15 @@ pub enum SamplerArg {
     Heun,
     /// Euler's method: one velocity per step.
     Euler,
+}
+
+impl From<SamplerArg> for Sampler {
+    fn from(s: SamplerArg) -> Sampler {
+        match s {
+            SamplerArg::Heun => Sampler::Heun,
+            SamplerArg::Euler => Sampler::Euler,
+        }
+    }
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq, Serialize)]

@@ -31,10 +31,11 @@ use velox_models::files::image::write_png;
 use velox_models::metrics::{chamfer, psnr, ssim, subsample};
 use velox_models::velox::autoencoder::{tau_of, Autoencoder, FRAMES};
 use velox_models::velox::cloud::CHANNELS;
+use velox_models::velox::surface::SampleSpec;
 
 use crate::decode::{
     encode, frame_points, progress, sample_surface, surface_voxels, write_atomically, PrecisionArg,
-    VoxelSource,
+    SamplerArg, VoxelSource,
 };
 use crate::CliResult;
 
@@ -79,6 +80,12 @@ pub struct ReconArgs {
     /// Seed of the encoder's queries and the sampler's noise.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Integration steps of the surface sampler (the Chamfer samples).
+    #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u64).range(1..=10_000))]
+    steps: u64,
+    /// The surface sampler.
+    #[arg(long, value_enum, default_value_t = SamplerArg::Heun)]
+    sampler: SamplerArg,
     /// Precision of the networks: f32, or f16 (matrix products and attention on f16 operands
     /// with f32 accumulation).
     #[arg(long, value_enum, default_value_t = PrecisionArg::F32)]
@@ -139,7 +146,7 @@ struct Report {
     voxels: VoxelSource,
     frame_step: u64,
     chamfer_points: u64,
-    sampler: &'static str,
+    sampler: SamplerArg,
     steps: usize,
     chamfer_units: &'static str,
     mean: Mean,
@@ -211,7 +218,11 @@ fn run_recon(a: &ReconArgs) -> CliResult<()> {
                 continue;
             }
             let tau = tau_of(f);
-            let spec = Autoencoder::default_sampling(a.points as usize, a.seed ^ f as u64);
+            let spec = SampleSpec {
+                steps: a.steps as usize,
+                sampler: a.sampler.into(),
+                ..Autoencoder::default_sampling(a.points as usize, a.seed ^ f as u64)
+            };
             let samples = sample_surface(&ae, &tokens, f, &spec)?;
             let rows = |v: &[f32]| v.chunks(3).map(|p| [p[0], p[1], p[2]]).collect::<Vec<[f32; 3]>>();
             let n = a.points as usize;
@@ -296,8 +307,8 @@ fn run_recon(a: &ReconArgs) -> CliResult<()> {
         voxels: a.voxels,
         frame_step: a.frame_step,
         chamfer_points: a.points,
-        sampler: "heun",
-        steps: Autoencoder::default_sampling(1, 0).steps,
+        sampler: a.sampler,
+        steps: a.steps as usize,
         chamfer_units: "mean squared distance, both directions summed, in the data's [-1, 1]^3 coordinates",
         mean: Mean {
             psnr: mean(scenes.iter().map(|s| s.psnr)),

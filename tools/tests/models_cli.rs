@@ -151,12 +151,17 @@ fn eval_recon_reports_psnr_ssim_and_chamfer_per_scene_and_mean() {
                 "8",
                 "--points",
                 "500",
+                "--steps",
+                "3",
+                "--sampler",
+                "euler",
             ],
         ]
         .concat(),
     ));
     assert!(text.contains("PSNR") && text.contains("mean"), "{text}");
     let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!((report["sampler"].as_str(), report["steps"].as_u64()), (Some("euler"), Some(3)));
     let scenes = report["scenes"].as_array().unwrap();
     assert_eq!(scenes.len(), 1);
     for m in [&scenes[0], &report["mean"]] {
