@@ -196,67 +196,55 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         }
 
         // Windowed attention against its matmuls alone: a batched S = Q K^T and O = P V over
-        // the same number of 32-token windows and heads.
+        // the same number of 32-token windows and heads, on f32 operands and on f16 ones (the
+        // baseline of the f16 attention rows). f16 windows are rounded up to a multiple of 8
+        // rows so both products suit the cooperative-matrix kernel where there is one (its
+        // operands' contiguous axes must be multiples of 8).
         if case.name == "window self" {
             let b = segments * h;
             let w = nq.div_ceil(segments);
-            let a = Tensor::from_slice(gpu, &[b, w, d], &rng.normal_vec(b * w * d))?;
-            let s = Tensor::empty(gpu, &[b, w, w], DType::F32)?;
-            let o2 = Tensor::empty(gpu, &[b, w, d], DType::F32)?;
-            let timing = time_gpu(gpu, repeats, |rec| {
-                matmul::matmul_into(rec, &a, &a, false, true, &s, false)?;
-                matmul::matmul_into(rec, &s, &a, false, false, &o2, false)
-            })?;
-            let f = 4.0 * (b * w * w * d) as f64;
-            let tflops = f / (timing.0 * 1e-3) / 1e12;
-            let shape = format!("{b} x ({w}x{w}x{d}) x2");
-            let r = Record::timed(
-                "window matmuls alone",
-                shape,
-                "f32",
-                &device,
-                timing,
-                repeats,
-                tflops,
-                "TFLOP/s",
-            )
-            .peak(f32_peak.map(|p| tflops / p))
-            .error(0.0, 0.0, "not checked (timing baseline)");
-            print_row(&r);
-            records.push(r);
-
-            // The same on f16 operands, the baseline of the f16 attention rows. Windows are
-            // rounded up to a multiple of 8 rows so both products suit the cooperative-matrix
-            // kernel where there is one (its operands' contiguous axes must be multiples of 8).
-            let w8 = w.next_multiple_of(8);
-            let mut rec = gpu.recorder()?;
-            let a32 = Tensor::from_slice(gpu, &[b, w8, d], &rng.normal_vec(b * w8 * d))?;
-            let p32 = Tensor::from_slice(gpu, &[b, w8, w8], &rng.normal_vec(b * w8 * w8))?;
-            let (a16, p16) = (cast(&mut rec, &a32, DType::F16)?, cast(&mut rec, &p32, DType::F16)?);
-            rec.submit()?;
-            let s = Tensor::empty(gpu, &[b, w8, w8], DType::F32)?;
-            let o2 = Tensor::empty(gpu, &[b, w8, d], DType::F32)?;
-            let timing = time_gpu(gpu, repeats, |rec| {
-                matmul::matmul_into(rec, &a16, &a16, false, true, &s, false)?;
-                matmul::matmul_into(rec, &p16, &a16, false, false, &o2, false)
-            })?;
-            let f = 4.0 * (b * w8 * w8 * d) as f64;
-            let tflops = f / (timing.0 * 1e-3) / 1e12;
-            let r = Record::timed(
-                "window matmuls alone",
-                format!("{b} x ({w8}x{w8}x{d}) x2"),
-                "f16",
-                &device,
-                timing,
-                repeats,
-                tflops,
-                "TFLOP/s",
-            )
-            .peak(f16_peak.map(|p| tflops / p))
-            .error(0.0, 0.0, "not checked (timing baseline)");
-            print_row(&r);
-            records.push(r);
+            for (dtype, rows, peak) in
+                [(DType::F32, w, f32_peak), (DType::F16, w.next_multiple_of(8), f16_peak)]
+            {
+                let timing = window_matmuls(gpu, &mut rng, [b, rows, d], dtype, repeats)?;
+                let tflops = 4.0 * (b * rows * rows * d) as f64 / (timing.0 * 1e-3) / 1e12;
+                let r = Record::timed(
+                    "window matmuls alone",
+                    format!("{b} x ({rows}x{rows}x{d}) x2"),
+                    dtype.name(),
+                    &device,
+                    timing,
+                    repeats,
+                    tflops,
+                    "TFLOP/s",
+                )
+                .peak(peak.map(|p| tflops / p))
+                .error(0.0, 0.0, "not checked (timing baseline)");
+                print_row(&r);
+                records.push(r);
+            }
         }
     }
     Ok(records)
+}
+
+/// Times S = Q K^T and O = P V for `b` windows of `w` rows of width `d` on `dtype` operands
+/// (random Q and P; the values do not matter to the time).
+fn window_matmuls(
+    gpu: &Gpu,
+    rng: &mut Rng,
+    [b, w, d]: [usize; 3],
+    dtype: DType,
+    repeats: u32,
+) -> Result<(f64, f64, bool)> {
+    let mut rec = gpu.recorder()?;
+    let q = cast(&mut rec, &Tensor::from_slice(gpu, &[b, w, d], &rng.normal_vec(b * w * d))?, dtype)?;
+    let p = cast(&mut rec, &Tensor::from_slice(gpu, &[b, w, w], &rng.normal_vec(b * w * w))?, dtype)?;
+    rec.submit()?;
+    let s = Tensor::empty(gpu, &[b, w, w], DType::F32)?;
+    let o = Tensor::empty(gpu, &[b, w, d], DType::F32)?;
+    time_gpu(gpu, repeats, |rec| {
+        matmul::matmul_into(rec, &q, &q, false, true, &s, false)?;
+        matmul::matmul_into(rec, &p, &q, false, false, &o, false)
+    })
 }
