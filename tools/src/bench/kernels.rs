@@ -1,10 +1,11 @@
-//! `velox bench kernels`: matmul, softmax, scan, sort and scatter-add.
+//! `velox bench kernels`: matmul, softmax, scan, sort, scatter-add, and the encoder's query
+//! sampling: farthest point sampling and the nearest-query assignment.
 //!
 //! Errors: against the f64 reference over the whole output, except for matmuls too large for
 //! a CPU reference, whose error is measured on a fixed random sample of output entries.
 
 use velox_engine::ops::cast::cast;
-use velox_engine::ops::{matmul, scan, scatter_add, softmax, sort};
+use velox_engine::ops::{assign, fps, matmul, scan, scatter_add, softmax, sort};
 use velox_engine::rng::Rng;
 use velox_engine::{DType, Gpu, Result, Tensor};
 
@@ -22,6 +23,10 @@ struct Sizes {
     scan: Vec<usize>,
     sort: Vec<(usize, u32)>,
     scatter: Vec<(usize, usize, usize)>,
+    /// Farthest point sampling: (candidates, chosen).
+    fps: Vec<(usize, usize)>,
+    /// Nearest-query assignment: (points, queries).
+    assign: Vec<(usize, usize)>,
 }
 
 fn sizes(gpu: &Gpu, quick: bool) -> Sizes {
@@ -38,6 +43,8 @@ fn sizes(gpu: &Gpu, quick: bool) -> Sizes {
             scan: vec![1 << 20],
             sort: vec![(1 << 18, 32), (1 << 18, 16)],
             scatter: vec![(1 << 16, 8, 1024)],
+            fps: vec![(4096, 1024), (32768, 8192)],
+            assign: vec![(100_000, 2048)],
         }
     } else {
         Sizes {
@@ -52,6 +59,8 @@ fn sizes(gpu: &Gpu, quick: bool) -> Sizes {
             scan: vec![1 << 26],
             sort: vec![(1 << 24, 32), (1 << 24, 16)],
             scatter: vec![(1 << 22, 32, 1 << 16)],
+            fps: vec![(4096, 1024), (32768, 8192)],
+            assign: vec![(1_440_000, 8192)],
         }
     }
 }
@@ -253,5 +262,89 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         );
         push(r.peak(bw_peak(g)).against(&got, &want, "all outputs"));
     }
+
+    for &(m, k) in &s.fps {
+        let points = surface_cloud(m, &mut rng);
+        let tp = Tensor::from_slice(gpu, &[m, 4], &points)?;
+        let candidates: Vec<u32> = (0..m as u32).collect();
+        let mut res = None;
+        let timing = time_gpu(gpu, repeats, |rec| {
+            res = Some(fps::fps(rec, &tp, &candidates, k)?);
+            Ok(())
+        })?;
+        let got: Vec<u32> = res.unwrap().read()?;
+        let want = fps::reference::fps(&points, &candidates, k);
+        let wrong = got.iter().zip(&want).filter(|(a, b)| a != b).count();
+        let r = Record::timed(
+            "farthest point sampling",
+            format!("{m} -> {k}"),
+            "f32",
+            &device,
+            timing,
+            repeats,
+            (k - 1) as f64 / timing.0,
+            "iter/ms",
+        );
+        let over = "the f64 reference's choices: nmse = fraction differing, max abs = count differing";
+        push(r.error(wrong as f64 / k as f64, wrong as f64, over));
+    }
+
+    for &(n, k) in &s.assign {
+        let points = surface_cloud(n, &mut rng);
+        let queries: Vec<f32> = points[..4 * k].to_vec();
+        let tp = Tensor::from_slice(gpu, &[n, 4], &points)?;
+        let tq = Tensor::from_slice(gpu, &[k, 4], &queries)?;
+        let mut res = None;
+        let timing = time_gpu(gpu, repeats, |rec| {
+            res = Some(assign::assign_nearest(rec, &tp, &tq)?);
+            Ok(())
+        })?;
+        let got: Vec<u32> = res.unwrap().read()?;
+        // The reference on a fixed sample of 4096 points: all of them would take minutes.
+        let sample: Vec<usize> = (0..4096.min(n)).map(|i| i * n / 4096.min(n)).collect();
+        let dist = |p: usize, q: usize| {
+            assign::reference::dist2(&points[4 * p..4 * p + 4], &queries[4 * q..4 * q + 4])
+        };
+        // A point counts as wrong when its query is farther than the nearest by more than f32
+        // rounding (ties and near-ties may go either way).
+        let wrong = sample
+            .iter()
+            .filter(|&&p| {
+                let best = (0..k).map(|q| dist(p, q)).fold(f64::INFINITY, f64::min);
+                dist(p, got[p] as usize) > best * (1.0 + 1e-5) + 1e-12
+            })
+            .count();
+        let tflops = assign::flops(n, k) as f64 / (timing.0 * 1e-3) / 1e12;
+        let r = Record::timed(
+            "nearest-query assignment",
+            format!("{n} points, {k} queries"),
+            "f32",
+            &device,
+            timing,
+            repeats,
+            tflops,
+            "TFLOP/s",
+        );
+        let over = "4096 sampled points against the f64 nearest: nmse = fraction farther, max abs = count";
+        push(r.peak(peaks.map(|p| tflops / p.1)).error(
+            wrong as f64 / sample.len() as f64,
+            wrong as f64,
+            over,
+        ));
+    }
     Ok(out)
+}
+
+/// `n` points `(x, y, z, tau)` on a sphere of radius 0.8 whose centre moves over tau in [0, 1]:
+/// a 2D surface over time, shaped like the clouds the encoder samples its queries from.
+fn surface_cloud(n: usize, rng: &mut Rng) -> Vec<f32> {
+    let mut out = Vec::with_capacity(4 * n);
+    for _ in 0..n {
+        let v = [rng.normal(), rng.normal(), rng.normal()];
+        let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-6);
+        let tau = rng.uniform();
+        let row = [0.8 * v[0] / len + 0.1 * tau, 0.8 * v[1] / len, 0.8 * v[2] / len, tau];
+        out.extend(row.iter().map(|&x| x as f32));
+    }
+    out
 }
