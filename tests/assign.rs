@@ -273,12 +273,23 @@ fn grouped_cells_have_offsets_for_every_query() {
     }
 }
 
+/// FPS on the GPU with each workgroup size (the device's choice and the other one): both must
+/// choose the same points.
 fn gpu_fps(points: &[f32], candidates: &[u32], k: usize) -> Vec<u32> {
     let gpu = gpu();
+    let mut outs = Vec::new();
+    for wg in [fps::WG_CPU, fps::WG_GPU] {
+        let mut rec = gpu.recorder().unwrap();
+        let chosen = fps::fps_with_workgroup(&mut rec, wg, &upload(points), candidates, k).unwrap();
+        rec.submit().unwrap();
+        outs.push(chosen.read::<u32>().unwrap());
+    }
     let mut rec = gpu.recorder().unwrap();
     let chosen = fps(&mut rec, &upload(points), candidates, k).unwrap();
     rec.submit().unwrap();
-    chosen.read::<u32>().unwrap()
+    assert_eq!(outs[0], outs[1], "the two workgroup sizes choose differently (k = {k})");
+    assert_eq!(chosen.read::<u32>().unwrap(), outs[0], "fps differs from fps_with_workgroup");
+    outs.pop().unwrap()
 }
 
 /// The FPS property, checked in f64 on the output alone: each chosen point is (up to f32
@@ -312,8 +323,11 @@ fn fps_matches_reference_exactly() {
     let mut rng = Rng::new(31);
     let n = 5000;
     let points = random_points(&mut rng, n, (-1.0, 1.0), (0.0, 1.0));
-    // m below, at and above the workgroup of 1024, so invocations own 0, 1 or several.
-    for (m, ks) in [(1, vec![0, 1]), (2, vec![1, 2]), (300, vec![1, 2, 77, 300]), (3000, vec![150])] {
+    // m below, at and above the workgroups of 256 and 1024, so invocations own 0, 1 or several
+    // candidates (up to 20), and runs end mid-way.
+    for (m, ks) in
+        [(1, vec![0, 1]), (2, vec![1, 2]), (300, vec![1, 2, 77, 300]), (3000, vec![150]), (5000, vec![1250])]
+    {
         let candidates = random_candidates(n, m, &mut rng).unwrap();
         for k in ks {
             let got = gpu_fps(&points, &candidates, k);
@@ -330,6 +344,31 @@ fn fps_matches_reference_exactly() {
         let got = gpu_fps(&points, &candidates, k);
         assert_eq!(got, fps::reference::fps(&points, &candidates, k), "grid k={k}");
         assert_fps_property(&points, &candidates, &got, &format!("grid k={k}"));
+    }
+    // A dense surface over time (points on a sphere, tau in [0, 1]), sampled down to a quarter:
+    // late iterations measure only the runs near each new point, so this is where a wrong skip
+    // would change a choice.
+    let points: Vec<f32> = (0..6000)
+        .flat_map(|_| {
+            let v = [rng.normal(), rng.normal(), rng.normal()];
+            let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-6);
+            [0.8 * v[0] / len, 0.8 * v[1] / len, 0.8 * v[2] / len, rng.uniform()].map(|x| x as f32)
+        })
+        .collect();
+    let candidates: Vec<u32> = (0..6000).collect();
+    let got = gpu_fps(&points, &candidates, 1500);
+    assert_eq!(got, fps::reference::fps(&points, &candidates, 1500), "sphere");
+    // Two tight clusters far apart, each of repeated points: distances of zero and of 1e-12
+    // beside ones of 100, ties everywhere.
+    let mut points = Vec::new();
+    for i in 0..2000 {
+        let (base, jitter) = if i % 2 == 0 { (0.0f32, 1e-6f32) } else { (10.0, 0.0) };
+        points.extend_from_slice(&[base + jitter * (i % 7) as f32, base, base, (i % 3) as f32 * jitter]);
+    }
+    let candidates: Vec<u32> = (0..2000).collect();
+    for k in [10, 400, 2000] {
+        let got = gpu_fps(&points, &candidates, k);
+        assert_eq!(got, fps::reference::fps(&points, &candidates, k), "clusters k={k}");
     }
     // All candidates the same point.
     assert_eq!(gpu_fps(&points, &[9, 9, 9, 9], 4), [9, 9, 9, 9]);

@@ -101,6 +101,7 @@ pub fn report(gpu: &Gpu) -> serde_json::Value {
             "matmul f16": matmul::matmul_variant(gpu, DType::F16),
             "attention f16": velox_engine::ops::attention::f16_forward_variant(gpu, 32),
             "scatter-add": scatter_add::variant(gpu),
+            "fps": velox_engine::ops::fps::variant(gpu).1,
             "sort": "LSD radix, 4 bits a pass",
             "scan": "workgroup-memory block scan, multi-level",
             "raster backward": velox_engine::ops::raster::backward::variant(gpu)

@@ -10,16 +10,20 @@
 //! positions), in the order chosen. Repeated candidate indices are allowed: each copy counts
 //! once, so duplicates are chosen only after every distinct point is at distance 0.
 
+use crate::device::Gpu;
 use crate::error::{Error, Result};
-use crate::kernels::FPS_MAIN;
+use crate::kernels::{KernelId, FPS_WG1024_MAIN, FPS_WG1024_ORDER, FPS_WG256_MAIN};
 use crate::ops::gather::gather;
+use crate::ops::sort::sort_pairs;
 use crate::ops::window::point_rows;
 use crate::recorder::Recorder;
 use crate::rng::Rng;
 use crate::tensor::{DType, Tensor};
 
-/// Invocations of the one workgroup; must match `WG` in `shaders/fps.wgsl`.
-pub const WG: u32 = 1024;
+/// The two sizes of the one workgroup (`@variants WG` in `shaders/fps.wgsl`), and which runs
+/// where: see [`variant`].
+pub const WG_GPU: u32 = 1024;
+pub const WG_CPU: u32 = 256;
 /// Candidates per query that [`sample_queries`] draws (MODELS.md: 4k).
 pub const OVERSAMPLE: usize = 4;
 
@@ -50,12 +54,49 @@ pub fn random_candidates(n: usize, m: usize, rng: &mut Rng) -> Result<Vec<u32>> 
 /// Chooses `k` of the `candidates` (indices into `points`, f32 `[N, 4]`) by farthest point
 /// sampling and returns their point indices, u32 `[k]`. `k = 0` gives an empty tensor.
 ///
-/// Cost: one dispatch of one workgroup of [`WG`] invocations; k - 1 iterations, each a pass
-/// over all m candidates (12 flops and 24 bytes of device memory each, [`flops`],
-/// [`bytes_moved`]) and a 5-step 4-way argmax tree in workgroup memory. It runs on one compute
-/// unit, so it is latency-bound on a large GPU: 8192 of 32768 is 2.7e8 distance updates and
-/// 8191 trees. On lavapipe (2 cores) 1024 of 4096 took 57 ms, 2048 of 16384 270 ms.
+/// Cost: the candidates are first put in 4D Morton order (one small dispatch for the codes, a
+/// 32-bit radix sort of m pairs, a gather), then one dispatch of one workgroup (its size from
+/// [`variant`]) runs the k - 1 iterations. Each invocation owns a run of sorted candidates and
+/// their bounding box, and an iteration measures only the runs whose box is near enough to the
+/// new point to lower a distance (the rest are skipped exactly: see `shaders/fps.wgsl`); then a
+/// subgroup argmax and one barrier. At 8192 of 32768 points on a moving sphere, 16 of 1024
+/// invocations measure their runs in an average iteration. [`flops`] and [`bytes_moved`] count
+/// the unskipped work, an upper bound. It runs on one compute unit, so it is latency-bound on a
+/// large GPU. On lavapipe (2 cores, Mesa 25), 8192 of 32768 took 1790 ms before the skipping
+/// and 202 ms after.
 pub fn fps(rec: &mut Recorder, points: &Tensor, candidates: &[u32], k: usize) -> Result<Tensor> {
+    let (kernel, _) = variant(points.gpu());
+    fps_with(rec, kernel, points, candidates, k)
+}
+
+/// [`fps`] with a chosen workgroup size, [`WG_CPU`] or [`WG_GPU`] (for tests: both must give
+/// the same choices on every device).
+pub fn fps_with_workgroup(
+    rec: &mut Recorder,
+    wg: u32,
+    points: &Tensor,
+    candidates: &[u32],
+    k: usize,
+) -> Result<Tensor> {
+    let kernel = match wg {
+        WG_CPU => FPS_WG256_MAIN,
+        WG_GPU => FPS_WG1024_MAIN,
+        _ => {
+            return Err(Error::Invalid(format!(
+                "fps: workgroup of {wg}; the kernels have {WG_CPU} and {WG_GPU}"
+            )))
+        }
+    };
+    fps_with(rec, kernel, points, candidates, k)
+}
+
+fn fps_with(
+    rec: &mut Recorder,
+    kernel: KernelId,
+    points: &Tensor,
+    candidates: &[u32],
+    k: usize,
+) -> Result<Tensor> {
     let n = point_rows(points, "fps")?;
     let m = candidates.len();
     if k > m {
@@ -72,19 +113,41 @@ pub fn fps(rec: &mut Recorder, points: &Tensor, candidates: &[u32], k: usize) ->
     if k == 0 {
         return Ok(out);
     }
-    let caps = gpu.caps();
-    if caps.max_workgroup_invocations < WG {
-        return Err(Error::Unsupported(format!(
-            "fps runs one workgroup of {WG} invocations; this device allows {}",
-            caps.max_workgroup_invocations
-        )));
-    }
     let index = Tensor::from_slice(gpu, &[m], candidates)?;
     let cands = gather(rec, points, &index)?;
-    let min_dist = Tensor::empty(gpu, &[m], DType::F32)?;
     let params = Params { m: m as u32, k: k as u32 };
-    rec.dispatch(FPS_MAIN, [1, 1, 1], &[&cands, &index, &min_dist, &out], &params)?;
+    let codes = Tensor::empty(gpu, &[m], DType::U32)?;
+    let iota = Tensor::empty(gpu, &[m], DType::U32)?;
+    rec.dispatch(FPS_WG1024_ORDER, [1, 1, 1], &[&cands, &codes, &iota], &params)?;
+    let (_, perm) = sort_pairs(rec, &codes, &iota, 32)?;
+    let sorted = gather(rec, &cands, &perm)?;
+    let min_dist = Tensor::empty(gpu, &[m], DType::F32)?;
+    rec.dispatch(kernel, [1, 1, 1], &[&sorted, &perm, &index, &min_dist, &out], &params)?;
     Ok(out)
+}
+
+/// The FPS kernel for this device and its description (for `velox info`). The iterations'
+/// cost differs by kind of device:
+/// - on a GPU it is the latency of an iteration: a barrier, and the loads of the few
+///   invocations near the new point, one slot after another. 1024 invocations keep those runs
+///   short (32 slots each at 32768 candidates);
+/// - on a CPU (lavapipe) every invocation costs time at every iteration, skipping or not:
+///   8192 of 32768 took 591 ms with 1024 invocations, 202 ms with 256 and 271 ms with 64.
+///
+/// A device that allows fewer than 1024 invocations per workgroup gets 256 (every Vulkan
+/// device allows 128; the engine's other kernels already need 256).
+pub fn variant(gpu: &Gpu) -> (KernelId, String) {
+    let caps = gpu.caps();
+    let wg = if caps.kind == "CPU" || caps.max_workgroup_invocations < WG_GPU { WG_CPU } else { WG_GPU };
+    let kernel = if wg == WG_GPU { FPS_WG1024_MAIN } else { FPS_WG256_MAIN };
+    let slots = |m: u32| m.div_ceil(wg);
+    (
+        kernel,
+        format!(
+            "{wg} invocations, Morton-ordered runs of candidates ({} each at 32768), box culling",
+            slots(32768)
+        ),
+    )
 }
 
 /// The encoder's queries: `OVERSAMPLE * k` random candidates (all points when there are fewer),
