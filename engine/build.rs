@@ -149,34 +149,36 @@ fn expand_includes_at(shader_dir: &Path, path: &Path, source: &str, depth: usize
     Ok(out)
 }
 
-/// Expands a shader into its variants. A file whose first line reads
-/// `// @variants NAME: 16 32 64` is compiled once per value, with its line
-/// `const NAME: u32 = ...;` set to that value, as module `<stem>_<name><value>` (naga's SPIR-V
-/// writer has no specialisation constants, so each variant is its own module).
+/// Expands a shader into its variants. A file whose first lines read
+/// `// @variants NAME: 16 32 64` is compiled once per value (per combination of values, with
+/// several such lines), with its line `const NAME: u32 = ...;` set to that value, as module
+/// `<stem>_<name><value>...` in the order of the lines (naga's SPIR-V writer has no
+/// specialisation constants, so each variant is its own module).
 fn variants(path: &Path, source: &str) -> Result<Vec<(PathBuf, String, String)>, String> {
     let stem = path.file_stem().unwrap().to_str().unwrap().to_string();
-    let first = source.lines().next().unwrap_or("");
-    let Some(spec) = first.strip_prefix("// @variants ") else {
-        return Ok(vec![(path.to_path_buf(), stem, source.to_string())]);
-    };
-    let (name, values) = spec
-        .split_once(':')
-        .ok_or_else(|| format!("{}:1: expected `// @variants NAME: v1 v2`", path.display()))?;
-    let name = name.trim();
-    let decl = format!("const {name}: u32 = ");
-    let line = source
-        .lines()
-        .find(|l| l.starts_with(&decl))
-        .ok_or_else(|| format!("{}: variants of {name} need a line `{decl}...;`", path.display()))?;
-    values
-        .split_whitespace()
-        .map(|v| {
+    let mut out = vec![(path.to_path_buf(), stem, source.to_string())];
+    for spec in source.lines().map_while(|l| l.strip_prefix("// @variants ")) {
+        let (name, values) = spec
+            .split_once(':')
+            .ok_or_else(|| format!("{}: expected `// @variants NAME: v1 v2`", path.display()))?;
+        let name = name.trim();
+        let decl = format!("const {name}: u32 = ");
+        let line = source
+            .lines()
+            .find(|l| l.starts_with(&decl))
+            .ok_or_else(|| format!("{}: variants of {name} need a line `{decl}...;`", path.display()))?;
+        let mut next = Vec::new();
+        for v in values.split_whitespace() {
             let value: u32 =
-                v.parse().map_err(|_| format!("{}:1: variant value {v:?} is not a u32", path.display()))?;
-            let text = source.replacen(line, &format!("{decl}{value}u;"), 1);
-            Ok((path.to_path_buf(), format!("{stem}_{}{value}", name.to_lowercase()), text))
-        })
-        .collect()
+                v.parse().map_err(|_| format!("{}: variant value {v:?} is not a u32", path.display()))?;
+            for (p, module, text) in &out {
+                let text = text.replacen(line, &format!("{decl}{value}u;"), 1);
+                next.push((p.clone(), format!("{module}_{}{value}", name.to_lowercase()), text));
+            }
+        }
+        out = next;
+    }
+    Ok(out)
 }
 
 fn compile(path: &Path, source: &str) -> Result<(Vec<u32>, Vec<Kernel>), String> {

@@ -192,8 +192,12 @@ fn check_f16(case: &Case, q: &[f32], k: &[f32], v: &[f32]) {
     // also rounds the softmax weights P to f16 (11 significant bits) before P V; measured on
     // lavapipe 26 (8x8x8 fragments): <= 3.2e-8.
     let coop = attention::coop_forward_chosen(&gpu, d, nq, case.q_lens.len());
-    let bound = if coop { 1e-6 } else { 1e-9 };
-    let what = format!("{what} ({})", if coop { "cooperative-matrix kernel" } else { "portable kernel" });
+    let bound = if coop.is_some() { 1e-6 } else { 1e-9 };
+    let kernel = match coop {
+        Some((_, block)) => format!("cooperative-matrix kernel, blocks of {block} rows"),
+        None => "portable kernel".to_string(),
+    };
+    let what = format!("{what} ({kernel})");
     eprintln!("{what}: nmse {:.3e} against rounded inputs", nmse(&o, &o_rounded));
     assert_nmse(&format!("o {what}, rounded inputs"), &o, &o_rounded, bound);
     let (o_exact, _) = reference::attention(&f64s(q), &f64s(k), &f64s(v), &qo, &ko, h, d, scale as f64);
@@ -218,6 +222,13 @@ fn f16_inputs_forward() {
     let lens = vec![0, 1, 31, 32, 33, 64, 65, 5, 0, 97];
     run_f16(&Case { q_lens: lens.clone(), k_lens: lens, heads: 3, d: 72, magnitude: 1.0 }, 72);
     run_f16(&Case { q_lens: vec![100], k_lens: vec![200], heads: 1, d: 64, magnitude: 30.0 }, 73);
+    // Segments long enough on average (64 rows) for the tall blocks of the cooperative-matrix
+    // kernel, with partial blocks and tiles, an empty segment, and a segment with no keys.
+    for (i, &d) in attention::HEAD_DIMS.iter().enumerate() {
+        let case =
+            Case { q_lens: vec![130, 0, 70, 60], k_lens: vec![75, 3, 129, 0], heads: 2, d, magnitude: 1.0 };
+        run_f16(&case, 80 + i as u64);
+    }
 }
 
 #[test]
@@ -225,11 +236,18 @@ fn f16_forward_with_scores_that_keep_rising() {
     // Scores that grow along the keys by about 150 over a segment (and fall in a second one):
     // the running maximum must move many times after the first tile, which the
     // cooperative-matrix kernel does lazily, for the whole block at once.
+    // Segments of 40 and of 140 query rows: the short and the tall blocks.
+    for rows in [40, 140] {
+        scores_that_keep_rising(rows);
+    }
+}
+
+fn scores_that_keep_rising(rows: usize) {
     let (d, h) = (32, 2);
-    let case = Case { q_lens: vec![40, 40], k_lens: vec![300, 300], heads: h, d, magnitude: 1.0 };
+    let case = Case { q_lens: vec![rows, rows], k_lens: vec![300, 300], heads: h, d, magnitude: 1.0 };
     let mut rng = Rng::new(74);
     let q: Vec<f32> =
-        (0..80 * h * d).map(|i| if i % d == 0 { 1.0 } else { 0.2 * rng.normal() as f32 }).collect();
+        (0..2 * rows * h * d).map(|i| if i % d == 0 { 1.0 } else { 0.2 * rng.normal() as f32 }).collect();
     let k: Vec<f32> = (0..600 * h * d)
         .map(|i| {
             let key = i / (h * d);

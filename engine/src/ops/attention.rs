@@ -16,7 +16,7 @@ use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 use crate::Gpu;
 
-/// Rows per work item and per staged tile (`B` in the shader).
+/// Rows per work item and per staged tile of the portable kernels (`B` in the shader).
 pub const BLOCK: usize = 32;
 /// Head widths with a compiled kernel.
 pub const HEAD_DIMS: [usize; 4] = [16, 32, 64, 72];
@@ -102,9 +102,10 @@ struct Kernels {
     fwd: KernelId,
     /// The forward pass on f16 q, k, v.
     fwd_f16: KernelId,
-    /// The same on cooperative matrices: 16x16x16 and 8x8x8 fragments.
-    fwd_coop16: KernelId,
-    fwd_coop8: KernelId,
+    /// The same on cooperative matrices, 16x16x16 and 8x8x8 fragments, each in blocks of
+    /// [`COOP_BLOCKS`] query rows.
+    fwd_coop16: [KernelId; 2],
+    fwd_coop8: [KernelId; 2],
     dq: KernelId,
     dkv: KernelId,
 }
@@ -115,32 +116,32 @@ fn kernels_for(d: usize) -> Option<Kernels> {
         16 => Kernels {
             fwd: ATTENTION_D16_FWD,
             fwd_f16: ATTENTION_F16_D16_FWD,
-            fwd_coop16: ATTENTION_COOP_D16_FWD,
-            fwd_coop8: ATTENTION_COOP8_D16_FWD,
+            fwd_coop16: [ATTENTION_COOP_D16_BQ32_FWD, ATTENTION_COOP_D16_BQ128_FWD],
+            fwd_coop8: [ATTENTION_COOP8_D16_BQ32_FWD, ATTENTION_COOP8_D16_BQ64_FWD],
             dq: ATTENTION_D16_BWD_DQ,
             dkv: ATTENTION_D16_BWD_DKV,
         },
         32 => Kernels {
             fwd: ATTENTION_D32_FWD,
             fwd_f16: ATTENTION_F16_D32_FWD,
-            fwd_coop16: ATTENTION_COOP_D32_FWD,
-            fwd_coop8: ATTENTION_COOP8_D32_FWD,
+            fwd_coop16: [ATTENTION_COOP_D32_BQ32_FWD, ATTENTION_COOP_D32_BQ128_FWD],
+            fwd_coop8: [ATTENTION_COOP8_D32_BQ32_FWD, ATTENTION_COOP8_D32_BQ64_FWD],
             dq: ATTENTION_D32_BWD_DQ,
             dkv: ATTENTION_D32_BWD_DKV,
         },
         64 => Kernels {
             fwd: ATTENTION_D64_FWD,
             fwd_f16: ATTENTION_F16_D64_FWD,
-            fwd_coop16: ATTENTION_COOP_D64_FWD,
-            fwd_coop8: ATTENTION_COOP8_D64_FWD,
+            fwd_coop16: [ATTENTION_COOP_D64_BQ32_FWD, ATTENTION_COOP_D64_BQ128_FWD],
+            fwd_coop8: [ATTENTION_COOP8_D64_BQ32_FWD, ATTENTION_COOP8_D64_BQ64_FWD],
             dq: ATTENTION_D64_BWD_DQ,
             dkv: ATTENTION_D64_BWD_DKV,
         },
         72 => Kernels {
             fwd: ATTENTION_D72_FWD,
             fwd_f16: ATTENTION_F16_D72_FWD,
-            fwd_coop16: ATTENTION_COOP_D72_FWD,
-            fwd_coop8: ATTENTION_COOP8_D72_FWD,
+            fwd_coop16: [ATTENTION_COOP_D72_BQ32_FWD, ATTENTION_COOP_D72_BQ128_FWD],
+            fwd_coop8: [ATTENTION_COOP8_D72_BQ32_FWD, ATTENTION_COOP8_D72_BQ64_FWD],
             dq: ATTENTION_D72_BWD_DQ,
             dkv: ATTENTION_D72_BWD_DKV,
         },
@@ -182,17 +183,26 @@ fn check(q: &Tensor, k: &Tensor, v: &Tensor, seg: &Segments) -> Result<(usize, u
     Ok((nq, nk, h, d))
 }
 
-/// The cooperative-matrix forward kernel for f16 inputs of head width `d` on this device, if
-/// it has one: FxFxF f16 fragments with F = 16 or 8 (see `Caps::coop_matrix_f16`), subgroups of
-/// exactly F*F/8 invocations (each row of a block belongs to 8 lanes of one subgroup), subgroup
-/// shuffles and votes, and the kernel's workgroup memory.
-pub fn coop_forward_kernel(gpu: &Gpu, d: usize) -> Option<KernelId> {
+/// Query rows per block of the cooperative-matrix forward kernels, by fragment size: 16x16x16
+/// fragments (NVIDIA) and 8x8x8 (lavapipe from Mesa 26, whose 32 KiB of workgroup memory hold
+/// blocks of 64). Each block has one subgroup per F rows. Short segments (the encoder's
+/// 32-token windows) take the short blocks; long ones the tall blocks, which read each staged
+/// key and value tile for more rows.
+pub const COOP_BLOCKS: [(u32, [usize; 2]); 2] = [(16, [32, 128]), (8, [32, 64])];
+
+/// The cooperative-matrix forward kernel for f16 inputs of head width `d` on this device in
+/// blocks of `tall` or short height (see [`COOP_BLOCKS`]), with its block height, if the
+/// device has it: FxFxF f16 fragments with F = 16 or 8 (see `Caps::coop_matrix_f16`),
+/// subgroups of exactly F*F/8 invocations (each query row belongs to F/8 lanes of one
+/// subgroup), subgroup shuffles and votes, and the kernel's workgroup memory. A tall block that
+/// does not fit in workgroup memory gives way to the short one.
+pub fn coop_forward_kernel(gpu: &Gpu, d: usize, tall: bool) -> Option<(KernelId, usize)> {
     let caps = gpu.caps();
     let kern = kernels_for(d)?;
     let [f, _, _] = caps.coop_matrix_f16?;
-    let kernel = match f {
-        16 => kern.fwd_coop16,
-        8 => kern.fwd_coop8,
+    let (kernels, blocks) = match f {
+        16 => (kern.fwd_coop16, COOP_BLOCKS[0].1),
+        8 => (kern.fwd_coop8, COOP_BLOCKS[1].1),
         _ => return None,
     };
     let sg = f * f / 8;
@@ -200,43 +210,55 @@ pub fn coop_forward_kernel(gpu: &Gpu, d: usize) -> Option<KernelId> {
         && caps.max_subgroup_size == sg
         && caps.subgroup_shuffle
         && caps.subgroup_arithmetic;
-    (fits && gpu.supports(kernel)).then_some(kernel)
+    if !fits {
+        return None;
+    }
+    let order: &[usize] = if tall { &[1, 0] } else { &[0] };
+    order.iter().map(|&i| (kernels[i], blocks[i])).find(|&(k, _)| gpu.supports(k))
 }
 
-/// A cooperative-matrix workgroup always computes 32 query rows, so segments averaging fewer
-/// rows than this (the encoder's per-cell cross-attention has one query per cell) run the
-/// portable kernel, whose invocations each own one row.
+/// Segments averaging fewer query rows than this (the encoder's per-cell cross-attention has
+/// one query per cell) run the portable kernel, whose invocations each own one row: a
+/// cooperative-matrix block computes at least 32.
 pub const COOP_MIN_ROWS_PER_SEGMENT: usize = 8;
+/// Segments averaging at least this many query rows take the tall blocks.
+pub const COOP_TALL_ROWS_PER_SEGMENT: usize = 64;
 
-/// Whether f16 inputs of head width `d`, `nq` query rows over `segments` segments, run the
-/// cooperative-matrix forward kernel on this device.
-pub fn coop_forward_chosen(gpu: &Gpu, d: usize, nq: usize, segments: usize) -> bool {
-    coop_forward_kernel(gpu, d).is_some() && nq >= COOP_MIN_ROWS_PER_SEGMENT * segments
+/// The cooperative-matrix forward kernel and its block height that f16 inputs of head width
+/// `d`, `nq` query rows over `segments` segments, run on this device; `None` where they run
+/// the portable kernel.
+pub fn coop_forward_chosen(gpu: &Gpu, d: usize, nq: usize, segments: usize) -> Option<(KernelId, usize)> {
+    if nq < COOP_MIN_ROWS_PER_SEGMENT * segments {
+        return None;
+    }
+    coop_forward_kernel(gpu, d, nq >= COOP_TALL_ROWS_PER_SEGMENT * segments)
 }
 
 /// Which forward kernel f16 inputs of head width `d` run on this device, for `velox info` and
 /// the benchmarks (segments of at least [`COOP_MIN_ROWS_PER_SEGMENT`] rows on average).
-pub fn f16_forward_variant(gpu: &Gpu, d: usize) -> &'static str {
-    if coop_forward_kernel(gpu, d).is_some() {
-        "cooperative-matrix: S = QK^T and PV on f16 fragments, f32 softmax; P rounded to f16"
-    } else {
-        "portable: f16 inputs widened to f32, f32 arithmetic"
+pub fn f16_forward_variant(gpu: &Gpu, d: usize) -> String {
+    match (coop_forward_kernel(gpu, d, false), coop_forward_kernel(gpu, d, true)) {
+        (Some((_, short)), Some((_, tall))) => format!(
+            "cooperative-matrix: S = QK^T and PV on f16 fragments, f32 softmax, P rounded to f16; \
+             blocks of {short} query rows, {tall} for segments of {COOP_TALL_ROWS_PER_SEGMENT} or more"
+        ),
+        _ => "portable: f16 inputs widened to f32, f32 arithmetic".into(),
     }
 }
 
-/// The work list over the rows of `offsets` (blocks of `BLOCK` rows, one segment each):
+/// The work list over the rows of `offsets` (blocks of `block` rows, one segment each):
 /// returns the list and its capacity.
-fn work_list(rec: &mut Recorder, offsets: &Tensor, rows: usize) -> Result<(Tensor, usize)> {
+fn work_list(rec: &mut Recorder, offsets: &Tensor, rows: usize, block: usize) -> Result<(Tensor, usize)> {
     let gpu = offsets.gpu().clone();
     let segments = offsets.numel() - 1;
-    let capacity = segments + rows.div_ceil(BLOCK);
+    let capacity = segments + rows.div_ceil(block);
     let items = Tensor::empty(&gpu, &[segments], DType::U32)?;
     let first = Tensor::empty(&gpu, &[segments], DType::U32)?;
     let list = Tensor::empty(&gpu, &[capacity, 2], DType::U32)?;
     let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("{v} attention work items")));
     let p = BlockParams {
         segments: fit(segments)?,
-        block: BLOCK as u32,
+        block: block as u32,
         rows: fit(rows)?,
         capacity: fit(capacity)?,
     };
@@ -267,16 +289,13 @@ pub fn attention(
         return Ok(AttentionOut { o, lse });
     }
     let kern = kernels_for(d).expect("checked");
-    let (list, capacity) = work_list(rec, &seg.q_offsets, nq)?;
+    let (kernel, block) = match q.dtype() {
+        DType::F16 => coop_forward_chosen(&gpu, d, nq, seg.count()).unwrap_or((kern.fwd_f16, BLOCK)),
+        _ => (kern.fwd, BLOCK),
+    };
+    let (list, capacity) = work_list(rec, &seg.q_offsets, nq, block)?;
     let p = params(h, capacity, scale, nq, nk)?;
     let args = [q, k, v, &seg.q_offsets, &seg.k_offsets, &list, &o, &lse];
-    let kernel = match q.dtype() {
-        DType::F16 => match coop_forward_kernel(&gpu, d) {
-            Some(k) if coop_forward_chosen(&gpu, d, nq, seg.count()) => k,
-            _ => kern.fwd_f16,
-        },
-        _ => kern.fwd,
-    };
     rec.dispatch_linear(kernel, (capacity * h) as u64, &args, &p)?;
     Ok(AttentionOut { o, lse })
 }
@@ -331,13 +350,13 @@ pub fn attention_backward(
     let kern = kernels_for(d).expect("checked");
     let (o, lse) = (&out.o, &out.lse);
     if nq > 0 {
-        let (q_list, q_capacity) = work_list(rec, &seg.q_offsets, nq)?;
+        let (q_list, q_capacity) = work_list(rec, &seg.q_offsets, nq, BLOCK)?;
         let p = params(h, q_capacity, scale, nq, nk)?;
         let args = [q, k, v, &seg.q_offsets, &seg.k_offsets, &q_list, o, lse, d_o, &delta, &dq];
         rec.dispatch_linear(kern.dq, (q_capacity * h) as u64, &args, &p)?;
     }
     if nk > 0 {
-        let (k_list, k_capacity) = work_list(rec, &seg.k_offsets, nk)?;
+        let (k_list, k_capacity) = work_list(rec, &seg.k_offsets, nk, BLOCK)?;
         let p = params(h, k_capacity, scale, nq, nk)?;
         let args = [q, k, v, &seg.q_offsets, &seg.k_offsets, &k_list, lse, d_o, &delta, &dk, &dv];
         rec.dispatch_linear(kern.dkv, (k_capacity * h) as u64, &args, &p)?;

@@ -169,11 +169,14 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         };
         let flops = attention::forward_flops(&case.q_lens, &k_lens, h, d);
         let coop = attention::coop_forward_chosen(gpu, d, nq, case.q_lens.len());
-        let f16_name = if coop { "f16 coop" } else { "f16" };
+        let f16_name = match coop {
+            Some((_, block)) => format!("f16 coop{block}"),
+            None => "f16".to_string(),
+        };
         let shape = format!("{nq}x{nk} h{h} d{d} ({segments} seg)");
         for (pass, precision, ms, min, f, got, want) in [
             ("fwd", "f32", fwd_ms, fwd_min, flops, &fwd_got, &fwd_want),
-            ("fwd", f16_name, f16_ms, f16_min, flops, &f16_got, &fwd_want),
+            ("fwd", f16_name.as_str(), f16_ms, f16_min, flops, &f16_got, &fwd_want),
             ("bwd", "f32", bwd_ms, bwd_min, 2.5 * flops, &bwd_got, &bwd_want),
         ] {
             let tflops = f / (ms * 1e-3) / 1e12;
