@@ -48,8 +48,11 @@ use crate::params::{Init, ParamBuilder, ParamStore};
 
 /// LayerNorm epsilon under adaLN (DiT's value).
 const LN_EPS: f32 = 1e-6;
-/// The largest activation one sampling chunk may hold, in bytes.
-const SAMPLE_CHUNK_BYTES: usize = 32 << 20;
+/// The largest activation one sampling chunk may hold, in bytes: a quarter of the device's
+/// largest storage binding, within these bounds (lavapipe binds 128 MiB, so 32 MiB there; an
+/// H100 binds 4 GiB, so 256 MiB: 16384 points of the paper's width in one chunk, whose
+/// attention has 4x the work items of a 4096-point chunk to spread over the GPU).
+const SAMPLE_CHUNK_BYTES: (u64, u64) = (32 << 20, 256 << 20);
 
 /// The six modulation roles of a block, in the order of the paper's `6 x width` output.
 const BLOCK_ROLES: [&str; 6] =
@@ -672,17 +675,19 @@ impl SurfaceDecoder {
         self.loss_step_with(rec, x, tau, tokens, &noise)
     }
 
-    /// Points per sampling chunk: the MLP's hidden activation of a chunk stays under 32 MiB,
-    /// and chunks start at offsets every device can bind.
-    pub fn sample_chunk(&self) -> usize {
+    /// Points per sampling chunk on `gpu`: the MLP's hidden activation of a chunk stays within
+    /// [`SAMPLE_CHUNK_BYTES`], and chunks start at offsets every device can bind.
+    pub fn sample_chunk(&self, gpu: &Gpu) -> usize {
+        let (lo, hi) = SAMPLE_CHUNK_BYTES;
+        let bytes = (gpu.caps().max_storage_buffer_range / 4).clamp(lo, hi) as usize;
         let per_point = 4 * self.cfg.mlp_ratio.max(1) * self.cfg.width;
-        (SAMPLE_CHUNK_BYTES / per_point).max(64) / 64 * 64
+        (bytes / per_point).max(64) / 64 * 64
     }
 
     /// Samples `spec.points` surface points at frame time `tau` from `x_0 ~ N(0, I)` (seeded)
     /// by integrating the velocity from `t = 0` to `1`: `[points, 3]`.
     pub fn sample(&self, tokens: &Tensor, tau: f32, spec: &SampleSpec) -> Result<Tensor> {
-        self.sample_in_chunks(tokens, tau, spec, self.sample_chunk())
+        self.sample_in_chunks(tokens, tau, spec, self.sample_chunk(tokens.gpu()))
     }
 
     /// [`SurfaceDecoder::sample`] integrating `chunk` points at a time (a positive multiple of
