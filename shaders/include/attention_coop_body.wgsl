@@ -116,6 +116,20 @@ fn stage_kv(kt: u32, k_end: u32, h: u32, half: u32, t: u32) {
     stage(2u, kt, count, h, half * 2u * KV_TILE + KV_TILE, BK, t);
 }
 
+// Stores output fragments d0 .. d0 + KF - 1 side by side into the subgroup's S at `s_at` (row
+// stride RS), for a pass over their elements. Past DF it stores the last fragment again: a
+// spare copy, which is scaled and read back alike, instead of a branch around a cooperative
+// operation. naga 30 lowers coopStore without first emitting the expressions in its
+// arguments, so each argument is bound by an earlier `let`.
+fn store_round(oacc: ptr<function, array<FragC, DF>>, d0: u32, s_at: u32) {
+    for (var x = 0u; x < KF; x++) {
+        let value = (*oacc)[min(d0 + x, DF - 1u)];
+        let dst = &so[s_at + x * F];
+        let stride = RS;
+        coopStoreT(value, dst, stride);
+    }
+}
+
 @compute @workgroup_size(WG)
 fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
        @builtin(local_invocation_index) t: u32, @builtin(subgroup_id) sg: u32,
@@ -240,13 +254,7 @@ fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
         // needs none.
         if decided == 1u {
             for (var d0 = 0u; d0 < DF; d0 += KF) {
-                for (var x = 0u; x < KF; x++) {
-                    // Past DF, the last fragment again: a spare copy, scaled and read back alike.
-                    let value = oacc[min(d0 + x, DF - 1u)];
-                    let dst = &so[s_at + x * F];
-                    let stride = RS;
-                    coopStoreT(value, dst, stride);
-                }
+                store_round(&oacc, d0, s_at);
                 workgroupBarrier();
                 for (var c = j; c < KF * F; c += LPR) {
                     so[s_at + r * RS + c] *= correction;
@@ -289,12 +297,7 @@ fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     for (var d0 = 0u; d0 < DF; d0 += KF) {
         // The previous round's reads (or the last tile's P V) are done before the stores.
         workgroupBarrier();
-        for (var x = 0u; x < KF; x++) {
-            let value = oacc[min(d0 + x, DF - 1u)];
-            let dst = &so[s_at + x * F];
-            let stride = RS;
-            coopStoreT(value, dst, stride);
-        }
+        store_round(&oacc, d0, s_at);
         workgroupBarrier();
         for (var c = j; c < KF * F; c += LPR) {
             let feature = d0 * F + c;
