@@ -1,9 +1,10 @@
 // @variants D: 16 32 64 72
-// Fused segment attention, forward, on f16 q, k and v: the f16 model path's attention on
-// every device. The algorithm, layouts and outputs are those of `attention.wgsl` (see there);
-// only the inputs differ. They are stored two halves to a 32-bit word, so four features are
-// one vec2<u32>, unpacked to f32 by unpack2x16float (no 16-bit device feature needed); scores,
-// softmax statistics and the output accumulate in f32, and o and lse are f32.
+// Fused segment attention, forward and backward, on f16 q, k and v: the f16 model path's
+// attention on every device. The algorithm, layouts and outputs are those of `attention.wgsl`
+// (see there); only the inputs differ. They are stored two halves to a 32-bit word, so four
+// features are one vec2<u32>, unpacked to f32 by unpack2x16float (no 16-bit device feature
+// needed); scores, softmax statistics, the output and the gradients accumulate in f32, and o,
+// lse, dq, dk and dv are f32.
 
 const D: u32 = 32u;
 const D4: u32 = D / 4u;
@@ -30,3 +31,4 @@ fn load_v(i: u32) -> vec4<f32> {
 }
 
 // @include attention_forward.wgsl
+// @include attention_backward.wgsl

@@ -108,6 +108,9 @@ struct Kernels {
     fwd_coop8: [KernelId; 2],
     dq: KernelId,
     dkv: KernelId,
+    /// The backward pass on f16 q, k, v (everything else f32).
+    dq_f16: KernelId,
+    dkv_f16: KernelId,
 }
 
 fn kernels_for(d: usize) -> Option<Kernels> {
@@ -120,6 +123,8 @@ fn kernels_for(d: usize) -> Option<Kernels> {
             fwd_coop8: [ATTENTION_COOP8_D16_BQ32_FWD, ATTENTION_COOP8_D16_BQ64_FWD],
             dq: ATTENTION_D16_BWD_DQ,
             dkv: ATTENTION_D16_BWD_DKV,
+            dq_f16: ATTENTION_F16_D16_BWD_DQ,
+            dkv_f16: ATTENTION_F16_D16_BWD_DKV,
         },
         32 => Kernels {
             fwd: ATTENTION_D32_FWD,
@@ -128,6 +133,8 @@ fn kernels_for(d: usize) -> Option<Kernels> {
             fwd_coop8: [ATTENTION_COOP8_D32_BQ32_FWD, ATTENTION_COOP8_D32_BQ64_FWD],
             dq: ATTENTION_D32_BWD_DQ,
             dkv: ATTENTION_D32_BWD_DKV,
+            dq_f16: ATTENTION_F16_D32_BWD_DQ,
+            dkv_f16: ATTENTION_F16_D32_BWD_DKV,
         },
         64 => Kernels {
             fwd: ATTENTION_D64_FWD,
@@ -136,6 +143,8 @@ fn kernels_for(d: usize) -> Option<Kernels> {
             fwd_coop8: [ATTENTION_COOP8_D64_BQ32_FWD, ATTENTION_COOP8_D64_BQ64_FWD],
             dq: ATTENTION_D64_BWD_DQ,
             dkv: ATTENTION_D64_BWD_DKV,
+            dq_f16: ATTENTION_F16_D64_BWD_DQ,
+            dkv_f16: ATTENTION_F16_D64_BWD_DKV,
         },
         72 => Kernels {
             fwd: ATTENTION_D72_FWD,
@@ -144,6 +153,8 @@ fn kernels_for(d: usize) -> Option<Kernels> {
             fwd_coop8: [ATTENTION_COOP8_D72_BQ32_FWD, ATTENTION_COOP8_D72_BQ64_FWD],
             dq: ATTENTION_D72_BWD_DQ,
             dkv: ATTENTION_D72_BWD_DKV,
+            dq_f16: ATTENTION_F16_D72_BWD_DQ,
+            dkv_f16: ATTENTION_F16_D72_BWD_DKV,
         },
         _ => return None,
     })
@@ -312,6 +323,8 @@ fn params(h: usize, capacity: usize, scale: f32, nq: usize, nk: usize) -> Result
 }
 
 /// Gradients of a loss with respect to q, k and v, given dO = dL/do and the forward outputs.
+/// q, k and v are all f32 or all f16 (read as f16, as in the forward pass); dO, o, lse and the
+/// gradients are f32.
 #[allow(clippy::too_many_arguments)]
 pub fn attention_backward(
     rec: &mut Recorder,
@@ -324,11 +337,10 @@ pub fn attention_backward(
     scale: f32,
 ) -> Result<AttentionGrads> {
     let (nq, nk, h, d) = check(q, k, v, seg)?;
-    if q.dtype() != DType::F32 {
-        return Err(Error::Invalid(format!(
-            "attention backward runs on f32 q, k, v only, got {:?}",
-            q.dtype()
-        )));
+    for (what, t) in [("dO", d_o), ("o", &out.o), ("lse", &out.lse)] {
+        if t.dtype() != DType::F32 {
+            return Err(Error::Shape(format!("attention backward: {what} {t:?} must be f32")));
+        }
     }
     if d_o.shape() != q.shape() || out.o.shape() != q.shape() || out.lse.shape() != [nq, h] {
         return Err(Error::Shape(format!(
@@ -348,18 +360,20 @@ pub fn attention_backward(
     fill_bits(rec, &dv, 0)?;
     let delta = Tensor::empty(&gpu, &[nq, h], DType::F32)?;
     let kern = kernels_for(d).expect("checked");
+    let (dq_kernel, dkv_kernel) =
+        if q.dtype() == DType::F16 { (kern.dq_f16, kern.dkv_f16) } else { (kern.dq, kern.dkv) };
     let (o, lse) = (&out.o, &out.lse);
     if nq > 0 {
         let (q_list, q_capacity) = work_list(rec, &seg.q_offsets, nq, BLOCK)?;
         let p = params(h, q_capacity, scale, nq, nk)?;
         let args = [q, k, v, &seg.q_offsets, &seg.k_offsets, &q_list, o, lse, d_o, &delta, &dq];
-        rec.dispatch_linear(kern.dq, (q_capacity * h) as u64, &args, &p)?;
+        rec.dispatch_linear(dq_kernel, (q_capacity * h) as u64, &args, &p)?;
     }
     if nk > 0 {
         let (k_list, k_capacity) = work_list(rec, &seg.k_offsets, nk, BLOCK)?;
         let p = params(h, k_capacity, scale, nq, nk)?;
         let args = [q, k, v, &seg.q_offsets, &seg.k_offsets, &k_list, lse, d_o, &delta, &dk, &dv];
-        rec.dispatch_linear(kern.dkv, (k_capacity * h) as u64, &args, &p)?;
+        rec.dispatch_linear(dkv_kernel, (k_capacity * h) as u64, &args, &p)?;
     }
     Ok(AttentionGrads { dq, dk, dv })
 }

@@ -1,6 +1,7 @@
 //! `velox bench attention`: fused segment attention at the paper's sizes, forward and
-//! backward in f32 and forward on f16 inputs, time against the f64 reference (on the exact
-//! inputs, so the f16 rows' errors include the rounding of q, k and v).
+//! backward in f32 and on f16 inputs, time against the f64 reference (on the exact inputs, so
+//! the f16 rows' errors include the rounding of q, k and v). The f16 backward row takes the f16
+//! forward pass's o and lse, as training on f16 inputs would.
 //!
 //! The f16 rows run the cooperative-matrix kernel where the device has one (precision
 //! "f16 coop": both products on f16 fragments, the softmax weights rounded to f16), else the
@@ -107,13 +108,22 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
             out16 = Some(attention(rec, &q16, &k16, &v16, &seg, scale)?);
             Ok(())
         })?;
-        let o16: Vec<f32> = out16.unwrap().o.read()?;
+        let out16 = out16.unwrap();
+        let o16: Vec<f32> = out16.o.read()?;
         let mut grads = None;
         let (bwd_ms, bwd_min, _) = time_gpu(gpu, repeats, |rec| {
             grads = Some(attention_backward(rec, &tq, &tk, &tv, &out, &tg, &seg, scale)?);
             Ok(())
         })?;
         let grads = grads.unwrap();
+        let mut grads16 = None;
+        let (bwd16_ms, bwd16_min, _) = time_gpu(gpu, repeats, |rec| {
+            grads16 = Some(attention_backward(rec, &q16, &k16, &v16, &out16, &tg, &seg, scale)?);
+            Ok(())
+        })?;
+        let grads16 = grads16.unwrap();
+        let (dq16, dk16, dv16): (Vec<f32>, Vec<f32>, Vec<f32>) =
+            (grads16.dq.read()?, grads16.dk.read()?, grads16.dv.read()?);
 
         // Reference on a sample.
         let (o, dq, dk, dv): (Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>) =
@@ -122,7 +132,7 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         let k_off = reference::offsets(&k_lens);
         let row = h * d;
         let (mut fwd_got, mut fwd_want, mut bwd_got, mut bwd_want) = (vec![], vec![], vec![], vec![]);
-        let mut f16_got = vec![];
+        let (mut f16_got, mut bwd16_got) = (vec![], vec![]);
         let segments = case.q_lens.len();
         let sampled_rows = segments == 1 && nq * nk > 1 << 22;
         let picks: Vec<usize> = if segments <= 8 {
@@ -154,11 +164,14 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
             f16_got.extend(as32(&o16, &rows));
             fwd_want.extend(o_ref);
             bwd_got.extend(as32(&dq, &rows));
+            bwd16_got.extend(as32(&dq16, &rows));
             bwd_want.extend(dq_ref);
             if !sampled_rows {
                 bwd_got.extend(as32(&dk, &keys));
+                bwd16_got.extend(as32(&dk16, &keys));
                 bwd_want.extend(dk_ref);
                 bwd_got.extend(as32(&dv, &keys));
+                bwd16_got.extend(as32(&dv16, &keys));
                 bwd_want.extend(dv_ref);
             }
         }
@@ -178,6 +191,7 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
             ("fwd", "f32", fwd_ms, fwd_min, flops, &fwd_got, &fwd_want),
             ("fwd", f16_name.as_str(), f16_ms, f16_min, flops, &f16_got, &fwd_want),
             ("bwd", "f32", bwd_ms, bwd_min, 2.5 * flops, &bwd_got, &bwd_want),
+            ("bwd", "f16", bwd16_ms, bwd16_min, 2.5 * flops, &bwd16_got, &bwd_want),
         ] {
             let tflops = f / (ms * 1e-3) / 1e12;
             let name = format!("attn {} {pass}", case.name);
