@@ -1,5 +1,6 @@
 //! Batched matmul (`engine/src/ops/matmul.rs`, `shaders/matmul*.wgsl`) against its f64
-//! reference, on shapes that miss every tile multiple.
+//! reference, on shapes that miss every tile multiple; f32 products with a narrow side on
+//! both of their kernels.
 mod common;
 use common::*;
 use half::f16;
@@ -8,7 +9,17 @@ use velox::engine::ops::matmul::{
     coop_eligible, coop_kernel, coop_layout_ok, matmul, matmul_bias, matmul_into, matmul_variant, plan,
     reference,
 };
-use velox::engine::Error;
+use velox::engine::{Error, Gpu, NarrowMatmul, Recorder};
+
+/// Every f32 test runs on both kernels of narrow products (a side of 64 or less), whatever the
+/// device: the narrow-tile kernels, GPUs' choice, and the row kernel, CPU devices' choice.
+const NARROW_CHOICES: [NarrowMatmul; 2] = [NarrowMatmul::Tiles, NarrowMatmul::Rows];
+
+fn recorder(gpu: &Gpu, narrow: NarrowMatmul) -> Recorder {
+    let mut rec = gpu.recorder().unwrap();
+    rec.set_narrow_matmul(narrow);
+    rec
+}
 
 /// f32 products: measured NMSE is 5e-14 typically and 5e-12 at worst (a 1x1 output whose
 /// 130-term sum cancels); the bound leaves room for another summation order without letting
@@ -63,13 +74,20 @@ struct Case {
 
 #[test]
 fn f32_awkward_shapes_all_transposes() {
+    for narrow in NARROW_CHOICES {
+        eprintln!("narrow f32 products on the {narrow:?} kernels");
+        f32_awkward_shapes_all_transposes_with(narrow);
+    }
+}
+
+fn f32_awkward_shapes_all_transposes_with(narrow: NarrowMatmul) {
     let gpu = gpu();
     let mut rng = Rng::new(1);
     let mut worst: f64 = 0.0;
     for &m in &SIZES {
         for &n in &SIZES {
             // One submit per (m, n): every k and transpose combination.
-            let mut rec = gpu.recorder().unwrap();
+            let mut rec = recorder(&gpu, narrow);
             let mut cases = Vec::new();
             for &k in &SIZES {
                 for (ta, tb) in [(false, false), (false, true), (true, false), (true, true)] {
@@ -101,11 +119,18 @@ fn f32_awkward_shapes_all_transposes() {
 
 #[test]
 fn narrow_sides_between_32_and_64_take_partial_64_tiles() {
+    for narrow in NARROW_CHOICES {
+        eprintln!("narrow f32 products on the {narrow:?} kernels");
+        narrow_sides_between_32_and_64_take_partial_64_tiles_with(narrow);
+    }
+}
+
+fn narrow_sides_between_32_and_64_take_partial_64_tiles_with(narrow: NarrowMatmul) {
     // A narrow side of 33 to 64 takes the 64x64-tile kernel (4x4 outputs per invocation):
     // sides that leave its tiles partly filled, in both directions, with every transpose.
     let gpu = gpu();
     let mut rng = Rng::new(12);
-    let mut rec = gpu.recorder().unwrap();
+    let mut rec = recorder(&gpu, narrow);
     let mut cases = Vec::new();
     for (m, n, k) in [(40, 47, 5), (100, 40, 33), (47, 200, 17), (33, 33, 70)] {
         for (ta, tb) in [(false, false), (false, true), (true, false), (true, true)] {
@@ -131,13 +156,20 @@ fn narrow_sides_between_32_and_64_take_partial_64_tiles() {
 
 #[test]
 fn bias_is_added_to_every_row() {
+    for narrow in NARROW_CHOICES {
+        eprintln!("narrow f32 products on the {narrow:?} kernels");
+        bias_is_added_to_every_row_with(narrow);
+    }
+}
+
+fn bias_is_added_to_every_row_with(narrow: NarrowMatmul) {
     // A bias per output column, added by every kernel: the tiled kernel (sides over 64), both
     // narrow-tile kernels, batches, a product split along K (added after the pieces are
     // summed), and f16 operands (the portable kernel adds it itself; the cooperative kernels
     // by a separate pass).
     let gpu = gpu();
     let mut rng = Rng::new(13);
-    let mut rec = gpu.recorder().unwrap();
+    let mut rec = recorder(&gpu, narrow);
     let mut cases = Vec::new();
     let list: [(usize, usize, usize, Option<usize>, bool, bool); 7] = [
         (130, 70, 20, None, false, false),
@@ -190,6 +222,13 @@ fn bias_is_added_to_every_row() {
 
 #[test]
 fn f32_batched_and_broadcast() {
+    for narrow in NARROW_CHOICES {
+        eprintln!("narrow f32 products on the {narrow:?} kernels");
+        f32_batched_and_broadcast_with(narrow);
+    }
+}
+
+fn f32_batched_and_broadcast_with(narrow: NarrowMatmul) {
     let gpu = gpu();
     let mut rng = Rng::new(2);
     // (a batch, b batch): both batched, b broadcast (absent or 1), a broadcast.
@@ -202,7 +241,7 @@ fn f32_batched_and_broadcast() {
         (Some(1), Some(3)),
     ];
     let mut worst: f64 = 0.0;
-    let mut rec = gpu.recorder().unwrap();
+    let mut rec = recorder(&gpu, narrow);
     let mut cases = Vec::new();
     for (i, &(ab, bb)) in batches.iter().enumerate() {
         for (ta, tb) in [(false, false), (false, true), (true, false), (true, true)] {
@@ -229,10 +268,19 @@ fn f32_batched_and_broadcast() {
 
 #[test]
 fn accumulate_adds_and_plain_overwrites() {
+    for narrow in NARROW_CHOICES {
+        eprintln!("narrow f32 products on the {narrow:?} kernels");
+        accumulate_adds_and_plain_overwrites_with(narrow);
+    }
+}
+
+fn accumulate_adds_and_plain_overwrites_with(narrow: NarrowMatmul) {
     let gpu = gpu();
     let mut rng = Rng::new(3);
-    for (ta, tb) in [(false, false), (true, true)] {
-        let (m, n, k) = (65, 130, 17);
+    // Sides over 64 (the tiled kernel) and a narrow product.
+    for (ta, tb, (m, n, k)) in
+        [(false, false, (65, 130, 17)), (true, true, (65, 130, 17)), (true, false, (40, 20, 17))]
+    {
         let (sa, sb) = shapes(m, n, k, ta, tb, Some(3), None);
         let a = rng.normal_vec(numel(&sa));
         let b = rng.normal_vec(numel(&sb));
@@ -242,7 +290,7 @@ fn accumulate_adds_and_plain_overwrites() {
         let acc = Tensor::from_slice(&gpu, &[3, m, n], &old).unwrap();
         // Without accumulate every element is written, NaN included.
         let plain = Tensor::from_slice(&gpu, &[3, m, n], &vec![f32::NAN; 3 * m * n]).unwrap();
-        let mut rec = gpu.recorder().unwrap();
+        let mut rec = recorder(&gpu, narrow);
         matmul_into(&mut rec, &ta_, &tb_, ta, tb, &acc, true).unwrap();
         matmul_into(&mut rec, &ta_, &tb_, ta, tb, &plain, false).unwrap();
         rec.submit().unwrap();
@@ -285,6 +333,13 @@ fn f16_accumulate_on_interior_and_edge_tiles() {
 
 #[test]
 fn long_k_products_are_split_along_k() {
+    for narrow in NARROW_CHOICES {
+        eprintln!("narrow f32 products on the {narrow:?} kernels");
+        long_k_products_are_split_along_k_with(narrow);
+    }
+}
+
+fn long_k_products_are_split_along_k_with(narrow: NarrowMatmul) {
     // Few output tiles and a long K (a weight gradient x^T dy over many rows) are cut into
     // pieces of K summed afterwards: pieces that divide K and ones that leave a remainder,
     // every transpose, f32 and f16 operands, plain and accumulating.
@@ -303,7 +358,7 @@ fn long_k_products_are_split_along_k() {
         let a16 = Tensor::from_slice(&gpu, &sa, &round_f16(&a)).unwrap();
         let b16 = Tensor::from_slice(&gpu, &sb, &round_f16(&b)).unwrap();
         let acc = Tensor::from_slice(&gpu, &[m, n], &old).unwrap();
-        let mut rec = gpu.recorder().unwrap();
+        let mut rec = recorder(&gpu, narrow);
         let plain = matmul(&mut rec, &a32, &b32, ta, tb).unwrap();
         matmul_into(&mut rec, &a32, &b32, ta, tb, &acc, true).unwrap();
         let half = matmul(&mut rec, &a16, &b16, ta, tb).unwrap();
@@ -321,6 +376,13 @@ fn long_k_products_are_split_along_k() {
 
 #[test]
 fn empty_products() {
+    for narrow in NARROW_CHOICES {
+        eprintln!("narrow f32 products on the {narrow:?} kernels");
+        empty_products_with(narrow);
+    }
+}
+
+fn empty_products_with(narrow: NarrowMatmul) {
     let gpu = gpu();
     let mut rng = Rng::new(4);
     // K = 0: zeros, or unchanged under accumulate.
@@ -329,7 +391,7 @@ fn empty_products() {
         let b = Tensor::empty(&gpu, &[0, 7], dtype).unwrap();
         let old = rng.normal_vec(70);
         let acc = Tensor::from_slice(&gpu, &[2, 5, 7], &old).unwrap();
-        let mut rec = gpu.recorder().unwrap();
+        let mut rec = recorder(&gpu, narrow);
         let zeros = matmul(&mut rec, &a, &b, false, false).unwrap();
         matmul_into(&mut rec, &a, &b, false, false, &acc, true).unwrap();
         rec.submit().unwrap();
@@ -340,7 +402,7 @@ fn empty_products() {
     for (sa, sb) in [(vec![0, 4], vec![4, 3]), (vec![5, 4], vec![4, 0]), (vec![0, 5, 4], vec![4, 3])] {
         let a = Tensor::empty(&gpu, &sa, DType::F32).unwrap();
         let b = Tensor::empty(&gpu, &sb, DType::F32).unwrap();
-        let mut rec = gpu.recorder().unwrap();
+        let mut rec = recorder(&gpu, narrow);
         let out = matmul(&mut rec, &a, &b, false, false).unwrap();
         rec.submit().unwrap();
         assert_eq!(out.numel(), 0, "{sa:?} @ {sb:?}");
@@ -442,6 +504,13 @@ fn bad_shapes_and_dtypes_are_refused() {
 
 #[test]
 fn more_batches_than_one_dispatch_dimension_takes_are_split() {
+    for narrow in NARROW_CHOICES {
+        eprintln!("narrow f32 products on the {narrow:?} kernels");
+        more_batches_than_one_dispatch_dimension_takes_are_split_with(narrow);
+    }
+}
+
+fn more_batches_than_one_dispatch_dimension_takes_are_split_with(narrow: NarrowMatmul) {
     // 70000 batches of [2, 3] x [3, 2]: the z dimension allows 65535 on lavapipe.
     let gpu = gpu();
     let mut rng = Rng::new(77);
@@ -450,7 +519,7 @@ fn more_batches_than_one_dispatch_dimension_takes_are_split() {
     let b = rng.normal_vec(batch * 6);
     let ta = Tensor::from_slice(&gpu, &[batch, 2, 3], &a).unwrap();
     let tb = Tensor::from_slice(&gpu, &[batch, 3, 2], &b).unwrap();
-    let mut rec = gpu.recorder().unwrap();
+    let mut rec = recorder(&gpu, narrow);
     let c = matmul(&mut rec, &ta, &tb, false, false).unwrap();
     rec.submit().unwrap();
     let got: Vec<f32> = c.read().unwrap();

@@ -42,6 +42,18 @@ impl Precision {
     }
 }
 
+/// Which kernels f32 matrix products with a narrow side (64 or less) take in a recording.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum NarrowMatmul {
+    /// The device's own: `Rows` on CPU devices (lavapipe), `Tiles` on GPUs.
+    #[default]
+    Device,
+    /// The narrow-tile kernels (`matmul_small.wgsl`), through workgroup memory.
+    Tiles,
+    /// One row of outputs per invocation, no workgroup memory (`matmul_rows.wgsl`).
+    Rows,
+}
+
 pub struct Recorder {
     gpu: Gpu,
     cmd: vk::CommandBuffer,
@@ -55,6 +67,7 @@ pub struct Recorder {
     barriers: usize,
     submitted: bool,
     precision: Precision,
+    narrow_matmul: NarrowMatmul,
     /// Queries in the pool.
     capacity: u32,
     /// With `VELOX_PROFILE`: the query written before each dispatch, and its kernel.
@@ -99,6 +112,7 @@ impl Gpu {
             barriers: 0,
             submitted: false,
             precision: Precision::F32,
+            narrow_matmul: NarrowMatmul::Device,
             capacity: 0,
             profiled: Vec::new(),
         };
@@ -132,6 +146,16 @@ impl Recorder {
 
     pub fn set_precision(&mut self, precision: Precision) {
         self.precision = precision;
+    }
+
+    /// The kernels narrow f32 products recorded from now on take (the device's choice unless
+    /// set; tests set both others, so that each runs on every device).
+    pub fn narrow_matmul(&self) -> NarrowMatmul {
+        self.narrow_matmul
+    }
+
+    pub fn set_narrow_matmul(&mut self, choice: NarrowMatmul) {
+        self.narrow_matmul = choice;
     }
 
     /// Inserts a barrier if the next access of `reads` and `writes` depends on earlier work.

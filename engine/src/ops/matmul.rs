@@ -14,12 +14,12 @@ use crate::caps::Caps;
 use crate::device::Gpu;
 use crate::error::{Error, Result};
 use crate::kernels::{
-    KernelId, MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN, MATMUL_MAIN, MATMUL_MAIN_F16, MATMUL_SMALL_TS32_MAIN,
-    MATMUL_SMALL_TS64_MAIN,
+    KernelId, MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN, MATMUL_MAIN, MATMUL_MAIN_F16, MATMUL_ROWS_MAIN,
+    MATMUL_SMALL_TS32_MAIN, MATMUL_SMALL_TS64_MAIN,
 };
 use crate::ops::binary::{binary_into, Binary};
 use crate::ops::reduce::{reduce, Reduce};
-use crate::recorder::Recorder;
+use crate::recorder::{NarrowMatmul, Recorder};
 use crate::tensor::{DType, Tensor};
 
 /// Output tile of one workgroup: the tiled and cooperative-matrix kernels.
@@ -27,8 +27,12 @@ const TILE: usize = 128;
 /// A product whose M or N is at most this uses the narrow-tile kernel (f32 operands): a
 /// 128x128 tile would be mostly empty. Its tile is 32x32 when the narrow side is 32 or less,
 /// else 64x64 (4x4 outputs per invocation, twice the arithmetic per shared-memory read).
+/// On CPU devices such products take `matmul_rows.wgsl` instead (see [`NarrowMatmul`]): rows of
+/// ROWS_NC outputs, ROWS_WG rows per workgroup.
 const NARROW: usize = 64;
 const NARROW_32: usize = 32;
+const ROWS_NC: usize = 16;
+const ROWS_WG: usize = 64;
 /// Workgroup memory the cooperative-matrix kernels declare. 16x16 fragments: two buffers of two
 /// 128x40 f16 tiles (40 KiB) and one 16x16 f32 staging slot per subgroup for edge tiles (8 KiB).
 /// 8x8 fragments: k step 16, so two buffers of two 128x24 tiles (24 KiB), and 8 KiB of slots.
@@ -155,6 +159,10 @@ pub fn coop_layout_ok(p: &Plan, trans_a: bool, trans_b: bool) -> bool {
 /// Which kernel a product of `dtype` operands runs on this device, for `velox info`.
 pub fn matmul_variant(gpu: &Gpu, dtype: DType) -> &'static str {
     match dtype {
+        DType::F32 if gpu.caps().kind == "CPU" => {
+            "tiled f32: 128x128 tile per 256 invocations, 8x8 per invocation, k step 8; \
+             when M or N <= 64, 16 outputs of a row per invocation, no workgroup memory (CPU device)"
+        }
         DType::F32 => {
             "tiled f32: 128x128 tile per 256 invocations, 8x8 per invocation, k step 8 \
              (32x32 tiles when M or N <= 32, 64x64 when <= 64)"
@@ -224,7 +232,8 @@ pub fn matmul_into(
 
 /// Kernels that take a bias (binding 3, flags bit 2); the others have three bindings.
 fn takes_bias(kernel: KernelId) -> bool {
-    [MATMUL_MAIN, MATMUL_MAIN_F16, MATMUL_SMALL_TS32_MAIN, MATMUL_SMALL_TS64_MAIN].contains(&kernel)
+    [MATMUL_MAIN, MATMUL_MAIN_F16, MATMUL_SMALL_TS32_MAIN, MATMUL_SMALL_TS64_MAIN, MATMUL_ROWS_MAIN]
+        .contains(&kernel)
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -254,16 +263,18 @@ fn product(
         ));
     }
     let max = a.gpu().caps().max_workgroup_count;
-    let kernel = choose_kernel(a.gpu(), a.dtype(), &p, trans_a, trans_b);
-    let tile = match kernel {
-        MATMUL_SMALL_TS32_MAIN => 32,
-        MATMUL_SMALL_TS64_MAIN => 64,
-        _ => TILE,
+    let kernel = choose_kernel(a.gpu(), a.dtype(), &p, trans_a, trans_b, rec.narrow_matmul());
+    // Output rows and columns of one workgroup.
+    let (tm, tn) = match kernel {
+        MATMUL_SMALL_TS32_MAIN => (32, 32),
+        MATMUL_SMALL_TS64_MAIN => (64, 64),
+        MATMUL_ROWS_MAIN => (ROWS_WG, ROWS_NC),
+        _ => (TILE, TILE),
     };
-    let groups = [p.n.div_ceil(tile), p.m.div_ceil(tile), if p.m == 0 || p.n == 0 { 0 } else { p.batch }];
+    let groups = [p.n.div_ceil(tn), p.m.div_ceil(tm), if p.m == 0 || p.n == 0 { 0 } else { p.batch }];
     if groups[..2].iter().zip(max).any(|(&g, lim)| g > lim as usize) {
         return Err(Error::TooLarge(format!(
-            "matmul: [{}, {}] outputs need {groups:?} workgroups of {tile}x{tile}, the device allows {max:?}",
+            "matmul: [{}, {}] outputs need {groups:?} workgroups of {tm}x{tn}, the device allows {max:?}",
             p.m, p.n
         )));
     }
@@ -384,11 +395,25 @@ fn split_k_into(
     }
 }
 
-/// The kernel for one product.
-fn choose_kernel(gpu: &Gpu, dtype: DType, p: &Plan, trans_a: bool, trans_b: bool) -> KernelId {
+/// The kernel for one product (`narrow_choice`: the recording's choice for narrow f32 ones).
+fn choose_kernel(
+    gpu: &Gpu,
+    dtype: DType,
+    p: &Plan,
+    trans_a: bool,
+    trans_b: bool,
+    narrow_choice: NarrowMatmul,
+) -> KernelId {
     if dtype == DType::F32 {
         let narrow = p.m.min(p.n);
-        return if narrow <= NARROW_32 {
+        let rows = match narrow_choice {
+            NarrowMatmul::Device => gpu.caps().kind == "CPU",
+            NarrowMatmul::Rows => true,
+            NarrowMatmul::Tiles => false,
+        };
+        return if narrow <= NARROW && rows {
+            MATMUL_ROWS_MAIN
+        } else if narrow <= NARROW_32 {
             MATMUL_SMALL_TS32_MAIN
         } else if narrow <= NARROW {
             MATMUL_SMALL_TS64_MAIN
