@@ -78,8 +78,14 @@ pub fn fps_with_workgroup(
     candidates: &[u32],
     k: usize,
 ) -> Result<Tensor> {
+    let allowed = points.gpu().caps().max_workgroup_invocations;
     let kernel = match wg {
         WG_CPU => FPS_WG256_MAIN,
+        WG_GPU if allowed < WG_GPU => {
+            return Err(Error::Unsupported(format!(
+                "fps: a workgroup of {WG_GPU} invocations; this device allows {allowed}"
+            )))
+        }
         WG_GPU => FPS_WG1024_MAIN,
         _ => {
             return Err(Error::Invalid(format!(
