@@ -248,13 +248,15 @@ pub fn coop_forward_chosen(gpu: &Gpu, d: usize, nq: usize, segments: usize) -> O
 /// Which forward kernel f16 inputs of head width `d` run on this device, for `velox info` and
 /// the benchmarks (segments of at least [`COOP_MIN_ROWS_PER_SEGMENT`] rows on average).
 pub fn f16_forward_variant(gpu: &Gpu, d: usize) -> String {
-    match (coop_forward_kernel(gpu, d, false), coop_forward_kernel(gpu, d, true)) {
-        (Some((_, short)), Some((_, tall))) => format!(
-            "cooperative-matrix: S = QK^T and PV on f16 fragments, f32 softmax, P rounded to f16; \
-             blocks of {short} query rows, {tall} for segments of {COOP_TALL_ROWS_PER_SEGMENT} or more"
-        ),
-        _ => "portable: f16 inputs widened to f32, f32 arithmetic".into(),
-    }
+    let Some((_, short)) = coop_forward_kernel(gpu, d, false) else {
+        return "portable: f16 inputs widened to f32, f32 arithmetic".into();
+    };
+    // A tall block that does not fit gives way to the short one.
+    let tall = coop_forward_kernel(gpu, d, true).map_or(short, |(_, rows)| rows);
+    format!(
+        "cooperative-matrix: S = QK^T and PV on f16 fragments, f32 softmax, P rounded to f16; \
+         blocks of {short} query rows, {tall} for segments of {COOP_TALL_ROWS_PER_SEGMENT} or more"
+    )
 }
 
 /// The work list over the rows of `offsets` (blocks of `block` rows, one segment each):
