@@ -103,7 +103,7 @@ struct Kernels {
     /// The forward pass on f16 q, k, v.
     fwd_f16: KernelId,
     /// The same on cooperative matrices, 16x16x16 and 8x8x8 fragments, each in blocks of
-    /// [`COOP_BLOCKS`] query rows.
+    /// [`COOP_BLOCKS_16`] and [`COOP_BLOCKS_8`] query rows.
     fwd_coop16: [KernelId; 2],
     fwd_coop8: [KernelId; 2],
     dq: KernelId,
@@ -199,10 +199,11 @@ fn check(q: &Tensor, k: &Tensor, v: &Tensor, seg: &Segments) -> Result<(usize, u
 /// blocks of 64). Each block has one subgroup per F rows. Short segments (the encoder's
 /// 32-token windows) take the short blocks; long ones the tall blocks, which read each staged
 /// key and value tile for more rows.
-pub const COOP_BLOCKS: [(u32, [usize; 2]); 2] = [(16, [32, 128]), (8, [32, 64])];
+pub const COOP_BLOCKS_16: [usize; 2] = [32, 128];
+pub const COOP_BLOCKS_8: [usize; 2] = [32, 64];
 
 /// The cooperative-matrix forward kernel for f16 inputs of head width `d` on this device in
-/// blocks of `tall` or short height (see [`COOP_BLOCKS`]), with its block height, if the
+/// blocks of `tall` or short height (see [`COOP_BLOCKS_16`] and [`COOP_BLOCKS_8`]), with its block height, if the
 /// device has it: FxFxF f16 fragments with F = 16 or 8 (see `Caps::coop_matrix_f16`),
 /// subgroups of exactly F*F/8 invocations (each query row belongs to F/8 lanes of one
 /// subgroup), subgroup shuffles and votes, and the kernel's workgroup memory. A tall block that
@@ -212,8 +213,8 @@ pub fn coop_forward_kernel(gpu: &Gpu, d: usize, tall: bool) -> Option<(KernelId,
     let kern = kernels_for(d)?;
     let [f, _, _] = caps.coop_matrix_f16?;
     let (kernels, blocks) = match f {
-        16 => (kern.fwd_coop16, COOP_BLOCKS[0].1),
-        8 => (kern.fwd_coop8, COOP_BLOCKS[1].1),
+        16 => (kern.fwd_coop16, COOP_BLOCKS_16),
+        8 => (kern.fwd_coop8, COOP_BLOCKS_8),
         _ => return None,
     };
     let sg = f * f / 8;
