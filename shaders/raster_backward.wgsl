@@ -1,14 +1,85 @@
-// Backward of the rasteriser's blending with native f32 atomic adds (VK_EXT_shader_atomic_float);
-// `raster_backward_cas.wgsl` is the same kernel for devices without them. The kernel itself:
-// shaders/include/raster_backward_body.wgsl.
+// Backward of the rasteriser's blending, deterministic: the same inputs give the same bits on
+// every run, whatever the scheduling. The kernel itself: shaders/include/raster_backward_body.wgsl.
+//
+// `main`: within a tile, each subgroup's sums for a chunk of Gaussians go to its own corner of
+// workgroup memory; after the chunk, one invocation per (Gaussian, channel) adds the
+// subgroups' sums in subgroup order and writes the total to the pair's slot in `pair_grads`
+// (no atomics: a (tile, Gaussian) pair belongs to one workgroup). Slots group each
+// Gaussian's pairs (engine/src/ops/raster/forward.rs), so
+// `sum_pairs`: one invocation per Gaussian adds its pairs' gradients in slot order (its tiles in
+// row order) into its ten image-space gradients.
+//
+// Workgroup memory: the batch staging of the body (13 KiB) and PART_FLOATS (10 KiB) for the
+// subgroups' sums, within lavapipe's 32 KiB. A chunk is as many Gaussians as those floats hold
+// for the workgroup's subgroups, so there are two barriers per 8 Gaussians with subgroups of 8
+// (lavapipe: 32 subgroups), per 32 with subgroups of 32 (NVIDIA), and one Gaussian a chunk at
+// worst (subgroups of one invocation).
 
-// Per Gaussian: du, dv, conic a, b, c, opacity, r, g, b, depth.
-@group(0) @binding(8) var<storage, read_write> grads: array<atomic<f32>>;
+// Per pair slot: du, dv, conic a, b, c, opacity, r, g, b, depth (zeroed by the host first).
+@group(0) @binding(8) var<storage, read_write> pair_grads: array<f32>;
+// The slot of each sorted pair.
+@group(0) @binding(9) var<storage, read> slots: array<u32>;
+// `sum_pairs`: each Gaussian's pair count and first slot, and its summed gradients.
+@group(0) @binding(10) var<storage, read> counts: array<u32>;
+@group(0) @binding(11) var<storage, read> offsets: array<u32>;
+@group(0) @binding(12) var<storage, read_write> grad2d: array<f32>;
 
-fn grad_add(i: u32, v: f32) {
-    if (v != 0.0) {
-        atomicAdd(&grads[i], v);
+const PART_FLOATS: u32 = 2560u;
+const MAX_CHUNK: u32 = 64u;
+
+var<workgroup> s_part: array<f32, PART_FLOATS>;
+var<workgroup> s_entry: array<u32, MAX_CHUNK>;
+
+fn chunk_size(nsg: u32) -> u32 {
+    return clamp(PART_FLOATS / (10u * nsg), 1u, MAX_CHUNK);
+}
+
+// The sums of subgroup `sg` for the chunk's j-th Gaussian are s_part[(j nsg + sg) 10 + c].
+fn store_grads(sg: u32, nsg: u32, lane: u32, j: u32, entry: u32, gaussian: u32, any: bool,
+               sums: array<f32, 10>) {
+    if (lane == 0u) {
+        let base = (j * nsg + sg) * 10u;
+        for (var c = 0u; c < 10u; c = c + 1u) {
+            s_part[base + c] = sums[c];
+        }
+        if (sg == 0u) {
+            s_entry[j] = entry;
+        }
     }
 }
 
+fn flush_grads(lid: u32, chunk: u32, nsg: u32) {
+    workgroupBarrier();
+    for (var i = lid; i < chunk * 10u; i = i + 256u) {
+        let j = i / 10u;
+        let c = i % 10u;
+        var v = 0.0;
+        for (var s = 0u; s < nsg; s = s + 1u) {
+            v = v + s_part[(j * nsg + s) * 10u + c];
+        }
+        pair_grads[10u * slots[s_entry[j]] + c] = v;
+    }
+    workgroupBarrier();
+}
+
 // @include raster_backward_body.wgsl
+
+@compute @workgroup_size(256)
+fn sum_pairs(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+             @builtin(local_invocation_index) lid: u32) {
+    let g = (wid.x + wid.y * nwg.x) * 256u + lid;
+    if (g >= pc.gaussians) {
+        return;
+    }
+    var acc = array<f32, 10>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+    let first = offsets[g];
+    let end = first + counts[g];
+    for (var s = first; s < end; s = s + 1u) {
+        for (var c = 0u; c < 10u; c = c + 1u) {
+            acc[c] = acc[c] + pair_grads[10u * s + c];
+        }
+    }
+    for (var c = 0u; c < 10u; c = c + 1u) {
+        grad2d[10u * g + c] = acc[c];
+    }
+}

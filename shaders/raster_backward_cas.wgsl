@@ -1,14 +1,17 @@
 // Backward of the rasteriser's blending for devices without f32 atomics: each add is a
-// compare-and-swap loop on the value's bits. The kernel itself:
+// compare-and-swap loop on the value's bits (otherwise `raster_backward_atomic.wgsl`, and as
+// there, the order of the adds varies between runs). The kernel itself:
 // shaders/include/raster_backward_body.wgsl.
 
 // Per Gaussian: du, dv, conic a, b, c, opacity, r, g, b, depth.
 @group(0) @binding(8) var<storage, read_write> grads: array<atomic<u32>>;
 
+// `flush_grads` does nothing here: one chunk per batch.
+fn chunk_size(nsg: u32) -> u32 {
+    return BATCH;
+}
+
 fn grad_add(i: u32, v: f32) {
-    if (v == 0.0) {
-        return;
-    }
     var old = atomicLoad(&grads[i]);
     loop {
         let swapped = atomicCompareExchangeWeak(&grads[i], old, bitcast<u32>(bitcast<f32>(old) + v));
@@ -18,5 +21,18 @@ fn grad_add(i: u32, v: f32) {
         old = swapped.old_value;
     }
 }
+
+fn store_grads(sg: u32, nsg: u32, lane: u32, j: u32, entry: u32, gaussian: u32, any: bool,
+               sums: array<f32, 10>) {
+    if (any && lane == 0u) {
+        for (var c = 0u; c < 10u; c = c + 1u) {
+            if (sums[c] != 0.0) {
+                grad_add(10u * gaussian + c, sums[c]);
+            }
+        }
+    }
+}
+
+fn flush_grads(lid: u32, chunk: u32, nsg: u32) {}
 
 // @include raster_backward_body.wgsl

@@ -228,7 +228,8 @@ fn project_one(g: u32) {
     rects[g] = vec2<u32>(x0 | (y0 << 16u), x1 | (y1 << 16u));
     proj[3u * g] = vec4<f32>(u, v, t.z, opacity);
     proj[3u * g + 1u] = vec4<f32>(conic, 0.0);
-    proj[3u * g + 2u] = vec4<f32>(colour, 0.0);
+    // Negative colours clamp to 0, as 3D Gaussian splatting clamps its spherical-harmonic colour.
+    proj[3u * g + 2u] = vec4<f32>(max(colour, vec3<f32>(0.0)), 0.0);
     count_stat(STAT_DRAWN);
 }
 
@@ -258,7 +259,8 @@ fn project_backward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgrou
     let d_opacity = grad2d[base + 5u];
     let d_depth = grad2d[base + 9u];
     for (var k = 0u; k < 3u; k = k + 1u) {
-        d_colours[3u * g + k] = grad2d[base + 6u + k];
+        // A clamped channel passes no gradient.
+        d_colours[3u * g + k] = select(grad2d[base + 6u + k], 0.0, colours[3u * g + k] < 0.0);
     }
 
     // Recompute the forward quantities.

@@ -1,36 +1,59 @@
-// Tile lists of the rasteriser (host side: engine/src/ops/raster/).
+// Tile lists of the rasteriser (host side: engine/src/ops/raster/forward.rs).
 //
-// `emit`: one invocation per Gaussian writes one (key, Gaussian index) pair per tile of its
-// rectangle, from its place in the exclusive scan of the tile counts. The key holds the tile
-// index in its high bits and the depth in its low `depth_bits`: the top bits of the depth's f32
-// pattern, which orders like the depth itself since depths are positive. One radix sort of the
-// keys then groups the pairs by tile, front to back within a tile, equal keys in Gaussian order.
-// `ranges`: one invocation per sorted pair marks where each tile's run starts and ends.
+// Every (tile, Gaussian) pair has a slot: Gaussian g's pairs fill slots offsets[g] ..
+// offsets[g] + counts[g] (the exclusive scan of the tile counts), its rectangle's tiles in row
+// order. The pairs are put in blending order (by tile, front to back within a tile, equal
+// depths in Gaussian order) by two stable radix sorts, the classic way to sort on a key wider
+// than one word:
+// - `emit`: one invocation per Gaussian writes, per slot, the full 32-bit depth (its f32
+//   pattern, which orders like the depth since depths are positive), the tile, the Gaussian
+//   and the slot itself;
+// - the host sorts (depth, slot) on all 32 bits;
+// - `tiles_in_depth_order` reads each depth-sorted slot's tile;
+// - the host sorts (tile, slot) on the tile bits, stably, so depth order survives within a
+//   tile;
+// - `ranges_of_tiles` marks where each tile's run starts and ends, and names the Gaussian of
+//   every sorted pair.
+// The sorted slots are kept for the backward pass, which writes its per-pair gradients by slot
+// so that each Gaussian's lie together and are summed in a fixed order.
 
 struct Params {
-    n: u32,          // Gaussians (emit) or pairs (ranges)
+    n: u32,          // Gaussians (emit) or pairs (the others)
     tiles_x: u32,
-    depth_bits: u32, // 32 - tile bits
-    // emit: pairs the key buffers hold (writes past it are dropped, never out of bounds);
+    // emit: pairs the buffers hold (writes past it are dropped, never out of bounds);
     // ranges: the number of tiles (keys of other tiles are ignored).
     limit: u32,
+    pad: u32,
 }
 
 @group(0) @binding(0) var<storage, read> counts: array<u32>;
 @group(0) @binding(1) var<storage, read> offsets: array<u32>;
 @group(0) @binding(2) var<storage, read> rects: array<vec2<u32>>;
 @group(0) @binding(3) var<storage, read> proj: array<vec4<f32>>;
-@group(0) @binding(4) var<storage, read_write> keys: array<u32>;
-@group(0) @binding(5) var<storage, read_write> values: array<u32>;
-@group(0) @binding(6) var<storage, read> sorted_keys: array<u32>;
-// Per tile: first pair and one past the last.
-@group(0) @binding(7) var<storage, read_write> ranges: array<u32>;
+// Per slot: depth bits, tile, Gaussian, and the slot's own index (the values the sorts carry).
+@group(0) @binding(4) var<storage, read_write> depth_keys: array<u32>;
+@group(0) @binding(5) var<storage, read_write> slot_tiles: array<u32>;
+@group(0) @binding(6) var<storage, read_write> slot_gaussians: array<u32>;
+@group(0) @binding(7) var<storage, read_write> slot_ids: array<u32>;
+// Slots in depth order, and their tiles in that order.
+@group(0) @binding(8) var<storage, read> depth_sorted_slots: array<u32>;
+@group(0) @binding(9) var<storage, read_write> tile_keys: array<u32>;
+// The final order: each pair's tile and slot; per tile the first pair and one past the last;
+// the Gaussian of each pair.
+@group(0) @binding(10) var<storage, read> sorted_tiles: array<u32>;
+@group(0) @binding(11) var<storage, read> sorted_slots: array<u32>;
+@group(0) @binding(12) var<storage, read_write> ranges: array<u32>;
+@group(0) @binding(13) var<storage, read_write> ids: array<u32>;
 var<immediate> pc: Params;
+
+fn linear_id(wid: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
+    return (wid.x + wid.y * nwg.x) * 256u + lid;
+}
 
 @compute @workgroup_size(256)
 fn emit(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
         @builtin(local_invocation_index) lid: u32) {
-    let g = (wid.x + wid.y * nwg.x) * 256u + lid;
+    let g = linear_id(wid, nwg, lid);
     if (g >= pc.n || counts[g] == 0u) {
         return;
     }
@@ -39,13 +62,15 @@ fn emit(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
     let y0 = r.x >> 16u;
     let x1 = r.y & 0xffffu;
     let y1 = r.y >> 16u;
-    let depth = bitcast<u32>(proj[3u * g].z) >> (32u - pc.depth_bits);
+    let depth = bitcast<u32>(proj[3u * g].z);
     var at = offsets[g];
     for (var y = y0; y < y1; y = y + 1u) {
         for (var x = x0; x < x1; x = x + 1u) {
             if (at < pc.limit) {
-                keys[at] = ((y * pc.tiles_x + x) << pc.depth_bits) | depth;
-                values[at] = g;
+                depth_keys[at] = depth;
+                slot_tiles[at] = y * pc.tiles_x + x;
+                slot_gaussians[at] = g;
+                slot_ids[at] = at;
             }
             at = at + 1u;
         }
@@ -53,20 +78,31 @@ fn emit(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
 }
 
 @compute @workgroup_size(256)
-fn ranges_of_tiles(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-                   @builtin(local_invocation_index) lid: u32) {
-    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
+fn tiles_in_depth_order(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                        @builtin(local_invocation_index) lid: u32) {
+    let i = linear_id(wid, nwg, lid);
     if (i >= pc.n) {
         return;
     }
-    let tile = sorted_keys[i] >> pc.depth_bits;
+    tile_keys[i] = slot_tiles[min(depth_sorted_slots[i], pc.n - 1u)];
+}
+
+@compute @workgroup_size(256)
+fn ranges_of_tiles(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                   @builtin(local_invocation_index) lid: u32) {
+    let i = linear_id(wid, nwg, lid);
+    if (i >= pc.n) {
+        return;
+    }
+    ids[i] = slot_gaussians[min(sorted_slots[i], pc.n - 1u)];
+    let tile = sorted_tiles[i];
     if (tile >= pc.limit) {
         return;
     }
-    if (i == 0u || (sorted_keys[i - 1u] >> pc.depth_bits) != tile) {
+    if (i == 0u || sorted_tiles[i - 1u] != tile) {
         ranges[2u * tile] = i;
     }
-    if (i + 1u == pc.n || (sorted_keys[i + 1u] >> pc.depth_bits) != tile) {
+    if (i + 1u == pc.n || sorted_tiles[i + 1u] != tile) {
         ranges[2u * tile + 1u] = i + 1u;
     }
 }

@@ -9,7 +9,7 @@
 mod common;
 use common::*;
 use velox::engine::ops::raster::{
-    self, reference, render, render_backward, render_backward_cas, Camera, GaussianData, Gaussians, Grads,
+    self, reference, render, render_backward_with, BackwardKernel, Camera, GaussianData, Gaussians, Grads,
     Rendered,
 };
 
@@ -108,7 +108,8 @@ fn ref_grads(g: &reference::Grads) -> [&Vec<f64>; 5] {
 
 const NAMES: [&str; 5] = ["means", "log_scales", "quats", "opacities", "colours"];
 
-/// GPU backward (both kernels) against the reference backward.
+/// GPU backward (every kernel) against the reference backward; the deterministic kernel twice,
+/// for the same bits.
 #[track_caller]
 fn check_backward(what: &str, g: &GaussianData, cam: &Camera, f: &Forward, seed: u64, bound: f64) {
     let gpu = gpu();
@@ -125,13 +126,26 @@ fn check_backward(what: &str, g: &GaussianData, cam: &Camera, f: &Forward, seed:
         &f64s(&da),
         &f64s(&dd),
     );
+    let kernels = [
+        BackwardKernel::Ordered,
+        BackwardKernel::Ordered,
+        BackwardKernel::CompareAndSwap,
+        BackwardKernel::fastest(&gpu),
+    ];
     let mut rec = gpu.recorder().unwrap();
-    let fast = render_backward(&mut rec, &f.gaussians, &f.rendered, &t_dr, &t_da, &t_dd).unwrap();
-    let cas = render_backward_cas(&mut rec, &f.gaussians, &f.rendered, &t_dr, &t_da, &t_dd).unwrap();
+    let grads: Vec<Grads> = kernels
+        .iter()
+        .map(|&k| render_backward_with(&mut rec, k, &f.gaussians, &f.rendered, &t_dr, &t_da, &t_dd).unwrap())
+        .collect();
     rec.submit().unwrap();
-    for (kernel, got) in [("atomic", read_grads(&fast)), ("cas", read_grads(&cas))] {
-        for ((name, got), want) in NAMES.iter().zip(&got).zip(ref_grads(&want)) {
-            assert_nmse(&format!("{what} d{name} ({kernel})"), got, want, bound);
+    let got: Vec<[Vec<f32>; 5]> = grads.iter().map(read_grads).collect();
+    assert!(
+        got[0].iter().zip(&got[1]).all(|(a, b)| a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())),
+        "{what}: two runs of the deterministic backward differ"
+    );
+    for (kernel, got) in kernels.iter().zip(&got).skip(1) {
+        for ((name, got), want) in NAMES.iter().zip(got).zip(ref_grads(&want)) {
+            assert_nmse(&format!("{what} d{name} ({kernel:?})"), got, want, bound);
         }
     }
 }
@@ -206,9 +220,59 @@ fn stress_a_million_tiny_gaussians() {
     // A million Gaussians of about a pixel, thousands per tile.
     let cam = camera(128, 96);
     let g = scene(1_000_000, 21, (-6.0, -4.5), (-3.0, 0.0));
-    // With a million depths, a few fall on a depth-key bin edge, where the f32 and f64 depths
-    // bin apart and two Gaussians blend in swapped order (measured: rgb 4.3e-10).
+    // With a million depths, a few pairs are a rounding apart, where the f32 and f64 depths
+    // order apart and two Gaussians blend in swapped order.
     check_forward_pairs("1M tiny Gaussians", &g, &cam, 1e-8, 100);
+}
+
+#[test]
+fn blending_follows_the_full_depth_at_1080p() {
+    // 64 large, half-opaque Gaussians stacked 1e-5 apart in depth over the middle of a
+    // 1920 x 1080 image, their indices in shuffled depth order, each its own colour. A sort key
+    // that kept only the depth's top bits beside the tile (19 of them here) would tie them all
+    // and blend in index order.
+    let cam = camera(1920, 1080);
+    let mut rng = Rng::new(81);
+    let mut order: Vec<usize> = (0..64).collect();
+    for i in (1..order.len()).rev() {
+        order.swap(i, rng.below(i as u32 + 1) as usize);
+    }
+    let mut g = GaussianData::default();
+    for &rank in &order {
+        let z = 3.0 + rank as f32 * 1e-5;
+        let mean = [rng.range(-0.05, 0.05) as f32, rng.range(-0.05, 0.05) as f32, z];
+        let colour = [0; 3].map(|_| rng.uniform() as f32);
+        g.push(mean, [-2.3, -2.4, -2.2], [1.0, 0.0, 0.0, 0.0], 0.0, colour);
+    }
+    let f = check_forward("64 Gaussians 1e-5 apart at 1080p", &g, &cam, 1e-12);
+    let rgb: Vec<f32> = f.rendered.image.rgb.read().unwrap();
+    let worst = rgb.iter().zip(&f.reference.rgb).map(|(a, b)| (*a as f64 - b).abs()).fold(0.0, f64::max);
+    assert!(worst < 1e-5, "largest colour error {worst}");
+    // The test can fail: blended in index order, the image is another.
+    let mut ties = reference::Scene::from_data(&g);
+    for (i, z) in ties.means.iter_mut().skip(2).step_by(3).enumerate() {
+        *z = 3.0 + i as f64 * 1e-12;
+    }
+    let index_order = reference::render(&ties, &cam, BG);
+    let moved = index_order.rgb.iter().zip(&f.reference.rgb).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+    assert!(moved > 0.05, "index order changes colours by at most {moved}");
+}
+
+#[test]
+fn negative_colours_clamp_to_zero() {
+    // As 3D Gaussian splatting clamps its spherical-harmonic colour: a channel below zero draws
+    // as zero and passes no gradient.
+    let cam = camera(48, 40);
+    let mut g = scene(60, 91, (-2.5, -1.5), (-1.0, 2.0));
+    for c in g.colours.iter_mut().step_by(2) {
+        *c = -1.5 * *c - 0.01;
+    }
+    let f = check_forward("negative colours", &g, &cam, 1e-11);
+    let rgb: Vec<f32> = f.rendered.image.rgb.read().unwrap();
+    let floor = BG.iter().fold(f32::INFINITY, |a, &b| a.min(b));
+    assert!(rgb.iter().all(|&v| v >= 0.0), "a pixel went below zero");
+    assert!(rgb.iter().any(|&v| v < floor), "the scene darkens no pixel below the background");
+    check_backward("negative colours", &g, &cam, &f, 92, 1e-10);
 }
 
 #[test]
@@ -287,7 +351,7 @@ fn poison_inputs_are_dropped_and_counted() {
     let (dr, da, dd) = image_grads(&cam, 62);
     let t = |v: &[f32], s: &[usize]| Tensor::from_slice(&gpu, s, v).unwrap();
     let mut rec = gpu.recorder().unwrap();
-    let grads = render_backward(
+    let grads = raster::render_backward(
         &mut rec,
         &f.gaussians,
         &f.rendered,

@@ -1,6 +1,11 @@
-// The blend backward kernel, shared by `raster_backward.wgsl` (native f32 atomic add) and
-// `raster_backward_cas.wgsl` (compare-and-swap), which each define the `grads` binding and
-// `grad_add(index, value)`.
+// The blend backward kernel, shared by `raster_backward.wgsl` (per-pair sums, deterministic),
+// `raster_backward_atomic.wgsl` (native f32 atomic add) and `raster_backward_cas.wgsl`
+// (compare-and-swap), which each define the `grads` binding and two functions:
+// `store_grads(sg, nsg, lane, j, entry, gaussian, any, sums)`, called by every invocation for the
+// j-th Gaussian of a chunk of CHUNK (`entry`: its place in the sorted tile list; `any`: whether
+// any lane of the subgroup touched it; `sums`: the subgroup's sums, zeros unless `any`), and
+// `flush_grads(lid, chunk, nsg)`, called by every invocation after each chunk (in uniform control
+// flow, so it may hold barriers).
 //
 // One workgroup per tile, one invocation per pixel, walking the tile's Gaussians back to front
 // from the last one any pixel blended, in batches staged through workgroup memory. Each pixel
@@ -12,16 +17,15 @@
 // alpha_max passes no gradient to the opacity or the footprint.
 //
 // The ten per-Gaussian sums (du, dv, conic a b c, opacity, rgb, depth) are reduced over the
-// subgroup with subgroupAdd first, so one lane adds each to memory: the batch loop is uniform
-// over the workgroup, and pixels that do not touch a Gaussian add zeros. Nothing depends on
-// the subgroup size.
+// subgroup with subgroupAdd first: the batch loop is uniform over the workgroup, and pixels
+// that do not touch a Gaussian add zeros. Nothing depends on the subgroup size.
 
 struct Params {
     background: vec4<f32>,
     width: u32,
     height: u32,
     tiles_x: u32,
-    pad0: u32,
+    gaussians: u32, // for `sum_pairs` of the per-pair kernel
     alpha_max: f32,
     min_alpha: f32,
     t_stop: f32,
@@ -46,11 +50,13 @@ var<workgroup> s_conic: array<vec4<f32>, BATCH>;
 var<workgroup> s_colour: array<vec4<f32>, BATCH>;
 var<workgroup> max_last: atomic<u32>;
 var<workgroup> max_last_plain: u32;
+var<workgroup> chunk_plain: u32;
 
 // One-dimensional (subgroup builtins need it): pixel (lid % 16, lid / 16) of the tile.
 @compute @workgroup_size(256)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32,
-        @builtin(subgroup_invocation_id) lane: u32) {
+        @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_id) sg: u32,
+        @builtin(num_subgroups) nsg: u32) {
     let tile = wid.y * pc.tiles_x + wid.x;
     let px = wid.x * 16u + (lid & 15u);
     let py = wid.y * 16u + (lid >> 4u);
@@ -79,8 +85,10 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     workgroupBarrier();
     if (lid == 0u) {
         max_last_plain = atomicLoad(&max_last);
+        chunk_plain = chunk_size(nsg);
     }
     let n = workgroupUniformLoad(&max_last_plain);
+    let chunk_len = workgroupUniformLoad(&chunk_plain);
     // Colour, depth and coverage behind the current Gaussian.
     var behind_rgb = pc.background.xyz;
     var behind_depth = 0.0;
@@ -100,54 +108,58 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
             s_colour[lid] = proj[3u * g + 2u];
         }
         workgroupBarrier();
-        for (var ki = 0u; ki < count; ki = ki + 1u) {
-            let k = count - 1u - ki;
-            var contributes = false;
-            var grad = array<f32, 10>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
-            if (first + k < last) {
-                let xo = s_xy_op[k];
-                let co = s_conic[k].xyz;
-                let d = xo.xy - pix;
-                let power = 0.5 * (co.x * d.x * d.x + co.z * d.y * d.y) + co.y * d.x * d.y;
-                let gauss = exp(-power);
-                let raw = xo.w * gauss;
-                let alpha = min(pc.alpha_max, raw);
-                if (power >= 0.0 && alpha >= pc.min_alpha) {
-                    contributes = true;
-                    let one_minus = 1.0 - alpha;
-                    let t_i = t / one_minus;
-                    let w = alpha * t_i;
-                    let col = s_colour[k].xyz;
-                    let g_a = t_i * (dot(g_rgb, col - behind_rgb) + g_depth * (xo.z - behind_depth)
-                        + g_alpha * (1.0 - behind_alpha));
-                    behind_rgb = col * alpha + behind_rgb * one_minus;
-                    behind_depth = xo.z * alpha + behind_depth * one_minus;
-                    behind_alpha = alpha + behind_alpha * one_minus;
-                    t = t_i;
-                    if (raw < pc.alpha_max) {
-                        let g_power = -alpha * g_a;
-                        grad[0] = g_power * (co.x * d.x + co.y * d.y);
-                        grad[1] = g_power * (co.z * d.y + co.y * d.x);
-                        grad[2] = g_power * 0.5 * d.x * d.x;
-                        grad[3] = g_power * d.x * d.y;
-                        grad[4] = g_power * 0.5 * d.y * d.y;
-                        grad[5] = g_a * gauss;
-                    }
-                    grad[6] = g_rgb.x * w;
-                    grad[7] = g_rgb.y * w;
-                    grad[8] = g_rgb.z * w;
-                    grad[9] = g_depth * w;
-                }
-            }
-            if (subgroupAny(contributes)) {
-                let base = 10u * s_id[k];
-                for (var c = 0u; c < 10u; c = c + 1u) {
-                    let sum = subgroupAdd(grad[c]);
-                    if (lane == 0u) {
-                        grad_add(base + c, sum);
+        // Back to front, in chunks.
+        for (var c0 = 0u; c0 < count; c0 = c0 + chunk_len) {
+            let chunk = min(chunk_len, count - c0);
+            for (var j = 0u; j < chunk; j = j + 1u) {
+                let k = count - 1u - (c0 + j);
+                var contributes = false;
+                var grad = array<f32, 10>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+                if (first + k < last) {
+                    let xo = s_xy_op[k];
+                    let co = s_conic[k].xyz;
+                    let d = xo.xy - pix;
+                    let power = 0.5 * (co.x * d.x * d.x + co.z * d.y * d.y) + co.y * d.x * d.y;
+                    let gauss = exp(-power);
+                    let raw = xo.w * gauss;
+                    let alpha = min(pc.alpha_max, raw);
+                    if (power >= 0.0 && alpha >= pc.min_alpha) {
+                        contributes = true;
+                        let one_minus = 1.0 - alpha;
+                        let t_i = t / one_minus;
+                        let w = alpha * t_i;
+                        let col = s_colour[k].xyz;
+                        let g_a = t_i * (dot(g_rgb, col - behind_rgb) + g_depth * (xo.z - behind_depth)
+                            + g_alpha * (1.0 - behind_alpha));
+                        behind_rgb = col * alpha + behind_rgb * one_minus;
+                        behind_depth = xo.z * alpha + behind_depth * one_minus;
+                        behind_alpha = alpha + behind_alpha * one_minus;
+                        t = t_i;
+                        if (raw < pc.alpha_max) {
+                            let g_power = -alpha * g_a;
+                            grad[0] = g_power * (co.x * d.x + co.y * d.y);
+                            grad[1] = g_power * (co.z * d.y + co.y * d.x);
+                            grad[2] = g_power * 0.5 * d.x * d.x;
+                            grad[3] = g_power * d.x * d.y;
+                            grad[4] = g_power * 0.5 * d.y * d.y;
+                            grad[5] = g_a * gauss;
+                        }
+                        grad[6] = g_rgb.x * w;
+                        grad[7] = g_rgb.y * w;
+                        grad[8] = g_rgb.z * w;
+                        grad[9] = g_depth * w;
                     }
                 }
+                let any = subgroupAny(contributes);
+                var sums = array<f32, 10>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+                if (any) {
+                    for (var c = 0u; c < 10u; c = c + 1u) {
+                        sums[c] = subgroupAdd(grad[c]);
+                    }
+                }
+                store_grads(sg, nsg, lane, j, start + first + k, s_id[k], any, sums);
             }
+            flush_grads(lid, chunk, nsg);
         }
     }
 }

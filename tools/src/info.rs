@@ -3,6 +3,7 @@
 use std::path::Path;
 
 use serde_json::json;
+use velox_engine::ops::raster::BackwardKernel;
 use velox_engine::ops::{matmul, scatter_add};
 use velox_engine::{list_devices, DType, Gpu};
 
@@ -62,8 +63,10 @@ pub fn run(json_path: Option<&Path>) -> CliResult<()> {
     }
     println!();
     println!("Kernel variants on this device:");
-    for (k, v) in report["variants"].as_object().unwrap() {
-        println!("  {k:<18}{}", v.as_str().unwrap_or(""));
+    let variants = report["variants"].as_object().unwrap();
+    let width = variants.keys().map(|k| k.len() + 2).max().unwrap_or(0).max(18);
+    for (k, v) in variants {
+        println!("  {k:<width$}{}", v.as_str().unwrap_or(""));
     }
     if let Some(path) = json_path {
         std::fs::write(path, serde_json::to_string_pretty(&report)?)
@@ -84,6 +87,18 @@ fn yes(b: bool) -> &'static str {
 /// The device report as JSON (shared with the demo).
 pub fn report(gpu: &Gpu) -> serde_json::Value {
     let c = gpu.caps();
+    let raster_backward = match velox_engine::ops::raster::backward::variant(gpu) {
+        Ok(v) => v.1.to_string(),
+        Err(e) => format!("unsupported: {e}"),
+    };
+    let bench_kernel = BackwardKernel::fastest(gpu);
+    let raster_backward_bench = match bench_kernel.check(gpu) {
+        Ok(()) => format!(
+            "{}; `velox bench raster` times it beside the deterministic kernel",
+            bench_kernel.describe()
+        ),
+        Err(e) => format!("unsupported: {e}"),
+    };
     json!({
         "device": c.name, "kind": c.kind, "driver": c.driver, "vulkan": c.api_version,
         "device_memory_bytes": c.device_memory, "unified_memory": c.unified_memory,
@@ -104,9 +119,9 @@ pub fn report(gpu: &Gpu) -> serde_json::Value {
             "fps": velox_engine::ops::fps::variant(gpu).1,
             "sort": "LSD radix, 4 bits a pass",
             "scan": "workgroup-memory block scan, multi-level",
-            "raster backward": velox_engine::ops::raster::backward::variant(gpu)
-                .map(|v| v.1)
-                .unwrap_or("unsupported (no subgroup arithmetic)"),
+            "raster backward": raster_backward,
+            "raster backward (bench)": raster_backward_bench,
+            "determinism": "training and decoding give the same bits for the same seed on the same device: every reduction sums in a fixed order (scatter-add's atomics add once per row where the models use it)",
         }
     })
 }

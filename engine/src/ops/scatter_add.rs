@@ -17,8 +17,9 @@ pub fn variant(gpu: &crate::Gpu) -> &'static str {
 }
 
 /// out[idx[r]] += src[r] for every row r of src (rows are the first axis). Indices past out's
-/// rows are skipped. The order of additions into one row is unspecified, so sums may differ
-/// in the last bits between runs.
+/// rows are skipped. The order of additions into one row is unspecified, so where an index
+/// repeats, sums may differ in the last bits between runs; with distinct indices each row takes
+/// one addition and the result is exact and repeatable.
 pub fn scatter_add(rec: &mut Recorder, src: &Tensor, idx: &Tensor, out: &Tensor) -> Result<()> {
     let (rows, width) = rows_width(src)?;
     let (dst_rows, dst_width) = rows_width(out)?;

@@ -5,11 +5,14 @@
 //!
 //! The forward pass is two recordings (projection and scan; then keys, sort, ranges, blend),
 //! the backward one; each is timed with GPU timestamps and the median of their sum over the
-//! repeats is reported. The forward error is measured on 4096 sampled pixels (the reference
-//! is a CPU loop); the backward error over every gradient on a small case.
+//! repeats is reported. The backward pass is timed with both of its kernels: the deterministic
+//! one that training uses (per-pair sums in a fixed order) and the fastest one, whose atomic
+//! adds vary in their last bits between runs. The forward error is measured on 4096 sampled
+//! pixels (the reference is a CPU loop); the backward error over every gradient on a small
+//! case.
 
 use velox_engine::ops::raster::{
-    self, project, rasterize, reference, render, render_backward, Camera, GaussianData,
+    self, project, rasterize, reference, render, render_backward_with, BackwardKernel, Camera, GaussianData,
 };
 use velox_engine::rng::Rng;
 use velox_engine::stats::{max_abs_err, nmse};
@@ -64,9 +67,23 @@ fn timed<T>(gpu: &Gpu, f: impl FnOnce(&mut Recorder) -> Result<T>) -> Result<(T,
 
 struct Timing {
     forward: (f64, f64),
-    forward_backward: (f64, f64),
+    /// Per backward kernel of [`kernels`].
+    forward_backward: Vec<(f64, f64)>,
     gpu_timed: bool,
     pairs: usize,
+}
+
+/// The backward kernels timed: the deterministic one, and the device's fastest.
+fn kernels(gpu: &Gpu) -> [BackwardKernel; 2] {
+    [BackwardKernel::Ordered, BackwardKernel::fastest(gpu)]
+}
+
+fn kernel_name(k: BackwardKernel) -> &'static str {
+    match k {
+        BackwardKernel::Ordered => "ordered",
+        BackwardKernel::Atomic => "atomic",
+        BackwardKernel::CompareAndSwap => "cas",
+    }
 }
 
 fn median_min(mut v: Vec<f64>) -> (f64, f64) {
@@ -80,7 +97,7 @@ fn time_case(gpu: &Gpu, g: &GaussianData, cam: &Camera, repeats: u32) -> Result<
     // Loss = sum of the image: dL/drgb = 1, nothing on alpha and depth.
     let ones = Tensor::from_slice(gpu, &[cam.height as usize, cam.width as usize, 3], &vec![1.0f32; 3 * px])?;
     let zeros = Tensor::from_slice(gpu, &[cam.height as usize, cam.width as usize], &vec![0.0f32; px])?;
-    let (mut fwd, mut all) = (Vec::new(), Vec::new());
+    let (mut fwd, mut all) = (Vec::new(), vec![Vec::new(); 2]);
     let mut gpu_timed = true;
     let mut pairs = 0;
     for i in 0..=repeats {
@@ -88,14 +105,21 @@ fn time_case(gpu: &Gpu, g: &GaussianData, cam: &Camera, repeats: u32) -> Result<
         pairs = p.intersections()?;
         let (image, t_raster, b) = timed(gpu, |rec| rasterize(rec, &p, [0.0; 3]))?;
         let r = raster::Rendered { projected: p, image };
-        let (_, t_back, c) = timed(gpu, |rec| render_backward(rec, &t, &r, &ones, &zeros, &zeros))?;
-        gpu_timed &= a && b && c;
+        gpu_timed &= a && b;
+        for (k, times) in kernels(gpu).into_iter().zip(&mut all) {
+            let (_, t_back, c) =
+                timed(gpu, |rec| render_backward_with(rec, k, &t, &r, &ones, &zeros, &zeros))?;
+            gpu_timed &= c;
+            if i > 0 {
+                times.push(t_project + t_raster + t_back);
+            }
+        }
         if i > 0 {
             fwd.push(t_project + t_raster);
-            all.push(t_project + t_raster + t_back);
         }
     }
-    Ok(Timing { forward: median_min(fwd), forward_backward: median_min(all), gpu_timed, pairs })
+    let forward_backward = all.into_iter().map(median_min).collect();
+    Ok(Timing { forward: median_min(fwd), forward_backward, gpu_timed, pairs })
 }
 
 /// Forward error on `samples` random pixels.
@@ -126,10 +150,10 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
     let c = gpu.caps();
     let device = c.name.clone();
     println!("device: {device} ({}); {repeats} timed repeats per case, median shown", c.kind);
-    println!(
-        "backward accumulation: {}",
-        raster::backward::variant(gpu).map(|v| v.1).unwrap_or("unsupported on this device")
-    );
+    for k in kernels(gpu) {
+        let how = k.check(gpu).map(|()| k.describe()).unwrap_or("unsupported on this device");
+        println!("backward ({}): {how}", kernel_name(k));
+    }
     print_header();
     let mut out = Vec::new();
     let mut cases: Vec<(usize, (u32, u32))> = s.counts.iter().map(|&n| (n, s.count_res)).collect();
@@ -140,9 +164,11 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         let timing = time_case(gpu, &g, &cam, repeats)?;
         let (e, m, sampled) = forward_error(gpu, &g, &cam, 4096)?;
         let shape = format!("{n} gaussians {w}x{h}");
-        for (name, (median, min)) in
-            [("raster forward", timing.forward), ("raster forward+backward", timing.forward_backward)]
-        {
+        let mut rows = vec![("raster forward".to_string(), timing.forward)];
+        for (k, t) in kernels(gpu).into_iter().zip(&timing.forward_backward) {
+            rows.push((format!("raster fwd+bwd {}", kernel_name(k)), *t));
+        }
+        for (name, (median, min)) in rows {
             let rate = n as f64 / (median * 1e-3) / 1e6;
             let over = format!("forward rgb on {sampled} sampled pixels; {} tile pairs", timing.pairs);
             let t = (median, min, timing.gpu_timed);
@@ -152,9 +178,10 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
             out.push(r);
         }
     }
-    out.push(backward_error(gpu, repeats, &device)?);
-    if let Some(r) = out.last() {
-        print_row(r);
+    for k in kernels(gpu) {
+        let r = backward_error(gpu, k, repeats, &device)?;
+        print_row(&r);
+        out.push(r);
     }
     println!("gsplat 1.5.3 on an H100, same scenes at 1920x1080 (forward, forward+backward ms):");
     for (n, f, fb) in GSPLAT_H100 {
@@ -163,8 +190,9 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
     Ok(out)
 }
 
-/// The backward pass against the f64 reference on a small case, over every gradient.
-fn backward_error(gpu: &Gpu, repeats: u32, device: &str) -> Result<Record> {
+/// The backward pass with `kernel` against the f64 reference on a small case, over every
+/// gradient.
+fn backward_error(gpu: &Gpu, kernel: BackwardKernel, repeats: u32, device: &str) -> Result<Record> {
     let (n, w, h) = (2000, 128, 96);
     let g = GaussianData::benchmark_scene(n, 2);
     let cam = Camera::identity(50.0, w, h);
@@ -177,7 +205,8 @@ fn backward_error(gpu: &Gpu, repeats: u32, device: &str) -> Result<Record> {
     let mut grads = None;
     let mut gpu_timed = true;
     for _ in 0..=repeats {
-        let (gr, ms, timed_on_gpu) = timed(gpu, |rec| render_backward(rec, &t, &r, &ones, &zeros, &zeros))?;
+        let (gr, ms, timed_on_gpu) =
+            timed(gpu, |rec| render_backward_with(rec, kernel, &t, &r, &ones, &zeros, &zeros))?;
         times.push(ms);
         gpu_timed &= timed_on_gpu;
         grads = Some(gr);
@@ -208,7 +237,7 @@ fn backward_error(gpu: &Gpu, repeats: u32, device: &str) -> Result<Record> {
     let rate = n as f64 / (median * 1e-3) / 1e6;
     let t = (median, min, gpu_timed);
     let r = Record::timed(
-        "raster backward",
+        format!("raster backward {}", kernel_name(kernel)),
         format!("{n} gaussians {w}x{h}"),
         "f32",
         device,

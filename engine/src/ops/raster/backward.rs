@@ -1,13 +1,22 @@
 //! The backward pass: per-pixel reverse blending into per-Gaussian image-space gradients, then
-//! the projection backward per Gaussian. Kernels: `shaders/raster_backward.wgsl` (f32 atomic
-//! add) or `raster_backward_cas.wgsl` (compare-and-swap, for devices without f32 atomics),
-//! both reducing over the subgroup first; then `raster_project.wgsl`'s `project_backward`.
+//! the projection backward per Gaussian. Three blend-backward kernels share one body
+//! (`shaders/include/raster_backward_body.wgsl`), each reducing over the subgroup first:
+//! - [`BackwardKernel::Ordered`] (`raster_backward.wgsl`, the default): per-pair gradients
+//!   summed in a fixed order, so the same inputs give the same bits on every run; training
+//!   uses it, which is what makes a run reproducible bit for bit;
+//! - [`BackwardKernel::Atomic`] (`raster_backward_atomic.wgsl`): f32 atomic adds straight into
+//!   each Gaussian's gradients, whose last bits depend on the order the GPU schedules them in;
+//! - [`BackwardKernel::CompareAndSwap`] (`raster_backward_cas.wgsl`): the same with a
+//!   compare-and-swap loop, for devices without f32 atomics.
+//!
+//! Then `raster_project.wgsl`'s `project_backward`.
 
 use super::forward::{BlendParams, ProjectParams};
 use super::{Gaussians, Rendered};
 use crate::error::{Error, Result};
 use crate::kernels::{
-    KernelId, RASTER_BACKWARD_CAS_MAIN, RASTER_BACKWARD_MAIN, RASTER_PROJECT_PROJECT_BACKWARD,
+    KernelId, RASTER_BACKWARD_ATOMIC_MAIN, RASTER_BACKWARD_CAS_MAIN, RASTER_BACKWARD_MAIN,
+    RASTER_BACKWARD_SUM_PAIRS, RASTER_PROJECT_PROJECT_BACKWARD,
 };
 use crate::ops::fill::fill_bits;
 use crate::recorder::Recorder;
@@ -25,23 +34,75 @@ pub struct Grads {
     pub colours: Tensor,
 }
 
-/// Which blend-backward kernel this device uses, or why it has none.
-pub fn variant(gpu: &Gpu) -> Result<(KernelId, &'static str)> {
-    if !gpu.caps().subgroup_arithmetic {
-        return Err(Error::Unsupported(
-            "the rasteriser's backward pass needs subgroup arithmetic and vote operations in compute shaders"
-                .into(),
-        ));
+/// The blend-backward kernels (see the module docs).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BackwardKernel {
+    /// Per-pair gradients summed in a fixed order: deterministic (the default).
+    Ordered,
+    /// f32 atomic adds: the sums' last bits vary between runs.
+    Atomic,
+    /// Compare-and-swap adds (no f32 atomics needed): the sums' last bits vary between runs.
+    CompareAndSwap,
+}
+
+impl BackwardKernel {
+    fn id(self) -> KernelId {
+        match self {
+            BackwardKernel::Ordered => RASTER_BACKWARD_MAIN,
+            BackwardKernel::Atomic => RASTER_BACKWARD_ATOMIC_MAIN,
+            BackwardKernel::CompareAndSwap => RASTER_BACKWARD_CAS_MAIN,
+        }
     }
-    Ok(if gpu.supports(RASTER_BACKWARD_MAIN) {
-        (RASTER_BACKWARD_MAIN, "subgroup add, then f32 atomic add")
-    } else {
-        (RASTER_BACKWARD_CAS_MAIN, "subgroup add, then compare-and-swap")
-    })
+
+    /// What the kernel does, for `velox info` and benchmark tables.
+    pub fn describe(self) -> &'static str {
+        match self {
+            BackwardKernel::Ordered => "subgroup add, then per-pair sums in a fixed order (deterministic)",
+            BackwardKernel::Atomic => "subgroup add, then f32 atomic add (order varies between runs)",
+            BackwardKernel::CompareAndSwap => {
+                "subgroup add, then compare-and-swap add (order varies between runs)"
+            }
+        }
+    }
+
+    /// Fails with the reason when `gpu` cannot run this kernel.
+    pub fn check(self, gpu: &Gpu) -> Result<()> {
+        if !gpu.caps().subgroup_arithmetic {
+            return Err(Error::Unsupported(
+                "the rasteriser's backward pass needs subgroup arithmetic and vote operations in compute shaders"
+                    .into(),
+            ));
+        }
+        if !gpu.supports(self.id()) {
+            return Err(Error::Unsupported(format!(
+                "this device cannot run the rasteriser's backward kernel {:?}",
+                self.id().name()
+            )));
+        }
+        Ok(())
+    }
+
+    /// The fast kernel of a device that has no need for reproducible bits (benchmarks): f32
+    /// atomics where the device has them, else compare-and-swap.
+    pub fn fastest(gpu: &Gpu) -> BackwardKernel {
+        if gpu.supports(RASTER_BACKWARD_ATOMIC_MAIN) {
+            BackwardKernel::Atomic
+        } else {
+            BackwardKernel::CompareAndSwap
+        }
+    }
+}
+
+/// The blend-backward kernel [`render_backward`] uses on this device (the deterministic one),
+/// or why the device cannot run it.
+pub fn variant(gpu: &Gpu) -> Result<(KernelId, &'static str)> {
+    BackwardKernel::Ordered.check(gpu)?;
+    Ok((BackwardKernel::Ordered.id(), BackwardKernel::Ordered.describe()))
 }
 
 /// Records the gradients of a loss given its gradients with respect to the image: `d_rgb`
-/// `[H, W, 3]`, `d_alpha` and `d_depth` `[H, W]`. `g` must be the Gaussians `r` rendered.
+/// `[H, W, 3]`, `d_alpha` and `d_depth` `[H, W]`. `g` must be the Gaussians `r` rendered. The
+/// result is deterministic ([`BackwardKernel::Ordered`]).
 pub fn render_backward(
     rec: &mut Recorder,
     g: &Gaussians,
@@ -50,8 +111,7 @@ pub fn render_backward(
     d_alpha: &Tensor,
     d_depth: &Tensor,
 ) -> Result<Grads> {
-    let kernel = variant(rec.gpu())?.0;
-    render_backward_with(rec, kernel, g, r, d_rgb, d_alpha, d_depth)
+    render_backward_with(rec, BackwardKernel::Ordered, g, r, d_rgb, d_alpha, d_depth)
 }
 
 /// [`render_backward`] with the compare-and-swap kernel, to test the fallback on devices
@@ -64,19 +124,20 @@ pub fn render_backward_cas(
     d_alpha: &Tensor,
     d_depth: &Tensor,
 ) -> Result<Grads> {
-    variant(rec.gpu())?;
-    render_backward_with(rec, RASTER_BACKWARD_CAS_MAIN, g, r, d_rgb, d_alpha, d_depth)
+    render_backward_with(rec, BackwardKernel::CompareAndSwap, g, r, d_rgb, d_alpha, d_depth)
 }
 
-fn render_backward_with(
+/// [`render_backward`] with a chosen blend-backward kernel.
+pub fn render_backward_with(
     rec: &mut Recorder,
-    kernel: KernelId,
+    kernel: BackwardKernel,
     g: &Gaussians,
     r: &Rendered,
     d_rgb: &Tensor,
     d_alpha: &Tensor,
     d_depth: &Tensor,
 ) -> Result<Grads> {
+    kernel.check(rec.gpu())?;
     let n = g.check()?;
     let p = &r.projected;
     let img = &r.image;
@@ -94,14 +155,35 @@ fn render_backward_with(
     }
     let gpu = rec.gpu().clone();
     let grad2d = Tensor::empty(&gpu, &[n, 10], DType::F32)?;
-    fill_bits(rec, &grad2d, 0)?;
     let (tiles_x, tiles_y) = cam.tiles();
-    rec.dispatch(
-        kernel,
-        [tiles_x, tiles_y, 1],
-        &[&img.ranges, &img.ids, &p.proj, &img.final_t, &img.last, d_rgb, d_alpha, d_depth, &grad2d],
-        &BlendParams::new(cam, img.background),
-    )?;
+    let params = BlendParams::new(cam, img.background).with_gaussians(n as u32);
+    let blend_args = [&img.ranges, &img.ids, &p.proj, &img.final_t, &img.last, d_rgb, d_alpha, d_depth];
+    if kernel == BackwardKernel::Ordered {
+        let pairs = img.intersections;
+        let pair_grads = Tensor::empty(&gpu, &[pairs, 10], DType::F32).map_err(|e| match e {
+            Error::TooLarge(why) => Error::TooLarge(format!(
+                "the deterministic rasteriser backward keeps 10 floats for each of {pairs} (tile, Gaussian) pairs: \
+                 {why}; render at a lower resolution or with fewer or smaller Gaussians"
+            )),
+            other => other,
+        })?;
+        fill_bits(rec, &pair_grads, 0)?;
+        rec.dispatch(
+            kernel.id(),
+            [tiles_x, tiles_y, 1],
+            &[&blend_args[..], &[&pair_grads, &img.slots]].concat(),
+            &params,
+        )?;
+        rec.dispatch_linear(
+            RASTER_BACKWARD_SUM_PAIRS,
+            (n as u64).div_ceil(256),
+            &[&pair_grads, &p.counts, p.offsets(), &grad2d],
+            &params,
+        )?;
+    } else {
+        fill_bits(rec, &grad2d, 0)?;
+        rec.dispatch(kernel.id(), [tiles_x, tiles_y, 1], &[&blend_args[..], &[&grad2d]].concat(), &params)?;
+    }
     let grads = Grads {
         means: Tensor::empty(&gpu, &[n, 3], DType::F32)?,
         log_scales: Tensor::empty(&gpu, &[n, 3], DType::F32)?,

@@ -12,6 +12,7 @@ use super::{
 use crate::error::{Error, Result};
 use crate::kernels::{
     RASTER_BLEND_BLEND, RASTER_PROJECT_PROJECT, RASTER_TILES_EMIT, RASTER_TILES_RANGES_OF_TILES,
+    RASTER_TILES_TILES_IN_DEPTH_ORDER,
 };
 use crate::ops::fill::fill_bits;
 use crate::ops::scan::exclusive_scan;
@@ -68,7 +69,8 @@ pub(crate) struct BlendParams {
     width: u32,
     height: u32,
     tiles_x: u32,
-    pad0: u32,
+    /// Gaussians (the backward pass's `sum_pairs` reads it; blending does not).
+    gaussians: u32,
     alpha_max: f32,
     min_alpha: f32,
     t_stop: f32,
@@ -76,13 +78,17 @@ pub(crate) struct BlendParams {
 }
 
 impl BlendParams {
+    pub(crate) fn with_gaussians(self, gaussians: u32) -> BlendParams {
+        BlendParams { gaussians, ..self }
+    }
+
     pub(crate) fn new(cam: &Camera, background: [f32; 3]) -> BlendParams {
         BlendParams {
             background: [background[0], background[1], background[2], 0.0],
             width: cam.width,
             height: cam.height,
             tiles_x: cam.tiles().0,
-            pad0: 0,
+            gaussians: 0,
             alpha_max: ALPHA_MAX,
             min_alpha: MIN_ALPHA,
             t_stop: T_STOP,
@@ -96,9 +102,9 @@ impl BlendParams {
 struct TileParams {
     n: u32,
     tiles_x: u32,
-    depth_bits: u32,
     /// emit: pairs the buffers hold; ranges: tiles.
     limit: u32,
+    pad: u32,
 }
 
 /// What [`project`] records: per-Gaussian screen-space data, tile counts and rectangles,
@@ -133,6 +139,12 @@ pub struct RenderStats {
 }
 
 impl Projected {
+    /// `[N]` u32: each Gaussian's first slot in the tile lists (the exclusive scan of the
+    /// counts).
+    pub(crate) fn offsets(&self) -> &Tensor {
+        &self.offsets
+    }
+
     /// The number of (tile, Gaussian) pairs; valid once the recording of [`project`] has been
     /// submitted.
     pub fn intersections(&self) -> Result<usize> {
@@ -194,6 +206,9 @@ pub struct Image {
     pub ranges: Tensor,
     /// `[pairs]` u32: Gaussian index of each sorted pair.
     pub ids: Tensor,
+    /// `[pairs]` u32: slot of each sorted pair, where Gaussian g's pairs hold slots
+    /// `offsets[g]..offsets[g] + counts[g]` (the backward pass sums its gradients by slot).
+    pub slots: Tensor,
     pub background: [f32; 3],
     pub intersections: usize,
 }
@@ -214,31 +229,13 @@ pub fn rasterize(rec: &mut Recorder, p: &Projected, background: [f32; 3]) -> Res
     }
     let (tiles_x, tiles_y) = cam.tiles();
     let tiles = (tiles_x * tiles_y) as usize;
-    let depth_bits = 32 - cam.tile_bits();
     let (h, w) = (cam.height as usize, cam.width as usize);
     let ranges = Tensor::empty(&gpu, &[tiles, 2], DType::U32)?;
     fill_bits(rec, &ranges, 0)?;
-    let ids = if intersections > 0 {
-        let keys = Tensor::empty(&gpu, &[intersections], DType::U32)?;
-        let values = Tensor::empty(&gpu, &[intersections], DType::U32)?;
-        let tp = TileParams { n: p.n as u32, tiles_x, depth_bits, limit: intersections as u32 };
-        rec.dispatch_linear(
-            RASTER_TILES_EMIT,
-            (p.n as u64).div_ceil(256),
-            &[&p.counts, &p.offsets, &p.rects, &p.proj, &keys, &values],
-            &tp,
-        )?;
-        let (sorted_keys, ids) = sort_pairs(rec, &keys, &values, 32)?;
-        let tp = TileParams { n: intersections as u32, limit: tiles as u32, ..tp };
-        rec.dispatch_linear(
-            RASTER_TILES_RANGES_OF_TILES,
-            (intersections as u64).div_ceil(256),
-            &[&sorted_keys, &ranges],
-            &tp,
-        )?;
-        ids
+    let (ids, slots) = if intersections > 0 {
+        tile_lists(rec, p, intersections, &ranges)?
     } else {
-        Tensor::empty(&gpu, &[0], DType::U32)?
+        (Tensor::empty(&gpu, &[0], DType::U32)?, Tensor::empty(&gpu, &[0], DType::U32)?)
     };
     let image = Image {
         rgb: Tensor::empty(&gpu, &[h, w, 3], DType::F32)?,
@@ -248,6 +245,7 @@ pub fn rasterize(rec: &mut Recorder, p: &Projected, background: [f32; 3]) -> Res
         last: Tensor::empty(&gpu, &[h, w], DType::U32)?,
         ranges,
         ids,
+        slots,
         background,
         intersections,
     };
@@ -267,6 +265,43 @@ pub fn rasterize(rec: &mut Recorder, p: &Projected, background: [f32; 3]) -> Res
         &BlendParams::new(cam, background),
     )?;
     Ok(image)
+}
+
+/// Records the tile lists of [`rasterize`] (see `shaders/raster_tiles.wgsl`): the pairs in
+/// blending order, by tile and then by the full 32-bit depth (a stable sort on the depth, then
+/// a stable sort on the tile), with each tile's range filled into `ranges`. Returns the
+/// Gaussian and the slot of every sorted pair.
+fn tile_lists(rec: &mut Recorder, p: &Projected, pairs: usize, ranges: &Tensor) -> Result<(Tensor, Tensor)> {
+    let gpu = rec.gpu().clone();
+    let (tiles_x, tiles_y) = p.camera.tiles();
+    let u32s = || Tensor::empty(&gpu, &[pairs], DType::U32);
+    let (depth_keys, slot_tiles, slot_gaussians, slot_ids) = (u32s()?, u32s()?, u32s()?, u32s()?);
+    let tp = TileParams { n: p.n as u32, tiles_x, limit: pairs as u32, pad: 0 };
+    rec.dispatch_linear(
+        RASTER_TILES_EMIT,
+        (p.n as u64).div_ceil(256),
+        &[&p.counts, &p.offsets, &p.rects, &p.proj, &depth_keys, &slot_tiles, &slot_gaussians, &slot_ids],
+        &tp,
+    )?;
+    let (_, depth_sorted_slots) = sort_pairs(rec, &depth_keys, &slot_ids, 32)?;
+    let tile_keys = u32s()?;
+    let tp = TileParams { n: pairs as u32, limit: (tiles_x * tiles_y), ..tp };
+    let groups = (pairs as u64).div_ceil(256);
+    rec.dispatch_linear(
+        RASTER_TILES_TILES_IN_DEPTH_ORDER,
+        groups,
+        &[&slot_tiles, &depth_sorted_slots, &tile_keys],
+        &tp,
+    )?;
+    let (sorted_tiles, slots) = sort_pairs(rec, &tile_keys, &depth_sorted_slots, p.camera.tile_bits())?;
+    let ids = u32s()?;
+    rec.dispatch_linear(
+        RASTER_TILES_RANGES_OF_TILES,
+        groups,
+        &[&slot_gaussians, &sorted_tiles, &slots, ranges, &ids],
+        &tp,
+    )?;
+    Ok((ids, slots))
 }
 
 /// A finished forward pass.

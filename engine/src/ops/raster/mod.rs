@@ -9,7 +9,9 @@
 //! # Conventions
 //! - Gaussians: means `[N, 3]` (world), log-scales `[N, 3]` (scale = exp), quaternions
 //!   `[N, 4]` as (w, x, y, z), normalised by the rasteriser (any non-zero length), opacities
-//!   `[N]` as logits (opacity = sigmoid), colours `[N, 3]` used as given (no clamp).
+//!   `[N]` as logits (opacity = sigmoid), colours `[N, 3]`, negative channels
+//!   clamped to 0 (as 3D Gaussian splatting clamps its spherical-harmonic colour; a clamped
+//!   channel gets no gradient), no upper clamp.
 //!   Gradients are with respect to these same quantities.
 //! - Camera: pinhole, world-to-camera rotation `R` and translation `t` (x right, y down, z
 //!   forward), intrinsics fx, fy, cx, cy in pixels; pixel (x, y) has its centre at
@@ -29,7 +31,7 @@ pub mod backward;
 pub mod forward;
 pub mod reference;
 
-pub use backward::{render_backward, render_backward_cas, Grads};
+pub use backward::{render_backward, render_backward_cas, render_backward_with, BackwardKernel, Grads};
 pub use forward::{project, rasterize, render, Image, Projected, RenderStats, Rendered};
 
 use crate::error::{Error, Result};
@@ -134,7 +136,7 @@ impl Camera {
         (self.width.div_ceil(TILE), self.height.div_ceil(TILE))
     }
 
-    /// Bits of a sort key that hold the tile index (at least one); the rest hold the depth.
+    /// Bits of a tile index (at least one): the tile sort of the tile lists sorts on these.
     pub fn tile_bits(&self) -> u32 {
         let (tx, ty) = self.tiles();
         let tiles = tx * ty;

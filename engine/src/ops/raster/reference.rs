@@ -203,7 +203,8 @@ pub fn project_one(s: &Scene, i: usize, cam: &Camera) -> Result<Splat, Dropped> 
     if (x1 - x0) * (y1 - y0) > MAX_TILES_PER_GAUSSIAN {
         return Err(Dropped::TooManyTiles);
     }
-    let colour = [0, 1, 2].map(|k| s.colours[3 * i + k]);
+    // Negative colours clamp to 0, as 3D Gaussian splatting clamps its spherical-harmonic colour.
+    let colour = [0, 1, 2].map(|k| s.colours[3 * i + k].max(0.0));
     Ok(Splat { uv: [u, v], depth: t[2], opacity, conic, colour, rect: [x0, x1, y0, y1] })
 }
 
@@ -226,11 +227,10 @@ pub fn project(s: &Scene, cam: &Camera) -> (Vec<Result<Splat, Dropped>>, [u32; 6
     (out, counts)
 }
 
-/// Each tile's Gaussians in blending order: by the same depth key as the GPU (the top bits of
-/// the f32 depth), then by index.
+/// Each tile's Gaussians in blending order: by depth (as f32, the precision the GPU sorts
+/// in), then by index.
 pub fn tile_lists(splats: &[Result<Splat, Dropped>], cam: &Camera) -> Vec<Vec<usize>> {
     let (tx, ty) = cam.tiles();
-    let shift = cam.tile_bits();
     let mut lists = vec![Vec::new(); (tx * ty) as usize];
     for (i, s) in splats.iter().enumerate() {
         if let Ok(s) = s {
@@ -241,7 +241,7 @@ pub fn tile_lists(splats: &[Result<Splat, Dropped>], cam: &Camera) -> Vec<Vec<us
             }
         }
     }
-    let key = |i: usize| splats[i].as_ref().map(|s| (s.depth as f32).to_bits() >> shift).unwrap_or(0);
+    let key = |i: usize| splats[i].as_ref().map(|s| (s.depth as f32).to_bits()).unwrap_or(0);
     for l in &mut lists {
         l.sort_by_key(|&i| (key(i), i));
     }
@@ -442,7 +442,8 @@ pub fn render_backward(
 fn project_backward(s: &Scene, i: usize, cam: &Camera, sp: &Splat, g: &[f64; 10], out: &mut Grads) {
     let geo = geometry(s, i, cam);
     for k in 0..3 {
-        out.colours[3 * i + k] = g[6 + k];
+        // A clamped channel passes no gradient.
+        out.colours[3 * i + k] = if s.colours[3 * i + k] < 0.0 { 0.0 } else { g[6 + k] };
     }
     out.opacities[i] = g[5] * sp.opacity * (1.0 - sp.opacity);
     // Conic -> 2D covariance: dS2 = -Q G Q with G = [[ga, gb/2], [gb/2, gc]].

@@ -1,0 +1,28 @@
+// Backward of the rasteriser's blending with native f32 atomic adds (VK_EXT_shader_atomic_float):
+// each subgroup's lane 0 adds its sums to the Gaussian's ten gradients. The order of the adds
+// depends on scheduling, so the last bits of the sums vary between runs; `raster_backward.wgsl`
+// is the deterministic kernel that training uses. `raster_backward_cas.wgsl` is this kernel for
+// devices without f32 atomics. The kernel itself: shaders/include/raster_backward_body.wgsl.
+
+// Per Gaussian: du, dv, conic a, b, c, opacity, r, g, b, depth.
+@group(0) @binding(8) var<storage, read_write> grads: array<atomic<f32>>;
+
+// `flush_grads` does nothing here: one chunk per batch.
+fn chunk_size(nsg: u32) -> u32 {
+    return BATCH;
+}
+
+fn store_grads(sg: u32, nsg: u32, lane: u32, j: u32, entry: u32, gaussian: u32, any: bool,
+               sums: array<f32, 10>) {
+    if (any && lane == 0u) {
+        for (var c = 0u; c < 10u; c = c + 1u) {
+            if (sums[c] != 0.0) {
+                atomicAdd(&grads[10u * gaussian + c], sums[c]);
+            }
+        }
+    }
+}
+
+fn flush_grads(lid: u32, chunk: u32, nsg: u32) {}
+
+// @include raster_backward_body.wgsl
