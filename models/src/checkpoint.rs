@@ -83,11 +83,31 @@ pub fn save(path: &Path, store: &ParamStore, config: &str) -> Result<()> {
         ("step".to_string(), store.step().to_string()),
         ("config".to_string(), config.to_string()),
     ]);
-    let bytes = safetensors::serialize(tensors, Some(meta))
+    let mut bytes = safetensors::serialize(tensors, Some(meta))
         .map_err(|e| Error::Invalid(format!("checkpoint {}: cannot serialise: {e}", path.display())))?;
     drop(host);
+    canonical_header(&mut bytes);
     write_atomic(path, &bytes)
         .map_err(|e| Error::Invalid(format!("cannot write checkpoint {}: {e}", path.display())))
+}
+
+/// Rewrites a serialised file's JSON header with its keys in sorted order, in place: safetensors
+/// writes the metadata map in hash order, which differs from process to process, and two runs
+/// that trained the same weights should write the same bytes. The sorted header has the same
+/// characters, so the same length; should it not, the header stays as it was.
+fn canonical_header(bytes: &mut [u8]) {
+    let Some(len) = bytes.get(..8).map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes")) as usize)
+    else {
+        return;
+    };
+    let Some(header) = bytes.get_mut(8..8 + len) else { return };
+    // serde_json's map is a BTreeMap (no `preserve_order`), so it serialises keys sorted.
+    let Ok(value) = serde_json::from_slice::<serde_json::Value>(header) else { return };
+    let sorted = value.to_string();
+    if sorted.len() <= header.len() {
+        header[..sorted.len()].copy_from_slice(sorted.as_bytes());
+        header[sorted.len()..].fill(b' ');
+    }
 }
 
 /// The temporary file a save of `path` writes before renaming it over `path`.

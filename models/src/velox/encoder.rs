@@ -285,7 +285,9 @@ impl Encoder {
             let dkv_blk = blk.norm_kv.backward(rec, &c.norm_kv, &dkvn)?;
             binary_into(rec, &dkv, &dkv_blk, &dkv, Binary::Add)?;
         }
-        // Input tokens: through the cell order (a permutation) and the query gather.
+        // Input tokens: through the cell order (a permutation) and the query gather. FPS never
+        // picks a point twice, so each row of the scatter takes one addition: the same bits on
+        // every run.
         let dtokens = gather(rec, &dkv, &layout.cell_inverse)?;
         scatter_add(rec, &dq, &layout.queries, &dtokens)?;
         self.input.param_grads(rec, &cache.features, &dtokens)
