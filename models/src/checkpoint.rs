@@ -6,20 +6,21 @@
 //! (`velox-checkpoint`), `version` (`1`), `step` (AdamW steps taken) and `config` (a JSON
 //! object chosen by the caller: the config name, hyperparameters and so on).
 //!
-//! Writes are atomic: the file is written in full to `.<file name>.tmp` in the same folder,
-//! flushed to disk, renamed over the target, and the folder is flushed, so a crash leaves
-//! either the old checkpoint or the new one, never half of one. Loads check every tensor's name,
+//! Writes are atomic ([`crate::files::write_atomically`]): the file is written in full to
+//! `.<file name>.tmp` in the same folder, flushed to disk, renamed over the target, and the
+//! folder is flushed, so a crash leaves either the old checkpoint or the new one, never half of
+//! one. Loads check every tensor's name,
 //! dtype and shape against the store before changing anything, and say what does not match.
 
 use std::borrow::Cow;
 use std::collections::HashMap;
-use std::fs::File;
-use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use safetensors::tensor::{Dtype, SafeTensors, View};
 use velox_engine::{Error, Result};
 
+pub use crate::files::temp_path;
+use crate::files::write_bytes;
 use crate::params::ParamStore;
 
 pub const FORMAT: &str = "velox-checkpoint";
@@ -86,50 +87,7 @@ pub fn save(path: &Path, store: &ParamStore, config: &str) -> Result<()> {
     let bytes = safetensors::serialize(tensors, Some(meta))
         .map_err(|e| Error::Invalid(format!("checkpoint {}: cannot serialise: {e}", path.display())))?;
     drop(host);
-    write_atomic(path, &bytes)
-        .map_err(|e| Error::Invalid(format!("cannot write checkpoint {}: {e}", path.display())))
-}
-
-/// The temporary file a save of `path` writes before renaming it over `path`.
-pub fn temp_path(path: &Path) -> PathBuf {
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    path.with_file_name(format!(".{name}.tmp"))
-}
-
-/// Writes `bytes` to `path` so that a crash leaves the old file or the new one: a temporary file
-/// in the same folder (same file system, so the rename is atomic), fsync, rename, fsync of the
-/// folder so the rename itself is durable.
-fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    if path.file_name().is_none() {
-        return Err(std::io::Error::new(std::io::ErrorKind::InvalidInput, "the path names no file"));
-    }
-    let tmp = temp_path(path);
-    let written = (|| {
-        let mut f = File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        drop(f);
-        std::fs::rename(&tmp, path)
-    })();
-    if let Err(e) = written {
-        // Only a file of ours is removed; a folder in its place is left as it is.
-        if tmp.is_file() {
-            let _ = std::fs::remove_file(&tmp);
-        }
-        return Err(e);
-    }
-    sync_dir(path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new(".")))
-}
-
-#[cfg(unix)]
-fn sync_dir(dir: &Path) -> std::io::Result<()> {
-    File::open(dir)?.sync_all()
-}
-
-#[cfg(not(unix))]
-fn sync_dir(_dir: &Path) -> std::io::Result<()> {
-    // Windows cannot open a folder as a file; its rename is durable once the file is flushed.
-    Ok(())
+    write_bytes(path, &bytes)
 }
 
 /// The step and config a checkpoint holds, without loading its tensors (to build the model the

@@ -11,6 +11,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use velox_data::format::write_scene;
 use velox_data::{procedural, SynthOptions};
 use velox_engine::Gpu;
+use velox_models::files::write_bytes;
 
 use crate::train::{train_autoencoder, AutoencoderArgs};
 use crate::{run_command, CliResult};
@@ -55,7 +56,7 @@ fn prepare(out: &Path) -> CliResult<()> {
         }
     }
     std::fs::create_dir_all(out).map_err(|e| format!("creating {}: {e}", out.display()))?;
-    std::fs::write(out.join(MARKER), "{}").map_err(|e| format!("writing {}: {e}", out.display()))?;
+    write_bytes(&out.join(MARKER), b"{}")?;
     Ok(())
 }
 
@@ -144,7 +145,7 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
         "total_seconds": started.elapsed().as_secs_f64(),
         "metrics": metrics["mean"],
     });
-    std::fs::write(out.join(MARKER), serde_json::to_string_pretty(&summary_json)?)?;
+    write_bytes(&out.join(MARKER), serde_json::to_string_pretty(&summary_json)?.as_bytes())?;
     let figure = |k: &str, digits: usize| {
         metrics["mean"][k].as_f64().map(|v| format!("{v:.digits$}")).unwrap_or_else(|| "-".into())
     };

@@ -11,6 +11,7 @@ use velox_data::training::train_scene;
 use velox_data::{Loader, LoaderOptions};
 use velox_engine::Gpu;
 use velox_models::config::AutoencoderConfig;
+use velox_models::files::write_bytes;
 use velox_models::schedule::cooldown;
 use velox_models::velox::autoencoder::{Autoencoder, StepLosses, TrainScene};
 
@@ -165,12 +166,15 @@ pub fn train_autoencoder(gpu: &Gpu, args: &AutoencoderArgs) -> CliResult<TrainSu
         )
         .into());
     }
+    // The kept lines replace the log atomically; then each step is appended.
     let mut log = read_log(&log_path, start_step);
-    let mut log_file =
-        std::fs::File::create(&log_path).map_err(|e| format!("{}: {e}", log_path.display()))?;
+    let mut kept = String::new();
     for l in &log {
-        writeln!(log_file, "{}", serde_json::to_string(l)?)?;
+        kept += &(serde_json::to_string(l)? + "\n");
     }
+    write_bytes(&log_path, kept.as_bytes())?;
+    let log_error = |e: std::io::Error| format!("cannot write {}: {e}", log_path.display());
+    let mut log_file = std::fs::OpenOptions::new().append(true).open(&log_path).map_err(log_error)?;
 
     let mut loader = Loader::spawn(
         &args.data,
@@ -232,7 +236,7 @@ pub fn train_autoencoder(gpu: &Gpu, args: &AutoencoderArgs) -> CliResult<TrainSu
             frame: losses.frame,
             view: losses.view,
         };
-        writeln!(log_file, "{}", serde_json::to_string(&line)?)?;
+        writeln!(log_file, "{}", serde_json::to_string(&line)?).map_err(log_error)?;
         log.push(line);
         let rate = (step - start_step) as f64 / started.elapsed().as_secs_f64().max(1e-9);
         bar.set_message(format!(
