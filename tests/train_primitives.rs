@@ -418,6 +418,35 @@ fn checkpoint_round_trip_is_bit_exact() {
 }
 
 #[test]
+fn verify_finite_passes_a_good_checkpoint_and_names_the_tensor_with_a_nan() {
+    let gpu = gpu();
+    let dir = temp_dir("finite");
+    let path = dir.join("ckpt.safetensors");
+    let store = trained_store(&gpu, 12);
+    checkpoint::save(&path, &store, "{}").unwrap();
+    assert_eq!(checkpoint::verify_finite(&path).unwrap().step, 3);
+    // read_tensors gives the values as saved.
+    let (info, tensors) = checkpoint::read_tensors(&path).unwrap();
+    assert_eq!(info.step, 3);
+    assert_eq!(tensors.len(), 3 * store.len());
+    let w2 = store.infos().iter().find(|p| p.name == "enc.w2").unwrap();
+    let host = store.flat_params().read::<f32>().unwrap();
+    assert_eq!(tensors["param/enc.w2"], host[w2.offset..w2.offset + w2.numel]);
+
+    // One NaN and one Inf in enc.w2.
+    let mut bad = host.clone();
+    bad[w2.offset + 3] = f32::NAN;
+    bad[w2.offset + 10] = f32::INFINITY;
+    store.flat_params().write(&bad).unwrap();
+    checkpoint::save(&path, &store, "{}").unwrap();
+    let e = checkpoint::verify_finite(&path).unwrap_err().to_string();
+    assert!(e.contains("ckpt.safetensors") && e.contains("\"param/enc.w2\" holds 2 NaN or Inf"), "{e}");
+    let e = checkpoint::verify_finite(&dir.join("missing.safetensors")).unwrap_err().to_string();
+    assert!(e.contains("cannot read checkpoint"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
 fn bad_checkpoints_give_clear_errors_and_change_nothing() {
     let gpu = gpu();
     let dir = temp_dir("bad");

@@ -13,7 +13,7 @@
 //! dtype and shape against the store before changing anything, and say what does not match.
 
 use std::borrow::Cow;
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
 
 use safetensors::tensor::{Dtype, SafeTensors, View};
@@ -123,6 +123,49 @@ fn read_info(bytes: &[u8], path: &Path) -> Result<CheckpointInfo> {
     })?;
     let config = field("config")?.clone();
     Ok(CheckpointInfo { step, config })
+}
+
+/// Every tensor of a checkpoint by name (f32 values in row-major order), with its metadata,
+/// without a model to load it into (to inspect or compare checkpoints).
+pub fn read_tensors(path: &Path) -> Result<(CheckpointInfo, BTreeMap<String, Vec<f32>>)> {
+    let shown = path.display();
+    let bytes =
+        std::fs::read(path).map_err(|e| Error::Invalid(format!("cannot read checkpoint {shown}: {e}")))?;
+    let file = SafeTensors::deserialize(&bytes).map_err(|e| {
+        Error::Invalid(format!("checkpoint {shown} is corrupt or truncated ({} bytes): {e}", bytes.len()))
+    })?;
+    let info = read_info(&bytes, path)?;
+    let mut tensors = BTreeMap::new();
+    for (name, t) in file.tensors() {
+        if t.dtype() != Dtype::F32 {
+            return Err(Error::Invalid(format!(
+                "checkpoint {shown}: tensor {name:?} is {:?}, expected F32",
+                t.dtype()
+            )));
+        }
+        let values = t.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+        tensors.insert(name, values);
+    }
+    Ok((info, tensors))
+}
+
+/// Checks that every value of a checkpoint (parameters and moments) is finite, and returns its
+/// metadata; the error names the first tensor that holds a NaN or an Inf and how many it holds.
+/// A run stopped by a NaN calls its checkpoint good only after this check.
+pub fn verify_finite(path: &Path) -> Result<CheckpointInfo> {
+    let (info, tensors) = read_tensors(path)?;
+    for (name, values) in &tensors {
+        let bad = values.iter().filter(|v| !v.is_finite()).count();
+        if bad > 0 {
+            return Err(Error::Invalid(format!(
+                "checkpoint {} (step {}): tensor {name:?} holds {bad} NaN or Inf value(s) of {}",
+                path.display(),
+                info.step,
+                values.len()
+            )));
+        }
+    }
+    Ok(info)
 }
 
 /// Loads a checkpoint written by [`save`] into `store` (parameters, moments and step) and

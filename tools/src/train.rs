@@ -10,6 +10,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use velox_data::training::train_scene;
 use velox_data::{Loader, LoaderOptions};
 use velox_engine::Gpu;
+use velox_models::checkpoint;
 use velox_models::config::AutoencoderConfig;
 use velox_models::files::write_bytes;
 use velox_models::schedule::cooldown;
@@ -127,6 +128,22 @@ fn write_plot(path: &Path, log: &[LogLine]) -> CliResult<()> {
     )
 }
 
+/// What a run stopped by a NaN says of its checkpoint: written at some earlier step, it is
+/// called good only once every value in it is checked finite.
+fn last_good(checkpoint: &Path) -> String {
+    if !checkpoint.exists() {
+        return "no checkpoint was written yet".into();
+    }
+    match checkpoint::verify_finite(checkpoint) {
+        Ok(info) => format!(
+            "the last good checkpoint is {} (step {}, every value checked finite)",
+            checkpoint.display(),
+            info.step
+        ),
+        Err(e) => format!("the checkpoint is no good either: {e}"),
+    }
+}
+
 /// Trains as the command does (also used by the demo).
 pub fn train_autoencoder(gpu: &Gpu, args: &AutoencoderArgs) -> CliResult<TrainSummary> {
     std::fs::create_dir_all(&args.out).map_err(|e| format!("creating {}: {e}", args.out.display()))?;
@@ -212,11 +229,7 @@ pub fn train_autoencoder(gpu: &Gpu, args: &AutoencoderArgs) -> CliResult<TrainSu
             Ok(l) => l,
             Err(e) => {
                 bar.abandon();
-                let kept = if checkpoint.exists() {
-                    format!("the last good checkpoint is {}", checkpoint.display())
-                } else {
-                    "no checkpoint was written yet".into()
-                };
+                let kept = last_good(&checkpoint);
                 return Err(format!("training stopped at step {step}: {e}; {kept}").into());
             }
         };
