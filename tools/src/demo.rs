@@ -13,6 +13,7 @@ use velox_data::{procedural, SynthOptions};
 use velox_engine::Gpu;
 use velox_models::files::write_bytes;
 
+use crate::interrupt::Interrupt;
 use crate::train::{train_autoencoder, AutoencoderArgs};
 use crate::{run_command, CliResult};
 
@@ -105,7 +106,7 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
         plot_every: 10,
         cooldown: 0,
     };
-    let summary = train_autoencoder(&gpu, &train)?;
+    let summary = train_autoencoder(&gpu, &train, &Interrupt::never())?;
     let ckpt = summary.checkpoint.display().to_string();
     drop(summary.model);
 

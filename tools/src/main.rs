@@ -6,6 +6,7 @@ mod decode;
 mod demo;
 mod eval;
 mod info;
+mod interrupt;
 mod plot;
 mod render;
 mod train;
@@ -92,6 +93,11 @@ fn main() {
         eprintln!("\n{table}");
     }
     if let Err(e) = result {
+        // A run stopped by a signal says where its work is and exits as the signal would.
+        if let Some(stop) = e.downcast_ref::<interrupt::Interrupted>() {
+            eprintln!("{stop}");
+            std::process::exit(stop.exit_code());
+        }
         eprintln!("error: {e}");
         std::process::exit(1);
     }

@@ -16,12 +16,17 @@ use velox_models::files::write_bytes;
 use velox_models::schedule::cooldown;
 use velox_models::velox::autoencoder::{Autoencoder, StepLosses, TrainScene};
 
+use crate::interrupt::{signal_name, Interrupt, Interrupted};
 use crate::plot::loss_plot;
 use crate::CliResult;
 
 #[derive(Subcommand)]
 pub enum TrainCommand {
     /// The autoencoder: encoder, 4D surface decoder and Gaussian decoder, on L_V + L_GS + 1e-4 L_C.
+    ///
+    /// Ctrl-C (SIGINT) or SIGTERM finishes the step under way, writes the checkpoint and exits
+    /// with 130 (SIGINT) or 143 (SIGTERM), naming the checkpoint; --resume continues from it. A
+    /// second signal quits at once, leaving the previous checkpoint whole.
     Autoencoder(AutoencoderArgs),
 }
 
@@ -73,8 +78,9 @@ pub struct TrainSummary {
 pub fn run(cmd: TrainCommand) -> CliResult<()> {
     match cmd {
         TrainCommand::Autoencoder(args) => {
+            let interrupt = Interrupt::catch()?;
             let gpu = Gpu::new()?;
-            let s = train_autoencoder(&gpu, &args)?;
+            let s = train_autoencoder(&gpu, &args, &interrupt)?;
             println!(
                 "trained {} steps in {:.0} s: loss {:.4} -> {:.4}; checkpoint {}, log and loss plot in {}",
                 s.model.store.step(),
@@ -144,8 +150,13 @@ fn last_good(checkpoint: &Path) -> String {
     }
 }
 
-/// Trains as the command does (also used by the demo).
-pub fn train_autoencoder(gpu: &Gpu, args: &AutoencoderArgs) -> CliResult<TrainSummary> {
+/// Trains as the command does (also used by the demo). When `interrupt` asks for a stop, the
+/// step under way is finished, the checkpoint written, and [`Interrupted`] returned.
+pub fn train_autoencoder(
+    gpu: &Gpu,
+    args: &AutoencoderArgs,
+    interrupt: &Interrupt,
+) -> CliResult<TrainSummary> {
     std::fs::create_dir_all(&args.out).map_err(|e| format!("creating {}: {e}", args.out.display()))?;
     let checkpoint = args.out.join("checkpoint.safetensors");
     let log_path = args.out.join("log.jsonl");
@@ -262,6 +273,20 @@ pub fn train_autoencoder(gpu: &Gpu, args: &AutoencoderArgs) -> CliResult<TrainSu
         }
         if step.is_multiple_of(args.checkpoint_every) {
             model.save(&checkpoint)?;
+        }
+        if let Some(signal) = interrupt.requested().filter(|_| step < args.steps) {
+            if !step.is_multiple_of(args.checkpoint_every) {
+                model.save(&checkpoint)?;
+            }
+            write_plot(&args.out.join("loss.png"), &log)?;
+            bar.abandon();
+            let message = format!(
+                "{}: stopped after step {step} of {}; checkpoint {} holds step {step} (continue with --resume)",
+                signal_name(signal),
+                args.steps,
+                checkpoint.display()
+            );
+            return Err(Interrupted { signal, message }.into());
         }
     }
     model.save(&checkpoint)?;
