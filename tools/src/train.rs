@@ -206,7 +206,7 @@ pub fn train_autoencoder(
 
     let mut loader = Loader::spawn(
         &args.data,
-        LoaderOptions { epochs: 0, shuffle: Some(args.seed), prefetch: 2, images: true },
+        LoaderOptions { epochs: 0, shuffle: Some(args.seed), start: 0, prefetch: 2, images: true },
     )
     .map_err(|e| format!("dataset {}: {e}", args.data.display()))?;
     if loader.len == 0 {
