@@ -87,7 +87,41 @@ pub fn save(path: &Path, store: &ParamStore, config: &str) -> Result<()> {
     let bytes = safetensors::serialize(tensors, Some(meta))
         .map_err(|e| Error::Invalid(format!("checkpoint {}: cannot serialise: {e}", path.display())))?;
     drop(host);
-    write_bytes(path, &bytes)
+    write_bytes(path, &sorted_metadata(bytes))
+}
+
+/// The same file with the metadata's keys in sorted order. safetensors writes its metadata map
+/// in hash order, which changes from process to process, so the same state would give other
+/// bytes each time; sorted, a resumed run's checkpoint can be compared byte for byte with an
+/// uninterrupted run's. The header keeps its length (the same text in another order).
+fn sorted_metadata(mut bytes: Vec<u8>) -> Vec<u8> {
+    let sorted = (|| {
+        let n = usize::try_from(u64::from_le_bytes(bytes.get(..8)?.try_into().ok()?)).ok()?;
+        let header: BTreeMap<String, serde_json::Value> =
+            serde_json::from_slice(bytes.get(8..8 + n)?).ok()?;
+        let mut text = String::from("{");
+        for (i, (key, value)) in header.iter().enumerate() {
+            let value = match key.as_str() {
+                "__metadata__" => serde_json::to_string(
+                    &serde_json::from_value::<BTreeMap<String, String>>(value.clone()).ok()?,
+                ),
+                _ => serde_json::to_string(value),
+            };
+            text += &format!(
+                "{}{}:{}",
+                if i > 0 { "," } else { "" },
+                serde_json::to_string(key).ok()?,
+                value.ok()?
+            );
+        }
+        text.push('}');
+        (text.len() <= n).then_some((n, text))
+    })();
+    if let Some((n, text)) = sorted {
+        bytes[8..8 + n].fill(b' ');
+        bytes[8..8 + text.len()].copy_from_slice(text.as_bytes());
+    }
+    bytes
 }
 
 /// The step and config a checkpoint holds, without loading its tensors (to build the model the
