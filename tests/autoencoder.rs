@@ -10,6 +10,7 @@ use velox::data::{procedural, read_scene, SynthOptions};
 use velox::engine::ops::cast::reference::to_f16;
 use velox::engine::Precision;
 use velox::models::config::AutoencoderConfig;
+use velox::models::run::RunSettings;
 use velox::models::velox::autoencoder::{tau_of, Autoencoder, StepLosses, TrainScene};
 
 fn scene(gpu: &Gpu, name: &str) -> TrainScene {
@@ -81,7 +82,19 @@ fn a_resumed_run_continues_like_an_uninterrupted_one() {
     let mut first = Autoencoder::new(&gpu, &cfg, 1).unwrap();
     run(&mut first, 1..=2);
     let path = std::env::temp_dir().join(format!("velox-ae-resume-{}.safetensors", std::process::id()));
-    first.save(&path).unwrap();
+    first.save(&path, None).unwrap();
+    assert_eq!(Autoencoder::checkpoint_run(&path).unwrap(), None, "saved outside a run");
+    // A training run's settings travel with the checkpoint.
+    let settings = RunSettings {
+        seed: 7,
+        steps: 4,
+        steps_per_scene: 2,
+        cooldown: 1,
+        scenes: vec!["scene_00000".into()],
+    };
+    first.save(&path, Some(&settings)).unwrap();
+    assert_eq!(Autoencoder::checkpoint_run(&path).unwrap(), Some(settings));
+    assert_eq!(Autoencoder::checkpoint_config(&path).unwrap(), cfg);
     let mut resumed = Autoencoder::load(&gpu, &path).unwrap();
     std::fs::remove_file(&path).ok();
     assert_eq!(resumed.store.step(), 2);

@@ -98,13 +98,14 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
         data: out.join("data"),
         config: config.clone(),
         out: out.join("train"),
-        steps,
-        seed: args.seed,
+        steps: Some(steps),
+        seed: Some(args.seed),
         resume: false,
-        steps_per_scene: 8,
+        steps_per_scene: None,
         checkpoint_every: steps,
         plot_every: 10,
-        cooldown: 0,
+        cooldown: None,
+        stop_at: None,
     };
     let summary = train_autoencoder(&gpu, &train, &Interrupt::never())?;
     let ckpt = summary.checkpoint.display().to_string();
