@@ -11,6 +11,7 @@ use velox::data::{procedural, read_scene, SynthOptions};
 use velox::engine::ops::cast::reference::to_f16;
 use velox::engine::Precision;
 use velox::models::config::AutoencoderConfig;
+use velox::models::run::RunSettings;
 use velox::models::velox::autoencoder::{tau_of, Autoencoder, StepLosses, TrainScene};
 
 fn scene(gpu: &Gpu, name: &str) -> TrainScene {
@@ -82,7 +83,7 @@ fn runs_repeat_and_resume_bit_for_bit() {
     std::fs::create_dir_all(&dir).unwrap();
     let saved = |ae: &Autoencoder, name: &str| -> Vec<u8> {
         let path = dir.join(name);
-        ae.save(&path).unwrap();
+        ae.save(&path, None).unwrap();
         std::fs::read(&path).unwrap()
     };
     // Two runs with the same seed write the same checkpoint, byte for byte.
@@ -95,8 +96,21 @@ fn runs_repeat_and_resume_bit_for_bit() {
     // A run stopped at step 2 and resumed from its checkpoint ends with the same bytes.
     let mut first = Autoencoder::new(&gpu, &cfg, 1).unwrap();
     run(&mut first, 1..=2);
-    first.save(&dir.join("first.safetensors")).unwrap();
-    let mut resumed = Autoencoder::load(&gpu, &dir.join("first.safetensors")).unwrap();
+    let path = dir.join("first.safetensors");
+    first.save(&path, None).unwrap();
+    assert_eq!(Autoencoder::checkpoint_run(&path).unwrap(), None, "saved outside a run");
+    // A training run's settings travel with the checkpoint.
+    let settings = RunSettings {
+        seed: 7,
+        steps: 4,
+        steps_per_scene: 2,
+        cooldown: 1,
+        scenes: vec!["scene_00000".into()],
+    };
+    first.save(&path, Some(&settings)).unwrap();
+    assert_eq!(Autoencoder::checkpoint_run(&path).unwrap(), Some(settings));
+    assert_eq!(Autoencoder::checkpoint_config(&path).unwrap(), cfg);
+    let mut resumed = Autoencoder::load(&gpu, &path).unwrap();
     assert_eq!(resumed.store.step(), 2);
     assert_eq!(resumed.cfg, cfg);
     run(&mut resumed, 3..=4);

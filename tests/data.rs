@@ -13,7 +13,7 @@ use velox::data::math::{sub, V3};
 use velox::data::pipeline::{back_project, render_scene, FPS};
 use velox::data::procedural::{scene, FRAMES};
 use velox::data::raster::{reference, MeshRasteriser, NO_TRIANGLE};
-use velox::data::{AnimatedMesh, Loader, LoaderOptions, SynthOptions};
+use velox::data::{order, AnimatedMesh, Loader, LoaderOptions, SynthOptions};
 
 fn small_opts() -> SynthOptions {
     SynthOptions { res: 32, points: 3000, supersample: 1, tracks: 48 }
@@ -405,13 +405,21 @@ fn dataset_on_disk_reads_back_in_the_background() {
     assert!(err.contains("scene_00000") && err.contains("points.ply"), "{err}");
     assert_eq!(results[1].as_ref().unwrap().points, written[1].points);
     // Shuffled, several epochs, dropped early: the thread stops.
-    let mut l =
-        Loader::spawn(&root, LoaderOptions { epochs: 0, shuffle: Some(1), images: false, prefetch: 1 })
-            .unwrap();
+    let mut l = Loader::spawn(
+        &root,
+        LoaderOptions { epochs: 0, shuffle: Some(1), images: false, ..Default::default() },
+    )
+    .unwrap();
     for _ in 0..5 {
         assert!(l.next().is_some());
     }
     drop(l);
+    // Started part-way (mid-epoch), the loader reads the scenes of `order::scene_at` from there
+    // on (scene_00000 is the damaged one), and a count of epochs counts from the first.
+    let opts = LoaderOptions { epochs: 4, shuffle: Some(7), start: 3, images: false, prefetch: 1 };
+    let got: Vec<usize> = Loader::spawn(&root, opts).unwrap().map(|r| r.is_ok() as usize).collect();
+    let want: Vec<usize> = (3..8).map(|p| order::scene_at(2, Some(7), p)).collect();
+    assert_eq!(got, want);
     let _ = std::fs::remove_dir_all(&root);
 }
 

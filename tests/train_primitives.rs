@@ -413,7 +413,43 @@ fn checkpoint_round_trip_is_bit_exact() {
     assert_eq!(info.config, config);
     assert_eq!(b.step(), 3);
     assert_eq!(flat_state(&a), flat_state(&b));
+    // The same state gives the same bytes, whatever order safetensors' metadata map has in each
+    // save (four keys: 24 orders, so eight saves would almost surely show an unsorted one).
+    let first = std::fs::read(&path).unwrap();
+    for _ in 0..8 {
+        checkpoint::save(&path, &a, config).unwrap();
+        assert!(std::fs::read(&path).unwrap() == first, "a save of the same state wrote other bytes");
+    }
     assert!(checkpoint::save(&path, &a, "not json").unwrap_err().to_string().contains("JSON"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn verify_finite_passes_a_good_checkpoint_and_names_the_tensor_with_a_nan() {
+    let gpu = gpu();
+    let dir = temp_dir("finite");
+    let path = dir.join("ckpt.safetensors");
+    let store = trained_store(&gpu, 12);
+    checkpoint::save(&path, &store, "{}").unwrap();
+    assert_eq!(checkpoint::verify_finite(&path).unwrap().step, 3);
+    // read_tensors gives the values as saved.
+    let (info, tensors) = checkpoint::read_tensors(&path).unwrap();
+    assert_eq!(info.step, 3);
+    assert_eq!(tensors.len(), 3 * store.len());
+    let w2 = store.infos().iter().find(|p| p.name == "enc.w2").unwrap();
+    let host = store.flat_params().read::<f32>().unwrap();
+    assert_eq!(tensors["param/enc.w2"], host[w2.offset..w2.offset + w2.numel]);
+
+    // One NaN and one Inf in enc.w2.
+    let mut bad = host.clone();
+    bad[w2.offset + 3] = f32::NAN;
+    bad[w2.offset + 10] = f32::INFINITY;
+    store.flat_params().write(&bad).unwrap();
+    checkpoint::save(&path, &store, "{}").unwrap();
+    let e = checkpoint::verify_finite(&path).unwrap_err().to_string();
+    assert!(e.contains("ckpt.safetensors") && e.contains("\"param/enc.w2\" holds 2 NaN or Inf"), "{e}");
+    let e = checkpoint::verify_finite(&dir.join("missing.safetensors")).unwrap_err().to_string();
+    assert!(e.contains("cannot read checkpoint"), "{e}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -479,7 +515,7 @@ fn interrupted_writes_leave_the_previous_checkpoint_intact() {
     std::fs::remove_file(temp_path(&path)).unwrap();
     std::fs::create_dir(temp_path(&path)).unwrap();
     let e = checkpoint::save(&path, &new, "{}").unwrap_err().to_string();
-    assert!(e.contains("cannot write checkpoint"), "{e}");
+    assert!(e.contains("cannot write") && e.contains("ckpt.safetensors"), "{e}");
     checkpoint::load(&path, &mut probe).unwrap();
     assert_eq!(flat_state(&probe), flat_state(&old));
     std::fs::remove_dir(temp_path(&path)).unwrap();

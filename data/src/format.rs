@@ -61,8 +61,15 @@ fn io(path: &Path, e: impl std::fmt::Display) -> DataError {
     DataError::Io(format!("{}: {e}", path.display()))
 }
 
-fn write_file(path: &Path, bytes: &[u8]) -> DataResult<()> {
-    std::fs::write(path, bytes).map_err(|e| io(path, e))
+fn write_error(path: &Path, e: impl std::fmt::Display) -> DataError {
+    DataError::Io(format!("cannot write {}: {e}", path.display()))
+}
+
+/// Writes a file of a scene being made. These are not written atomically: they go into the
+/// scene's `.partial` folder, which is renamed to the scene's name only when every file is
+/// complete, so a failed or interrupted write never leaves a half scene under its name.
+pub(crate) fn write_file(path: &Path, bytes: &[u8]) -> DataResult<()> {
+    std::fs::write(path, bytes).map_err(|e| write_error(path, e))
 }
 
 /// Renders `mesh` into the scene folder `dir` (through `dir.partial`, renamed when complete, so
@@ -101,7 +108,9 @@ pub fn write_scene(
     };
     write_arrays(&partial, &meta, &arrays)?;
     let _ = std::fs::remove_dir_all(dir);
-    std::fs::rename(&partial, dir).map_err(|e| io(dir, e))?;
+    std::fs::rename(&partial, dir).map_err(|e| {
+        DataError::Io(format!("cannot rename {} to {}: {e}", partial.display(), dir.display()))
+    })?;
     Ok(meta)
 }
 
@@ -149,11 +158,11 @@ fn ply_header(n: usize) -> String {
 }
 
 pub fn write_ply(path: &Path, points: &[[f32; 7]]) -> DataResult<()> {
-    let file = std::fs::File::create(path).map_err(|e| io(path, e))?;
+    let file = std::fs::File::create(path).map_err(|e| write_error(path, e))?;
     let mut w = std::io::BufWriter::new(file);
-    w.write_all(ply_header(points.len()).as_bytes()).map_err(|e| io(path, e))?;
-    w.write_all(bytemuck::cast_slice(points)).map_err(|e| io(path, e))?;
-    w.flush().map_err(|e| io(path, e))
+    w.write_all(ply_header(points.len()).as_bytes()).map_err(|e| write_error(path, e))?;
+    w.write_all(bytemuck::cast_slice(points)).map_err(|e| write_error(path, e))?;
+    w.flush().map_err(|e| write_error(path, e))
 }
 
 /// Reads a PLY written by [`write_ply`] (exactly that layout).

@@ -13,7 +13,8 @@
 //! - [`raster`] renders it on the engine with a compute rasteriser (`shaders/mesh_raster.wgsl`)
 //!   from the cameras of [`camera`]: RGB, depth, triangle id and barycentrics;
 //! - [`pipeline`] turns the renders into point clouds, occupancy and tracks;
-//! - [`format`] writes and reads the dataset, [`loader`] reads it in the background.
+//! - [`format`] writes and reads the dataset, [`loader`] reads it in the background in the
+//!   order of [`order`].
 //!
 //! It is its own crate because it brings dependencies the runtime and the models do not need:
 //! `gltf` (the glTF 2.0 reader, with its skins, animations and embedded buffers), and `image`
@@ -25,6 +26,7 @@ pub mod gltf_import;
 pub mod loader;
 pub mod math;
 pub mod mesh;
+pub mod order;
 pub mod pipeline;
 pub mod procedural;
 pub mod raster;

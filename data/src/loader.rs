@@ -1,7 +1,8 @@
 //! Reads scenes in a background thread while training runs.
 //!
-//! A [`Loader`] owns one thread that reads scenes in the order it is given (shuffled per
-//! epoch by a seed, or in name order) into a bounded queue of `prefetch` scenes, so reading
+//! A [`Loader`] owns one thread that reads scenes in the order of [`crate::order`] (each pass
+//! shuffled from the seed and the pass's number, or in name order), from any position of that
+//! sequence, into a bounded queue of `prefetch` scenes, so reading
 //! and PNG decoding overlap the caller's GPU work and memory stays bounded. A scene that fails
 //! to read comes out as an error naming its folder, and the scenes after it still come.
 //! Dropping the loader stops the thread after the scene it is reading.
@@ -10,17 +11,19 @@ use std::path::{Path, PathBuf};
 use std::sync::mpsc::{sync_channel, Receiver};
 use std::thread::JoinHandle;
 
-use velox_engine::rng::Rng;
-
 use crate::format::{list_scenes, read_scene, Scene};
+use crate::order::epoch_order;
 use crate::DataResult;
 
 #[derive(Clone, Debug)]
 pub struct LoaderOptions {
     /// Passes over the dataset (0: forever).
     pub epochs: usize,
-    /// Shuffle each epoch with this seed; `None` keeps name order.
+    /// Shuffle each epoch with this seed and the epoch's number; `None` keeps name order.
     pub shuffle: Option<u64>,
+    /// The position in the sequence of epochs to start from (0: the first scene of the first
+    /// epoch; see [`crate::order`]): a resumed run starts where it stopped.
+    pub start: u64,
     /// Scenes read ahead.
     pub prefetch: usize,
     /// Also decode the supervision images and the video.
@@ -29,7 +32,7 @@ pub struct LoaderOptions {
 
 impl Default for LoaderOptions {
     fn default() -> LoaderOptions {
-        LoaderOptions { epochs: 1, shuffle: None, prefetch: 2, images: true }
+        LoaderOptions { epochs: 1, shuffle: None, start: 0, prefetch: 2, images: true }
     }
 }
 
@@ -38,6 +41,8 @@ pub struct Loader {
     thread: Option<JoinHandle<()>>,
     /// Scenes in the dataset.
     pub len: usize,
+    /// The dataset's scene folders, in name order (the indices of [`crate::order`]).
+    pub scenes: Vec<PathBuf>,
 }
 
 impl Loader {
@@ -46,28 +51,26 @@ impl Loader {
         let scenes = list_scenes(root)?;
         let len = scenes.len();
         let (tx, rx) = sync_channel(opts.prefetch.max(1));
+        let dirs = scenes.clone();
         let thread = std::thread::Builder::new()
             .name("velox-data-loader".into())
             .spawn(move || {
-                let mut rng = opts.shuffle.map(Rng::new);
-                let mut epoch = 0;
-                while !scenes.is_empty() && (opts.epochs == 0 || epoch < opts.epochs) {
-                    let mut order: Vec<&PathBuf> = scenes.iter().collect();
-                    if let Some(rng) = rng.as_mut() {
-                        for i in (1..order.len()).rev() {
-                            order.swap(i, rng.below(i as u32 + 1) as usize);
-                        }
-                    }
-                    for dir in order {
+                let n = dirs.len() as u64;
+                let mut position = opts.start;
+                while n > 0 && (opts.epochs == 0 || position / n < opts.epochs as u64) {
+                    let epoch = position / n;
+                    let order = epoch_order(dirs.len(), opts.shuffle, epoch);
+                    while position / n == epoch {
+                        let dir = &dirs[order[(position % n) as usize]];
                         if tx.send(read_scene(dir, opts.images)).is_err() {
                             return; // the loader was dropped
                         }
+                        position += 1;
                     }
-                    epoch += 1;
                 }
             })
             .map_err(|e| crate::DataError::Io(format!("starting the loader thread: {e}")))?;
-        Ok(Loader { rx: Some(rx), thread: Some(thread), len })
+        Ok(Loader { rx: Some(rx), thread: Some(thread), len, scenes })
     }
 }
 

@@ -238,7 +238,8 @@ fn visibility(mesh: &AnimatedMesh, f: usize, tri: u32, p: V3, frame: &Frame, cam
     bits
 }
 
+/// Encodes in memory, then writes with one checked write (an encoder writing to the file
+/// itself drops its buffer's last flush, and with it a full disk's error).
 pub(crate) fn save_png(path: &Path, res: u32, rgb: &[u8]) -> DataResult<()> {
-    image::save_buffer(path, rgb, res, res, image::ExtendedColorType::Rgb8)
-        .map_err(|e| DataError::Io(format!("{}: {e}", path.display())))
+    crate::format::write_file(path, &velox_models::files::image::png_bytes(rgb, res, res)?)
 }

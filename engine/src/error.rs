@@ -23,6 +23,9 @@ pub enum Error {
     Unsupported(String),
     /// Bad input from outside (a file, an argument).
     Invalid(String),
+    /// A file could not be written (a full disk, a file size limit, a missing folder); the
+    /// message names the file.
+    Io(String),
 }
 
 pub type Result<T> = std::result::Result<T, Error>;
@@ -45,6 +48,7 @@ impl fmt::Display for Error {
             Error::Shape(what) => write!(f, "shape error: {what}"),
             Error::Unsupported(what) => write!(f, "unsupported on this device: {what}"),
             Error::Invalid(what) => write!(f, "invalid input: {what}"),
+            Error::Io(what) => write!(f, "{what}"),
         }
     }
 }

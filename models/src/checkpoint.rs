@@ -6,20 +6,21 @@
 //! (`velox-checkpoint`), `version` (`1`), `step` (AdamW steps taken) and `config` (a JSON
 //! object chosen by the caller: the config name, hyperparameters and so on).
 //!
-//! Writes are atomic: the file is written in full to `.<file name>.tmp` in the same folder,
-//! flushed to disk, renamed over the target, and the folder is flushed, so a crash leaves
-//! either the old checkpoint or the new one, never half of one. Loads check every tensor's name,
+//! Writes are atomic ([`crate::files::write_atomically`]): the file is written in full to
+//! `.<file name>.tmp` in the same folder, flushed to disk, renamed over the target, and the
+//! folder is flushed, so a crash leaves either the old checkpoint or the new one, never half of
+//! one. Loads check every tensor's name,
 //! dtype and shape against the store before changing anything, and say what does not match.
 
 use std::borrow::Cow;
-use std::collections::HashMap;
-use std::fs::File;
-use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::collections::{BTreeMap, HashMap};
+use std::path::Path;
 
 use safetensors::tensor::{Dtype, SafeTensors, View};
 use velox_engine::{Error, Result};
 
+pub use crate::files::temp_path;
+use crate::files::write_bytes;
 use crate::params::ParamStore;
 
 pub const FORMAT: &str = "velox-checkpoint";
@@ -87,14 +88,14 @@ pub fn save(path: &Path, store: &ParamStore, config: &str) -> Result<()> {
         .map_err(|e| Error::Invalid(format!("checkpoint {}: cannot serialise: {e}", path.display())))?;
     drop(host);
     canonical_header(&mut bytes);
-    write_atomic(path, &bytes)
-        .map_err(|e| Error::Invalid(format!("cannot write checkpoint {}: {e}", path.display())))
+    write_bytes(path, &bytes)
 }
 
 /// Rewrites a serialised file's JSON header with its keys in sorted order, in place: safetensors
-/// writes the metadata map in hash order, which differs from process to process, and two runs
-/// that trained the same weights should write the same bytes. The sorted header has the same
-/// characters, so the same length; should it not, the header stays as it was.
+/// writes the metadata map in hash order, which differs from process to process, and the same
+/// state should give the same bytes (so a resumed run's checkpoint can be compared byte for byte
+/// with an uninterrupted run's). The sorted header has the same characters, so the same length
+/// and the same tensor offsets; should it not, the header stays as it was.
 fn canonical_header(bytes: &mut [u8]) {
     let Some(len) = bytes.get(..8).map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes")) as usize)
     else {
@@ -108,48 +109,6 @@ fn canonical_header(bytes: &mut [u8]) {
         header[..sorted.len()].copy_from_slice(sorted.as_bytes());
         header[sorted.len()..].fill(b' ');
     }
-}
-
-/// The temporary file a save of `path` writes before renaming it over `path`.
-pub fn temp_path(path: &Path) -> PathBuf {
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    path.with_file_name(format!(".{name}.tmp"))
-}
-
-/// Writes `bytes` to `path` so that a crash leaves the old file or the new one: a temporary file
-/// in the same folder (same file system, so the rename is atomic), fsync, rename, fsync of the
-/// folder so the rename itself is durable.
-fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    if path.file_name().is_none() {
-        return Err(std::io::Error::new(std::io::ErrorKind::InvalidInput, "the path names no file"));
-    }
-    let tmp = temp_path(path);
-    let written = (|| {
-        let mut f = File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        drop(f);
-        std::fs::rename(&tmp, path)
-    })();
-    if let Err(e) = written {
-        // Only a file of ours is removed; a folder in its place is left as it is.
-        if tmp.is_file() {
-            let _ = std::fs::remove_file(&tmp);
-        }
-        return Err(e);
-    }
-    sync_dir(path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new(".")))
-}
-
-#[cfg(unix)]
-fn sync_dir(dir: &Path) -> std::io::Result<()> {
-    File::open(dir)?.sync_all()
-}
-
-#[cfg(not(unix))]
-fn sync_dir(_dir: &Path) -> std::io::Result<()> {
-    // Windows cannot open a folder as a file; its rename is durable once the file is flushed.
-    Ok(())
 }
 
 /// The step and config a checkpoint holds, without loading its tensors (to build the model the
@@ -185,6 +144,49 @@ fn read_info(bytes: &[u8], path: &Path) -> Result<CheckpointInfo> {
     })?;
     let config = field("config")?.clone();
     Ok(CheckpointInfo { step, config })
+}
+
+/// Every tensor of a checkpoint by name (f32 values in row-major order), with its metadata,
+/// without a model to load it into (to inspect or compare checkpoints).
+pub fn read_tensors(path: &Path) -> Result<(CheckpointInfo, BTreeMap<String, Vec<f32>>)> {
+    let shown = path.display();
+    let bytes =
+        std::fs::read(path).map_err(|e| Error::Invalid(format!("cannot read checkpoint {shown}: {e}")))?;
+    let file = SafeTensors::deserialize(&bytes).map_err(|e| {
+        Error::Invalid(format!("checkpoint {shown} is corrupt or truncated ({} bytes): {e}", bytes.len()))
+    })?;
+    let info = read_info(&bytes, path)?;
+    let mut tensors = BTreeMap::new();
+    for (name, t) in file.tensors() {
+        if t.dtype() != Dtype::F32 {
+            return Err(Error::Invalid(format!(
+                "checkpoint {shown}: tensor {name:?} is {:?}, expected F32",
+                t.dtype()
+            )));
+        }
+        let values = t.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+        tensors.insert(name, values);
+    }
+    Ok((info, tensors))
+}
+
+/// Checks that every value of a checkpoint (parameters and moments) is finite, and returns its
+/// metadata; the error names the first tensor that holds a NaN or an Inf and how many it holds.
+/// A run stopped by a NaN calls its checkpoint good only after this check.
+pub fn verify_finite(path: &Path) -> Result<CheckpointInfo> {
+    let (info, tensors) = read_tensors(path)?;
+    for (name, values) in &tensors {
+        let bad = values.iter().filter(|v| !v.is_finite()).count();
+        if bad > 0 {
+            return Err(Error::Invalid(format!(
+                "checkpoint {} (step {}): tensor {name:?} holds {bad} NaN or Inf value(s) of {}",
+                path.display(),
+                info.step,
+                values.len()
+            )));
+        }
+    }
+    Ok(info)
 }
 
 /// Loads a checkpoint written by [`save`] into `store` (parameters, moments and step) and

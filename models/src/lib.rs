@@ -8,5 +8,6 @@ pub mod files;
 pub mod layers;
 pub mod metrics;
 pub mod params;
+pub mod run;
 pub mod schedule;
 pub mod velox;

@@ -22,7 +22,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 use velox_engine::ops::raster::{GaussianData, Gaussians};
 use velox_engine::{Gpu, Precision, Tensor};
-use velox_models::files::ply;
+use velox_models::files::{ply, write_bytes};
 use velox_models::velox::autoencoder::{tau_of, Autoencoder, FRAMES};
 use velox_models::velox::cloud::{self, CHANNELS};
 use velox_models::velox::surface::{SampleSpec, Sampler};
@@ -253,18 +253,7 @@ pub fn write_points_ply(path: &Path, xyz: &[f32], tau: f32) -> CliResult<()> {
             bytes.extend_from_slice(&v.to_le_bytes());
         }
     }
-    write_atomically(path, &bytes)
-}
-
-/// Writes `bytes` to `path` through `.NAME.tmp` in the same folder.
-pub fn write_atomically(path: &Path, bytes: &[u8]) -> CliResult<()> {
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let tmp = path.with_file_name(format!(".{name}.tmp"));
-    std::fs::write(&tmp, bytes).and_then(|()| std::fs::rename(&tmp, path)).map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        format!("writing {}: {e}", path.display())
-    })?;
-    Ok(())
+    Ok(write_bytes(path, &bytes)?)
 }
 
 /// A progress bar over `len` items of `what`.
@@ -399,7 +388,7 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
         frames: files,
     };
     let json = common.out.join("decode.json");
-    write_atomically(&json, serde_json::to_string_pretty(&report)?.as_bytes())?;
+    write_bytes(&json, serde_json::to_string_pretty(&report)?.as_bytes())?;
     println!(
         "wrote {} files to {} in {:.1} s (decode.json lists them)",
         report.frames.len(),

@@ -11,7 +11,9 @@ use indicatif::{ProgressBar, ProgressStyle};
 use velox_data::format::write_scene;
 use velox_data::{procedural, SynthOptions};
 use velox_engine::Gpu;
+use velox_models::files::write_bytes;
 
+use crate::interrupt::Interrupt;
 use crate::train::{train_autoencoder, AutoencoderArgs};
 use crate::{run_command, CliResult};
 
@@ -55,7 +57,7 @@ fn prepare(out: &Path) -> CliResult<()> {
         }
     }
     std::fs::create_dir_all(out).map_err(|e| format!("creating {}: {e}", out.display()))?;
-    std::fs::write(out.join(MARKER), "{}").map_err(|e| format!("writing {}: {e}", out.display()))?;
+    write_bytes(&out.join(MARKER), b"{}")?;
     Ok(())
 }
 
@@ -96,15 +98,16 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
         data: out.join("data"),
         config: config.clone(),
         out: out.join("train"),
-        steps,
-        seed: args.seed,
+        steps: Some(steps),
+        seed: Some(args.seed),
         resume: false,
-        steps_per_scene: 8,
+        steps_per_scene: None,
         checkpoint_every: steps,
         plot_every: 10,
-        cooldown: 0,
+        cooldown: None,
+        stop_at: None,
     };
-    let summary = train_autoencoder(&gpu, &train)?;
+    let summary = train_autoencoder(&gpu, &train, &Interrupt::never())?;
     let ckpt = summary.checkpoint.display().to_string();
     drop(summary.model);
 
@@ -144,7 +147,7 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
         "total_seconds": started.elapsed().as_secs_f64(),
         "metrics": metrics["mean"],
     });
-    std::fs::write(out.join(MARKER), serde_json::to_string_pretty(&summary_json)?)?;
+    write_bytes(&out.join(MARKER), serde_json::to_string_pretty(&summary_json)?.as_bytes())?;
     let figure = |k: &str, digits: usize| {
         metrics["mean"][k].as_f64().map(|v| format!("{v:.digits$}")).unwrap_or_else(|| "-".into())
     };

@@ -28,14 +28,14 @@ use velox_data::format::{list_scenes, read_scene};
 use velox_engine::ops::raster::render;
 use velox_engine::Gpu;
 use velox_models::files::image::write_png;
+use velox_models::files::write_bytes;
 use velox_models::metrics::{chamfer, psnr, ssim, subsample};
 use velox_models::velox::autoencoder::{tau_of, Autoencoder, FRAMES};
 use velox_models::velox::cloud::CHANNELS;
 use velox_models::velox::surface::SampleSpec;
 
 use crate::decode::{
-    encode, frame_points, progress, sample_surface, surface_voxels, write_atomically, PrecisionArg,
-    SamplerArg, VoxelSource,
+    encode, frame_points, progress, sample_surface, surface_voxels, PrecisionArg, SamplerArg, VoxelSource,
 };
 use crate::CliResult;
 
@@ -320,7 +320,7 @@ fn run_recon(a: &ReconArgs) -> CliResult<()> {
         seconds: start.elapsed().as_secs_f64(),
     };
     print_table(&report);
-    write_atomically(&json, serde_json::to_string_pretty(&report)?.as_bytes())?;
+    write_bytes(&json, serde_json::to_string_pretty(&report)?.as_bytes())?;
     println!(
         "wrote {} and the side-by-side images (ground truth | ours) under {}",
         json.display(),

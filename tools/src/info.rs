@@ -69,8 +69,7 @@ pub fn run(json_path: Option<&Path>) -> CliResult<()> {
         println!("  {k:<width$}{}", v.as_str().unwrap_or(""));
     }
     if let Some(path) = json_path {
-        std::fs::write(path, serde_json::to_string_pretty(&report)?)
-            .map_err(|e| format!("writing {}: {e}", path.display()))?;
+        velox_models::files::write_bytes(path, serde_json::to_string_pretty(&report)?.as_bytes())?;
         println!("\nwrote {}", path.display());
     }
     Ok(())

@@ -6,6 +6,7 @@ mod decode;
 mod demo;
 mod eval;
 mod info;
+mod interrupt;
 mod plot;
 mod render;
 mod train;
@@ -86,13 +87,30 @@ fn print_config(name: &str) -> CliResult<()> {
 }
 
 fn main() {
+    ignore_file_size_signal();
     let result = dispatch(Cli::parse().command);
     if let Some(table) = velox_engine::profile::report() {
         eprintln!("\n{table}");
     }
     if let Err(e) = result {
+        // A run stopped by a signal says where its work is and exits as the signal would.
+        if let Some(stop) = e.downcast_ref::<interrupt::Interrupted>() {
+            eprintln!("{stop}");
+            std::process::exit(stop.exit_code());
+        }
         eprintln!("error: {e}");
         std::process::exit(1);
+    }
+}
+
+/// A write past the file size limit (`ulimit -f`) raises SIGXFSZ, which ends the process
+/// without a word and leaves the temporary file behind. Ignored, the write fails with EFBIG
+/// instead, and the error names the file (see `velox_models::files::write_atomically`).
+fn ignore_file_size_signal() {
+    #[cfg(unix)]
+    // SAFETY: SIG_IGN installs no handler code; nothing else in the program handles SIGXFSZ.
+    unsafe {
+        libc::signal(libc::SIGXFSZ, libc::SIG_IGN);
     }
 }
 

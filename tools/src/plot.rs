@@ -7,6 +7,9 @@ use std::path::Path;
 
 use image::{Rgb, RgbImage};
 
+use velox_models::files::image::png_bytes;
+use velox_models::files::write_bytes;
+
 use crate::CliResult;
 
 const W: u32 = 900;
@@ -167,9 +170,5 @@ pub fn loss_plot(path: &Path, series: &[(&str, Vec<(f64, f64)>)]) -> CliResult<(
         }
         text(&mut img, lx + 20, ly - 1, name, AXIS, 2);
     }
-    let tmp = path.with_extension("png.tmp");
-    img.save_with_format(&tmp, image::ImageFormat::Png)
-        .map_err(|e| format!("writing {}: {e}", tmp.display()))?;
-    std::fs::rename(&tmp, path).map_err(|e| format!("writing {}: {e}", path.display()))?;
-    Ok(())
+    Ok(write_bytes(path, &png_bytes(img.as_raw(), W, H)?)?)
 }

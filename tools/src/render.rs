@@ -7,7 +7,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 use velox_engine::ops::raster::{render, Camera};
 use velox_engine::Gpu;
-use velox_models::files::{image, ply};
+use velox_models::files::{image, ply, write_bytes};
 
 use crate::CliResult;
 
@@ -154,8 +154,7 @@ pub fn run(a: &RenderArgs) -> CliResult<()> {
     }
     bar.finish();
     let json = a.out.join("render.json");
-    std::fs::write(&json, serde_json::to_string_pretty(&frames)?)
-        .map_err(|e| format!("writing {}: {e}", json.display()))?;
+    write_bytes(&json, serde_json::to_string_pretty(&frames)?.as_bytes())?;
     let dropped = frames.first().map(|f| f.invalid).unwrap_or(0);
     if dropped > 0 {
         println!("{dropped} Gaussians have NaN, Inf or degenerate parameters and were not drawn");

@@ -182,3 +182,60 @@ fn demo_runs_end_to_end_and_says_where_its_outputs_are() {
     std::fs::remove_dir_all(&dir).ok();
     std::fs::remove_dir_all(&other).ok();
 }
+
+#[cfg(unix)]
+#[test]
+fn a_write_past_the_file_size_limit_stops_with_the_file_named() {
+    // With no room under the file size limit, SIGXFSZ would end the process without a word;
+    // velox ignores it, so the write fails with EFBIG and the run stops with a message. (A
+    // command that renders cannot run under a small limit on lavapipe: its device memory lives
+    // in memfds that the limit also caps, and it dies of SIGBUS at its first large allocation.)
+    let dir = std::env::temp_dir().join(format!("velox-ulimit-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let json = dir.join("info.json");
+    let run = Command::new("sh")
+        .args(["-c", "ulimit -f 0 && exec \"$0\" \"$@\"", env!("CARGO_BIN_EXE_velox"), "info", "--json"])
+        .arg(&json)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(run.status.code(), Some(1), "an exit with an error, not a signal: {:?}\n{err}", run.status);
+    assert!(err.contains(&format!("cannot write {}: File too large", json.display())), "{err}");
+    assert!(!json.exists(), "no truncated file at the target name");
+    assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 0, "no temporary file left behind");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[cfg(target_os = "linux")]
+#[test]
+fn a_render_onto_a_full_disk_stops_with_the_file_named() {
+    use velox_engine::ops::raster::GaussianData;
+    use velox_models::files::{ply, temp_path};
+
+    let dir = std::env::temp_dir().join(format!("velox-full-disk-{}", std::process::id()));
+    let out = dir.join("frames");
+    std::fs::create_dir_all(&out).unwrap();
+    let mut g = GaussianData::benchmark_scene(500, 3);
+    g.means.iter_mut().skip(2).step_by(3).for_each(|z| *z -= 3.0);
+    let scene = dir.join("scene.ply");
+    ply::write(&scene, &g).unwrap();
+    // The second frame's temporary file leads to /dev/full, which fails every write with
+    // ENOSPC as a full disk does.
+    let png = out.join("frame_0001.png");
+    std::os::unix::fs::symlink("/dev/full", temp_path(&png)).unwrap();
+    let run = velox()
+        .arg("render")
+        .arg(&scene)
+        .arg("--out")
+        .arg(&out)
+        .args(["--frames", "3", "--width", "48", "--height", "32", "--no-depth"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(run.status.code(), Some(1), "{:?}\n{err}", run.status);
+    assert!(err.contains(&format!("cannot write {}: No space left on device", png.display())), "{err}");
+    assert!(out.join("frame_0000.png").exists(), "the frame before is complete");
+    assert!(!png.exists() && !out.join("frame_0002.png").exists(), "the run stopped at the failed frame");
+    assert!(!out.join("render.json").exists());
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -6,7 +6,7 @@ use std::path::Path;
 
 use velox_engine::{Error, Result};
 
-use super::{io_error, write_atomically};
+use super::{io_error, write_atomically, write_bytes};
 
 fn check_len(what: &str, len: usize, width: u32, height: u32, channels: usize) -> Result<()> {
     if len != width as usize * height as usize * channels || width == 0 || height == 0 {
@@ -17,22 +17,30 @@ fn check_len(what: &str, len: usize, width: u32, height: u32, channels: usize) -
     Ok(())
 }
 
-/// Writes row-major RGB `[H, W, 3]` in [0, 1] as an 8-bit PNG.
+/// Writes row-major RGB `[H, W, 3]` in [0, 1] as an 8-bit PNG (atomically, see
+/// [`super::write_atomically`]).
 pub fn write_png(path: &Path, rgb: &[f32], width: u32, height: u32) -> Result<()> {
     check_len("write_png", rgb.len(), width, height, 3)?;
     let bytes: Vec<u8> =
         rgb.iter().map(|&v| if v.is_nan() { 0 } else { (v.clamp(0.0, 1.0) * 255.0).round() as u8 }).collect();
-    write_atomically(path, |tmp| {
-        image::save_buffer_with_format(
-            tmp,
-            &bytes,
-            width,
-            height,
-            image::ColorType::Rgb8,
-            image::ImageFormat::Png,
-        )
-        .map_err(|e| io_error(tmp, e))
-    })
+    write_bytes(path, &png_bytes(&bytes, width, height)?)
+}
+
+/// The PNG file of 8-bit RGB rows `[H, W, 3]`, encoded in memory so that writing it is one
+/// checked write of bytes.
+pub fn png_bytes(rgb8: &[u8], width: u32, height: u32) -> Result<Vec<u8>> {
+    check_len("png_bytes", rgb8.len(), width, height, 3)?;
+    let mut out = std::io::Cursor::new(Vec::new());
+    image::write_buffer_with_format(
+        &mut out,
+        rgb8,
+        width,
+        height,
+        image::ColorType::Rgb8,
+        image::ImageFormat::Png,
+    )
+    .map_err(|e| Error::Invalid(format!("encoding a {width}x{height} PNG: {e}")))?;
+    Ok(out.into_inner())
 }
 
 /// Reads a PNG as row-major RGB in [0, 1], with its width and height.
@@ -57,7 +65,7 @@ pub fn write_exr_depth(path: &Path, depth: &[f32], width: u32, height: u32) -> R
         .with_channel("Z")
         .with_pixel_fn(|p: Vec2<usize>| (depth[p.y() * w + p.x()],));
     let img = Image::from_channels((w, height as usize), channels);
-    write_atomically(path, |tmp| img.write().to_file(tmp).map_err(|e| io_error(tmp, e)))
+    write_atomically(path, |w| img.write().to_buffered(w).map_err(std::io::Error::other))
 }
 
 /// Reads the `Z` channel (or the only channel) of an EXR as f32, with its width and height.

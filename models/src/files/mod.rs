@@ -1,41 +1,135 @@
 //! File formats users see: Gaussians as PLY in the 3D Gaussian splatting layout ([`ply`]),
 //! images as PNG and depth as EXR ([`image`]). Every reader names what is wrong with a bad
-//! file; every writer writes a temporary beside the target and renames it over, so a failed
-//! write never leaves half a file in place of a good one.
+//! file.
+//!
+//! Every file the program writes goes through [`write_atomically`] (or [`write_bytes`]): the
+//! content is written in full to `.<file name>.tmp` in the same folder, flushed and synced to
+//! disk, renamed over the target, and the folder is synced, so a crash, a full disk or a file
+//! size limit leaves either the old file or the new one, never half of one, and the error names
+//! the file and what went wrong.
 
 pub mod image;
 pub mod ply;
 
-use std::io::Write;
-use std::path::Path;
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
 
 use velox_engine::{Error, Result};
 
-/// Writes `bytes` to `path` through a temporary file in the same folder.
-pub(crate) fn write_atomically(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
-    let name = path
-        .file_name()
-        .ok_or_else(|| Error::Invalid(format!("{}: not a file name", path.display())))?
-        .to_string_lossy();
-    let tmp = path.with_file_name(format!(".{name}.tmp"));
-    let result = write(&tmp).and_then(|()| {
-        std::fs::rename(&tmp, path)
-            .map_err(|e| Error::Invalid(format!("renaming {} to {}: {e}", tmp.display(), path.display())))
-    });
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
+/// The temporary file a write of `path` goes through before it is renamed over `path`.
+pub fn temp_path(path: &Path) -> PathBuf {
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    path.with_file_name(format!(".{name}.tmp"))
 }
 
-/// Writes raw bytes atomically.
-pub(crate) fn write_bytes(path: &Path, bytes: &[u8]) -> Result<()> {
-    write_atomically(path, |tmp| {
-        let mut f = std::fs::File::create(tmp).map_err(|e| io_error(tmp, e))?;
-        f.write_all(bytes).and_then(|()| f.sync_all()).map_err(|e| io_error(tmp, e))
-    })
+/// Writes `path` through a temporary file in the same folder (the same file system, so the
+/// rename is atomic): `write` fills the temporary file; then it is flushed, synced, renamed over
+/// `path`, and the folder is synced so the rename itself is durable. When anything fails
+/// (`write` included) the temporary file is removed, `path` is left as it was, and the error
+/// names `path` and the cause.
+pub fn write_atomically(
+    path: &Path,
+    write: impl FnOnce(&mut BufWriter<File>) -> std::io::Result<()>,
+) -> Result<()> {
+    let failed = |e: std::io::Error| Error::Io(format!("cannot write {}: {e}", path.display()));
+    if path.file_name().is_none() {
+        return Err(failed(std::io::Error::new(std::io::ErrorKind::InvalidInput, "the path names no file")));
+    }
+    let tmp = temp_path(path);
+    let written = (|| {
+        let mut w = BufWriter::new(File::create(&tmp)?);
+        write(&mut w)?;
+        let f = w.into_inner().map_err(|e| e.into_error())?;
+        f.sync_all()?;
+        drop(f);
+        std::fs::rename(&tmp, path)
+    })();
+    if let Err(e) = written {
+        // Only a file of ours is removed; a folder in its place is left as it is.
+        if tmp.is_file() {
+            let _ = std::fs::remove_file(&tmp);
+        }
+        return Err(failed(e));
+    }
+    sync_dir(path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."))).map_err(failed)
+}
+
+/// Writes `bytes` to `path` atomically (see [`write_atomically`]).
+pub fn write_bytes(path: &Path, bytes: &[u8]) -> Result<()> {
+    write_atomically(path, |w| w.write_all(bytes))
+}
+
+#[cfg(unix)]
+fn sync_dir(dir: &Path) -> std::io::Result<()> {
+    File::open(dir)?.sync_all()
+}
+
+#[cfg(not(unix))]
+fn sync_dir(_dir: &Path) -> std::io::Result<()> {
+    // Windows cannot open a folder as a file; its rename is durable once the file is flushed.
+    Ok(())
 }
 
 pub(crate) fn io_error(path: &Path, e: impl std::fmt::Display) -> Error {
     Error::Invalid(format!("{}: {e}", path.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn temp_dir(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("velox-files-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+
+    #[test]
+    fn a_failed_write_leaves_no_temporary_and_no_target() {
+        let dir = temp_dir("fails");
+        let path = dir.join("out.bin");
+        let e = write_atomically(&path, |w| {
+            w.write_all(&[7; 100_000])?;
+            Err(std::io::Error::other("the encoder gave up"))
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains(&path.display().to_string()) && e.contains("the encoder gave up"), "{e}");
+        assert!(!path.exists() && !temp_path(&path).exists());
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 0, "nothing is left in the folder");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_failed_write_keeps_the_previous_file() {
+        let dir = temp_dir("keeps");
+        let path = dir.join("out.json");
+        write_bytes(&path, b"old").unwrap();
+        assert!(write_atomically(&path, |w| w.write_all(b"new, half").and(Err(std::io::Error::other("x"))))
+            .is_err());
+        assert_eq!(std::fs::read(&path).unwrap(), b"old");
+        write_bytes(&path, b"new").unwrap();
+        assert_eq!(std::fs::read(&path).unwrap(), b"new");
+        assert!(!temp_path(&path).exists());
+        // A missing folder is reported with the file's name.
+        let e = write_bytes(&dir.join("no/such/folder.json"), b"x").unwrap_err().to_string();
+        assert!(e.contains("folder.json") && e.contains("cannot write"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn a_full_disk_is_reported_naming_the_file() {
+        // /dev/full fails every write with ENOSPC, as a full disk does; a symbolic link puts it
+        // where the temporary file goes.
+        let dir = temp_dir("full");
+        let path = dir.join("image.png");
+        std::os::unix::fs::symlink("/dev/full", temp_path(&path)).unwrap();
+        let e = write_bytes(&path, &[1; 64 * 1024]).unwrap_err().to_string();
+        assert!(e.contains("image.png") && e.contains("No space left on device"), "{e}");
+        assert!(!path.exists());
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

@@ -137,8 +137,7 @@ impl Record {
 }
 
 pub fn write_json(path: &std::path::Path, records: &[Record]) -> CliResult<()> {
-    std::fs::write(path, serde_json::to_string_pretty(records)?)
-        .map_err(|e| format!("writing {}: {e}", path.display()))?;
+    velox_models::files::write_bytes(path, serde_json::to_string_pretty(records)?.as_bytes())?;
     println!("wrote {}", path.display());
     Ok(())
 }

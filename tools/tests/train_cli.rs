@@ -1,0 +1,335 @@
+//! `velox train autoencoder` as a user meets it when things go wrong: a loss that becomes NaN,
+//! a run interrupted by SIGINT or SIGTERM, and a run stopped and resumed, which must repeat
+//! the uninterrupted run.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::sync::OnceLock;
+
+fn velox() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_velox"))
+}
+
+fn arg(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+/// A folder of this test process for `name`, empty.
+fn temp_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("velox-train-cli-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// Two small scenes (24 px, 1500 points), made once for every test of this file.
+fn dataset() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let dir = temp_dir("data").join("data");
+        let out = velox()
+            .args(["data", "synth", "--out", arg(&dir), "--scenes", "2", "--res", "24", "--points", "1500"])
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{}", stderr(&out));
+        dir
+    })
+}
+
+/// The tiny config with another peak learning rate and no warm-up, as a config file.
+fn tiny_config_with_lr(dir: &Path, lr: f64) -> PathBuf {
+    let out = velox().args(["config", "tiny"]).output().unwrap();
+    let mut cfg: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    cfg["peak_lr"] = lr.into();
+    cfg["warmup"] = 1.into();
+    let path = dir.join(format!("lr{lr:e}.json"));
+    std::fs::write(&path, cfg.to_string()).unwrap();
+    path
+}
+
+#[test]
+fn a_nan_stop_calls_the_checkpoint_good_only_when_its_values_are_finite() {
+    let dir = temp_dir("nan");
+    // A learning rate of 1e30 makes step 1's parameters huge but finite, and step 2's
+    // gradients overflow; one of 1e39 (Inf in f32) already writes Inf and NaN into the
+    // parameters at step 1, so the checkpoint written then is no good.
+    for (lr, good) in [(1e30, true), (1e39, false)] {
+        let config = tiny_config_with_lr(&dir, lr);
+        let out_dir = dir.join(format!("run{lr:e}"));
+        let out = velox()
+            .args(["train", "autoencoder", "--data", arg(dataset()), "--config", arg(&config)])
+            .args(["--out", arg(&out_dir), "--steps", "6", "--checkpoint-every", "1"])
+            .output()
+            .unwrap();
+        let err = stderr(&out);
+        assert_eq!(out.status.code(), Some(1), "{err}");
+        assert!(err.contains("training stopped at step 2"), "{err}");
+        let ckpt = out_dir.join("checkpoint.safetensors");
+        if good {
+            let said = format!(
+                "the last good checkpoint is {} (step 1, every value checked finite)",
+                ckpt.display()
+            );
+            assert!(err.contains(&said), "{err}");
+        } else {
+            assert!(!err.contains("last good"), "{err}");
+            assert!(err.contains("the checkpoint is no good either") && err.contains("NaN or Inf"), "{err}");
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Steps in a run's log.jsonl.
+fn logged_steps(log: &Path) -> Vec<u64> {
+    std::fs::read_to_string(log)
+        .unwrap_or_default()
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .map(|l| l["step"].as_u64().unwrap())
+        .collect()
+}
+
+#[cfg(unix)]
+/// Starts `velox train autoencoder` into `out` (1000 steps, no periodic checkpoint, `extra`
+/// arguments) and returns once its log shows `steps` steps.
+fn start_training(out: &Path, extra: &[&str], steps: usize) -> std::process::Child {
+    use std::process::Stdio;
+    let mut child = velox()
+        .args(["train", "autoencoder", "--data", arg(dataset()), "--config", "tiny", "--out", arg(out)])
+        .args(["--steps", "1000", "--checkpoint-every", "1000"])
+        .args(extra)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let log = out.join("log.jsonl");
+    while logged_steps(&log).len() < steps {
+        if let Some(status) = child.try_wait().unwrap() {
+            let mut err = String::new();
+            std::io::Read::read_to_string(child.stderr.as_mut().unwrap(), &mut err).unwrap();
+            panic!("the run ended ({status}) before step {steps}: {err}");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    child
+}
+
+#[cfg(unix)]
+fn send(child: &std::process::Child, signal: i32) {
+    // SAFETY: kill(2) on the id of a child this test started and has not yet waited for.
+    assert_eq!(unsafe { libc::kill(child.id() as i32, signal) }, 0);
+}
+
+#[cfg(unix)]
+#[test]
+fn sigint_and_sigterm_finish_the_step_and_write_the_checkpoint() {
+    use std::os::unix::process::ExitStatusExt;
+    use velox_models::checkpoint;
+
+    let dir = temp_dir("signals");
+    for (signal, name, code) in [(libc::SIGINT, "SIGINT", 130), (libc::SIGTERM, "SIGTERM", 143)] {
+        let out = dir.join(name);
+        let child = start_training(&out, &[], 3);
+        send(&child, signal);
+        let done = child.wait_with_output().unwrap();
+        let err = stderr(&done);
+        assert_eq!(done.status.code(), Some(code), "{name}: {:?}\n{err}", done.status);
+        let ckpt = out.join("checkpoint.safetensors");
+        let step = *logged_steps(&out.join("log.jsonl")).last().unwrap();
+        assert!(step >= 3);
+        let said = format!(
+            "{name}: stopped after step {step} of 1000; checkpoint {} holds step {step}",
+            ckpt.display()
+        );
+        assert!(err.contains(&said), "{err}");
+        assert!(!err.contains("error"), "{err}");
+        assert_eq!(
+            checkpoint::verify_finite(&ckpt).unwrap().step,
+            step,
+            "the checkpoint is at the last logged step"
+        );
+    }
+
+    // Two signals in a row: the run stops as above, or the second ends it at once (depending on
+    // when they land). Either way the checkpoint on disk is whole: the one just written or the
+    // one the run resumed from.
+    let out = dir.join("SIGINT");
+    let before = checkpoint::peek(&out.join("checkpoint.safetensors")).unwrap().step;
+    let child = start_training(&out, &["--resume"], before as usize + 3);
+    send(&child, libc::SIGINT);
+    send(&child, libc::SIGINT);
+    let done = child.wait_with_output().unwrap();
+    let err = stderr(&done);
+    let stopped = done.status.code() == Some(130) && err.contains("stopped after step");
+    assert!(stopped || done.status.signal() == Some(libc::SIGINT), "{:?}\n{err}", done.status);
+    let after = checkpoint::verify_finite(&out.join("checkpoint.safetensors")).unwrap().step;
+    let last = *logged_steps(&out.join("log.jsonl")).last().unwrap();
+    assert!(
+        after == before || (stopped && after == last),
+        "checkpoint at {after}: resumed at {before}, logged {last}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+fn log_lines(out: &Path) -> Vec<serde_json::Value> {
+    let text = std::fs::read_to_string(out.join("log.jsonl")).unwrap();
+    text.lines().map(|l| serde_json::from_str(l).unwrap()).collect()
+}
+
+/// Asserts that two checkpoint files are the same bytes.
+fn assert_same_checkpoint(a: &Path, b: &Path) {
+    assert!(
+        std::fs::read(a).unwrap() == std::fs::read(b).unwrap(),
+        "{} and {} differ",
+        a.display(),
+        b.display()
+    );
+}
+
+fn train(out: &Path, extra: &[&str]) -> String {
+    let run = velox()
+        .args(["train", "autoencoder", "--data", arg(dataset()), "--config", "tiny", "--out", arg(out)])
+        .args(extra)
+        .output()
+        .unwrap();
+    assert!(run.status.success(), "{}", stderr(&run));
+    String::from_utf8_lossy(&run.stdout).into_owned()
+}
+
+#[test]
+fn a_run_stopped_and_resumed_repeats_the_uninterrupted_run() {
+    use velox_data::order::scene_of_step;
+
+    let dir = temp_dir("resume");
+    // 20 steps, 8 per scene, over 2 scenes: passes of 16 steps, each in its own order; the
+    // cooldown spans the last 4 steps.
+    let settings = ["--steps", "20", "--steps-per-scene", "8", "--seed", "5", "--cooldown", "4"];
+    let whole = dir.join("whole");
+    train(&whole, &settings);
+    let want = log_lines(&whole);
+    assert_eq!(want.len(), 20);
+    let names = ["scene_00000", "scene_00001"];
+    for (line, step) in want.iter().zip(1..) {
+        assert_eq!(line["scene"], names[scene_of_step(2, 5, step, 8)], "step {step} trains on its scene");
+    }
+    // Two runs with one seed write the same bytes.
+    let again = dir.join("again");
+    train(&again, &settings);
+    assert_same_checkpoint(&whole.join("checkpoint.safetensors"), &again.join("checkpoint.safetensors"));
+    // Stops inside a scene (3), between the scenes of a pass (8), in the middle of the second
+    // scene (12), and past the end of a pass, in the cooldown (17). The resumption gives no
+    // settings: it must take the stored ones. Everything must match bit for bit.
+    for stop in [3, 8, 12, 17] {
+        let out = dir.join(format!("stopped_at_{stop}"));
+        let said = train(&out, &[&settings[..], &["--stop-at", &stop.to_string()]].concat());
+        assert!(said.contains(&format!("stopped after step {stop} of 20")), "{said}");
+        assert_eq!(log_lines(&out).len(), stop);
+        train(&out, &["--resume"]);
+        let got = log_lines(&out);
+        assert_eq!(got.len(), want.len(), "stopped at {stop}");
+        for (g, w) in got.iter().zip(&want) {
+            let at = format!("stopped at {stop}, step {}", w["step"]);
+            for key in [
+                "step",
+                "scene",
+                "frame",
+                "view",
+                "lr",
+                "total",
+                "surface",
+                "gaussians",
+                "tokens",
+                "grad_norm",
+            ] {
+                assert_eq!(g[key], w[key], "{at}: {key}");
+            }
+        }
+        assert_same_checkpoint(&whole.join("checkpoint.safetensors"), &out.join("checkpoint.safetensors"));
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[cfg(unix)]
+#[test]
+fn a_resumed_run_refuses_other_settings_and_changed_scenes() {
+    let dir = temp_dir("refuse");
+    let out = dir.join("run");
+    train(&out, &["--steps", "6", "--seed", "1", "--stop-at", "2"]);
+    let resume = |data: &Path, extra: &[&str]| {
+        let run = velox()
+            .args([
+                "train",
+                "autoencoder",
+                "--data",
+                arg(data),
+                "--config",
+                "tiny",
+                "--out",
+                arg(&out),
+                "--resume",
+            ])
+            .args(extra)
+            .output()
+            .unwrap();
+        assert_eq!(run.status.code(), Some(1), "{extra:?} is refused");
+        let err = stderr(&run);
+        assert!(err.contains(&out.join("checkpoint.safetensors").display().to_string()), "{err}");
+        err
+    };
+    for (extra, said) in [
+        (&["--seed", "2"][..], "--seed 2 differs from the 1 the run started with"),
+        (&["--steps-per-scene", "3"][..], "--steps-per-scene 3 differs from the 8"),
+        (&["--cooldown", "2"][..], "--cooldown 2 differs from the 0"),
+    ] {
+        let err = resume(dataset(), extra);
+        assert!(err.contains(said), "{err}");
+    }
+    // The same dataset less one scene (a folder linking to the first).
+    let fewer = dir.join("fewer");
+    std::fs::create_dir_all(&fewer).unwrap();
+    std::os::unix::fs::symlink(dataset().join("scene_00000"), fewer.join("scene_00000")).unwrap();
+    let err = resume(&fewer, &[]);
+    assert!(err.contains("2 then, 1 now: scene_00001 is gone"), "{err}");
+    // A stop that is not ahead of the checkpoint.
+    let run = velox()
+        .args(["train", "autoencoder", "--data", arg(dataset()), "--config", "tiny", "--out", arg(&out)])
+        .args(["--resume", "--stop-at", "2"])
+        .output()
+        .unwrap();
+    assert!(stderr(&run).contains("--stop-at 2 is not a step to come: the run goes from step 3 to 6"));
+    // Nothing refused changed the run: it still resumes and ends at its 6 steps.
+    let said = train(&out, &["--resume", "--seed", "1"]);
+    assert!(said.contains("trained 6 steps"), "{said}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_checkpoint_without_run_settings_resumes_with_the_command_line() {
+    use velox_engine::Gpu;
+    use velox_models::config::AutoencoderConfig;
+    use velox_models::velox::autoencoder::Autoencoder;
+
+    // A checkpoint as runs wrote them before they stored their settings.
+    let out = temp_dir("old-checkpoint");
+    let gpu = Gpu::new().unwrap();
+    let ae = Autoencoder::new(&gpu, &AutoencoderConfig::tiny(), 0).unwrap();
+    ae.save(&out.join("checkpoint.safetensors"), None).unwrap();
+    drop(ae);
+    let run = velox()
+        .args(["train", "autoencoder", "--data", arg(dataset()), "--config", "tiny", "--out", arg(&out)])
+        .args(["--resume", "--steps", "2"])
+        .output()
+        .unwrap();
+    let err = stderr(&run);
+    assert!(run.status.success(), "{err}");
+    assert!(err.contains("does not store its run's settings"), "{err}");
+    // From now on it does.
+    let stored = Autoencoder::checkpoint_run(&out.join("checkpoint.safetensors")).unwrap().unwrap();
+    assert_eq!((stored.seed, stored.steps, stored.steps_per_scene), (0, 2, 8));
+    assert_eq!(stored.scenes, ["scene_00000", "scene_00001"]);
+    let _ = std::fs::remove_dir_all(&out);
+}
