@@ -7,7 +7,7 @@ use common::*;
 use std::path::{Path, PathBuf};
 
 use velox::data::camera::{input_cameras, Camera};
-use velox::data::format::{read_scene, write_arrays, SceneMeta, FORMAT};
+use velox::data::format::{read_ply, read_scene, write_arrays, write_ply, SceneMeta, FORMAT};
 use velox::data::gltf_import::import;
 use velox::data::math::{sub, V3};
 use velox::data::pipeline::{back_project, render_scene, FPS};
@@ -413,6 +413,64 @@ fn dataset_on_disk_reads_back_in_the_background() {
     }
     drop(l);
     let _ = std::fs::remove_dir_all(&root);
+}
+
+/// Bytes of `path` with `edit` applied, written back; the original bytes are returned.
+fn edit_file(path: &Path, edit: impl FnOnce(&mut Vec<u8>)) -> Vec<u8> {
+    let original = std::fs::read(path).unwrap();
+    let mut bytes = original.clone();
+    edit(&mut bytes);
+    std::fs::write(path, bytes).unwrap();
+    original
+}
+
+#[test]
+fn point_cloud_files_are_checked_against_their_header_and_the_format() {
+    let dir = temp_dir("ply");
+    let points: Vec<[f32; 7]> =
+        (0..5).map(|i| [0.1 * i as f32, -0.5, 0.25, 0.2, 0.4, 0.6, i as f32 / FPS]).collect();
+    let path = dir.join("points.ply");
+    write_ply(&path, &points).unwrap();
+    assert_eq!(read_ply(&path).unwrap(), points);
+    let body = 5 * 28;
+    let expect = |what: &str, edit: &dyn Fn(&mut Vec<u8>), needles: &[&str]| {
+        let original = edit_file(&path, edit);
+        let e = read_ply(&path).expect_err(what).to_string();
+        assert!(e.contains("points.ply"), "{what}: the error does not name the file: {e}");
+        for n in needles {
+            assert!(e.contains(n), "{what}: the error should mention {n:?}: {e}");
+        }
+        std::fs::write(&path, original).unwrap();
+    };
+    let header = |from: &'static str, to: &'static str| {
+        move |b: &mut Vec<u8>| {
+            let head = String::from_utf8(b[..b.len() - body].to_vec()).unwrap();
+            let rest = b[b.len() - body..].to_vec();
+            *b = [head.replace(from, to).into_bytes(), rest].concat();
+        }
+    };
+    let huge = header("element vertex 5", "element vertex 1000000000000000000");
+    expect("a count past any file", &huge, &["truncated", "1000000000000000000 vertex of 28 bytes"]);
+    let uchar = header("property float", "property uchar");
+    expect("uchar properties", &uchar, &["not one vertex element of float x y z r g b tau"]);
+    expect("trailing bytes", &|b| b.extend_from_slice(&[0; 28]), &["does not match the header", "has 168"]);
+    expect("a short body", &|b| b.truncate(b.len() - 3), &["truncated"]);
+    let value = |point: usize, channel: usize, v: f32| {
+        move |b: &mut Vec<u8>| {
+            let at = b.len() - body + 28 * point + 4 * channel;
+            b[at..at + 4].copy_from_slice(&v.to_le_bytes());
+        }
+    };
+    expect("NaN", &value(3, 1, f32::NAN), &["point 3 has a non-finite value in channel 1"]);
+    expect("Inf", &value(2, 6, f32::INFINITY), &["point 2 has a non-finite value in channel 6"]);
+    expect("outside the cube", &value(1, 2, 1.5), &["point 1", "outside [-1, 1]^3"]);
+    expect("colour", &value(4, 4, 2.0), &["point 4 has colour"]);
+    expect("a frame past the clip", &value(0, 6, 0.5), &["point 0 has frame time tau = 0.5"]);
+    expect("between frames", &value(0, 6, 0.015), &["point 0 has frame time tau = 0.015"]);
+    let empty = dir.join("empty.ply");
+    write_ply(&empty, &[]).unwrap();
+    assert!(read_ply(&empty).unwrap_err().to_string().contains("empty"));
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]

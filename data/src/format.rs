@@ -30,6 +30,7 @@ use crate::camera::Camera;
 use crate::pipeline::{SceneArrays, FPS, OCCUPANCY_WORDS};
 use crate::procedural::FRAMES;
 use crate::{DataError, DataResult};
+use velox_models::files::ply;
 
 pub const FORMAT: &str = "velox-data 1";
 
@@ -156,39 +157,52 @@ pub fn write_ply(path: &Path, points: &[[f32; 7]]) -> DataResult<()> {
     w.flush().map_err(|e| io(path, e))
 }
 
-/// Reads a PLY written by [`write_ply`] (exactly that layout).
+/// Reads a PLY written by [`write_ply`]: one `vertex` element of float x y z r g b tau,
+/// binary little-endian, a body of exactly the declared points, every point as the format
+/// says (see [`check_points`]).
 pub fn read_ply(path: &Path) -> DataResult<Vec<[f32; 7]>> {
+    let invalid = |why: String| DataError::Invalid(format!("{}: {why}", path.display()));
     let bytes = std::fs::read(path).map_err(|e| io(path, e))?;
-    let end =
-        bytes.windows(11).position(|w| w == b"end_header\n").ok_or_else(|| {
-            DataError::Invalid(format!("{}: not a PLY file (no end_header)", path.display()))
-        })? + 11;
-    let header = std::str::from_utf8(&bytes[..end])
-        .map_err(|_| DataError::Invalid(format!("{}: PLY header is not text", path.display())))?;
-    let n: usize = header
-        .lines()
-        .find_map(|l| l.strip_prefix("element vertex "))
-        .and_then(|v| v.trim().parse().ok())
-        .ok_or_else(|| DataError::Invalid(format!("{}: PLY header has no vertex count", path.display())))?;
-    if header != ply_header(n) {
-        return Err(DataError::Invalid(format!(
-            "{}: PLY layout is not float x y z r g b tau, binary little-endian",
-            path.display()
-        )));
+    let header = ply::Header::parse(&bytes).map_err(|e| invalid(engine_message(e)))?;
+    let layout_ok = matches!(header.elements.as_slice(), [e] if e.name == "vertex"
+        && e.properties.len() == PLY_PROPS.len()
+        && e.properties.iter().zip(PLY_PROPS).all(|((name, ty), want)| name == want && *ty == ply::Scalar::F32));
+    if !layout_ok {
+        return Err(invalid("PLY layout is not one vertex element of float x y z r g b tau".into()));
     }
-    let body = &bytes[end..];
-    if body.len() != n * 28 {
-        return Err(DataError::Invalid(format!(
-            "{}: {} points declared but {} bytes of data",
-            path.display(),
-            n,
-            body.len()
-        )));
-    }
-    Ok(body
+    header.check_length(&bytes).map_err(|e| invalid(engine_message(e)))?;
+    let points: Vec<[f32; 7]> = bytes[header.body_start..]
         .chunks_exact(28)
         .map(|c| std::array::from_fn(|k| f32::from_le_bytes(c[4 * k..4 * k + 4].try_into().unwrap())))
-        .collect())
+        .collect();
+    check_points(&points).map_err(invalid)?;
+    Ok(points)
+}
+
+/// The message of an engine error without its kind.
+fn engine_message(e: velox_engine::Error) -> String {
+    match e {
+        velox_engine::Error::Invalid(why) => why,
+        other => other.to_string(),
+    }
+}
+
+/// Checks the points of a cloud against the format: at least one, every value finite, xyz in
+/// [-1, 1]^3 and rgb in [0, 1] (the model's cloud check), tau = frame / 100 for a frame of the
+/// clip.
+pub fn check_points(points: &[[f32; 7]]) -> Result<(), String> {
+    velox_models::velox::cloud::validate(bytemuck::cast_slice(points)).map_err(engine_message)?;
+    for (i, p) in points.iter().enumerate() {
+        let f = p[6] * FPS;
+        if f.round() >= FRAMES as f32 || (f - f.round()).abs() > 1e-3 {
+            return Err(format!(
+                "point {i} has frame time tau = {}, not frame / {FPS} for a frame 0 to {}",
+                p[6],
+                FRAMES - 1
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// A scene read back from disk.
