@@ -7,7 +7,9 @@ use common::*;
 use std::path::{Path, PathBuf};
 
 use velox::data::camera::{input_cameras, Camera};
-use velox::data::format::{read_ply, read_scene, write_arrays, write_ply, SceneMeta, FORMAT};
+use velox::data::format::{
+    read_ply, read_scene, write_arrays, write_ply, write_scene, CameraSet, SceneMeta, FORMAT,
+};
 use velox::data::gltf_import::import;
 use velox::data::math::{sub, V3};
 use velox::data::pipeline::{back_project, render_scene, FPS};
@@ -471,6 +473,112 @@ fn point_cloud_files_are_checked_against_their_header_and_the_format() {
     write_ply(&empty, &[]).unwrap();
     assert!(read_ply(&empty).unwrap_err().to_string().contains("empty"));
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn damaged_scene_folders_are_errors_naming_the_file_and_the_problem() {
+    let root = temp_dir("damaged");
+    let dir = root.join("scene");
+    let (_, mesh) = scene(2, None).unwrap();
+    let opts = SynthOptions { res: 16, points: 400, supersample: 1, tracks: 6 };
+    let meta = write_scene(&gpu(), &mesh, "procedural seed 2", None, 2, &opts, &dir, &mut |_| {}).unwrap();
+    let good = read_scene(&dir, true).unwrap();
+    assert_eq!((good.points.len(), good.tracks.len()), (400, 6));
+    // `edit` changes one file (meta.json unless the name says otherwise: "edited > named");
+    // the error must name the file it finds at fault.
+    let expect = |files: &str, what: &str, edit: &dyn Fn(&mut Vec<u8>), needles: &[&str]| {
+        let (edited, named) = files.split_once(" > ").unwrap_or((files, files));
+        let original = edit_file(&dir.join(edited), edit);
+        let Err(e) = read_scene(&dir, false) else { panic!("{what}: the scene was accepted") };
+        let e = e.to_string();
+        assert!(
+            e.contains(&dir.join(named).display().to_string()),
+            "{what}: the error does not name {named}: {e}"
+        );
+        for n in needles {
+            assert!(e.contains(n), "{what}: the error should mention {n:?}: {e}");
+        }
+        std::fs::write(dir.join(edited), original).unwrap();
+    };
+    let meta_with = |f: &dyn Fn(&mut SceneMeta)| {
+        let mut m = meta.clone();
+        f(&mut m);
+        move |b: &mut Vec<u8>| *b = serde_json::to_vec(&m).unwrap()
+    };
+    // Counts that overflow, that the files do not hold, or that readers would index past.
+    let huge = meta_with(&|m| m.tracks = 1_000_000_000_000_000_000);
+    expect("meta.json", "10^18 tracks", &huge, &["tracks is 1000000000000000000, expected 0 to 1048576"]);
+    let no_views = meta_with(&|m| m.supervision_views = 0);
+    expect("meta.json", "no supervision views", &no_views, &["supervision_views is 0"]);
+    let fewer_views = meta_with(&|m| m.supervision_views = 24);
+    expect(
+        "meta.json > cameras.json",
+        "a view too few",
+        &fewer_views,
+        &["25 supervision cameras", "supervision_views = 24"],
+    );
+    let points = meta_with(&|m| m.points = 401);
+    expect(
+        "meta.json > points.ply",
+        "a wrong point count",
+        &points,
+        &["400 points", "meta.json says points = 401"],
+    );
+    let tracks = meta_with(&|m| m.tracks = 7);
+    expect(
+        "meta.json > tracks.bin",
+        "a track more",
+        &tracks,
+        &["1728 bytes, expected 2016", "7 tracks, as meta.json says"],
+    );
+    for (res, needle) in [(0, "resolution is 0"), (100_000, "resolution is 100000, expected 1 to 4096")] {
+        expect("meta.json", "resolution", &meta_with(&|m| m.resolution = res), &[needle]);
+    }
+    expect("occupancy.bin", "truncated occupancy", &|b| b.truncate(1000), &["1000 bytes, expected 786432"]);
+    // Cameras: finite, a rotation, positive focal lengths, the scene's size.
+    let cameras: CameraSet =
+        serde_json::from_slice(&std::fs::read(dir.join("cameras.json")).unwrap()).unwrap();
+    let cams_with = |f: &dyn Fn(&mut CameraSet)| {
+        let mut c = cameras.clone();
+        f(&mut c);
+        move |b: &mut Vec<u8>| *b = serde_json::to_vec(&c).unwrap()
+    };
+    let fx = cams_with(&|c| c.supervision[3].fx = -1.0);
+    expect("cameras.json", "a negative focal length", &fx, &["supervision camera 3", "fx = -1"]);
+    let big = cams_with(&|c| c.input[5].translation[1] = 123456.0);
+    let inf = move |b: &mut Vec<u8>| {
+        big(b);
+        *b = String::from_utf8(b.clone()).unwrap().replace("123456.0", "1e39").into_bytes();
+    };
+    expect("cameras.json", "an infinite translation", &inf, &["input camera 5 has a non-finite"]);
+    let skew = cams_with(&|c| c.video.as_mut().unwrap().rotation[0][1] += 0.5);
+    expect("cameras.json", "a skewed rotation", &skew, &["the video camera", "not a rotation matrix"]);
+    let size = cams_with(&|c| c.input[0].width = 17);
+    expect("cameras.json", "a wrong image size", &size, &["input camera 0 is 17 x 16"]);
+    let few = cams_with(&|c| c.input.truncate(34));
+    expect("cameras.json", "a missing input camera", &few, &["34 input cameras, expected 35"]);
+    // Values: tracks finite and inside the cube, visibility only from the input cameras.
+    let nan = |b: &mut Vec<u8>| b[4 * 7..4 * 8].copy_from_slice(&f32::NAN.to_le_bytes());
+    expect("tracks.bin", "a NaN track", &nan, &["track 0 at frame 2 has coordinate NaN"]);
+    let bit = |b: &mut Vec<u8>| b[8 * 30..8 * 31].copy_from_slice(&(1u64 << 40).to_le_bytes());
+    expect("tracks_visibility.bin", "camera 40", &bit, &["track 1 at frame 6 is seen by camera 40"]);
+    let late = |b: &mut Vec<u8>| {
+        let at = b.len() - 4;
+        b[at..].copy_from_slice(&0.3f32.to_le_bytes());
+    };
+    expect("points.ply", "tau past the clip", &late, &["point 399 has frame time tau = 0.3"]);
+    assert_eq!(read_scene(&dir, true).unwrap().points, good.points, "every file was restored");
+    // Options out of range are refused before anything is written.
+    for (opts, needle) in [
+        (SynthOptions { points: 0, ..opts.clone() }, "points 0 is out of range: a scene takes 1 to 16777216"),
+        (SynthOptions { tracks: 1 << 30, ..opts.clone() }, "tracks 1073741824 is out of range"),
+    ] {
+        let e = write_scene(&gpu(), &mesh, "x", None, 0, &opts, &root.join("refused"), &mut |_| {});
+        let e = e.unwrap_err().to_string();
+        assert!(e.contains(needle), "{e}");
+    }
+    assert!(!root.join("refused").exists());
+    let _ = std::fs::remove_dir_all(&root);
 }
 
 #[test]
