@@ -213,3 +213,24 @@ fn data_synth_refuses_empty_or_oversized_requests_and_notes_fewer_tracks() {
     assert!(tracks > 0 && tracks <= 35 * 64, "{tracks} tracks from 35 views of 8 x 8");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn config_files_with_huge_sizes_or_infinite_numbers_are_refused() {
+    let out = velox().args(["config", "tiny"]).output().unwrap();
+    let tiny: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let path = std::env::temp_dir().join(format!("velox-config-limits-{}.json", std::process::id()));
+    for (section, field, value, needle) in [
+        ("encoder", "tokens", "1000000000000000000", "encoder.tokens is 1000000000000000000"),
+        ("encoder", "time_scale", "1e39", "encoder.time_scale is inf"),
+        ("gaussians", "window_voxels", "0", "gaussians.window_voxels is 0"),
+    ] {
+        let mut cfg = tiny.clone();
+        cfg[section][field] = serde_json::from_str(value).unwrap();
+        std::fs::write(&path, cfg.to_string()).unwrap();
+        let out = velox().arg("config").arg(&path).output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{section}.{field} = {value} was accepted");
+        assert!(err.contains(path.to_str().unwrap()) && err.contains(needle), "{err}");
+    }
+    std::fs::remove_file(&path).ok();
+}
