@@ -9,8 +9,8 @@
 //! the procedural objects. Per the specification, a skinned mesh ignores its own node's
 //! transform. Points and lines are skipped; triangle strips and fans become triangles.
 //!
-//! A file is input from anywhere: [`gltf_load`](crate::gltf_load) reads its bytes (URIs only
-//! inside the file's folder), [`gltf_validate`](crate::gltf_validate) checks the document
+//! A file is input from anywhere: [`gltf_load`] reads its bytes (URIs only
+//! inside the file's folder), [`gltf_validate`] checks the document
 //! against the specification before the `gltf` crate's readers see it, and a panic inside
 //! them all the same becomes an error. Every error names the file.
 

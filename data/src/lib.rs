@@ -17,8 +17,8 @@
 //! - [`format`] writes and reads the dataset, [`loader`] reads it in the background.
 //!
 //! It is its own crate because it brings dependencies the runtime and the models do not need:
-//! `gltf` (the glTF 2.0 reader, with its skins, animations and embedded buffers), and `image`
-//! (PNG and JPEG for textures and the supervision views).
+//! `gltf` (the glTF 2.0 document and its accessor readers, for skins, animations and
+//! morph targets), and `image` (PNG and JPEG for textures and the supervision views).
 
 pub mod camera;
 pub mod format;

@@ -50,11 +50,12 @@ pub const MAX_SUPERSAMPLE: u32 = 8;
 pub struct SynthOptions {
     /// Image side of every camera.
     pub res: u32,
-    /// Points in the 4D point cloud.
+    /// Points in the 4D point cloud, 1 to [`MAX_POINTS`].
     pub points: usize,
     /// Supersampling factor of the anti-aliased views (supervision and video).
     pub supersample: u32,
-    /// Tracked surface points.
+    /// Tracked surface points, at most [`MAX_TRACKS`]; fewer when frame 0 shows fewer surface
+    /// pixels over the input views.
     pub tracks: usize,
 }
 
