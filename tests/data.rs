@@ -6,8 +6,12 @@ use common::*;
 
 use std::path::{Path, PathBuf};
 
+use serde_json::{json, Value};
+
 use velox::data::camera::{input_cameras, Camera};
-use velox::data::format::{read_scene, write_arrays, SceneMeta, FORMAT};
+use velox::data::format::{
+    read_ply, read_scene, write_arrays, write_ply, write_scene, CameraSet, SceneMeta, FORMAT,
+};
 use velox::data::gltf_import::import;
 use velox::data::math::{sub, V3};
 use velox::data::pipeline::{back_project, render_scene, FPS};
@@ -205,22 +209,6 @@ fn imports_real_skinned_and_morph_exports() {
     assert!(!a.tracks.is_empty());
 }
 
-fn base64(bytes: &[u8]) -> String {
-    const T: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
-    let mut s = String::new();
-    for c in bytes.chunks(3) {
-        let n = (c[0] as u32) << 16 | (*c.get(1).unwrap_or(&0) as u32) << 8 | *c.get(2).unwrap_or(&0) as u32;
-        for k in 0..4 {
-            if k <= c.len() {
-                s.push(T[(n >> (18 - 6 * k)) as usize & 63] as char);
-            } else {
-                s.push('=');
-            }
-        }
-    }
-    s
-}
-
 /// A quad under a parent node whose translation is animated, with a morph target that lifts
 /// one corner, its weight animated from 0 to 1 over one second. Returns (json, binary).
 fn quad_asset(uri: Option<&str>) -> (String, Vec<u8>) {
@@ -268,29 +256,6 @@ fn quad_asset(uri: Option<&str>) -> (String, Vec<u8>) {
 }}"#
     );
     (json, bin)
-}
-
-fn glb(json: &str, bin: &[u8]) -> Vec<u8> {
-    let mut j = json.as_bytes().to_vec();
-    while !j.len().is_multiple_of(4) {
-        j.push(b' ');
-    }
-    let mut b = bin.to_vec();
-    while !b.len().is_multiple_of(4) {
-        b.push(0);
-    }
-    let total = 12 + 8 + j.len() + 8 + b.len();
-    let mut out = Vec::new();
-    out.extend(b"glTF");
-    out.extend(2u32.to_le_bytes());
-    out.extend((total as u32).to_le_bytes());
-    out.extend((j.len() as u32).to_le_bytes());
-    out.extend(0x4E4F_534Au32.to_le_bytes());
-    out.extend(j);
-    out.extend((b.len() as u32).to_le_bytes());
-    out.extend(0x004E_4942u32.to_le_bytes());
-    out.extend(b);
-    out
 }
 
 #[test]
@@ -359,6 +324,361 @@ fn corrupt_gltf_files_get_errors_that_name_them() {
     }
     let err = import(&dir.join("absent.gltf"), None).unwrap_err().to_string();
     assert!(err.contains("absent.gltf"), "{err}");
+    // A missing side file is named.
+    let err = import(&dir.join("missing_buffer.gltf"), None).unwrap_err().to_string();
+    assert!(err.contains("nowhere.bin") && err.contains("buffers[0]"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The quad asset as editable JSON and its binary.
+fn quad_parts() -> (Value, Vec<u8>) {
+    let (json, bin) = quad_asset(None);
+    (serde_json::from_str(&json).unwrap(), bin)
+}
+
+/// Appends `bytes` to the binary (at a 4-byte boundary) as a new buffer view; its index.
+fn add_view(v: &mut Value, bin: &mut Vec<u8>, bytes: &[u8]) -> usize {
+    while !bin.len().is_multiple_of(4) {
+        bin.push(0);
+    }
+    let offset = bin.len();
+    bin.extend_from_slice(bytes);
+    v["buffers"][0]["byteLength"] = bin.len().into();
+    let views = v["bufferViews"].as_array_mut().unwrap();
+    views.push(json!({"buffer": 0, "byteOffset": offset, "byteLength": bytes.len()}));
+    views.len() - 1
+}
+
+/// Writes `bytes` as `dir/name` and imports it.
+fn import_file(dir: &Path, name: &str, bytes: &[u8]) -> Result<velox::data::gltf_import::Imported, String> {
+    let path = dir.join(name);
+    std::fs::write(&path, bytes).unwrap();
+    import(&path, None).map_err(|e| e.to_string())
+}
+
+/// Sets the value at a JSON pointer, adding the last key if it is missing.
+fn set_at(v: &mut Value, pointer: &str, value: Value) {
+    let (parent, key) = pointer.rsplit_once('/').unwrap();
+    match v.pointer_mut(parent).unwrap_or_else(|| panic!("no {parent}")) {
+        Value::Array(a) => a[key.parse::<usize>().unwrap()] = value,
+        Value::Object(o) => drop(o.insert(key.to_string(), value)),
+        other => panic!("{parent} is {other}"),
+    }
+}
+
+/// A name, an edit of the quad's JSON and binary, and what the error must say.
+type GltfCase<'a> = (&'a str, &'a dyn Fn(&mut Value, &mut Vec<u8>), &'a [&'a str]);
+
+/// Imports each case (a name and an edit of the quad's JSON and binary, as a GLB) and checks
+/// that the error names the file and says each needle.
+fn expect_gltf_errors(dir: &Path, cases: &[GltfCase]) {
+    for (name, edit, needles) in cases {
+        let (mut v, mut bin) = quad_parts();
+        edit(&mut v, &mut bin);
+        let file = format!("{name}.glb");
+        let e = match import_file(dir, &file, &glb(&v.to_string(), &bin)) {
+            Ok(_) => panic!("{name}: the file was imported"),
+            Err(e) => e,
+        };
+        assert!(e.contains(&file), "{name}: the error does not name the file: {e}");
+        assert!(!e.contains("panicked"), "{name}: the glTF reader panicked: {e}");
+        for n in *needles {
+            assert!(e.contains(n), "{name}: the error should say {n:?}: {e}");
+        }
+    }
+}
+
+#[test]
+fn malformed_gltf_documents_are_errors_not_panics() {
+    let dir = temp_dir("malformed");
+    let set = |pointer: &'static str, value: Value| {
+        move |v: &mut Value, _: &mut Vec<u8>| set_at(v, pointer, value.clone())
+    };
+    let textured = |texture: Value, image: Value| {
+        move |v: &mut Value, _: &mut Vec<u8>| {
+            v["materials"] = json!([{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}]);
+            v["meshes"][0]["primitives"][0]["material"] = 0.into();
+            v["textures"] = json!([texture.clone()]);
+            v["images"] = json!([image.clone()]);
+        }
+    };
+    let cases: &[GltfCase] = &[
+        // The five files that panicked inside the gltf crate.
+        ("count0", &set("/accessors/0/count", 0.into()), &["accessors[0]: count 0"]),
+        (
+            "channel_node",
+            &set("/animations/0/channels/0/target/node", 99.into()),
+            &["animations[0].channels[0].target names nodes[99], but the file has 2 nodes"],
+        ),
+        (
+            "missing_accessor",
+            &set("/meshes/0/primitives/0/attributes/POSITION", 99.into()),
+            &["meshes[0].primitives[0] names accessors[99]"],
+        ),
+        (
+            "short_stride",
+            &set("/bufferViews/0/byteStride", 4.into()),
+            &["bufferViews[0] has byteStride 4, less than one VEC3 FLOAT element (12 bytes)"],
+        ),
+        (
+            "float_indices",
+            &|v: &mut Value, _: &mut Vec<u8>| {
+                v["accessors"][2]["componentType"] = 5126.into();
+                v["accessors"][2]["count"] = 3.into();
+            },
+            &["accessors[2] (indices of meshes[0].primitives[0]) is SCALAR FLOAT, expected SCALAR of UNSIGNED_BYTE"],
+        ),
+        // Every other kind of index out of range.
+        ("child", &set("/nodes/0/children/0", 7.into()), &["nodes[0].children names nodes[7]"]),
+        ("mesh", &set("/nodes/1/mesh", 5.into()), &["nodes[1] names meshes[5]"]),
+        ("skin", &set("/nodes/1/skin", 0.into()), &["nodes[1] names skins[0], but the file has 0 skins"]),
+        ("view", &set("/accessors/3/bufferView", 9.into()), &["accessors[3] names bufferViews[9]"]),
+        ("buffer", &set("/bufferViews/1/buffer", 3.into()), &["bufferViews[1] names buffers[3]"]),
+        ("material", &set("/meshes/0/primitives/0/material", 2.into()), &["names materials[2]"]),
+        ("sampler", &set("/animations/0/channels/1/sampler", 5.into()), &["channels[1] names samplers[5]"]),
+        ("scene", &set("/scene", 4.into()), &["scene names scenes[4]"]),
+        ("scene_node", &set("/scenes/0/nodes/0", 3.into()), &["scenes[0].nodes names nodes[3]"]),
+        (
+            "texture_index",
+            &|v: &mut Value, b: &mut Vec<u8>| {
+                textured(json!({"source": 0}), json!({"uri": "a.png"}))(v, b);
+                v["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"]["index"] = 3.into();
+            },
+            &["materials[0] names textures[3]"],
+        ),
+        ("image", &textured(json!({"source": 2}), json!({"uri": "a.png"})), &["textures[0] names images[2]"]),
+        (
+            "texture_sampler",
+            &textured(json!({"source": 0, "sampler": 4}), json!({"uri": "a.png"})),
+            &["textures[0] names samplers[4]"],
+        ),
+        // Counts and offsets no buffer holds; strides the specification forbids.
+        (
+            "huge_count",
+            &set("/accessors/0/count", 1_000_000_000_000_000_000u64.into()),
+            &["accessors[0]: 1000000000000000000 elements", "past the end of bufferViews[0] (48 bytes)"],
+        ),
+        ("huge_offset", &set("/accessors/1/byteOffset", u64::MAX.into()), &["accessors[1]", "past the end"]),
+        ("odd_stride", &set("/bufferViews/0/byteStride", 14.into()), &["byteStride 14 is not a multiple of 4"]),
+        (
+            "huge_view",
+            &set("/bufferViews/5/byteLength", u64::MAX.into()),
+            &["bufferViews[5]: bytes 124 to", "past the end of buffers[0] (148 bytes)"],
+        ),
+        // A node graph that is not a tree.
+        ("cycle", &set("/nodes/1/children", json!([0])), &["lies on a cycle"]),
+        ("two_parents", &set("/nodes/0/children", json!([1, 1])), &["nodes[1] is a child of both"]),
+        (
+            "same_target",
+            &set("/animations/0/channels/1/target", json!({"node": 1, "path": "weights"})),
+            &["animations[0].channels[1] animates the same node and path as an earlier channel"],
+        ),
+        (
+            "many_nodes",
+            &|v: &mut Value, _: &mut Vec<u8>| v["nodes"].as_array_mut().unwrap().resize(70_000, json!({})),
+            &["70000 nodes, more than the 65536 this importer reads"],
+        ),
+    ];
+    expect_gltf_errors(&dir, cases);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn gltf_data_that_does_not_fit_its_use_is_refused() {
+    let dir = temp_dir("misfit");
+    let set = |pointer: &'static str, value: Value| {
+        move |v: &mut Value, _: &mut Vec<u8>| set_at(v, pointer, value.clone())
+    };
+    let float_at = |at: usize, x: f32| {
+        move |_: &mut Value, b: &mut Vec<u8>| b[at..at + 4].copy_from_slice(&x.to_le_bytes())
+    };
+    let cases: &[GltfCase] = &[
+        (
+            "long_indices",
+            &set("/accessors/2/count", 600.into()),
+            &["accessors[2]: 600 elements of 2 bytes every 2 from byteOffset 0 end at byte 1200, past the end of bufferViews[2] (12 bytes)"],
+        ),
+        ("position_scalar", &set("/accessors/0/type", "SCALAR".into()), &["(POSITION of meshes[0].primitives[0]) is SCALAR FLOAT, expected VEC3 of FLOAT"]),
+        ("position_vec2", &set("/accessors/0/type", "VEC2".into()), &["is VEC2 FLOAT, expected VEC3"]),
+        ("position_bytes", &set("/accessors/0/componentType", 5121.into()), &["is VEC3 UNSIGNED_BYTE, expected VEC3 of FLOAT"]),
+        ("short_buffer", &set("/buffers/0/byteLength", 4096.into()), &["buffers[0]: byteLength 4096, but its data has 148 bytes"]),
+        (
+            "weights_count",
+            &set("/accessors/4/count", 1.into()),
+            &["animations[0].samplers[0]: 2 keyframes need 2 output values", "the output has 1"],
+        ),
+        ("times_backwards", &float_at(108, 5.0), &["keyframe times must be finite and increasing"]),
+        ("times_nan", &float_at(112, f32::NAN), &["keyframe times must be finite and increasing"]),
+        ("position_nan", &float_at(16, f32::NAN), &["non-finite vertex positions"]),
+        ("translation_inf", &set("/nodes/1/translation", json!([0, 1e39, 0])), &["nodes[1].translation holds inf"]),
+        ("target_count", &set("/accessors/1/count", 3.into()), &["morph target 0's POSITION has 3 elements, POSITION has 4"]),
+        ("required_extension", &set("/extensionsRequired", json!(["KHR_draco_mesh_compression"])), &["KHR_draco_mesh_compression"]),
+    ];
+    expect_gltf_errors(&dir, cases);
+
+    // A mesh of 2^16 vertices under 40 nodes: more vertices than an import makes.
+    let (mut v, mut bin) = quad_parts();
+    let positions: Vec<u8> = (0..3 << 16).flat_map(|i| ((i % 7) as f32).to_le_bytes()).collect();
+    let view = add_view(&mut v, &mut bin, &positions);
+    v["accessors"][0] = json!({"bufferView": view, "componentType": 5126, "count": 1 << 16, "type": "VEC3"});
+    v["meshes"][0] = json!({"primitives": [{"attributes": {"POSITION": 0}}]});
+    v["animations"] = json!([]);
+    v["nodes"] = (0..40).map(|_| json!({"mesh": 0})).collect();
+    v["scenes"][0]["nodes"] = (0..40).collect();
+    let e = import_file(&dir, "instanced.glb", &glb(&v.to_string(), &bin)).unwrap_err();
+    assert!(e.contains("instanced.glb") && e.contains("more than 2097152 vertices"), "{e}");
+
+    // A sparse morph target: the same mesh as the dense one; indices must increase.
+    let sparse = |indices: &[u16], count: usize| {
+        let (mut v, mut bin) = quad_parts();
+        let idx: Vec<u8> = indices.iter().flat_map(|i| i.to_le_bytes()).collect();
+        let values: Vec<u8> = [0f32, 0., 1., 0., 0., 0.].iter().flat_map(|x| x.to_le_bytes()).collect();
+        let (iv, vv) = (add_view(&mut v, &mut bin, &idx), add_view(&mut v, &mut bin, &values));
+        v["accessors"][1] = json!({"componentType": 5126, "count": 4, "type": "VEC3", "sparse": {
+            "count": count, "indices": {"bufferView": iv, "componentType": 5123}, "values": {"bufferView": vv}}});
+        glb(&v.to_string(), &bin)
+    };
+    let (json, bin) = quad_asset(None);
+    let dense = import_file(&dir, "dense.glb", &glb(&json, &bin)).unwrap();
+    assert_eq!(import_file(&dir, "sparse.glb", &sparse(&[2, 1], 1)).unwrap().mesh, dense.mesh);
+    let e = import_file(&dir, "sparse_order.glb", &sparse(&[2, 1], 2)).unwrap_err();
+    assert!(
+        e.contains("sparse_order.glb")
+            && e.contains("accessors[1].sparse: index 1 is 1; sparse indices must increase"),
+        "{e}"
+    );
+    let e = import_file(&dir, "sparse_range.glb", &sparse(&[7, 8], 1)).unwrap_err();
+    assert!(e.contains("index 0 is 7") && e.contains("below the count 4"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn gltf_uris_stay_inside_the_files_folder() {
+    let root = temp_dir("uris");
+    let (dir, outside) = (root.join("asset"), root.join("outside"));
+    std::fs::create_dir_all(dir.join("sub")).unwrap();
+    std::fs::create_dir_all(&outside).unwrap();
+    let (json, bin) = quad_asset(None);
+    std::fs::write(outside.join("secret.bin"), &bin).unwrap();
+    std::fs::write(dir.join("quad data.bin"), &bin).unwrap();
+    std::os::unix::fs::symlink(outside.join("secret.bin"), dir.join("link.bin")).unwrap();
+    let want = import_file(&dir, "quad.glb", &glb(&json, &bin)).unwrap().mesh;
+    let with_uri = |uri: &str| quad_asset(Some(uri)).0.into_bytes();
+    // Inside the folder, percent-encoded or through `..` that stays inside: read.
+    for uri in ["quad%20data.bin", "sub/../quad%20data.bin", "./quad data.bin"] {
+        let got = import_file(&dir, "inside.gltf", &with_uri(uri)).unwrap_or_else(|e| panic!("{uri}: {e}"));
+        assert_eq!(got.mesh, want, "{uri}");
+    }
+    for (uri, needle) in [
+        ("../../../../etc/passwd", "climbs out of the glTF file's folder"),
+        ("../outside/secret.bin", "climbs out of the glTF file's folder"),
+        ("%2e%2e/outside/secret.bin", "climbs out of the glTF file's folder"),
+        ("sub/../../outside/secret.bin", "climbs out of the glTF file's folder"),
+        ("/etc/passwd", "is an absolute path"),
+        ("%2Fetc%2Fpasswd", "is an absolute path"),
+        ("file:///etc/passwd", "has the scheme file"),
+        ("http://example.com/quad.bin", "has the scheme http"),
+        ("link.bin", "outside the glTF file's folder"),
+        ("nowhere.bin", "nowhere.bin: No such file"),
+        ("bad%zzname.bin", "a % not followed by two hex digits"),
+        ("data:application/octet-stream,plain", "is not base64"),
+        ("data:application/octet-stream;base64,@@@@", "byte 0 of the base64 data"),
+    ] {
+        let e = import_file(&dir, "escape.gltf", &with_uri(uri)).expect_err(uri);
+        assert!(e.contains("escape.gltf") && e.contains("buffers[0]") && e.contains(needle), "{uri}: {e}");
+    }
+    // Images follow the same rules.
+    for uri in ["../outside/secret.bin", "/etc/passwd", "link.bin"] {
+        let (mut v, mut bin) = quad_parts();
+        textured_quad(&mut v, &mut bin, json!({"uri": uri}));
+        let e = import_file(&dir, "image.glb", &glb(&v.to_string(), &bin)).expect_err(uri);
+        assert!(e.contains("image.glb") && e.contains("images[0]") && e.contains(uri), "{uri}: {e}");
+    }
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// Gives the quad texture coordinates (0, 0) to (1, 1) and a material whose base colour is a
+/// texture of `image`.
+fn textured_quad(v: &mut Value, bin: &mut Vec<u8>, image: Value) {
+    let uv: Vec<u8> = [0f32, 0., 1., 0., 1., 1., 0., 1.].iter().flat_map(|x| x.to_le_bytes()).collect();
+    let view = add_view(v, bin, &uv);
+    let accessors = v["accessors"].as_array_mut().unwrap();
+    accessors.push(json!({"bufferView": view, "componentType": 5126, "count": 4, "type": "VEC2"}));
+    v["meshes"][0]["primitives"][0]["attributes"]["TEXCOORD_0"] = (accessors.len() - 1).into();
+    v["meshes"][0]["primitives"][0]["material"] = 0.into();
+    v["materials"] = json!([{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}]);
+    v["textures"] = json!([{"source": 0}]);
+    v["images"] = json!([image]);
+}
+
+#[test]
+fn gltf_textures_read_png_and_jpeg_from_uris_and_buffer_views() {
+    let dir = temp_dir("textures-gltf");
+    let img = image::RgbImage::from_fn(8, 6, |x, _| {
+        if x < 4 {
+            image::Rgb([200, 40, 10])
+        } else {
+            image::Rgb([10, 90, 250])
+        }
+    });
+    let encode = |format: image::ImageFormat| {
+        let mut bytes = std::io::Cursor::new(Vec::new());
+        img.write_to(&mut bytes, format).unwrap();
+        bytes.into_inner()
+    };
+    let (png, jpeg) = (encode(image::ImageFormat::Png), encode(image::ImageFormat::Jpeg));
+    std::fs::write(dir.join("tex.png"), &png).unwrap();
+    std::fs::write(dir.join("tex.jpg"), &jpeg).unwrap();
+    type MakeImage<'a> = Box<dyn Fn(&mut Value, &mut Vec<u8>) -> Value + 'a>;
+    let cases: Vec<(&str, MakeImage, u8)> = vec![
+        ("png_uri", Box::new(|_, _| json!({"uri": "tex.png"})), 0),
+        ("jpeg_uri", Box::new(|_, _| json!({"uri": "tex.jpg"})), 8),
+        (
+            "png_data_uri",
+            Box::new(|_, _| json!({"uri": format!("data:image/png;base64,{}", base64(&png))})),
+            0,
+        ),
+        (
+            "png_view",
+            Box::new(|v, b| json!({"bufferView": add_view(v, b, &png), "mimeType": "image/png"})),
+            0,
+        ),
+        (
+            "jpeg_view",
+            Box::new(|v, b| json!({"bufferView": add_view(v, b, &jpeg), "mimeType": "image/jpeg"})),
+            8,
+        ),
+    ];
+    for (name, image, tolerance) in cases {
+        let (mut v, mut bin) = quad_parts();
+        let source = image(&mut v, &mut bin);
+        textured_quad(&mut v, &mut bin, source);
+        let got = import_file(&dir, &format!("{name}.glb"), &glb(&v.to_string(), &bin))
+            .unwrap_or_else(|e| panic!("{name}: {e}"));
+        let t = &got.mesh.textures[0];
+        assert_eq!((t.width, t.height), (8, 6), "{name}");
+        for (x, want) in [(0usize, [200u8, 40, 10]), (7, [10, 90, 250])] {
+            let texel = t.texels[8 * 3 + x];
+            for (c, want) in want.into_iter().enumerate() {
+                let have = (texel >> (8 * c)) as u8;
+                assert!(
+                    have.abs_diff(want) <= tolerance,
+                    "{name}: texel {x} channel {c} is {have}, want {want}"
+                );
+            }
+        }
+    }
+    // Not PNG or JPEG, or not an image at all: errors naming the image.
+    let (mut v, mut bin) = quad_parts();
+    textured_quad(&mut v, &mut bin, json!({"uri": "tex.bmp"}));
+    std::fs::write(dir.join("tex.bmp"), b"BM not really").unwrap();
+    let e = import_file(&dir, "bmp.glb", &glb(&v.to_string(), &bin)).unwrap_err();
+    assert!(e.contains("bmp.glb") && e.contains("images[0] is neither PNG nor JPEG"), "{e}");
+    let (mut v, mut bin) = quad_parts();
+    let view = add_view(&mut v, &mut bin, &png[..png.len() / 2]);
+    textured_quad(&mut v, &mut bin, json!({"bufferView": view, "mimeType": "image/png"}));
+    let e = import_file(&dir, "half_png.glb", &glb(&v.to_string(), &bin)).unwrap_err();
+    assert!(e.contains("half_png.glb") && e.contains("images[0]"), "{e}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -420,6 +740,170 @@ fn dataset_on_disk_reads_back_in_the_background() {
     let got: Vec<usize> = Loader::spawn(&root, opts).unwrap().map(|r| r.is_ok() as usize).collect();
     let want: Vec<usize> = (3..8).map(|p| order::scene_at(2, Some(7), p)).collect();
     assert_eq!(got, want);
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// Bytes of `path` with `edit` applied, written back; the original bytes are returned.
+fn edit_file(path: &Path, edit: impl FnOnce(&mut Vec<u8>)) -> Vec<u8> {
+    let original = std::fs::read(path).unwrap();
+    let mut bytes = original.clone();
+    edit(&mut bytes);
+    std::fs::write(path, bytes).unwrap();
+    original
+}
+
+#[test]
+fn point_cloud_files_are_checked_against_their_header_and_the_format() {
+    let dir = temp_dir("ply");
+    let points: Vec<[f32; 7]> =
+        (0..5).map(|i| [0.1 * i as f32, -0.5, 0.25, 0.2, 0.4, 0.6, i as f32 / FPS]).collect();
+    let path = dir.join("points.ply");
+    write_ply(&path, &points).unwrap();
+    assert_eq!(read_ply(&path).unwrap(), points);
+    let body = 5 * 28;
+    let expect = |what: &str, edit: &dyn Fn(&mut Vec<u8>), needles: &[&str]| {
+        let original = edit_file(&path, edit);
+        let e = read_ply(&path).expect_err(what).to_string();
+        assert!(e.contains("points.ply"), "{what}: the error does not name the file: {e}");
+        for n in needles {
+            assert!(e.contains(n), "{what}: the error should mention {n:?}: {e}");
+        }
+        std::fs::write(&path, original).unwrap();
+    };
+    let header = |from: &'static str, to: &'static str| {
+        move |b: &mut Vec<u8>| {
+            let head = String::from_utf8(b[..b.len() - body].to_vec()).unwrap();
+            let rest = b[b.len() - body..].to_vec();
+            *b = [head.replace(from, to).into_bytes(), rest].concat();
+        }
+    };
+    let huge = header("element vertex 5", "element vertex 1000000000000000000");
+    expect("a count past any file", &huge, &["truncated", "1000000000000000000 vertex of 28 bytes"]);
+    let uchar = header("property float", "property uchar");
+    expect("uchar properties", &uchar, &["not one vertex element of float x y z r g b tau"]);
+    expect("trailing bytes", &|b| b.extend_from_slice(&[0; 28]), &["does not match the header", "has 168"]);
+    expect("a short body", &|b| b.truncate(b.len() - 3), &["truncated"]);
+    let value = |point: usize, channel: usize, v: f32| {
+        move |b: &mut Vec<u8>| {
+            let at = b.len() - body + 28 * point + 4 * channel;
+            b[at..at + 4].copy_from_slice(&v.to_le_bytes());
+        }
+    };
+    expect("NaN", &value(3, 1, f32::NAN), &["point 3 has a non-finite value in channel 1"]);
+    expect("Inf", &value(2, 6, f32::INFINITY), &["point 2 has a non-finite value in channel 6"]);
+    expect("outside the cube", &value(1, 2, 1.5), &["point 1", "outside [-1, 1]^3"]);
+    expect("colour", &value(4, 4, 2.0), &["point 4 has colour"]);
+    expect("a frame past the clip", &value(0, 6, 0.5), &["point 0 has frame time tau = 0.5"]);
+    expect("between frames", &value(0, 6, 0.015), &["point 0 has frame time tau = 0.015"]);
+    let empty = dir.join("empty.ply");
+    write_ply(&empty, &[]).unwrap();
+    assert!(read_ply(&empty).unwrap_err().to_string().contains("empty"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn damaged_scene_folders_are_errors_naming_the_file_and_the_problem() {
+    let root = temp_dir("damaged");
+    let dir = root.join("scene");
+    let (_, mesh) = scene(2, None).unwrap();
+    let opts = SynthOptions { res: 16, points: 400, supersample: 1, tracks: 6 };
+    let meta = write_scene(&gpu(), &mesh, "procedural seed 2", None, 2, &opts, &dir, &mut |_| {}).unwrap();
+    let good = read_scene(&dir, true).unwrap();
+    assert_eq!((good.points.len(), good.tracks.len()), (400, 6));
+    // `edit` changes one file (meta.json unless the name says otherwise: "edited > named");
+    // the error must name the file it finds at fault.
+    let expect = |files: &str, what: &str, edit: &dyn Fn(&mut Vec<u8>), needles: &[&str]| {
+        let (edited, named) = files.split_once(" > ").unwrap_or((files, files));
+        let original = edit_file(&dir.join(edited), edit);
+        let Err(e) = read_scene(&dir, false) else { panic!("{what}: the scene was accepted") };
+        let e = e.to_string();
+        assert!(
+            e.contains(&dir.join(named).display().to_string()),
+            "{what}: the error does not name {named}: {e}"
+        );
+        for n in needles {
+            assert!(e.contains(n), "{what}: the error should mention {n:?}: {e}");
+        }
+        std::fs::write(dir.join(edited), original).unwrap();
+    };
+    let meta_with = |f: &dyn Fn(&mut SceneMeta)| {
+        let mut m = meta.clone();
+        f(&mut m);
+        move |b: &mut Vec<u8>| *b = serde_json::to_vec(&m).unwrap()
+    };
+    // Counts that overflow, that the files do not hold, or that readers would index past.
+    let huge = meta_with(&|m| m.tracks = 1_000_000_000_000_000_000);
+    expect("meta.json", "10^18 tracks", &huge, &["tracks is 1000000000000000000, expected 0 to 1048576"]);
+    let no_views = meta_with(&|m| m.supervision_views = 0);
+    expect("meta.json", "no supervision views", &no_views, &["supervision_views is 0"]);
+    let fewer_views = meta_with(&|m| m.supervision_views = 24);
+    expect(
+        "meta.json > cameras.json",
+        "a view too few",
+        &fewer_views,
+        &["25 supervision cameras", "supervision_views = 24"],
+    );
+    let points = meta_with(&|m| m.points = 401);
+    expect(
+        "meta.json > points.ply",
+        "a wrong point count",
+        &points,
+        &["400 points", "meta.json says points = 401"],
+    );
+    let tracks = meta_with(&|m| m.tracks = 7);
+    expect(
+        "meta.json > tracks.bin",
+        "a track more",
+        &tracks,
+        &["1728 bytes, expected 2016", "7 tracks, as meta.json says"],
+    );
+    for (res, needle) in [(0, "resolution is 0"), (100_000, "resolution is 100000, expected 1 to 4096")] {
+        expect("meta.json", "resolution", &meta_with(&|m| m.resolution = res), &[needle]);
+    }
+    expect("occupancy.bin", "truncated occupancy", &|b| b.truncate(1000), &["1000 bytes, expected 786432"]);
+    // Cameras: finite, a rotation, positive focal lengths, the scene's size.
+    let cameras: CameraSet =
+        serde_json::from_slice(&std::fs::read(dir.join("cameras.json")).unwrap()).unwrap();
+    let cams_with = |f: &dyn Fn(&mut CameraSet)| {
+        let mut c = cameras.clone();
+        f(&mut c);
+        move |b: &mut Vec<u8>| *b = serde_json::to_vec(&c).unwrap()
+    };
+    let fx = cams_with(&|c| c.supervision[3].fx = -1.0);
+    expect("cameras.json", "a negative focal length", &fx, &["supervision camera 3", "fx = -1"]);
+    let big = cams_with(&|c| c.input[5].translation[1] = 123456.0);
+    let inf = move |b: &mut Vec<u8>| {
+        big(b);
+        *b = String::from_utf8(b.clone()).unwrap().replace("123456.0", "1e39").into_bytes();
+    };
+    expect("cameras.json", "an infinite translation", &inf, &["input camera 5 has a non-finite"]);
+    let skew = cams_with(&|c| c.video.as_mut().unwrap().rotation[0][1] += 0.5);
+    expect("cameras.json", "a skewed rotation", &skew, &["the video camera", "not a rotation matrix"]);
+    let size = cams_with(&|c| c.input[0].width = 17);
+    expect("cameras.json", "a wrong image size", &size, &["input camera 0 is 17 x 16"]);
+    let few = cams_with(&|c| c.input.truncate(34));
+    expect("cameras.json", "a missing input camera", &few, &["34 input cameras, expected 35"]);
+    // Values: tracks finite and inside the cube, visibility only from the input cameras.
+    let nan = |b: &mut Vec<u8>| b[4 * 7..4 * 8].copy_from_slice(&f32::NAN.to_le_bytes());
+    expect("tracks.bin", "a NaN track", &nan, &["track 0 at frame 2 has coordinate NaN"]);
+    let bit = |b: &mut Vec<u8>| b[8 * 30..8 * 31].copy_from_slice(&(1u64 << 40).to_le_bytes());
+    expect("tracks_visibility.bin", "camera 40", &bit, &["track 1 at frame 6 is seen by camera 40"]);
+    let late = |b: &mut Vec<u8>| {
+        let at = b.len() - 4;
+        b[at..].copy_from_slice(&0.3f32.to_le_bytes());
+    };
+    expect("points.ply", "tau past the clip", &late, &["point 399 has frame time tau = 0.3"]);
+    assert_eq!(read_scene(&dir, true).unwrap().points, good.points, "every file was restored");
+    // Options out of range are refused before anything is written.
+    for (opts, needle) in [
+        (SynthOptions { points: 0, ..opts.clone() }, "points 0 is out of range: a scene takes 1 to 16777216"),
+        (SynthOptions { tracks: 1 << 30, ..opts.clone() }, "tracks 1073741824 is out of range"),
+    ] {
+        let e = write_scene(&gpu(), &mesh, "x", None, 0, &opts, &root.join("refused"), &mut |_| {});
+        let e = e.unwrap_err().to_string();
+        assert!(e.contains(needle), "{e}");
+    }
+    assert!(!root.join("refused").exists());
     let _ = std::fs::remove_dir_all(&root);
 }
 

@@ -469,6 +469,50 @@ mod files {
         assert!(ply::read(&temp("missing.ply")).unwrap_err().to_string().contains("missing.ply"));
     }
 
+    /// The body holds exactly what the header declares, counts that overflow any file are
+    /// errors, and every value read is finite.
+    #[test]
+    fn ply_body_must_match_its_header_and_hold_finite_values() {
+        let good = ply::to_bytes(&scene(3, 92, (-3.0, -1.0), (0.0, 1.0))).unwrap();
+        let text = String::from_utf8_lossy(&good[..good.len() - 3 * 17 * 4]).into_owned();
+        let body = &good[text.len()..];
+        let expect = |bytes: &[u8], needles: &[&str]| {
+            let e = ply::from_bytes(bytes).unwrap_err().to_string();
+            assert!(needles.iter().all(|n| e.contains(n)), "error `{e}` should mention {needles:?}");
+        };
+        // A header that says uchar over a body of floats.
+        let uchar = text.replace("property float", "property uchar");
+        expect(&[uchar.as_bytes(), body].concat(), &["does not match the header", "3 vertex of 17 bytes"]);
+        // Trailing bytes after the declared vertices.
+        expect(&[&good[..], b"\0\0\0\0"].concat(), &["does not match the header", "204 bytes", "has 208"]);
+        // A count no file can hold, in the vertices and in an element before them.
+        let huge = text.replace("element vertex 3", "element vertex 1000000000000000000");
+        expect(&[huge.as_bytes(), body].concat(), &["truncated", "1000000000000000000 vertex"]);
+        let before = text.replace(
+            "element vertex",
+            "element camera 18446744073709551615\nproperty double id\nelement vertex",
+        );
+        expect(&[before.as_bytes(), body].concat(), &["truncated", "18446744073709551615 camera of 8 bytes"]);
+        // NaN and Inf in a value the reader keeps; a double beyond f32.
+        for (k, bits) in [(9usize, f32::NAN), (0, f32::INFINITY)] {
+            let mut bad = good.clone();
+            let at = text.len() + 17 * 4 + 4 * k;
+            bad[at..at + 4].copy_from_slice(&bits.to_le_bytes());
+            let name = ["x", "", "", "", "", "", "", "", "", "opacity"][k];
+            expect(&bad, &["vertex 1", &format!("{name} is")]);
+        }
+        let mut double = b"ply\nformat binary_little_endian 1.0\nelement vertex 1\n".to_vec();
+        let names = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2"];
+        for n in names.iter().chain(&["rot_0", "rot_1", "rot_2", "rot_3"]) {
+            double.extend_from_slice(format!("property double {n}\n").as_bytes());
+        }
+        double.extend_from_slice(b"end_header\n");
+        for v in [1e300, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -3.0, -3.0, -3.0, 1.0, 0.0, 0.0, 0.0] {
+            double.extend_from_slice(&f64::to_le_bytes(v));
+        }
+        expect(&double, &["vertex 0", "x is 1e300"]);
+    }
+
     #[test]
     fn png_and_exr_round_trip() {
         let (w, h) = (13u32, 7u32);

@@ -495,6 +495,47 @@ fn bad_checkpoints_give_clear_errors_and_change_nothing() {
 }
 
 #[test]
+fn checkpoints_with_nan_or_inf_are_refused_naming_the_tensor() {
+    let gpu = gpu();
+    let dir = temp_dir("nonfinite");
+    let mut store = small_store(&gpu, 12, &[13, 7], false);
+    let before = flat_state(&store);
+    // One NaN weight, as a diverged run would leave it.
+    let nan = dir.join("nan.safetensors");
+    let poisoned = trained_store(&gpu, 13);
+    let mut w = poisoned.param("enc.w1").unwrap().read::<f32>().unwrap();
+    w[40] = f32::NAN;
+    poisoned.param("enc.w1").unwrap().write(&w).unwrap();
+    checkpoint::save(&nan, &poisoned, "{}").unwrap();
+    let e = checkpoint::load(&nan, &mut store).unwrap_err().to_string();
+    assert!(
+        e.contains("nan.safetensors")
+            && e.contains("\"param/enc.w1\"")
+            && e.contains("1 non-finite value(s)"),
+        "{e}"
+    );
+    // Two infinite second moments.
+    let inf = dir.join("inf.safetensors");
+    let poisoned = trained_store(&gpu, 14);
+    let v = poisoned.moments().1;
+    let mut host = v.read::<f32>().unwrap();
+    let at = poisoned.infos().iter().find(|p| p.name == "embed").unwrap().offset;
+    host[at] = f32::INFINITY;
+    host[at + 1] = f32::NEG_INFINITY;
+    v.write(&host).unwrap();
+    checkpoint::save(&inf, &poisoned, "{}").unwrap();
+    let e = checkpoint::load(&inf, &mut store).unwrap_err().to_string();
+    assert!(
+        e.contains("inf.safetensors")
+            && e.contains("\"adamw_v/embed\"")
+            && e.contains("2 non-finite value(s)"),
+        "{e}"
+    );
+    assert_eq!(flat_state(&store), before, "a refused load changed the store");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
 fn interrupted_writes_leave_the_previous_checkpoint_intact() {
     let gpu = gpu();
     let dir = temp_dir("atomic");

@@ -26,12 +26,19 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::camera::Camera;
-use crate::pipeline::{SceneArrays, FPS, OCCUPANCY_WORDS};
+use crate::camera::{Camera, NUM_INPUT_CAMERAS};
+use crate::pipeline::{
+    SceneArrays, FPS, MAX_POINTS, MAX_RESOLUTION, MAX_SUPERSAMPLE, MAX_TRACKS, OCCUPANCY_WORDS,
+};
 use crate::procedural::FRAMES;
 use crate::{DataError, DataResult};
+use velox_models::files::ply;
 
 pub const FORMAT: &str = "velox-data 1";
+/// Most supervision views a scene may have (the writer makes 25).
+pub const MAX_SUPERVISION_VIEWS: usize = 1024;
+/// How far a track may lie outside [-1, 1]^3 (rounding of the normalised mesh).
+const TRACK_SLACK: f32 = 1e-3;
 
 /// A scene's `meta.json`.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -165,39 +172,52 @@ pub fn write_ply(path: &Path, points: &[[f32; 7]]) -> DataResult<()> {
     w.flush().map_err(|e| write_error(path, e))
 }
 
-/// Reads a PLY written by [`write_ply`] (exactly that layout).
+/// Reads a PLY written by [`write_ply`]: one `vertex` element of float x y z r g b tau,
+/// binary little-endian, a body of exactly the declared points, every point as the format
+/// says (see [`check_points`]).
 pub fn read_ply(path: &Path) -> DataResult<Vec<[f32; 7]>> {
+    let invalid = |why: String| DataError::Invalid(format!("{}: {why}", path.display()));
     let bytes = std::fs::read(path).map_err(|e| io(path, e))?;
-    let end =
-        bytes.windows(11).position(|w| w == b"end_header\n").ok_or_else(|| {
-            DataError::Invalid(format!("{}: not a PLY file (no end_header)", path.display()))
-        })? + 11;
-    let header = std::str::from_utf8(&bytes[..end])
-        .map_err(|_| DataError::Invalid(format!("{}: PLY header is not text", path.display())))?;
-    let n: usize = header
-        .lines()
-        .find_map(|l| l.strip_prefix("element vertex "))
-        .and_then(|v| v.trim().parse().ok())
-        .ok_or_else(|| DataError::Invalid(format!("{}: PLY header has no vertex count", path.display())))?;
-    if header != ply_header(n) {
-        return Err(DataError::Invalid(format!(
-            "{}: PLY layout is not float x y z r g b tau, binary little-endian",
-            path.display()
-        )));
+    let header = ply::Header::parse(&bytes).map_err(|e| invalid(engine_message(e)))?;
+    let layout_ok = matches!(header.elements.as_slice(), [e] if e.name == "vertex"
+        && e.properties.len() == PLY_PROPS.len()
+        && e.properties.iter().zip(PLY_PROPS).all(|((name, ty), want)| name == want && *ty == ply::Scalar::F32));
+    if !layout_ok {
+        return Err(invalid("PLY layout is not one vertex element of float x y z r g b tau".into()));
     }
-    let body = &bytes[end..];
-    if body.len() != n * 28 {
-        return Err(DataError::Invalid(format!(
-            "{}: {} points declared but {} bytes of data",
-            path.display(),
-            n,
-            body.len()
-        )));
-    }
-    Ok(body
+    header.check_length(&bytes).map_err(|e| invalid(engine_message(e)))?;
+    let points: Vec<[f32; 7]> = bytes[header.body_start..]
         .chunks_exact(28)
         .map(|c| std::array::from_fn(|k| f32::from_le_bytes(c[4 * k..4 * k + 4].try_into().unwrap())))
-        .collect())
+        .collect();
+    check_points(&points).map_err(invalid)?;
+    Ok(points)
+}
+
+/// The message of an engine error without its kind.
+fn engine_message(e: velox_engine::Error) -> String {
+    match e {
+        velox_engine::Error::Invalid(why) => why,
+        other => other.to_string(),
+    }
+}
+
+/// Checks the points of a cloud against the format: at least one, every value finite, xyz in
+/// [-1, 1]^3 and rgb in [0, 1] (the model's cloud check), tau = frame / 100 for a frame of the
+/// clip.
+pub fn check_points(points: &[[f32; 7]]) -> Result<(), String> {
+    velox_models::velox::cloud::validate(bytemuck::cast_slice(points)).map_err(engine_message)?;
+    for (i, p) in points.iter().enumerate() {
+        let f = p[6] * FPS;
+        if f.round() >= FRAMES as f32 || (f - f.round()).abs() > 1e-3 {
+            return Err(format!(
+                "point {i} has frame time tau = {}, not frame / {FPS} for a frame 0 to {}",
+                p[6],
+                FRAMES - 1
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// A scene read back from disk.
@@ -228,16 +248,22 @@ fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> DataResult<T> {
     serde_json::from_str(&text).map_err(|e| DataError::Invalid(format!("{}: {e}", path.display())))
 }
 
-fn read_words<T: bytemuck::Pod>(path: &Path, count: usize) -> DataResult<Vec<T>> {
-    let bytes = std::fs::read(path).map_err(|e| io(path, e))?;
+/// Reads `count` little-endian words of `T` from `path`, whose size must be exactly that
+/// (`what` says what the words are, for the error).
+fn read_words<T: bytemuck::Pod>(path: &Path, count: usize, what: &str) -> DataResult<Vec<T>> {
     let size = std::mem::size_of::<T>();
-    if bytes.len() != count * size {
+    let len = std::fs::metadata(path).map_err(|e| io(path, e))?.len();
+    let expected = count.checked_mul(size).map(|b| b as u64);
+    if expected != Some(len) {
         return Err(DataError::Invalid(format!(
-            "{}: {} bytes, expected {}",
+            "{}: {len} bytes, expected {} ({what})",
             path.display(),
-            bytes.len(),
-            count * size
+            expected.map_or("more than any file holds".into(), |b| b.to_string()),
         )));
+    }
+    let bytes = std::fs::read(path).map_err(|e| io(path, e))?;
+    if bytes.len() as u64 != len {
+        return Err(DataError::Io(format!("{}: the file changed while it was read", path.display())));
     }
     Ok(bytes.chunks_exact(size).map(bytemuck::pod_read_unaligned).collect())
 }
@@ -250,33 +276,128 @@ fn read_png(path: &Path, res: u32) -> DataResult<Vec<u8>> {
     Ok(img.into_raw())
 }
 
-/// Reads the scene in `dir`; images too when `images` is set.
-pub fn read_scene(dir: &Path, images: bool) -> DataResult<Scene> {
-    let meta: SceneMeta = read_json(&dir.join("meta.json"))?;
+/// Checks a scene's `meta.json` against the format and the writer's limits.
+fn check_meta(meta: &SceneMeta) -> Result<(), String> {
     if meta.format != FORMAT {
-        return Err(DataError::Invalid(format!(
-            "{}: format {:?}, expected {FORMAT:?}",
-            dir.display(),
-            meta.format
-        )));
+        return Err(format!("format {:?}, expected {FORMAT:?}", meta.format));
     }
     if meta.frames != FRAMES || meta.fps != FPS {
-        return Err(DataError::Invalid(format!(
-            "{}: {} frames at {} fps, expected {FRAMES} at {FPS}",
-            dir.display(),
-            meta.frames,
-            meta.fps
-        )));
+        return Err(format!("{} frames at {} fps, expected {FRAMES} at {FPS}", meta.frames, meta.fps));
     }
+    let in_range = |name: &str, v: usize, lo: usize, hi: usize| {
+        if (lo..=hi).contains(&v) {
+            Ok(())
+        } else {
+            Err(format!("{name} is {v}, expected {lo} to {hi}"))
+        }
+    };
+    in_range("resolution", meta.resolution as usize, 1, MAX_RESOLUTION as usize)?;
+    in_range("supersample", meta.supersample as usize, 1, MAX_SUPERSAMPLE as usize)?;
+    in_range("points", meta.points, 1, MAX_POINTS)?;
+    in_range("tracks", meta.tracks, 0, MAX_TRACKS)?;
+    in_range("supervision_views", meta.supervision_views, 1, MAX_SUPERVISION_VIEWS)
+}
+
+/// Checks the cameras of a scene: the counts the format and `meta` give, finite values, a
+/// rotation, positive focal lengths and the scene's resolution.
+fn check_cameras(cams: &CameraSet, meta: &SceneMeta) -> Result<(), String> {
+    if cams.input.len() != NUM_INPUT_CAMERAS {
+        return Err(format!("{} input cameras, expected {NUM_INPUT_CAMERAS}", cams.input.len()));
+    }
+    if cams.supervision.len() != meta.supervision_views {
+        return Err(format!(
+            "{} supervision cameras, but meta.json says supervision_views = {}",
+            cams.supervision.len(),
+            meta.supervision_views
+        ));
+    }
+    let named = cams.input.iter().enumerate().map(|(i, c)| (format!("input camera {i}"), c));
+    let named =
+        named.chain(cams.supervision.iter().enumerate().map(|(i, c)| (format!("supervision camera {i}"), c)));
+    for (name, c) in named.chain(cams.video.iter().map(|c| ("the video camera".to_string(), c))) {
+        let values = c.rotation.iter().flatten().chain(&c.translation).chain([&c.cx, &c.cy]);
+        if values.clone().any(|v| !v.is_finite()) {
+            return Err(format!("{name} has a non-finite rotation, translation or principal point"));
+        }
+        let r = &c.rotation;
+        let orthonormal = (0..3).all(|i| {
+            (0..3).all(|j| {
+                let d: f32 = (0..3).map(|k| r[i][k] * r[j][k]).sum();
+                (d - (i == j) as u8 as f32).abs() < 1e-3
+            })
+        });
+        if !orthonormal {
+            return Err(format!("{name}: the rotation {r:?} is not a rotation matrix"));
+        }
+        if !(c.fx.is_finite() && c.fx > 0.0 && c.fy.is_finite() && c.fy > 0.0) {
+            return Err(format!(
+                "{name}: focal lengths fx = {}, fy = {} must be positive and finite",
+                c.fx, c.fy
+            ));
+        }
+        if c.width != meta.resolution || c.height != meta.resolution {
+            return Err(format!(
+                "{name} is {} x {}, the scene's resolution is {}",
+                c.width, c.height, meta.resolution
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Reads the scene in `dir`; images too when `images` is set. Everything is checked against
+/// the format first: counts against each other and against the files' sizes, cameras, points,
+/// tracks and visibility bits; a scene that breaks a rule is an error naming the file.
+pub fn read_scene(dir: &Path, images: bool) -> DataResult<Scene> {
+    let invalid =
+        |file: &str, why: String| DataError::Invalid(format!("{}: {why}", dir.join(file).display()));
+    let meta: SceneMeta = read_json(&dir.join("meta.json"))?;
+    check_meta(&meta).map_err(|why| invalid("meta.json", why))?;
     let cameras: CameraSet = read_json(&dir.join("cameras.json"))?;
+    check_cameras(&cameras, &meta).map_err(|why| invalid("cameras.json", why))?;
     let points = read_ply(&dir.join("points.ply"))?;
-    let occupancy = read_words::<u64>(&dir.join("occupancy.bin"), FRAMES * OCCUPANCY_WORDS)?;
-    let flat = read_words::<f32>(&dir.join("tracks.bin"), meta.tracks * FRAMES * 3)?;
+    if points.len() != meta.points {
+        return Err(invalid(
+            "points.ply",
+            format!("{} points, but meta.json says points = {}", points.len(), meta.points),
+        ));
+    }
+    let occupancy = read_words::<u64>(
+        &dir.join("occupancy.bin"),
+        FRAMES * OCCUPANCY_WORDS,
+        "24 frames of 4096 u64 words",
+    )?;
+    // meta.tracks is at most MAX_TRACKS: these products do not overflow.
+    let tracks_what = format!("{} tracks, as meta.json says, x {FRAMES} frames x 3 f32", meta.tracks);
+    let flat = read_words::<f32>(&dir.join("tracks.bin"), meta.tracks * FRAMES * 3, &tracks_what)?;
+    if let Some(i) = flat.iter().position(|v| !(v.is_finite() && v.abs() <= 1.0 + TRACK_SLACK)) {
+        return Err(invalid(
+            "tracks.bin",
+            format!(
+                "track {} at frame {} has coordinate {}, outside [-1, 1]",
+                i / (3 * FRAMES),
+                i / 3 % FRAMES,
+                flat[i]
+            ),
+        ));
+    }
     let tracks = flat
         .chunks_exact(3 * FRAMES)
         .map(|c| std::array::from_fn(|f| [c[3 * f], c[3 * f + 1], c[3 * f + 2]]))
         .collect();
-    let vis = read_words::<u64>(&dir.join("tracks_visibility.bin"), meta.tracks * FRAMES)?;
+    let vis_what = format!("{} tracks, as meta.json says, x {FRAMES} frames x 1 u64", meta.tracks);
+    let vis = read_words::<u64>(&dir.join("tracks_visibility.bin"), meta.tracks * FRAMES, &vis_what)?;
+    if let Some(i) = vis.iter().position(|&bits| bits >> NUM_INPUT_CAMERAS != 0) {
+        return Err(invalid(
+            "tracks_visibility.bin",
+            format!(
+                "track {} at frame {} is seen by camera {}, there are {NUM_INPUT_CAMERAS} input cameras",
+                i / FRAMES,
+                i % FRAMES,
+                63 - vis[i].leading_zeros()
+            ),
+        ));
+    }
     let visibility = vis.chunks_exact(FRAMES).map(|c| std::array::from_fn(|f| c[f])).collect();
     let (mut supervision, mut video) = (Vec::new(), Vec::new());
     if images {

@@ -8,7 +8,11 @@
 //! file without animation gives a still clip); the clip is then normalised into [-1, 1]^3 like
 //! the procedural objects. Per the specification, a skinned mesh ignores its own node's
 //! transform. Points and lines are skipped; triangle strips and fans become triangles.
-//! Every error names the file.
+//!
+//! A file is input from anywhere: [`gltf_load`] reads its bytes (URIs only
+//! inside the file's folder), [`gltf_validate`] checks the document
+//! against the specification before the `gltf` crate's readers see it, and a panic inside
+//! them all the same becomes an error. Every error names the file.
 
 use std::path::Path;
 
@@ -18,10 +22,13 @@ use gltf::mesh::Mode;
 use crate::math::{add, add_scaled, mul, normalize_quat, slerp, transform_point, trs, M4, V3};
 use crate::mesh::{AnimatedMesh, Texture};
 use crate::procedural::FRAMES;
-use crate::{DataError, DataResult};
+use crate::{gltf_load, gltf_validate, DataError, DataResult};
 
 /// Largest texture side kept; larger base-colour images are scaled down to it.
 pub const MAX_TEXTURE: u32 = 1024;
+/// Most vertices an import makes (24 frames of them: 600 MB); a scene that instances more
+/// (a mesh under many nodes, say) is refused.
+pub const MAX_VERTICES: usize = 1 << 21;
 
 /// An imported asset.
 #[derive(Clone, Debug)]
@@ -35,9 +42,39 @@ pub struct Imported {
 
 /// Imports `path`, sampling animation `animation` (the first when `None`).
 pub fn import(path: &Path, animation: Option<usize>) -> DataResult<Imported> {
+    guard(path, || import_checked(path, animation))
+}
+
+/// Runs `f`, turning a panic into an error that names `path`: the last line of defence should
+/// the `gltf` crate panic on a file the validator let through.
+fn guard<T>(path: &Path, f: impl FnOnce() -> DataResult<T>) -> DataResult<T> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)).unwrap_or_else(|payload| {
+        let why = payload
+            .downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| payload.downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "no message".into());
+        Err(DataError::Invalid(format!(
+            "{}: the glTF reader panicked on this file ({why}); it breaks a rule the importer does not check",
+            path.display()
+        )))
+    })
+}
+
+fn import_checked(path: &Path, animation: Option<usize>) -> DataResult<Imported> {
     let bad = |m: String| DataError::Invalid(format!("{}: {m}", path.display()));
-    let (doc, buffers, images) =
-        gltf::import(path).map_err(|e| bad(format!("not a readable glTF 2.0 file: {e}")))?;
+    let bytes = std::fs::read(path).map_err(|e| DataError::Io(format!("{}: {e}", path.display())))?;
+    let (root, bin) = gltf_load::parse(&bytes).map_err(bad)?;
+    gltf_validate::document(&root).map_err(bad)?;
+    let dir = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    let buffers = gltf_load::buffers(&root, bin, dir).map_err(bad)?;
+    gltf_validate::data(&root, &buffers).map_err(bad)?;
+    let credits = credits(&root);
+    let doc = gltf::Document::from_json_without_validation(root);
+    let buffer = |b: gltf::Buffer| Some(buffers[b.index()].as_slice());
     let scene = doc.default_scene().or_else(|| doc.scenes().next()).ok_or_else(|| bad("no scene".into()))?;
 
     let n_nodes = doc.nodes().len();
@@ -59,10 +96,17 @@ pub fn import(path: &Path, animation: Option<usize>) -> DataResult<Imported> {
         let mut end = f32::NEG_INFINITY;
         for ch in anim.channels() {
             let times: Vec<f32> = ch
-                .reader(|b| Some(&buffers[b.index()]))
+                .reader(buffer)
                 .read_inputs()
                 .ok_or_else(|| bad("an animation channel has no keyframe times".into()))?
                 .collect();
+            if times.iter().any(|t| !t.is_finite()) || times.windows(2).any(|w| w[1] < w[0]) {
+                return Err(bad(format!(
+                    "animations[{}].samplers[{}]: keyframe times must be finite and increasing",
+                    anim.index(),
+                    ch.sampler().index()
+                )));
+            }
             if let (Some(a), Some(b)) = (times.first(), times.last()) {
                 start = start.min(*a);
                 end = end.max(*b);
@@ -75,7 +119,7 @@ pub fn import(path: &Path, animation: Option<usize>) -> DataResult<Imported> {
         let times: Vec<f32> =
             (0..FRAMES).map(|f| start + (end - start) * f as f32 / (FRAMES - 1) as f32).collect();
         for ch in anim.channels() {
-            let reader = ch.reader(|b| Some(&buffers[b.index()]));
+            let reader = ch.reader(buffer);
             let keys: Vec<f32> = reader.read_inputs().into_iter().flatten().collect();
             if keys.is_empty() {
                 continue;
@@ -143,43 +187,51 @@ pub fn import(path: &Path, animation: Option<usize>) -> DataResult<Imported> {
         stack.extend(node.children().map(|c| (c, Some(i))));
     }
 
+    // Per skin, per joint, per frame: the joint's world matrix times its inverse bind matrix
+    // (once per skin, however many nodes share it).
+    let mut skin_mats: Vec<Option<Vec<Vec<M4>>>> = vec![None; doc.skins().len()];
+    for skin in order.iter().filter_map(|n| n.skin()) {
+        if skin_mats[skin.index()].is_some() {
+            continue;
+        }
+        let ibms: Vec<M4> = match skin.reader(buffer).read_inverse_bind_matrices() {
+            Some(it) => it.collect(),
+            None => vec![crate::math::IDENTITY; skin.joints().count()],
+        };
+        let mut per_joint = Vec::new();
+        for (j, joint) in skin.joints().enumerate() {
+            let w = &world[joint.index()];
+            if w.is_empty() {
+                return Err(bad(format!("skin joint node {} is not in the scene", joint.index())));
+            }
+            let ibm = ibms.get(j).ok_or_else(|| bad("fewer inverse bind matrices than joints".into()))?;
+            per_joint.push((0..FRAMES).map(|f| mul(&w[f], ibm)).collect::<Vec<M4>>());
+        }
+        skin_mats[skin.index()] = Some(per_joint);
+    }
+
     let mut mesh = AnimatedMesh { frames: vec![Vec::new(); FRAMES], ..Default::default() };
     let mut material_texture: std::collections::HashMap<Option<usize>, u32> = Default::default();
     for node in &order {
         let Some(gmesh) = node.mesh() else { continue };
-        let skin = node.skin();
-        let joint_mats: Option<Vec<Vec<M4>>> = match &skin {
-            Some(skin) => {
-                let ibms: Vec<M4> =
-                    match skin.reader(|b| Some(&buffers[b.index()])).read_inverse_bind_matrices() {
-                        Some(it) => it.collect(),
-                        None => vec![crate::math::IDENTITY; skin.joints().count()],
-                    };
-                let mut per_joint = Vec::new();
-                for (j, joint) in skin.joints().enumerate() {
-                    let w = &world[joint.index()];
-                    if w.is_empty() {
-                        return Err(bad(format!("skin joint node {} is not in the scene", joint.index())));
-                    }
-                    let ibm =
-                        ibms.get(j).ok_or_else(|| bad("fewer inverse bind matrices than joints".into()))?;
-                    per_joint.push((0..FRAMES).map(|f| mul(&w[f], ibm)).collect::<Vec<M4>>());
-                }
-                Some(per_joint)
-            }
-            None => None,
-        };
+        let joint_mats = node.skin().and_then(|s| skin_mats[s.index()].as_ref());
         for prim in gmesh.primitives() {
             let mode = prim.mode();
             if !matches!(mode, Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan) {
                 continue;
             }
-            let reader = prim.reader(|b| Some(&buffers[b.index()]));
+            let reader = prim.reader(buffer);
             let Some(positions) = reader.read_positions() else {
                 return Err(bad(format!("mesh {} has a primitive without positions", gmesh.index())));
             };
             let positions: Vec<V3> = positions.collect();
             let n = positions.len();
+            if mesh.uvs.len() + n > MAX_VERTICES {
+                return Err(bad(format!(
+                    "the default scene makes more than {MAX_VERTICES} vertices (mesh {} and those before it)",
+                    gmesh.index()
+                )));
+            }
             let indices: Vec<u32> = match reader.read_indices() {
                 Some(it) => it.into_u32().collect(),
                 None => (0..n as u32).collect(),
@@ -212,10 +264,9 @@ pub fn import(path: &Path, animation: Option<usize>) -> DataResult<Imported> {
                     let factor = pbr.base_color_factor();
                     let texture = match &tex_info {
                         Some(info) => {
-                            let data = images
-                                .get(info.texture().source().index())
-                                .ok_or_else(|| bad("a texture names a missing image".into()))?;
-                            to_texture(data, factor).map_err(bad)?
+                            let index = info.texture().source().index();
+                            let image = gltf_load::image(doc.as_json(), index, &buffers, dir).map_err(bad)?;
+                            to_texture(image, factor)
                         }
                         None => Texture::solid([factor[0], factor[1], factor[2]]),
                     };
@@ -236,7 +287,7 @@ pub fn import(path: &Path, animation: Option<usize>) -> DataResult<Imported> {
                 )));
             }
             let default_weights: Vec<f32> = gmesh.weights().map(|w| w.to_vec()).unwrap_or_default();
-            let skinning = match (&joint_mats, reader.read_joints(0), reader.read_weights(0)) {
+            let skinning = match (joint_mats, reader.read_joints(0), reader.read_weights(0)) {
                 (Some(mats), Some(j), Some(w)) => {
                     let joints: Vec<[u16; 4]> = j.into_u16().collect();
                     let weights: Vec<[f32; 4]> = w.into_f32().collect();
@@ -290,19 +341,21 @@ pub fn import(path: &Path, animation: Option<usize>) -> DataResult<Imported> {
     if mesh.triangles.is_empty() {
         return Err(bad("the default scene has no triangle meshes".into()));
     }
+    // Before normalising, so that a NaN is named as such rather than spread over every vertex.
+    mesh.validate().map_err(|e| bad(e.to_string()))?;
     mesh.normalise();
     mesh.validate().map_err(|e| bad(e.to_string()))?;
-    let json = doc.as_json();
-    let credits =
-        [json.asset.copyright.clone(), json.asset.generator.clone().map(|g| format!("generator: {g}"))]
+    Ok(Imported { mesh, animation: anim.map(|a| (a.index(), a.name().map(str::to_string))), credits })
+}
+
+/// `asset.copyright` and `asset.generator`, for the scene's credits.
+fn credits(root: &gltf::json::Root) -> Option<String> {
+    let credits: Vec<String> =
+        [root.asset.copyright.clone(), root.asset.generator.clone().map(|g| format!("generator: {g}"))]
             .into_iter()
             .flatten()
-            .collect::<Vec<_>>();
-    Ok(Imported {
-        mesh,
-        animation: anim.map(|a| (a.index(), a.name().map(str::to_string))),
-        credits: (!credits.is_empty()).then(|| credits.join("; ")),
-    })
+            .collect();
+    (!credits.is_empty()).then(|| credits.join("; "))
 }
 
 fn triangles(mode: Mode, idx: &[u32]) -> Vec<[u32; 3]> {
@@ -377,51 +430,40 @@ fn sample(
 }
 
 /// A decoded glTF image as an RGBA8 texture times `factor`, scaled down past [`MAX_TEXTURE`].
-fn to_texture(data: &gltf::image::Data, factor: [f32; 4]) -> Result<Texture, String> {
-    use gltf::image::Format;
-    let (channels, bytes) = match data.format {
-        Format::R8 => (1, 1),
-        Format::R8G8 => (2, 1),
-        Format::R8G8B8 => (3, 1),
-        Format::R8G8B8A8 => (4, 1),
-        Format::R16 => (1, 2),
-        Format::R16G16 => (2, 2),
-        Format::R16G16B16 => (3, 2),
-        Format::R16G16B16A16 => (4, 2),
-        Format::R32G32B32FLOAT => (3, 4),
-        Format::R32G32B32A32FLOAT => (4, 4),
-    };
-    let (w, h) = (data.width, data.height);
-    let stride = channels * bytes;
-    if w == 0 || h == 0 || data.pixels.len() != (w * h) as usize * stride {
-        return Err(format!("a base-colour image has {} bytes for {w} x {h} pixels", data.pixels.len()));
-    }
-    let channel = |px: &[u8], c: usize| -> f32 {
-        let c = c.min(channels - 1);
-        let b = &px[c * bytes..(c + 1) * bytes];
-        match bytes {
-            1 => b[0] as f32 / 255.0,
-            2 => u16::from_le_bytes([b[0], b[1]]) as f32 / 65535.0,
-            _ => f32::from_le_bytes([b[0], b[1], b[2], b[3]]),
-        }
-    };
-    let rgb: Vec<u8> = data
-        .pixels
-        .chunks_exact(stride)
-        .flat_map(|px| {
-            let grey = channels < 3;
-            (0..3).map(move |c| {
-                let v = channel(px, if grey { 0 } else { c }) * factor[c];
-                (v.clamp(0.0, 1.0) * 255.0).round() as u8
-            })
-        })
-        .collect();
-    if w.max(h) > MAX_TEXTURE {
-        let img = image::RgbImage::from_raw(w, h, rgb).ok_or("image size mismatch")?;
+/// Grey images give grey texels; alpha is dropped.
+fn to_texture(image: image::DynamicImage, factor: [f32; 4]) -> Texture {
+    let (w, h) = (image.width(), image.height());
+    let image = if w.max(h) > MAX_TEXTURE {
         let s = MAX_TEXTURE as f32 / w.max(h) as f32;
         let (nw, nh) = (((w as f32 * s) as u32).max(1), ((h as f32 * s) as u32).max(1));
-        let small = image::imageops::resize(&img, nw, nh, image::imageops::FilterType::Triangle);
-        return Ok(Texture::from_rgb8(nw, nh, small.as_raw()));
+        image.resize_exact(nw, nh, image::imageops::FilterType::Triangle)
+    } else {
+        image
+    };
+    let rgb = image.to_rgb32f();
+    let bytes: Vec<u8> = rgb
+        .pixels()
+        .flat_map(|p| (0..3).map(move |c| ((p[c] * factor[c]).clamp(0.0, 1.0) * 255.0).round() as u8))
+        .collect();
+    Texture::from_rgb8(rgb.width(), rgb.height(), &bytes)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The last line of defence: a panic below the importer becomes an error naming the file.
+    #[test]
+    fn a_panic_while_importing_is_an_error_naming_the_file() {
+        let e = guard(Path::new("dir/model.glb"), || -> DataResult<()> { panic!("index out of bounds") })
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("dir/model.glb") && e.contains("panicked") && e.contains("index out of bounds"),
+            "{e}"
+        );
+        let e = guard(Path::new("m.gltf"), || -> DataResult<()> { std::panic::panic_any(7u8) }).unwrap_err();
+        assert!(e.to_string().contains("m.gltf: the glTF reader panicked on this file (no message)"), "{e}");
+        assert_eq!(guard(Path::new("m.gltf"), || Ok(3)).unwrap(), 3);
     }
-    Ok(Texture::from_rgb8(w, h, &rgb))
 }

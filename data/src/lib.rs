@@ -8,7 +8,8 @@
 //! - [`procedural`]: seeded animated objects (walkers, arms, pendulums, bending, twisting and
 //!   pulsing shapes, tumbling bodies, parts that come and go), textured by [`texture`];
 //! - [`gltf_import`]: glTF 2.0 files (meshes, node hierarchy, skins, morph targets, base-colour
-//!   textures) sampled at 24 frames;
+//!   textures) sampled at 24 frames, read by [`gltf_load`] (URIs only inside the file's folder)
+//!   and checked by [`gltf_validate`] first;
 //! - both give an [`AnimatedMesh`] ([`mesh`]) normalised into [-1, 1]^3 over the clip;
 //! - [`raster`] renders it on the engine with a compute rasteriser (`shaders/mesh_raster.wgsl`)
 //!   from the cameras of [`camera`]: RGB, depth, triangle id and barycentrics;
@@ -17,12 +18,14 @@
 //!   order of [`order`].
 //!
 //! It is its own crate because it brings dependencies the runtime and the models do not need:
-//! `gltf` (the glTF 2.0 reader, with its skins, animations and embedded buffers), and `image`
-//! (PNG and JPEG for textures and the supervision views).
+//! `gltf` (the glTF 2.0 document and its accessor readers, for skins, animations and
+//! morph targets), and `image` (PNG and JPEG for textures and the supervision views).
 
 pub mod camera;
 pub mod format;
 pub mod gltf_import;
+pub mod gltf_load;
+pub mod gltf_validate;
 pub mod loader;
 pub mod math;
 pub mod mesh;

@@ -87,6 +87,9 @@ impl AnimatedMesh {
         if self.frames.iter().flatten().flatten().any(|v| !v.is_finite()) {
             return bad("mesh has non-finite vertex positions".into());
         }
+        if self.uvs.iter().flatten().any(|v| !v.is_finite()) {
+            return bad("mesh has non-finite texture coordinates".into());
+        }
         if self.triangles.iter().flatten().any(|&i| i as usize >= n) {
             return bad(format!("a triangle index is out of range ({n} vertices)"));
         }

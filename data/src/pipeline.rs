@@ -35,17 +35,48 @@ pub const OCCUPANCY_WORDS: usize = GRID * GRID * GRID / 64;
 /// Frame times: tau = frame / FPS.
 pub const FPS: f32 = 100.0;
 
+/// Most points a scene holds (28 bytes each: 470 MB).
+pub const MAX_POINTS: usize = 1 << 24;
+/// Most tracks a scene holds (480 bytes each: 500 MB). A scene gets fewer when frame 0 shows
+/// fewer surface pixels over the input views: one track per pixel at most.
+pub const MAX_TRACKS: usize = 1 << 20;
+/// Largest image side.
+pub const MAX_RESOLUTION: u32 = 4096;
+/// Largest supersampling factor.
+pub const MAX_SUPERSAMPLE: u32 = 8;
+
 /// What to make of a scene.
 #[derive(Clone, Debug)]
 pub struct SynthOptions {
     /// Image side of every camera.
     pub res: u32,
-    /// Points in the 4D point cloud.
+    /// Points in the 4D point cloud, 1 to [`MAX_POINTS`].
     pub points: usize,
     /// Supersampling factor of the anti-aliased views (supervision and video).
     pub supersample: u32,
-    /// Tracked surface points.
+    /// Tracked surface points, at most [`MAX_TRACKS`]; fewer when frame 0 shows fewer surface
+    /// pixels over the input views.
     pub tracks: usize,
+}
+
+impl SynthOptions {
+    /// Checks the options against the limits above; the error names the option and its limit.
+    pub fn check(&self) -> DataResult<()> {
+        let limits = [
+            ("resolution", self.res as usize, 1, MAX_RESOLUTION as usize),
+            ("supersampling factor", self.supersample as usize, 1, MAX_SUPERSAMPLE as usize),
+            ("points", self.points, 1, MAX_POINTS),
+            ("tracks", self.tracks, 0, MAX_TRACKS),
+        ];
+        for (name, v, lo, hi) in limits {
+            if !(lo..=hi).contains(&v) {
+                return Err(DataError::Invalid(format!(
+                    "{name} {v} is out of range: a scene takes {lo} to {hi}"
+                )));
+            }
+        }
+        Ok(())
+    }
 }
 
 impl Default for SynthOptions {
@@ -138,9 +169,7 @@ pub fn render_scene(
             crate::procedural::FRAMES
         )));
     }
-    if opts.res == 0 || opts.supersample == 0 {
-        return Err(DataError::Invalid("resolution and supersampling must be at least 1".into()));
-    }
+    opts.check()?;
     let rast = MeshRasteriser::new(gpu, mesh)?;
     let mut rng = Rng::new(seed ^ 0x9e37_79b9_7f4a_7c15);
     let inputs = input_cameras(opts.res);
@@ -191,7 +220,7 @@ pub fn render_scene(
         progress(f);
     }
     let mut points = reservoir.items;
-    if points.is_empty() && opts.points > 0 {
+    if points.is_empty() {
         return Err(DataError::Invalid("no input camera sees the object in any frame".into()));
     }
     let have = points.len();

@@ -9,8 +9,8 @@
 //! Writes are atomic ([`crate::files::write_atomically`]): the file is written in full to
 //! `.<file name>.tmp` in the same folder, flushed to disk, renamed over the target, and the
 //! folder is flushed, so a crash leaves either the old checkpoint or the new one, never half of
-//! one. Loads check every tensor's name,
-//! dtype and shape against the store before changing anything, and say what does not match.
+//! one. Loads check every tensor's name, dtype, shape and values (all finite) against the store
+//! before changing anything, and say what does not match.
 
 use std::borrow::Cow;
 use std::collections::{BTreeMap, HashMap};
@@ -191,8 +191,8 @@ pub fn verify_finite(path: &Path) -> Result<CheckpointInfo> {
 
 /// Loads a checkpoint written by [`save`] into `store` (parameters, moments and step) and
 /// returns its metadata. Every tensor is checked first: a missing or unexpected tensor, a wrong
-/// dtype or shape, a truncated or corrupt file gives an error naming it, and the store is left
-/// unchanged.
+/// dtype or shape, a NaN or Inf in a parameter or moment, a truncated or corrupt file gives an
+/// error naming it, and the store is left unchanged.
 pub fn load(path: &Path, store: &mut ParamStore) -> Result<CheckpointInfo> {
     let shown = path.display();
     let bytes =
@@ -227,6 +227,13 @@ pub fn load(path: &Path, store: &mut ParamStore) -> Result<CheckpointInfo> {
             let out = &mut flat[p.offset..p.offset + p.numel];
             for (o, b) in out.iter_mut().zip(t.data().chunks_exact(4)) {
                 *o = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+            }
+            let bad = out.iter().filter(|x| !x.is_finite()).count();
+            if bad > 0 {
+                return Err(Error::Invalid(format!(
+                    "checkpoint {shown}: tensor {name:?} holds {bad} non-finite value(s) (NaN or Inf) of {} (a diverged run or a damaged file)",
+                    p.numel
+                )));
             }
             expected.insert(name);
         }

@@ -262,7 +262,10 @@ impl AutoencoderConfig {
                 })?;
                 let c: AutoencoderConfig = serde_json::from_str(&text)
                     .map_err(|e| Error::Invalid(format!("config file {path}: {e}")))?;
-                c.validate()?;
+                c.validate().map_err(|e| match e {
+                    Error::Invalid(why) => Error::Invalid(format!("config file {path}: {why}")),
+                    other => other,
+                })?;
                 Ok(c)
             }
         }
@@ -302,6 +305,80 @@ impl AutoencoderConfig {
         }
         if !(self.peak_lr.is_finite() && self.peak_lr > 0.0) {
             return Err(Error::Invalid(format!("peak learning rate {} must be positive", self.peak_lr)));
+        }
+        self.check_limits()
+    }
+
+    /// Every size within its limits and every number finite and in its range: a config file
+    /// is input, and a size of 10^18 or a NaN must be an error, not an allocation or a model
+    /// that trains to NaN.
+    fn check_limits(&self) -> Result<()> {
+        const WIDTH: usize = 8192;
+        const BLOCKS: usize = 64;
+        const RATIO: usize = 16;
+        const FREQS: usize = 256;
+        const POINTS: usize = 1 << 24;
+        let (e, s, g) = (&self.encoder, &self.surface, &self.gaussians);
+        let sizes = [
+            ("encoder.width", e.width, 1, WIDTH),
+            ("encoder.tokens", e.tokens, 1, 1 << 20),
+            ("encoder.token_dim", e.token_dim, 1, WIDTH),
+            ("encoder.xyz_freqs", e.xyz_freqs, 1, FREQS),
+            ("encoder.tau_freqs", e.tau_freqs, 1, FREQS),
+            ("encoder.perceiver_blocks", e.perceiver_blocks, 1, BLOCKS),
+            ("encoder.self_layers", e.self_layers, 0, BLOCKS),
+            ("encoder.ffn_ratio", e.ffn_ratio, 1, RATIO),
+            ("encoder.oversample", e.oversample, 1, 64),
+            ("surface.width", s.width, 1, WIDTH),
+            ("surface.blocks", s.blocks, 1, BLOCKS),
+            ("surface.mlp_ratio", s.mlp_ratio, 1, RATIO),
+            ("surface.xyz_freqs", s.xyz_freqs, 1, FREQS),
+            ("surface.tau_freqs", s.tau_freqs, 1, FREQS),
+            ("surface.time_freqs", s.time_freqs, 1, FREQS),
+            ("surface.time_embed", s.time_embed, 1, WIDTH),
+            ("surface.points_per_step", s.points_per_step, 1, POINTS),
+            ("gaussians.width", g.width, 1, WIDTH),
+            ("gaussians.blocks", g.blocks, 1, BLOCKS),
+            ("gaussians.self_layers", g.self_layers, 0, BLOCKS),
+            ("gaussians.ffn_ratio", g.ffn_ratio, 1, RATIO),
+            ("gaussians.grid", g.grid, 1, 512),
+            ("gaussians.gaussians_per_voxel", g.gaussians_per_voxel, 1, 1024),
+            ("gaussians.xyz_freqs", g.xyz_freqs, 1, FREQS),
+            ("gaussians.tau_freqs", g.tau_freqs, 1, FREQS),
+            ("gaussians.window_voxels", g.window_voxels, 1, g.grid),
+            ("views_per_step", self.views_per_step, 1, 1024),
+            ("encoder_points", self.encoder_points, 0, POINTS),
+        ];
+        for (name, v, lo, hi) in sizes {
+            if !(lo..=hi).contains(&v) {
+                return Err(Error::Invalid(format!("config: {name} is {v}, expected {lo} to {hi}")));
+            }
+        }
+        // (name, value, least, most, whether the least itself is allowed)
+        let numbers = [
+            ("encoder.xyz_max_octave", e.xyz_max_octave, -30.0, 30.0, true),
+            ("encoder.tau_max_octave", e.tau_max_octave, -30.0, 30.0, true),
+            ("encoder.time_scale", e.time_scale as f64, 0.0, 1e6, false),
+            ("encoder.token_noise", e.token_noise as f64, 0.0, 1e3, true),
+            ("encoder.token_reg", e.token_reg as f64, 0.0, 1e3, true),
+            ("surface.xyz_max_octave", s.xyz_max_octave, -30.0, 30.0, true),
+            ("surface.tau_max_octave", s.tau_max_octave, -30.0, 30.0, true),
+            ("surface.time_max_octave", s.time_max_octave, -30.0, 30.0, true),
+            ("surface.t_min", s.t_min as f64, 0.0, 0.499, true),
+            ("gaussians.offset_range", g.offset_range as f64, 0.0, 1.0, true),
+            ("gaussians.scale_min", g.scale_min as f64, 0.0, g.scale_max as f64, false),
+            ("gaussians.scale_max", g.scale_max as f64, 0.0, 10.0, false),
+            ("peak_lr", self.peak_lr, 0.0, 1.0, false),
+            ("max_grad_norm", self.max_grad_norm, 0.0, 1e9, false),
+        ];
+        for (name, v, lo, hi, closed) in numbers {
+            let above = if closed { v >= lo } else { v > lo };
+            if !(v.is_finite() && above && v <= hi) {
+                let open = if closed { "[" } else { "(" };
+                return Err(Error::Invalid(format!(
+                    "config: {name} is {v}, expected a number in {open}{lo}, {hi}]"
+                )));
+            }
         }
         Ok(())
     }

@@ -8,9 +8,11 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use clap::builder::RangedU64ValueParser;
 use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use velox_data::format::write_scene;
+use velox_data::pipeline::{MAX_POINTS, MAX_TRACKS};
 use velox_data::procedural::FRAMES;
 use velox_data::{gltf_import, procedural, AnimatedMesh, SynthOptions};
 use velox_engine::Gpu;
@@ -23,8 +25,8 @@ pub enum DataCommand {
     Synth {
         #[command(flatten)]
         common: CommonArgs,
-        /// Number of scenes.
-        #[arg(long, default_value_t = 8)]
+        /// Number of scenes, 1 to 1000000.
+        #[arg(long, default_value_t = 8, value_parser = RangedU64ValueParser::<usize>::new().range(1..=1_000_000))]
         scenes: usize,
         /// Seed of the first scene; scene i uses seed + i.
         #[arg(long, default_value_t = 0)]
@@ -57,11 +59,15 @@ pub struct CommonArgs {
     /// Image side of every view.
     #[arg(long, default_value_t = 128, value_parser = clap::value_parser!(u32).range(8..=2048))]
     res: u32,
-    /// Points in each scene's 4D point cloud.
-    #[arg(long, default_value_t = 200_000)]
+    /// Points in each scene's 4D point cloud, 1 to 16777216.
+    #[arg(long, default_value_t = 200_000,
+          value_parser = RangedU64ValueParser::<usize>::new().range(1..=MAX_POINTS as u64))]
     points: usize,
-    /// Tracked surface points per scene.
-    #[arg(long, default_value_t = 1024)]
+    /// Tracked surface points per scene, 0 to 1048576. Tracks start on distinct surface
+    /// pixels of frame 0 over the input views: a scene that shows fewer pixels gets one track
+    /// per pixel, and a note says so.
+    #[arg(long, default_value_t = 1024,
+          value_parser = RangedU64ValueParser::<usize>::new().range(0..=MAX_TRACKS as u64))]
     tracks: usize,
     /// Supersampling factor of the anti-aliased views.
     #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=4))]
@@ -159,9 +165,17 @@ pub fn run(cmd: DataCommand) -> CliResult<()> {
 fn make_scene(gpu: &Gpu, job: Job, opts: &SynthOptions, out: &Path, bar: &ProgressBar) -> CliResult<()> {
     let start_pos = bar.position();
     let (mesh, detail) = (job.make)().map_err(|e| e.to_string())?;
-    write_scene(gpu, &mesh, &job.source, detail, job.seed, opts, &out.join(&job.name), &mut |f| {
+    let meta = write_scene(gpu, &mesh, &job.source, detail, job.seed, opts, &out.join(&job.name), &mut |f| {
         bar.set_position(start_pos + f as u64 + 1)
     })
     .map_err(|e| format!("{}: {e}", job.source))?;
+    if meta.tracks < opts.tracks {
+        bar.suspend(|| {
+            eprintln!(
+                "note: {}: {} tracks of the {} asked for: frame 0 shows only {} surface pixels over the input views",
+                job.name, meta.tracks, opts.tracks, meta.tracks
+            )
+        });
+    }
     Ok(())
 }

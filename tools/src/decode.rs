@@ -13,7 +13,7 @@
 //!
 //! Both write `decode.json` beside the files: the checkpoint, the frames, each file and its
 //! count. The input is a scene folder (its `points.ply`) or a PLY of float `x y z r g b tau`
-//! (`velox_data::format::write_ply`'s layout), checked by `cloud::validate`.
+//! (`velox_data::format::write_ply`'s layout), checked by `velox_data::format::read_ply`.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -171,22 +171,12 @@ pub fn parse_frames(s: &str) -> Result<Frames, String> {
     Ok(Frames(frames))
 }
 
-/// The cloud of a scene folder (its points.ply) or of a PLY file, as validated host rows.
+/// The cloud of a scene folder (its points.ply) or of a PLY file, as host rows (`read_ply`
+/// validates them).
 pub fn read_cloud(path: &Path) -> CliResult<Vec<f32>> {
     let file = if path.is_dir() { path.join("points.ply") } else { path.to_path_buf() };
     let points = velox_data::format::read_ply(&file).map_err(|e| format!("reading the cloud: {e}"))?;
-    let flat: Vec<f32> = points.iter().flatten().copied().collect();
-    cloud::validate(&flat).map_err(|e| format!("{}: {e}", file.display()))?;
-    if let Some(p) = flat.chunks(CHANNELS).find(|p| (p[6] * 100.0).round() as usize >= FRAMES) {
-        return Err(format!(
-            "{}: a point has frame time {} beyond the last frame ({})",
-            file.display(),
-            p[6],
-            FRAMES - 1
-        )
-        .into());
-    }
-    Ok(flat)
+    Ok(points.iter().flatten().copied().collect())
 }
 
 /// xyz of each frame's points of a validated cloud.

@@ -239,3 +239,55 @@ fn a_render_onto_a_full_disk_stops_with_the_file_named() {
     assert!(!out.join("render.json").exists());
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn data_synth_refuses_empty_or_oversized_requests_and_notes_fewer_tracks() {
+    let dir = std::env::temp_dir().join(format!("velox-synth-limits-{}", std::process::id()));
+    let synth =
+        |extra: &[&str]| velox().args(["data", "synth", "--out"]).arg(&dir).args(extra).output().unwrap();
+    for (args, needle) in [
+        (&["--points", "0"][..], "1..=16777216"),
+        (&["--scenes", "0"][..], "1..=1000000"),
+        (&["--tracks", "1000000000"][..], "0..=1048576"),
+    ] {
+        let out = synth(args);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?} was accepted");
+        assert!(err.contains(args[0]) && err.contains(needle), "{args:?}: {err}");
+    }
+    assert!(!dir.exists(), "a refused request wrote {}", dir.display());
+    let help = velox().args(["data", "synth", "--help"]).output().unwrap();
+    let help = String::from_utf8_lossy(&help.stdout);
+    assert!(help.contains("0 to 1048576") && help.contains("a note says so"), "{help}");
+    // More tracks than frame 0 shows surface pixels: one per pixel, and a note.
+    let out = synth(&["--scenes", "1", "--res", "8", "--points", "200", "--tracks", "1048576"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(err.contains("note: scene_00000") && err.contains("tracks of the 1048576 asked for"), "{err}");
+    let meta: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("scene_00000/meta.json")).unwrap()).unwrap();
+    let tracks = meta["tracks"].as_u64().unwrap();
+    assert!(tracks > 0 && tracks <= 35 * 64, "{tracks} tracks from 35 views of 8 x 8");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn config_files_with_huge_sizes_or_infinite_numbers_are_refused() {
+    let out = velox().args(["config", "tiny"]).output().unwrap();
+    let tiny: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let path = std::env::temp_dir().join(format!("velox-config-limits-{}.json", std::process::id()));
+    for (section, field, value, needle) in [
+        ("encoder", "tokens", "1000000000000000000", "encoder.tokens is 1000000000000000000"),
+        ("encoder", "time_scale", "1e39", "encoder.time_scale is inf"),
+        ("gaussians", "window_voxels", "0", "gaussians.window_voxels is 0"),
+    ] {
+        let mut cfg = tiny.clone();
+        cfg[section][field] = serde_json::from_str(value).unwrap();
+        std::fs::write(&path, cfg.to_string()).unwrap();
+        let out = velox().arg("config").arg(&path).output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{section}.{field} = {value} was accepted");
+        assert!(err.contains(path.to_str().unwrap()) && err.contains(needle), "{err}");
+    }
+    std::fs::remove_file(&path).ok();
+}

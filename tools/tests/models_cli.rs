@@ -225,6 +225,64 @@ fn bad_checkpoints_clouds_and_frames_get_clear_errors() {
     assert!(err.contains("bad"), "{err}");
 }
 
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        if e.file_type().unwrap().is_dir() {
+            copy_dir(&e.path(), &to.join(e.file_name()));
+        } else {
+            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+        }
+    }
+}
+
+/// The cases the issue found: a scene whose meta.json says 0 supervision views made eval
+/// recon index past its images, and a checkpoint with one NaN weight evaluated to a Chamfer
+/// distance of inf. Both are errors that name the file and the problem.
+#[test]
+fn eval_recon_refuses_scenes_without_views_and_checkpoints_with_nan() {
+    let dir = std::env::temp_dir().join(format!("velox-eval-hostile-{}", std::process::id()));
+    let scene = dir.join("data").join("scene_00000");
+    copy_dir(&fixture().join("data/scene_00000"), &scene);
+    let meta_path = scene.join("meta.json");
+    let mut meta: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&meta_path).unwrap()).unwrap();
+    meta["supervision_views"] = 0.into();
+    std::fs::write(&meta_path, meta.to_string()).unwrap();
+    let ckpt = fixture().join("ae.safetensors");
+    let eval = |data: &Path, ckpt: &Path| {
+        velox(&[
+            "eval",
+            "recon",
+            "--data",
+            arg(data),
+            "--checkpoint",
+            arg(ckpt),
+            "--out",
+            arg(&dir.join("eval")),
+        ])
+    };
+    let err = fails(&eval(&dir.join("data"), &ckpt));
+    assert!(err.contains(arg(&meta_path)) && err.contains("supervision_views is 0"), "{err}");
+
+    // One NaN in the first parameter tensor's data.
+    let mut bytes = std::fs::read(&ckpt).unwrap();
+    let n = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+    let header: serde_json::Value = serde_json::from_slice(&bytes[8..8 + n]).unwrap();
+    let (name, tensor) = header.as_object().unwrap().iter().find(|(k, _)| k.starts_with("param/")).unwrap();
+    let at = 8 + n + tensor["data_offsets"][0].as_u64().unwrap() as usize + 4;
+    bytes[at..at + 4].copy_from_slice(&f32::NAN.to_le_bytes());
+    let nan = dir.join("nan.safetensors");
+    std::fs::write(&nan, &bytes).unwrap();
+    let err = fails(&eval(fixture().join("data").as_path(), &nan));
+    assert!(
+        err.contains("nan.safetensors") && err.contains(&format!("{name:?}")) && err.contains("1 non-finite"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 #[test]
 fn bench_models_writes_records() {
     let dir = std::env::temp_dir().join(format!("velox-bench-models-{}", std::process::id()));

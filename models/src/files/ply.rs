@@ -5,7 +5,9 @@
 //!
 //! The reader takes any property order, float or double (and integer) properties, and ignores
 //! properties it does not use (higher spherical harmonics f_rest_*, for instance: only the
-//! degree-0 colour is kept) and elements after the vertices.
+//! degree-0 colour is kept) and elements after the vertices. The body must hold exactly the
+//! items the header declares, and every value read must be finite. [`Header`] is the one PLY
+//! header parser of the project (the data crate's point clouds use it too).
 
 use std::path::Path;
 
@@ -74,8 +76,9 @@ pub fn read(path: &Path) -> Result<GaussianData> {
     })
 }
 
-#[derive(Clone, Copy)]
-enum Scalar {
+/// The scalar types of PLY properties.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Scalar {
     I8,
     U8,
     I16,
@@ -100,7 +103,8 @@ impl Scalar {
             _ => return None,
         })
     }
-    fn size(self) -> usize {
+    /// Bytes of one value.
+    pub fn size(self) -> usize {
         match self {
             Scalar::I8 | Scalar::U8 => 1,
             Scalar::I16 | Scalar::U16 => 2,
@@ -108,7 +112,8 @@ impl Scalar {
             Scalar::F64 => 8,
         }
     }
-    fn read(self, b: &[u8]) -> f64 {
+    /// The value at the start of `b` (little-endian), which holds at least [`Scalar::size`] bytes.
+    pub fn read(self, b: &[u8]) -> f64 {
         match self {
             Scalar::I8 => b[0] as i8 as f64,
             Scalar::U8 => b[0] as f64,
@@ -122,85 +127,140 @@ impl Scalar {
     }
 }
 
-struct Element {
-    name: String,
-    count: usize,
-    properties: Vec<(String, Scalar)>,
+/// One element of a PLY header: its name, how many items it declares, and the properties of
+/// an item in file order.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Element {
+    pub name: String,
+    pub count: usize,
+    pub properties: Vec<(String, Scalar)>,
+}
+
+impl Element {
+    /// Bytes of one item.
+    pub fn stride(&self) -> usize {
+        self.properties.iter().map(|p| p.1.size()).sum()
+    }
+}
+
+/// The header of a binary little-endian PLY file with scalar properties (every reader of the
+/// project parses its PLY files with it).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Header {
+    pub elements: Vec<Element>,
+    /// Offset of the first byte after the `end_header` line.
+    pub body_start: usize,
 }
 
 fn bad(why: impl Into<String>) -> Error {
     Error::Invalid(why.into())
 }
 
-/// Parses a PLY file's bytes.
+impl Header {
+    /// Parses the header at the start of `bytes`. Check the body with [`Header::check_length`]
+    /// before reading items.
+    pub fn parse(bytes: &[u8]) -> Result<Header> {
+        const END: &[u8] = b"end_header";
+        let end = bytes
+            .windows(END.len())
+            .position(|w| w == END)
+            .ok_or_else(|| bad("not a PLY file: no `end_header` line"))?;
+        let body_start = bytes[end..]
+            .iter()
+            .position(|&b| b == b'\n')
+            .map(|p| end + p + 1)
+            .ok_or_else(|| bad("the header's `end_header` line has no line end"))?;
+        let header = std::str::from_utf8(&bytes[..end]).map_err(|_| bad("the PLY header is not text"))?;
+        let mut lines = header.lines().map(str::trim);
+        if lines.next() != Some("ply") {
+            return Err(bad("not a PLY file: it does not start with `ply`"));
+        }
+        let mut elements: Vec<Element> = Vec::new();
+        let mut format_seen = false;
+        for line in lines {
+            let words: Vec<&str> = line.split_whitespace().collect();
+            match words.as_slice() {
+                [] | ["comment", ..] | ["obj_info", ..] => {}
+                ["format", "binary_little_endian", _] => format_seen = true,
+                ["format", other, _] => {
+                    return Err(bad(format!(
+                        "PLY format `{other}` is not supported: only binary_little_endian files are read"
+                    )))
+                }
+                ["element", name, count] => elements.push(Element {
+                    name: name.to_string(),
+                    count: count
+                        .parse()
+                        .map_err(|_| bad(format!("element {name}: count `{count}` is not a number")))?,
+                    properties: Vec::new(),
+                }),
+                ["property", "list", ..] => {
+                    return Err(bad(format!("list property `{line}` is not supported")))
+                }
+                ["property", ty, name] => {
+                    let e = elements
+                        .last_mut()
+                        .ok_or_else(|| bad(format!("property `{name}` before any element")))?;
+                    let s = Scalar::parse(ty)
+                        .ok_or_else(|| bad(format!("property {name}: unknown type `{ty}`")))?;
+                    e.properties.push((name.to_string(), s));
+                }
+                _ => return Err(bad(format!("unreadable PLY header line `{line}`"))),
+            }
+        }
+        if !format_seen {
+            return Err(bad("the PLY header has no `format binary_little_endian 1.0` line"));
+        }
+        Ok(Header { elements, body_start })
+    }
+
+    /// Offset of the first item of element `name` from the file's start, and the element.
+    /// Valid once [`Header::check_length`] has passed.
+    pub fn find(&self, name: &str) -> Option<(usize, &Element)> {
+        let mut at = self.body_start;
+        for e in &self.elements {
+            if e.name == name {
+                return Some((at, e));
+            }
+            at = at.saturating_add(e.count.saturating_mul(e.stride()));
+        }
+        None
+    }
+
+    /// Checks that the body after the header holds exactly the items the header declares: a
+    /// file with fewer bytes is truncated, one with more does not match its header (a property
+    /// declared `uchar` whose data is `float`, say). `bytes` is the whole file.
+    pub fn check_length(&self, bytes: &[u8]) -> Result<()> {
+        let have = bytes.len().saturating_sub(self.body_start);
+        // In u128, where no count of a header can overflow.
+        let need: u128 = self.elements.iter().map(|e| e.count as u128 * e.stride() as u128).sum();
+        let declared = || {
+            self.elements
+                .iter()
+                .map(|e| format!("{} {} of {} bytes", e.count, e.name, e.stride()))
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        if need > have as u128 {
+            return Err(bad(format!(
+                "the file is truncated: the header declares {} ({need} bytes after the header), the file has {have}",
+                declared()
+            )));
+        }
+        if need < have as u128 {
+            return Err(bad(format!(
+                "the body does not match the header: the header declares {} ({need} bytes after the header), the file has {have} (a property of the wrong type?)",
+                declared()
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// Parses a PLY file's bytes. Every value must be finite.
 pub fn from_bytes(bytes: &[u8]) -> Result<GaussianData> {
-    const END: &[u8] = b"end_header";
-    let end = bytes
-        .windows(END.len())
-        .position(|w| w == END)
-        .ok_or_else(|| bad("not a PLY file: no `end_header` line"))?;
-    let body_start = bytes[end..]
-        .iter()
-        .position(|&b| b == b'\n')
-        .map(|p| end + p + 1)
-        .ok_or_else(|| bad("the header's `end_header` line has no line end"))?;
-    let header = std::str::from_utf8(&bytes[..end]).map_err(|_| bad("the PLY header is not text"))?;
-    let mut lines = header.lines().map(str::trim);
-    if lines.next() != Some("ply") {
-        return Err(bad("not a PLY file: it does not start with `ply`"));
-    }
-    let mut elements: Vec<Element> = Vec::new();
-    let mut format_seen = false;
-    for line in lines {
-        let words: Vec<&str> = line.split_whitespace().collect();
-        match words.as_slice() {
-            [] | ["comment", ..] | ["obj_info", ..] => {}
-            ["format", "binary_little_endian", _] => format_seen = true,
-            ["format", other, _] => {
-                return Err(bad(format!(
-                "PLY format `{other}` is not supported: Gaussians are read from binary_little_endian files"
-            )))
-            }
-            ["element", name, count] => elements.push(Element {
-                name: name.to_string(),
-                count: count
-                    .parse()
-                    .map_err(|_| bad(format!("element {name}: count `{count}` is not a number")))?,
-                properties: Vec::new(),
-            }),
-            ["property", "list", ..] => {
-                return Err(bad(format!("list property `{line}` is not supported in a Gaussian file")))
-            }
-            ["property", ty, name] => {
-                let e = elements
-                    .last_mut()
-                    .ok_or_else(|| bad(format!("property `{name}` before any element")))?;
-                let s =
-                    Scalar::parse(ty).ok_or_else(|| bad(format!("property {name}: unknown type `{ty}`")))?;
-                e.properties.push((name.to_string(), s));
-            }
-            _ => return Err(bad(format!("unreadable PLY header line `{line}`"))),
-        }
-    }
-    if !format_seen {
-        return Err(bad("the PLY header has no `format binary_little_endian 1.0` line"));
-    }
-    // Skip the elements before the vertices.
-    let mut at = body_start;
-    let mut vertex = None;
-    for e in &elements {
-        let stride: usize = e.properties.iter().map(|p| p.1.size()).sum();
-        if e.name == "vertex" {
-            vertex = Some((e, stride));
-            break;
-        }
-        at = e
-            .count
-            .checked_mul(stride)
-            .and_then(|b| b.checked_add(at))
-            .ok_or_else(|| bad(format!("element {} is too large", e.name)))?;
-    }
-    let (e, stride) = vertex.ok_or_else(|| bad("the PLY file has no `vertex` element"))?;
+    let header = Header::parse(bytes)?;
+    let (at, e) = header.find("vertex").ok_or_else(|| bad("the PLY file has no `vertex` element"))?;
     let column = |name: &str| -> Result<(usize, Scalar)> {
         let mut offset = 0;
         for (p, s) in &e.properties {
@@ -213,21 +273,17 @@ pub fn from_bytes(bytes: &[u8]) -> Result<GaussianData> {
             "the vertex element has no `{name}` property: a 3D Gaussian splatting file needs x, y, z, f_dc_0..2, opacity, scale_0..2 and rot_0..3"
         )))
     };
-    let used: Vec<(usize, Scalar)> =
-        PROPERTIES.iter().filter(|p| !p.starts_with('n')).map(|p| column(p)).collect::<Result<_>>()?;
-    let n = e.count;
-    let need = n.checked_mul(stride).and_then(|b| b.checked_add(at));
-    if need.is_none_or(|need| need > bytes.len()) {
-        return Err(bad(format!(
-            "the file is truncated: {n} vertices of {stride} bytes need {} bytes after the header, it has {}",
-            n.saturating_mul(stride),
-            bytes.len().saturating_sub(at)
-        )));
-    }
+    let names: Vec<&str> = PROPERTIES.iter().copied().filter(|p| !p.starts_with('n')).collect();
+    let used: Vec<(usize, Scalar)> = names.iter().map(|p| column(p)).collect::<Result<_>>()?;
+    header.check_length(bytes)?;
+    let stride = e.stride();
     let mut g = GaussianData::default();
-    for i in 0..n {
+    for i in 0..e.count {
         let row = &bytes[at + i * stride..at + (i + 1) * stride];
         let v: Vec<f64> = used.iter().map(|&(o, s)| s.read(&row[o..])).collect();
+        if let Some(k) = v.iter().position(|x| !(*x as f32).is_finite()) {
+            return Err(bad(format!("vertex {i}: {} is {:e}, not a finite f32", names[k], v[k])));
+        }
         // v: x y z, f_dc 0..2, opacity, scale 0..2, rot 0..3
         let colour = [v[3], v[4], v[5]].map(|dc| (0.5 + SH_C0 * dc) as f32);
         g.push(
