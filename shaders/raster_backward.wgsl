@@ -27,37 +27,43 @@
 const PART_FLOATS: u32 = 2560u;
 const MAX_CHUNK: u32 = 64u;
 
+// The sums of subgroup `sg` for the chunk's j-th Gaussian are s_part[(j nsg + sg) 10 + c]; a
+// subgroup that did not touch that Gaussian leaves its zeros.
 var<workgroup> s_part: array<f32, PART_FLOATS>;
-var<workgroup> s_entry: array<u32, MAX_CHUNK>;
+
+fn init_grads(lid: u32) {
+    for (var i = lid; i < PART_FLOATS; i = i + 256u) {
+        s_part[i] = 0.0;
+    }
+}
 
 fn chunk_size(nsg: u32) -> u32 {
     return clamp(PART_FLOATS / (10u * nsg), 1u, MAX_CHUNK);
 }
 
-// The sums of subgroup `sg` for the chunk's j-th Gaussian are s_part[(j nsg + sg) 10 + c].
-fn store_grads(sg: u32, nsg: u32, lane: u32, j: u32, entry: u32, gaussian: u32, any: bool,
-               sums: array<f32, 10>) {
+fn store_grads(sg: u32, nsg: u32, lane: u32, j: u32, gaussian: u32, sums: array<f32, 10>) {
     if (lane == 0u) {
         let base = (j * nsg + sg) * 10u;
         for (var c = 0u; c < 10u; c = c + 1u) {
             s_part[base + c] = sums[c];
         }
-        if (sg == 0u) {
-            s_entry[j] = entry;
-        }
     }
 }
 
-fn flush_grads(lid: u32, chunk: u32, nsg: u32) {
+// One invocation per (Gaussian, channel) adds the subgroups' sums in subgroup order, zeroing
+// them for the next chunk, and writes the total to the pair's slot.
+fn flush_grads(lid: u32, chunk: u32, nsg: u32, entry: u32) {
     workgroupBarrier();
     for (var i = lid; i < chunk * 10u; i = i + 256u) {
         let j = i / 10u;
         let c = i % 10u;
         var v = 0.0;
         for (var s = 0u; s < nsg; s = s + 1u) {
-            v = v + s_part[(j * nsg + s) * 10u + c];
+            let at = (j * nsg + s) * 10u + c;
+            v = v + s_part[at];
+            s_part[at] = 0.0;
         }
-        pair_grads[10u * slots[s_entry[j]] + c] = v;
+        pair_grads[10u * slots[entry - j] + c] = v;
     }
     workgroupBarrier();
 }

@@ -6,7 +6,9 @@
 // Per Gaussian: du, dv, conic a, b, c, opacity, r, g, b, depth.
 @group(0) @binding(8) var<storage, read_write> grads: array<atomic<u32>>;
 
-// `flush_grads` does nothing here: one chunk per batch.
+// `init_grads` and `flush_grads` do nothing here: one chunk per batch.
+fn init_grads(lid: u32) {}
+
 fn chunk_size(nsg: u32) -> u32 {
     return BATCH;
 }
@@ -22,9 +24,8 @@ fn grad_add(i: u32, v: f32) {
     }
 }
 
-fn store_grads(sg: u32, nsg: u32, lane: u32, j: u32, entry: u32, gaussian: u32, any: bool,
-               sums: array<f32, 10>) {
-    if (any && lane == 0u) {
+fn store_grads(sg: u32, nsg: u32, lane: u32, j: u32, gaussian: u32, sums: array<f32, 10>) {
+    if (lane == 0u) {
         for (var c = 0u; c < 10u; c = c + 1u) {
             if (sums[c] != 0.0) {
                 grad_add(10u * gaussian + c, sums[c]);
@@ -33,6 +34,6 @@ fn store_grads(sg: u32, nsg: u32, lane: u32, j: u32, entry: u32, gaussian: u32, 
     }
 }
 
-fn flush_grads(lid: u32, chunk: u32, nsg: u32) {}
+fn flush_grads(lid: u32, chunk: u32, nsg: u32, entry: u32) {}
 
 // @include raster_backward_body.wgsl

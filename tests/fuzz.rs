@@ -382,7 +382,7 @@ fn to_glb(gltf: &str) -> Vec<u8> {
         }
         starts.push(bin.len());
         let uri = b["uri"].as_str().unwrap();
-        bin.extend(base64_decode(uri.split_once(',').unwrap().1).unwrap());
+        bin.extend(velox::data::gltf_load::base64(uri.split_once(',').unwrap().1).unwrap());
     }
     for view in v["bufferViews"].as_array_mut().unwrap() {
         let start = starts[view["buffer"].as_u64().unwrap() as usize] as u64;

@@ -208,7 +208,7 @@ fn percent_decode(s: &str) -> Result<String, String> {
 }
 
 /// Decodes standard base64 (RFC 4648, `+` and `/`, padding optional).
-fn base64(s: &str) -> Result<Vec<u8>, String> {
+pub fn base64(s: &str) -> Result<Vec<u8>, String> {
     let s = s.trim_end_matches('=');
     let mut out = Vec::with_capacity(s.len() / 4 * 3 + 2);
     let (mut acc, mut bits) = (0u32, 0u32);

@@ -146,28 +146,55 @@ fn read_info(bytes: &[u8], path: &Path) -> Result<CheckpointInfo> {
     Ok(CheckpointInfo { step, config })
 }
 
+fn read_file(path: &Path) -> Result<Vec<u8>> {
+    std::fs::read(path).map_err(|e| Error::Invalid(format!("cannot read checkpoint {}: {e}", path.display())))
+}
+
+fn deserialize<'a>(bytes: &'a [u8], path: &Path) -> Result<SafeTensors<'a>> {
+    SafeTensors::deserialize(bytes).map_err(|e| {
+        Error::Invalid(format!(
+            "checkpoint {} is corrupt or truncated ({} bytes): {e}",
+            path.display(),
+            bytes.len()
+        ))
+    })
+}
+
+/// A tensor's values, which must be f32.
+fn f32_values(path: &Path, name: &str, t: &safetensors::tensor::TensorView<'_>) -> Result<Vec<f32>> {
+    if t.dtype() != Dtype::F32 {
+        return Err(Error::Invalid(format!(
+            "checkpoint {}: tensor {name:?} is {:?}, expected F32",
+            path.display(),
+            t.dtype()
+        )));
+    }
+    Ok(t.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect())
+}
+
+/// Fails, naming the tensor and counting, where `values` hold a NaN or an Inf.
+fn check_finite(path: &Path, step: u64, name: &str, values: &[f32]) -> Result<()> {
+    let bad = values.iter().filter(|v| !v.is_finite()).count();
+    if bad > 0 {
+        return Err(Error::Invalid(format!(
+            "checkpoint {} (step {step}): tensor {name:?} holds {bad} NaN or Inf value(s) of {} (a diverged \
+             run or a damaged file)",
+            path.display(),
+            values.len()
+        )));
+    }
+    Ok(())
+}
+
 /// Every tensor of a checkpoint by name (f32 values in row-major order), with its metadata,
 /// without a model to load it into (to inspect or compare checkpoints).
 pub fn read_tensors(path: &Path) -> Result<(CheckpointInfo, BTreeMap<String, Vec<f32>>)> {
-    let shown = path.display();
-    let bytes =
-        std::fs::read(path).map_err(|e| Error::Invalid(format!("cannot read checkpoint {shown}: {e}")))?;
-    let file = SafeTensors::deserialize(&bytes).map_err(|e| {
-        Error::Invalid(format!("checkpoint {shown} is corrupt or truncated ({} bytes): {e}", bytes.len()))
-    })?;
+    let bytes = read_file(path)?;
+    let file = deserialize(&bytes, path)?;
     let info = read_info(&bytes, path)?;
-    let mut tensors = BTreeMap::new();
-    for (name, t) in file.tensors() {
-        if t.dtype() != Dtype::F32 {
-            return Err(Error::Invalid(format!(
-                "checkpoint {shown}: tensor {name:?} is {:?}, expected F32",
-                t.dtype()
-            )));
-        }
-        let values = t.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
-        tensors.insert(name, values);
-    }
-    Ok((info, tensors))
+    let tensors =
+        file.tensors().into_iter().map(|(name, t)| Ok((name.clone(), f32_values(path, &name, &t)?)));
+    Ok((info, tensors.collect::<Result<_>>()?))
 }
 
 /// Checks that every value of a checkpoint (parameters and moments) is finite, and returns its
@@ -176,15 +203,7 @@ pub fn read_tensors(path: &Path) -> Result<(CheckpointInfo, BTreeMap<String, Vec
 pub fn verify_finite(path: &Path) -> Result<CheckpointInfo> {
     let (info, tensors) = read_tensors(path)?;
     for (name, values) in &tensors {
-        let bad = values.iter().filter(|v| !v.is_finite()).count();
-        if bad > 0 {
-            return Err(Error::Invalid(format!(
-                "checkpoint {} (step {}): tensor {name:?} holds {bad} NaN or Inf value(s) of {}",
-                path.display(),
-                info.step,
-                values.len()
-            )));
-        }
+        check_finite(path, info.step, name, values)?;
     }
     Ok(info)
 }
@@ -195,11 +214,8 @@ pub fn verify_finite(path: &Path) -> Result<CheckpointInfo> {
 /// error naming it, and the store is left unchanged.
 pub fn load(path: &Path, store: &mut ParamStore) -> Result<CheckpointInfo> {
     let shown = path.display();
-    let bytes =
-        std::fs::read(path).map_err(|e| Error::Invalid(format!("cannot read checkpoint {shown}: {e}")))?;
-    let file = SafeTensors::deserialize(&bytes).map_err(|e| {
-        Error::Invalid(format!("checkpoint {shown} is corrupt or truncated ({} bytes): {e}", bytes.len()))
-    })?;
+    let bytes = read_file(path)?;
+    let file = deserialize(&bytes, path)?;
     let CheckpointInfo { step, config } = read_info(&bytes, path)?;
 
     let total = store.flat_params().numel();
@@ -211,12 +227,6 @@ pub fn load(path: &Path, store: &mut ParamStore) -> Result<CheckpointInfo> {
             let t = file.tensor(&name).map_err(|_| {
                 Error::Invalid(format!("checkpoint {shown} lacks tensor {name:?} (shape {:?})", p.shape))
             })?;
-            if t.dtype() != Dtype::F32 {
-                return Err(Error::Invalid(format!(
-                    "checkpoint {shown}: tensor {name:?} is {:?}, expected F32",
-                    t.dtype()
-                )));
-            }
             if t.shape() != p.shape.as_slice() {
                 return Err(Error::Invalid(format!(
                     "checkpoint {shown}: tensor {name:?} has shape {:?}, the model expects {:?}",
@@ -224,17 +234,9 @@ pub fn load(path: &Path, store: &mut ParamStore) -> Result<CheckpointInfo> {
                     p.shape
                 )));
             }
-            let out = &mut flat[p.offset..p.offset + p.numel];
-            for (o, b) in out.iter_mut().zip(t.data().chunks_exact(4)) {
-                *o = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
-            }
-            let bad = out.iter().filter(|x| !x.is_finite()).count();
-            if bad > 0 {
-                return Err(Error::Invalid(format!(
-                    "checkpoint {shown}: tensor {name:?} holds {bad} non-finite value(s) (NaN or Inf) of {} (a diverged run or a damaged file)",
-                    p.numel
-                )));
-            }
+            let values = f32_values(path, &name, &t)?;
+            check_finite(path, step, &name, &values)?;
+            flat[p.offset..p.offset + p.numel].copy_from_slice(&values);
             expected.insert(name);
         }
     }

@@ -1,11 +1,12 @@
 // The blend backward kernel, shared by `raster_backward.wgsl` (per-pair sums, deterministic),
 // `raster_backward_atomic.wgsl` (native f32 atomic add) and `raster_backward_cas.wgsl`
-// (compare-and-swap), which each define the `grads` binding and two functions:
-// `store_grads(sg, nsg, lane, j, entry, gaussian, any, sums)`, called by every invocation for the
-// j-th Gaussian of a chunk of CHUNK (`entry`: its place in the sorted tile list; `any`: whether
-// any lane of the subgroup touched it; `sums`: the subgroup's sums, zeros unless `any`), and
-// `flush_grads(lid, chunk, nsg)`, called by every invocation after each chunk (in uniform control
-// flow, so it may hold barriers).
+// (compare-and-swap), which each define the `grads` binding and four functions:
+// `init_grads(lid)`, called by every invocation first; `chunk_size(nsg)`, the Gaussians between
+// flushes for `nsg` subgroups a workgroup; `store_grads(sg, nsg, lane, j, gaussian, sums)`,
+// called by every invocation of a subgroup that touched the j-th Gaussian of a chunk, with the
+// subgroup's sums; and `flush_grads(lid, chunk, nsg, entry)`, called by every invocation after
+// each chunk (in uniform control flow, so it may hold barriers), where `entry` is the place of
+// the chunk's first Gaussian in the sorted tile list (the j-th is at `entry - j`).
 //
 // One workgroup per tile, one invocation per pixel, walking the tile's Gaussians back to front
 // from the last one any pixel blended, in batches staged through workgroup memory. Each pixel
@@ -77,6 +78,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         g_alpha = d_alpha[p];
         g_depth = d_depth[p];
     }
+    init_grads(lid);
     if (lid == 0u) {
         atomicStore(&max_last, 0u);
     }
@@ -150,16 +152,15 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
                         grad[9] = g_depth * w;
                     }
                 }
-                let any = subgroupAny(contributes);
-                var sums = array<f32, 10>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
-                if (any) {
+                if (subgroupAny(contributes)) {
+                    var sums: array<f32, 10>;
                     for (var c = 0u; c < 10u; c = c + 1u) {
                         sums[c] = subgroupAdd(grad[c]);
                     }
+                    store_grads(sg, nsg, lane, j, s_id[k], sums);
                 }
-                store_grads(sg, nsg, lane, j, start + first + k, s_id[k], any, sums);
             }
-            flush_grads(lid, chunk, nsg);
+            flush_grads(lid, chunk, nsg, start + first + count - 1u - c0);
         }
     }
 }
