@@ -277,7 +277,9 @@ fn eval_recon_refuses_scenes_without_views_and_checkpoints_with_nan() {
     std::fs::write(&nan, &bytes).unwrap();
     let err = fails(&eval(fixture().join("data").as_path(), &nan));
     assert!(
-        err.contains("nan.safetensors") && err.contains(&format!("{name:?}")) && err.contains("1 non-finite"),
+        err.contains("nan.safetensors")
+            && err.contains(&format!("{name:?}"))
+            && err.contains("holds 1 NaN or Inf"),
         "{err}"
     );
     std::fs::remove_dir_all(&dir).ok();
