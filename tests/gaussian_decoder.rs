@@ -4,7 +4,8 @@
 
 mod common;
 use common::*;
-use velox::engine::ops::gaussian_head::{head_forward, reference, HeadOut, HeadRange, RAW};
+use velox::engine::ops::gaussian_head::{head_forward, reference, HeadRange, RAW};
+use velox::engine::ops::raster::{Gaussians, GAUSSIAN_WIDTHS};
 use velox::models::config::AutoencoderConfig;
 use velox::models::params::ParamStore;
 use velox::models::velox::gaussians::{occupied_voxels, GaussianDecoder};
@@ -32,8 +33,8 @@ fn centres(rng: &mut Rng, grid: usize, v: usize) -> Vec<f32> {
     c[..3 * v.min(c.len() / 3)].to_vec()
 }
 
-fn weighted_sum(out: &HeadOut, w: &[Vec<f32>; 5]) -> f64 {
-    [&out.means, &out.log_scales, &out.quats, &out.logits, &out.colours]
+fn weighted_sum(out: &Gaussians, w: &[Vec<f32>; 5]) -> f64 {
+    out.fields()
         .iter()
         .zip(w)
         .map(|(t, w)| t.read::<f32>().unwrap().iter().zip(w).map(|(&a, &b)| a as f64 * b as f64).sum::<f64>())
@@ -54,7 +55,7 @@ fn head_matches_reference() {
     let out = head_forward(&mut rec, &traw, &tc, &range).unwrap();
     rec.submit().unwrap();
     let want = reference::head(&f64s(&raw), &f64s(&c), g, &range);
-    for (t, w) in [&out.means, &out.log_scales, &out.quats, &out.logits, &out.colours].iter().zip(&want) {
+    for (t, w) in out.fields().iter().zip(&want) {
         assert_nmse("gaussian head", &t.read::<f32>().unwrap(), w, 1e-12);
     }
     let bad = Tensor::empty(&gpu, &[7, RAW], DType::F32).unwrap();
@@ -86,16 +87,11 @@ fn backward_matches_directional_finite_differences() {
     let s = rng.normal_vec(k * token_dim);
     let ts = Tensor::from_slice(&gpu, &[k, token_dim], &s).unwrap();
     let m = v * dec.cfg.gaussians_per_voxel;
-    let w: [Vec<f32>; 5] = [3, 3, 4, 1, 3].map(|c| rng.normal_vec(m * c));
-    let tw: Vec<Tensor> =
-        w.iter().zip([3, 3, 4, 1, 3]).map(|(x, c)| Tensor::from_slice(&gpu, &[m, c], x).unwrap()).collect();
-    let d = HeadOut {
-        means: tw[0].clone(),
-        log_scales: tw[1].clone(),
-        quats: tw[2].clone(),
-        logits: tw[3].reshape(&[m]).unwrap(),
-        colours: tw[4].clone(),
-    };
+    let w: [Vec<f32>; 5] = GAUSSIAN_WIDTHS.map(|c| rng.normal_vec(m * c));
+    let d = Gaussians::from_fields(std::array::from_fn(|i| {
+        let shape = if GAUSSIAN_WIDTHS[i] == 1 { vec![m] } else { vec![m, GAUSSIAN_WIDTHS[i]] };
+        Tensor::from_slice(&gpu, &shape, &w[i]).unwrap()
+    }));
     let mut rec = gpu.recorder().unwrap();
     store.zero_grads(&mut rec).unwrap();
     let (_, cache) = dec.forward(&mut rec, &ts, &tc, 0.05).unwrap();

@@ -9,8 +9,7 @@
 mod common;
 use common::*;
 use velox::engine::ops::raster::{
-    self, reference, render, render_backward_with, BackwardKernel, Camera, GaussianData, Gaussians, Grads,
-    Rendered,
+    self, reference, render, render_backward_with, BackwardKernel, Camera, GaussianData, Gaussians, Rendered,
 };
 
 const BG: [f32; 3] = [0.1, 0.2, 0.3];
@@ -98,7 +97,7 @@ fn image_grads(cam: &Camera, seed: u64) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
     (rng.normal_vec(3 * px), rng.normal_vec(px), rng.uniform_vec(px, -0.1, 0.1))
 }
 
-fn read_grads(g: &Grads) -> [Vec<f32>; 5] {
+fn read_grads(g: &Gaussians) -> [Vec<f32>; 5] {
     [&g.means, &g.log_scales, &g.quats, &g.opacities, &g.colours].map(|t| t.read::<f32>().unwrap())
 }
 
@@ -133,7 +132,7 @@ fn check_backward(what: &str, g: &GaussianData, cam: &Camera, f: &Forward, seed:
         BackwardKernel::fastest(&gpu),
     ];
     let mut rec = gpu.recorder().unwrap();
-    let grads: Vec<Grads> = kernels
+    let grads: Vec<Gaussians> = kernels
         .iter()
         .map(|&k| render_backward_with(&mut rec, k, &f.gaussians, &f.rendered, &t_dr, &t_da, &t_dd).unwrap())
         .collect();

@@ -4,90 +4,30 @@
 //! the camera-space z); pixel `u = fx x_c / z + cx`, `v = fy y_c / z + cy`, pixel (i, j) covers
 //! [i, i + 1) x [j, j + 1) and its centre is (i + 0.5, j + 0.5). The world is y-up, as in glTF.
 
-use serde::{Deserialize, Serialize};
 use velox_engine::rng::Rng;
 
 use crate::math::{add, cross, dot, length, normalize, scale, sub, V3};
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Camera {
-    /// World-to-camera rotation, rows.
-    pub rotation: [[f32; 3]; 3],
-    pub translation: V3,
-    pub fx: f32,
-    pub fy: f32,
-    pub cx: f32,
-    pub cy: f32,
-    pub width: u32,
-    pub height: u32,
+pub use velox_engine::ops::raster::Camera;
+
+/// A camera at `eye` looking at `target` with a square image of `res` pixels and a field of
+/// view of `fov_deg` degrees, the world's y up (z when looking along y).
+pub fn look_at(eye: V3, target: V3, fov_deg: f32, res: u32) -> Camera {
+    let mut up = [0.0, 1.0, 0.0];
+    if length(cross(normalize(sub(target, eye)), up)) < 1e-4 {
+        up = [0.0, 0.0, 1.0];
+    }
+    Camera::look_at(eye, target, up, fov_deg, res, res)
 }
 
-impl Camera {
-    /// A camera at `eye` looking at `target` with a square image of `res` pixels and a field of
-    /// view of `fov_deg` degrees.
-    pub fn look_at(eye: V3, target: V3, fov_deg: f32, res: u32) -> Camera {
-        let f = normalize(sub(target, eye));
-        let mut up = [0.0, 1.0, 0.0];
-        if length(cross(f, up)) < 1e-4 {
-            up = [0.0, 0.0, 1.0];
-        }
-        let r = normalize(cross(f, up));
-        let d = cross(f, r);
-        let rotation = [r, d, f];
-        let translation = [-dot(r, eye), -dot(d, eye), -dot(f, eye)];
-        let focal = 0.5 * res as f32 / (0.5 * fov_deg.to_radians()).tan();
-        let c = 0.5 * res as f32;
-        Camera { rotation, translation, fx: focal, fy: focal, cx: c, cy: c, width: res, height: res }
-    }
-
-    /// The same view with `factor` times the pixels on each side (for supersampling).
-    pub fn upscaled(&self, factor: u32) -> Camera {
-        let s = factor as f32;
-        Camera {
-            fx: self.fx * s,
-            fy: self.fy * s,
-            cx: self.cx * s,
-            cy: self.cy * s,
-            width: self.width * factor,
-            height: self.height * factor,
-            ..self.clone()
-        }
-    }
-
-    pub fn to_camera(&self, p: V3) -> V3 {
-        let r = &self.rotation;
-        add([dot(r[0], p), dot(r[1], p), dot(r[2], p)], self.translation)
-    }
-
-    /// Pixel coordinates and depth of a world point.
-    pub fn project(&self, p: V3) -> (f32, f32, f32) {
-        let c = self.to_camera(p);
-        (self.fx * c[0] / c[2] + self.cx, self.fy * c[1] / c[2] + self.cy, c[2])
-    }
-
-    /// The world point at depth `z` under pixel position (u, v).
-    pub fn unproject(&self, u: f32, v: f32, z: f32) -> V3 {
-        let c = [(u - self.cx) / self.fx * z, (v - self.cy) / self.fy * z, z];
-        let q = sub(c, self.translation);
-        let r = &self.rotation;
-        // R is orthonormal: its inverse is its transpose.
-        std::array::from_fn(|k| r[0][k] * q[0] + r[1][k] * q[1] + r[2][k] * q[2])
-    }
-
-    /// Camera centre in the world.
-    pub fn position(&self) -> V3 {
-        self.unproject(self.cx, self.cy, 0.0)
-    }
-
-    /// The 16 floats the rasteriser reads: rows r0 t0 r1 t1 r2 t2, then fx fy cx cy.
-    pub fn gpu_row(&self) -> [f32; 16] {
-        let r = &self.rotation;
-        let t = &self.translation;
-        [
-            r[0][0], r[0][1], r[0][2], t[0], r[1][0], r[1][1], r[1][2], t[1], r[2][0], r[2][1], r[2][2],
-            t[2], self.fx, self.fy, self.cx, self.cy,
-        ]
-    }
+/// The 16 floats the mesh rasteriser reads: rows r0 t0 r1 t1 r2 t2, then fx fy cx cy.
+pub fn gpu_row(c: &Camera) -> [f32; 16] {
+    let r = &c.rotation;
+    let t = &c.translation;
+    [
+        r[0][0], r[0][1], r[0][2], t[0], r[1][0], r[1][1], r[1][2], t[1], r[2][0], r[2][1], r[2][2], t[2],
+        c.fx, c.fy, c.cx, c.cy,
+    ]
 }
 
 /// Radius of the input camera sphere.
@@ -108,7 +48,7 @@ pub fn input_cameras(res: u32) -> Vec<Camera> {
             let r = (1.0 - y * y).sqrt();
             let a = golden * i as f32;
             let dir = [r * a.cos(), y, r * a.sin()];
-            Camera::look_at(scale(dir, INPUT_RADIUS), [0.0; 3], INPUT_FOV, res)
+            look_at(scale(dir, INPUT_RADIUS), [0.0; 3], INPUT_FOV, res)
         })
         .collect()
 }
@@ -135,7 +75,7 @@ pub fn supervision_cameras(rng: &mut Rng, res: u32) -> Vec<Camera> {
             let dist = rng.range(1.5, 3.5) as f32;
             let fov = rng.range(25.0, 40.0) as f32;
             let eye = add(target, scale(random_direction(rng), dist));
-            Camera::look_at(eye, target, fov, res)
+            look_at(eye, target, fov, res)
         })
         .collect()
 }
@@ -147,5 +87,5 @@ pub fn supervision_cameras(rng: &mut Rng, res: u32) -> Vec<Camera> {
 pub fn video_camera(rng: &mut Rng, res: u32) -> Camera {
     let r = rng.range(1.75, 5.0) as f32;
     let fov = 2.0 * (1.25 / (r - 0.5)).atan();
-    Camera::look_at([r, 0.0, 0.0], [0.0; 3], fov.to_degrees(), res)
+    look_at([r, 0.0, 0.0], [0.0; 3], fov.to_degrees(), res)
 }

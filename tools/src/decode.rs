@@ -20,7 +20,6 @@ use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
-use velox_engine::ops::raster::{GaussianData, Gaussians};
 use velox_engine::{Gpu, Precision, Tensor};
 use velox_models::files::{ply, write_bytes};
 use velox_models::velox::autoencoder::{tau_of, Autoencoder, FRAMES};
@@ -217,17 +216,6 @@ pub fn surface_voxels(ae: &Autoencoder, samples: &[f32], frame: usize) -> Vec<f3
     ae.voxels_from_points(&inside, tau_of(frame))
 }
 
-/// Gaussians read back from the device.
-pub fn download(g: &Gaussians) -> CliResult<GaussianData> {
-    Ok(GaussianData {
-        means: g.means.read()?,
-        log_scales: g.log_scales.read()?,
-        quats: g.quats.read()?,
-        opacities: g.opacities.read()?,
-        colours: g.colours.read()?,
-    })
-}
-
 /// Writes xyz rows at frame time `tau` as binary little-endian PLY (float x y z tau), through
 /// a temporary file renamed over the target.
 pub fn write_points_ply(path: &Path, xyz: &[f32], tau: f32) -> CliResult<()> {
@@ -346,7 +334,7 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
                     )
                     .into());
                 }
-                let g = download(&ae.decode_gaussians(&tokens, &centres, tau_of(f))?)?;
+                let g = ae.decode_gaussians(&tokens, &centres, tau_of(f))?.download()?;
                 let path = common.out.join(format!("gaussians_f{f:02}.ply"));
                 ply::write(&path, &g)?;
                 FrameFile {

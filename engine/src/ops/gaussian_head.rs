@@ -3,6 +3,7 @@
 
 use crate::error::{Error, Result};
 use crate::kernels::{GAUSSIAN_HEAD_BACKWARD, GAUSSIAN_HEAD_FORWARD};
+use crate::ops::raster::Gaussians;
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
@@ -25,17 +26,6 @@ struct Params {
     offset_range: f32,
     scale_min: f32,
     scale_max: f32,
-}
-
-/// The rasteriser's parameters of M = V x G Gaussians: means, log-scales `[M, 3]`, quaternions
-/// `[M, 4]`, opacity logits `[M]`, colours `[M, 3]`.
-#[derive(Clone, Debug)]
-pub struct HeadOut {
-    pub means: Tensor,
-    pub log_scales: Tensor,
-    pub quats: Tensor,
-    pub logits: Tensor,
-    pub colours: Tensor,
 }
 
 fn params(raw: &Tensor, centres: &Tensor, r: &HeadRange) -> Result<(usize, Params)> {
@@ -63,24 +53,16 @@ fn params(raw: &Tensor, centres: &Tensor, r: &HeadRange) -> Result<(usize, Param
     ))
 }
 
-/// Maps the raw head output to the rasteriser's Gaussian parameters.
+/// Maps the raw head output to the rasteriser's parameters of its M = V x G Gaussians.
 pub fn head_forward(
     rec: &mut Recorder,
     raw: &Tensor,
     centres: &Tensor,
     range: &HeadRange,
-) -> Result<HeadOut> {
+) -> Result<Gaussians> {
     let (m, p) = params(raw, centres, range)?;
-    let gpu = raw.gpu().clone();
-    let t = |shape: &[usize]| Tensor::empty(&gpu, shape, DType::F32);
-    let out = HeadOut {
-        means: t(&[m, 3])?,
-        log_scales: t(&[m, 3])?,
-        quats: t(&[m, 4])?,
-        logits: t(&[m])?,
-        colours: t(&[m, 3])?,
-    };
-    let args = [raw, centres, &out.means, &out.log_scales, &out.quats, &out.logits, &out.colours];
+    let out = Gaussians::empty(raw.gpu(), m)?;
+    let args = [raw, centres, &out.means, &out.log_scales, &out.quats, &out.opacities, &out.colours];
     rec.dispatch_linear(GAUSSIAN_HEAD_FORWARD, (m as u64).div_ceil(256), &args, &p)?;
     Ok(out)
 }
@@ -91,11 +73,11 @@ pub fn head_backward(
     raw: &Tensor,
     centres: &Tensor,
     range: &HeadRange,
-    d: &HeadOut,
+    d: &Gaussians,
 ) -> Result<Tensor> {
     let (m, p) = params(raw, centres, range)?;
     let d_raw = Tensor::empty(raw.gpu(), &[m, RAW], DType::F32)?;
-    let args = [raw, &d.means, &d.log_scales, &d.quats, &d.logits, &d.colours, &d_raw];
+    let args = [raw, &d.means, &d.log_scales, &d.quats, &d.opacities, &d.colours, &d_raw];
     rec.dispatch_linear(GAUSSIAN_HEAD_BACKWARD, (m as u64).div_ceil(256), &args, &p)?;
     Ok(d_raw)
 }

@@ -18,7 +18,6 @@
 use velox_engine::ops::adamw::AdamWConfig;
 use velox_engine::ops::binary::{binary, binary_into, Binary};
 use velox_engine::ops::fill::fill;
-use velox_engine::ops::gaussian_head::HeadOut;
 use velox_engine::ops::raster::{render, render_backward, Camera, Gaussians};
 use velox_engine::rng::Rng;
 use velox_engine::{DType, Error, Gpu, Precision, Result, Tensor};
@@ -196,7 +195,7 @@ impl Autoencoder {
         rec.set_precision(self.precision);
         let (out, _) = self.gaussians.forward(&mut rec, tokens, &c, tau)?;
         rec.submit()?;
-        Ok(to_gaussians(out))
+        Ok(out)
     }
 
     /// Occupied voxel centres of a frame from points (the ground truth in training; surface
@@ -249,7 +248,7 @@ impl Autoencoder {
         let cams = scene.cameras.len();
         let nv = self.cfg.views_per_step.clamp(1, cams);
         let views: Vec<usize> = (0..nv).map(|i| (view + i * cams / nv) % cams).collect();
-        let gaussians = to_gaussians(head);
+        let gaussians = head;
         let mut rendered = Vec::with_capacity(nv);
         for &v in &views {
             let cam = &scene.cameras[v];
@@ -263,7 +262,7 @@ impl Autoencoder {
         let mut rec = gpu.recorder()?;
         let image_loss = Tensor::empty(&gpu, &[1], DType::F32)?;
         fill(&mut rec, &image_loss, 0.0)?;
-        let mut d_head: Option<HeadOut> = None;
+        let mut d_head: Option<Gaussians> = None;
         for (r, gt) in &rendered {
             let (loss, d_rgb) =
                 Loss::mse().weighted(1.0 / nv as f32).forward_backward(&mut rec, &r.image.rgb, gt)?;
@@ -271,23 +270,10 @@ impl Autoencoder {
             let d_zero = Tensor::empty(&gpu, gt.shape()[..2].as_ref(), DType::F32)?;
             fill(&mut rec, &d_zero, 0.0)?;
             let g = render_backward(&mut rec, &gaussians, r, &d_rgb, &d_zero, &d_zero)?;
-            let g = HeadOut {
-                means: g.means,
-                log_scales: g.log_scales,
-                quats: g.quats,
-                logits: g.opacities,
-                colours: g.colours,
-            };
             match &d_head {
                 None => d_head = Some(g),
                 Some(acc) => {
-                    for (a, b) in [
-                        (&acc.means, &g.means),
-                        (&acc.log_scales, &g.log_scales),
-                        (&acc.quats, &g.quats),
-                        (&acc.logits, &g.logits),
-                        (&acc.colours, &g.colours),
-                    ] {
+                    for (a, b) in acc.fields().into_iter().zip(g.fields()) {
                         binary_into(&mut rec, a, b, a, Binary::Add)?;
                     }
                 }
@@ -395,16 +381,5 @@ impl Autoencoder {
     /// Samples surface points with the config's default sampler: Heun, 20 steps.
     pub fn default_sampling(points: usize, seed: u64) -> SampleSpec {
         SampleSpec { points, steps: 20, sampler: Sampler::Heun, seed, precision: Precision::F32 }
-    }
-}
-
-/// The head's outputs as the rasteriser's Gaussians.
-pub fn to_gaussians(h: HeadOut) -> Gaussians {
-    Gaussians {
-        means: h.means,
-        log_scales: h.log_scales,
-        quats: h.quats,
-        opacities: h.logits,
-        colours: h.colours,
     }
 }

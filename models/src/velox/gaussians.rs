@@ -16,7 +16,8 @@ use velox_engine::ops::attention::Segments;
 use velox_engine::ops::binary::{binary, binary_into, Binary};
 use velox_engine::ops::columns::copy_columns;
 use velox_engine::ops::fill::fill;
-use velox_engine::ops::gaussian_head::{head_backward, head_forward, HeadOut, HeadRange, RAW};
+use velox_engine::ops::gaussian_head::{head_backward, head_forward, HeadRange, RAW};
+use velox_engine::ops::raster::Gaussians;
 use velox_engine::ops::window::WindowGrid;
 use velox_engine::{DType, Error, Gpu, Recorder, Result, Tensor};
 
@@ -172,7 +173,7 @@ impl GaussianDecoder {
         tokens: &Tensor,
         centres: &Tensor,
         tau: f32,
-    ) -> Result<(HeadOut, GaussianCache)> {
+    ) -> Result<(Gaussians, GaussianCache)> {
         let v = match centres.shape() {
             &[v, 3] if v > 0 && centres.dtype() == DType::F32 => v,
             _ => {
@@ -243,7 +244,7 @@ impl GaussianDecoder {
 
     /// Adds every parameter's gradient given the gradients of the Gaussians (the rasteriser's
     /// backward output); returns the gradient with respect to the tokens.
-    pub fn backward(&self, rec: &mut Recorder, cache: &GaussianCache, d: &HeadOut) -> Result<Tensor> {
+    pub fn backward(&self, rec: &mut Recorder, cache: &GaussianCache, d: &Gaussians) -> Result<Tensor> {
         let gpu = d.means.gpu().clone();
         let d_raw = head_backward(rec, &cache.raw, &cache.centres, &self.range(), d)?;
         let v = cache.centres.shape()[0];

@@ -227,7 +227,7 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
             let (h, _) = decoder.forward(rec, &tokens, &c, 0.0)?;
             // Every output of the head, side by side: the means alone would hide errors
             // behind their voxel centres.
-            let parts = [&h.means, &h.log_scales, &h.quats, &h.logits, &h.colours];
+            let parts = h.fields();
             let cols: usize = parts.iter().map(|t| t.numel() / n).sum();
             let all = Tensor::empty(gpu, &[n, cols], velox_engine::DType::F32)?;
             let mut at = 0;

@@ -23,17 +23,6 @@ use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 use crate::Gpu;
 
-/// Gradients of the loss with respect to the rasteriser's inputs (the module conventions:
-/// log-scales, raw quaternions, opacity logits). Dropped Gaussians get zeros.
-#[derive(Clone, Debug)]
-pub struct Grads {
-    pub means: Tensor,
-    pub log_scales: Tensor,
-    pub quats: Tensor,
-    pub opacities: Tensor,
-    pub colours: Tensor,
-}
-
 /// The blend-backward kernels (see the module docs).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum BackwardKernel {
@@ -102,7 +91,8 @@ pub fn variant(gpu: &Gpu) -> Result<(KernelId, &'static str)> {
 
 /// Records the gradients of a loss given its gradients with respect to the image: `d_rgb`
 /// `[H, W, 3]`, `d_alpha` and `d_depth` `[H, W]`. `g` must be the Gaussians `r` rendered. The
-/// result is deterministic ([`BackwardKernel::Ordered`]).
+/// gradients are a set of the Gaussians' shapes (log-scales, raw quaternions, opacity logits);
+/// dropped Gaussians get zeros. The result is deterministic ([`BackwardKernel::Ordered`]).
 pub fn render_backward(
     rec: &mut Recorder,
     g: &Gaussians,
@@ -110,7 +100,7 @@ pub fn render_backward(
     d_rgb: &Tensor,
     d_alpha: &Tensor,
     d_depth: &Tensor,
-) -> Result<Grads> {
+) -> Result<Gaussians> {
     render_backward_with(rec, BackwardKernel::Ordered, g, r, d_rgb, d_alpha, d_depth)
 }
 
@@ -123,7 +113,7 @@ pub fn render_backward_cas(
     d_rgb: &Tensor,
     d_alpha: &Tensor,
     d_depth: &Tensor,
-) -> Result<Grads> {
+) -> Result<Gaussians> {
     render_backward_with(rec, BackwardKernel::CompareAndSwap, g, r, d_rgb, d_alpha, d_depth)
 }
 
@@ -136,7 +126,7 @@ pub fn render_backward_with(
     d_rgb: &Tensor,
     d_alpha: &Tensor,
     d_depth: &Tensor,
-) -> Result<Grads> {
+) -> Result<Gaussians> {
     kernel.check(rec.gpu())?;
     let n = g.check()?;
     let p = &r.projected;
@@ -184,13 +174,7 @@ pub fn render_backward_with(
         fill_bits(rec, &grad2d, 0)?;
         rec.dispatch(kernel.id(), [tiles_x, tiles_y, 1], &[&blend_args[..], &[&grad2d]].concat(), &params)?;
     }
-    let grads = Grads {
-        means: Tensor::empty(&gpu, &[n, 3], DType::F32)?,
-        log_scales: Tensor::empty(&gpu, &[n, 3], DType::F32)?,
-        quats: Tensor::empty(&gpu, &[n, 4], DType::F32)?,
-        opacities: Tensor::empty(&gpu, &[n], DType::F32)?,
-        colours: Tensor::empty(&gpu, &[n, 3], DType::F32)?,
-    };
+    let grads = Gaussians::empty(&gpu, n)?;
     rec.dispatch_linear(
         RASTER_PROJECT_PROJECT_BACKWARD,
         (n as u64).div_ceil(256),

@@ -31,7 +31,7 @@ pub mod backward;
 pub mod forward;
 pub mod reference;
 
-pub use backward::{render_backward, render_backward_cas, render_backward_with, BackwardKernel, Grads};
+pub use backward::{render_backward, render_backward_cas, render_backward_with, BackwardKernel};
 pub use forward::{project, rasterize, render, Image, Projected, RenderStats, Rendered};
 
 use crate::error::{Error, Result};
@@ -65,7 +65,11 @@ pub const MAX_TILES_PER_GAUSSIAN: u32 = 1 << 16;
 pub const MIN_QUAT_NORM2: f32 = 1e-24;
 
 /// A pinhole camera: world-to-camera rotation (rows) and translation, intrinsics in pixels.
-#[derive(Clone, Copy, Debug, PartialEq)]
+/// `x_c = R x_w + t`, camera x right, y down, z forward (depth is the camera-space z); pixel
+/// `u = fx x_c / z + cx`, `v = fy y_c / z + cy`, pixel (i, j) covers [i, i + 1) x [j, j + 1)
+/// and its centre is (i + 0.5, j + 0.5). The rasteriser, the data's camera rigs and the
+/// scenes' `cameras.json` all use this one type.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Camera {
     pub width: u32,
     pub height: u32,
@@ -131,6 +135,47 @@ impl Camera {
         }
     }
 
+    /// The same view with `factor` times the pixels on each side (for supersampling).
+    pub fn upscaled(&self, factor: u32) -> Camera {
+        let s = factor as f32;
+        Camera {
+            fx: self.fx * s,
+            fy: self.fy * s,
+            cx: self.cx * s,
+            cy: self.cy * s,
+            width: self.width * factor,
+            height: self.height * factor,
+            ..*self
+        }
+    }
+
+    /// A world point in camera space.
+    pub fn to_camera(&self, p: [f32; 3]) -> [f32; 3] {
+        let r = &self.rotation;
+        let t = &self.translation;
+        std::array::from_fn(|i| r[i][0] * p[0] + r[i][1] * p[1] + r[i][2] * p[2] + t[i])
+    }
+
+    /// Pixel coordinates and depth of a world point.
+    pub fn project(&self, p: [f32; 3]) -> (f32, f32, f32) {
+        let c = self.to_camera(p);
+        (self.fx * c[0] / c[2] + self.cx, self.fy * c[1] / c[2] + self.cy, c[2])
+    }
+
+    /// The world point at depth `z` under pixel position (u, v).
+    pub fn unproject(&self, u: f32, v: f32, z: f32) -> [f32; 3] {
+        let c = [(u - self.cx) / self.fx * z, (v - self.cy) / self.fy * z, z];
+        let q = sub(c, self.translation);
+        let r = &self.rotation;
+        // R is orthonormal: its inverse is its transpose.
+        std::array::from_fn(|k| r[0][k] * q[0] + r[1][k] * q[1] + r[2][k] * q[2])
+    }
+
+    /// Camera centre in the world.
+    pub fn position(&self) -> [f32; 3] {
+        self.unproject(self.cx, self.cy, 0.0)
+    }
+
     /// Tiles across and down.
     pub fn tiles(&self) -> (u32, u32) {
         (self.width.div_ceil(TILE), self.height.div_ceil(TILE))
@@ -164,14 +209,55 @@ impl Camera {
     }
 }
 
-/// Gaussians on the host, one flat f32 vector per quantity (see the module conventions).
+/// A set of N Gaussians as one list of values per quantity (see the module conventions):
+/// means `[N, 3]`, log-scales `[N, 3]`, quaternions `[N, 4]`, opacity logits `[N]`, colours
+/// `[N, 3]`. On the device it is [`Gaussians`] (tensors), on the host [`GaussianData`] (f32
+/// vectors). The Gaussian decoder's head writes one, the rasteriser draws one, and gradients
+/// with respect to a set are a set of the same shapes.
 #[derive(Clone, Debug, Default, PartialEq)]
-pub struct GaussianData {
-    pub means: Vec<f32>,
-    pub log_scales: Vec<f32>,
-    pub quats: Vec<f32>,
-    pub opacities: Vec<f32>,
-    pub colours: Vec<f32>,
+pub struct GaussianSet<T> {
+    pub means: T,
+    pub log_scales: T,
+    pub quats: T,
+    pub opacities: T,
+    pub colours: T,
+}
+
+/// Gaussians on the device.
+pub type Gaussians = GaussianSet<Tensor>;
+/// Gaussians on the host.
+pub type GaussianData = GaussianSet<Vec<f32>>;
+
+/// Values per Gaussian of each quantity, in field order.
+pub const GAUSSIAN_WIDTHS: [usize; 5] = [3, 3, 4, 1, 3];
+/// The quantities' names, in field order.
+pub const GAUSSIAN_FIELDS: [&str; 5] = ["means", "log_scales", "quats", "opacities", "colours"];
+
+impl<T> GaussianSet<T> {
+    /// The five quantities in field order.
+    pub fn fields(&self) -> [&T; 5] {
+        [&self.means, &self.log_scales, &self.quats, &self.opacities, &self.colours]
+    }
+
+    /// A set built from the five quantities in field order.
+    pub fn from_fields([means, log_scales, quats, opacities, colours]: [T; 5]) -> GaussianSet<T> {
+        GaussianSet { means, log_scales, quats, opacities, colours }
+    }
+
+    /// Each quantity through `f` (with its values per Gaussian), in field order.
+    pub fn try_map<U, E>(
+        &self,
+        mut f: impl FnMut(&T, usize) -> std::result::Result<U, E>,
+    ) -> std::result::Result<GaussianSet<U>, E> {
+        let [m, l, q, o, c] = self.fields();
+        Ok(GaussianSet {
+            means: f(m, 3)?,
+            log_scales: f(l, 3)?,
+            quats: f(q, 4)?,
+            opacities: f(o, 1)?,
+            colours: f(c, 3)?,
+        })
+    }
 }
 
 impl GaussianData {
@@ -198,13 +284,7 @@ impl GaussianData {
     pub fn upload(&self, gpu: &Gpu) -> Result<Gaussians> {
         self.check()?;
         let n = self.len();
-        Ok(Gaussians {
-            means: Tensor::from_slice(gpu, &[n, 3], &self.means)?,
-            log_scales: Tensor::from_slice(gpu, &[n, 3], &self.log_scales)?,
-            quats: Tensor::from_slice(gpu, &[n, 4], &self.quats)?,
-            opacities: Tensor::from_slice(gpu, &[n], &self.opacities)?,
-            colours: Tensor::from_slice(gpu, &[n, 3], &self.colours)?,
-        })
+        self.try_map(|v, w| Tensor::from_slice(gpu, &field_shape(n, w), v))
     }
 
     /// Appends one Gaussian.
@@ -244,26 +324,37 @@ impl GaussianData {
     }
 }
 
-/// Gaussians on the device (see the module conventions for shapes).
-#[derive(Clone, Debug)]
-pub struct Gaussians {
-    pub means: Tensor,
-    pub log_scales: Tensor,
-    pub quats: Tensor,
-    pub opacities: Tensor,
-    pub colours: Tensor,
+/// The shape of a quantity of `w` values per Gaussian: `[n]` for one, else `[n, w]`.
+fn field_shape(n: usize, w: usize) -> Vec<usize> {
+    if w == 1 {
+        vec![n]
+    } else {
+        vec![n, w]
+    }
 }
 
 impl Gaussians {
     pub fn len(&self) -> usize {
         self.opacities.numel()
     }
+
+    /// Uninitialised tensors for `n` Gaussians.
+    pub fn empty(gpu: &Gpu, n: usize) -> Result<Gaussians> {
+        let t = |w: usize| Tensor::empty(gpu, &field_shape(n, w), DType::F32);
+        Ok(GaussianSet { means: t(3)?, log_scales: t(3)?, quats: t(4)?, opacities: t(1)?, colours: t(3)? })
+    }
+
+    /// Copies the set to the host.
+    pub fn download(&self) -> Result<GaussianData> {
+        self.check()?;
+        self.try_map(|t, _| t.read::<f32>())
+    }
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
 
     /// Number of Gaussians after checking every shape and dtype.
-    pub(crate) fn check(&self) -> Result<usize> {
+    pub fn check(&self) -> Result<usize> {
         let n = self.len();
         let want: [(&Tensor, usize, &str); 5] = [
             (&self.means, 3, "means"),

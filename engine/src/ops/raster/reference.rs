@@ -6,8 +6,8 @@
 #![allow(clippy::needless_range_loop)]
 
 use super::{
-    Camera, GaussianData, ALPHA_MAX, DILATION, MAX_TILES_PER_GAUSSIAN, MIN_ALPHA, MIN_DET, MIN_QUAT_NORM2,
-    NEAR, TILE, T_STOP,
+    Camera, GaussianData, GaussianSet, ALPHA_MAX, DILATION, MAX_TILES_PER_GAUSSIAN, MIN_ALPHA, MIN_DET,
+    MIN_QUAT_NORM2, NEAR, TILE, T_STOP,
 };
 
 type M3 = [[f64; 3]; 3];
@@ -41,25 +41,11 @@ fn mv(a: &M3, v: [f64; 3]) -> [f64; 3] {
 }
 
 /// Gaussian parameters in f64 (finite differences perturb these).
-#[derive(Clone, Debug)]
-pub struct Scene {
-    pub means: Vec<f64>,
-    pub log_scales: Vec<f64>,
-    pub quats: Vec<f64>,
-    pub opacities: Vec<f64>,
-    pub colours: Vec<f64>,
-}
+pub type Scene = GaussianSet<Vec<f64>>;
 
 impl Scene {
     pub fn from_data(g: &GaussianData) -> Scene {
-        let w = |v: &[f32]| v.iter().map(|&x| x as f64).collect();
-        Scene {
-            means: w(&g.means),
-            log_scales: w(&g.log_scales),
-            quats: w(&g.quats),
-            opacities: w(&g.opacities),
-            colours: w(&g.colours),
-        }
+        GaussianSet::from_fields(g.fields().map(|v| v.iter().map(|&x| x as f64).collect()))
     }
     pub fn len(&self) -> usize {
         self.opacities.len()
@@ -342,15 +328,8 @@ pub fn render_pixels(
         .collect()
 }
 
-/// Gradients with respect to the scene's parameters (flat, like [`Scene`]).
-#[derive(Clone, Debug)]
-pub struct Grads {
-    pub means: Vec<f64>,
-    pub log_scales: Vec<f64>,
-    pub quats: Vec<f64>,
-    pub opacities: Vec<f64>,
-    pub colours: Vec<f64>,
-}
+/// Gradients with respect to every quantity of a [`Scene`].
+pub type Grads = GaussianSet<Vec<f64>>;
 
 /// Backward of [`render`] for the loss sum(d_rgb * rgb) + sum(d_alpha * alpha) +
 /// sum(d_depth * depth): per pixel back to front, then per Gaussian through the projection.
