@@ -41,7 +41,7 @@ fn randomize(store: &ParamStore, seed: u64) {
 
 fn loss_of(dec: &SurfaceDecoder, x: &Tensor, tau: f32, tokens: &Tensor, noise: &FlowNoise) -> f64 {
     let mut rec = x.gpu().recorder().unwrap();
-    let (loss, _, _) = dec.flow_loss(&mut rec, x, tau, tokens, noise).unwrap();
+    let (loss, _, _) = dec.flow_loss(&mut rec, x, tau, tokens, noise, 1.0).unwrap();
     rec.submit().unwrap();
     loss.read::<f32>().unwrap()[0] as f64
 }
@@ -66,7 +66,7 @@ fn backward_matches_central_differences() {
 
     let mut rec = gpu.recorder().unwrap();
     store.zero_grads(&mut rec).unwrap();
-    let out = dec.loss_step_with(&mut rec, &x, tau, &tokens, &noise).unwrap();
+    let out = dec.loss_step_with(&mut rec, &x, tau, &tokens, &noise, 1.0).unwrap();
     rec.submit().unwrap();
     let loss0 = out.loss.read::<f32>().unwrap()[0];
     let grads = store.flat_grads().read::<f32>().unwrap();
@@ -257,7 +257,7 @@ fn overfits_a_circle_and_samples_it_back() {
     for s in 1..=steps {
         let mut rec = gpu.recorder().unwrap();
         store.zero_grads(&mut rec).unwrap();
-        let out = dec.loss_step(&mut rec, &x, tau, &tokens, &mut rng).unwrap();
+        let out = dec.loss_step(&mut rec, &x, tau, &tokens, &mut rng, 1.0).unwrap();
         store.adamw_step(&mut rec, &adamw, noam(1e-2, 20, s), Some(1.0)).unwrap();
         rec.submit().unwrap();
         store.grad_norm().unwrap();
@@ -387,7 +387,8 @@ fn bad_input_gets_clear_errors() {
 
     let mut rng = Rng::new(1);
     let mut rec = gpu.recorder().unwrap();
-    let wrong = dec.loss_step(&mut rec, &x2, 0.5, &tokens, &mut rng).err().expect("an error").to_string();
+    let wrong =
+        dec.loss_step(&mut rec, &x2, 0.5, &tokens, &mut rng, 1.0).err().expect("an error").to_string();
     assert!(wrong.contains("[N, 3]"), "{wrong}");
     assert!(
         SurfaceDecoder::standalone(&gpu, &SurfaceConfig { heads: 3, ..cfg.clone() }, token_dim, 1).is_err()

@@ -92,8 +92,17 @@ pub struct AutoencoderConfig {
     pub peak_lr: f64,
     pub warmup: u64,
     pub max_grad_norm: f64,
-    /// Supervision views rendered and compared per training step (of one frame): more image
-    /// signal for one pass of the networks.
+    /// Scenes in a micro-batch: the samples one pass of the networks trains on, as
+    /// variable-length segments through the attention kernels. The batch of an optimiser step
+    /// is this times `velox train --accumulate` times the number of processes.
+    #[serde(default = "one")]
+    pub batch: usize,
+    /// Frames of each scene a training step uses: each gives the surface loss its points and
+    /// the Gaussian decoder a frame to decode and render.
+    #[serde(default = "one")]
+    pub frames_per_sample: usize,
+    /// Supervision views rendered and compared per frame in a training step: more image signal
+    /// for one pass of the networks.
     #[serde(default = "one")]
     pub views_per_step: usize,
     /// Points of the cloud the encoder reads per training step: a fresh random subset each
@@ -166,6 +175,8 @@ impl AutoencoderConfig {
             peak_lr: 4.9e-4,
             warmup: 4000,
             max_grad_norm: 1.0,
+            batch: 1,
+            frames_per_sample: 1,
             views_per_step: 1,
             encoder_points: 0,
         }
@@ -346,6 +357,8 @@ impl AutoencoderConfig {
             ("gaussians.xyz_freqs", g.xyz_freqs, 1, FREQS),
             ("gaussians.tau_freqs", g.tau_freqs, 1, FREQS),
             ("gaussians.window_voxels", g.window_voxels, 1, g.grid),
+            ("batch", self.batch, 1, 4096),
+            ("frames_per_sample", self.frames_per_sample, 1, 24),
             ("views_per_step", self.views_per_step, 1, 1024),
             ("encoder_points", self.encoder_points, 0, POINTS),
         ];

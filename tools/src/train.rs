@@ -143,8 +143,6 @@ struct LogLine {
     tokens: f64,
     grad_norm: f64,
     lr: f64,
-    frame: usize,
-    view: usize,
 }
 
 /// Keeps the log lines up to `step` (a resumed run rewrites what came after its checkpoint).
@@ -330,8 +328,6 @@ pub fn train_autoencoder(
             tokens: losses.tokens,
             grad_norm: losses.grad_norm,
             lr: losses.lr,
-            frame: losses.frame,
-            view: losses.view,
         };
         writeln!(log_file, "{}", serde_json::to_string(&line)?).map_err(log_error)?;
         log.push(line);

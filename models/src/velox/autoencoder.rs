@@ -27,10 +27,14 @@ use crate::layers::Loss;
 use crate::params::ParamStore;
 use crate::run::RunSettings;
 use crate::schedule::noam;
+use crate::train::{Losses, Trainable};
 use crate::velox::cloud::{self, CHANNELS};
 use crate::velox::encoder::Encoder;
 use crate::velox::gaussians::{occupied_voxels, GaussianDecoder};
 use crate::velox::surface::{SampleSpec, Sampler, SurfaceDecoder};
+
+/// The `model` a checkpoint of the autoencoder names.
+pub const MODEL_KIND: &str = "velox autoencoder";
 
 /// Frames of a clip; tau = frame / 100.
 pub const FRAMES: usize = 24;
@@ -108,8 +112,6 @@ pub struct StepLosses {
     pub tokens: f64,
     pub grad_norm: f64,
     pub lr: f64,
-    pub frame: usize,
-    pub view: usize,
 }
 
 pub struct Autoencoder {
@@ -205,99 +207,169 @@ impl Autoencoder {
         occupied_voxels(&cloud, tau, self.cfg.gaussians.grid)
     }
 
-    /// One training step (see the module docs). `step` counts from 1.
+    /// One optimiser step on one scene (a batch of one, outside the trainer): zero the
+    /// gradients, [`Autoencoder::accumulate`], AdamW. `step` counts from 1.
     pub fn train_step(&mut self, scene: &TrainScene, step: u64, rng: &mut Rng) -> Result<StepLosses> {
         let gpu = scene.cloud.gpu().clone();
-        let frames = scene.frames();
-        let frame = frames[rng.below(frames.len() as u32) as usize];
-        let view = rng.below(scene.cameras.len() as u32) as usize;
-        let tau = tau_of(frame);
+        let mut rec = gpu.recorder()?;
+        self.store.zero_grads(&mut rec)?;
+        rec.submit()?;
+        let losses = self.accumulate(&[scene], std::slice::from_mut(rng), 1.0)?;
+        let lr = noam(self.cfg.peak_lr, self.cfg.warmup, step) * self.lr_scale;
+        let mut rec = gpu.recorder()?;
+        self.store.adamw_step(&mut rec, &self.adamw, lr, Some(self.cfg.max_grad_norm))?;
+        rec.submit()?;
+        let grad_norm = self.store.grad_norm()? as f64;
+        let term = |name: &str| losses.terms.iter().find(|t| t.0 == name).map_or(0.0, |t| t.1);
+        Ok(StepLosses {
+            total: losses.total(),
+            surface: term("surface"),
+            gaussians: term("image"),
+            tokens: term("tokens"),
+            grad_norm,
+            lr,
+        })
+    }
+
+    /// The forward and backward passes of a micro-batch of scenes (see the module docs),
+    /// adding `weight` times the gradient of the sum of their losses into the store's
+    /// gradients; `rngs` holds each scene's generator. Returns the loss terms ("total",
+    /// "surface", "image", "tokens"), summed over the scenes, times `weight`.
+    pub fn accumulate(&mut self, scenes: &[&TrainScene], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
+        if scenes.is_empty() || scenes.len() != rngs.len() {
+            return Err(Error::Invalid(format!(
+                "a micro-batch needs one generator per scene: {} scenes, {} generators",
+                scenes.len(),
+                rngs.len()
+            )));
+        }
+        let mut total = Losses::default();
+        for (scene, rng) in scenes.iter().zip(rngs.iter_mut()) {
+            total.add(&self.accumulate_one(scene, rng, weight as f32)?);
+        }
+        Ok(total)
+    }
+
+    /// [`Autoencoder::accumulate`] of one scene.
+    fn accumulate_one(&mut self, scene: &TrainScene, rng: &mut Rng, weight: f32) -> Result<Losses> {
+        let gpu = scene.cloud.gpu().clone();
+        let frames = self.draw_frames(scene, rng)?;
+        let cams = scene.cameras.len();
+        let nv = self.cfg.views_per_step.clamp(1, cams);
+        let view = rng.below(cams as u32) as usize;
+        let nf = frames.len();
         let k = self.cfg.encoder.tokens;
         let dim = self.cfg.encoder.token_dim;
 
-        // Forward: encoder, token loss, surface loss, Gaussian decoder.
+        // Forward: encoder, token loss; per frame the surface loss (forward and backward) and
+        // the Gaussian decoder's forward.
         let mut rec = gpu.recorder()?;
-        self.store.zero_grads(&mut rec)?;
         let subset = self.encoder_subset(scene, rng)?;
         let (s, enc_cache) = self.encoder.forward(&mut rec, subset.as_ref().unwrap_or(&scene.cloud), rng)?;
         let zeros = Tensor::empty(&gpu, &[k, dim], DType::F32)?;
         fill(&mut rec, &zeros, 0.0)?;
-        let (token_loss, ds) =
-            Loss::mse().weighted(self.cfg.encoder.token_reg).forward_backward(&mut rec, &s, &zeros)?;
+        let (token_loss, ds) = Loss::mse()
+            .weighted(self.cfg.encoder.token_reg * weight)
+            .forward_backward(&mut rec, &s, &zeros)?;
         let noise: Vec<f32> =
             (0..k * dim).map(|_| (rng.normal() * self.cfg.encoder.token_noise as f64) as f32).collect();
         let noise = Tensor::from_slice(&gpu, &[k, dim], &noise)?;
         let s_noisy = binary(&mut rec, &s, &noise, Binary::Add)?;
-        let pts = &scene.frame_points[frame];
-        let n = self.cfg.surface.points_per_step;
-        let x: Vec<f32> = (0..n)
-            .flat_map(|_| {
-                let i = rng.below((pts.len() / 3) as u32) as usize;
-                [pts[3 * i], pts[3 * i + 1], pts[3 * i + 2]]
-            })
-            .collect();
-        let x = Tensor::from_slice(&gpu, &[n, 3], &x)?;
-        let flow = self.surface.loss_step(&mut rec, &x, tau, &s_noisy, rng)?;
-        let centres = self.voxels_from_points(pts, tau);
-        let c = Tensor::from_slice(&gpu, &[centres.len() / 3, 3], &centres)?;
-        let (head, g_cache) = self.gaussians.forward(&mut rec, &s_noisy, &c, tau)?;
+        let surface_loss = Tensor::empty(&gpu, &[1], DType::F32)?;
+        fill(&mut rec, &surface_loss, 0.0)?;
+        let mut decoded = Vec::with_capacity(nf);
+        for &frame in &frames {
+            let tau = tau_of(frame);
+            let pts = &scene.frame_points[frame];
+            let n = self.cfg.surface.points_per_step;
+            let x: Vec<f32> = (0..n)
+                .flat_map(|_| {
+                    let i = rng.below((pts.len() / 3) as u32) as usize;
+                    [pts[3 * i], pts[3 * i + 1], pts[3 * i + 2]]
+                })
+                .collect();
+            let x = Tensor::from_slice(&gpu, &[n, 3], &x)?;
+            let flow = self.surface.loss_step(&mut rec, &x, tau, &s_noisy, rng, weight / nf as f32)?;
+            binary_into(&mut rec, &surface_loss, &flow.loss, &surface_loss, Binary::Add)?;
+            binary_into(&mut rec, &ds, &flow.dtokens, &ds, Binary::Add)?;
+            let centres = self.voxels_from_points(pts, tau);
+            let c = Tensor::from_slice(&gpu, &[centres.len() / 3, 3], &centres)?;
+            let (gaussians, g_cache) = self.gaussians.forward(&mut rec, &s_noisy, &c, tau)?;
+            decoded.push((frame, gaussians, g_cache));
+        }
         rec.submit()?;
 
-        // Render the frame from `views_per_step` supervision views (spread evenly from the drawn
-        // one) and compare.
-        let cams = scene.cameras.len();
-        let nv = self.cfg.views_per_step.clamp(1, cams);
+        // Each frame rendered from `views_per_step` supervision views (spread evenly from the
+        // drawn one) and compared; the image loss is the mean over frames and views.
         let views: Vec<usize> = (0..nv).map(|i| (view + i * cams / nv) % cams).collect();
-        let gaussians = head;
-        let mut rendered = Vec::with_capacity(nv);
-        for &v in &views {
-            let cam = &scene.cameras[v];
-            let (h, w) = (cam.height as usize, cam.width as usize);
-            let gt = Tensor::from_slice(&gpu, &[h, w, 3], &scene.images[frame * cams + v])?;
-            rendered.push((render(&gpu, &gaussians, cam, [0.0; 3])?, gt));
+        let mut rendered = Vec::with_capacity(nf * nv);
+        for (frame, gaussians, _) in &decoded {
+            for &v in &views {
+                let cam = &scene.cameras[v];
+                let (h, w) = (cam.height as usize, cam.width as usize);
+                let gt = Tensor::from_slice(&gpu, &[h, w, 3], &scene.images[frame * cams + v])?;
+                rendered.push((render(&gpu, gaussians, cam, [0.0; 3])?, gt));
+            }
         }
 
-        // Backward: image loss (the mean over the views), rasteriser, Gaussian decoder, encoder;
-        // then AdamW.
+        // Backward: image loss, rasteriser and Gaussian decoder per frame, then the encoder.
         let mut rec = gpu.recorder()?;
         let image_loss = Tensor::empty(&gpu, &[1], DType::F32)?;
         fill(&mut rec, &image_loss, 0.0)?;
-        let mut d_head: Option<Gaussians> = None;
-        for (r, gt) in &rendered {
-            let (loss, d_rgb) =
-                Loss::mse().weighted(1.0 / nv as f32).forward_backward(&mut rec, &r.image.rgb, gt)?;
-            binary_into(&mut rec, &image_loss, &loss, &image_loss, Binary::Add)?;
-            let d_zero = Tensor::empty(&gpu, gt.shape()[..2].as_ref(), DType::F32)?;
-            fill(&mut rec, &d_zero, 0.0)?;
-            let g = render_backward(&mut rec, &gaussians, r, &d_rgb, &d_zero, &d_zero)?;
-            match &d_head {
-                None => d_head = Some(g),
-                Some(acc) => {
-                    for (a, b) in acc.fields().into_iter().zip(g.fields()) {
-                        binary_into(&mut rec, a, b, a, Binary::Add)?;
+        let image_weight = weight / (nf * nv) as f32;
+        for ((_, gaussians, g_cache), renders) in decoded.iter().zip(rendered.chunks(nv)) {
+            let mut d_head: Option<Gaussians> = None;
+            for (r, gt) in renders {
+                let (loss, d_rgb) =
+                    Loss::mse().weighted(image_weight).forward_backward(&mut rec, &r.image.rgb, gt)?;
+                binary_into(&mut rec, &image_loss, &loss, &image_loss, Binary::Add)?;
+                let d_zero = Tensor::empty(&gpu, gt.shape()[..2].as_ref(), DType::F32)?;
+                fill(&mut rec, &d_zero, 0.0)?;
+                let g = render_backward(&mut rec, gaussians, r, &d_rgb, &d_zero, &d_zero)?;
+                match &d_head {
+                    None => d_head = Some(g),
+                    Some(acc) => {
+                        for (a, b) in acc.fields().into_iter().zip(g.fields()) {
+                            binary_into(&mut rec, a, b, a, Binary::Add)?;
+                        }
                     }
                 }
             }
+            let d_head = d_head.expect("at least one view");
+            let ds_gauss = self.gaussians.backward(&mut rec, g_cache, &d_head)?;
+            binary_into(&mut rec, &ds, &ds_gauss, &ds, Binary::Add)?;
         }
-        let d_head = d_head.expect("at least one view");
-        let ds_gauss = self.gaussians.backward(&mut rec, &g_cache, &d_head)?;
-        binary_into(&mut rec, &ds, &ds_gauss, &ds, Binary::Add)?;
-        binary_into(&mut rec, &ds, &flow.dtokens, &ds, Binary::Add)?;
         self.encoder.backward(&mut rec, &enc_cache, &ds)?;
-        let lr = noam(self.cfg.peak_lr, self.cfg.warmup, step) * self.lr_scale;
-        self.store.adamw_step(&mut rec, &self.adamw, lr, Some(self.cfg.max_grad_norm))?;
         rec.submit()?;
-        let grad_norm = self.store.grad_norm()? as f64;
 
         let read = |t: &Tensor| -> Result<f64> { Ok(t.read::<f32>()?[0] as f64) };
-        let (surface, gaussians_loss, tokens) = (read(&flow.loss)?, read(&image_loss)?, read(&token_loss)?);
-        let total = surface + gaussians_loss + tokens;
+        let (surface, image, tokens) = (read(&surface_loss)?, read(&image_loss)?, read(&token_loss)?);
+        let total = surface + image + tokens;
         if !total.is_finite() {
             return Err(Error::Invalid(format!(
-                "the loss became non-finite at step {step} (surface {surface}, image {gaussians_loss}, tokens {tokens})"
+                "the loss became non-finite (surface {surface}, image {image}, tokens {tokens})"
             )));
         }
-        Ok(StepLosses { total, surface, gaussians: gaussians_loss, tokens, grad_norm, lr, frame, view })
+        Ok(Losses {
+            terms: vec![("total", total), ("surface", surface), ("image", image), ("tokens", tokens)],
+        })
+    }
+
+    /// The frames a sample trains on: `frames_per_sample` distinct frames that have points,
+    /// drawn from `rng` (all of them when the scene has fewer).
+    fn draw_frames(&self, scene: &TrainScene, rng: &mut Rng) -> Result<Vec<usize>> {
+        let mut frames = scene.frames();
+        if frames.is_empty() {
+            return Err(Error::Invalid("a training scene has no points".into()));
+        }
+        let f = self.cfg.frames_per_sample.clamp(1, frames.len());
+        // Partial Fisher-Yates: the first f of a random permutation.
+        for i in 0..f {
+            let j = i + rng.below((frames.len() - i) as u32) as usize;
+            frames.swap(i, j);
+        }
+        frames.truncate(f);
+        Ok(frames)
     }
 
     /// The encoder's input of a step when `encoder_points` asks for a subset: that many points
@@ -326,7 +398,7 @@ impl Autoencoder {
     /// Writes parameters, AdamW moments, the step and the config to `path` (atomically), with
     /// the settings of the training run that made them, if any (see [`RunSettings`]).
     pub fn save(&self, path: &std::path::Path, run: Option<&RunSettings>) -> Result<()> {
-        let mut config = serde_json::json!({ "model": "velox autoencoder", "config": self.cfg });
+        let mut config = self.describe();
         if let Some(run) = run {
             config["run"] = serde_json::to_value(run).expect("plain data serialises");
         }
@@ -381,5 +453,41 @@ impl Autoencoder {
     /// Samples surface points with the config's default sampler: Heun, 20 steps.
     pub fn default_sampling(points: usize, seed: u64) -> SampleSpec {
         SampleSpec { points, steps: 20, sampler: Sampler::Heun, seed, precision: Precision::F32 }
+    }
+}
+
+impl Trainable for Autoencoder {
+    type Sample = TrainScene;
+
+    fn store(&self) -> &ParamStore {
+        &self.store
+    }
+
+    fn store_mut(&mut self) -> &mut ParamStore {
+        &mut self.store
+    }
+
+    fn describe(&self) -> serde_json::Value {
+        serde_json::json!({ "model": MODEL_KIND, "config": self.cfg })
+    }
+
+    fn learning_rate(&self, step: u64) -> f64 {
+        noam(self.cfg.peak_lr, self.cfg.warmup, step)
+    }
+
+    fn max_grad_norm(&self) -> Option<f64> {
+        Some(self.cfg.max_grad_norm)
+    }
+
+    fn adamw(&self) -> AdamWConfig {
+        self.adamw
+    }
+
+    fn batch(&self) -> usize {
+        self.cfg.batch
+    }
+
+    fn accumulate(&mut self, samples: &[&TrainScene], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
+        Autoencoder::accumulate(self, samples, rngs, weight)
     }
 }

@@ -624,7 +624,7 @@ impl SurfaceDecoder {
         Ok((x_t, u))
     }
 
-    /// The forward pass of `L_V` under given noise: `(loss [1], dL/dv, cache)`. Adds no
+    /// The forward pass of `weight L_V` under given noise: `(loss [1], dL/dv, cache)`. Adds no
     /// gradients (finite-difference checks use it alone).
     pub fn flow_loss(
         &self,
@@ -633,15 +633,16 @@ impl SurfaceDecoder {
         tau: f32,
         tokens: &Tensor,
         noise: &FlowNoise,
+        weight: f32,
     ) -> Result<(Tensor, Tensor, SurfaceCache)> {
         let (x_t, u) = SurfaceDecoder::flow_pair(rec, x, noise)?;
         let (v, cache) = self.forward(rec, &x_t, tau, &noise.t, tokens)?;
-        let (loss, dv) = Loss::mse().forward_backward(rec, &v, &u)?;
+        let (loss, dv) = Loss::mse().weighted(weight).forward_backward(rec, &v, &u)?;
         Ok((loss, dv, cache))
     }
 
-    /// One training step of `L_V` under given noise: forward, loss and backward (parameter
-    /// gradients added into the store).
+    /// One training step of `weight L_V` under given noise: forward, loss and backward
+    /// (parameter gradients added into the store).
     pub fn loss_step_with(
         &self,
         rec: &mut Recorder,
@@ -649,14 +650,15 @@ impl SurfaceDecoder {
         tau: f32,
         tokens: &Tensor,
         noise: &FlowNoise,
+        weight: f32,
     ) -> Result<FlowLoss> {
-        let (loss, dv, cache) = self.flow_loss(rec, x, tau, tokens, noise)?;
+        let (loss, dv, cache) = self.flow_loss(rec, x, tau, tokens, noise, weight)?;
         let dtokens = self.backward(rec, &cache, &dv)?;
         Ok(FlowLoss { loss, dtokens })
     }
 
-    /// One training step of `L_V` on points `x [N, 3]` of frame time `tau`: draws `eps` and `t`
-    /// from `rng` on the host, then as [`SurfaceDecoder::loss_step_with`].
+    /// One training step of `weight L_V` on points `x [N, 3]` of frame time `tau`: draws `eps`
+    /// and `t` from `rng` on the host, then as [`SurfaceDecoder::loss_step_with`].
     pub fn loss_step(
         &self,
         rec: &mut Recorder,
@@ -664,6 +666,7 @@ impl SurfaceDecoder {
         tau: f32,
         tokens: &Tensor,
         rng: &mut Rng,
+        weight: f32,
     ) -> Result<FlowLoss> {
         let n = match x.shape() {
             [n, 3] if *n > 0 => *n,
@@ -672,7 +675,7 @@ impl SurfaceDecoder {
             }
         };
         let noise = FlowNoise::draw(x.gpu(), n, self.cfg.t_min, rng)?;
-        self.loss_step_with(rec, x, tau, tokens, &noise)
+        self.loss_step_with(rec, x, tau, tokens, &noise, weight)
     }
 
     /// Points per sampling chunk on `gpu`: the MLP's hidden activation of a chunk stays within

@@ -1,0 +1,73 @@
+//! Training: what a model implements to be trained ([`Trainable`]), and the trainer every
+//! model shares.
+//!
+//! A training step over a batch of samples: the trainer zeroes the gradients, calls
+//! [`Trainable::accumulate`] on each micro-batch with the weight that makes the gradients the
+//! mean over the whole batch, sums the gradients over the processes of a distributed run, then
+//! steps the optimiser (AdamW with the model's learning rate and clipping).
+
+use velox_engine::ops::adamw::AdamWConfig;
+use velox_engine::rng::Rng;
+use velox_engine::Result;
+
+use crate::params::ParamStore;
+
+/// The loss terms of a micro-batch: `(name, value)` pairs, the total first. Each value is the
+/// sum over the micro-batch's samples of that term times the weight it was accumulated with,
+/// so the terms of a step's micro-batches (and processes) add up to the batch means.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Losses {
+    pub terms: Vec<(&'static str, f64)>,
+}
+
+impl Losses {
+    /// The total loss (the first term), 0 when there is none.
+    pub fn total(&self) -> f64 {
+        self.terms.first().map_or(0.0, |t| t.1)
+    }
+
+    /// Adds `other`'s terms into these (same names in the same order; these may be empty).
+    pub fn add(&mut self, other: &Losses) {
+        if self.terms.is_empty() {
+            self.terms = other.terms.clone();
+        } else {
+            for (a, b) in self.terms.iter_mut().zip(&other.terms) {
+                a.1 += b.1;
+            }
+        }
+    }
+}
+
+/// A model the trainer can train.
+pub trait Trainable {
+    /// One training sample (the autoencoder's: a scene).
+    type Sample;
+
+    /// The parameters, their gradients and the optimiser's moments.
+    fn store(&self) -> &ParamStore;
+    fn store_mut(&mut self) -> &mut ParamStore;
+
+    /// What a checkpoint stores to rebuild the model: `{"model": kind, "config": ...}`.
+    fn describe(&self) -> serde_json::Value;
+
+    /// The scheduled learning rate of optimiser step `step` (counted from 1), before any
+    /// cooldown the run adds.
+    fn learning_rate(&self, step: u64) -> f64;
+
+    /// The global gradient norm the update clips to, if any.
+    fn max_grad_norm(&self) -> Option<f64>;
+
+    /// AdamW's settings.
+    fn adamw(&self) -> AdamWConfig;
+
+    /// Samples a micro-batch holds (the config's `batch`).
+    fn batch(&self) -> usize;
+
+    /// Records and runs the forward and backward passes of a micro-batch and adds `weight`
+    /// times the gradient of the sum of its samples' losses into the store's gradients (which
+    /// the trainer zeroed at the start of the step). `rngs` holds one generator per sample,
+    /// drawn from the seed, the step and the sample's place in the step's batch, so a sample
+    /// draws the same randomness whatever batch it is in. Returns the samples' loss terms
+    /// summed, times `weight`.
+    fn accumulate(&mut self, samples: &[&Self::Sample], rngs: &mut [Rng], weight: f64) -> Result<Losses>;
+}
