@@ -135,7 +135,7 @@ pub fn write_arrays(dir: &Path, meta: &SceneMeta, a: &SceneArrays) -> DataResult
     let cams = CameraSet {
         input: a.input_cameras.clone(),
         supervision: a.supervision_cameras.clone(),
-        video: a.video_camera.clone(),
+        video: a.video_camera,
     };
     write_file(&dir.join("cameras.json"), json(&cams).as_bytes())?;
     write_ply(&dir.join("points.ply"), &a.points)?;

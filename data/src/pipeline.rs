@@ -186,7 +186,7 @@ pub fn render_scene(
         occupancy: vec![0u64; frames * OCCUPANCY_WORDS],
         input_cameras: inputs.clone(),
         supervision_cameras: sup.clone(),
-        video_camera: Some(video.clone()),
+        video_camera: Some(video),
         ..Default::default()
     };
     for f in 0..frames {

@@ -153,7 +153,7 @@ impl MeshRasteriser {
         let gpu = &self.gpu;
         let (w, h) = (cameras[0].width, cameras[0].height);
         let n = cameras.len() * (w * h) as usize;
-        let cams: Vec<f32> = cameras.iter().flat_map(|c| crate::camera::gpu_row(c)).collect();
+        let cams: Vec<f32> = cameras.iter().flat_map(crate::camera::gpu_row).collect();
         let cams = Tensor::from_slice(gpu, &[cams.len()], &cams)?;
         let depth_bits = Tensor::empty(gpu, &[n], DType::U32)?;
         let ids = Tensor::empty(gpu, &[n], DType::U32)?;

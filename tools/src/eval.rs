@@ -245,7 +245,7 @@ fn run_recon(a: &ReconArgs) -> CliResult<()> {
             let g = ae.decode_gaussians(&tokens, &centres, tau)?;
             let mut view_metrics = Vec::new();
             for (v, cam) in cams.iter().enumerate().take(views) {
-                let rendered = render(&gpu, &g, &cam, [0.0; 3])?;
+                let rendered = render(&gpu, &g, cam, [0.0; 3])?;
                 let ours: Vec<f32> =
                     rendered.image.rgb.read::<f32>()?.iter().map(|v| v.clamp(0.0, 1.0)).collect();
                 let gt: Vec<f32> =
