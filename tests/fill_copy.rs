@@ -83,3 +83,45 @@ fn views_share_storage_and_bind_their_own_range() {
     }
     assert!(t.view(996, &[8]).unwrap_err().to_string().contains("past the end"));
 }
+
+#[test]
+fn row_copies_and_index_concatenation() {
+    use velox::engine::ops::concat::{copy_add, reference};
+    let gpu = gpu();
+    // Rows of 3 f32 at unaligned row offsets, both ways of a 7-row and a 5-row tensor.
+    let a: Vec<f32> = (0..21).map(|i| i as f32).collect();
+    let ta = Tensor::from_slice(&gpu, &[7, 3], &a).unwrap();
+    let tb = Tensor::from_slice(&gpu, &[5, 3], &[-1.0f32; 15]).unwrap();
+    let mut rec = gpu.recorder().unwrap();
+    rec.copy_rows(&ta, 3, &tb, 1, 3).unwrap();
+    rec.submit().unwrap();
+    let mut want = vec![-1.0f32; 15];
+    want[3..12].copy_from_slice(&a[9..18]);
+    assert_eq!(tb.read::<f32>().unwrap(), want);
+    let mut rec = gpu.recorder().unwrap();
+    assert!(rec.copy_rows(&ta, 5, &tb, 0, 3).is_err(), "past the source's end");
+    assert!(rec.copy_rows(&ta, 0, &tb, 3, 3).is_err(), "past the destination's end");
+    let other = Tensor::empty(&gpu, &[5, 2], DType::F32).unwrap();
+    assert!(rec.copy_rows(&ta, 0, &other, 0, 1).is_err(), "rows of another width");
+    rec.copy_rows(&ta, 7, &tb, 5, 0).unwrap();
+    drop(rec);
+
+    // Index lists: each piece shifted into the batch's numbering, at awkward sizes.
+    for (n, start, count, add) in [(1, 0, 1, 5u32), (300, 17, 257, 1000), (70_001, 1, 70_000, u32::MAX)] {
+        let src: Vec<u32> = (0..n as u32).map(|i| i.wrapping_mul(2_654_435_761)).collect();
+        let dst0: Vec<u32> = (0..n as u32 + 3).collect();
+        let (ts, td) = (
+            Tensor::from_slice(&gpu, &[n], &src).unwrap(),
+            Tensor::from_slice(&gpu, &[n + 3], &dst0).unwrap(),
+        );
+        let mut rec = gpu.recorder().unwrap();
+        copy_add(&mut rec, &ts, n - count, &td, start + 2, count, add).unwrap();
+        rec.submit().unwrap();
+        let want = reference::copy_add(&src, n - count, &dst0, start + 2, count, add);
+        assert_eq!(td.read::<u32>().unwrap(), want, "n {n}");
+    }
+    let t = Tensor::from_slice(&gpu, &[4], &[0u32; 4]).unwrap();
+    let mut rec = gpu.recorder().unwrap();
+    assert!(copy_add(&mut rec, &t, 2, &t, 0, 3, 1).is_err());
+    assert!(copy_add(&mut rec, &ta, 0, &t, 0, 1, 1).is_err(), "f32 source");
+}

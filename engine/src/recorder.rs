@@ -331,6 +331,44 @@ impl Recorder {
         Ok(())
     }
 
+    /// Copies `rows` rows (first axis) of `src` from row `src_row` into `dst` from row
+    /// `dst_row`: both of one dtype and one row width. Batched models gather a sample's rows
+    /// out of a batch and put them back this way.
+    pub fn copy_rows(
+        &mut self,
+        src: &Tensor,
+        src_row: usize,
+        dst: &Tensor,
+        dst_row: usize,
+        rows: usize,
+    ) -> Result<()> {
+        let row_bytes = |t: &Tensor| -> Result<(usize, usize)> {
+            match t.shape() {
+                [] => Err(Error::Shape(format!("copy_rows: {t:?} has no rows"))),
+                [r, rest @ ..] => Ok((*r, rest.iter().product::<usize>() * t.dtype().size())),
+            }
+        };
+        let ((src_rows, width), (dst_rows, dst_width)) = (row_bytes(src)?, row_bytes(dst)?);
+        if src.dtype() != dst.dtype() || width != dst_width {
+            return Err(Error::Shape(format!("copy_rows from {src:?} into {dst:?}: the rows differ")));
+        }
+        if src_row.checked_add(rows).is_none_or(|e| e > src_rows)
+            || dst_row.checked_add(rows).is_none_or(|e| e > dst_rows)
+        {
+            return Err(Error::Shape(format!(
+                "copy_rows: rows {src_row}..+{rows} of {src:?} into rows {dst_row}.. of {dst:?} run past an end"
+            )));
+        }
+        if rows == 0 || width == 0 {
+            return Ok(());
+        }
+        let (at, to) = ((src_row * width) as u64, (dst_row * width) as u64);
+        self.copy_raw(&src.buf, src.offset + at, &dst.buf, dst.offset + to, (rows * width) as u64);
+        self.keep.push(src.buf.clone());
+        self.keep.push(dst.buf.clone());
+        Ok(())
+    }
+
     /// Writes a GPU timestamp after all earlier work; returns its index in
     /// [`Finished::timestamps_ns`], or `None` if the device cannot time.
     pub fn timestamp(&mut self) -> Option<usize> {

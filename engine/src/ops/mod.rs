@@ -7,6 +7,7 @@ pub mod attention;
 pub mod binary;
 pub mod cast;
 pub mod columns;
+pub mod concat;
 pub mod fill;
 pub mod fourier;
 pub mod fps;

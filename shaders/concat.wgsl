@@ -1,0 +1,24 @@
+// Concatenation of index lists (host side: engine/src/ops/concat.rs): dst[dst_start + i] =
+// src[src_start + i] + add for i < count. Batched layouts build their index lists (points,
+// queries, window ids) per sample and shift each into the batch's numbering with it.
+
+struct Params {
+    src_start: u32,
+    dst_start: u32,
+    count: u32,
+    add: u32,
+}
+
+@group(0) @binding(0) var<storage, read> src: array<u32>;
+@group(0) @binding(1) var<storage, read_write> dst: array<u32>;
+var<immediate> pc: Params;
+
+@compute @workgroup_size(256)
+fn copy_add(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+            @builtin(local_invocation_index) lid: u32) {
+    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
+    if (i >= pc.count) {
+        return;
+    }
+    dst[pc.dst_start + i] = src[pc.src_start + i] + pc.add;
+}
