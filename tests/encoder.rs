@@ -121,3 +121,52 @@ fn bad_clouds_get_clear_errors() {
     assert!(cloud::upload(&gpu, &bad).unwrap_err().to_string().contains("outside"));
     assert!(cloud::upload(&gpu, &[]).unwrap_err().to_string().contains("empty"));
 }
+
+#[test]
+fn a_batch_encodes_each_cloud_as_alone() {
+    // Three clouds of different sizes in one batch: every cloud's tokens equal those it gets
+    // alone with the same generator, and the batch's parameter gradients equal the sum of the
+    // three alone (to summation order: the products over all points sum in another order).
+    let gpu = gpu();
+    let (store, enc) = setup(&gpu);
+    let mut rng = Rng::new(4);
+    let clouds: Vec<Tensor> =
+        [300, 517, 260].iter().map(|&n| cloud::upload(&gpu, &random_cloud(&mut rng, n)).unwrap()).collect();
+    let (k, d) = (enc.cfg.tokens, enc.cfg.token_dim);
+    let g: Vec<Vec<f32>> = (0..3).map(|_| rng.normal_vec(k * d)).collect();
+    let rngs = || (0..3).map(|i| Rng::new(40 + i)).collect::<Vec<_>>();
+
+    let mut alone_tokens = Vec::new();
+    let mut alone_grads = vec![0f64; store.flat_grads().numel()];
+    for (i, (c, mut r)) in clouds.iter().zip(rngs()).enumerate() {
+        let mut rec = gpu.recorder().unwrap();
+        store.zero_grads(&mut rec).unwrap();
+        let (s, cache) = enc.forward(&mut rec, c, &mut r).unwrap();
+        let tg = Tensor::from_slice(&gpu, &[k, d], &g[i]).unwrap();
+        enc.backward(&mut rec, &cache, &tg).unwrap();
+        rec.submit().unwrap();
+        alone_tokens.extend(s.read::<f32>().unwrap());
+        for (a, v) in alone_grads.iter_mut().zip(store.flat_grads().read::<f32>().unwrap()) {
+            *a += v as f64;
+        }
+    }
+
+    let mut rec = gpu.recorder().unwrap();
+    store.zero_grads(&mut rec).unwrap();
+    let refs: Vec<&Tensor> = clouds.iter().collect();
+    let (s, cache) = enc.forward_batch(&mut rec, &refs, &mut rngs()).unwrap();
+    assert_eq!(cache.layout.batch, 3);
+    let tg = Tensor::from_slice(&gpu, &[3 * k, d], &g.concat()).unwrap();
+    enc.backward(&mut rec, &cache, &tg).unwrap();
+    rec.submit().unwrap();
+    assert_eq!(s.shape(), [3 * k, d]);
+    let batch_tokens: Vec<f32> = s.read().unwrap();
+    assert_nmse("batch tokens", &batch_tokens, &f64s(&alone_tokens), 1e-12);
+    let batch_grads: Vec<f32> = store.flat_grads().read().unwrap();
+    assert_nmse("batch gradients", &batch_grads, &alone_grads, 1e-12);
+
+    // A batch needs one generator per cloud.
+    let mut rec = gpu.recorder().unwrap();
+    let err = enc.forward_batch(&mut rec, &refs, &mut rngs()[..2]).err().unwrap().to_string();
+    assert!(err.contains("one generator per cloud"), "{err}");
+}

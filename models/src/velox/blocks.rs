@@ -114,7 +114,12 @@ impl WindowLayout {
     /// Groups tokens at `points` (f32 `[n, 4]`) by the windows of `grid`.
     pub fn new(rec: &mut Recorder, points: &Tensor, grid: &WindowGrid) -> Result<WindowLayout> {
         let ids = window_ids(rec, points, grid)?;
-        let groups = group_by_window(rec, &ids, grid.num_windows())?;
+        WindowLayout::from_ids(rec, &ids, grid.num_windows())
+    }
+
+    /// Groups tokens by window id (u32 `[n]`, each below `num_windows`).
+    pub fn from_ids(rec: &mut Recorder, ids: &Tensor, num_windows: u64) -> Result<WindowLayout> {
+        let groups = group_by_window(rec, ids, num_windows)?;
         let inverse = invert_permutation(rec, &groups.order)?;
         let segments = Segments { q_offsets: groups.offsets.clone(), k_offsets: groups.offsets };
         Ok(WindowLayout { order: groups.order, inverse, segments })

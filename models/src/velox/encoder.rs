@@ -22,11 +22,12 @@ use velox_engine::ops::assign::assign_grouped;
 use velox_engine::ops::attention::Segments;
 use velox_engine::ops::binary::{binary, binary_into, Binary};
 use velox_engine::ops::columns::copy_columns;
+use velox_engine::ops::concat::copy_add;
 use velox_engine::ops::fill::fill;
 use velox_engine::ops::fps::{fps, random_candidates};
 use velox_engine::ops::gather::{gather, invert_permutation};
 use velox_engine::ops::scatter_add::scatter_add;
-use velox_engine::ops::window::WindowGrid;
+use velox_engine::ops::window::{window_ids, WindowGrid};
 use velox_engine::rng::Rng;
 use velox_engine::{DType, Error, Gpu, Recorder, Result, Tensor};
 
@@ -77,6 +78,8 @@ pub struct Layout {
     cells: Segments,
     /// Plain and shifted windows over the queries.
     windows: [WindowLayout; 2],
+    /// Clouds in the batch.
+    pub batch: usize,
 }
 
 struct BlockCache {
@@ -165,41 +168,110 @@ impl Encoder {
 
     /// FPS queries, cells and windows for a cloud (`[N, 7]` on the device, validated).
     pub fn layout(&self, rec: &mut Recorder, cloud: &Tensor, rng: &mut Rng) -> Result<(Tensor, Layout)> {
-        let n = check_cloud(cloud)?;
+        let (_, points, layout) = self.layout_batch(rec, &[cloud], std::slice::from_mut(rng))?;
+        Ok((points, layout))
+    }
+
+    /// The layout of a batch of clouds (each `[N_b, 7]` on the device, validated), each drawing
+    /// its queries from its own generator: returns the batch's cloud (the clouds one after
+    /// another), its points `(x, y, z, tau * time_scale)` and the layout. Each cloud's queries,
+    /// cells and windows are computed as for that cloud alone and shifted into the batch's
+    /// numbering, so cells and windows never mix clouds, and cloud b's tokens are rows
+    /// `b k .. (b + 1) k` of the output.
+    pub fn layout_batch(
+        &self,
+        rec: &mut Recorder,
+        clouds: &[&Tensor],
+        rngs: &mut [Rng],
+    ) -> Result<(Tensor, Tensor, Layout)> {
         let k = self.cfg.tokens;
-        if n < k {
+        if clouds.is_empty() || clouds.len() != rngs.len() {
             return Err(Error::Invalid(format!(
-                "the encoder needs at least {k} points for {k} tokens, the cloud has {n}"
+                "the encoder needs one generator per cloud of a batch: {} clouds, {} generators",
+                clouds.len(),
+                rngs.len()
             )));
         }
-        let gpu = cloud.gpu().clone();
-        let points = Tensor::empty(&gpu, &[n, 4], DType::F32)?;
-        copy_columns(rec, cloud, 0, &points, 0, 3, 1.0)?;
-        copy_columns(rec, cloud, 6, &points, 3, 1, self.cfg.time_scale)?;
-        let candidates = random_candidates(n, k.saturating_mul(self.cfg.oversample), rng)?;
-        let queries = fps(rec, &points, &candidates, k)?;
+        let sizes = clouds.iter().map(|c| check_cloud(c)).collect::<Result<Vec<_>>>()?;
+        if let Some(n) = sizes.iter().find(|&&n| n < k) {
+            return Err(Error::Invalid(format!(
+                "the encoder needs at least {k} points for {k} tokens, a cloud has {n}"
+            )));
+        }
+        let gpu = clouds[0].gpu().clone();
+        let batch = clouds.len();
+        let total: usize = sizes.iter().sum();
+        let starts: Vec<usize> =
+            sizes.iter().scan(0, |at, &n| Some(std::mem::replace(at, *at + n))).collect();
+        let index =
+            |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("a batch of {total} points")));
+        index(total)?;
+        let rows_of = |rec: &mut Recorder, src: &Tensor, start: usize, rows: usize| -> Result<Tensor> {
+            if start == 0 && rows == src.shape()[0] {
+                return Ok(src.clone());
+            }
+            let mut shape = src.shape().to_vec();
+            shape[0] = rows;
+            let out = Tensor::empty(src.gpu(), &shape, src.dtype())?;
+            rec.copy_rows(src, start, &out, 0, rows)?;
+            Ok(out)
+        };
+        let cloud = if batch == 1 {
+            clouds[0].clone()
+        } else {
+            let all = Tensor::empty(&gpu, &[total, CHANNELS], DType::F32)?;
+            for (c, &at) in clouds.iter().zip(&starts) {
+                rec.copy_rows(c, 0, &all, at, c.shape()[0])?;
+            }
+            all
+        };
+        let points = Tensor::empty(&gpu, &[total, 4], DType::F32)?;
+        copy_columns(rec, &cloud, 0, &points, 0, 3, 1.0)?;
+        copy_columns(rec, &cloud, 6, &points, 3, 1, self.cfg.time_scale)?;
+
+        // Queries: FPS within each cloud.
+        let queries = Tensor::empty(&gpu, &[batch * k], DType::U32)?;
+        let mut cloud_points = Vec::with_capacity(batch);
+        for ((&n, &at), (b, rng)) in sizes.iter().zip(&starts).zip(rngs.iter_mut().enumerate()) {
+            let pts = rows_of(rec, &points, at, n)?;
+            let candidates = random_candidates(n, k.saturating_mul(self.cfg.oversample), rng)?;
+            let q = fps(rec, &pts, &candidates, k)?;
+            copy_add(rec, &q, 0, &queries, b * k, k, index(at)?)?;
+            cloud_points.push(pts);
+        }
         let query_points = gather(rec, &points, &queries)?;
-        let cells = assign_grouped(rec, &points, &query_points)?;
-        let cell_inverse = invert_permutation(rec, &cells.order)?;
-        let one_each: Vec<u32> = (0..=k as u32).collect();
-        let cell_segments = Segments {
-            q_offsets: Tensor::from_slice(&gpu, &[k + 1], &one_each)?,
-            k_offsets: cells.offsets.clone(),
+
+        // Cells and windows within each cloud, shifted into the batch's numbering.
+        let cell_order = Tensor::empty(&gpu, &[total], DType::U32)?;
+        let cell_offsets = Tensor::from_slice(&gpu, &[batch * k + 1], &vec![0u32; batch * k + 1])?;
+        let grids = [self.window_grid()?, self.window_grid()?.shifted()];
+        let window_ids_all =
+            [Tensor::empty(&gpu, &[batch * k], DType::U32)?, Tensor::empty(&gpu, &[batch * k], DType::U32)?];
+        for (b, (pts, &at)) in cloud_points.iter().zip(&starts).enumerate() {
+            let qp = rows_of(rec, &query_points, b * k, k)?;
+            let cells = assign_grouped(rec, pts, &qp)?;
+            copy_add(rec, &cells.order, 0, &cell_order, at, pts.shape()[0], index(at)?)?;
+            copy_add(rec, &cells.offsets, 1, &cell_offsets, b * k + 1, k, index(at)?)?;
+            for (grid, ids) in grids.iter().zip(&window_ids_all) {
+                let shift = u32::try_from(b as u64 * grid.num_windows()).map_err(|_| {
+                    Error::TooLarge(format!("{batch} clouds of {} windows", grid.num_windows()))
+                })?;
+                let local = window_ids(rec, &qp, grid)?;
+                copy_add(rec, &local, 0, ids, b * k, k, shift)?;
+            }
+        }
+        let cell_inverse = invert_permutation(rec, &cell_order)?;
+        let one_each: Vec<u32> = (0..=(batch * k) as u32).collect();
+        let cells = Segments {
+            q_offsets: Tensor::from_slice(&gpu, &[batch * k + 1], &one_each)?,
+            k_offsets: cell_offsets,
         };
-        let grid = self.window_grid()?;
         let windows = [
-            WindowLayout::new(rec, &query_points, &grid)?,
-            WindowLayout::new(rec, &query_points, &grid.shifted())?,
+            WindowLayout::from_ids(rec, &window_ids_all[0], batch as u64 * grids[0].num_windows())?,
+            WindowLayout::from_ids(rec, &window_ids_all[1], batch as u64 * grids[1].num_windows())?,
         ];
-        let layout = Layout {
-            queries,
-            query_points,
-            cell_order: cells.order,
-            cell_inverse,
-            cells: cell_segments,
-            windows,
-        };
-        Ok((points, layout))
+        let layout = Layout { queries, query_points, cell_order, cell_inverse, cells, windows, batch };
+        Ok((cloud, points, layout))
     }
 
     /// Input tokens `[N, width]` from the cloud.
@@ -228,8 +300,19 @@ impl Encoder {
         cloud: &Tensor,
         rng: &mut Rng,
     ) -> Result<(Tensor, EncoderCache)> {
-        let (_, layout) = self.layout(rec, cloud, rng)?;
-        self.forward_with(rec, cloud, layout)
+        self.forward_batch(rec, &[cloud], std::slice::from_mut(rng))
+    }
+
+    /// Tokens `[B k, token_dim]` of a batch of clouds (cloud b's are rows `b k .. (b + 1) k`),
+    /// each drawing its queries from its own generator; see [`Encoder::layout_batch`].
+    pub fn forward_batch(
+        &self,
+        rec: &mut Recorder,
+        clouds: &[&Tensor],
+        rngs: &mut [Rng],
+    ) -> Result<(Tensor, EncoderCache)> {
+        let (cloud, _, layout) = self.layout_batch(rec, clouds, rngs)?;
+        self.forward_with(rec, &cloud, layout)
     }
 
     /// The forward pass over a layout computed before (the same cloud).
