@@ -15,8 +15,13 @@ use velox::models::run::RunSettings;
 use velox::models::velox::autoencoder::{tau_of, Autoencoder, StepLosses, TrainScene};
 
 fn scene(gpu: &Gpu, name: &str) -> TrainScene {
+    scene_of(gpu, name, 3)
+}
+
+/// Procedural scene `seed` at 32 x 32 with 4000 points.
+fn scene_of(gpu: &Gpu, name: &str, seed: u64) -> TrainScene {
     let dir = std::env::temp_dir().join(format!("velox-ae-{}-{name}", std::process::id()));
-    let (_, mesh) = procedural::scene(3, None).unwrap();
+    let (_, mesh) = procedural::scene(seed, None).unwrap();
     let opts = SynthOptions { res: 32, points: 4000, supersample: 1, tracks: 8 };
     write_scene(gpu, &mesh, "test", None, 3, &opts, &dir, &mut |_| {}).unwrap();
     let s = read_scene(&dir, true).unwrap();
@@ -66,6 +71,37 @@ fn several_views_per_step_and_an_encoder_subset_train() {
     assert!(g1 < 0.5 * g0, "image loss {g0} -> {g1}");
     cfg.views_per_step = 0;
     assert!(cfg.validate().unwrap_err().to_string().contains("views_per_step"));
+}
+
+#[test]
+fn a_batch_gives_the_mean_of_its_samples_gradients() {
+    // Four samples (two scenes, each twice with other draws), two frames and two views each:
+    // one micro-batch of four against four micro-batches of one, each weighted 1/4.
+    let gpu = gpu();
+    let scenes = [scene_of(&gpu, "batch-a", 3), scene_of(&gpu, "batch-b", 8)];
+    let cfg = AutoencoderConfig { frames_per_sample: 2, views_per_step: 2, ..AutoencoderConfig::tiny() };
+    let mut ae = Autoencoder::new(&gpu, &cfg, 1).unwrap();
+    let samples = [&scenes[0], &scenes[1], &scenes[0], &scenes[1]];
+    let rngs = || (0..4).map(|i| Rng::new(70 + i)).collect::<Vec<_>>();
+    let zero = |ae: &Autoencoder| {
+        let mut rec = gpu.recorder().unwrap();
+        ae.store.zero_grads(&mut rec).unwrap();
+        rec.submit().unwrap();
+    };
+    zero(&ae);
+    let batch = ae.accumulate(&samples, &mut rngs(), 0.25).unwrap();
+    let batch_grads: Vec<f32> = ae.store.flat_grads().read().unwrap();
+    zero(&ae);
+    let mut singles = velox::models::train::Losses::default();
+    for (s, mut r) in samples.iter().zip(rngs()) {
+        singles.add(&ae.accumulate(&[s], std::slice::from_mut(&mut r), 0.25).unwrap());
+    }
+    let single_grads: Vec<f32> = ae.store.flat_grads().read().unwrap();
+    assert!(batch_grads.iter().any(|&g| g != 0.0));
+    assert_nmse("batch-4 gradient against four batch-1 gradients", &batch_grads, &f64s(&single_grads), 1e-10);
+    for ((name, a), (_, b)) in batch.terms.iter().zip(&singles.terms) {
+        assert!((a - b).abs() <= 1e-6 * b.abs().max(1e-12), "{name}: batch {a} against singles {b}");
+    }
 }
 
 #[test]

@@ -1,26 +1,30 @@
 //! The Velox autoencoder: encoder E, 4D surface decoder V and Gaussian decoder G over one
 //! parameter store, and one training step of L = L_V + L_GS + gamma L_C (MODELS.md).
 //!
-//! A step, on one scene:
-//! 1. E encodes the whole cloud (or a random `encoder_points` of it) to tokens s;
-//!    L_C = gamma mean(s^2); the decoders read s + noise (the noise passes gradients through
-//!    unchanged).
-//! 2. A frame f is drawn: V's flow-matching loss on `points_per_step` of its points gives L_V
-//!    and dL_V/ds.
-//! 3. G decodes the frame's occupied voxels (from the cloud) to Gaussians; `views_per_step`
-//!    supervision views of that frame (one by default) are rendered and compared:
-//!    L_GS = mean over views and pixels of |I_gt - I|^2, whose gradient flows back through the
-//!    rasteriser and G into dL_GS/ds.
-//! 4. E's backward takes the summed token gradient; AdamW updates every parameter (noam
-//!    schedule, global-norm clipping), and a NaN or Inf gradient stops the step with an error
-//!    before anything is changed.
+//! A micro-batch of B scenes ([`Autoencoder::accumulate`]), each with its own generator:
+//! 1. E encodes every cloud (or a random `encoder_points` of each) to tokens s, the B clouds
+//!    as one batch whose cells and windows stay within their cloud; L_C = gamma mean(s^2) per
+//!    scene; the decoders read s + noise (the noise passes gradients through unchanged).
+//! 2. Each scene draws `frames_per_sample` frames: V's flow-matching loss on
+//!    `points_per_step` points of each (every scene's points in one pass, attending to their
+//!    scene's tokens) gives L_V, the mean over the scene's points, and dL_V/ds.
+//! 3. G decodes every drawn frame's occupied voxels (from the cloud) to Gaussians, all frames
+//!    in one pass; each frame is rendered from `views_per_step` supervision views and compared:
+//!    L_GS = the scene's mean over frames, views and pixels of |I_gt - I|^2, whose gradient
+//!    flows back through the rasteriser and G into dL_GS/ds.
+//! 4. E's backward takes the summed token gradient. The micro-batch adds `weight` times the
+//!    gradient of its scenes' summed losses into the store; the trainer (`crate::train`) makes
+//!    that the mean over a step's batch, and AdamW updates every parameter (noam schedule,
+//!    global-norm clipping); a NaN or Inf gradient stops the step before anything changes.
+//!    [`Autoencoder::train_step`] does all of it for one scene.
 
 use velox_engine::ops::adamw::AdamWConfig;
+use velox_engine::ops::attention::Segments;
 use velox_engine::ops::binary::{binary, binary_into, Binary};
 use velox_engine::ops::fill::fill;
 use velox_engine::ops::raster::{render, render_backward, Camera, Gaussians};
 use velox_engine::rng::Rng;
-use velox_engine::{DType, Error, Gpu, Precision, Result, Tensor};
+use velox_engine::{DType, Error, Gpu, Precision, Recorder, Result, Tensor};
 
 use crate::config::AutoencoderConfig;
 use crate::layers::Loss;
@@ -30,8 +34,8 @@ use crate::schedule::noam;
 use crate::train::{Losses, Trainable};
 use crate::velox::cloud::{self, CHANNELS};
 use crate::velox::encoder::Encoder;
-use crate::velox::gaussians::{occupied_voxels, GaussianDecoder};
-use crate::velox::surface::{SampleSpec, Sampler, SurfaceDecoder};
+use crate::velox::gaussians::{occupied_voxels, GaussianDecoder, VoxelFrames};
+use crate::velox::surface::{FlowNoise, PointFrames, SampleSpec, Sampler, SurfaceDecoder};
 
 /// The `model` a checkpoint of the autoencoder names.
 pub const MODEL_KIND: &str = "velox autoencoder";
@@ -235,6 +239,13 @@ impl Autoencoder {
     /// adding `weight` times the gradient of the sum of their losses into the store's
     /// gradients; `rngs` holds each scene's generator. Returns the loss terms ("total",
     /// "surface", "image", "tokens"), summed over the scenes, times `weight`.
+    ///
+    /// The scenes go through the networks together: the encoder encodes their clouds as one
+    /// batch, the surface decoder takes every scene's points at once and the Gaussian decoder
+    /// every scene's voxels, each attending only to its own scene's tokens (attention
+    /// segments). A scene's randomness comes from its own generator alone, drawn in the same
+    /// order whatever the batch, so a scene adds the same gradient alone or in a batch (to
+    /// the summation order of the products over the batch's rows).
     pub fn accumulate(&mut self, scenes: &[&TrainScene], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
         if scenes.is_empty() || scenes.len() != rngs.len() {
             return Err(Error::Invalid(format!(
@@ -243,102 +254,166 @@ impl Autoencoder {
                 rngs.len()
             )));
         }
-        let mut total = Losses::default();
-        for (scene, rng) in scenes.iter().zip(rngs.iter_mut()) {
-            total.add(&self.accumulate_one(scene, rng, weight as f32)?);
-        }
-        Ok(total)
-    }
-
-    /// [`Autoencoder::accumulate`] of one scene.
-    fn accumulate_one(&mut self, scene: &TrainScene, rng: &mut Rng, weight: f32) -> Result<Losses> {
-        let gpu = scene.cloud.gpu().clone();
-        let frames = self.draw_frames(scene, rng)?;
-        let cams = scene.cameras.len();
-        let nv = self.cfg.views_per_step.clamp(1, cams);
-        let view = rng.below(cams as u32) as usize;
-        let nf = frames.len();
+        let gpu = scenes[0].cloud.gpu().clone();
+        let nb = scenes.len();
         let k = self.cfg.encoder.tokens;
         let dim = self.cfg.encoder.token_dim;
+        let weight = weight as f32;
 
-        // Forward: encoder, token loss; per frame the surface loss (forward and backward) and
-        // the Gaussian decoder's forward.
+        // Each scene's draws, in order: its frames, its first view, the encoder's subset of its
+        // cloud (then, in the encoder, its queries).
+        let mut plans = Vec::with_capacity(nb);
+        let mut inputs = Vec::with_capacity(nb);
+        for (scene, rng) in scenes.iter().zip(rngs.iter_mut()) {
+            let frames = self.draw_frames(scene, rng)?;
+            let view = rng.below(scene.cameras.len() as u32) as usize;
+            inputs.push(self.encoder_subset(scene, rng)?);
+            plans.push((frames, view));
+        }
+        let clouds: Vec<&Tensor> =
+            inputs.iter().zip(scenes).map(|(sub, scene)| sub.as_ref().unwrap_or(&scene.cloud)).collect();
+
+        // Forward: the encoder and the token loss, then per scene its token noise, then the
+        // surface decoder's points and flow noise and the Gaussian decoder's voxels per frame.
         let mut rec = gpu.recorder()?;
-        let subset = self.encoder_subset(scene, rng)?;
-        let (s, enc_cache) = self.encoder.forward(&mut rec, subset.as_ref().unwrap_or(&scene.cloud), rng)?;
-        let zeros = Tensor::empty(&gpu, &[k, dim], DType::F32)?;
+        let (s, enc_cache) = self.encoder.forward_batch(&mut rec, &clouds, rngs)?;
+        let zeros = Tensor::empty(&gpu, &[nb * k, dim], DType::F32)?;
         fill(&mut rec, &zeros, 0.0)?;
+        // L_C is each scene's mean over its tokens: the mean over the batch times its size.
         let (token_loss, ds) = Loss::mse()
-            .weighted(self.cfg.encoder.token_reg * weight)
+            .weighted(self.cfg.encoder.token_reg * weight * nb as f32)
             .forward_backward(&mut rec, &s, &zeros)?;
-        let noise: Vec<f32> =
-            (0..k * dim).map(|_| (rng.normal() * self.cfg.encoder.token_noise as f64) as f32).collect();
-        let noise = Tensor::from_slice(&gpu, &[k, dim], &noise)?;
+        let sigma = self.cfg.encoder.token_noise as f64;
+        let noise: Vec<f32> = rngs
+            .iter_mut()
+            .flat_map(|rng| (0..k * dim).map(|_| (rng.normal() * sigma) as f32).collect::<Vec<_>>())
+            .collect();
+        let noise = Tensor::from_slice(&gpu, &[nb * k, dim], &noise)?;
         let s_noisy = binary(&mut rec, &s, &noise, Binary::Add)?;
+
+        let p = self.cfg.surface.points_per_step;
+        let (mut x, mut eps, mut t, mut taus) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        let (mut centres, mut groups) = (Vec::new(), Vec::new());
+        let (mut point_counts, mut voxel_counts) = (Vec::with_capacity(nb), Vec::with_capacity(nb));
+        for ((scene, rng), (frames, _)) in scenes.iter().zip(rngs.iter_mut()).zip(&plans) {
+            let mut voxels = 0;
+            for &frame in frames {
+                let tau = tau_of(frame);
+                let pts = &scene.frame_points[frame];
+                for _ in 0..p {
+                    let i = rng.below((pts.len() / 3) as u32) as usize;
+                    x.extend_from_slice(&pts[3 * i..3 * i + 3]);
+                }
+                eps.extend(rng.normal_vec(p * 3));
+                let t_min = self.cfg.surface.t_min as f64;
+                t.extend(rng.uniform_vec(p, t_min, 1.0 - t_min));
+                taus.push(tau);
+                let c = self.voxels_from_points(pts, tau);
+                groups.push((tau, c.len() / 3));
+                voxels += c.len() / 3;
+                centres.extend(c);
+            }
+            point_counts.push(frames.len() * p);
+            voxel_counts.push(voxels);
+        }
+        let n = x.len() / 3;
+        let x = Tensor::from_slice(&gpu, &[n, 3], &x)?;
+        let flow_noise = FlowNoise::from_host(&gpu, &eps, &t)?;
+        let token_counts = vec![k; nb];
+        let point_frames =
+            PointFrames { taus, segments: Segments::from_lengths(&gpu, &point_counts, &token_counts)? };
+        let (x_t, u) = SurfaceDecoder::flow_pair(&mut rec, &x, &flow_noise)?;
+        let (v, surface_cache) =
+            self.surface.forward_frames(&mut rec, &x_t, &point_frames, &flow_noise.t, &s_noisy)?;
+        // L_V is each scene's mean over its points (of all its frames).
         let surface_loss = Tensor::empty(&gpu, &[1], DType::F32)?;
         fill(&mut rec, &surface_loss, 0.0)?;
-        let mut decoded = Vec::with_capacity(nf);
-        for &frame in &frames {
-            let tau = tau_of(frame);
-            let pts = &scene.frame_points[frame];
-            let n = self.cfg.surface.points_per_step;
-            let x: Vec<f32> = (0..n)
-                .flat_map(|_| {
-                    let i = rng.below((pts.len() / 3) as u32) as usize;
-                    [pts[3 * i], pts[3 * i + 1], pts[3 * i + 2]]
-                })
-                .collect();
-            let x = Tensor::from_slice(&gpu, &[n, 3], &x)?;
-            let flow = self.surface.loss_step(&mut rec, &x, tau, &s_noisy, rng, weight / nf as f32)?;
-            binary_into(&mut rec, &surface_loss, &flow.loss, &surface_loss, Binary::Add)?;
-            binary_into(&mut rec, &ds, &flow.dtokens, &ds, Binary::Add)?;
-            let centres = self.voxels_from_points(pts, tau);
-            let c = Tensor::from_slice(&gpu, &[centres.len() / 3, 3], &centres)?;
-            let (gaussians, g_cache) = self.gaussians.forward(&mut rec, &s_noisy, &c, tau)?;
-            decoded.push((frame, gaussians, g_cache));
+        let dv = Tensor::empty(&gpu, &[n, 3], DType::F32)?;
+        let mut at = 0;
+        for &count in &point_counts {
+            let rows = |rec: &mut Recorder, t: &Tensor| -> Result<Tensor> {
+                let out = Tensor::empty(&gpu, &[count, 3], DType::F32)?;
+                rec.copy_rows(t, at, &out, 0, count)?;
+                Ok(out)
+            };
+            let (vb, ub) = (rows(&mut rec, &v)?, rows(&mut rec, &u)?);
+            let (loss, dvb) = Loss::mse().weighted(weight).forward_backward(&mut rec, &vb, &ub)?;
+            binary_into(&mut rec, &surface_loss, &loss, &surface_loss, Binary::Add)?;
+            rec.copy_rows(&dvb, 0, &dv, at, count)?;
+            at += count;
         }
+        let nv_total = centres.len() / 3;
+        let c = Tensor::from_slice(&gpu, &[nv_total, 3], &centres)?;
+        let voxel_frames = VoxelFrames {
+            groups: groups.clone(),
+            segments: Segments::from_lengths(&gpu, &voxel_counts, &token_counts)?,
+        };
+        let (gaussians, g_cache) = self.gaussians.forward_frames(&mut rec, &s_noisy, &c, &voxel_frames)?;
         rec.submit()?;
 
         // Each frame rendered from `views_per_step` supervision views (spread evenly from the
-        // drawn one) and compared; the image loss is the mean over frames and views.
-        let views: Vec<usize> = (0..nv).map(|i| (view + i * cams / nv) % cams).collect();
-        let mut rendered = Vec::with_capacity(nf * nv);
-        for (frame, gaussians, _) in &decoded {
-            for &v in &views {
-                let cam = &scene.cameras[v];
-                let (h, w) = (cam.height as usize, cam.width as usize);
-                let gt = Tensor::from_slice(&gpu, &[h, w, 3], &scene.images[frame * cams + v])?;
-                rendered.push((render(&gpu, gaussians, cam, [0.0; 3])?, gt));
+        // drawn one) and compared: a scene's image loss is the mean over its frames and views.
+        let per_voxel = self.cfg.gaussians.gaussians_per_voxel;
+        let mut frame_gaussians = Vec::with_capacity(groups.len());
+        let mut first = 0;
+        for &(_, count) in &groups {
+            frame_gaussians.push((first * per_voxel, count * per_voxel));
+            first += count;
+        }
+        let mut rendered = Vec::new();
+        let mut group = 0;
+        for (scene, (frames, view)) in scenes.iter().zip(&plans) {
+            let cams = scene.cameras.len();
+            let nv = self.cfg.views_per_step.clamp(1, cams);
+            for &frame in frames {
+                let (start, len) = frame_gaussians[group];
+                let g = slice_gaussians(&gpu, &gaussians, start, len)?;
+                let mut views = Vec::with_capacity(nv);
+                for i in 0..nv {
+                    let v = (view + i * cams / nv) % cams;
+                    let cam = &scene.cameras[v];
+                    let (h, w) = (cam.height as usize, cam.width as usize);
+                    let gt = Tensor::from_slice(&gpu, &[h, w, 3], &scene.images[frame * cams + v])?;
+                    views.push((render(&gpu, &g, cam, [0.0; 3])?, gt));
+                }
+                rendered.push((g, views, weight / (frames.len() * nv) as f32));
+                group += 1;
             }
         }
 
-        // Backward: image loss, rasteriser and Gaussian decoder per frame, then the encoder.
+        // Backward: image losses and the rasteriser per frame into the Gaussians' gradient,
+        // the Gaussian decoder, the surface decoder, then the encoder.
         let mut rec = gpu.recorder()?;
         let image_loss = Tensor::empty(&gpu, &[1], DType::F32)?;
         fill(&mut rec, &image_loss, 0.0)?;
-        let image_weight = weight / (nf * nv) as f32;
-        for ((_, gaussians, g_cache), renders) in decoded.iter().zip(rendered.chunks(nv)) {
-            let mut d_head: Option<Gaussians> = None;
-            for (r, gt) in renders {
+        let d_gaussians = Gaussians::empty(&gpu, gaussians.len())?;
+        for ((g, views, image_weight), &(start, len)) in rendered.iter().zip(&frame_gaussians) {
+            let mut d_frame: Option<Gaussians> = None;
+            for (r, gt) in views {
                 let (loss, d_rgb) =
-                    Loss::mse().weighted(image_weight).forward_backward(&mut rec, &r.image.rgb, gt)?;
+                    Loss::mse().weighted(*image_weight).forward_backward(&mut rec, &r.image.rgb, gt)?;
                 binary_into(&mut rec, &image_loss, &loss, &image_loss, Binary::Add)?;
                 let d_zero = Tensor::empty(&gpu, gt.shape()[..2].as_ref(), DType::F32)?;
                 fill(&mut rec, &d_zero, 0.0)?;
-                let g = render_backward(&mut rec, gaussians, r, &d_rgb, &d_zero, &d_zero)?;
-                match &d_head {
-                    None => d_head = Some(g),
+                let d = render_backward(&mut rec, g, r, &d_rgb, &d_zero, &d_zero)?;
+                match &d_frame {
+                    None => d_frame = Some(d),
                     Some(acc) => {
-                        for (a, b) in acc.fields().into_iter().zip(g.fields()) {
+                        for (a, b) in acc.fields().into_iter().zip(d.fields()) {
                             binary_into(&mut rec, a, b, a, Binary::Add)?;
                         }
                     }
                 }
             }
-            let d_head = d_head.expect("at least one view");
-            let ds_gauss = self.gaussians.backward(&mut rec, g_cache, &d_head)?;
-            binary_into(&mut rec, &ds, &ds_gauss, &ds, Binary::Add)?;
+            let d_frame = d_frame.expect("at least one view");
+            for (src, dst) in d_frame.fields().into_iter().zip(d_gaussians.fields()) {
+                rec.copy_rows(src, 0, dst, start, len)?;
+            }
         }
+        let ds_gauss = self.gaussians.backward(&mut rec, &g_cache, &d_gaussians)?;
+        binary_into(&mut rec, &ds, &ds_gauss, &ds, Binary::Add)?;
+        let ds_surface = self.surface.backward(&mut rec, &surface_cache, &dv)?;
+        binary_into(&mut rec, &ds, &ds_surface, &ds, Binary::Add)?;
         self.encoder.backward(&mut rec, &enc_cache, &ds)?;
         rec.submit()?;
 
@@ -490,4 +565,19 @@ impl Trainable for Autoencoder {
     fn accumulate(&mut self, samples: &[&TrainScene], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
         Autoencoder::accumulate(self, samples, rngs, weight)
     }
+}
+
+/// Gaussians `start .. start + len` of a set, as a set of their own (the whole set when it is
+/// all of it).
+fn slice_gaussians(gpu: &Gpu, g: &Gaussians, start: usize, len: usize) -> Result<Gaussians> {
+    if start == 0 && len == g.len() {
+        return Ok(g.clone());
+    }
+    let out = Gaussians::empty(gpu, len)?;
+    let mut rec = gpu.recorder()?;
+    for (src, dst) in g.fields().into_iter().zip(out.fields()) {
+        rec.copy_rows(src, start, dst, 0, len)?;
+    }
+    rec.submit()?;
+    Ok(out)
 }

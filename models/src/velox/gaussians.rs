@@ -57,6 +57,15 @@ struct BlockCache {
     layers: Vec<WindowLayerCache>,
 }
 
+/// The frame groups of a batch of voxels and the tokens each attends to: the voxels are
+/// `groups` in order, `(tau, count)` each, and `segments` gives each segment of voxels (a
+/// sample's frames) its rows of the tokens.
+#[derive(Clone, Debug)]
+pub struct VoxelFrames {
+    pub groups: Vec<(f32, usize)>,
+    pub segments: Segments,
+}
+
 pub struct GaussianCache {
     centres: Tensor,
     windows: [WindowLayout; 2],
@@ -159,10 +168,11 @@ impl GaussianDecoder {
         }
     }
 
-    /// Windows of `window_voxels`^3 voxels over the voxel centres (time is one cell).
-    fn grid(&self) -> Result<WindowGrid> {
+    /// Windows of `window_voxels`^3 voxels over the voxel centres; the fourth axis is the
+    /// frame group, one cell each, so windows never mix the voxels of two frames.
+    fn grid(&self, groups: usize) -> Result<WindowGrid> {
         let w = 2.0 * self.cfg.window_voxels as f32 / self.cfg.grid as f32;
-        WindowGrid::new([-1.0, -1.0, -1.0, 0.0], [1.0, 1.0, 1.0, 1.0], [w, w, w, 1.0])
+        WindowGrid::new([-1.0, -1.0, -1.0, 0.0], [1.0, 1.0, 1.0, groups as f32], [w, w, w, 1.0])
     }
 
     /// Gaussians (`V x G` of them) for `centres` (f32 `[V, 3]`, occupied voxels) at frame `tau`
@@ -173,6 +183,21 @@ impl GaussianDecoder {
         tokens: &Tensor,
         centres: &Tensor,
         tau: f32,
+    ) -> Result<(Gaussians, GaussianCache)> {
+        let v = centres.shape().first().copied().unwrap_or(0);
+        let k = tokens.shape().first().copied().unwrap_or(0);
+        let frames = VoxelFrames { groups: vec![(tau, v)], segments: Segments::dense(tokens.gpu(), v, k)? };
+        self.forward_frames(rec, tokens, centres, &frames)
+    }
+
+    /// [`GaussianDecoder::forward`] of a batch: the voxels' frame times and tokens as `frames`
+    /// says (the tokens of every sample of the batch, one after another).
+    pub fn forward_frames(
+        &self,
+        rec: &mut Recorder,
+        tokens: &Tensor,
+        centres: &Tensor,
+        frames: &VoxelFrames,
     ) -> Result<(Gaussians, GaussianCache)> {
         let v = match centres.shape() {
             &[v, 3] if v > 0 && centres.dtype() == DType::F32 => v,
@@ -187,18 +212,33 @@ impl GaussianDecoder {
                 "gaussian decoder: tokens must be [k > 0, dim], got {tokens:?}"
             )));
         }
-        if !tau.is_finite() || tau < 0.0 {
+        if let Some(&(tau, _)) = frames.groups.iter().find(|g| !(g.0.is_finite() && g.0 >= 0.0)) {
             return Err(Error::Invalid(format!(
                 "gaussian decoder: frame time {tau} must be finite and >= 0"
             )));
         }
+        let counted: usize = frames.groups.iter().map(|g| g.1).sum();
+        if counted != v {
+            return Err(Error::Shape(format!(
+                "gaussian decoder: the frame groups count {counted} voxels, the centres {v}"
+            )));
+        }
         let gpu = tokens.gpu().clone();
-        // Query points (x, y, z, tau) for the windows, and the query features.
-        let taus = Tensor::from_slice(&gpu, &[v, 1], &vec![tau; v])?;
+        // Query points (x, y, z, frame group) for the windows, and the query features.
+        let per_voxel = |f: &dyn Fn(usize, f32) -> f32| -> Vec<f32> {
+            frames
+                .groups
+                .iter()
+                .enumerate()
+                .flat_map(|(g, &(tau, n))| std::iter::repeat_n(f(g, tau), n))
+                .collect()
+        };
+        let taus = Tensor::from_slice(&gpu, &[v, 1], &per_voxel(&|_, tau| tau))?;
+        let group_ids = Tensor::from_slice(&gpu, &[v, 1], &per_voxel(&|g, _| g as f32))?;
         let points = Tensor::empty(&gpu, &[v, 4], DType::F32)?;
         copy_columns(rec, centres, 0, &points, 0, 3, 1.0)?;
-        copy_columns(rec, &taus, 0, &points, 3, 1, 1.0)?;
-        let grid = self.grid()?;
+        copy_columns(rec, &group_ids, 0, &points, 3, 1, 1.0)?;
+        let grid = self.grid(frames.groups.len())?;
         let windows =
             [WindowLayout::new(rec, &points, &grid)?, WindowLayout::new(rec, &points, &grid.shifted())?];
         let (fx, _) = self.fourier_xyz.forward(rec, centres)?;
@@ -208,7 +248,7 @@ impl GaussianDecoder {
         copy_columns(rec, &fx, 0, &features, 0, wx, 1.0)?;
         copy_columns(rec, &ft, 0, &features, wx, wt, 1.0)?;
         let (mut x, input) = self.input.forward(rec, &features)?;
-        let cross_segments = Segments::dense(&gpu, v, tokens.shape()[0])?;
+        let cross_segments = frames.segments.clone();
         let mut blocks = Vec::new();
         for blk in &self.blocks {
             let (qn, norm_q) = blk.norm_q.forward(rec, &x)?;

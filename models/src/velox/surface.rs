@@ -134,6 +134,8 @@ struct BlockCache {
 /// What [`SurfaceDecoder::backward`] needs from the forward pass.
 pub struct SurfaceCache {
     n: usize,
+    /// Frame-time groups of the points.
+    groups: usize,
     /// The modulation batch: `(B, T)` = `(points, 1)` with per-point `t`, `(1, points)` shared.
     b: usize,
     tt: usize,
@@ -151,6 +153,22 @@ pub struct SurfaceCache {
     ln_final: LayerNormCache,
     mod_final: ModulateCache,
     out: LinearCache,
+}
+
+/// The frame times of a batch of points and the tokens each attends to: the points are
+/// `taus.len()` equal groups in order, group g at frame time `taus[g]`, and `segments` gives
+/// each segment of points (a sample's groups) its rows of the tokens.
+#[derive(Clone, Debug)]
+pub struct PointFrames {
+    pub taus: Vec<f32>,
+    pub segments: Segments,
+}
+
+impl PointFrames {
+    /// `n` points of one frame time, every one attending to all `k` tokens.
+    pub fn single(gpu: &Gpu, tau: f32, n: usize, k: usize) -> Result<PointFrames> {
+        Ok(PointFrames { taus: vec![tau], segments: Segments::dense(gpu, n, k)? })
+    }
 }
 
 /// The noise of one rectified-flow step: `eps [N, 3]` and per-point flow times `t [N]`.
@@ -416,7 +434,13 @@ impl SurfaceDecoder {
         2 * (n * xyz as u64 * w + cfg.blocks as u64 * per_block + n * w * 3)
     }
 
-    fn check_inputs(&self, x_t: &Tensor, tau: f32, t: &Tensor, tokens: &Tensor) -> Result<(usize, usize)> {
+    fn check_inputs(
+        &self,
+        x_t: &Tensor,
+        frames: &PointFrames,
+        t: &Tensor,
+        tokens: &Tensor,
+    ) -> Result<(usize, usize)> {
         let n = match x_t.shape() {
             [n, 3] if *n > 0 && x_t.dtype() == DType::F32 => *n,
             _ => {
@@ -430,7 +454,17 @@ impl SurfaceDecoder {
                 "surface decoder: flow times must be f32 [{n}] (one per point) or [1] (shared), got {t:?}"
             )));
         }
-        Ok((n, self.check_condition(tau, tokens)?))
+        let groups = frames.taus.len();
+        if groups == 0 || !n.is_multiple_of(groups) {
+            return Err(Error::Shape(format!(
+                "surface decoder: {n} points do not split into {groups} equal frame groups"
+            )));
+        }
+        let mut k = 0;
+        for &tau in &frames.taus {
+            k = self.check_condition(tau, tokens)?;
+        }
+        Ok((n, k))
     }
 
     /// Checks the frame time and the tokens; returns the number of tokens.
@@ -457,7 +491,27 @@ impl SurfaceDecoder {
         t: &Tensor,
         tokens: &Tensor,
     ) -> Result<(Tensor, SurfaceCache)> {
-        let (n, k) = self.check_inputs(x_t, tau, t, tokens)?;
+        let frames = PointFrames::single(
+            x_t.gpu(),
+            tau,
+            x_t.shape()[0],
+            tokens.shape().first().copied().unwrap_or(0),
+        )?;
+        self.forward_frames(rec, x_t, &frames, t, tokens)
+    }
+
+    /// [`SurfaceDecoder::forward`] of a batch: the points' frame times and tokens as `frames`
+    /// says (the tokens of every sample of the batch, one after another).
+    pub fn forward_frames(
+        &self,
+        rec: &mut Recorder,
+        x_t: &Tensor,
+        frames: &PointFrames,
+        t: &Tensor,
+        tokens: &Tensor,
+    ) -> Result<(Tensor, SurfaceCache)> {
+        let (n, k) = self.check_inputs(x_t, frames, t, tokens)?;
+        let groups = frames.taus.len();
         let gpu = x_t.gpu().clone();
         let w = self.cfg.width;
         let nt = t.numel();
@@ -479,18 +533,20 @@ impl SurfaceDecoder {
         // Input features.
         let (fx, _) = self.xyz_fourier.forward(rec, x_t)?;
         let (h, input) = self.input.forward(rec, &fx)?;
+        // Each frame group's row of Fourier(tau) through its linear, added to its points.
         let input_tau = match (&self.tau_fourier, &self.input_tau) {
             (Some(f), Some(l)) => {
-                let tau_t = Tensor::from_slice(&gpu, &[1, 1], &[tau])?;
+                let tau_t = Tensor::from_slice(&gpu, &[groups, 1], &frames.taus)?;
                 let (ftau, _) = f.forward(rec, &tau_t)?;
-                let (row, c) = l.forward(rec, &ftau)?;
-                binary_into(rec, &h, &row, &h, Binary::Add)?;
+                let (rows, c) = l.forward(rec, &ftau)?;
+                let grouped = h.reshape(&[groups, n / groups, w])?;
+                binary_into(rec, &grouped, &rows.reshape(&[groups, 1, w])?, &grouped, Binary::Add)?;
                 Some(c)
             }
             _ => None,
         };
 
-        let seg = Segments::dense(&gpu, n, k)?;
+        let seg = frames.segments.clone();
         let mut h = h.reshape(&[b, tt, w])?;
         let mut blocks = Vec::with_capacity(self.blocks.len());
         for blk in &self.blocks {
@@ -512,6 +568,7 @@ impl SurfaceDecoder {
         let (v, out) = self.out.forward(rec, &mf.reshape(&[n, w])?)?;
         let cache = SurfaceCache {
             n,
+            groups,
             b,
             tt,
             k,
@@ -595,7 +652,8 @@ impl SurfaceDecoder {
         let dh = dh.reshape(&[n, w])?;
         self.input.param_grads(rec, &cache.input, &dh)?;
         if let (Some(l), Some(c)) = (&self.input_tau, &cache.input_tau) {
-            let sum = reduce(rec, &dh, 0, Reduce::Sum)?.reshape(&[1, w])?;
+            let g = cache.groups;
+            let sum = reduce(rec, &dh.reshape(&[g, n / g, w])?, 1, Reduce::Sum)?;
             l.param_grads(rec, c, &sum)?;
         }
 
@@ -635,8 +693,24 @@ impl SurfaceDecoder {
         noise: &FlowNoise,
         weight: f32,
     ) -> Result<(Tensor, Tensor, SurfaceCache)> {
+        let frames =
+            PointFrames::single(x.gpu(), tau, x.shape()[0], tokens.shape().first().copied().unwrap_or(0))?;
+        self.flow_loss_frames(rec, x, &frames, tokens, noise, weight)
+    }
+
+    /// [`SurfaceDecoder::flow_loss`] of a batch of points (see [`PointFrames`]): `L_V` is the
+    /// mean over all of them.
+    pub fn flow_loss_frames(
+        &self,
+        rec: &mut Recorder,
+        x: &Tensor,
+        frames: &PointFrames,
+        tokens: &Tensor,
+        noise: &FlowNoise,
+        weight: f32,
+    ) -> Result<(Tensor, Tensor, SurfaceCache)> {
         let (x_t, u) = SurfaceDecoder::flow_pair(rec, x, noise)?;
-        let (v, cache) = self.forward(rec, &x_t, tau, &noise.t, tokens)?;
+        let (v, cache) = self.forward_frames(rec, &x_t, frames, &noise.t, tokens)?;
         let (loss, dv) = Loss::mse().weighted(weight).forward_backward(rec, &v, &u)?;
         Ok((loss, dv, cache))
     }
@@ -653,6 +727,21 @@ impl SurfaceDecoder {
         weight: f32,
     ) -> Result<FlowLoss> {
         let (loss, dv, cache) = self.flow_loss(rec, x, tau, tokens, noise, weight)?;
+        let dtokens = self.backward(rec, &cache, &dv)?;
+        Ok(FlowLoss { loss, dtokens })
+    }
+
+    /// [`SurfaceDecoder::loss_step_with`] of a batch of points (see [`PointFrames`]).
+    pub fn loss_step_frames(
+        &self,
+        rec: &mut Recorder,
+        x: &Tensor,
+        frames: &PointFrames,
+        tokens: &Tensor,
+        noise: &FlowNoise,
+        weight: f32,
+    ) -> Result<FlowLoss> {
+        let (loss, dv, cache) = self.flow_loss_frames(rec, x, frames, tokens, noise, weight)?;
         let dtokens = self.backward(rec, &cache, &dv)?;
         Ok(FlowLoss { loss, dtokens })
     }
