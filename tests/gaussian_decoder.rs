@@ -15,8 +15,9 @@ fn setup(gpu: &Gpu) -> (ParamStore, GaussianDecoder, usize) {
     let mut b = ParamStore::builder();
     GaussianDecoder::register(&mut b, "gs", &c.gaussians, c.encoder.token_dim).unwrap();
     let store = b.build(gpu, 7).unwrap();
-    // Larger head weights than the default init, so the finite difference sees every output.
-    let head = store.param("gs.head.w").unwrap();
+    // Larger weights in the head's last layer than the default init, so the finite difference
+    // sees every output (the tiny config's head is an MLP, as the paper config's).
+    let head = store.param("gs.head.fc2.w").unwrap();
     let n = head.numel();
     head.write(&Rng::new(70).normal_vec(n).iter().map(|v| v * 0.3).collect::<Vec<f32>>()).unwrap();
     let dec = GaussianDecoder::new(gpu, &store, "gs", &c.gaussians).unwrap();
@@ -150,4 +151,22 @@ fn bad_inputs_get_clear_errors() {
     assert!(dec
         .forward(&mut rec, &Tensor::empty(&gpu, &[4, token_dim + 1], DType::F32).unwrap(), &c, 0.0)
         .is_err());
+}
+
+#[test]
+fn the_paper_config_counts_the_papers_parameters() {
+    use velox::models::config::AutoencoderConfig;
+    use velox::models::params::ParamBuilder;
+    // The paper's Gaussian decoder has 75.8 M parameters; its head "expanded by an MLP" and a
+    // two-layer input reach that, a single linear head and input 73.1 M.
+    let count = |cfg: &velox::models::config::GaussianConfig| {
+        let mut b = ParamBuilder::default();
+        GaussianDecoder::register(&mut b, "g", cfg, 32).unwrap();
+        b.num_parameters() as f64 / 1e6
+    };
+    let paper = AutoencoderConfig::paper().gaussians;
+    let with = count(&paper);
+    let without = count(&velox::models::config::GaussianConfig { input_hidden: 0, head_hidden: 0, ..paper });
+    assert!((with - 75.8).abs() < 0.1, "paper config: {with:.2} M");
+    assert!((without - 73.1).abs() < 0.1, "single linear head and input: {without:.2} M");
 }

@@ -145,6 +145,11 @@ impl ParamBuilder {
         Ok(())
     }
 
+    /// Values of every parameter registered so far (nothing is allocated).
+    pub fn num_parameters(&self) -> usize {
+        self.specs.iter().map(|p| p.numel).sum()
+    }
+
     /// Allocates the flat buffers on `gpu` and initialises the parameters on the host with
     /// `seed`; gradients and moments start at zero and the step counter at 0.
     pub fn build(self, gpu: &Gpu, seed: u64) -> Result<ParamStore> {

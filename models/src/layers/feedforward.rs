@@ -108,4 +108,11 @@ impl GeluMlp {
         let du = gelu_backward(rec, &cache.u, &dg)?;
         self.fc1.backward(rec, &cache.x, &du)
     }
+
+    /// The parameters' gradients alone (the first layer of a model needs no input gradient).
+    pub fn param_grads(&self, rec: &mut Recorder, cache: &GeluMlpCache, dy: &Tensor) -> Result<()> {
+        let dg = self.fc2.backward(rec, &cache.g, dy)?;
+        let du = gelu_backward(rec, &cache.u, &dg)?;
+        self.fc1.param_grads(rec, &cache.x, &du)
+    }
 }

@@ -23,6 +23,7 @@ use velox_engine::{DType, Error, Gpu, Recorder, Result, Tensor};
 
 use crate::config::GaussianConfig;
 use crate::layers::attention::{MultiHeadAttention, MultiHeadAttentionCache};
+use crate::layers::feedforward::{GeluMlp, GeluMlpCache};
 use crate::layers::linear::LinearCache;
 use crate::layers::norm::RmsNormCache;
 use crate::layers::{Fourier, Linear, Param, RmsNorm};
@@ -44,10 +45,10 @@ pub struct GaussianDecoder {
     pub cfg: GaussianConfig,
     fourier_xyz: Fourier,
     fourier_tau: Fourier,
-    input: Linear,
+    input: Dense,
     blocks: Vec<Block>,
     head_norm: RmsNorm,
-    head: Linear,
+    head: Dense,
 }
 
 struct BlockCache {
@@ -70,10 +71,10 @@ pub struct GaussianCache {
     centres: Tensor,
     windows: [WindowLayout; 2],
     cross_segments: Segments,
-    input: LinearCache,
+    input: DenseCache,
     blocks: Vec<BlockCache>,
     head_norm: RmsNormCache,
-    head: LinearCache,
+    head: DenseCache,
     raw: Tensor,
     tokens_shape: Vec<usize>,
 }
@@ -98,6 +99,58 @@ pub fn occupied_voxels(cloud: &[f32], tau: f32, grid: usize) -> Vec<f32> {
         .collect()
 }
 
+/// A linear layer, or a GELU MLP through a hidden width (`fc1`, `fc2` under its name).
+enum Dense {
+    Linear(Linear),
+    Mlp(GeluMlp),
+}
+
+enum DenseCache {
+    Linear(LinearCache),
+    Mlp(GeluMlpCache),
+}
+
+impl Dense {
+    fn new(store: &ParamStore, name: &str, hidden: usize) -> Result<Dense> {
+        Ok(match hidden {
+            0 => Dense::Linear(linear(store, name, true)?),
+            _ => {
+                let p = |l: &str, x: &str| Param::from_store(store, &format!("{name}.{l}.{x}"));
+                Dense::Mlp(GeluMlp::new(p("fc1", "w")?, p("fc1", "b")?, p("fc2", "w")?, p("fc2", "b")?)?)
+            }
+        })
+    }
+
+    fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<(Tensor, DenseCache)> {
+        Ok(match self {
+            Dense::Linear(l) => {
+                let (y, c) = l.forward(rec, x)?;
+                (y, DenseCache::Linear(c))
+            }
+            Dense::Mlp(m) => {
+                let (y, c) = m.forward(rec, x)?;
+                (y, DenseCache::Mlp(c))
+            }
+        })
+    }
+
+    fn backward(&self, rec: &mut Recorder, cache: &DenseCache, dy: &Tensor) -> Result<Tensor> {
+        match (self, cache) {
+            (Dense::Linear(l), DenseCache::Linear(c)) => l.backward(rec, c, dy),
+            (Dense::Mlp(m), DenseCache::Mlp(c)) => m.backward(rec, c, dy),
+            _ => Err(Error::Invalid("gaussian decoder: a cache of another layer".into())),
+        }
+    }
+
+    fn param_grads(&self, rec: &mut Recorder, cache: &DenseCache, dy: &Tensor) -> Result<()> {
+        match (self, cache) {
+            (Dense::Linear(l), DenseCache::Linear(c)) => l.param_grads(rec, c, dy),
+            (Dense::Mlp(m), DenseCache::Mlp(c)) => m.param_grads(rec, c, dy),
+            _ => Err(Error::Invalid("gaussian decoder: a cache of another layer".into())),
+        }
+    }
+}
+
 fn attention_params(b: &mut ParamBuilder, name: &str, width: usize, context: usize) -> Result<()> {
     linear_params(b, &format!("{name}.q"), width, width, false)?;
     linear_params(b, &format!("{name}.k"), context, width, false)?;
@@ -118,7 +171,14 @@ impl GaussianDecoder {
         token_dim: usize,
     ) -> Result<()> {
         let w = cfg.width;
-        linear_params(b, &format!("{prefix}.input"), Self::feature_width(cfg), w, true)?;
+        let input = format!("{prefix}.input");
+        match cfg.input_hidden {
+            0 => linear_params(b, &input, Self::feature_width(cfg), w, true)?,
+            h => {
+                linear_params(b, &format!("{input}.fc1"), Self::feature_width(cfg), h, true)?;
+                linear_params(b, &format!("{input}.fc2"), h, w, true)?;
+            }
+        }
         for i in 0..cfg.blocks {
             let blk = format!("{prefix}.block{i}");
             b.add(&format!("{blk}.norm_q"), &[w], Init::Ones)?;
@@ -129,9 +189,19 @@ impl GaussianDecoder {
             }
         }
         b.add(&format!("{prefix}.head_norm"), &[w], Init::Ones)?;
-        // A small head: the first renders start from faint, mid-sized Gaussians at the centres.
-        b.add(&format!("{prefix}.head.w"), &[w, cfg.gaussians_per_voxel * RAW], Init::Normal { std: 0.01 })?;
-        b.add(&format!("{prefix}.head.b"), &[cfg.gaussians_per_voxel * RAW], Init::Zeros)
+        // A small last layer: the first renders start from faint, mid-sized Gaussians at the
+        // centres.
+        let (head, out) = (format!("{prefix}.head"), cfg.gaussians_per_voxel * RAW);
+        let last = match cfg.head_hidden {
+            0 => head,
+            h => {
+                linear_params(b, &format!("{head}.fc1"), w, h, true)?;
+                format!("{head}.fc2")
+            }
+        };
+        let fan_in = if cfg.head_hidden == 0 { w } else { cfg.head_hidden };
+        b.add(&format!("{last}.w"), &[fan_in, out], Init::Normal { std: 0.01 })?;
+        b.add(&format!("{last}.b"), &[out], Init::Zeros)
     }
 
     pub fn new(gpu: &Gpu, store: &ParamStore, prefix: &str, cfg: &GaussianConfig) -> Result<GaussianDecoder> {
@@ -148,15 +218,14 @@ impl GaussianDecoder {
                     .collect::<Result<Vec<_>>>()?,
             });
         }
-        let head_b = Param::from_store(store, &format!("{prefix}.head.b"))?;
         Ok(GaussianDecoder {
             cfg: cfg.clone(),
             fourier_xyz: Fourier::octaves(gpu, 3, cfg.xyz_freqs, true)?,
             fourier_tau: Fourier::octaves(gpu, 1, cfg.tau_freqs, true)?,
-            input: linear(store, &format!("{prefix}.input"), true)?,
+            input: Dense::new(store, &format!("{prefix}.input"), cfg.input_hidden)?,
             blocks,
             head_norm: norm(store, &format!("{prefix}.head_norm"))?,
-            head: Linear::new(Param::from_store(store, &format!("{prefix}.head.w"))?, Some(head_b))?,
+            head: Dense::new(store, &format!("{prefix}.head"), cfg.head_hidden)?,
         })
     }
 
