@@ -99,7 +99,9 @@ pub fn occupied_voxels(cloud: &[f32], tau: f32, grid: usize) -> Vec<f32> {
         .collect()
 }
 
-/// A linear layer, or a GELU MLP through a hidden width (`fc1`, `fc2` under its name).
+/// A linear layer, or a GELU MLP through a hidden width (`fc1`, `fc2` under its name). A
+/// decoder holds two, so the variants' sizes do not matter.
+#[allow(clippy::large_enum_variant)]
 enum Dense {
     Linear(Linear),
     Mlp(GeluMlp),
