@@ -10,4 +10,5 @@ pub mod metrics;
 pub mod params;
 pub mod run;
 pub mod schedule;
+pub mod train;
 pub mod velox;
