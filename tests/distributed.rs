@@ -227,6 +227,10 @@ fn rank_checks(comm: &Comm) {
     let mut odd = comm.clone();
     odd.set_bucket_len(5).unwrap();
     check_sum(&odd, &gpu, &[13]);
+    // Ranks that ask for different buckets: they agree on one.
+    let mut mixed = comm.clone();
+    mixed.set_bucket_len(if rank == 0 { 256 } else { 1000 }).unwrap();
+    check_sum(&mixed, &gpu, &[3 * 1000 + 1]);
     // The default bucket, and one more element.
     check_sum(comm, &gpu, &[DEFAULT_BUCKET_LEN + 1]);
 

@@ -167,9 +167,10 @@ impl Comm {
         self.bucket_len
     }
 
-    /// Sets the elements per bucket of [`Comm::all_reduce_sum`] for this handle (rounded up to
-    /// the device's view alignment when used), between 1 and [`MAX_BUCKET_LEN`]. The sums do not
-    /// depend on it; the host memory and the number of MPI calls do.
+    /// Sets the elements per bucket of [`Comm::all_reduce_sum`] for this handle, between 1 and
+    /// [`MAX_BUCKET_LEN`]. A sum uses the largest bucket any rank asks for, rounded up to a
+    /// multiple of every rank's device view alignment. The sums do not depend on it; the host
+    /// memory and the number of MPI calls do.
     pub fn set_bucket_len(&mut self, elements: usize) -> Result<()> {
         if elements == 0 || elements > MAX_BUCKET_LEN {
             return Err(Error::Invalid(format!(
@@ -182,7 +183,8 @@ impl Comm {
 
     /// Sums an f32 tensor across the ranks, in place: afterwards every rank holds, bit for bit,
     /// the same sum of what each rank held. Every rank must call it with a tensor of the same
-    /// length (checked first, together, so a mismatch is an error on every rank, not a hang).
+    /// length: the ranks first exchange their lengths and buckets, so a mismatch is an error on
+    /// every rank, not a hang.
     /// Call it with no recording in flight on the tensor (after the recording that wrote it was
     /// submitted).
     ///
@@ -270,6 +272,41 @@ impl std::fmt::Debug for Comm {
     }
 }
 
+/// The bucket every rank of a sum uses, from what each rank told the others: its tensor's
+/// length, the bucket length it asks for and its device's view alignment, in elements. Ranks
+/// whose tensors differ in length are an error; otherwise the largest bucket asked for,
+/// rounded up to a multiple of every rank's alignment, so that on every device each bucket
+/// starts where a view can. (The sums do not depend on it, but the ranks must exchange the
+/// same slices.)
+#[cfg_attr(not(feature = "mpi"), allow(dead_code))]
+fn agree_on_bucket(told: &[[u64; 3]]) -> Result<usize> {
+    let first = told.first().map_or(0, |t| t[0]);
+    if told.iter().any(|t| t[0] != first) {
+        let each: Vec<String> = told.iter().enumerate().map(|(r, t)| format!("rank {r}: {}", t[0])).collect();
+        return Err(Error::Mpi(format!(
+            "all_reduce_sum: the ranks hold tensors of different lengths ({}); every rank must sum \
+             the same buffer",
+            each.join(", ")
+        )));
+    }
+    fn gcd(a: u64, b: u64) -> u64 {
+        if b == 0 {
+            a
+        } else {
+            gcd(b, a % b)
+        }
+    }
+    let too_large = || Error::Mpi(format!("all_reduce_sum: no common bucket for {told:?}"));
+    let mut align = 1u64;
+    for t in told {
+        let a = t[2].max(1);
+        align = (align / gcd(align, a)).checked_mul(a).ok_or_else(too_large)?;
+    }
+    let asked = told.iter().map(|t| t[1].max(1)).max().unwrap_or(1);
+    let bucket = asked.checked_next_multiple_of(align).ok_or_else(too_large)?;
+    usize::try_from(bucket).map_err(|_| too_large())
+}
+
 /// The sum over `ranks` of `slices` (the ranks' slices of `out.len()` elements, one after
 /// another in rank order), each element added in rank order: `((s_0 + s_1) + s_2) + ...`.
 #[cfg_attr(not(feature = "mpi"), allow(dead_code))]
@@ -301,7 +338,7 @@ mod mpi_world {
     use mpi::ffi;
     use velox_engine::{Error, Result, Tensor};
 
-    use super::sum_in_rank_order;
+    use super::{agree_on_bucket, sum_in_rank_order};
 
     /// Bytes per `MPI_Bcast` of a broadcast, so that a count fits MPI's `int`.
     const BROADCAST_PIECE: usize = 1 << 28;
@@ -416,21 +453,15 @@ mod mpi_world {
 
         pub fn all_reduce_sum(&self, t: &Tensor, bucket_len: usize) -> Result<()> {
             let n = t.numel();
-            let lengths = self.all_gather_u64(n as u64)?;
-            if lengths.iter().any(|&len| len != n as u64) {
-                let each: Vec<String> =
-                    lengths.iter().enumerate().map(|(r, len)| format!("rank {r}: {len}")).collect();
-                return Err(Error::Mpi(format!(
-                    "all_reduce_sum: the ranks hold tensors of different lengths ({}); every rank \
-                     must sum the same buffer",
-                    each.join(", ")
-                )));
-            }
+            // Every rank must exchange the same slices: agree on the length and the bucket first.
+            let told = self.all_gather_u64s(&[n as u64, bucket_len as u64, t.view_alignment() as u64])?;
+            let told: Vec<[u64; 3]> = told.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+            let bucket = agree_on_bucket(&told)?;
             if self.size == 1 || n == 0 {
                 return Ok(());
             }
             let flat = t.reshape(&[n])?;
-            let bucket = bucket_len.next_multiple_of(flat.view_alignment()).min(n);
+            let bucket = bucket.min(n);
             let ranks = self.size;
             let most = bucket.div_ceil(ranks);
             let mut received = vec![0f32; most * ranks];
@@ -510,17 +541,18 @@ mod mpi_world {
             Ok(all)
         }
 
-        fn all_gather_u64(&self, x: u64) -> Result<Vec<u64>> {
-            let mut all = vec![0u64; self.size];
-            // SAFETY: `all` holds one u64 per rank; the communicator is valid.
+        fn all_gather_u64s(&self, x: &[u64]) -> Result<Vec<u64>> {
+            let mut all = vec![0u64; x.len() * self.size];
+            let n = count(x.len(), "MPI_Allgather")?;
+            // SAFETY: `all` holds `x.len()` u64 per rank; the communicator is valid.
             check(
                 unsafe {
                     ffi::MPI_Allgather(
-                        (&x as *const u64).cast::<c_void>(),
-                        1,
+                        x.as_ptr().cast::<c_void>(),
+                        n,
                         ffi::RSMPI_UINT64_T,
                         all.as_mut_ptr().cast::<c_void>(),
-                        1,
+                        n,
                         ffi::RSMPI_UINT64_T,
                         self.comm,
                     )
@@ -530,8 +562,6 @@ mod mpi_world {
             Ok(all)
         }
 
-        // Without MPI there is one rank, the root, whose data stays as it is.
-        #[cfg_attr(not(feature = "mpi"), allow(unused_variables, clippy::ptr_arg))]
         pub fn broadcast_bytes(&self, root: usize, data: &mut Vec<u8>) -> Result<()> {
             // The length first, little-endian whatever the machines.
             let mut len = (data.len() as u64).to_le_bytes();
@@ -654,6 +684,17 @@ mod tests {
         assert!(comm.set_bucket_len(MAX_BUCKET_LEN + 1).is_err());
         comm.set_bucket_len(300).unwrap();
         assert_eq!(comm.bucket_len(), 300);
+    }
+
+    #[test]
+    fn ranks_agree_on_one_bucket_that_every_device_can_view() {
+        assert_eq!(agree_on_bucket(&[[1000, 256, 4], [1000, 256, 4]]).unwrap(), 256);
+        // The largest bucket asked for, rounded up to every rank's alignment.
+        assert_eq!(agree_on_bucket(&[[1000, 1000, 4], [1000, 5, 64]]).unwrap(), 1024);
+        assert_eq!(agree_on_bucket(&[[7, 5, 4], [7, 5, 4]]).unwrap(), 8);
+        assert_eq!(agree_on_bucket(&[[0, 1 << 20, 4]]).unwrap(), 1 << 20);
+        let e = agree_on_bucket(&[[10, 256, 4], [12, 256, 4]]).unwrap_err().to_string();
+        assert!(e.contains("rank 0: 10, rank 1: 12"), "{e}");
     }
 
     #[test]
