@@ -1,8 +1,10 @@
 //! The Vulkan instance, the chosen physical device and its logical device.
 //!
 //! Device choice: discrete GPU first, then integrated, virtual, CPU; `VELOX_DEVICE` (an index
-//! from `velox info`, or part of a device name) overrides. Everything the kernels need to know
-//! about the device is read once into [`Caps`].
+//! from `velox info`, or part of a device name) overrides. One process of a multi-process run
+//! opens its device with [`Gpu::for_local_rank`]: local rank r takes the r-th discrete GPU
+//! (wrapping around), so the processes of one machine spread over its GPUs. Everything the
+//! kernels need to know about the device is read once into [`Caps`].
 
 use std::ffi::{c_char, CStr};
 use std::mem::ManuallyDrop;
@@ -143,8 +145,14 @@ fn summaries(instance: &ash::Instance) -> Result<(Vec<vk::PhysicalDevice>, Vec<D
     Ok((pds, list))
 }
 
-/// The index of the device to use, honouring `VELOX_DEVICE`.
-fn choose(instance: &ash::Instance, pds: &[vk::PhysicalDevice], list: &[DeviceSummary]) -> Result<usize> {
+/// The index of the device to use, honouring `VELOX_DEVICE`; `local_rank` is the process's rank
+/// on its machine in a multi-process run (see [`choose_for_rank`]), `None` for a lone process.
+fn choose(
+    instance: &ash::Instance,
+    pds: &[vk::PhysicalDevice],
+    list: &[DeviceSummary],
+    local_rank: Option<usize>,
+) -> Result<usize> {
     if pds.is_empty() {
         return Err(Error::NoDevice("the Vulkan loader reports no physical device".into()));
     }
@@ -168,21 +176,46 @@ fn choose(instance: &ash::Instance, pds: &[vk::PhysicalDevice], list: &[DeviceSu
         }
         return Ok(i);
     }
-    list.iter()
+    let usable: Vec<(usize, vk::PhysicalDeviceType)> = list
+        .iter()
         .filter(|d| d.unusable.is_none())
-        .min_by_key(|d| {
+        .map(|d| {
             // SAFETY: `pds[d.index]` comes from this instance.
             let props = unsafe { instance.get_physical_device_properties(pds[d.index]) };
-            (kind_name(props.device_type).1, d.index)
+            (d.index, props.device_type)
         })
-        .map(|d| d.index)
-        .ok_or_else(|| {
-            let why: Vec<String> = list
-                .iter()
-                .map(|d| format!("{} ({})", d.name, d.unusable.clone().unwrap_or_default()))
-                .collect();
-            Error::NoDevice(format!("none of the devices can be used: {}", why.join("; ")))
-        })
+        .collect();
+    let chosen = match local_rank {
+        None => choose_preferred(&usable),
+        Some(rank) => choose_for_rank(&usable, rank),
+    };
+    chosen.ok_or_else(|| {
+        let why: Vec<String> =
+            list.iter().map(|d| format!("{} ({})", d.name, d.unusable.clone().unwrap_or_default())).collect();
+        Error::NoDevice(format!("none of the devices can be used: {}", why.join("; ")))
+    })
+}
+
+/// The preferred of the usable devices `(index, type)`: the best kind (discrete GPU, integrated,
+/// virtual, CPU), then the lowest index.
+fn choose_preferred(usable: &[(usize, vk::PhysicalDeviceType)]) -> Option<usize> {
+    usable.iter().min_by_key(|&&(index, kind)| (kind_name(kind).1, index)).map(|&(index, _)| index)
+}
+
+/// The device of the process with local rank `rank`: the `rank`-th discrete GPU in index order,
+/// wrapping around when the machine runs more processes than it has discrete GPUs; on a machine
+/// with none, every process takes the preferred device (lavapipe on a CPU-only machine).
+fn choose_for_rank(usable: &[(usize, vk::PhysicalDeviceType)], rank: usize) -> Option<usize> {
+    let discrete: Vec<usize> = usable
+        .iter()
+        .filter(|&&(_, kind)| kind == vk::PhysicalDeviceType::DISCRETE_GPU)
+        .map(|&(index, _)| index)
+        .collect();
+    if discrete.is_empty() {
+        choose_preferred(usable)
+    } else {
+        Some(discrete[rank % discrete.len()])
+    }
 }
 
 /// Lists the devices the loader sees, without creating any logical device.
@@ -198,11 +231,22 @@ pub fn list_devices() -> Result<Vec<DeviceSummary>> {
 impl Gpu {
     /// Opens the preferred device (see the module docs).
     pub fn new() -> Result<Gpu> {
+        Self::create(None)
+    }
+
+    /// Opens the device of the process with rank `local_rank` among the processes of a
+    /// multi-process run on this machine: the `local_rank`-th discrete GPU, wrapping around, or
+    /// the preferred device where there is no discrete GPU. `VELOX_DEVICE` still overrides.
+    pub fn for_local_rank(local_rank: usize) -> Result<Gpu> {
+        Self::create(Some(local_rank))
+    }
+
+    fn create(local_rank: Option<usize>) -> Result<Gpu> {
         let entry = load_entry()?;
         let instance = create_instance(&entry)?;
         // `entry` stays alive here: dropping it unloads the loader, whose functions the
         // error path below still calls.
-        match Self::open(entry.clone(), instance.clone()) {
+        match Self::open(entry.clone(), instance.clone(), local_rank) {
             Ok(gpu) => Ok(gpu),
             Err(e) => {
                 // SAFETY: `open` failed before handing the instance to a GpuInner.
@@ -212,9 +256,9 @@ impl Gpu {
         }
     }
 
-    fn open(entry: ash::Entry, instance: ash::Instance) -> Result<Gpu> {
+    fn open(entry: ash::Entry, instance: ash::Instance, local_rank: Option<usize>) -> Result<Gpu> {
         let (pds, list) = summaries(&instance)?;
-        let index = choose(&instance, &pds, &list)?;
+        let index = choose(&instance, &pds, &list, local_rank)?;
         let physical = pds[index];
         let queue_family = compute_queue_family(&instance, physical).expect("checked");
         let caps = Caps::query(&entry, &instance, physical, index, queue_family)?;
@@ -317,5 +361,46 @@ impl Drop for GpuInner {
             self.device.destroy_device(None);
             self.instance.destroy_instance(None);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use vk::PhysicalDeviceType as T;
+
+    /// Usable devices `(index, type)` from a list of types, in index order.
+    fn devices(kinds: &[T]) -> Vec<(usize, T)> {
+        kinds.iter().copied().enumerate().collect()
+    }
+
+    #[test]
+    fn a_lone_process_takes_the_best_kind_then_the_lowest_index() {
+        assert_eq!(choose_preferred(&devices(&[T::CPU, T::INTEGRATED_GPU])), Some(1));
+        assert_eq!(choose_preferred(&devices(&[T::CPU, T::DISCRETE_GPU, T::DISCRETE_GPU])), Some(1));
+        assert_eq!(choose_preferred(&devices(&[T::VIRTUAL_GPU, T::CPU])), Some(0));
+        assert_eq!(choose_preferred(&[]), None);
+    }
+
+    #[test]
+    fn local_ranks_spread_over_the_discrete_gpus_and_wrap_around() {
+        let list = devices(&[T::CPU, T::DISCRETE_GPU, T::INTEGRATED_GPU, T::DISCRETE_GPU]);
+        let chosen: Vec<Option<usize>> = (0..5).map(|r| choose_for_rank(&list, r)).collect();
+        assert_eq!(chosen, [Some(1), Some(3), Some(1), Some(3), Some(1)]);
+        // An unusable device is not in the list at all: the ranks share the one left.
+        let list = vec![(0, T::CPU), (2, T::DISCRETE_GPU)];
+        assert_eq!((0..3).map(|r| choose_for_rank(&list, r)).collect::<Vec<_>>(), [Some(2); 3]);
+    }
+
+    #[test]
+    fn without_a_discrete_gpu_every_rank_takes_the_preferred_device() {
+        for kinds in [&[T::CPU][..], &[T::CPU, T::INTEGRATED_GPU], &[T::VIRTUAL_GPU, T::CPU, T::OTHER]] {
+            let list = devices(kinds);
+            for r in 0..4 {
+                assert_eq!(choose_for_rank(&list, r), choose_preferred(&list), "{kinds:?}, rank {r}");
+            }
+        }
+        assert_eq!(choose_for_rank(&devices(&[T::CPU, T::INTEGRATED_GPU]), 3), Some(1));
+        assert_eq!(choose_for_rank(&[], 0), None);
     }
 }

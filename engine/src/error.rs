@@ -26,6 +26,9 @@ pub enum Error {
     /// A file could not be written (a full disk, a file size limit, a missing folder); the
     /// message names the file.
     Io(String),
+    /// A multi-process run over MPI failed or cannot start (an MPI call's error, ranks that
+    /// disagree, a build without MPI started by mpirun); the message says which.
+    Mpi(String),
 }
 
 pub type Result<T> = std::result::Result<T, Error>;
@@ -49,6 +52,7 @@ impl fmt::Display for Error {
             Error::Unsupported(what) => write!(f, "unsupported on this device: {what}"),
             Error::Invalid(what) => write!(f, "invalid input: {what}"),
             Error::Io(what) => write!(f, "{what}"),
+            Error::Mpi(what) => write!(f, "MPI: {what}"),
         }
     }
 }
