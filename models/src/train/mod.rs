@@ -6,6 +6,8 @@
 //! mean over the whole batch, sums the gradients over the processes of a distributed run, then
 //! steps the optimiser (AdamW with the model's learning rate and clipping).
 
+pub mod order;
+
 use velox_engine::ops::adamw::AdamWConfig;
 use velox_engine::rng::Rng;
 use velox_engine::Result;
