@@ -7,7 +7,6 @@ mod demo;
 mod eval;
 mod info;
 mod interrupt;
-mod plot;
 mod render;
 mod train;
 
