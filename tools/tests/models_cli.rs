@@ -315,3 +315,46 @@ fn bench_models_writes_records() {
     }
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// The xyz rows of a decoded points PLY (float x y z tau).
+fn decoded_points(path: &Path) -> Vec<[f32; 3]> {
+    let bytes = std::fs::read(path).unwrap();
+    let body = &bytes[bytes.windows(11).position(|w| w == b"end_header\n").unwrap() + 11..];
+    let f = |b: &[u8]| f32::from_le_bytes(b.try_into().unwrap());
+    body.chunks(16).map(|p| [f(&p[0..4]), f(&p[4..8]), f(&p[8..12])]).collect()
+}
+
+#[test]
+fn decode_and_eval_sample_a_frame_with_the_same_seed() {
+    use velox_models::metrics::{chamfer, subsample};
+    use velox_models::velox::decode::frame_points;
+
+    // One seed rule for both: eval's Chamfer distance of frame 8 is the one of the points
+    // `decode points` writes for frame 8 with the same seed and sampler.
+    let dir = fixture();
+    let (scene, ckpt) = (dir.join("data/scene_00000"), dir.join("ae.safetensors"));
+    let sampling = ["--points", "500", "--steps", "3", "--sampler", "euler", "--seed", "4"];
+    let out = dir.join("same_seed_points");
+    let args = ["decode", "points", "--checkpoint", arg(&ckpt), "--cloud", arg(&scene), "--out", arg(&out)];
+    ok(&velox(&[&args[..], &["--frames", "8"], &sampling[..]].concat()));
+    let json = dir.join("same_seed_eval.json");
+    let (data, eval_out) = (dir.join("data"), dir.join("same_seed_eval"));
+    let args = ["eval", "recon", "--data", arg(&data), "--checkpoint", arg(&ckpt), "--out", arg(&eval_out)];
+    let rest = ["--json", arg(&json), "--frame-step", "8", "--views", "1"];
+    ok(&velox(&[&args[..], &rest[..], &sampling[..]].concat()));
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let frame = &report["scenes"][0]["frames"][1];
+    assert_eq!(frame["frame"], 8);
+    let cloud: Vec<f32> =
+        velox_data::format::read_ply(&scene.join("points.ply")).unwrap().iter().flatten().copied().collect();
+    let truth: Vec<[f32; 3]> = frame_points(&cloud)[8].chunks(3).map(|p| [p[0], p[1], p[2]]).collect();
+    let decoded = decoded_points(&out.join("points_f08.ply"));
+    let cd = chamfer(&subsample(&decoded, 500), &subsample(&truth, 500));
+    let logged = frame["chamfer"].as_f64().unwrap();
+    assert!((cd - logged).abs() <= 1e-12 * logged, "decode's points give {cd}, eval logged {logged}");
+    // Another seed samples other points.
+    let other = dir.join("other_seed_points");
+    let args = ["decode", "points", "--checkpoint", arg(&ckpt), "--cloud", arg(&scene), "--out", arg(&other)];
+    ok(&velox(&[&args[..], &["--frames", "8"], &sampling[..6], &["--seed", "5"]].concat()));
+    assert_ne!(decoded_points(&other.join("points_f08.ply")), decoded);
+}
