@@ -145,6 +145,11 @@ impl ParamBuilder {
         Ok(())
     }
 
+    /// Scalars of the parameters registered so far (counted without a device).
+    pub fn num_parameters(&self) -> usize {
+        self.specs.iter().map(|s| s.numel).sum()
+    }
+
     /// Allocates the flat buffers on `gpu` and initialises the parameters on the host with
     /// `seed`; gradients and moments start at zero and the step counter at 0.
     pub fn build(self, gpu: &Gpu, seed: u64) -> Result<ParamStore> {

@@ -358,3 +358,34 @@ fn decode_and_eval_sample_a_frame_with_the_same_seed() {
     ok(&velox(&[&args[..], &["--frames", "8"], &sampling[..6], &["--seed", "5"]].concat()));
     assert_ne!(decoded_points(&other.join("points_f08.ply")), decoded);
 }
+
+/// The counts `velox config NAME --params` prints: encoder, surface, Gaussian decoder, total.
+fn printed_counts(name: &str) -> Vec<usize> {
+    let text = ok(&velox(&["config", name, "--params"]));
+    ["encoder", "surface decoder", "Gaussian decoder", "total"]
+        .iter()
+        .map(|part| {
+            let line =
+                text.lines().find(|l| l.trim_start().starts_with(part)).unwrap_or_else(|| panic!("{text}"));
+            line[part.len() + 2..].split_whitespace().next().unwrap().replace(',', "").parse().unwrap()
+        })
+        .collect()
+}
+
+#[test]
+fn config_params_counts_each_part_of_a_named_config_or_a_checkpoint() {
+    let gpu = Gpu::new().unwrap();
+    let ckpt = fixture().join("ae.safetensors");
+    let built = Autoencoder::load(&gpu, &ckpt).unwrap().store.num_parameters();
+    for name in ["tiny", arg(&ckpt)] {
+        let c = printed_counts(name);
+        assert_eq!(c[0] + c[1] + c[2], c[3], "{name}: {c:?}");
+        assert_eq!(c[3], built, "{name}: the total is the store's");
+        assert!(c[..3].iter().all(|&n| n > 0), "{c:?}");
+    }
+    // The paper's model is counted without allocating it.
+    let paper = printed_counts("paper");
+    assert!(paper[3] > 100_000_000, "{paper:?}");
+    let err = fails(&velox(&["config", "no-such-config", "--params"]));
+    assert!(err.contains("paper, small or tiny"), "{err}");
+}
