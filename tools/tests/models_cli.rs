@@ -1,6 +1,6 @@
 //! The model commands as a user meets them, on a tiny scene and a tiny autoencoder trained a
-//! few steps in-process: `decode points`, `decode gaussians`, `eval recon`, `bench models`,
-//! and their errors.
+//! few steps in-process: `decode points`, `decode gaussians`, `eval recon`, `config --params`,
+//! `bench models`, `bench train`, and their errors.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -388,4 +388,28 @@ fn config_params_counts_each_part_of_a_named_config_or_a_checkpoint() {
     assert!(paper[3] > 100_000_000, "{paper:?}");
     let err = fails(&velox(&["config", "no-such-config", "--params"]));
     assert!(err.contains("paper, small or tiny"), "{err}");
+}
+
+#[test]
+fn bench_train_reports_samples_per_second_and_the_time_split() {
+    let dir = std::env::temp_dir().join(format!("velox-bench-train-test-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let json = dir.join("train.json");
+    let args = ["bench", "train", "--quick", "--repeats", "1", "--config", "tiny", "--batches", "1,2"];
+    let text = ok(&velox(&[&args[..], &["--json", arg(&json)]].concat()));
+    assert!(text.contains("samples/s") && text.contains("optimiser ms"), "{text}");
+    let records: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let records = records.as_array().unwrap();
+    assert_eq!(records.len(), 2);
+    for (r, batch) in records.iter().zip([1, 2]) {
+        assert_eq!(r["shape"], format!("tiny config, batch {batch}"));
+        assert_eq!(r["throughput_unit"], "samples/s");
+        assert!(r["throughput"].as_f64().unwrap() > 0.0, "{r}");
+        let split = &r["time_split_ms"];
+        for part in ["data", "compute", "all_reduce", "optimiser"] {
+            assert!(split[part].as_f64().unwrap() >= 0.0, "{r}");
+        }
+        assert!(split["compute"].as_f64().unwrap() > 0.0, "{r}");
+    }
+    std::fs::remove_dir_all(&dir).ok();
 }
