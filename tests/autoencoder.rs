@@ -141,6 +141,8 @@ fn runs_repeat_and_resume_bit_for_bit() {
         steps: 4,
         steps_per_scene: 2,
         cooldown: 1,
+        global_batch: 1,
+        accumulate: 1,
         scenes: vec!["scene_00000".into()],
     };
     first.save(&path, Some(&settings)).unwrap();

@@ -495,6 +495,37 @@ fn bad_checkpoints_give_clear_errors_and_change_nothing() {
 }
 
 #[test]
+fn load_params_takes_the_parameters_alone_and_names_what_differs() {
+    // What `velox train --init` does: another run's parameters, this store's moments and step.
+    let gpu = gpu();
+    let dir = temp_dir("params");
+    let path = dir.join("ckpt.safetensors");
+    let trained = trained_store(&gpu, 9);
+    checkpoint::save(&path, &trained, "{}").unwrap();
+    let mut fresh = small_store(&gpu, 10, &[13, 7], false);
+    let [_, m0, v0] = flat_state(&fresh);
+    assert_eq!(checkpoint::load_params(&path, &mut fresh).unwrap().step, 3);
+    let [p, m, v] = flat_state(&fresh);
+    assert_eq!(p, flat_state(&trained)[0], "the parameters are the checkpoint's");
+    assert_eq!((m, v, fresh.step()), (m0, v0, 0), "the moments and the step stay the fresh store's");
+
+    let mut wrong_shape = small_store(&gpu, 10, &[7, 13], false);
+    let before = flat_state(&wrong_shape);
+    let e = checkpoint::load_params(&path, &mut wrong_shape).unwrap_err().to_string();
+    assert!(e.contains("\"param/enc.w1\" has shape [13, 7], the model expects [7, 13]"), "{e}");
+    let mut more = small_store(&gpu, 10, &[13, 7], true);
+    let e = checkpoint::load_params(&path, &mut more).unwrap_err().to_string();
+    assert!(e.contains("lacks tensor \"param/head.w\""), "{e}");
+    checkpoint::save(&path, &more, "{}").unwrap();
+    let loaded = flat_state(&fresh);
+    let e = checkpoint::load_params(&path, &mut fresh).unwrap_err().to_string();
+    assert!(e.contains("\"param/head.w\"") && e.contains("does not have"), "{e}");
+    assert_eq!(flat_state(&fresh), loaded, "a refused load changed the store");
+    assert_eq!(flat_state(&wrong_shape), before, "a refused load changed the store");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
 fn checkpoints_with_nan_or_inf_are_refused_naming_the_tensor() {
     let gpu = gpu();
     let dir = temp_dir("nonfinite");

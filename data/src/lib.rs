@@ -41,6 +41,7 @@ pub use format::{read_scene, Scene, SceneMeta};
 pub use loader::{Loader, LoaderOptions};
 pub use mesh::{AnimatedMesh, Texture};
 pub use pipeline::{render_scene, SceneArrays, SynthOptions};
+pub use training::{train_scene, SceneFolders};
 
 use std::fmt;
 
@@ -67,6 +68,17 @@ impl fmt::Display for DataError {
 }
 
 impl std::error::Error for DataError {}
+
+/// Data errors where the trainer and the models expect engine errors: the same words.
+impl From<DataError> for velox_engine::Error {
+    fn from(e: DataError) -> velox_engine::Error {
+        match e {
+            DataError::Engine(e) => e,
+            DataError::Io(m) => velox_engine::Error::Io(m),
+            DataError::Invalid(m) => velox_engine::Error::Invalid(m),
+        }
+    }
+}
 
 impl From<velox_engine::Error> for DataError {
     fn from(e: velox_engine::Error) -> DataError {

@@ -208,6 +208,44 @@ pub fn verify_finite(path: &Path) -> Result<CheckpointInfo> {
     Ok(info)
 }
 
+/// Loads only the parameters of a checkpoint into `store` (to start a new run from another
+/// run's weights): the moments and the step counter stay as they are. Every parameter tensor is
+/// checked first (missing, unexpected, of another shape or dtype, NaN or Inf), the error names
+/// it, and the store is left unchanged.
+pub fn load_params(path: &Path, store: &mut ParamStore) -> Result<CheckpointInfo> {
+    let shown = path.display();
+    let bytes = read_file(path)?;
+    let file = deserialize(&bytes, path)?;
+    let info = read_info(&bytes, path)?;
+    let mut host = vec![0f32; store.flat_params().numel()];
+    let mut expected = std::collections::HashSet::new();
+    for p in store.infos() {
+        let name = format!("{}{}", PARTS[0], p.name);
+        let t = file.tensor(&name).map_err(|_| {
+            Error::Invalid(format!("checkpoint {shown} lacks tensor {name:?} (shape {:?})", p.shape))
+        })?;
+        if t.shape() != p.shape.as_slice() {
+            return Err(Error::Invalid(format!(
+                "checkpoint {shown}: tensor {name:?} has shape {:?}, the model expects {:?}",
+                t.shape(),
+                p.shape
+            )));
+        }
+        let values = f32_values(path, &name, &t)?;
+        check_finite(path, info.step, &name, &values)?;
+        host[p.offset..p.offset + p.numel].copy_from_slice(&values);
+        expected.insert(name);
+    }
+    if let Some(extra) = file.names().into_iter().find(|n| n.starts_with(PARTS[0]) && !expected.contains(*n))
+    {
+        return Err(Error::Invalid(format!(
+            "checkpoint {shown} holds tensor {extra:?}, which the model does not have (a different config?)"
+        )));
+    }
+    store.flat_params().write(&host)?;
+    Ok(info)
+}
+
 /// Loads a checkpoint written by [`save`] into `store` (parameters, moments and step) and
 /// returns its metadata. Every tensor is checked first: a missing or unexpected tensor, a wrong
 /// dtype or shape, a NaN or Inf in a parameter or moment, a truncated or corrupt file gives an

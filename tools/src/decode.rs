@@ -1,5 +1,6 @@
 //! `velox decode points|gaussians`: encodes a 4D colour point cloud with a trained autoencoder
-//! and decodes the tokens, one file per requested frame.
+//! and decodes the tokens, one file per requested frame, through `velox_models::velox::decode`
+//! (its docs give the seed rule and the voxel sources).
 //!
 //! - `decode points` samples the 4D surface decoder (Heun or Euler, N steps) at each frame time
 //!   and writes `points_fFF.ply`: binary little-endian PLY, one `vertex` element with the float
@@ -7,9 +8,8 @@
 //! - `decode gaussians` decodes the Gaussians of each frame and writes `gaussians_fFF.ply` in
 //!   the 3D Gaussian splatting layout (`velox_models::files::ply`; `velox render` reads it).
 //!   The Gaussian decoder's queries are the occupied voxels of the frame: by default those of
-//!   surface points sampled from the tokens (`--voxels surface`, samples outside [-1, 1]^3
-//!   dropped), or those of the input cloud's points of that frame (`--voxels cloud`, as in
-//!   training).
+//!   surface points sampled from the tokens (`--voxels surface`), or those of the input cloud's
+//!   points of that frame (`--voxels cloud`, as in training).
 //!
 //! Both write `decode.json` beside the files: the checkpoint, the frames, each file and its
 //! count. The input is a scene folder (its `points.ply`) or a PLY of float `x y z r g b tau`
@@ -20,11 +20,12 @@ use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
-use velox_engine::{Gpu, Precision, Tensor};
+use velox_engine::{Gpu, Precision};
 use velox_models::files::{ply, write_bytes};
 use velox_models::velox::autoencoder::{tau_of, Autoencoder, FRAMES};
-use velox_models::velox::cloud::{self, CHANNELS};
-use velox_models::velox::surface::{SampleSpec, Sampler};
+use velox_models::velox::cloud::CHANNELS;
+use velox_models::velox::decode::{frame_points, points_ply, Decoding, Sampling, VoxelSource};
+use velox_models::velox::surface::Sampler;
 
 use crate::CliResult;
 
@@ -88,15 +89,8 @@ pub struct SamplingArgs {
 }
 
 impl SamplingArgs {
-    fn spec(&self, seed: u64, frame: usize) -> SampleSpec {
-        SampleSpec {
-            points: self.points as usize,
-            steps: self.steps as usize,
-            sampler: self.sampler.into(),
-            // Each frame its own noise, reproducible from the seed.
-            seed: seed ^ (frame as u64 + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15),
-            precision: Precision::F32, // the autoencoder's own precision applies
-        }
+    fn sampling(&self) -> Sampling {
+        Sampling { points: self.points as usize, steps: self.steps as usize, sampler: self.sampler.into() }
     }
 }
 
@@ -113,8 +107,8 @@ pub struct GaussiansArgs {
     #[command(flatten)]
     common: CommonArgs,
     /// Where the Gaussian decoder's occupied voxels come from.
-    #[arg(long, value_enum, default_value_t = VoxelSource::Surface)]
-    voxels: VoxelSource,
+    #[arg(long, value_enum, default_value_t = VoxelArg::Surface)]
+    voxels: VoxelArg,
     /// Sampling of the surface points whose voxels are the queries (`--voxels surface`).
     #[command(flatten)]
     sampling: SamplingArgs,
@@ -138,13 +132,22 @@ impl From<SamplerArg> for Sampler {
     }
 }
 
-#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "lowercase")]
-pub enum VoxelSource {
+/// `--voxels`: where the Gaussian decoder's occupied voxels come from.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum VoxelArg {
     /// Voxels of surface points sampled from the tokens (needs nothing but the tokens).
     Surface,
     /// Voxels of the input cloud's points of the frame (as in training).
     Cloud,
+}
+
+impl From<VoxelArg> for VoxelSource {
+    fn from(v: VoxelArg) -> VoxelSource {
+        match v {
+            VoxelArg::Surface => VoxelSource::Surface,
+            VoxelArg::Cloud => VoxelSource::Cloud,
+        }
+    }
 }
 
 /// Requested frames, checked against the clip length when parsed.
@@ -176,62 +179,6 @@ pub fn read_cloud(path: &Path) -> CliResult<Vec<f32>> {
     let file = if path.is_dir() { path.join("points.ply") } else { path.to_path_buf() };
     let points = velox_data::format::read_ply(&file).map_err(|e| format!("reading the cloud: {e}"))?;
     Ok(points.iter().flatten().copied().collect())
-}
-
-/// xyz of each frame's points of a validated cloud.
-pub fn frame_points(cloud: &[f32]) -> Vec<Vec<f32>> {
-    let mut frames = vec![Vec::new(); FRAMES];
-    for p in cloud.chunks(CHANNELS) {
-        frames[((p[6] * 100.0).round() as usize).min(FRAMES - 1)].extend_from_slice(&p[..3]);
-    }
-    frames
-}
-
-/// The tokens of a host cloud.
-pub fn encode(gpu: &Gpu, ae: &Autoencoder, cloud_host: &[f32], seed: u64) -> CliResult<Tensor> {
-    let k = ae.cfg.encoder.tokens;
-    let n = cloud_host.len() / CHANNELS;
-    if n < k {
-        return Err(format!("the cloud has {n} points; this model's encoder needs at least {k}").into());
-    }
-    let t = cloud::upload(gpu, cloud_host)?;
-    Ok(ae.encode(&t, seed)?)
-}
-
-/// Sampled surface points of a frame, read back as xyz rows.
-pub fn sample_surface(
-    ae: &Autoencoder,
-    tokens: &Tensor,
-    frame: usize,
-    spec: &SampleSpec,
-) -> CliResult<Vec<f32>> {
-    Ok(ae.decode_points(tokens, tau_of(frame), spec)?.read()?)
-}
-
-/// Occupied voxel centres of surface samples, dropping samples outside [-1, 1]^3 (where no
-/// normalised surface lies; the grid would clamp them onto its border voxels).
-pub fn surface_voxels(ae: &Autoencoder, samples: &[f32], frame: usize) -> Vec<f32> {
-    let inside: Vec<f32> =
-        samples.chunks(3).filter(|p| p.iter().all(|v| v.abs() <= 1.0)).flatten().copied().collect();
-    ae.voxels_from_points(&inside, tau_of(frame))
-}
-
-/// Writes xyz rows at frame time `tau` as binary little-endian PLY (float x y z tau), through
-/// a temporary file renamed over the target.
-pub fn write_points_ply(path: &Path, xyz: &[f32], tau: f32) -> CliResult<()> {
-    let n = xyz.len() / 3;
-    let mut bytes = format!(
-        "ply\nformat binary_little_endian 1.0\ncomment velox decoded surface points\nelement vertex {n}\n\
-         property float x\nproperty float y\nproperty float z\nproperty float tau\nend_header\n"
-    )
-    .into_bytes();
-    bytes.reserve(16 * n);
-    for p in xyz.chunks(3) {
-        for v in [p[0], p[1], p[2], tau] {
-            bytes.extend_from_slice(&v.to_le_bytes());
-        }
-    }
-    Ok(write_bytes(path, &bytes)?)
 }
 
 /// A progress bar over `len` items of `what`.
@@ -273,11 +220,11 @@ struct Report {
 pub fn run(cmd: DecodeCommand) -> CliResult<()> {
     let (common, sampling, voxels) = match &cmd {
         DecodeCommand::Points(a) => (&a.common, &a.sampling, None),
-        DecodeCommand::Gaussians(a) => (&a.common, &a.sampling, Some(a.voxels)),
+        DecodeCommand::Gaussians(a) => (&a.common, &a.sampling, Some(VoxelSource::from(a.voxels))),
     };
     let cloud_host = read_cloud(&common.cloud)?;
-    let per_frame = frame_points(&cloud_host);
     if voxels == Some(VoxelSource::Cloud) {
+        let per_frame = frame_points(&cloud_host);
         if let Some(f) = common.frames.0.iter().find(|&&f| per_frame[f].is_empty()) {
             return Err(format!(
                 "frame {f} has no points in {}, so it has no voxels: choose other frames or --voxels surface",
@@ -301,53 +248,36 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
         gpu.caps().name
     );
     let start = Instant::now();
-    let tokens = encode(&gpu, &ae, &cloud_host, common.seed)?;
+    let decoding = Decoding::encode(&ae, &cloud_host, common.seed)?;
     let encode_seconds = start.elapsed().as_secs_f64();
     let bar = progress(common.frames.0.len(), "frames");
     let mut files = Vec::new();
     for &f in &common.frames.0 {
         bar.set_message(format!("frame {f}"));
         let t0 = Instant::now();
-        let spec = sampling.spec(common.seed, f);
-        let file = match voxels {
+        let (path, count, voxel_count) = match voxels {
             None => {
-                let xyz = sample_surface(&ae, &tokens, f, &spec)?;
+                let xyz = decoding.surface_points(f, &sampling.sampling())?;
                 let path = common.out.join(format!("points_f{f:02}.ply"));
-                write_points_ply(&path, &xyz, tau_of(f))?;
-                FrameFile {
-                    frame: f,
-                    tau: tau_of(f),
-                    file: name(&path),
-                    count: xyz.len() / 3,
-                    voxels: None,
-                    seconds: 0.0,
-                }
+                write_bytes(&path, &points_ply(&xyz, tau_of(f)))?;
+                (path, xyz.len() / 3, None)
             }
             Some(source) => {
-                let centres = match source {
-                    VoxelSource::Cloud => ae.voxels_from_points(&per_frame[f], tau_of(f)),
-                    VoxelSource::Surface => surface_voxels(&ae, &sample_surface(&ae, &tokens, f, &spec)?, f),
-                };
-                if centres.is_empty() {
-                    return Err(format!(
-                        "frame {f}: no surface sample fell inside [-1, 1]^3, so there are no voxels to decode"
-                    )
-                    .into());
-                }
-                let g = ae.decode_gaussians(&tokens, &centres, tau_of(f))?.download()?;
+                let centres = decoding.voxels(f, source, &sampling.sampling())?;
+                let g = decoding.gaussians(f, &centres)?.download()?;
                 let path = common.out.join(format!("gaussians_f{f:02}.ply"));
                 ply::write(&path, &g)?;
-                FrameFile {
-                    frame: f,
-                    tau: tau_of(f),
-                    file: name(&path),
-                    count: g.len(),
-                    voxels: Some(centres.len() / 3),
-                    seconds: 0.0,
-                }
+                (path, g.len(), Some(centres.len() / 3))
             }
         };
-        files.push(FrameFile { seconds: t0.elapsed().as_secs_f64(), ..file });
+        files.push(FrameFile {
+            frame: f,
+            tau: tau_of(f),
+            file: name(&path),
+            count,
+            voxels: voxel_count,
+            seconds: t0.elapsed().as_secs_f64(),
+        });
         bar.inc(1);
     }
     bar.finish_and_clear();

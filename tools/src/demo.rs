@@ -96,12 +96,14 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
     println!("2/4 training");
     let train = AutoencoderArgs {
         data: out.join("data"),
-        config: config.clone(),
+        config: Some(config.clone()),
         out: out.join("train"),
         steps: Some(steps),
         seed: Some(args.seed),
         resume: false,
+        init: None,
         steps_per_scene: None,
+        accumulate: None,
         checkpoint_every: steps,
         plot_every: 10,
         cooldown: None,
@@ -109,7 +111,7 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
     };
     let summary = train_autoencoder(&gpu, &train, &Interrupt::never())?;
     let ckpt = summary.checkpoint.display().to_string();
-    drop(summary.model);
+    let (first_loss, last_loss) = (summary.first.losses.total(), summary.last.losses.total());
 
     // 3. Decoding: surface points and Gaussians of three frames.
     println!("3/4 decoding frames 0, 12 and 23");
@@ -141,8 +143,8 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
         "steps": steps,
         "resolution": res,
         "points": points,
-        "first_loss": summary.first.total,
-        "last_loss": summary.last.total,
+        "first_loss": first_loss,
+        "last_loss": last_loss,
         "train_seconds": summary.seconds,
         "total_seconds": started.elapsed().as_secs_f64(),
         "metrics": metrics["mean"],
@@ -155,8 +157,8 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
         "\nDone in {:.0} s. Training took the loss from {:.4} to {:.4}; mean PSNR {} dB, SSIM {}, \
          Chamfer {} (the ground truth's halves against each other: {}).",
         started.elapsed().as_secs_f64(),
-        summary.first.total,
-        summary.last.total,
+        first_loss,
+        last_loss,
         figure("psnr", 2),
         figure("ssim", 3),
         figure("chamfer", 5),

@@ -7,7 +7,6 @@ mod demo;
 mod eval;
 mod info;
 mod interrupt;
-mod plot;
 mod render;
 mod train;
 
@@ -44,6 +43,10 @@ enum Command {
         /// The config's name or path.
         #[arg(default_value = "small")]
         name: String,
+        /// Print the parameter count of each part of the model and the total instead (counted
+        /// from the parameter declarations: no device needed).
+        #[arg(long)]
+        params: bool,
     },
     /// Train a Velox model.
     Train {
@@ -71,19 +74,47 @@ enum Command {
     },
 }
 
-fn print_config(name: &str) -> CliResult<()> {
+fn print_config(name: &str, params: bool) -> CliResult<()> {
     let path = std::path::Path::new(name);
     let cfg = if path.extension().is_some_and(|e| e == "safetensors") {
         velox_models::velox::autoencoder::Autoencoder::checkpoint_config(path)?
     } else {
         velox_models::config::AutoencoderConfig::named(name)?
     };
+    let text = if params {
+        let c = velox_models::velox::count::parameter_counts(&cfg)?;
+        let row =
+            |part: &str, n: usize| format!("  {part:<18} {:>14}  ({:.2} M)\n", thousands(n), n as f64 / 1e6);
+        format!(
+            "parameters of the {} autoencoder:\n{}{}{}{}",
+            cfg.name,
+            row("encoder", c.encoder),
+            row("surface decoder", c.surface),
+            row("Gaussian decoder", c.gaussians),
+            row("total", c.total)
+        )
+    } else {
+        serde_json::to_string_pretty(&cfg)? + "\n"
+    };
     // Written, not printed: a reader that stops early (`| head`) is not an error.
     use std::io::Write;
-    match writeln!(std::io::stdout().lock(), "{}", serde_json::to_string_pretty(&cfg)?) {
+    match write!(std::io::stdout().lock(), "{text}") {
         Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(e.into()),
         _ => Ok(()),
     }
+}
+
+/// 1234567 as "1,234,567".
+fn thousands(n: usize) -> String {
+    let digits = n.to_string();
+    let mut out = String::new();
+    for (i, c) in digits.chars().enumerate() {
+        if i > 0 && (digits.len() - i).is_multiple_of(3) {
+            out.push(',');
+        }
+        out.push(c);
+    }
+    out
 }
 
 fn main() {
@@ -121,7 +152,7 @@ fn dispatch(command: Command) -> CliResult<()> {
         Command::Render(args) => render::run(&args),
         Command::Bench { what } => bench::run(what),
         Command::Data { what } => data::run(what),
-        Command::Config { name } => print_config(&name),
+        Command::Config { name, params } => print_config(&name, params),
         Command::Train { what } => train::run(what),
         Command::Decode { what } => decode::run(what),
         Command::Eval { what } => eval::run(what),

@@ -1,26 +1,23 @@
-//! `velox train autoencoder`: trains the Velox autoencoder on a dataset made by `velox data`,
-//! with a progress bar, a JSON-lines log, a loss plot and atomic, resumable checkpoints.
+//! `velox train autoencoder`: the library's trainer (`velox_models::train::trainer`) on a
+//! dataset made by `velox data`, with a progress bar and a summary. The command parses, builds
+//! the model (new, from another run's weights, or the checkpoint to resume), and prints; the
+//! run itself (settings, samples, steps, log, plot, checkpoints, stops) is the library's.
 
-use std::io::Write as _;
-use std::path::{Path, PathBuf};
-use std::time::Instant;
+use std::path::PathBuf;
 
 use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
-use velox_data::format::list_scenes;
-use velox_data::order::step_position;
-use velox_data::training::train_scene;
-use velox_data::{Loader, LoaderOptions};
+use velox_data::SceneFolders;
 use velox_engine::Gpu;
-use velox_models::checkpoint;
 use velox_models::config::AutoencoderConfig;
-use velox_models::files::write_bytes;
 use velox_models::run::{RunRequest, RunSettings};
-use velox_models::schedule::cooldown;
-use velox_models::velox::autoencoder::{Autoencoder, StepLosses, TrainScene};
+use velox_models::train::collective::SingleProcess;
+use velox_models::train::trainer::{
+    train, Begin, Observer, Outcome, RunFolder, StepReport, Stop, TimeSplit, TrainOptions,
+};
+use velox_models::velox::autoencoder::Autoencoder;
 
 use crate::interrupt::{signal_name, Interrupt, Interrupted};
-use crate::plot::loss_plot;
 use crate::CliResult;
 
 #[derive(Subcommand)]
@@ -38,9 +35,10 @@ pub struct AutoencoderArgs {
     /// Dataset folder (scenes written by `velox data synth` or `velox data gltf`).
     #[arg(long)]
     pub data: PathBuf,
-    /// Model sizes: paper, small, tiny, or a JSON config file.
-    #[arg(long, default_value = "small")]
-    pub config: String,
+    /// Model sizes: paper, small, tiny, or a JSON config file [default: small; with --init, the
+    /// config of that checkpoint].
+    #[arg(long)]
+    pub config: Option<String>,
     /// Output folder: checkpoint.safetensors, log.jsonl, loss.png.
     #[arg(long)]
     pub out: PathBuf,
@@ -53,14 +51,24 @@ pub struct AutoencoderArgs {
     #[arg(long)]
     pub seed: Option<u64>,
     /// Continue the run in the output folder from its checkpoint, with the settings the run
-    /// started with (seed, steps per scene, cooldown, total steps), so that it repeats the
-    /// uninterrupted run exactly. A --seed, --steps-per-scene or --cooldown other than the
-    /// run's, or a dataset whose scenes changed, is refused; --steps sets a new total.
-    #[arg(long)]
+    /// started with (seed, steps per scene, cooldown, batch, total steps), so that it repeats
+    /// the uninterrupted run exactly. A --seed, --steps-per-scene, --cooldown or --accumulate
+    /// that changes the run, or a dataset whose scenes changed, is refused; --steps sets a new
+    /// total.
+    #[arg(long, conflicts_with = "init")]
     pub resume: bool,
-    /// Steps on each scene before the next one is loaded [default: 8].
+    /// Start a new run from the parameters of another run's checkpoint (step 0, fresh
+    /// optimiser moments): fine-tuning. The model's config is that checkpoint's unless
+    /// --config names one whose parameters have the same shapes.
+    #[arg(long, value_name = "CHECKPOINT")]
+    pub init: Option<PathBuf>,
+    /// Steps on the same scenes before the next ones are loaded [default: 8].
     #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
     pub steps_per_scene: Option<u64>,
+    /// Micro-batches (of the config's `batch` scenes each) accumulated into one optimiser
+    /// step: any batch on any device, at the memory of one micro-batch [default: 1].
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..=65536))]
+    pub accumulate: Option<u64>,
     /// Steps between checkpoints (one is always written at the end).
     #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u64).range(1..))]
     pub checkpoint_every: u64,
@@ -85,21 +93,17 @@ impl AutoencoderArgs {
             steps: self.steps,
             steps_per_scene: self.steps_per_scene,
             cooldown: self.cooldown,
+            accumulate: self.accumulate,
         }
     }
-}
 
-/// What a finished run reports.
-pub struct TrainSummary {
-    pub model: Autoencoder,
-    pub checkpoint: PathBuf,
-    pub last: StepLosses,
-    pub first: StepLosses,
-    pub seconds: f64,
-    /// The run's total steps.
-    pub steps: u64,
-    /// Whether it stopped before them, at --stop-at.
-    pub stopped: bool,
+    fn begin(&self) -> Begin {
+        match (&self.init, self.resume) {
+            (Some(from), _) => Begin::Init(from.clone()),
+            (None, true) => Begin::Resume,
+            (None, false) => Begin::New,
+        }
+    }
 }
 
 pub fn run(cmd: TrainCommand) -> CliResult<()> {
@@ -107,272 +111,149 @@ pub fn run(cmd: TrainCommand) -> CliResult<()> {
         TrainCommand::Autoencoder(args) => {
             let interrupt = Interrupt::catch()?;
             let gpu = Gpu::new()?;
-            let s = train_autoencoder(&gpu, &args, &interrupt)?;
-            if s.stopped {
+            let o = train_autoencoder(&gpu, &args, &interrupt)?;
+            let step = o.last.step;
+            if o.stopped.is_some() {
                 println!(
-                    "stopped after step {} of {} as --stop-at asks: checkpoint {} holds it (continue with --resume)",
-                    s.model.store.step(),
-                    s.steps,
-                    s.checkpoint.display()
+                    "stopped after step {step} of {} as --stop-at asks: checkpoint {} holds it (continue with --resume)",
+                    o.settings.steps,
+                    o.checkpoint.display()
                 );
-                return Ok(());
+            } else {
+                println!(
+                    "trained {step} steps in {:.0} s: loss {:.4} -> {:.4}; checkpoint {}, log and loss plot in {}",
+                    o.seconds,
+                    o.first.losses.total(),
+                    o.last.losses.total(),
+                    o.checkpoint.display(),
+                    args.out.display()
+                );
             }
             println!(
-                "trained {} steps in {:.0} s: loss {:.4} -> {:.4}; checkpoint {}, log and loss plot in {}",
-                s.model.store.step(),
-                s.seconds,
-                s.first.total,
-                s.last.total,
-                s.checkpoint.display(),
-                args.out.display()
+                "{:.2} samples/s ({} a step); a step: {}",
+                o.samples_per_second,
+                o.settings.global_batch,
+                split_text(&o.time)
             );
             Ok(())
         }
     }
 }
 
-/// One line of `log.jsonl`.
-#[derive(serde::Serialize, serde::Deserialize)]
-struct LogLine {
-    step: u64,
-    seconds: f64,
-    scene: String,
-    total: f64,
-    surface: f64,
-    gaussians: f64,
-    tokens: f64,
-    grad_norm: f64,
-    lr: f64,
-}
-
-/// Keeps the log lines up to `step` (a resumed run rewrites what came after its checkpoint).
-fn read_log(path: &Path, step: u64) -> Vec<LogLine> {
-    std::fs::read_to_string(path)
-        .unwrap_or_default()
-        .lines()
-        .filter_map(|l| serde_json::from_str::<LogLine>(l).ok())
-        .filter(|l| l.step <= step)
-        .collect()
-}
-
-fn write_plot(path: &Path, log: &[LogLine]) -> CliResult<()> {
-    let series = |f: fn(&LogLine) -> f64| log.iter().map(|l| (l.step as f64, f(l))).collect::<Vec<_>>();
-    loss_plot(
-        path,
-        &[
-            ("total", series(|l| l.total)),
-            ("surface", series(|l| l.surface)),
-            ("image", series(|l| l.gaussians)),
-            ("tokens", series(|l| l.tokens)),
-        ],
+/// "data 0.001 s, compute 0.31 s, ..." for a time split.
+pub fn split_text(t: &TimeSplit) -> String {
+    let passes = match (t.forward, t.backward) {
+        (Some(f), Some(b)) => format!("forward {f:.3} s, backward {b:.3} s, "),
+        _ => String::new(),
+    };
+    format!(
+        "data {:.3} s, {passes}compute {:.3} s, all-reduce {:.3} s, optimiser {:.3} s (total {:.3} s)",
+        t.data,
+        t.compute,
+        t.all_reduce,
+        t.optimiser,
+        t.total()
     )
 }
 
-/// What a run stopped by a NaN says of its checkpoint: written at some earlier step, it is
-/// called good only once every value in it is checked finite.
-fn last_good(checkpoint: &Path) -> String {
-    if !checkpoint.exists() {
-        return "no checkpoint was written yet".into();
-    }
-    match checkpoint::verify_finite(checkpoint) {
-        Ok(info) => format!(
-            "the last good checkpoint is {} (step {}, every value checked finite)",
-            checkpoint.display(),
-            info.step
-        ),
-        Err(e) => format!("the checkpoint is no good either: {e}"),
-    }
+/// The progress bar of a run, and its notes on stderr.
+#[derive(Default)]
+struct Progress {
+    bar: Option<ProgressBar>,
 }
 
-/// The settings of a run resumed from `checkpoint`: the stored ones (see
-/// [`RunSettings::resume`]), or, from a checkpoint written before runs stored them, the command
-/// line's.
-fn resumed_settings(checkpoint: &Path, request: &RunRequest, names: Vec<String>) -> CliResult<RunSettings> {
-    let Some(stored) = Autoencoder::checkpoint_run(checkpoint)? else {
-        eprintln!(
-            "note: {} does not store its run's settings (it predates that): the command line's are \
-             used, and the scene order may differ from the run's first part",
-            checkpoint.display()
-        );
-        return Ok(RunSettings::new(request, names));
-    };
-    let settings = stored.resume(request, &names, checkpoint)?;
-    if settings.steps != stored.steps && settings.cooldown > 0 {
-        eprintln!(
-            "note: the run now ends at step {} instead of {}, and its cooldown of {} steps moves with the end",
-            settings.steps, stored.steps, settings.cooldown
-        );
+impl Observer for Progress {
+    fn note(&mut self, text: &str) {
+        match &self.bar {
+            Some(bar) => bar.suspend(|| eprintln!("note: {text}")),
+            None => eprintln!("note: {text}"),
+        }
     }
-    Ok(settings)
+
+    fn begin(&mut self, settings: &RunSettings, start_step: u64) {
+        let bar = ProgressBar::new(settings.steps);
+        bar.set_position(start_step);
+        bar.set_style(
+            ProgressStyle::with_template("{bar:30} {pos}/{len} steps  {elapsed} (eta {eta})  {msg}")
+                .expect("a valid template"),
+        );
+        self.bar = Some(bar);
+    }
+
+    fn step(&mut self, r: &StepReport, samples_per_second: f64) {
+        let Some(bar) = &self.bar else { return };
+        let terms: Vec<String> = r.losses.terms.iter().skip(1).map(|(n, v)| format!("{n} {v:.5}")).collect();
+        bar.set_message(format!(
+            "loss {:.4} ({})  {samples_per_second:.2} samples/s",
+            r.losses.total(),
+            terms.join(", ")
+        ));
+        bar.set_position(r.step);
+    }
+
+    fn end(&mut self, completed: bool) {
+        if let Some(bar) = self.bar.take() {
+            if completed {
+                bar.finish();
+            } else {
+                bar.abandon();
+            }
+        }
+    }
 }
 
 /// Trains as the command does (also used by the demo). When `interrupt` asks for a stop, the
 /// step under way is finished, the checkpoint written, and [`Interrupted`] returned.
-pub fn train_autoencoder(
-    gpu: &Gpu,
-    args: &AutoencoderArgs,
-    interrupt: &Interrupt,
-) -> CliResult<TrainSummary> {
-    std::fs::create_dir_all(&args.out).map_err(|e| format!("creating {}: {e}", args.out.display()))?;
-    let checkpoint = args.out.join("checkpoint.safetensors");
-    let log_path = args.out.join("log.jsonl");
-    let names: Vec<String> = list_scenes(&args.data)
-        .map_err(|e| format!("dataset {}: {e}", args.data.display()))?
-        .iter()
-        .map(|d| d.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default())
-        .collect();
-    if names.is_empty() {
-        return Err(
-            format!("{} holds no scenes; make some with `velox data synth`", args.data.display()).into()
-        );
-    }
-    let (mut model, settings) = if args.resume {
-        if !checkpoint.exists() {
-            return Err(format!(
-                "--resume: {} holds no checkpoint.safetensors to resume from",
-                args.out.display()
-            )
-            .into());
-        }
-        let m = Autoencoder::load(gpu, &checkpoint)?;
-        if m.cfg.name != args.config {
-            eprintln!(
-                "note: resuming the checkpoint's config {:?} (--config {:?} is ignored)",
-                m.cfg.name, args.config
-            );
-        }
-        (m, resumed_settings(&checkpoint, &args.request(), names)?)
-    } else {
-        if checkpoint.exists() {
-            return Err(format!(
-                "{} already holds a checkpoint: pass --resume to continue it, or choose another --out",
-                args.out.display()
-            )
-            .into());
-        }
-        let settings = RunSettings::new(&args.request(), names);
-        (Autoencoder::new(gpu, &AutoencoderConfig::named(&args.config)?, settings.seed)?, settings)
-    };
-    let start_step = model.store.step();
-    if start_step >= settings.steps {
-        return Err(format!(
-            "the checkpoint is at step {start_step} of a run of {} steps: pass a larger --steps to go on",
-            settings.steps
-        )
-        .into());
-    }
-    if let Some(at) = args.stop_at.filter(|&at| at <= start_step || at > settings.steps) {
-        return Err(format!(
-            "--stop-at {at} is not a step to come: the run goes from step {} to {}",
-            start_step + 1,
-            settings.steps
-        )
-        .into());
-    }
-    // The kept lines replace the log atomically; then each step is appended.
-    let mut log = read_log(&log_path, start_step);
-    let mut kept = String::new();
-    for l in &log {
-        kept += &(serde_json::to_string(l)? + "\n");
-    }
-    write_bytes(&log_path, kept.as_bytes())?;
-    let log_error = |e: std::io::Error| format!("cannot write {}: {e}", log_path.display());
-    let mut log_file = std::fs::OpenOptions::new().append(true).open(&log_path).map_err(log_error)?;
-
-    // The loader starts at the scene of the next step (see velox_data::order).
-    let start = step_position(start_step + 1, settings.steps_per_scene);
-    let options = LoaderOptions { epochs: 0, shuffle: Some(settings.seed), start, prefetch: 2, images: true };
-    let mut loader =
-        Loader::spawn(&args.data, options).map_err(|e| format!("dataset {}: {e}", args.data.display()))?;
-    let bar = ProgressBar::new(settings.steps);
-    bar.set_position(start_step);
-    bar.set_style(
-        ProgressStyle::with_template("{bar:30} {pos}/{len} steps  {elapsed} (eta {eta})  {msg}")
-            .expect("a valid template"),
-    );
-    let started = Instant::now();
-    let elapsed_before = log.last().map(|l| l.seconds).unwrap_or(0.0);
-    let mut scene: Option<(String, TrainScene)> = None;
-    let mut first = None;
-    let mut last = StepLosses::default();
-    let mut step = start_step;
-    let mut saved = start_step;
-    while step < settings.steps {
-        // A new scene every `steps_per_scene` steps (a one-scene dataset is read once).
-        if scene.is_none() || (loader.len > 1 && step.is_multiple_of(settings.steps_per_scene)) {
-            let s = loader.next().ok_or("the data loader stopped")?.map_err(|e| format!("dataset: {e}"))?;
-            let name = s.dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-            scene = Some((name, train_scene(gpu, &s)?));
-        }
-        let (name, data) = scene.as_ref().expect("loaded above");
-        step += 1;
-        model.lr_scale = cooldown(settings.steps, settings.cooldown, step);
-        let losses = match model.train_step(data, step, &mut Autoencoder::step_rng(settings.seed, step)) {
-            Ok(l) => l,
-            Err(e) => {
-                bar.abandon();
-                let kept = last_good(&checkpoint);
-                return Err(format!("training stopped at step {step}: {e}; {kept}").into());
-            }
-        };
-        first.get_or_insert(losses);
-        last = losses;
-        let seconds = elapsed_before + started.elapsed().as_secs_f64();
-        let line = LogLine {
-            step,
-            seconds,
-            scene: name.clone(),
-            total: losses.total,
-            surface: losses.surface,
-            gaussians: losses.gaussians,
-            tokens: losses.tokens,
-            grad_norm: losses.grad_norm,
-            lr: losses.lr,
-        };
-        writeln!(log_file, "{}", serde_json::to_string(&line)?).map_err(log_error)?;
-        log.push(line);
-        let rate = (step - start_step) as f64 / started.elapsed().as_secs_f64().max(1e-9);
-        bar.set_message(format!(
-            "loss {:.4} (surface {:.4}, image {:.5})  {rate:.2} steps/s",
-            losses.total, losses.surface, losses.gaussians
-        ));
-        bar.set_position(step);
-        if step.is_multiple_of(args.plot_every) {
-            write_plot(&args.out.join("loss.png"), &log)?;
-        }
-        if step.is_multiple_of(args.checkpoint_every) {
-            model.save(&checkpoint, Some(&settings))?;
-            saved = step;
-        }
-        // A signal or --stop-at ends the run here; a resumed run goes on as if it had not.
-        let signal = interrupt.requested();
-        if step < settings.steps && (signal.is_some() || args.stop_at == Some(step)) {
-            if saved != step {
-                model.save(&checkpoint, Some(&settings))?;
-            }
-            write_plot(&args.out.join("loss.png"), &log)?;
-            bar.abandon();
-            if let Some(signal) = signal {
-                let message = format!(
-                    "{}: stopped after step {step} of {}; checkpoint {} holds step {step} (continue with --resume)",
-                    signal_name(signal),
-                    settings.steps,
-                    checkpoint.display()
+pub fn train_autoencoder(gpu: &Gpu, args: &AutoencoderArgs, interrupt: &Interrupt) -> CliResult<Outcome> {
+    let begin = args.begin();
+    let folder = RunFolder::new(&args.out);
+    folder.prepare(&begin)?;
+    let scenes = SceneFolders::open(gpu, &args.data)?;
+    let seed = args.seed.unwrap_or(RunSettings::DEFAULT_SEED);
+    let named = |name: Option<&str>| AutoencoderConfig::named(name.unwrap_or("small"));
+    let mut model = match &begin {
+        Begin::Resume => {
+            let m = Autoencoder::load(gpu, &folder.checkpoint)?;
+            if let Some(asked) = args.config.as_ref().filter(|&c| *c != m.cfg.name) {
+                eprintln!(
+                    "note: resuming the checkpoint's config {:?} (--config {asked:?} is ignored)",
+                    m.cfg.name
                 );
-                return Err(Interrupted { signal, message }.into());
             }
-            break;
+            m
         }
+        Begin::Init(from) => {
+            let cfg = match &args.config {
+                Some(name) => named(Some(name))?,
+                None => Autoencoder::checkpoint_config(from)?,
+            };
+            Autoencoder::new(gpu, &cfg, seed)?
+        }
+        Begin::New => Autoencoder::new(gpu, &named(args.config.as_deref())?, seed)?,
+    };
+    let options = TrainOptions {
+        out: args.out.clone(),
+        begin,
+        request: args.request(),
+        checkpoint_every: args.checkpoint_every,
+        plot_every: args.plot_every,
+        stop_at: args.stop_at,
+        prefetch: 2,
+    };
+    let stop = || interrupt.requested().is_some();
+    let outcome = train(&mut model, &scenes, &options, &SingleProcess, &mut Progress::default(), &stop)?;
+    if outcome.stopped == Some(Stop::Asked) {
+        let signal = interrupt.requested().expect("the stop was asked for by a signal");
+        let step = outcome.last.step;
+        let message = format!(
+            "{}: stopped after step {step} of {}; checkpoint {} holds step {step} (continue with --resume)",
+            signal_name(signal),
+            outcome.settings.steps,
+            outcome.checkpoint.display()
+        );
+        return Err(Interrupted { signal, message }.into());
     }
-    let stopped = step < settings.steps;
-    if !stopped {
-        model.save(&checkpoint, Some(&settings))?;
-        write_plot(&args.out.join("loss.png"), &log)?;
-        bar.finish();
-    }
-    let first = first.expect("at least one step ran");
-    let seconds = started.elapsed().as_secs_f64();
-    Ok(TrainSummary { model, checkpoint, first, last, seconds, steps: settings.steps, stopped })
+    Ok(outcome)
 }
 
 #[cfg(test)]
@@ -397,6 +278,7 @@ mod tests {
             ("--seed <SEED>", RunSettings::DEFAULT_SEED),
             ("--steps-per-scene <STEPS_PER_SCENE>", RunSettings::DEFAULT_STEPS_PER_SCENE),
             ("--cooldown <COOLDOWN>", RunSettings::DEFAULT_COOLDOWN),
+            ("--accumulate <ACCUMULATE>", RunSettings::DEFAULT_ACCUMULATE),
         ] {
             let text = &help[help.find(option).expect(option)..];
             let text = &text[..text[option.len()..].find("--").map_or(text.len(), |i| i + option.len())];
@@ -404,5 +286,8 @@ mod tests {
         }
         let args = Cli::try_parse_from(["train", "--data", "d", "--out", "o", "--seed", "3"]).unwrap().args;
         assert_eq!(args.request(), RunRequest { seed: Some(3), ..Default::default() });
+        assert_eq!(args.begin(), Begin::New);
+        let both = Cli::try_parse_from(["train", "--data", "d", "--out", "o", "--resume", "--init", "c"]);
+        assert!(both.is_err(), "--resume and --init exclude each other");
     }
 }

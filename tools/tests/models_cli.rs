@@ -1,6 +1,6 @@
 //! The model commands as a user meets them, on a tiny scene and a tiny autoencoder trained a
-//! few steps in-process: `decode points`, `decode gaussians`, `eval recon`, `bench models`,
-//! and their errors.
+//! few steps in-process: `decode points`, `decode gaussians`, `eval recon`, `config --params`,
+//! `bench models`, `bench train`, and their errors.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -312,6 +312,104 @@ fn bench_models_writes_records() {
         assert!(r16["error_over"].as_str().unwrap().contains("f32 path"), "{r16}");
         let e = r16["nmse"].as_f64().unwrap();
         assert!(e > 0.0 && e < 1e-3, "{r16}");
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The xyz rows of a decoded points PLY (float x y z tau).
+fn decoded_points(path: &Path) -> Vec<[f32; 3]> {
+    let bytes = std::fs::read(path).unwrap();
+    let body = &bytes[bytes.windows(11).position(|w| w == b"end_header\n").unwrap() + 11..];
+    let f = |b: &[u8]| f32::from_le_bytes(b.try_into().unwrap());
+    body.chunks(16).map(|p| [f(&p[0..4]), f(&p[4..8]), f(&p[8..12])]).collect()
+}
+
+#[test]
+fn decode_and_eval_sample_a_frame_with_the_same_seed() {
+    use velox_models::metrics::{chamfer, subsample};
+    use velox_models::velox::decode::frame_points;
+
+    // One seed rule for both: eval's Chamfer distance of frame 8 is the one of the points
+    // `decode points` writes for frame 8 with the same seed and sampler.
+    let dir = fixture();
+    let (scene, ckpt) = (dir.join("data/scene_00000"), dir.join("ae.safetensors"));
+    let sampling = ["--points", "500", "--steps", "3", "--sampler", "euler", "--seed", "4"];
+    let out = dir.join("same_seed_points");
+    let args = ["decode", "points", "--checkpoint", arg(&ckpt), "--cloud", arg(&scene), "--out", arg(&out)];
+    ok(&velox(&[&args[..], &["--frames", "8"], &sampling[..]].concat()));
+    let json = dir.join("same_seed_eval.json");
+    let (data, eval_out) = (dir.join("data"), dir.join("same_seed_eval"));
+    let args = ["eval", "recon", "--data", arg(&data), "--checkpoint", arg(&ckpt), "--out", arg(&eval_out)];
+    let rest = ["--json", arg(&json), "--frame-step", "8", "--views", "1"];
+    ok(&velox(&[&args[..], &rest[..], &sampling[..]].concat()));
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let frame = &report["scenes"][0]["frames"][1];
+    assert_eq!(frame["frame"], 8);
+    let cloud: Vec<f32> =
+        velox_data::format::read_ply(&scene.join("points.ply")).unwrap().iter().flatten().copied().collect();
+    let truth: Vec<[f32; 3]> = frame_points(&cloud)[8].chunks(3).map(|p| [p[0], p[1], p[2]]).collect();
+    let decoded = decoded_points(&out.join("points_f08.ply"));
+    let cd = chamfer(&subsample(&decoded, 500), &subsample(&truth, 500));
+    let logged = frame["chamfer"].as_f64().unwrap();
+    assert!((cd - logged).abs() <= 1e-12 * logged, "decode's points give {cd}, eval logged {logged}");
+    // Another seed samples other points.
+    let other = dir.join("other_seed_points");
+    let args = ["decode", "points", "--checkpoint", arg(&ckpt), "--cloud", arg(&scene), "--out", arg(&other)];
+    ok(&velox(&[&args[..], &["--frames", "8"], &sampling[..6], &["--seed", "5"]].concat()));
+    assert_ne!(decoded_points(&other.join("points_f08.ply")), decoded);
+}
+
+/// The counts `velox config NAME --params` prints: encoder, surface, Gaussian decoder, total.
+fn printed_counts(name: &str) -> Vec<usize> {
+    let text = ok(&velox(&["config", name, "--params"]));
+    ["encoder", "surface decoder", "Gaussian decoder", "total"]
+        .iter()
+        .map(|part| {
+            let line =
+                text.lines().find(|l| l.trim_start().starts_with(part)).unwrap_or_else(|| panic!("{text}"));
+            line[part.len() + 2..].split_whitespace().next().unwrap().replace(',', "").parse().unwrap()
+        })
+        .collect()
+}
+
+#[test]
+fn config_params_counts_each_part_of_a_named_config_or_a_checkpoint() {
+    let gpu = Gpu::new().unwrap();
+    let ckpt = fixture().join("ae.safetensors");
+    let built = Autoencoder::load(&gpu, &ckpt).unwrap().store.num_parameters();
+    for name in ["tiny", arg(&ckpt)] {
+        let c = printed_counts(name);
+        assert_eq!(c[0] + c[1] + c[2], c[3], "{name}: {c:?}");
+        assert_eq!(c[3], built, "{name}: the total is the store's");
+        assert!(c[..3].iter().all(|&n| n > 0), "{c:?}");
+    }
+    // The paper's model is counted without allocating it.
+    let paper = printed_counts("paper");
+    assert!(paper[3] > 100_000_000, "{paper:?}");
+    let err = fails(&velox(&["config", "no-such-config", "--params"]));
+    assert!(err.contains("paper, small or tiny"), "{err}");
+}
+
+#[test]
+fn bench_train_reports_samples_per_second_and_the_time_split() {
+    let dir = std::env::temp_dir().join(format!("velox-bench-train-test-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let json = dir.join("train.json");
+    let args = ["bench", "train", "--quick", "--repeats", "1", "--config", "tiny", "--batches", "1,2"];
+    let text = ok(&velox(&[&args[..], &["--json", arg(&json)]].concat()));
+    assert!(text.contains("samples/s") && text.contains("optimiser ms"), "{text}");
+    let records: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let records = records.as_array().unwrap();
+    assert_eq!(records.len(), 2);
+    for (r, batch) in records.iter().zip([1, 2]) {
+        assert_eq!(r["shape"], format!("tiny config, batch {batch}"));
+        assert_eq!(r["throughput_unit"], "samples/s");
+        assert!(r["throughput"].as_f64().unwrap() > 0.0, "{r}");
+        let split = &r["time_split_ms"];
+        for part in ["data", "compute", "all_reduce", "optimiser"] {
+            assert!(split[part].as_f64().unwrap() >= 0.0, "{r}");
+        }
+        assert!(split["compute"].as_f64().unwrap() > 0.0, "{r}");
     }
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -1,6 +1,7 @@
 //! `velox train autoencoder` as a user meets it when things go wrong: a loss that becomes NaN,
 //! a run interrupted by SIGINT or SIGTERM, and a run stopped and resumed, which must repeat
-//! the uninterrupted run.
+//! the uninterrupted run; and the batch options: micro-batches accumulated into a step, and a
+//! run started from another run's weights.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -208,7 +209,8 @@ fn a_run_stopped_and_resumed_repeats_the_uninterrupted_run() {
     assert_eq!(want.len(), 20);
     let names = ["scene_00000", "scene_00001"];
     for (line, step) in want.iter().zip(1..) {
-        assert_eq!(line["scene"], names[scene_of_step(2, 5, step, 8)], "step {step} trains on its scene");
+        let scene = names[scene_of_step(2, 5, step, 8)];
+        assert_eq!(line["samples"], serde_json::json!([scene]), "step {step} trains on its scene");
     }
     // Two runs with one seed write the same bytes.
     let again = dir.join("again");
@@ -227,7 +229,7 @@ fn a_run_stopped_and_resumed_repeats_the_uninterrupted_run() {
         assert_eq!(got.len(), want.len(), "stopped at {stop}");
         for (g, w) in got.iter().zip(&want) {
             let at = format!("stopped at {stop}, step {}", w["step"]);
-            for key in ["step", "scene", "lr", "total", "surface", "gaussians", "tokens", "grad_norm"] {
+            for key in ["step", "samples", "lr", "loss", "grad_norm"] {
                 assert_eq!(g[key], w[key], "{at}: {key}");
             }
         }
@@ -267,6 +269,7 @@ fn a_resumed_run_refuses_other_settings_and_changed_scenes() {
         (&["--seed", "2"][..], "--seed 2 differs from the 1 the run started with"),
         (&["--steps-per-scene", "3"][..], "--steps-per-scene 3 differs from the 8"),
         (&["--cooldown", "2"][..], "--cooldown 2 differs from the 0"),
+        (&["--accumulate", "2"][..], "--accumulate 2 makes a batch of 2 samples a step"),
     ] {
         let err = resume(dataset(), extra);
         assert!(err.contains(said), "{err}");
@@ -315,4 +318,153 @@ fn a_checkpoint_without_run_settings_resumes_with_the_command_line() {
     assert_eq!((stored.seed, stored.steps, stored.steps_per_scene), (0, 2, 8));
     assert_eq!(stored.scenes, ["scene_00000", "scene_00001"]);
     let _ = std::fs::remove_dir_all(&out);
+}
+
+/// The parameters and moments of a checkpoint, every tensor's values in name order.
+fn checkpoint_values(path: &Path) -> Vec<f32> {
+    let (_, tensors) = velox_models::checkpoint::read_tensors(path).unwrap();
+    tensors.into_values().flatten().collect()
+}
+
+/// A config file: the tiny config with `edit` applied.
+fn tiny_config(dir: &Path, name: &str, edit: impl FnOnce(&mut serde_json::Value)) -> PathBuf {
+    let mut cfg = serde_json::to_value(velox_models::config::AutoencoderConfig::tiny()).unwrap();
+    edit(&mut cfg);
+    let path = dir.join(name);
+    std::fs::write(&path, cfg.to_string()).unwrap();
+    path
+}
+
+#[test]
+fn accumulated_micro_batches_train_as_one_larger_micro_batch() {
+    use velox_engine::stats::nmse;
+
+    let dir = temp_dir("accumulate");
+    // Two scenes a step, two steps on each pair: as 2 micro-batches of 1 scene, and as one
+    // micro-batch of 2. Same samples, same generators, same weights.
+    let settings = ["--steps", "5", "--steps-per-scene", "2", "--seed", "3"];
+    let accumulated = dir.join("accumulated");
+    train(&accumulated, &[&settings[..], &["--accumulate", "2"]].concat());
+    let batch2 = tiny_config(&dir, "batch2.json", |c| c["batch"] = 2.into());
+    let batched = dir.join("batched");
+    let run = velox()
+        .args([
+            "train",
+            "autoencoder",
+            "--data",
+            arg(dataset()),
+            "--config",
+            arg(&batch2),
+            "--out",
+            arg(&batched),
+        ])
+        .args(settings)
+        .output()
+        .unwrap();
+    assert!(run.status.success(), "{}", stderr(&run));
+    let (a, b) = (log_lines(&accumulated), log_lines(&batched));
+    for (x, y) in a.iter().zip(&b) {
+        assert_eq!(x["samples"], y["samples"], "step {}", x["step"]);
+        assert_eq!(x["samples"].as_array().unwrap().len(), 2);
+    }
+    // The autoencoder runs a micro-batch's scenes one after another, so both sum the same
+    // gradients in the same order today (bit-equal); once micro-batches run as one batch
+    // through the kernels, the sums' order differs, hence a bound instead of equality.
+    let (x, y) = (
+        checkpoint_values(&accumulated.join("checkpoint.safetensors")),
+        checkpoint_values(&batched.join("checkpoint.safetensors")),
+    );
+    let reference: Vec<f64> = y.iter().map(|&v| v as f64).collect();
+    let e = nmse(&x, &reference);
+    assert!(e < 1e-12, "accumulated and batched checkpoints differ: nmse {e:.3e}");
+
+    // A run with micro-batches stopped inside a pair of steps and resumed repeats it bit for bit.
+    let stopped = dir.join("stopped");
+    train(&stopped, &[&settings[..], &["--accumulate", "2", "--stop-at", "3"]].concat());
+    train(&stopped, &["--resume"]);
+    assert_same_checkpoint(
+        &accumulated.join("checkpoint.safetensors"),
+        &stopped.join("checkpoint.safetensors"),
+    );
+    let stored =
+        velox_models::train::trainer::run_settings(&stopped.join("checkpoint.safetensors")).unwrap().unwrap();
+    assert_eq!((stored.global_batch, stored.accumulate), (2, 2));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn init_starts_a_new_run_from_another_runs_weights() {
+    use velox_engine::Gpu;
+    use velox_models::config::AutoencoderConfig;
+    use velox_models::train::trainer::init_parameters;
+    use velox_models::velox::autoencoder::Autoencoder;
+
+    let dir = temp_dir("init");
+    let first = dir.join("first");
+    train(&first, &["--steps", "2", "--seed", "1"]);
+    let from = first.join("checkpoint.safetensors");
+    // What --init loads: the parameters, with a fresh model's moments and step.
+    let gpu = Gpu::new().unwrap();
+    let mut fresh = Autoencoder::new(&gpu, &AutoencoderConfig::tiny(), 7).unwrap();
+    init_parameters(&mut fresh, &from).unwrap();
+    let trained = Autoencoder::load(&gpu, &from).unwrap();
+    let read = |ae: &Autoencoder| ae.store.flat_params().read::<f32>().unwrap();
+    assert!(read(&fresh) == read(&trained), "the parameters are the checkpoint's");
+    assert_eq!(fresh.store.step(), 0);
+    assert!(fresh.store.moments().0.read::<f32>().unwrap().iter().all(|&m| m == 0.0));
+    drop((fresh, trained));
+
+    // A run from those weights: the checkpoint's config (no --config given), its own seed and
+    // steps counted from 0.
+    let tuned = dir.join("tuned");
+    let init = |out: &Path, extra: &[&str]| {
+        velox()
+            .args(["train", "autoencoder", "--data", arg(dataset()), "--out", arg(out), "--init", arg(&from)])
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let run = init(&tuned, &["--steps", "3", "--seed", "2"]);
+    assert!(run.status.success(), "{}", stderr(&run));
+    let ckpt = tuned.join("checkpoint.safetensors");
+    assert_eq!(velox_models::checkpoint::peek(&ckpt).unwrap().step, 3);
+    assert_eq!(Autoencoder::checkpoint_config(&ckpt).unwrap(), AutoencoderConfig::tiny());
+    assert_eq!(velox_models::train::trainer::run_settings(&ckpt).unwrap().unwrap().seed, 2);
+    // A config of the same shapes (another learning rate) is taken.
+    let lr = tiny_config(&dir, "lr.json", |c| c["peak_lr"] = 1e-3.into());
+    let run = init(&dir.join("lr"), &["--steps", "1", "--config", arg(&lr)]);
+    assert!(run.status.success(), "{}", stderr(&run));
+    assert_eq!(Autoencoder::checkpoint_config(&dir.join("lr/checkpoint.safetensors")).unwrap().peak_lr, 1e-3);
+
+    // Refused: parameters of other shapes (naming the tensor), another kind of model, a folder
+    // that holds a run, --init with --resume.
+    let err = stderr(&init(&dir.join("small"), &["--config", "small"]));
+    assert!(err.contains("--init") && err.contains("\"param/encoder.") && err.contains("has shape"), "{err}");
+    let tracker = dir.join("tracker.safetensors");
+    let ae = Autoencoder::load(&gpu, &from).unwrap();
+    let json = serde_json::json!({ "model": "velox tracker", "config": AutoencoderConfig::tiny() });
+    velox_models::checkpoint::save(&tracker, &ae.store, &json.to_string()).unwrap();
+    let run = velox()
+        .args([
+            "train",
+            "autoencoder",
+            "--data",
+            arg(dataset()),
+            "--out",
+            arg(&dir.join("t")),
+            "--init",
+            arg(&tracker),
+        ])
+        .output()
+        .unwrap();
+    let err = stderr(&run);
+    assert!(
+        err.contains("holds a \"velox tracker\" checkpoint; this run trains a \"velox autoencoder\""),
+        "{err}"
+    );
+    let err = stderr(&init(&tuned, &[]));
+    assert!(err.contains("already holds a checkpoint"), "{err}");
+    let err = stderr(&init(&dir.join("both"), &["--resume"]));
+    assert!(err.contains("--resume") && err.contains("--init"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
 }

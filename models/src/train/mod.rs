@@ -1,12 +1,18 @@
 //! Training: what a model implements to be trained ([`Trainable`]), and the trainer every
-//! model shares.
+//! model shares ([`trainer`]).
 //!
 //! A training step over a batch of samples: the trainer zeroes the gradients, calls
 //! [`Trainable::accumulate`] on each micro-batch with the weight that makes the gradients the
 //! mean over the whole batch, sums the gradients over the processes of a distributed run, then
 //! steps the optimiser (AdamW with the model's learning rate and clipping).
 
+pub mod collective;
 pub mod distributed;
+pub mod log;
+pub mod order;
+pub mod plot;
+pub mod source;
+pub mod trainer;
 
 use velox_engine::ops::adamw::AdamWConfig;
 use velox_engine::rng::Rng;
@@ -38,6 +44,13 @@ impl Losses {
             }
         }
     }
+}
+
+/// Seconds a model's forward and backward passes took.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PassSeconds {
+    pub forward: f64,
+    pub backward: f64,
 }
 
 /// A model the trainer can train.
@@ -72,4 +85,12 @@ pub trait Trainable {
     /// draws the same randomness whatever batch it is in. Returns the samples' loss terms
     /// summed, times `weight`.
     fn accumulate(&mut self, samples: &[&Self::Sample], rngs: &mut [Rng], weight: f64) -> Result<Losses>;
+
+    /// The seconds the forward and the backward passes of the micro-batches accumulated since
+    /// the last call took, for a model that measures them: the trainer then reports the two
+    /// in its time split. `None` (the default): the trainer reports their sum as one compute
+    /// figure.
+    fn take_pass_seconds(&mut self) -> Option<PassSeconds> {
+        None
+    }
 }

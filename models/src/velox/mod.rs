@@ -3,6 +3,8 @@
 pub mod autoencoder;
 pub mod blocks;
 pub mod cloud;
+pub mod count;
+pub mod decode;
 pub mod encoder;
 pub mod gaussians;
 pub mod surface;

@@ -5,6 +5,7 @@ mod kernels;
 mod layers;
 mod models;
 mod raster;
+mod train;
 
 use std::path::PathBuf;
 
@@ -32,6 +33,22 @@ pub enum BenchCommand {
     /// points), Gaussian decoder (one frame), surface decoder (16384 points, 20 and 100 Heun
     /// steps), against the paper's H100 times.
     Models(BenchArgs),
+    /// Training throughput: samples per second against the batch size for a config, with the
+    /// step's time split into data, compute, all-reduce and optimiser.
+    Train(TrainBenchArgs),
+}
+
+#[derive(clap::Args)]
+pub struct TrainBenchArgs {
+    #[command(flatten)]
+    bench: BenchArgs,
+    /// Model sizes: paper, small, tiny, or a JSON config file.
+    #[arg(long, default_value = "small")]
+    config: String,
+    /// Batch sizes to time, comma-separated [default: 1,2,4 on a CPU device or with --quick,
+    /// 1,2,4,8,16 on a GPU].
+    #[arg(long, value_delimiter = ',', value_parser = clap::value_parser!(u16).range(1..=4096))]
+    batches: Option<Vec<u16>>,
 }
 
 #[derive(clap::Args)]
@@ -52,6 +69,7 @@ type Suite = fn(&Gpu, bool, u32) -> Result<Vec<Record>>;
 
 pub fn run(cmd: BenchCommand) -> CliResult<()> {
     let (args, which): (BenchArgs, Suite) = match cmd {
+        BenchCommand::Train(t) => return run_train(t),
         BenchCommand::Kernels(a) => (a, kernels::run),
         BenchCommand::Attention(a) => (a, attention::run),
         BenchCommand::Layers(a) => (a, layers::run),
@@ -61,6 +79,16 @@ pub fn run(cmd: BenchCommand) -> CliResult<()> {
     let gpu = Gpu::new()?;
     let records = which(&gpu, args.quick, args.repeats)?;
     if let Some(path) = args.json {
+        write_json(&path, &records)?;
+    }
+    Ok(())
+}
+
+fn run_train(t: TrainBenchArgs) -> CliResult<()> {
+    let gpu = Gpu::new()?;
+    let batches: Option<Vec<usize>> = t.batches.map(|b| b.into_iter().map(usize::from).collect());
+    let records = train::run(&gpu, t.bench.quick, t.bench.repeats, &t.config, batches.as_deref())?;
+    if let Some(path) = t.bench.json {
         write_json(&path, &records)?;
     }
     Ok(())
@@ -86,6 +114,9 @@ pub struct Record {
     pub error_over: String,
     /// Whether times come from GPU timestamps (else wall clock around each submit).
     pub gpu_timed: bool,
+    /// `bench train`: the mean step's milliseconds by part.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub time_split_ms: Option<velox_models::train::trainer::TimeSplit>,
 }
 
 impl Record {
@@ -118,6 +149,7 @@ impl Record {
             max_abs_err: 0.0,
             error_over: "not measured".into(),
             gpu_timed,
+            time_split_ms: None,
         }
     }
 

@@ -1,16 +1,16 @@
-//! Loss curves as a PNG: log-scale y with a line per decade, steps on x, one coloured line per
-//! series with a legend, labels in a small built-in bitmap font (no font files needed). Each
-//! series is drawn faint as logged and bold as an exponential moving average (weight 0.1), since
-//! losses of single random views and frames are noisy.
+//! Loss curves as a PNG (`loss.png` of a training run): log-scale y with a line per decade,
+//! steps on x, one coloured line per series with a legend, labels in a small built-in bitmap
+//! font (no font files needed). Each series is drawn faint as logged and bold as an exponential
+//! moving average (weight 0.1), since losses of single random views and frames are noisy.
 
 use std::path::Path;
 
 use image::{Rgb, RgbImage};
+use velox_engine::Result;
 
-use velox_models::files::image::png_bytes;
-use velox_models::files::write_bytes;
-
-use crate::CliResult;
+use super::log::Terms;
+use crate::files::image::png_bytes;
+use crate::files::write_bytes;
 
 const W: u32 = 900;
 const H: u32 = 480;
@@ -96,7 +96,7 @@ fn line(img: &mut RgbImage, (x0, y0): (f64, f64), (x1, y1): (f64, f64), colour: 
 
 /// Plots `series` (name, points of (step, value)) on a log scale; non-positive or non-finite
 /// values are left out.
-pub fn loss_plot(path: &Path, series: &[(&str, Vec<(f64, f64)>)]) -> CliResult<()> {
+pub fn loss_plot(path: &Path, series: &[(&str, Vec<(f64, f64)>)]) -> Result<()> {
     let mut img = RgbImage::from_pixel(W, H, BG);
     let vals = series.iter().flat_map(|(_, p)| p.iter()).filter(|(_, v)| v.is_finite() && *v > 0.0);
     let (mut lo, mut hi, mut max_x) = (f64::INFINITY, f64::NEG_INFINITY, 1.0f64);
@@ -170,5 +170,21 @@ pub fn loss_plot(path: &Path, series: &[(&str, Vec<(f64, f64)>)]) -> CliResult<(
         }
         text(&mut img, lx + 20, ly - 1, name, AXIS, 2);
     }
-    Ok(write_bytes(path, &png_bytes(img.as_raw(), W, H)?)?)
+    write_bytes(path, &png_bytes(img.as_raw(), W, H)?)
+}
+
+/// Plots every loss term of a run's log (its `(step, terms)` history) against the step, in the
+/// order of the last line's terms (the total first).
+pub fn plot_log(path: &Path, history: &[(u64, Terms)]) -> Result<()> {
+    let names: Vec<&str> =
+        history.last().map_or(Vec::new(), |l| l.1 .0.iter().map(|t| t.0.as_str()).collect());
+    let series: Vec<(&str, Vec<(f64, f64)>)> = names
+        .iter()
+        .map(|&name| {
+            let points =
+                history.iter().filter_map(|(step, loss)| Some((*step as f64, loss.get(name)?))).collect();
+            (name, points)
+        })
+        .collect();
+    loss_plot(path, &series)
 }

@@ -1,0 +1,4 @@
+//! Evaluation protocols: what `velox eval` measures, as library calls that return the numbers
+//! (the command writes and prints them).
+
+pub mod recon;

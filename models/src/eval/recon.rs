@@ -1,0 +1,296 @@
+//! Reconstruction quality of a trained autoencoder on held-out scenes (paper, Metrics: PSNR,
+//! SSIM, Chamfer), as `velox eval recon` reports it.
+//!
+//! For each scene, the whole cloud is encoded once ([`Decoding::encode`], queries from the
+//! seed); then every `frame_step`-th frame that has points is decoded, with the seed rule of
+//! [`crate::velox::decode`]:
+//! - images: the frame's Gaussians are rendered (black background, as the data's images) from
+//!   the first `views` supervision cameras and compared with the ground-truth images by PSNR
+//!   and SSIM ([`crate::metrics`]). The Gaussian decoder's queries are the occupied voxels of
+//!   the cloud's points of that frame, as in training ([`VoxelSource::Cloud`]), or those of
+//!   the decoded surface samples below ([`VoxelSource::Surface`], tokens only);
+//! - geometry: `points` surface points sampled from the tokens against `points` of the frame's
+//!   input points (evenly strided, [`subsample`]): symmetric Chamfer distance, squared
+//!   distances in the data's [-1, 1]^3 units. Beside it, the Chamfer distance between the
+//!   ground truth's even and odd points ("GT halves"): a cloud of a few hundred points a frame
+//!   scores about 5e-3 against itself, so only a dense cloud can show a distance near the
+//!   paper's.
+//!
+//! A scene's figures are the means over its frames (PSNR and SSIM over every frame and view);
+//! the overall figures are the means over scenes. Up to `images` (frame, view) pairs per scene,
+//! spread evenly over the evaluated ones, are handed to the observer as side-by-side images
+//! (ground truth | ours) to keep.
+
+use std::time::Instant;
+
+use serde::Serialize;
+use velox_engine::ops::raster::render;
+use velox_engine::{Error, Result};
+
+use crate::metrics::{chamfer, psnr, ssim, subsample};
+use crate::train::source::{prefetch, SampleSource};
+use crate::velox::autoencoder::{tau_of, Autoencoder, TrainScene, FRAMES};
+use crate::velox::cloud::CHANNELS;
+use crate::velox::decode::{sampler_name, Decoding, Sampling, VoxelSource};
+
+/// How to evaluate.
+#[derive(Clone, Debug)]
+pub struct ReconOptions {
+    /// Supervision views per frame (the first V; `None`: all of a scene's views).
+    pub views: Option<usize>,
+    /// Evaluate every Nth frame (0, N, 2N, ...).
+    pub frame_step: usize,
+    /// The surface sampler, and the points on each side of the Chamfer distance.
+    pub sampling: Sampling,
+    /// Where the Gaussian decoder's voxels come from.
+    pub voxels: VoxelSource,
+    /// Side-by-side images kept per scene.
+    pub images: usize,
+    /// Seed of the encoder's queries and the sampler's noise.
+    pub seed: u64,
+}
+
+/// What an evaluation tells as it goes; the library writes no files itself.
+pub trait ReconObserver {
+    /// Scene `name` starts.
+    fn scene(&mut self, _name: &str) {}
+    /// One more of the `frame_step`-th frames is done (or skipped, having no points).
+    fn frame(&mut self) {}
+    /// A side-by-side image (ground truth | ours, `[height, 2 width, 3]` RGB in [0, 1]) of a
+    /// frame and view of scene `scene`, chosen to be kept: returns the name the report lists
+    /// it under (a file written, say), or `None` to list nothing.
+    fn image(
+        &mut self,
+        _scene: &str,
+        _frame: usize,
+        _view: usize,
+        _rgb: &[f32],
+        _width: usize,
+        _height: usize,
+    ) -> Result<Option<String>> {
+        Ok(None)
+    }
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct ViewMetrics {
+    pub view: usize,
+    pub psnr: f64,
+    pub ssim: f64,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct FrameMetrics {
+    pub frame: usize,
+    pub tau: f32,
+    pub voxels: usize,
+    pub gaussians: usize,
+    pub chamfer: f64,
+    /// The ground truth's Chamfer distance between its own even and odd points: what two
+    /// samples of the true surface at this density score, so a floor the model cannot beat.
+    pub chamfer_gt_halves: f64,
+    pub psnr: f64,
+    pub ssim: f64,
+    pub views: Vec<ViewMetrics>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct SceneMetrics {
+    pub name: String,
+    pub dir: String,
+    pub points: usize,
+    pub psnr: f64,
+    pub ssim: f64,
+    pub chamfer: f64,
+    pub chamfer_gt_halves: f64,
+    pub seconds: f64,
+    pub images: Vec<String>,
+    pub frames: Vec<FrameMetrics>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Mean {
+    pub psnr: f64,
+    pub ssim: f64,
+    pub chamfer: f64,
+    pub chamfer_gt_halves: f64,
+}
+
+/// Every number of an evaluation (what `eval.json` holds, with the checkpoint and the data).
+#[derive(Clone, Debug, Serialize)]
+pub struct ReconReport {
+    pub config: String,
+    pub precision: &'static str,
+    pub device: String,
+    pub voxels: VoxelSource,
+    pub frame_step: usize,
+    pub chamfer_points: usize,
+    pub sampler: &'static str,
+    pub steps: usize,
+    pub chamfer_units: &'static str,
+    pub mean: Mean,
+    pub scenes: Vec<SceneMetrics>,
+    pub seconds: f64,
+}
+
+fn mean(v: impl IntoIterator<Item = f64>) -> f64 {
+    let (sum, n) = v.into_iter().fold((0.0, 0usize), |(s, n), x| (s + x, n + 1));
+    sum / n.max(1) as f64
+}
+
+/// The frames evaluated: 0, `frame_step`, 2 `frame_step`...
+pub fn frames(frame_step: usize) -> Vec<usize> {
+    (0..FRAMES).step_by(frame_step.max(1)).collect()
+}
+
+/// Evaluates `ae` on every scene of `scenes` (read one ahead on another thread), as the
+/// module docs say.
+pub fn evaluate<S>(
+    ae: &Autoencoder,
+    scenes: &S,
+    options: &ReconOptions,
+    observer: &mut dyn ReconObserver,
+) -> Result<ReconReport>
+where
+    S: SampleSource<Sample = TrainScene>,
+{
+    let start = Instant::now();
+    let results = std::thread::scope(|scope| {
+        let incoming = prefetch(scope, scenes, 0..scenes.len(), 1)?;
+        let mut results = Vec::with_capacity(scenes.len());
+        for index in 0..scenes.len() {
+            let raw = incoming.recv().map_err(|_| Error::Io("the scene-reading thread stopped".into()))??;
+            let scene = scenes.prepare(raw)?;
+            results.push(evaluate_scene(
+                ae,
+                &scene,
+                &scenes.name(index),
+                &scenes.location(index),
+                options,
+                observer,
+            )?);
+        }
+        Ok::<_, Error>(results)
+    })?;
+    Ok(ReconReport {
+        config: ae.cfg.name.clone(),
+        precision: ae.precision().name(),
+        device: ae.store.flat_params().gpu().caps().name.clone(),
+        voxels: options.voxels,
+        frame_step: options.frame_step,
+        chamfer_points: options.sampling.points,
+        sampler: sampler_name(options.sampling.sampler),
+        steps: options.sampling.steps,
+        chamfer_units: "mean squared distance, both directions summed, in the data's [-1, 1]^3 coordinates",
+        mean: Mean {
+            psnr: mean(results.iter().map(|s| s.psnr)),
+            ssim: mean(results.iter().map(|s| s.ssim)),
+            chamfer: mean(results.iter().map(|s| s.chamfer)),
+            chamfer_gt_halves: mean(results.iter().map(|s| s.chamfer_gt_halves)),
+        },
+        scenes: results,
+        seconds: start.elapsed().as_secs_f64(),
+    })
+}
+
+/// One scene's metrics; errors name the scene's folder.
+fn evaluate_scene(
+    ae: &Autoencoder,
+    scene: &TrainScene,
+    name: &str,
+    dir: &str,
+    options: &ReconOptions,
+    observer: &mut dyn ReconObserver,
+) -> Result<SceneMetrics> {
+    let named = |e: Error| match e {
+        Error::Invalid(why) => Error::Invalid(format!("{dir}: {why}")),
+        other => other,
+    };
+    observer.scene(name);
+    let t0 = Instant::now();
+    let gpu = scene.cloud.gpu();
+    let decoding = Decoding::encode(ae, &scene.cloud_host, options.seed).map_err(named)?;
+    let cams = &scene.cameras;
+    let views = options.views.map_or(cams.len(), |v| v.min(cams.len()));
+    let frames = frames(options.frame_step);
+    // The (frame, view) pairs kept as side-by-side images, spread evenly.
+    let pairs = frames.iter().filter(|&&f| !decoding.input_points(f).is_empty()).count() * views;
+    let keep = options.images.min(pairs);
+    let chosen: Vec<usize> = (0..keep).map(|i| i * pairs / keep.max(1)).collect();
+    let mut images = Vec::new();
+    let mut pair = 0;
+    let mut results = Vec::new();
+    for &f in &frames {
+        observer.frame();
+        let truth_points = decoding.input_points(f);
+        if truth_points.is_empty() {
+            continue;
+        }
+        let samples = decoding.surface_points(f, &options.sampling)?;
+        let rows = |v: &[f32]| v.chunks(3).map(|p| [p[0], p[1], p[2]]).collect::<Vec<[f32; 3]>>();
+        let n = options.sampling.points;
+        let truth = subsample(&rows(truth_points), n);
+        let cd = chamfer(&subsample(&rows(&samples), n), &truth);
+        let halves: [Vec<[f32; 3]>; 2] = [0, 1].map(|h| truth.iter().skip(h).step_by(2).copied().collect());
+        let floor = chamfer(&halves[0], &halves[1]);
+        let centres = match options.voxels {
+            VoxelSource::Cloud => decoding.cloud_voxels(f),
+            VoxelSource::Surface => decoding.surface_voxels(&samples, f),
+        };
+        if centres.is_empty() {
+            return Err(Error::Invalid(format!(
+                "{dir} frame {f}: no decoded surface sample fell inside [-1, 1]^3, so there are no voxels to decode"
+            )));
+        }
+        let g = decoding.gaussians(f, &centres)?;
+        let mut view_metrics = Vec::new();
+        for (v, cam) in cams.iter().enumerate().take(views) {
+            let rendered = render(gpu, &g, cam, [0.0; 3])?;
+            let ours: Vec<f32> =
+                rendered.image.rgb.read::<f32>()?.iter().map(|v| v.clamp(0.0, 1.0)).collect();
+            let gt = &scene.images[f * cams.len() + v];
+            let (w, h) = (cam.width as usize, cam.height as usize);
+            view_metrics.push(ViewMetrics { view: v, psnr: psnr(&ours, gt), ssim: ssim(&ours, gt, h, w, 3) });
+            if chosen.contains(&pair) {
+                if let Some(image) = observer.image(name, f, v, &side_by_side(gt, &ours, w, h), w, h)? {
+                    images.push(image);
+                }
+            }
+            pair += 1;
+        }
+        results.push(FrameMetrics {
+            frame: f,
+            tau: tau_of(f),
+            voxels: centres.len() / 3,
+            gaussians: g.len(),
+            chamfer: cd,
+            chamfer_gt_halves: floor,
+            psnr: mean(view_metrics.iter().map(|m| m.psnr)),
+            ssim: mean(view_metrics.iter().map(|m| m.ssim)),
+            views: view_metrics,
+        });
+    }
+    let all_views = || results.iter().flat_map(|f| f.views.iter());
+    Ok(SceneMetrics {
+        name: name.to_string(),
+        dir: dir.to_string(),
+        points: scene.cloud_host.len() / CHANNELS,
+        psnr: mean(all_views().map(|m| m.psnr)),
+        ssim: mean(all_views().map(|m| m.ssim)),
+        chamfer: mean(results.iter().map(|f| f.chamfer)),
+        chamfer_gt_halves: mean(results.iter().map(|f| f.chamfer_gt_halves)),
+        seconds: t0.elapsed().as_secs_f64(),
+        images,
+        frames: results,
+    })
+}
+
+/// Ground truth on the left, ours on the right, `[h, 2w, 3]`.
+fn side_by_side(gt: &[f32], ours: &[f32], w: usize, h: usize) -> Vec<f32> {
+    let mut out = Vec::with_capacity(2 * gt.len());
+    for y in 0..h {
+        out.extend_from_slice(&gt[3 * w * y..3 * w * (y + 1)]);
+        out.extend_from_slice(&ours[3 * w * y..3 * w * (y + 1)]);
+    }
+    out
+}

@@ -1,0 +1,718 @@
+//! The trainer every model shares: [`train`] runs a whole run (its settings, samples,
+//! optimiser steps, log, loss plot, checkpoints, stops), and [`Trainer`] takes one optimiser
+//! step at a time (what [`train`] and `velox bench train` call).
+//!
+//! A step `s` (counted from 1) of a run of `P` processes, each accumulating `A` micro-batches
+//! of the model's `B` samples (a global batch of `G = B A P` samples):
+//! 1. the gradients are zeroed;
+//! 2. process `r` runs its micro-batches `m = 0..A`: micro-batch `m` holds the slots
+//!    `(r A + m) B ..` of the global batch, slot `g` the sample at position
+//!    `((s - 1) / steps_per_scene) G + g` of the run's order with the generator
+//!    `slot_rng(seed, s, g)` ([`super::order`]); [`Trainable::accumulate`] adds `1 / G` times
+//!    the gradient of the micro-batch's summed losses;
+//! 3. the processes gather each loss term (a NaN or Inf anywhere stops every process) and sum
+//!    the gradients ([`Collective::all_reduce_sum`]), so the gradient is the global batch's
+//!    mean;
+//! 4. AdamW updates the parameters with the model's learning rate at `s` times the run's
+//!    cooldown factor, clipped to the model's gradient norm; a NaN or Inf gradient norm leaves
+//!    the parameters as they were and stops the run.
+//!
+//! Every process then holds the same parameters; process 0 alone writes `log.jsonl`, the loss
+//! plot and the checkpoints (atomically), and every file failure or stop request is agreed on
+//! by all processes. The samples of a step depend on the seed, the step and the dataset, not
+//! on how `G` is split, so a run's samples are the same on one process or several, and a
+//! resumed run repeats the uninterrupted one bit for bit.
+
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+use velox_engine::{Error, Result};
+
+use super::collective::Collective;
+use super::log::{Log, LogLine, Terms};
+use super::order::{slot_position, slot_rng, step_position, Order};
+use super::plot::plot_log;
+use super::source::{prefetch, SampleSource};
+use super::{Losses, Trainable};
+use crate::checkpoint;
+use crate::run::{RunRequest, RunSettings};
+use crate::schedule::cooldown;
+
+/// The most samples one process takes in a step (over its micro-batches): a bound on what a
+/// checkpoint's settings can make it hold.
+pub const MAX_SAMPLES_PER_PROCESS: u64 = 1 << 20;
+
+/// Seconds of a step by part.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct TimeSplit {
+    /// Waiting for samples and preparing them (the reading runs ahead on another thread).
+    pub data: f64,
+    /// The model's forward and backward passes, when the model measures them
+    /// ([`Trainable::take_pass_seconds`]); both are within `compute`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub forward: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub backward: Option<f64>,
+    /// The micro-batches' [`Trainable::accumulate`] calls: forward, backward and their reads.
+    pub compute: f64,
+    /// Gathering the losses and summing the gradients over the processes.
+    pub all_reduce: f64,
+    /// The AdamW update and the check of the gradient norm.
+    pub optimiser: f64,
+}
+
+impl TimeSplit {
+    /// The step's seconds.
+    pub fn total(&self) -> f64 {
+        self.data + self.compute + self.all_reduce + self.optimiser
+    }
+
+    /// The parts summed with another step's.
+    pub fn add(&self, o: &TimeSplit) -> TimeSplit {
+        let both = |a: Option<f64>, b: Option<f64>| Some(a? + b?);
+        TimeSplit {
+            data: self.data + o.data,
+            forward: both(self.forward, o.forward),
+            backward: both(self.backward, o.backward),
+            compute: self.compute + o.compute,
+            all_reduce: self.all_reduce + o.all_reduce,
+            optimiser: self.optimiser + o.optimiser,
+        }
+    }
+
+    /// Every part times `f` (1 / steps: the mean of a sum).
+    pub fn scale(&self, f: f64) -> TimeSplit {
+        TimeSplit {
+            data: self.data * f,
+            forward: self.forward.map(|v| v * f),
+            backward: self.backward.map(|v| v * f),
+            compute: self.compute * f,
+            all_reduce: self.all_reduce * f,
+            optimiser: self.optimiser * f,
+        }
+    }
+}
+
+/// What an optimiser step reports.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StepReport {
+    pub step: u64,
+    /// The loss terms, means over the global batch, the total first.
+    pub losses: Losses,
+    /// The global gradient norm before clipping.
+    pub grad_norm: f64,
+    /// The learning rate of the update (cooldown included).
+    pub lr: f64,
+    /// This process's seconds by part.
+    pub time: TimeSplit,
+}
+
+/// Optimiser steps of a model, one at a time: [`Trainer::begin_step`], then
+/// [`Trainer::micro_batch`] for each of this process's micro-batches, then
+/// [`Trainer::finish_step`] (see the module docs).
+pub struct Trainer<'a, M: Trainable, C: Collective> {
+    model: &'a mut M,
+    collective: &'a C,
+    settings: RunSettings,
+    losses: Losses,
+    time: TimeSplit,
+    /// What went wrong in this process's share of the step, reported by `finish_step` once
+    /// every process knows.
+    failed: Option<Error>,
+}
+
+impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
+    /// A trainer of `model` with a run's settings, whose global batch must be the model's
+    /// micro-batch times the settings' `accumulate` times the processes.
+    pub fn new(model: &'a mut M, collective: &'a C, settings: RunSettings) -> Result<Self> {
+        let (b, p, a) = (model.batch() as u64, collective.size() as u64, settings.accumulate);
+        let mine = b.checked_mul(a).filter(|&n| n > 0 && n <= MAX_SAMPLES_PER_PROCESS);
+        if mine.and_then(|n| n.checked_mul(p)) != Some(settings.global_batch) {
+            return Err(Error::Invalid(format!(
+                "a batch of {} samples a step is not {b} a micro-batch x {a} micro-batches x {p} process(es) \
+                 (at most {MAX_SAMPLES_PER_PROCESS} samples a process)",
+                settings.global_batch
+            )));
+        }
+        Ok(Trainer {
+            model,
+            collective,
+            settings,
+            losses: Losses::default(),
+            time: TimeSplit::default(),
+            failed: None,
+        })
+    }
+
+    pub fn model(&self) -> &M {
+        self.model
+    }
+
+    pub fn settings(&self) -> &RunSettings {
+        &self.settings
+    }
+
+    /// The slots of the global batch that this process's micro-batch `m` holds.
+    pub fn slots(&self, m: u64) -> Range<u64> {
+        let b = self.model.batch() as u64;
+        let first = (self.collective.rank() as u64 * self.settings.accumulate + m) * b;
+        first..first + b
+    }
+
+    /// Starts step `step`: zeroes the gradients. The parameters must be at step `step - 1`.
+    pub fn begin_step(&mut self, step: u64) -> Result<()> {
+        let at = self.model.store().step();
+        if at + 1 != step {
+            return Err(Error::Invalid(format!("step {step} asked of a model at step {at}")));
+        }
+        self.losses = Losses::default();
+        self.time = TimeSplit::default();
+        self.failed = None;
+        let gpu = self.model.store().flat_grads().gpu().clone();
+        let mut rec = gpu.recorder()?;
+        self.model.store().zero_grads(&mut rec)?;
+        rec.submit()?;
+        Ok(())
+    }
+
+    /// Adds seconds spent getting samples to the step's time split.
+    pub fn add_data_seconds(&mut self, seconds: f64) {
+        self.time.data += seconds;
+    }
+
+    /// Records that this process's share of the step failed (a sample could not be read):
+    /// the rest of its micro-batches are skipped and [`Trainer::finish_step`] stops every
+    /// process with this error.
+    pub fn fail(&mut self, error: Error) {
+        self.failed.get_or_insert(error);
+    }
+
+    /// Whether this process's share of the step failed.
+    pub fn failed(&self) -> bool {
+        self.failed.is_some()
+    }
+
+    /// Runs micro-batch `m` of step `step` on `samples` (the samples of [`Trainer::slots`]).
+    /// A model error is kept for [`Trainer::finish_step`], so that every process learns of it.
+    pub fn micro_batch(&mut self, step: u64, m: u64, samples: &[&M::Sample]) -> Result<()> {
+        let slots = self.slots(m);
+        if m >= self.settings.accumulate || samples.len() as u64 != slots.end - slots.start {
+            return Err(Error::Invalid(format!(
+                "micro-batch {m} of {} given {} samples for {} slots",
+                self.settings.accumulate,
+                samples.len(),
+                slots.end - slots.start
+            )));
+        }
+        if self.failed.is_some() {
+            return Ok(());
+        }
+        let mut rngs: Vec<_> = slots.map(|g| slot_rng(self.settings.seed, step, g)).collect();
+        let weight = 1.0 / self.settings.global_batch as f64;
+        let t = Instant::now();
+        match self.model.accumulate(samples, &mut rngs, weight) {
+            Ok(l) => self.losses.add(&l),
+            Err(e) => self.fail(e),
+        }
+        self.time.compute += t.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    /// Ends step `step`: gathers the losses and sums the gradients over the processes, then
+    /// updates the parameters. Fails, on every process, if any process's share failed or its
+    /// loss is not finite, and when the gradient norm is NaN or Inf (the parameters then stay
+    /// as they were).
+    pub fn finish_step(&mut self, step: u64) -> Result<StepReport> {
+        if let Some(p) = self.model.take_pass_seconds() {
+            self.time.forward = Some(p.forward);
+            self.time.backward = Some(p.backward);
+        }
+        let t = Instant::now();
+        let local = if self.failed.is_some() { f64::NAN } else { self.losses.total() };
+        let totals = self.collective.all_gather_f64(local)?;
+        if let Some(e) = self.failed.take() {
+            return Err(e);
+        }
+        if let Some(r) = totals.iter().position(|t| !t.is_finite()) {
+            return Err(Error::Invalid(match self.collective.size() {
+                1 => format!("the loss became {}", totals[r]),
+                _ => format!("process {r}'s share of the step failed or its loss became {}", totals[r]),
+            }));
+        }
+        let mut terms = self.losses.terms.clone();
+        let Some(total) = terms.first_mut() else {
+            return Err(Error::Invalid("the model reported no loss for the step".into()));
+        };
+        total.1 = totals.iter().fold(0.0, |a, b| a + b);
+        for term in terms.iter_mut().skip(1) {
+            term.1 = self.collective.all_gather_f64(term.1)?.iter().fold(0.0, |a, b| a + b);
+        }
+        self.collective.all_reduce_sum(self.model.store().flat_grads())?;
+        self.time.all_reduce = t.elapsed().as_secs_f64();
+
+        let t = Instant::now();
+        let s = &self.settings;
+        let lr = self.model.learning_rate(step) * cooldown(s.steps, s.cooldown, step);
+        let (adamw, max_norm) = (self.model.adamw(), self.model.max_grad_norm());
+        let gpu = self.model.store().flat_params().gpu().clone();
+        let mut rec = gpu.recorder()?;
+        self.model.store_mut().adamw_step(&mut rec, &adamw, lr, max_norm)?;
+        rec.submit()?;
+        let grad_norm = self.model.store_mut().grad_norm()? as f64;
+        self.time.optimiser = t.elapsed().as_secs_f64();
+        Ok(StepReport { step, losses: Losses { terms }, grad_norm, lr, time: self.time })
+    }
+
+    /// Runs the steps `steps` with every slot of every step taking `samples[g % len]` (for
+    /// benchmarks and tests: no dataset, no files) and returns their reports.
+    pub fn repeat_steps(&mut self, samples: &[&M::Sample], steps: Range<u64>) -> Result<Vec<StepReport>> {
+        if samples.is_empty() {
+            return Err(Error::Invalid("steps on no samples".into()));
+        }
+        let mut reports = Vec::new();
+        for step in steps {
+            self.begin_step(step)?;
+            for m in 0..self.settings.accumulate {
+                let mine: Vec<&M::Sample> =
+                    self.slots(m).map(|g| samples[(g % samples.len() as u64) as usize]).collect();
+                self.micro_batch(step, m, &mine)?;
+            }
+            reports.push(self.finish_step(step)?);
+        }
+        Ok(reports)
+    }
+}
+
+/// How a run begins.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Begin {
+    /// A new run from the model as given (freshly initialised).
+    New,
+    /// A new run from the parameters of another run's checkpoint (step 0, fresh moments).
+    Init(PathBuf),
+    /// The run in the output folder, from its checkpoint, which the model was loaded from.
+    Resume,
+}
+
+/// The files of a run in its output folder.
+#[derive(Clone, Debug)]
+pub struct RunFolder {
+    pub dir: PathBuf,
+    pub checkpoint: PathBuf,
+    pub log: PathBuf,
+    pub plot: PathBuf,
+}
+
+impl RunFolder {
+    pub fn new(dir: &Path) -> RunFolder {
+        RunFolder {
+            dir: dir.to_path_buf(),
+            checkpoint: dir.join("checkpoint.safetensors"),
+            log: dir.join("log.jsonl"),
+            plot: dir.join("loss.png"),
+        }
+    }
+
+    /// Creates the folder and checks that it suits the run: a resumed run needs its
+    /// checkpoint, a new one must not overwrite another's.
+    pub fn prepare(&self, begin: &Begin) -> Result<()> {
+        std::fs::create_dir_all(&self.dir)
+            .map_err(|e| Error::Io(format!("cannot create {}: {e}", self.dir.display())))?;
+        match (begin, self.checkpoint.exists()) {
+            (Begin::Resume, false) => Err(Error::Invalid(format!(
+                "--resume: {} holds no checkpoint.safetensors to resume from",
+                self.dir.display()
+            ))),
+            (Begin::New | Begin::Init(_), true) => Err(Error::Invalid(format!(
+                "{} already holds a checkpoint: pass --resume to continue it, or choose another --out",
+                self.dir.display()
+            ))),
+            _ => Ok(()),
+        }
+    }
+}
+
+/// What a run needs besides the model, the samples and the processes.
+#[derive(Clone, Debug)]
+pub struct TrainOptions {
+    /// The output folder: checkpoint.safetensors, log.jsonl, loss.png.
+    pub out: PathBuf,
+    pub begin: Begin,
+    /// The run settings the caller asks for (a resumed run keeps its own; see
+    /// [`RunSettings::resume`]).
+    pub request: RunRequest,
+    /// Steps between checkpoints (one is always written at the end).
+    pub checkpoint_every: u64,
+    /// Steps between redraws of the loss plot.
+    pub plot_every: u64,
+    /// Stop after this step, as a stop request does.
+    pub stop_at: Option<u64>,
+    /// Samples read ahead of the steps, per process.
+    pub prefetch: usize,
+}
+
+/// Why a run ended before its last step.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Stop {
+    /// A stop was asked for (the caller's `stop` said so, in some process).
+    Asked,
+    /// At [`TrainOptions::stop_at`].
+    StopAt,
+}
+
+/// What a run reports at its end.
+#[derive(Clone, Debug)]
+pub struct Outcome {
+    pub settings: RunSettings,
+    pub checkpoint: PathBuf,
+    pub first: StepReport,
+    pub last: StepReport,
+    /// Steps this call ran, and their seconds.
+    pub steps_run: u64,
+    pub seconds: f64,
+    /// The mean time split of a step (this process's).
+    pub time: TimeSplit,
+    /// Samples of the global batch per second over the steps this call ran.
+    pub samples_per_second: f64,
+    /// `None` when the run reached its last step.
+    pub stopped: Option<Stop>,
+}
+
+/// What a run tells as it goes; the library prints nothing itself.
+pub trait Observer {
+    /// Something the user should know (a setting kept, a checkpoint of an older layout).
+    fn note(&mut self, _text: &str) {}
+    /// The run starts after step `start_step` (0 for a new run).
+    fn begin(&mut self, _settings: &RunSettings, _start_step: u64) {}
+    /// A step ended.
+    fn step(&mut self, _report: &StepReport, _samples_per_second: f64) {}
+    /// The run ends: at its last step or a stop (`completed`), or with an error.
+    fn end(&mut self, _completed: bool) {}
+}
+
+/// An observer that ignores everything.
+pub struct Quiet;
+
+impl Observer for Quiet {}
+
+/// The run settings a checkpoint stores (under `"run"` in its config JSON); `None` for a
+/// checkpoint saved outside a run, or before runs stored them.
+pub fn run_settings(path: &Path) -> Result<Option<RunSettings>> {
+    match checkpoint_json(path)?.get("run") {
+        None => Ok(None),
+        Some(run) => serde_json::from_value(run.clone()).map(Some).map_err(|e| {
+            Error::Invalid(format!("checkpoint {}: the run's settings are unreadable: {e}", path.display()))
+        }),
+    }
+}
+
+fn checkpoint_json(path: &Path) -> Result<serde_json::Value> {
+    let info = checkpoint::peek(path)?;
+    serde_json::from_str(&info.config)
+        .map_err(|e| Error::Invalid(format!("checkpoint {}: config is not JSON: {e}", path.display())))
+}
+
+/// Writes `model` to `path` with the run's settings (what a resumed run needs).
+pub fn save_checkpoint<M: Trainable>(model: &M, settings: &RunSettings, path: &Path) -> Result<()> {
+    let mut config = model.describe();
+    config["run"] = serde_json::to_value(settings).expect("plain data serialises");
+    checkpoint::save(path, model.store(), &config.to_string())
+}
+
+/// Sets `model`'s parameters to those of another run's checkpoint, `path` (the moments and the
+/// step stay those of a new model). The checkpoint must be of the same kind of model
+/// ([`Trainable::describe`]'s `"model"`) with parameters of the same names and shapes; the
+/// error names what differs.
+pub fn init_parameters<M: Trainable>(model: &mut M, path: &Path) -> Result<()> {
+    let shown = path.display();
+    let ours = model.describe()["model"].clone();
+    if let Some(kind) = checkpoint_json(path)?.get("model").filter(|k| **k != ours) {
+        return Err(Error::Invalid(format!(
+            "--init {shown} holds a {kind} checkpoint; this run trains a {ours}"
+        )));
+    }
+    if model.store().step() != 0 {
+        return Err(Error::Invalid(format!("--init {shown}: the model has already taken steps")));
+    }
+    checkpoint::load_params(path, model.store_mut()).map(|_| ()).map_err(|e| match e {
+        Error::Invalid(why) => Error::Invalid(format!("--init: {why}")),
+        other => other,
+    })
+}
+
+/// What a run stopped by an error says of its checkpoint: written at some earlier step, it is
+/// called good only once every value in it is checked finite.
+fn last_good(checkpoint: &Path) -> String {
+    if !checkpoint.exists() {
+        return "no checkpoint was written yet".into();
+    }
+    match checkpoint::verify_finite(checkpoint) {
+        Ok(info) => format!(
+            "the last good checkpoint is {} (step {}, every value checked finite)",
+            checkpoint.display(),
+            info.step
+        ),
+        Err(e) => format!("the checkpoint is no good either: {e}"),
+    }
+}
+
+/// An error's own words (without the "invalid input" its display adds).
+fn words(e: &Error) -> String {
+    match e {
+        Error::Invalid(why) => why.clone(),
+        other => other.to_string(),
+    }
+}
+
+/// Runs `work` on process 0 alone, and has every process agree on its success: process 0
+/// returns its error, the others one that points to it.
+fn on_root<T, C: Collective>(collective: &C, work: impl FnOnce() -> Result<T>) -> Result<Option<T>> {
+    let result = if collective.is_root() { Some(work()) } else { None }.transpose();
+    let ok = collective.all_gather_f64(if result.is_ok() { 1.0 } else { 0.0 })?;
+    let value = result?;
+    if ok.contains(&0.0) {
+        return Err(Error::Io("process 0 could not write the run's files (its error says why)".into()));
+    }
+    Ok(value)
+}
+
+/// Checks that every process runs with the settings of process 0 (the same dataset, the same
+/// checkpoint).
+fn same_everywhere<C: Collective>(collective: &C, settings: &RunSettings) -> Result<()> {
+    if collective.size() == 1 {
+        return Ok(());
+    }
+    let ours = serde_json::to_vec(settings).expect("plain data serialises");
+    let mut root = ours.clone();
+    collective.broadcast_bytes(0, &mut root)?;
+    let same = collective.all_gather_f64(if root == ours { 1.0 } else { 0.0 })?;
+    if let Some(r) = same.iter().position(|&s| s == 0.0) {
+        return Err(Error::Invalid(format!(
+            "process {r} would run with other settings than process 0 (a different dataset or checkpoint): \
+             every process must see the same files"
+        )));
+    }
+    Ok(())
+}
+
+/// Trains `model` on `source` as `options` say (see the module docs): settles the run's
+/// settings (new, from another run's weights, or resumed from the checkpoint the model was
+/// loaded from), then runs the steps to the run's last, `stop_at`, or a stop request (`stop`
+/// returns true in some process: the step under way finishes and the checkpoint is written),
+/// with the log, the plot and periodic checkpoints. An error in a step (a sample that cannot be
+/// read, a loss or gradient that is not finite) stops the run with a message that names the
+/// last good checkpoint.
+pub fn train<M, S, C>(
+    model: &mut M,
+    source: &S,
+    options: &TrainOptions,
+    collective: &C,
+    observer: &mut dyn Observer,
+    stop: &dyn Fn() -> bool,
+) -> Result<Outcome>
+where
+    M: Trainable,
+    S: SampleSource<Sample = M::Sample>,
+    C: Collective,
+{
+    let folder = RunFolder::new(&options.out);
+    folder.prepare(&options.begin)?;
+    if source.is_empty() {
+        return Err(Error::Invalid("the dataset holds no samples".into()));
+    }
+    let names = source.names();
+    let (micro, processes) = (model.batch() as u64, collective.size() as u64);
+    let settings = match &options.begin {
+        Begin::New => RunSettings::new(&options.request, names.clone(), micro, processes)?,
+        Begin::Init(from) => {
+            init_parameters(model, from)?;
+            RunSettings::new(&options.request, names.clone(), micro, processes)?
+        }
+        Begin::Resume => match run_settings(&folder.checkpoint)? {
+            None => {
+                observer.note(&format!(
+                    "{} does not store its run's settings (it predates that): the command line's are \
+                     used, and the order of the samples may differ from the run's first part",
+                    folder.checkpoint.display()
+                ));
+                RunSettings::new(&options.request, names.clone(), micro, processes)?
+            }
+            Some(stored) => {
+                let (settings, notes) =
+                    stored.resume(&options.request, &names, &folder.checkpoint, micro, processes)?;
+                notes.iter().for_each(|n| observer.note(n));
+                settings
+            }
+        },
+    };
+    same_everywhere(collective, &settings)?;
+    let start_step = model.store().step();
+    if start_step >= settings.steps {
+        return Err(Error::Invalid(format!(
+            "the checkpoint is at step {start_step} of a run of {} steps: pass a larger --steps to go on",
+            settings.steps
+        )));
+    }
+    if let Some(at) = options.stop_at.filter(|&at| at <= start_step || at > settings.steps) {
+        return Err(Error::Invalid(format!(
+            "--stop-at {at} is not a step to come: the run goes from step {} to {}",
+            start_step + 1,
+            settings.steps
+        )));
+    }
+    let mut log = on_root(collective, || Log::open(&folder.log, start_step))?;
+    let mut trainer = Trainer::new(model, collective, settings.clone())?;
+    observer.begin(&settings, start_step);
+    let result = std::thread::scope(|scope| {
+        run_steps(&mut trainer, source, &folder, options, scope, log.as_mut(), observer, stop, &names)
+    });
+    observer.end(result.is_ok());
+    result
+}
+
+/// The steps of [`train`], with the samples read ahead on a thread of `scope`.
+#[allow(clippy::too_many_arguments)]
+fn run_steps<'scope, M, S, C>(
+    trainer: &mut Trainer<'_, M, C>,
+    source: &'scope S,
+    folder: &RunFolder,
+    options: &TrainOptions,
+    scope: &'scope std::thread::Scope<'scope, '_>,
+    mut log: Option<&mut Log>,
+    observer: &mut dyn Observer,
+    stop: &dyn Fn() -> bool,
+    names: &[String],
+) -> Result<Outcome>
+where
+    M: Trainable,
+    S: SampleSource<Sample = M::Sample>,
+    C: Collective,
+{
+    let settings = trainer.settings().clone();
+    let collective = trainer.collective;
+    let (global, acc, per_scene) = (settings.global_batch, settings.accumulate, settings.steps_per_scene);
+    let b = trainer.model().batch() as u64;
+    let start_step = trainer.model().store().step();
+    // This process's slots of each group of steps, read in the order they are trained on.
+    let mine = (collective.rank() as u64 * acc * b)..((collective.rank() as u64 + 1) * acc * b);
+    let groups = step_position(start_step + 1, per_scene)..=step_position(settings.steps, per_scene);
+    let mut order = Order::new(names.len(), settings.seed);
+    let slots = mine.clone();
+    let indices =
+        groups.flat_map(move |k| slots.clone().map(move |g| k * global + g)).map(move |p| order.at(p));
+    let samples = prefetch(scope, source, indices, options.prefetch)?;
+
+    // The samples of this process's slots, kept while their group of steps lasts.
+    let mut held: Vec<Option<S::Sample>> = (0..acc * b).map(|_| None).collect();
+    let mut group = None;
+    let mut names_of_group = Vec::new();
+    let mut order = Order::new(names.len(), settings.seed);
+    let started = Instant::now();
+    let seconds_before = log.as_ref().map_or(0.0, |l| l.seconds());
+    let (mut first, mut last, mut time) = (None, None, TimeSplit::default());
+    let mut saved = start_step;
+    let mut stopped = None;
+    let mut steps_run = 0;
+    for step in start_step + 1..=settings.steps {
+        let k = step_position(step, per_scene);
+        if group != Some(k) {
+            held.iter_mut().for_each(|s| *s = None);
+            group = Some(k);
+            names_of_group = (0..global)
+                .map(|g| names[order.at(slot_position(step, per_scene, global, g))].clone())
+                .collect();
+        }
+        // The group's last step lets its samples go after each micro-batch.
+        let keep = !step.is_multiple_of(per_scene) && step < settings.steps;
+        trainer.begin_step(step)?;
+        for m in 0..acc {
+            let range = (m * b) as usize..((m + 1) * b) as usize;
+            let t = Instant::now();
+            for slot in range.clone() {
+                if held[slot].is_none() && !trainer.failed() {
+                    let sample = samples
+                        .recv()
+                        .map_err(|_| Error::Io("the sample-reading thread stopped".into()))
+                        .and_then(|raw| source.prepare(raw?));
+                    match sample {
+                        Ok(s) => held[slot] = Some(s),
+                        Err(e) => trainer.fail(e),
+                    }
+                }
+            }
+            trainer.add_data_seconds(t.elapsed().as_secs_f64());
+            if !trainer.failed() {
+                let batch: Vec<&S::Sample> =
+                    held[range.clone()].iter().map(|s| s.as_ref().expect("read above")).collect();
+                trainer.micro_batch(step, m, &batch)?;
+            }
+            if !keep {
+                held[range].iter_mut().for_each(|s| *s = None);
+            }
+        }
+        let report = trainer.finish_step(step).map_err(|e| {
+            Error::Invalid(format!(
+                "training stopped at step {step}: {}; {}",
+                words(&e),
+                last_good(&folder.checkpoint)
+            ))
+        })?;
+        steps_run += 1;
+        time = time.add(&report.time);
+        let rate = (steps_run * global) as f64 / started.elapsed().as_secs_f64().max(1e-9);
+        let checkpoint_now = step.is_multiple_of(options.checkpoint_every);
+        on_root(collective, || {
+            let log = log.as_mut().expect("process 0 holds the log");
+            log.append(LogLine {
+                step,
+                seconds: seconds_before + started.elapsed().as_secs_f64(),
+                samples: names_of_group.clone(),
+                loss: Terms(report.losses.terms.iter().map(|(n, v)| (n.to_string(), *v)).collect()),
+                grad_norm: report.grad_norm,
+                lr: report.lr,
+                time: report.time,
+            })?;
+            if step.is_multiple_of(options.plot_every) {
+                plot_log(&folder.plot, log.history())?;
+            }
+            if checkpoint_now {
+                save_checkpoint(trainer.model(), &settings, &folder.checkpoint)?;
+            }
+            Ok(())
+        })?;
+        if checkpoint_now {
+            saved = step;
+        }
+        observer.step(&report, rate);
+        first.get_or_insert_with(|| report.clone());
+        last = Some(report);
+        // A stop request or --stop-at ends the run here; a resumed run goes on as if it had not.
+        let asked = collective.all_gather_f64(if stop() { 1.0 } else { 0.0 })?.contains(&1.0);
+        if step < settings.steps && (asked || options.stop_at == Some(step)) {
+            stopped = Some(if asked { Stop::Asked } else { Stop::StopAt });
+            break;
+        }
+    }
+    let step = trainer.model().store().step();
+    on_root(collective, || {
+        if saved != step {
+            save_checkpoint(trainer.model(), &settings, &folder.checkpoint)?;
+        }
+        plot_log(&folder.plot, log.as_ref().expect("process 0 holds the log").history())
+    })?;
+    collective.barrier()?;
+    let seconds = started.elapsed().as_secs_f64();
+    Ok(Outcome {
+        samples_per_second: (steps_run * global) as f64 / seconds.max(1e-9),
+        settings,
+        checkpoint: folder.checkpoint.clone(),
+        first: first.expect("a run takes at least one step"),
+        last: last.expect("a run takes at least one step"),
+        steps_run,
+        seconds,
+        time: time.scale(1.0 / steps_run as f64),
+        stopped,
+    })
+}

@@ -1,0 +1,195 @@
+//! Decoding a 4D colour point cloud with a trained autoencoder: the cloud is encoded once
+//! ([`Decoding::encode`]), then each frame asked for is decoded from the tokens, to surface
+//! points sampled by the 4D surface decoder's flow ([`Decoding::surface_points`]) or to
+//! Gaussians over the frame's occupied voxels ([`Decoding::gaussians`]). `velox decode` and
+//! `velox eval recon` both decode this way.
+//!
+//! One seed rule for every frame: the encoder's queries draw from the seed itself, and the
+//! sampler's noise of frame `f` from [`frame_seed`]`(seed, f)` = `seed ^ ((f + 1) *
+//! 0x9e3779b97f4a7c15)`. So a frame decodes to the same points whichever other frames are
+//! decoded with it, in `decode` and in `eval` alike, and no frame's noise is the encoder's.
+//!
+//! The Gaussian decoder's queries are the occupied voxels of a frame ([`VoxelSource`]): those
+//! of the input cloud's points of that frame (as in training), or those of surface points
+//! sampled from the tokens, which needs nothing but the tokens. Samples outside [-1, 1]^3,
+//! where no normalised surface lies, are dropped first (the grid would clamp them onto its
+//! border voxels).
+
+use serde::Serialize;
+use velox_engine::ops::raster::Gaussians;
+use velox_engine::{Error, Precision, Result, Tensor};
+
+use crate::velox::autoencoder::{tau_of, Autoencoder, FRAMES};
+use crate::velox::cloud::{self, CHANNELS};
+use crate::velox::surface::{SampleSpec, Sampler};
+
+/// Where the Gaussian decoder's occupied voxels come from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum VoxelSource {
+    /// Voxels of surface points sampled from the tokens.
+    Surface,
+    /// Voxels of the input cloud's points of the frame (as in training).
+    Cloud,
+}
+
+/// How surface points are sampled: `points` points, `steps` steps of `sampler`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Sampling {
+    pub points: usize,
+    pub steps: usize,
+    pub sampler: Sampler,
+}
+
+impl Sampling {
+    /// The default sampler: Heun, 20 steps.
+    pub fn heun(points: usize) -> Sampling {
+        Sampling { points, steps: 20, sampler: Sampler::Heun }
+    }
+}
+
+/// The name a report gives a sampler: "heun" or "euler".
+pub fn sampler_name(s: Sampler) -> &'static str {
+    match s {
+        Sampler::Heun => "heun",
+        Sampler::Euler => "euler",
+    }
+}
+
+/// The seed of frame `frame`'s sampler noise in a decoding seeded with `seed` (see the module
+/// docs).
+pub fn frame_seed(seed: u64, frame: usize) -> u64 {
+    seed ^ (frame as u64 + 1).wrapping_mul(0x9e37_79b9_7f4a_7c15)
+}
+
+/// xyz of each frame's points of a validated cloud (rows of x, y, z, r, g, b, tau).
+pub fn frame_points(cloud: &[f32]) -> Vec<Vec<f32>> {
+    let mut frames = vec![Vec::new(); FRAMES];
+    for p in cloud.chunks(CHANNELS) {
+        frames[((p[6] * 100.0).round() as usize).min(FRAMES - 1)].extend_from_slice(&p[..3]);
+    }
+    frames
+}
+
+/// A cloud encoded by an autoencoder, ready to decode frame by frame.
+pub struct Decoding<'a> {
+    ae: &'a Autoencoder,
+    tokens: Tensor,
+    /// xyz of the input cloud's points, per frame.
+    input: Vec<Vec<f32>>,
+    seed: u64,
+}
+
+impl<'a> Decoding<'a> {
+    /// Encodes `cloud` (host rows of x, y, z, r, g, b, tau, checked here) with the queries
+    /// drawn from `seed`, in the autoencoder's precision.
+    pub fn encode(ae: &'a Autoencoder, cloud: &[f32], seed: u64) -> Result<Decoding<'a>> {
+        let n = cloud::validate(cloud)?;
+        let k = ae.cfg.encoder.tokens;
+        if n < k {
+            return Err(Error::Invalid(format!(
+                "the cloud has {n} points; this model's encoder needs at least {k}"
+            )));
+        }
+        let gpu = ae.store.flat_params().gpu();
+        let tokens = ae.encode(&cloud::upload(gpu, cloud)?, seed)?;
+        Ok(Decoding { ae, tokens, input: frame_points(cloud), seed })
+    }
+
+    pub fn tokens(&self) -> &Tensor {
+        &self.tokens
+    }
+
+    /// xyz of the input cloud's points of `frame`.
+    pub fn input_points(&self, frame: usize) -> &[f32] {
+        &self.input[frame]
+    }
+
+    /// Surface points of `frame` sampled from the tokens, as xyz rows.
+    pub fn surface_points(&self, frame: usize, sampling: &Sampling) -> Result<Vec<f32>> {
+        let spec = SampleSpec {
+            points: sampling.points,
+            steps: sampling.steps,
+            sampler: sampling.sampler,
+            seed: frame_seed(self.seed, frame),
+            precision: Precision::F32, // the autoencoder's own precision applies
+        };
+        self.ae.decode_points(&self.tokens, tau_of(frame), &spec)?.read()
+    }
+
+    /// Occupied voxel centres of surface samples of `frame`, without the samples outside
+    /// [-1, 1]^3.
+    pub fn surface_voxels(&self, samples: &[f32], frame: usize) -> Vec<f32> {
+        let inside: Vec<f32> =
+            samples.chunks(3).filter(|p| p.iter().all(|v| v.abs() <= 1.0)).flatten().copied().collect();
+        self.ae.voxels_from_points(&inside, tau_of(frame))
+    }
+
+    /// Occupied voxel centres of the input cloud's points of `frame`.
+    pub fn cloud_voxels(&self, frame: usize) -> Vec<f32> {
+        self.ae.voxels_from_points(&self.input[frame], tau_of(frame))
+    }
+
+    /// The voxels `source` gives for `frame` (sampling the surface with `sampling` for
+    /// [`VoxelSource::Surface`]); an error says why when there are none.
+    pub fn voxels(&self, frame: usize, source: VoxelSource, sampling: &Sampling) -> Result<Vec<f32>> {
+        let centres = match source {
+            VoxelSource::Cloud if self.input[frame].is_empty() => {
+                return Err(Error::Invalid(format!(
+                    "frame {frame} has no points in the cloud, so it has no voxels: choose other frames or \
+                     the surface's voxels"
+                )))
+            }
+            VoxelSource::Cloud => self.cloud_voxels(frame),
+            VoxelSource::Surface => self.surface_voxels(&self.surface_points(frame, sampling)?, frame),
+        };
+        if centres.is_empty() {
+            return Err(Error::Invalid(format!(
+                "frame {frame}: no surface sample fell inside [-1, 1]^3, so there are no voxels to decode"
+            )));
+        }
+        Ok(centres)
+    }
+
+    /// The Gaussians of `frame` over the voxel centres `centres` (host, `[V * 3]`).
+    pub fn gaussians(&self, frame: usize, centres: &[f32]) -> Result<Gaussians> {
+        self.ae.decode_gaussians(&self.tokens, centres, tau_of(frame))
+    }
+}
+
+/// Surface points at frame time `tau` as a binary little-endian PLY: one `vertex` element with
+/// the float properties `x y z tau` (the same tau for every point of a file).
+pub fn points_ply(xyz: &[f32], tau: f32) -> Vec<u8> {
+    let n = xyz.len() / 3;
+    let mut bytes = format!(
+        "ply\nformat binary_little_endian 1.0\ncomment velox decoded surface points\nelement vertex {n}\n\
+         property float x\nproperty float y\nproperty float z\nproperty float tau\nend_header\n"
+    )
+    .into_bytes();
+    bytes.reserve(16 * n);
+    for p in xyz.chunks(3) {
+        for v in [p[0], p[1], p[2], tau] {
+            bytes.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    bytes
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frames_get_distinct_seeds_and_points_their_frame() {
+        let seeds: std::collections::HashSet<u64> = (0..FRAMES).map(|f| frame_seed(0, f)).collect();
+        assert_eq!(seeds.len(), FRAMES);
+        assert!(!seeds.contains(&0), "no frame draws the encoder's seed");
+        let cloud = [0.1, 0.2, 0.3, 0.5, 0.5, 0.5, 0.05, -0.1, -0.2, -0.3, 0.5, 0.5, 0.5, 0.23];
+        let frames = frame_points(&cloud);
+        assert_eq!((frames[5].as_slice(), frames[23].as_slice()), (&cloud[..3], &cloud[7..10]));
+        let ply = points_ply(&cloud[..6], 0.05);
+        let body = &ply[ply.windows(11).position(|w| w == b"end_header\n").unwrap() + 11..];
+        assert_eq!(body.len(), 2 * 16);
+        assert_eq!(f32::from_le_bytes(body[12..16].try_into().unwrap()), 0.05);
+    }
+}

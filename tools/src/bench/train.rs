@@ -1,0 +1,117 @@
+//! `velox bench train`: training throughput, samples per second against the micro-batch size,
+//! for a config on the present device, with the time of a step split as the trainer splits it
+//! (`velox_models::train::trainer::TimeSplit`: data, compute, all-reduce, optimiser; forward
+//! and backward within compute where the model measures them).
+//!
+//! The samples: one procedural scene rendered into a temporary folder and read back (32 px and
+//! 4000 points on a CPU device or with `--quick`, 128 px and 60000 points on a GPU), the same
+//! scene in every slot, held in memory, so the data part of the split is nothing here. Per
+//! batch size (1, 2, 4 on a CPU device or with `--quick`; up to 16 on a GPU; or `--batches`):
+//! a fresh model with the config's `batch` set to it, one untimed warm-up step, then
+//! `--repeats` steps of the library trainer, each timed as a whole on the wall clock
+//! (`gpu_timed: false`); samples/s is the batch over the median step, and the split shown is
+//! that step's.
+
+use velox_data::format::write_scene;
+use velox_data::training::train_scene;
+use velox_data::{procedural, read_scene, SynthOptions};
+use velox_engine::{Error, Gpu, Result};
+use velox_models::config::AutoencoderConfig;
+use velox_models::run::{RunRequest, RunSettings};
+use velox_models::train::collective::SingleProcess;
+use velox_models::train::trainer::Trainer;
+use velox_models::velox::autoencoder::{Autoencoder, TrainScene};
+use velox_models::velox::cloud::CHANNELS;
+
+use super::Record;
+
+/// Renders the benchmark's scene and loads it for training.
+fn scene(gpu: &Gpu, small: bool) -> Result<TrainScene> {
+    let dir = std::env::temp_dir().join(format!("velox-bench-train-{}", std::process::id()));
+    let (res, points) = if small { (32, 4000) } else { (128, 60_000) };
+    let (_, mesh) = procedural::scene(3, None)?;
+    let opts = SynthOptions { res, points, supersample: 1, tracks: 8 };
+    let made = write_scene(gpu, &mesh, "bench train", None, 3, &opts, &dir, &mut |_| {})
+        .and_then(|_| read_scene(&dir, true))
+        .and_then(|s| train_scene(gpu, &s));
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(made?)
+}
+
+pub fn run(
+    gpu: &Gpu,
+    quick: bool,
+    repeats: u32,
+    config: &str,
+    batches: Option<&[usize]>,
+) -> Result<Vec<Record>> {
+    let cpu = gpu.caps().kind == "CPU";
+    let small = quick || cpu;
+    let batches = batches.map_or(if small { vec![1, 2, 4] } else { vec![1, 2, 4, 8, 16] }, <[usize]>::to_vec);
+    let base = AutoencoderConfig::named(config)?;
+    let device = gpu.caps().name.clone();
+    let data = scene(gpu, small)?;
+    println!(
+        "device: {device} ({}); the {} autoencoder config on one {}-point scene; {repeats} timed steps \
+         after a warm-up, median shown",
+        gpu.caps().kind,
+        base.name,
+        data.cloud_host.len() / CHANNELS
+    );
+    println!(
+        "{:>6} {:>10} {:>10} {:>10} {:>12} {:>14} {:>14} {:>14}",
+        "batch",
+        "samples/s",
+        "step ms",
+        "data ms",
+        "compute ms",
+        "(fwd / bwd)",
+        "all-reduce ms",
+        "optimiser ms"
+    );
+    let mut out = Vec::new();
+    for &batch in &batches {
+        let cfg = AutoencoderConfig { batch, ..base.clone() };
+        cfg.validate()?;
+        let mut model = Autoencoder::new(gpu, &cfg, 0)?;
+        let steps = 1 + repeats as u64;
+        let request = RunRequest { steps: Some(steps), ..Default::default() };
+        let settings = RunSettings::new(&request, vec!["bench".into()], batch as u64, 1)?;
+        let mut trainer = Trainer::new(&mut model, &SingleProcess, settings)?;
+        let reports = trainer.repeat_steps(&[&data], 1..steps + 1)?;
+        let mut timed: Vec<_> = reports[1..].iter().collect();
+        timed.sort_by(|a, b| a.time.total().total_cmp(&b.time.total()));
+        // The median step, with its own split (so the parts add up to its time).
+        let split = timed[timed.len() / 2].time.scale(1e3);
+        let (median, min) = (split.total(), timed[0].time.total() * 1e3);
+        if !median.is_finite() || median <= 0.0 {
+            return Err(Error::Invalid(format!("batch {batch}: a step took {median} ms")));
+        }
+        let rate = batch as f64 / (median * 1e-3);
+        let passes = match (split.forward, split.backward) {
+            (Some(f), Some(b)) => format!("{f:.1} / {b:.1}"),
+            _ => "-".into(),
+        };
+        println!(
+            "{batch:>6} {rate:>10.3} {median:>10.1} {:>10.2} {:>12.1} {passes:>14} {:>14.2} {:>14.2}",
+            split.data, split.compute, split.all_reduce, split.optimiser
+        );
+        let shape = format!("{} config, batch {batch}", cfg.name);
+        let record = Record::timed(
+            "train step",
+            shape,
+            "f32",
+            &device,
+            (median, min, false),
+            repeats,
+            rate,
+            "samples/s",
+        );
+        out.push(Record { time_split_ms: Some(split), ..record });
+    }
+    println!(
+        "compute is the model's forward and backward passes (the autoencoder does not split them yet); \
+         all-reduce is nothing on one process"
+    );
+    Ok(out)
+}
