@@ -16,6 +16,7 @@ use velox_models::files::write_bytes;
 use crate::interrupt::Interrupt;
 use crate::train::{train_autoencoder, AutoencoderArgs};
 use crate::{run_command, CliResult};
+use velox_models::train::collective::SingleProcess;
 
 #[derive(Args)]
 pub struct DemoArgs {
@@ -109,7 +110,7 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
         cooldown: None,
         stop_at: None,
     };
-    let summary = train_autoencoder(&gpu, &train, &Interrupt::never())?;
+    let summary = train_autoencoder(&gpu, &train, &Interrupt::never(), &SingleProcess)?;
     let ckpt = summary.checkpoint.display().to_string();
     let (first_loss, last_loss) = (summary.first.losses.total(), summary.last.losses.total());
 

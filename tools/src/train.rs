@@ -11,9 +11,10 @@ use velox_data::SceneFolders;
 use velox_engine::Gpu;
 use velox_models::config::AutoencoderConfig;
 use velox_models::run::{RunRequest, RunSettings};
-use velox_models::train::collective::SingleProcess;
+use velox_models::train::collective::Collective;
+use velox_models::train::distributed::Comm;
 use velox_models::train::trainer::{
-    train, Begin, Observer, Outcome, RunFolder, StepReport, Stop, TimeSplit, TrainOptions,
+    train, Begin, Observer, Outcome, Quiet, RunFolder, StepReport, Stop, TimeSplit, TrainOptions,
 };
 use velox_models::velox::autoencoder::Autoencoder;
 
@@ -109,9 +110,25 @@ impl AutoencoderArgs {
 pub fn run(cmd: TrainCommand) -> CliResult<()> {
     match cmd {
         TrainCommand::Autoencoder(args) => {
+            // One process, or one of an MPI run's (`mpirun -np N velox train ...`, built with
+            // the feature `mpi`): each takes its own GPU and its share of every step.
+            let comm = Comm::world()?;
             let interrupt = Interrupt::catch()?;
-            let gpu = Gpu::new()?;
-            let o = train_autoencoder(&gpu, &args, &interrupt)?;
+            let gpu = if comm.size() > 1 { Gpu::for_local_rank(comm.local_rank())? } else { Gpu::new()? };
+            let outcome = train_autoencoder(&gpu, &args, &interrupt, &comm);
+            let o = match outcome {
+                Ok(o) => o,
+                // A stop ends every process alike (they agree on it before it happens); an error
+                // of one process must end the others, which could wait for it forever.
+                Err(e) if comm.size() > 1 && e.downcast_ref::<Interrupted>().is_none() => {
+                    eprintln!("error on process {} of {}: {e}", comm.rank(), comm.size());
+                    comm.abort_all(1)
+                }
+                Err(e) => return Err(e),
+            };
+            if !comm.is_root() {
+                return Ok(());
+            }
             let step = o.last.step;
             if o.stopped.is_some() {
                 println!(
@@ -202,9 +219,15 @@ impl Observer for Progress {
     }
 }
 
-/// Trains as the command does (also used by the demo). When `interrupt` asks for a stop, the
-/// step under way is finished, the checkpoint written, and [`Interrupted`] returned.
-pub fn train_autoencoder(gpu: &Gpu, args: &AutoencoderArgs, interrupt: &Interrupt) -> CliResult<Outcome> {
+/// Trains as the command does (also used by the demo), as one of `collective`'s processes:
+/// process 0 shows the progress and writes the run's files. When `interrupt` asks for a stop,
+/// the step under way is finished, the checkpoint written, and [`Interrupted`] returned.
+pub fn train_autoencoder<C: Collective>(
+    gpu: &Gpu,
+    args: &AutoencoderArgs,
+    interrupt: &Interrupt,
+    collective: &C,
+) -> CliResult<Outcome> {
     let begin = args.begin();
     let folder = RunFolder::new(&args.out);
     folder.prepare(&begin)?;
@@ -241,7 +264,9 @@ pub fn train_autoencoder(gpu: &Gpu, args: &AutoencoderArgs, interrupt: &Interrup
         prefetch: 2,
     };
     let stop = || interrupt.requested().is_some();
-    let outcome = train(&mut model, &scenes, &options, &SingleProcess, &mut Progress::default(), &stop)?;
+    let mut progress = Progress::default();
+    let observer: &mut dyn Observer = if collective.is_root() { &mut progress } else { &mut Quiet };
+    let outcome = train(&mut model, &scenes, &options, collective, observer, &stop)?;
     if outcome.stopped == Some(Stop::Asked) {
         let signal = interrupt.requested().expect("the stop was asked for by a signal");
         let step = outcome.last.step;
