@@ -634,6 +634,32 @@ mod mpi_world {
     }
 }
 
+impl super::collective::Collective for Comm {
+    fn rank(&self) -> usize {
+        Comm::rank(self)
+    }
+
+    fn size(&self) -> usize {
+        Comm::size(self)
+    }
+
+    fn all_reduce_sum(&self, tensor: &Tensor) -> Result<()> {
+        Comm::all_reduce_sum(self, tensor)
+    }
+
+    fn all_gather_f64(&self, value: f64) -> Result<Vec<f64>> {
+        Comm::all_gather_f64(self, value)
+    }
+
+    fn broadcast_bytes(&self, root: usize, bytes: &mut Vec<u8>) -> Result<()> {
+        Comm::broadcast_bytes(self, root, bytes)
+    }
+
+    fn barrier(&self) -> Result<()> {
+        Comm::barrier(self)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -707,31 +733,5 @@ mod tests {
         let mut one = [0f32; 2];
         sum_in_rank_order(&slices[..2], 1, &mut one);
         assert_eq!(one, [1e8, 2.0]);
-    }
-}
-
-impl super::collective::Collective for Comm {
-    fn rank(&self) -> usize {
-        Comm::rank(self)
-    }
-
-    fn size(&self) -> usize {
-        Comm::size(self)
-    }
-
-    fn all_reduce_sum(&self, tensor: &Tensor) -> Result<()> {
-        Comm::all_reduce_sum(self, tensor)
-    }
-
-    fn all_gather_f64(&self, value: f64) -> Result<Vec<f64>> {
-        Comm::all_gather_f64(self, value)
-    }
-
-    fn broadcast_bytes(&self, root: usize, bytes: &mut Vec<u8>) -> Result<()> {
-        Comm::broadcast_bytes(self, root, bytes)
-    }
-
-    fn barrier(&self) -> Result<()> {
-        Comm::barrier(self)
     }
 }
