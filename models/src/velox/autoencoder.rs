@@ -18,6 +18,8 @@
 //!    global-norm clipping); a NaN or Inf gradient stops the step before anything changes.
 //!    [`Autoencoder::train_step`] does all of it for one scene.
 
+use std::time::Instant;
+
 use velox_engine::ops::adamw::AdamWConfig;
 use velox_engine::ops::attention::Segments;
 use velox_engine::ops::binary::{binary, binary_into, Binary};
@@ -31,7 +33,7 @@ use crate::layers::Loss;
 use crate::params::ParamStore;
 use crate::run::RunSettings;
 use crate::schedule::noam;
-use crate::train::{Losses, Trainable};
+use crate::train::{Losses, PassSeconds, Trainable};
 use crate::velox::cloud::{self, CHANNELS};
 use crate::velox::encoder::Encoder;
 use crate::velox::gaussians::{occupied_voxels, GaussianDecoder, VoxelFrames};
@@ -131,6 +133,9 @@ pub struct Autoencoder {
     /// A factor on the scheduled learning rate (a cooldown at the end of a run); 1 by default,
     /// not saved with the model.
     pub lr_scale: f64,
+    /// Wall seconds of the forward passes (encoder, decoders, renders) and of the backward
+    /// passes of the micro-batches since [`Trainable::take_pass_seconds`] last took them.
+    pass_seconds: PassSeconds,
 }
 
 impl Autoencoder {
@@ -154,6 +159,7 @@ impl Autoencoder {
             adamw: AdamWConfig::default(),
             precision: Precision::F32,
             lr_scale: 1.0,
+            pass_seconds: PassSeconds::default(),
         })
     }
 
@@ -255,6 +261,7 @@ impl Autoencoder {
             )));
         }
         let gpu = scenes[0].cloud.gpu().clone();
+        let started = Instant::now();
         let nb = scenes.len();
         let k = self.cfg.encoder.tokens;
         let dim = self.cfg.encoder.token_dim;
@@ -383,6 +390,8 @@ impl Autoencoder {
 
         // Backward: image losses and the rasteriser per frame into the Gaussians' gradient,
         // the Gaussian decoder, the surface decoder, then the encoder.
+        let forward_done = Instant::now();
+        self.pass_seconds.forward += (forward_done - started).as_secs_f64();
         let mut rec = gpu.recorder()?;
         let image_loss = Tensor::empty(&gpu, &[1], DType::F32)?;
         fill(&mut rec, &image_loss, 0.0)?;
@@ -416,6 +425,7 @@ impl Autoencoder {
         binary_into(&mut rec, &ds, &ds_surface, &ds, Binary::Add)?;
         self.encoder.backward(&mut rec, &enc_cache, &ds)?;
         rec.submit()?;
+        self.pass_seconds.backward += forward_done.elapsed().as_secs_f64();
 
         let read = |t: &Tensor| -> Result<f64> { Ok(t.read::<f32>()?[0] as f64) };
         let (surface, image, tokens) = (read(&surface_loss)?, read(&image_loss)?, read(&token_loss)?);
@@ -564,6 +574,10 @@ impl Trainable for Autoencoder {
 
     fn accumulate(&mut self, samples: &[&TrainScene], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
         Autoencoder::accumulate(self, samples, rngs, weight)
+    }
+
+    fn take_pass_seconds(&mut self) -> Option<PassSeconds> {
+        Some(std::mem::take(&mut self.pass_seconds))
     }
 }
 

@@ -110,8 +110,8 @@ pub fn run(
         out.push(Record { time_split_ms: Some(split), ..record });
     }
     println!(
-        "compute is the model's forward and backward passes (the autoencoder does not split them yet); \
-         all-reduce is nothing on one process"
+        "compute is the model's forward (to the end of its renders) and backward passes; all-reduce \
+         is nothing on one process"
     );
     Ok(out)
 }
