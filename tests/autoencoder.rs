@@ -12,6 +12,7 @@ use velox::engine::ops::cast::reference::to_f16;
 use velox::engine::Precision;
 use velox::models::config::AutoencoderConfig;
 use velox::models::run::RunSettings;
+use velox::models::train::trainer::{run_settings, save_checkpoint};
 use velox::models::velox::autoencoder::{tau_of, Autoencoder, StepLosses, TrainScene};
 
 fn scene(gpu: &Gpu, name: &str) -> TrainScene {
@@ -119,7 +120,7 @@ fn runs_repeat_and_resume_bit_for_bit() {
     std::fs::create_dir_all(&dir).unwrap();
     let saved = |ae: &Autoencoder, name: &str| -> Vec<u8> {
         let path = dir.join(name);
-        ae.save(&path, None).unwrap();
+        ae.save(&path).unwrap();
         std::fs::read(&path).unwrap()
     };
     // Two runs with the same seed write the same checkpoint, byte for byte.
@@ -133,8 +134,8 @@ fn runs_repeat_and_resume_bit_for_bit() {
     let mut first = Autoencoder::new(&gpu, &cfg, 1).unwrap();
     run(&mut first, 1..=2);
     let path = dir.join("first.safetensors");
-    first.save(&path, None).unwrap();
-    assert_eq!(Autoencoder::checkpoint_run(&path).unwrap(), None, "saved outside a run");
+    first.save(&path).unwrap();
+    assert_eq!(run_settings(&path).unwrap(), None, "saved outside a run");
     // A training run's settings travel with the checkpoint.
     let settings = RunSettings {
         seed: 7,
@@ -145,8 +146,8 @@ fn runs_repeat_and_resume_bit_for_bit() {
         accumulate: 1,
         scenes: vec!["scene_00000".into()],
     };
-    first.save(&path, Some(&settings)).unwrap();
-    assert_eq!(Autoencoder::checkpoint_run(&path).unwrap(), Some(settings));
+    save_checkpoint(&first, &settings, &path).unwrap();
+    assert_eq!(run_settings(&path).unwrap(), Some(settings));
     assert_eq!(Autoencoder::checkpoint_config(&path).unwrap(), cfg);
     let mut resumed = Autoencoder::load(&gpu, &path).unwrap();
     assert_eq!(resumed.store.step(), 2);

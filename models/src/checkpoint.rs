@@ -246,6 +246,13 @@ pub fn load_params(path: &Path, store: &mut ParamStore) -> Result<CheckpointInfo
     Ok(info)
 }
 
+/// The JSON object a checkpoint describes its run with (see [`save`]'s `config`).
+pub fn config_json(path: &Path) -> Result<serde_json::Value> {
+    let info = peek(path)?;
+    serde_json::from_str(&info.config)
+        .map_err(|e| Error::Invalid(format!("checkpoint {}: config is not JSON: {e}", path.display())))
+}
+
 /// Loads a checkpoint written by [`save`] into `store` (parameters, moments and step) and
 /// returns its metadata. Every tensor is checked first: a missing or unexpected tensor, a wrong
 /// dtype or shape, a NaN or Inf in a parameter or moment, a truncated or corrupt file gives an

@@ -49,7 +49,7 @@ fn fixture() -> &'static Path {
         for step in 1..=5 {
             ae.train_step(&scene, step, &mut rng).unwrap();
         }
-        ae.save(&dir.join("ae.safetensors"), None).unwrap();
+        ae.save(&dir.join("ae.safetensors")).unwrap();
         dir
     })
 }

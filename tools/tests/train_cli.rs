@@ -7,6 +7,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;
 
+use velox_models::train::trainer::{run_settings, save_checkpoint};
+
 fn velox() -> Command {
     Command::new(env!("CARGO_BIN_EXE_velox"))
 }
@@ -63,11 +65,14 @@ fn a_nan_stop_names_the_checked_checkpoint() {
     assert!(first.status.success(), "{}", stderr(&first));
     let gpu = Gpu::new().unwrap();
     let ae = Autoencoder::load(&gpu, &ckpt).unwrap();
-    let run = Autoencoder::checkpoint_run(&ckpt).unwrap();
+    let run = run_settings(&ckpt).unwrap();
     let huge: Vec<f32> = ae.store.flat_params().read::<f32>().unwrap().iter().map(|p| p * 1e20).collect();
     assert!(huge.iter().all(|p| p.is_finite()));
     ae.store.flat_params().write(&huge).unwrap();
-    ae.save(&ckpt, run.as_ref()).unwrap();
+    match &run {
+        Some(run) => save_checkpoint(&ae, run, &ckpt).unwrap(),
+        None => ae.save(&ckpt).unwrap(),
+    }
 
     let out = train(&["--resume", "--steps", "6"]);
     let err = stderr(&out);
@@ -303,7 +308,7 @@ fn a_checkpoint_without_run_settings_resumes_with_the_command_line() {
     let out = temp_dir("old-checkpoint");
     let gpu = Gpu::new().unwrap();
     let ae = Autoencoder::new(&gpu, &AutoencoderConfig::tiny(), 0).unwrap();
-    ae.save(&out.join("checkpoint.safetensors"), None).unwrap();
+    ae.save(&out.join("checkpoint.safetensors")).unwrap();
     drop(ae);
     let run = velox()
         .args(["train", "autoencoder", "--data", arg(dataset()), "--config", "tiny", "--out", arg(&out)])
@@ -314,7 +319,7 @@ fn a_checkpoint_without_run_settings_resumes_with_the_command_line() {
     assert!(run.status.success(), "{err}");
     assert!(err.contains("does not store its run's settings"), "{err}");
     // From now on it does.
-    let stored = Autoencoder::checkpoint_run(&out.join("checkpoint.safetensors")).unwrap().unwrap();
+    let stored = run_settings(&out.join("checkpoint.safetensors")).unwrap().unwrap();
     assert_eq!((stored.seed, stored.steps, stored.steps_per_scene), (0, 2, 8));
     assert_eq!(stored.scenes, ["scene_00000", "scene_00001"]);
     let _ = std::fs::remove_dir_all(&out);
@@ -386,8 +391,7 @@ fn accumulated_micro_batches_train_as_one_larger_micro_batch() {
         &accumulated.join("checkpoint.safetensors"),
         &stopped.join("checkpoint.safetensors"),
     );
-    let stored =
-        velox_models::train::trainer::run_settings(&stopped.join("checkpoint.safetensors")).unwrap().unwrap();
+    let stored = run_settings(&stopped.join("checkpoint.safetensors")).unwrap().unwrap();
     assert_eq!((stored.global_batch, stored.accumulate), (2, 2));
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -400,18 +400,12 @@ impl Observer for Quiet {}
 /// The run settings a checkpoint stores (under `"run"` in its config JSON); `None` for a
 /// checkpoint saved outside a run, or before runs stored them.
 pub fn run_settings(path: &Path) -> Result<Option<RunSettings>> {
-    match checkpoint_json(path)?.get("run") {
+    match checkpoint::config_json(path)?.get("run") {
         None => Ok(None),
         Some(run) => serde_json::from_value(run.clone()).map(Some).map_err(|e| {
             Error::Invalid(format!("checkpoint {}: the run's settings are unreadable: {e}", path.display()))
         }),
     }
-}
-
-fn checkpoint_json(path: &Path) -> Result<serde_json::Value> {
-    let info = checkpoint::peek(path)?;
-    serde_json::from_str(&info.config)
-        .map_err(|e| Error::Invalid(format!("checkpoint {}: config is not JSON: {e}", path.display())))
 }
 
 /// Writes `model` to `path` with the run's settings (what a resumed run needs).
@@ -428,7 +422,7 @@ pub fn save_checkpoint<M: Trainable>(model: &M, settings: &RunSettings, path: &P
 pub fn init_parameters<M: Trainable>(model: &mut M, path: &Path) -> Result<()> {
     let shown = path.display();
     let ours = model.describe()["model"].clone();
-    if let Some(kind) = checkpoint_json(path)?.get("model").filter(|k| **k != ours) {
+    if let Some(kind) = checkpoint::config_json(path)?.get("model").filter(|k| **k != ours) {
         return Err(Error::Invalid(format!(
             "--init {shown} holds a {kind} checkpoint; this run trains a {ours}"
         )));

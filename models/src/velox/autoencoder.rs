@@ -31,7 +31,6 @@ use velox_engine::{DType, Error, Gpu, Precision, Recorder, Result, Tensor};
 use crate::config::AutoencoderConfig;
 use crate::layers::Loss;
 use crate::params::ParamStore;
-use crate::run::RunSettings;
 use crate::schedule::noam;
 use crate::train::{Losses, PassSeconds, Trainable};
 use crate::velox::cloud::{self, CHANNELS};
@@ -480,45 +479,20 @@ impl Autoencoder {
         Ok(Some(Tensor::from_slice(scene.cloud.gpu(), &[k, CHANNELS], &rows)?))
     }
 
-    /// Writes parameters, AdamW moments, the step and the config to `path` (atomically), with
-    /// the settings of the training run that made them, if any (see [`RunSettings`]).
-    pub fn save(&self, path: &std::path::Path, run: Option<&RunSettings>) -> Result<()> {
-        let mut config = self.describe();
-        if let Some(run) = run {
-            config["run"] = serde_json::to_value(run).expect("plain data serialises");
-        }
-        crate::checkpoint::save(path, &self.store, &config.to_string())
-    }
-
-    /// The JSON an autoencoder checkpoint describes itself with.
-    fn checkpoint_json(path: &std::path::Path) -> Result<serde_json::Value> {
-        let info = crate::checkpoint::peek(path)?;
-        serde_json::from_str(&info.config)
-            .map_err(|e| Error::Invalid(format!("checkpoint {}: config is not JSON: {e}", path.display())))
+    /// Writes parameters, AdamW moments, the step and the config to `path` (atomically); a
+    /// training run saves with its settings through `crate::train::trainer::save_checkpoint`.
+    pub fn save(&self, path: &std::path::Path) -> Result<()> {
+        crate::checkpoint::save(path, &self.store, &self.describe().to_string())
     }
 
     /// The config stored in an autoencoder checkpoint.
     pub fn checkpoint_config(path: &std::path::Path) -> Result<AutoencoderConfig> {
-        serde_json::from_value(Self::checkpoint_json(path)?["config"].clone()).map_err(|e| {
+        serde_json::from_value(crate::checkpoint::config_json(path)?["config"].clone()).map_err(|e| {
             Error::Invalid(format!(
                 "checkpoint {} does not hold a Velox autoencoder config: {e}",
                 path.display()
             ))
         })
-    }
-
-    /// The settings of the training run stored in a checkpoint; `None` for a checkpoint saved
-    /// outside a run, or before runs stored them.
-    pub fn checkpoint_run(path: &std::path::Path) -> Result<Option<RunSettings>> {
-        match Self::checkpoint_json(path)?.get("run") {
-            None => Ok(None),
-            Some(run) => serde_json::from_value(run.clone()).map(Some).map_err(|e| {
-                Error::Invalid(format!(
-                    "checkpoint {}: the run's settings are unreadable: {e}",
-                    path.display()
-                ))
-            }),
-        }
     }
 
     /// The autoencoder a checkpoint holds, with its config, moments and step.
