@@ -208,41 +208,53 @@ pub fn verify_finite(path: &Path) -> Result<CheckpointInfo> {
     Ok(info)
 }
 
+/// The checkpoint's tensors of the parts `parts` (prefixes of [`PARTS`]) laid out as the
+/// store's flat buffers, one per part, every tensor checked first: missing, of another shape or
+/// dtype, NaN or Inf, or a tensor the store does not have (of those parts, or of any name when
+/// `parts` is all of them), each an error naming it.
+fn read_parts(path: &Path, store: &ParamStore, parts: &[&str]) -> Result<(CheckpointInfo, Vec<Vec<f32>>)> {
+    let shown = path.display();
+    let bytes = read_file(path)?;
+    let file = deserialize(&bytes, path)?;
+    let info = read_info(&bytes, path)?;
+    let total = store.flat_params().numel();
+    let mut host = vec![vec![0f32; total]; parts.len()];
+    let mut expected = std::collections::HashSet::new();
+    for (prefix, flat) in parts.iter().zip(host.iter_mut()) {
+        for p in store.infos() {
+            let name = format!("{prefix}{}", p.name);
+            let t = file.tensor(&name).map_err(|_| {
+                Error::Invalid(format!("checkpoint {shown} lacks tensor {name:?} (shape {:?})", p.shape))
+            })?;
+            if t.shape() != p.shape.as_slice() {
+                return Err(Error::Invalid(format!(
+                    "checkpoint {shown}: tensor {name:?} has shape {:?}, the model expects {:?}",
+                    t.shape(),
+                    p.shape
+                )));
+            }
+            let values = f32_values(path, &name, &t)?;
+            check_finite(path, info.step, &name, &values)?;
+            flat[p.offset..p.offset + p.numel].copy_from_slice(&values);
+            expected.insert(name);
+        }
+    }
+    let ours = |n: &str| parts.len() == PARTS.len() || parts.iter().any(|prefix| n.starts_with(prefix));
+    if let Some(extra) = file.names().into_iter().find(|n| ours(n) && !expected.contains(*n)) {
+        return Err(Error::Invalid(format!(
+            "checkpoint {shown} holds tensor {extra:?}, which the model does not have (a different config?)"
+        )));
+    }
+    Ok((info, host))
+}
+
 /// Loads only the parameters of a checkpoint into `store` (to start a new run from another
 /// run's weights): the moments and the step counter stay as they are. Every parameter tensor is
 /// checked first (missing, unexpected, of another shape or dtype, NaN or Inf), the error names
 /// it, and the store is left unchanged.
 pub fn load_params(path: &Path, store: &mut ParamStore) -> Result<CheckpointInfo> {
-    let shown = path.display();
-    let bytes = read_file(path)?;
-    let file = deserialize(&bytes, path)?;
-    let info = read_info(&bytes, path)?;
-    let mut host = vec![0f32; store.flat_params().numel()];
-    let mut expected = std::collections::HashSet::new();
-    for p in store.infos() {
-        let name = format!("{}{}", PARTS[0], p.name);
-        let t = file.tensor(&name).map_err(|_| {
-            Error::Invalid(format!("checkpoint {shown} lacks tensor {name:?} (shape {:?})", p.shape))
-        })?;
-        if t.shape() != p.shape.as_slice() {
-            return Err(Error::Invalid(format!(
-                "checkpoint {shown}: tensor {name:?} has shape {:?}, the model expects {:?}",
-                t.shape(),
-                p.shape
-            )));
-        }
-        let values = f32_values(path, &name, &t)?;
-        check_finite(path, info.step, &name, &values)?;
-        host[p.offset..p.offset + p.numel].copy_from_slice(&values);
-        expected.insert(name);
-    }
-    if let Some(extra) = file.names().into_iter().find(|n| n.starts_with(PARTS[0]) && !expected.contains(*n))
-    {
-        return Err(Error::Invalid(format!(
-            "checkpoint {shown} holds tensor {extra:?}, which the model does not have (a different config?)"
-        )));
-    }
-    store.flat_params().write(&host)?;
+    let (info, host) = read_parts(path, store, &PARTS[..1])?;
+    store.flat_params().write(&host[0])?;
     Ok(info)
 }
 
@@ -258,42 +270,11 @@ pub fn config_json(path: &Path) -> Result<serde_json::Value> {
 /// dtype or shape, a NaN or Inf in a parameter or moment, a truncated or corrupt file gives an
 /// error naming it, and the store is left unchanged.
 pub fn load(path: &Path, store: &mut ParamStore) -> Result<CheckpointInfo> {
-    let shown = path.display();
-    let bytes = read_file(path)?;
-    let file = deserialize(&bytes, path)?;
-    let CheckpointInfo { step, config } = read_info(&bytes, path)?;
-
-    let total = store.flat_params().numel();
-    let mut host = [vec![0f32; total], vec![0f32; total], vec![0f32; total]];
-    let mut expected = std::collections::HashSet::new();
-    for (prefix, flat) in PARTS.iter().zip(host.iter_mut()) {
-        for p in store.infos() {
-            let name = format!("{prefix}{}", p.name);
-            let t = file.tensor(&name).map_err(|_| {
-                Error::Invalid(format!("checkpoint {shown} lacks tensor {name:?} (shape {:?})", p.shape))
-            })?;
-            if t.shape() != p.shape.as_slice() {
-                return Err(Error::Invalid(format!(
-                    "checkpoint {shown}: tensor {name:?} has shape {:?}, the model expects {:?}",
-                    t.shape(),
-                    p.shape
-                )));
-            }
-            let values = f32_values(path, &name, &t)?;
-            check_finite(path, step, &name, &values)?;
-            flat[p.offset..p.offset + p.numel].copy_from_slice(&values);
-            expected.insert(name);
-        }
-    }
-    if let Some(extra) = file.names().into_iter().find(|n| !expected.contains(*n)) {
-        return Err(Error::Invalid(format!(
-            "checkpoint {shown} holds tensor {extra:?}, which the model does not have (a different config?)"
-        )));
-    }
+    let (info, host) = read_parts(path, store, &PARTS)?;
     let (m, v) = store.moments();
     store.flat_params().write(&host[0])?;
     m.write(&host[1])?;
     v.write(&host[2])?;
-    store.set_step(step);
-    Ok(CheckpointInfo { step, config })
+    store.set_step(info.step);
+    Ok(info)
 }

@@ -731,21 +731,6 @@ impl SurfaceDecoder {
         Ok(FlowLoss { loss, dtokens })
     }
 
-    /// [`SurfaceDecoder::loss_step_with`] of a batch of points (see [`PointFrames`]).
-    pub fn loss_step_frames(
-        &self,
-        rec: &mut Recorder,
-        x: &Tensor,
-        frames: &PointFrames,
-        tokens: &Tensor,
-        noise: &FlowNoise,
-        weight: f32,
-    ) -> Result<FlowLoss> {
-        let (loss, dv, cache) = self.flow_loss_frames(rec, x, frames, tokens, noise, weight)?;
-        let dtokens = self.backward(rec, &cache, &dv)?;
-        Ok(FlowLoss { loss, dtokens })
-    }
-
     /// One training step of `weight L_V` on points `x [N, 3]` of frame time `tau`: draws `eps`
     /// and `t` from `rng` on the host, then as [`SurfaceDecoder::loss_step_with`].
     pub fn loss_step(
