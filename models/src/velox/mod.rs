@@ -8,3 +8,4 @@ pub mod decode;
 pub mod encoder;
 pub mod gaussians;
 pub mod surface;
+pub mod voxels;
