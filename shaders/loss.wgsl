@@ -7,6 +7,11 @@
 //   BCE with logits x = pred, label y = target:
 //          max(x, 0) - x y + log(1 + exp(-|x|))   (never exponentiates a positive number)
 //          grad sigmoid(x) - y
+//   Focal (Lin et al. 2017) with logits, focusing gamma = delta: q = 1 - p_t, the probability
+//   given to the wrong answer, q = y sigmoid(-x) + (1 - y) sigmoid(x) (no cancellation near
+//   0 or 1), and loss q^gamma BCE; with dq/dx = (1 - 2y) p (1 - p):
+//          grad q^gamma (p - y) + gamma q^(gamma - 1) (1 - 2y) p (1 - p) BCE
+//   gamma 0 is BCE; gamma >= 1 is what the host allows, so q^(gamma - 1) never divides by 0.
 
 struct Params {
     n: u32,
@@ -25,6 +30,7 @@ const MSE: u32 = 0u;
 const L1: u32 = 1u;
 const HUBER: u32 = 2u;
 const BCE: u32 = 3u;
+const FOCAL: u32 = 4u;
 
 // log(1 + u) for u >= 0, accurate when u is tiny (where 1 + u rounds to 1).
 fn log1p_pos(u: f32) -> f32 {
@@ -64,6 +70,19 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
                 l = pc.delta * (a - 0.5 * pc.delta);
             }
             g = clamp(r, -pc.delta, pc.delta);
+        }
+        case FOCAL: {
+            let ce = max(x, 0.0) - x * t + log1p_pos(exp(-abs(x)));
+            let p = 1.0 / (1.0 + exp(-x));
+            let q = t / (1.0 + exp(x)) + (1.0 - t) * p;
+            let gamma = pc.delta;
+            let qg = pow(max(q, 0.0), gamma);
+            var focus = 0.0;
+            if (q > 0.0) {
+                focus = gamma * qg / q * (1.0 - 2.0 * t) * p * (1.0 - p) * ce;
+            }
+            l = qg * ce;
+            g = qg * (p - t) + focus;
         }
         default: {
             l = max(x, 0.0) - x * t + log1p_pos(exp(-abs(x)));

@@ -352,14 +352,22 @@ fn residual_passes_gradients_to_both_branches() {
     assert_nmse("residual dfx", &read(&dfx), &f64s(&dy), 0.0);
 }
 
-fn losses() -> [Loss; 5] {
-    [Loss::mse(), Loss::l1(), Loss::huber(0.7), Loss::bce_with_logits(), Loss::mse().weighted(1e-4)]
+fn losses() -> [Loss; 7] {
+    [
+        Loss::mse(),
+        Loss::l1(),
+        Loss::huber(0.7),
+        Loss::bce_with_logits(),
+        Loss::mse().weighted(1e-4),
+        Loss::focal(2.0),
+        Loss::focal(1.0).weighted(3.0),
+    ]
 }
 
 fn loss_inputs(rng: &mut Rng, kind: LossKind, n: usize) -> (Vec<f32>, Vec<f32>) {
     let pred = normal(rng, n, 2.0);
     let target = match kind {
-        LossKind::BceWithLogits => rng.uniform_vec(n, 0.0, 1.0),
+        LossKind::BceWithLogits | LossKind::Focal { .. } => rng.uniform_vec(n, 0.0, 1.0),
         _ => rng.normal_vec(n),
     };
     (pred, target)
@@ -378,8 +386,11 @@ fn losses_match_reference() {
             rec.submit().unwrap();
             let (l_ref, g_ref) = r::loss(loss.kind, &f64s(&pred), &f64s(&target), loss.weight as f64);
             assert_eq!(l.shape(), [1]);
-            assert_nmse(&format!("loss {what}"), &read(&l), &[l_ref], 5e-14);
-            assert_nmse(&format!("grad {what}"), &read(&g), &g_ref, 5e-14);
+            // The focal loss's f32 pow and its two gradient terms, which nearly cancel where a
+            // label is near 0.5, cost a few more ulps (measured: 2.5e-13 at worst).
+            let bound = if matches!(loss.kind, LossKind::Focal { .. }) { 1e-12 } else { 5e-14 };
+            assert_nmse(&format!("loss {what}"), &read(&l), &[l_ref], bound);
+            assert_nmse(&format!("grad {what}"), &read(&g), &g_ref, bound);
         }
     }
 }
@@ -434,19 +445,43 @@ fn norms_are_stable_at_large_tiny_and_constant_rows() {
 }
 
 #[test]
+fn focal_loss_reference_matches_finite_differences() {
+    // The focal loss's gradient has a second term (the focus factor's derivative); check the
+    // reference's against central differences, for hard and soft labels and gamma 1, 2, 3.
+    let mut rng = Rng::new(90);
+    for gamma in [1.0f32, 2.0, 3.0] {
+        for _ in 0..40 {
+            let x = rng.range(-6.0, 6.0);
+            let t = if rng.uniform() < 0.5 { rng.below(2) as f64 } else { rng.uniform() };
+            let kind = LossKind::Focal { gamma };
+            let (_, g) = r::pointwise(kind, x, t);
+            let h = 1e-6;
+            let numeric = (r::pointwise(kind, x + h, t).0 - r::pointwise(kind, x - h, t).0) / (2.0 * h);
+            assert!(
+                (g - numeric).abs() <= 1e-7 * (1.0 + numeric.abs()),
+                "gamma {gamma} x {x} t {t}: {g} vs {numeric}"
+            );
+        }
+    }
+    let mut rec = rec();
+    let t = upload(&[1], &[1.0]);
+    assert!(Loss::focal(0.5).forward_backward(&mut rec, &t, &t).is_err(), "gamma below 1 is refused");
+}
+
+#[test]
 fn bce_with_saturated_logits_stays_finite() {
     let pred = [100.0f32, -100.0, 100.0, -100.0, 0.0, 30.0, -30.0, 88.0, -88.0];
     let target = [1.0f32, 0.0, 0.0, 1.0, 0.5, 1.0, 1.0, 0.3, 0.7];
     let n = pred.len();
-    let mut rec = rec();
-    let (l, g) = Loss::bce_with_logits()
-        .forward_backward(&mut rec, &upload(&[n], &pred), &upload(&[n], &target))
-        .unwrap();
-    rec.submit().unwrap();
-    let (l_ref, g_ref) = r::loss(LossKind::BceWithLogits, &f64s(&pred), &f64s(&target), 1.0);
-    assert!(read(&l)[0].is_finite() && read(&g).iter().all(|v| v.is_finite()));
-    assert_nmse("bce saturated loss", &read(&l), &[l_ref], 1e-13);
-    assert_nmse("bce saturated grad", &read(&g), &g_ref, 1e-13);
+    for loss in [Loss::bce_with_logits(), Loss::focal(2.0)] {
+        let mut rec = rec();
+        let (l, g) = loss.forward_backward(&mut rec, &upload(&[n], &pred), &upload(&[n], &target)).unwrap();
+        rec.submit().unwrap();
+        let (l_ref, g_ref) = r::loss(loss.kind, &f64s(&pred), &f64s(&target), 1.0);
+        assert!(read(&l)[0].is_finite() && read(&g).iter().all(|v| v.is_finite()));
+        assert_nmse(&format!("{:?} saturated loss", loss.kind), &read(&l), &[l_ref], 1e-13);
+        assert_nmse(&format!("{:?} saturated grad", loss.kind), &read(&g), &g_ref, 1e-13);
+    }
 }
 
 // ---- the references' backward passes against finite differences of their forwards ----

@@ -1,4 +1,5 @@
-//! Mean losses with their gradients: MSE, L1, Huber and binary cross-entropy with logits.
+//! Mean losses with their gradients: MSE, L1, Huber, binary cross-entropy with logits and
+//! the focal loss with logits.
 //! Kernel: `shaders/loss.wgsl` (per-element loss and gradient), then a sum by `reduce.wgsl`.
 
 use crate::error::{Error, Result};
@@ -18,6 +19,10 @@ pub enum LossKind {
     Huber { delta: f32 },
     /// Binary cross-entropy of logits p against labels t in [0, 1].
     BceWithLogits,
+    /// The focal loss (Lin et al. 2017) of logits against labels in [0, 1]: the BCE times
+    /// `q^gamma`, q the probability given to the wrong answer, so confident right answers
+    /// (most voxels of a sparse grid) weigh little. `gamma` at least 1 (0 is BCE).
+    Focal { gamma: f32 },
 }
 
 impl LossKind {
@@ -27,6 +32,7 @@ impl LossKind {
             LossKind::L1 => (1, 0.0),
             LossKind::Huber { delta } => (2, delta),
             LossKind::BceWithLogits => (3, 0.0),
+            LossKind::Focal { gamma } => (4, gamma),
         }
     }
 }
@@ -53,6 +59,11 @@ pub fn loss(
         return Err(Error::Shape(format!(
             "{kind:?} loss: pred {pred:?} and target {target:?} must be f32 of one shape"
         )));
+    }
+    if let LossKind::Focal { gamma } = kind {
+        if !(gamma.is_finite() && (1.0..=16.0).contains(&gamma)) {
+            return Err(Error::Invalid(format!("focal loss: gamma {gamma} must be in [1, 16]")));
+        }
     }
     let n = u32::try_from(pred.numel()).map_err(|_| Error::TooLarge(format!("{kind:?} loss of {pred:?}")))?;
     let (code, delta) = kind.code();
@@ -85,6 +96,15 @@ pub mod reference {
             LossKind::BceWithLogits => {
                 let l = p.max(0.0) - p * t + (-p.abs()).exp().ln_1p();
                 (l, 1.0 / (1.0 + (-p).exp()) - t)
+            }
+            LossKind::Focal { gamma } => {
+                let g = gamma as f64;
+                let ce = p.max(0.0) - p * t + (-p.abs()).exp().ln_1p();
+                let s = 1.0 / (1.0 + (-p).exp());
+                let q = t / (1.0 + p.exp()) + (1.0 - t) * s;
+                let qg = q.powf(g);
+                let focus = if q > 0.0 { g * qg / q * (1.0 - 2.0 * t) * s * (1.0 - s) * ce } else { 0.0 };
+                (qg * ce, qg * (s - t) + focus)
             }
         }
     }

@@ -26,6 +26,10 @@ impl Loss {
     pub fn bce_with_logits() -> Loss {
         Loss { kind: LossKind::BceWithLogits, weight: 1.0 }
     }
+    /// The focal loss with logits, focusing `gamma` (at least 1).
+    pub fn focal(gamma: f32) -> Loss {
+        Loss { kind: LossKind::Focal { gamma }, weight: 1.0 }
+    }
     pub fn weighted(self, weight: f32) -> Loss {
         Loss { weight, ..self }
     }

@@ -4,7 +4,7 @@
 
 pub use velox_engine::ops::fourier::reference::{fourier, fourier_backward};
 pub use velox_engine::ops::layernorm::reference::{layernorm, layernorm_backward};
-pub use velox_engine::ops::loss::reference::loss;
+pub use velox_engine::ops::loss::reference::{loss, pointwise};
 pub use velox_engine::ops::rmsnorm::reference::{rmsnorm, rmsnorm_backward};
 use velox_engine::ops::swiglu::reference::{swiglu, swiglu_backward};
 use velox_engine::ops::unary::reference::erf;
