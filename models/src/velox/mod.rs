@@ -7,5 +7,6 @@ pub mod count;
 pub mod decode;
 pub mod encoder;
 pub mod gaussians;
+pub mod perceiver;
 pub mod surface;
 pub mod voxels;
