@@ -281,40 +281,12 @@ impl AutoencoderConfig {
             "paper" => Ok(AutoencoderConfig::paper()),
             "small" => Ok(AutoencoderConfig::small()),
             "tiny" => Ok(AutoencoderConfig::tiny()),
-            path => {
-                let text = std::fs::read_to_string(path).map_err(|e| {
-                    Error::Invalid(format!(
-                        "config {path:?} is not paper, small or tiny, and cannot be read as a file: {e}"
-                    ))
-                })?;
-                let c: AutoencoderConfig = serde_json::from_str(&text)
-                    .map_err(|e| Error::Invalid(format!("config file {path}: {e}")))?;
-                c.validate().map_err(|e| match e {
-                    Error::Invalid(why) => Error::Invalid(format!("config file {path}: {why}")),
-                    other => other,
-                })?;
-                Ok(c)
-            }
+            path => read_config_file(path, AutoencoderConfig::validate),
         }
     }
 
     /// Checks that the sizes fit together and that the kernels exist for them.
     pub fn validate(&self) -> Result<()> {
-        let heads_ok = |what: &str, width: usize, heads: usize| -> Result<()> {
-            if heads == 0 || !width.is_multiple_of(heads) {
-                return Err(Error::Invalid(format!(
-                    "{what}: width {width} does not split into {heads} heads"
-                )));
-            }
-            let d = width / heads;
-            if !velox_engine::ops::attention::HEAD_DIMS.contains(&d) {
-                return Err(Error::Invalid(format!(
-                    "{what}: head width {d} has no attention kernel (compiled: {:?})",
-                    velox_engine::ops::attention::HEAD_DIMS
-                )));
-            }
-            Ok(())
-        };
         heads_ok("encoder", self.encoder.width, self.encoder.heads)?;
         heads_ok("surface decoder", self.surface.width, self.surface.heads)?;
         heads_ok("gaussian decoder", self.gaussians.width, self.gaussians.heads)?;
@@ -380,11 +352,7 @@ impl AutoencoderConfig {
             ("views_per_step", self.views_per_step, 1, 1024),
             ("encoder_points", self.encoder_points, 0, POINTS),
         ];
-        for (name, v, lo, hi) in sizes {
-            if !(lo..=hi).contains(&v) {
-                return Err(Error::Invalid(format!("config: {name} is {v}, expected {lo} to {hi}")));
-            }
-        }
+        check_sizes(&sizes)?;
         // (name, value, least, most, whether the least itself is allowed)
         let numbers = [
             ("encoder.xyz_max_octave", e.xyz_max_octave, -30.0, 30.0, true),
@@ -402,16 +370,258 @@ impl AutoencoderConfig {
             ("peak_lr", self.peak_lr, 0.0, 1.0, false),
             ("max_grad_norm", self.max_grad_norm, 0.0, 1e9, false),
         ];
-        for (name, v, lo, hi, closed) in numbers {
-            let above = if closed { v >= lo } else { v > lo };
-            if !(v.is_finite() && above && v <= hi) {
-                let open = if closed { "[" } else { "(" };
-                return Err(Error::Invalid(format!(
-                    "config: {name} is {v}, expected a number in {open}{lo}, {hi}]"
-                )));
-            }
+        check_numbers(&numbers)
+    }
+}
+
+/// Reads a config JSON file and validates it; errors name the file.
+fn read_config_file<T: serde::de::DeserializeOwned>(path: &str, validate: fn(&T) -> Result<()>) -> Result<T> {
+    let text = std::fs::read_to_string(path).map_err(|e| {
+        Error::Invalid(format!(
+            "config {path:?} is not paper, small or tiny, and cannot be read as a file: {e}"
+        ))
+    })?;
+    let c: T = serde_json::from_str(&text).map_err(|e| Error::Invalid(format!("config file {path}: {e}")))?;
+    validate(&c).map_err(|e| match e {
+        Error::Invalid(why) => Error::Invalid(format!("config file {path}: {why}")),
+        other => other,
+    })?;
+    Ok(c)
+}
+
+/// An attention layer of `width` splits into `heads` of a width the kernels are compiled for.
+fn heads_ok(what: &str, width: usize, heads: usize) -> Result<()> {
+    if heads == 0 || !width.is_multiple_of(heads) {
+        return Err(Error::Invalid(format!("{what}: width {width} does not split into {heads} heads")));
+    }
+    let d = width / heads;
+    if !velox_engine::ops::attention::HEAD_DIMS.contains(&d) {
+        return Err(Error::Invalid(format!(
+            "{what}: head width {d} has no attention kernel (compiled: {:?})",
+            velox_engine::ops::attention::HEAD_DIMS
+        )));
+    }
+    Ok(())
+}
+
+/// Every `(name, value, least, most)` size within its bounds.
+fn check_sizes<S: AsRef<str>>(sizes: &[(S, usize, usize, usize)]) -> Result<()> {
+    for (name, v, lo, hi) in sizes {
+        let (name, v, lo, hi) = (name.as_ref(), *v, *lo, *hi);
+        if !(lo..=hi).contains(&v) {
+            return Err(Error::Invalid(format!("config: {name} is {v}, expected {lo} to {hi}")));
         }
-        Ok(())
+    }
+    Ok(())
+}
+
+/// Every `(name, value, least, most, whether the least itself is allowed)` number finite and
+/// in its range.
+fn check_numbers(numbers: &[(&str, f64, f64, f64, bool)]) -> Result<()> {
+    for &(name, v, lo, hi, closed) in numbers {
+        let above = if closed { v >= lo } else { v > lo };
+        if !(v.is_finite() && above && v <= hi) {
+            let open = if closed { "[" } else { "(" };
+            return Err(Error::Invalid(format!(
+                "config: {name} is {v}, expected a number in {open}{lo}, {hi}]"
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// One stage of the voxel decoder: a Perceiver over coarse cells.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct VoxelStageConfig {
+    pub width: usize,
+    pub heads: usize,
+    pub blocks: usize,
+    pub self_layers: usize,
+    pub ffn_ratio: usize,
+    /// Self-attention windows, in coarse cells per axis.
+    pub window_cells: usize,
+    /// 0: a linear input layer or head; else a GELU MLP through this width.
+    pub input_hidden: usize,
+    pub head_hidden: usize,
+}
+
+/// The loss of the voxel decoder's occupancy logits.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OccupancyLoss {
+    /// Binary cross-entropy.
+    Bce,
+    /// The focal loss with this focusing gamma (at least 1).
+    Focal { gamma: f32 },
+}
+
+/// The voxel decoder: the occupied voxels of the 64^3 grid at a frame time, from the tokens.
+/// A coarse stage predicts which of the `cells`^3 cells hold surface; a fine stage, over those
+/// cells only, predicts each one's (64 / cells)^3 voxels.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct VoxelConfig {
+    pub name: String,
+    /// Width of the tokens it reads (the encoder's `token_dim`).
+    pub token_dim: usize,
+    /// Coarse cells per axis: 64 must be a multiple.
+    pub cells: usize,
+    pub coarse: VoxelStageConfig,
+    pub fine: VoxelStageConfig,
+    pub xyz_freqs: usize,
+    pub tau_freqs: usize,
+    pub loss: OccupancyLoss,
+    /// A cell (coarse stage) or a voxel (fine stage) is occupied where its probability is above
+    /// this.
+    pub threshold: f32,
+    /// In training the fine stage sees the occupied cells and those within this many cells of
+    /// one, so it also learns what an empty cell next to the surface holds.
+    pub dilate: usize,
+    /// Scenes per micro-batch, and frames of each per step.
+    pub batch: usize,
+    pub frames_per_sample: usize,
+    pub peak_lr: f64,
+    pub warmup: u64,
+    pub max_grad_norm: f64,
+}
+
+impl VoxelConfig {
+    /// The paper's size: about 65 M parameters (the paper: 65.0 M, for its TRELLIS-latent
+    /// variant), nearly all of them in the fine stage.
+    pub fn paper() -> VoxelConfig {
+        VoxelConfig {
+            name: "paper".into(),
+            token_dim: 32,
+            cells: 16,
+            coarse: VoxelStageConfig {
+                width: 256,
+                heads: 4,
+                blocks: 2,
+                self_layers: 1,
+                ffn_ratio: 4,
+                window_cells: 4,
+                input_hidden: 0,
+                head_hidden: 0,
+            },
+            fine: VoxelStageConfig {
+                width: 512,
+                heads: 8,
+                blocks: 5,
+                self_layers: 2,
+                ffn_ratio: 4,
+                window_cells: 4,
+                input_hidden: 0,
+                head_hidden: 2048,
+            },
+            xyz_freqs: 16,
+            tau_freqs: 8,
+            loss: OccupancyLoss::Bce,
+            threshold: 0.5,
+            dilate: 1,
+            batch: 1,
+            frames_per_sample: 1,
+            peak_lr: 4.9e-4,
+            warmup: 4000,
+            max_grad_norm: 1.0,
+        }
+    }
+
+    /// A decoder that learns a few procedural scenes in an hour on lavapipe.
+    pub fn small() -> VoxelConfig {
+        let stage = |width, blocks| VoxelStageConfig {
+            width,
+            heads: width / 16,
+            blocks,
+            self_layers: 1,
+            ffn_ratio: 4,
+            window_cells: 4,
+            input_hidden: 0,
+            head_hidden: 0,
+        };
+        VoxelConfig {
+            name: "small".into(),
+            coarse: stage(32, 1),
+            fine: stage(64, 2),
+            xyz_freqs: 6,
+            tau_freqs: 4,
+            frames_per_sample: 2,
+            peak_lr: 2e-3,
+            warmup: 50,
+            ..VoxelConfig::paper()
+        }
+    }
+
+    /// The smallest decoder that exercises every part (MLP head and input included): for tests.
+    pub fn tiny() -> VoxelConfig {
+        let mut c = VoxelConfig::small();
+        c.name = "tiny".into();
+        c.coarse.width = 32;
+        c.coarse.heads = 2;
+        c.fine.width = 32;
+        c.fine.heads = 2;
+        c.fine.blocks = 1;
+        c.fine.input_hidden = 32;
+        c.fine.head_hidden = 64;
+        c.peak_lr = 5e-3;
+        c.warmup = 10;
+        c
+    }
+
+    /// A config by name: `paper`, `small`, `tiny`, or a path to a JSON file.
+    pub fn named(name: &str) -> Result<VoxelConfig> {
+        match name {
+            "paper" => Ok(VoxelConfig::paper()),
+            "small" => Ok(VoxelConfig::small()),
+            "tiny" => Ok(VoxelConfig::tiny()),
+            path => read_config_file(path, VoxelConfig::validate),
+        }
+    }
+
+    /// Voxels per cell along an axis.
+    pub fn cell_side(&self) -> usize {
+        64 / self.cells
+    }
+
+    /// Checks that the sizes fit together, every number is in its range and the kernels exist.
+    pub fn validate(&self) -> Result<()> {
+        if self.cells == 0 || 64 % self.cells != 0 {
+            return Err(Error::Invalid(format!("voxel decoder: cells {} must divide 64", self.cells)));
+        }
+        const WIDTH: usize = 8192;
+        let mut sizes: Vec<(String, usize, usize, usize)> = [
+            ("token_dim", self.token_dim, 1, WIDTH),
+            ("cells", self.cells, 1, 64),
+            ("xyz_freqs", self.xyz_freqs, 1, 256),
+            ("tau_freqs", self.tau_freqs, 1, 256),
+            ("dilate", self.dilate, 0, 64),
+            ("batch", self.batch, 1, 4096),
+            ("frames_per_sample", self.frames_per_sample, 1, 24),
+        ]
+        .map(|(n, v, lo, hi)| (n.to_string(), v, lo, hi))
+        .into();
+        for (stage, c) in [("coarse", &self.coarse), ("fine", &self.fine)] {
+            heads_ok(&format!("voxel decoder {stage} stage"), c.width, c.heads)?;
+            let name = |f: &str| format!("{stage}.{f}");
+            sizes.extend([
+                (name("width"), c.width, 1, WIDTH),
+                (name("blocks"), c.blocks, 1, 64),
+                (name("self_layers"), c.self_layers, 0, 64),
+                (name("ffn_ratio"), c.ffn_ratio, 1, 16),
+                (name("window_cells"), c.window_cells, 1, self.cells),
+                (name("input_hidden"), c.input_hidden, 0, WIDTH * 16),
+                (name("head_hidden"), c.head_hidden, 0, WIDTH * 16),
+            ]);
+        }
+        check_sizes(&sizes)?;
+        let gamma = match self.loss {
+            OccupancyLoss::Bce => 1.0,
+            OccupancyLoss::Focal { gamma } => gamma as f64,
+        };
+        check_numbers(&[
+            ("loss.gamma", gamma, 1.0, 16.0, true),
+            ("threshold", self.threshold as f64, 0.0, 1.0, false),
+            ("peak_lr", self.peak_lr, 0.0, 1.0, false),
+            ("max_grad_norm", self.max_grad_norm, 0.0, 1e9, false),
+        ])
     }
 }
 
@@ -434,5 +644,27 @@ mod tests {
         let mut c = AutoencoderConfig::tiny();
         c.encoder.heads = 3;
         assert!(c.validate().is_err());
+    }
+
+    #[test]
+    fn voxel_configs_are_valid_and_bad_ones_are_named() {
+        for name in ["paper", "small", "tiny"] {
+            let c = VoxelConfig::named(name).unwrap();
+            c.validate().unwrap();
+            let back: VoxelConfig = serde_json::from_str(&serde_json::to_string(&c).unwrap()).unwrap();
+            assert_eq!(back, c);
+        }
+        let mut c = VoxelConfig::tiny();
+        c.cells = 12;
+        assert!(c.validate().unwrap_err().to_string().contains("divide 64"));
+        let mut c = VoxelConfig::tiny();
+        c.fine.window_cells = 100;
+        assert!(c.validate().unwrap_err().to_string().contains("fine.window_cells"));
+        let mut c = VoxelConfig::tiny();
+        c.loss = OccupancyLoss::Focal { gamma: 0.5 };
+        assert!(c.validate().unwrap_err().to_string().contains("gamma"));
+        c.loss = OccupancyLoss::Focal { gamma: 2.0 };
+        c.threshold = f32::NAN;
+        assert!(c.validate().unwrap_err().to_string().contains("threshold"));
     }
 }

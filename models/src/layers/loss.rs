@@ -1,9 +1,11 @@
 //! Mean losses: each gives the scalar loss as a 1-element tensor and the gradient of its input.
 //! Kernel: `shaders/loss.wgsl`; host side `engine/src/ops/loss.rs`.
 
+use velox_engine::ops::binary::{binary_into, Binary};
+use velox_engine::ops::fill::fill;
 use velox_engine::ops::loss::loss;
 pub use velox_engine::ops::loss::LossKind;
-use velox_engine::{Recorder, Result, Tensor};
+use velox_engine::{DType, Error, Recorder, Result, Tensor};
 
 /// `weight * mean(loss(pred, target))`.
 #[derive(Clone, Copy, Debug)]
@@ -42,5 +44,44 @@ impl Loss {
         target: &Tensor,
     ) -> Result<(Tensor, Tensor)> {
         loss(rec, self.kind, pred, target, self.weight)
+    }
+
+    /// `(loss [1], dloss/dpred)` for `pred` and `target` split into consecutive segments of
+    /// `rows` rows each (the first axis): `weight` times the sum over the segments of each
+    /// segment's mean. A batch's samples with different numbers of rows each get their own
+    /// mean this way.
+    pub fn forward_backward_segments(
+        &self,
+        rec: &mut Recorder,
+        pred: &Tensor,
+        target: &Tensor,
+        rows: &[usize],
+    ) -> Result<(Tensor, Tensor)> {
+        let total_rows = pred.shape().first().copied().unwrap_or(0);
+        if pred.shape() != target.shape() || rows.iter().sum::<usize>() != total_rows {
+            return Err(Error::Shape(format!(
+                "segment losses: pred {pred:?} and target {target:?} must share a shape whose rows are the segments' {rows:?}"
+            )));
+        }
+        let gpu = pred.gpu().clone();
+        let sum = Tensor::empty(&gpu, &[1], DType::F32)?;
+        fill(rec, &sum, 0.0)?;
+        let grad = Tensor::empty(&gpu, pred.shape(), DType::F32)?;
+        let mut at = 0;
+        for &count in rows {
+            let slice = |rec: &mut Recorder, t: &Tensor| -> Result<Tensor> {
+                let mut shape = t.shape().to_vec();
+                shape[0] = count;
+                let out = Tensor::empty(&gpu, &shape, t.dtype())?;
+                rec.copy_rows(t, at, &out, 0, count)?;
+                Ok(out)
+            };
+            let (p, t) = (slice(rec, pred)?, slice(rec, target)?);
+            let (l, g) = self.forward_backward(rec, &p, &t)?;
+            binary_into(rec, &sum, &l, &sum, Binary::Add)?;
+            rec.copy_rows(&g, 0, &grad, at, count)?;
+            at += count;
+        }
+        Ok((sum, grad))
     }
 }

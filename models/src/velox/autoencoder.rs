@@ -26,7 +26,7 @@ use velox_engine::ops::binary::{binary, binary_into, Binary};
 use velox_engine::ops::fill::fill;
 use velox_engine::ops::raster::{render, render_backward, Camera, Gaussians};
 use velox_engine::rng::Rng;
-use velox_engine::{DType, Error, Gpu, Precision, Recorder, Result, Tensor};
+use velox_engine::{DType, Error, Gpu, Precision, Result, Tensor};
 
 use crate::config::AutoencoderConfig;
 use crate::layers::Loss;
@@ -332,22 +332,8 @@ impl Autoencoder {
         let (v, surface_cache) =
             self.surface.forward_frames(&mut rec, &x_t, &point_frames, &flow_noise.t, &s_noisy)?;
         // L_V is each scene's mean over its points (of all its frames).
-        let surface_loss = Tensor::empty(&gpu, &[1], DType::F32)?;
-        fill(&mut rec, &surface_loss, 0.0)?;
-        let dv = Tensor::empty(&gpu, &[n, 3], DType::F32)?;
-        let mut at = 0;
-        for &count in &point_counts {
-            let rows = |rec: &mut Recorder, t: &Tensor| -> Result<Tensor> {
-                let out = Tensor::empty(&gpu, &[count, 3], DType::F32)?;
-                rec.copy_rows(t, at, &out, 0, count)?;
-                Ok(out)
-            };
-            let (vb, ub) = (rows(&mut rec, &v)?, rows(&mut rec, &u)?);
-            let (loss, dvb) = Loss::mse().weighted(weight).forward_backward(&mut rec, &vb, &ub)?;
-            binary_into(&mut rec, &surface_loss, &loss, &surface_loss, Binary::Add)?;
-            rec.copy_rows(&dvb, 0, &dv, at, count)?;
-            at += count;
-        }
+        let (surface_loss, dv) =
+            Loss::mse().weighted(weight).forward_backward_segments(&mut rec, &v, &u, &point_counts)?;
         let nv_total = centres.len() / 3;
         let c = Tensor::from_slice(&gpu, &[nv_total, 3], &centres)?;
         let voxel_frames = VoxelFrames {
