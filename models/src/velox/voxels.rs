@@ -1,7 +1,20 @@
 //! The voxel decoder (paper: section 3.3; the occupied voxels of a frame predicted from the
 //! dynamic tokens, so Gaussians decode without sampling the surface ODE).
 
-use velox_engine::{Error, Result, Tensor};
+use std::path::Path;
+use std::time::Instant;
+
+use velox_engine::ops::adamw::AdamWConfig;
+use velox_engine::ops::attention::Segments;
+use velox_engine::rng::Rng;
+use velox_engine::{DType, Error, Gpu, Result, Tensor};
+
+use crate::config::{OccupancyLoss, VoxelConfig, VoxelStageConfig};
+use crate::layers::Loss;
+use crate::params::{ParamBuilder, ParamStore};
+use crate::schedule::noam;
+use crate::train::{Losses, PassSeconds, Trainable};
+use crate::velox::perceiver::{PerceiverShape, VoxelFrames, VoxelPerceiver};
 
 /// Side of the occupancy grid over [-1, 1]^3 the data stores and the decoder predicts.
 pub const GRID: usize = 64;
@@ -44,5 +57,409 @@ impl VoxelSample {
     pub fn occupied(&self, f: usize, x: usize, y: usize, z: usize) -> bool {
         let i = x + GRID * (y + GRID * z);
         self.occupancy[f * FRAME_WORDS + i / 64] >> (i % 64) & 1 == 1
+    }
+}
+
+/// The `model` a checkpoint of the voxel decoder names.
+pub const MODEL_KIND: &str = "velox voxel decoder";
+
+/// Occupied-voxel predictions of one frame, and how much of the grid the fine stage refined.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Prediction {
+    /// [`FRAME_WORDS`] words of occupancy bits.
+    pub occupancy: Vec<u64>,
+    /// Coarse cells the fine stage refined (those the coarse stage called occupied).
+    pub refined_cells: usize,
+}
+
+/// The voxel decoder: a coarse [`VoxelPerceiver`] over every cell of a `cells`^3 grid that
+/// predicts whether the cell holds surface, and a fine one over those cells alone that
+/// predicts each one's voxels of the 64^3 grid (see `crate::config::VoxelConfig`).
+///
+/// Training ([`VoxelDecoder::accumulate`]): per scene `frames_per_sample` frames; the coarse
+/// stage learns every cell's label (any voxel occupied), the fine stage the voxels of the
+/// occupied cells and of the cells within `dilate` of one (the true cells stand in for the
+/// coarse stage's choice, so the two stages train at once). Each loss is a scene's mean over
+/// its cells or its refined voxels. Prediction ([`VoxelDecoder::predict`]): the cells above
+/// `threshold`, then their voxels above it. The tokens are the frozen encoder's: the decoder
+/// computes no gradient for them that anything uses.
+pub struct VoxelDecoder {
+    pub cfg: VoxelConfig,
+    pub store: ParamStore,
+    coarse: VoxelPerceiver,
+    fine: VoxelPerceiver,
+    pub adamw: AdamWConfig,
+    pass_seconds: PassSeconds,
+}
+
+/// Centre of coarse cell `c` (`c = i + cells (j + cells l)`) in [-1, 1]^3.
+fn cell_centre(c: usize, cells: usize) -> [f32; 3] {
+    let side = 2.0 / cells as f32;
+    [c % cells, c / cells % cells, c / (cells * cells)].map(|i| -1.0 + (i as f32 + 0.5) * side)
+}
+
+/// The voxel index (`x + 64 (y + 64 z)`) of voxel `v` (`dx + s (dy + s dz)`) of cell `c`.
+fn voxel_of(c: usize, v: usize, cells: usize) -> usize {
+    let s = GRID / cells;
+    let (i, j, l) = (c % cells, c / cells % cells, c / (cells * cells));
+    let (dx, dy, dz) = (v % s, v / s % s, v / (s * s));
+    (i * s + dx) + GRID * ((j * s + dy) + GRID * (l * s + dz))
+}
+
+fn bit(words: &[u64], i: usize) -> bool {
+    words[i / 64] >> (i % 64) & 1 == 1
+}
+
+/// Each coarse cell's label: whether any of its voxels is occupied in `frame` (one frame's
+/// words).
+pub fn cell_labels(frame: &[u64], cells: usize) -> Vec<bool> {
+    let per = (GRID / cells).pow(3);
+    (0..cells.pow(3)).map(|c| (0..per).any(|v| bit(frame, voxel_of(c, v, cells)))).collect()
+}
+
+/// `cells` (flags over the cells^3 cells) grown by `d` cells in every direction (a cube).
+pub fn dilate(flags: &[bool], cells: usize, d: usize) -> Vec<bool> {
+    if d == 0 {
+        return flags.to_vec();
+    }
+    let mut out = vec![false; flags.len()];
+    for (c, &on) in flags.iter().enumerate() {
+        if !on {
+            continue;
+        }
+        let (i, j, l) = (c % cells, c / cells % cells, c / (cells * cells));
+        for l2 in l.saturating_sub(d)..(l + d + 1).min(cells) {
+            for j2 in j.saturating_sub(d)..(j + d + 1).min(cells) {
+                for i2 in i.saturating_sub(d)..(i + d + 1).min(cells) {
+                    out[i2 + cells * (j2 + cells * l2)] = true;
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Centres `[V * 3]` of the voxels of a `grid`^3 grid (64 or a divisor) that hold an occupied
+/// voxel of one frame's words, in the order of [`crate::velox::gaussians::occupied_voxels`]
+/// (x, then y, then z), so the Gaussian decoder can decode predicted voxels at its own grid.
+pub fn occupied_centres(frame: &[u64], grid: usize) -> Result<Vec<f32>> {
+    if grid == 0 || GRID % grid != 0 {
+        return Err(Error::Invalid(format!("occupied voxels at a grid of {grid}: it must divide {GRID}")));
+    }
+    let s = GRID / grid;
+    let mut ids: Vec<usize> = (0..GRID * GRID * GRID)
+        .filter(|&i| bit(frame, i))
+        .map(|i| {
+            let (x, y, z) = (i % GRID / s, i / GRID % GRID / s, i / (GRID * GRID) / s);
+            (x * grid + y) * grid + z
+        })
+        .collect();
+    ids.sort_unstable();
+    ids.dedup();
+    let cell = 2.0 / grid as f32;
+    let centre = |i: usize| -1.0 + (i as f32 + 0.5) * cell;
+    Ok(ids.iter().flat_map(|&id| [centre(id / (grid * grid)), centre(id / grid % grid), centre(id % grid)]).collect())
+}
+
+/// Rows of `[n, width]` as one tensor from host rows (`n = data.len() / width`).
+fn rows(gpu: &Gpu, data: &[f32], width: usize) -> Result<Tensor> {
+    Tensor::from_slice(gpu, &[data.len() / width, width], data)
+}
+
+impl VoxelDecoder {
+    /// The sizes of a stage: windows of `window_cells` cells, `out` logits per cell.
+    fn shape(cfg: &VoxelConfig, stage: &VoxelStageConfig, out: usize) -> PerceiverShape {
+        PerceiverShape {
+            width: stage.width,
+            heads: stage.heads,
+            blocks: stage.blocks,
+            self_layers: stage.self_layers,
+            ffn_ratio: stage.ffn_ratio,
+            xyz_freqs: cfg.xyz_freqs,
+            tau_freqs: cfg.tau_freqs,
+            window: 2.0 * stage.window_cells as f32 / cfg.cells as f32,
+            input_hidden: stage.input_hidden,
+            head_hidden: stage.head_hidden,
+            out,
+            head_std: 0.01,
+        }
+    }
+
+    /// Declares both stages' parameters (`coarse.*`, `fine.*`).
+    pub fn register(b: &mut ParamBuilder, cfg: &VoxelConfig) -> Result<()> {
+        VoxelPerceiver::register(b, "coarse", &Self::shape(cfg, &cfg.coarse, 1), cfg.token_dim)?;
+        let voxels = cfg.cell_side().pow(3);
+        VoxelPerceiver::register(b, "fine", &Self::shape(cfg, &cfg.fine, voxels), cfg.token_dim)
+    }
+
+    /// A freshly initialised decoder (parameters from `seed`).
+    pub fn new(gpu: &Gpu, cfg: &VoxelConfig, seed: u64) -> Result<VoxelDecoder> {
+        cfg.validate()?;
+        let mut b = ParamStore::builder();
+        Self::register(&mut b, cfg)?;
+        let store = b.build(gpu, seed)?;
+        let coarse = VoxelPerceiver::new(gpu, &store, "coarse", &Self::shape(cfg, &cfg.coarse, 1))?;
+        let voxels = cfg.cell_side().pow(3);
+        let fine = VoxelPerceiver::new(gpu, &store, "fine", &Self::shape(cfg, &cfg.fine, voxels))?;
+        Ok(VoxelDecoder {
+            cfg: cfg.clone(),
+            store,
+            coarse,
+            fine,
+            adamw: AdamWConfig::default(),
+            pass_seconds: PassSeconds::default(),
+        })
+    }
+
+    /// Writes parameters, AdamW moments, the step and the config to `path` (atomically).
+    pub fn save(&self, path: &Path) -> Result<()> {
+        crate::checkpoint::save(path, &self.store, &self.describe().to_string())
+    }
+
+    /// The config a voxel decoder checkpoint holds.
+    pub fn checkpoint_config(path: &Path) -> Result<VoxelConfig> {
+        let json = crate::checkpoint::config_json(path)?;
+        if json["model"] != MODEL_KIND {
+            return Err(Error::Invalid(format!(
+                "checkpoint {} holds a {}, not a {MODEL_KIND}",
+                path.display(),
+                json["model"]
+            )));
+        }
+        serde_json::from_value(json["config"].clone()).map_err(|e| {
+            Error::Invalid(format!("checkpoint {}: the voxel decoder's config is unreadable: {e}", path.display()))
+        })
+    }
+
+    /// The decoder a checkpoint holds, with its moments and step.
+    pub fn load(gpu: &Gpu, path: &Path) -> Result<VoxelDecoder> {
+        let mut d = VoxelDecoder::new(gpu, &VoxelDecoder::checkpoint_config(path)?, 0)?;
+        crate::checkpoint::load(path, &mut d.store)?;
+        Ok(d)
+    }
+
+    fn check_tokens(&self, tokens: &Tensor) -> Result<usize> {
+        match tokens.shape() {
+            &[k, d] if k > 0 && d == self.cfg.token_dim => Ok(k),
+            _ => Err(Error::Shape(format!(
+                "voxel decoder: tokens must be [k > 0, {}] (the config's token_dim), got {tokens:?}",
+                self.cfg.token_dim
+            ))),
+        }
+    }
+
+    /// The frames a sample trains on: `frames_per_sample` distinct frames drawn from `rng`.
+    fn draw_frames(&self, frames: usize, rng: &mut Rng) -> Vec<usize> {
+        let mut all: Vec<usize> = (0..frames).collect();
+        let f = self.cfg.frames_per_sample.clamp(1, frames);
+        for i in 0..f {
+            let j = i + rng.below((frames - i) as u32) as usize;
+            all.swap(i, j);
+        }
+        all.truncate(f);
+        all
+    }
+
+    /// The forward and backward passes of a micro-batch of scenes, adding `weight` times the
+    /// gradient of the sum of their losses into the store's gradients; `rngs` holds each
+    /// scene's generator. Returns the terms ("total", "coarse", "fine"), summed over the
+    /// scenes, times `weight`.
+    pub fn accumulate(&mut self, samples: &[&VoxelSample], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
+        if samples.is_empty() || samples.len() != rngs.len() {
+            return Err(Error::Invalid(format!(
+                "a micro-batch needs one generator per scene: {} scenes, {} generators",
+                samples.len(),
+                rngs.len()
+            )));
+        }
+        let started = Instant::now();
+        let gpu = samples[0].tokens.gpu().clone();
+        let (cells, weight) = (self.cfg.cells, weight as f32);
+        let n_cells = cells.pow(3);
+        let per_cell = self.cfg.cell_side().pow(3);
+        let centres: Vec<f32> = (0..n_cells).flat_map(|c| cell_centre(c, cells)).collect();
+
+        // Every scene's tokens, one after another, and per scene its frames' cells.
+        let token_counts = samples.iter().map(|s| self.check_tokens(&s.tokens)).collect::<Result<Vec<_>>>()?;
+        let tokens = Tensor::empty(&gpu, &[token_counts.iter().sum(), self.cfg.token_dim], DType::F32)?;
+        let mut rec = gpu.recorder()?;
+        let mut at = 0;
+        for (s, &k) in samples.iter().zip(&token_counts) {
+            rec.copy_rows(&s.tokens, 0, &tokens, at, k)?;
+            at += k;
+        }
+        let (mut coarse_pos, mut coarse_labels, mut coarse_groups, mut coarse_rows) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        let (mut fine_pos, mut fine_labels, mut fine_groups, mut fine_rows) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        for (s, rng) in samples.iter().zip(rngs.iter_mut()) {
+            let frames = self.draw_frames(s.frames(), rng);
+            let mut refined = 0;
+            for &f in &frames {
+                let words = &s.occupancy[f * FRAME_WORDS..(f + 1) * FRAME_WORDS];
+                let tau = f as f32 / 100.0;
+                let labels = cell_labels(words, cells);
+                coarse_pos.extend_from_slice(&centres);
+                coarse_labels.extend(labels.iter().map(|&l| l as u8 as f32));
+                coarse_groups.push((tau, n_cells));
+                let chosen = dilate(&labels, cells, self.cfg.dilate);
+                let mut count = 0;
+                for c in (0..n_cells).filter(|&c| chosen[c]) {
+                    fine_pos.extend(cell_centre(c, cells));
+                    fine_labels.extend((0..per_cell).map(|v| bit(words, voxel_of(c, v, cells)) as u8 as f32));
+                    count += 1;
+                }
+                fine_groups.push((tau, count));
+                refined += count;
+            }
+            coarse_rows.push(frames.len() * n_cells);
+            fine_rows.push(refined);
+        }
+        let loss = match self.cfg.loss {
+            OccupancyLoss::Bce => Loss::bce_with_logits(),
+            OccupancyLoss::Focal { gamma } => Loss::focal(gamma),
+        };
+
+        // Coarse stage over every cell: a scene's loss is the mean over its frames' cells.
+        let segments = |rows: &[usize]| Segments::from_lengths(&gpu, rows, &token_counts);
+        let coarse_frames = VoxelFrames { groups: coarse_groups, segments: segments(&coarse_rows)? };
+        let (logits, coarse_cache) = self.coarse.forward(&mut rec, &tokens, &rows(&gpu, &coarse_pos, 3)?, &coarse_frames)?;
+        let (coarse_loss, d_coarse) = loss.weighted(weight).forward_backward_segments(
+            &mut rec,
+            &logits,
+            &rows(&gpu, &coarse_labels, 1)?,
+            &coarse_rows,
+        )?;
+        // Fine stage over the true cells and their neighbours: the mean over the scene's voxels
+        // of those cells.
+        let fine = if fine_pos.is_empty() {
+            None
+        } else {
+            let fine_frames = VoxelFrames { groups: fine_groups, segments: segments(&fine_rows)? };
+            let (logits, cache) = self.fine.forward(&mut rec, &tokens, &rows(&gpu, &fine_pos, 3)?, &fine_frames)?;
+            let labels = rows(&gpu, &fine_labels, per_cell)?;
+            let (l, d) = loss.weighted(weight).forward_backward_segments(&mut rec, &logits, &labels, &fine_rows)?;
+            Some((l, d, cache))
+        };
+        rec.submit()?;
+        let forward_done = Instant::now();
+        self.pass_seconds.forward += (forward_done - started).as_secs_f64();
+
+        let mut rec = gpu.recorder()?;
+        self.coarse.backward(&mut rec, &coarse_cache, &d_coarse)?;
+        if let Some((_, d, cache)) = &fine {
+            self.fine.backward(&mut rec, cache, d)?;
+        }
+        rec.submit()?;
+        self.pass_seconds.backward += forward_done.elapsed().as_secs_f64();
+
+        let read = |t: &Tensor| -> Result<f64> { Ok(t.read::<f32>()?[0] as f64) };
+        let coarse = read(&coarse_loss)?;
+        let fine = match &fine {
+            Some((l, _, _)) => read(l)?,
+            None => 0.0,
+        };
+        let total = coarse + fine;
+        if !total.is_finite() {
+            return Err(Error::Invalid(format!("the loss became non-finite (coarse {coarse}, fine {fine})")));
+        }
+        Ok(Losses { terms: vec![("total", total), ("coarse", coarse), ("fine", fine)] })
+    }
+
+    /// The occupied voxels of one scene at each frame time of `taus`, from its `tokens`: the
+    /// coarse stage over every cell of every frame in one pass, then the fine stage over the
+    /// cells above the threshold, again every frame at once.
+    pub fn predict(&self, tokens: &Tensor, taus: &[f32]) -> Result<Vec<Prediction>> {
+        let k = self.check_tokens(tokens)?;
+        if taus.is_empty() {
+            return Ok(Vec::new());
+        }
+        let gpu = tokens.gpu().clone();
+        let cells = self.cfg.cells;
+        let n_cells = cells.pow(3);
+        let per_cell = self.cfg.cell_side().pow(3);
+        let logit = (self.cfg.threshold / (1.0 - self.cfg.threshold)).ln();
+        let centres: Vec<f32> = (0..n_cells).flat_map(|c| cell_centre(c, cells)).collect();
+        let positions: Vec<f32> = taus.iter().flat_map(|_| centres.iter().copied()).collect();
+        let frames = VoxelFrames {
+            groups: taus.iter().map(|&t| (t, n_cells)).collect(),
+            segments: Segments::dense(&gpu, taus.len() * n_cells, k)?,
+        };
+        let mut rec = gpu.recorder()?;
+        let (coarse, _) = self.coarse.forward(&mut rec, tokens, &rows(&gpu, &positions, 3)?, &frames)?;
+        rec.submit()?;
+        let coarse: Vec<f32> = coarse.read()?;
+        let chosen: Vec<Vec<usize>> =
+            (0..taus.len()).map(|f| (0..n_cells).filter(|&c| coarse[f * n_cells + c] > logit).collect()).collect();
+        let mut out: Vec<Prediction> = chosen
+            .iter()
+            .map(|c| Prediction { occupancy: vec![0; FRAME_WORDS], refined_cells: c.len() })
+            .collect();
+        let total: usize = chosen.iter().map(Vec::len).sum();
+        if total == 0 {
+            return Ok(out);
+        }
+        let positions: Vec<f32> = chosen.iter().flatten().flat_map(|&c| cell_centre(c, cells)).collect();
+        let frames = VoxelFrames {
+            groups: taus.iter().zip(&chosen).map(|(&t, c)| (t, c.len())).collect(),
+            segments: Segments::dense(&gpu, total, k)?,
+        };
+        let mut rec = gpu.recorder()?;
+        let (fine, _) = self.fine.forward(&mut rec, tokens, &rows(&gpu, &positions, 3)?, &frames)?;
+        rec.submit()?;
+        let fine: Vec<f32> = fine.read()?;
+        let mut row = 0;
+        for (pred, cells_of) in out.iter_mut().zip(&chosen) {
+            for &c in cells_of {
+                for v in 0..per_cell {
+                    if fine[row * per_cell + v] > logit {
+                        let i = voxel_of(c, v, cells);
+                        pred.occupancy[i / 64] |= 1 << (i % 64);
+                    }
+                }
+                row += 1;
+            }
+        }
+        Ok(out)
+    }
+}
+
+impl Trainable for VoxelDecoder {
+    type Sample = VoxelSample;
+
+    fn store(&self) -> &ParamStore {
+        &self.store
+    }
+
+    fn store_mut(&mut self) -> &mut ParamStore {
+        &mut self.store
+    }
+
+    fn describe(&self) -> serde_json::Value {
+        serde_json::json!({ "model": MODEL_KIND, "config": self.cfg })
+    }
+
+    fn learning_rate(&self, step: u64) -> f64 {
+        noam(self.cfg.peak_lr, self.cfg.warmup, step)
+    }
+
+    fn max_grad_norm(&self) -> Option<f64> {
+        Some(self.cfg.max_grad_norm)
+    }
+
+    fn adamw(&self) -> AdamWConfig {
+        self.adamw
+    }
+
+    fn batch(&self) -> usize {
+        self.cfg.batch
+    }
+
+    fn accumulate(&mut self, samples: &[&VoxelSample], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
+        VoxelDecoder::accumulate(self, samples, rngs, weight)
+    }
+
+    fn take_pass_seconds(&mut self) -> Option<PassSeconds> {
+        Some(std::mem::take(&mut self.pass_seconds))
     }
 }

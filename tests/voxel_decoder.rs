@@ -1,0 +1,187 @@
+//! The voxel decoder at the tiny config: its grid helpers against plain loops, its backward
+//! pass against a directional finite difference, a batch against its samples alone, that it
+//! learns one scene's occupancy, and the paper config's parameter count.
+
+mod common;
+use common::*;
+use velox::data::format::write_scene;
+use velox::data::{procedural, read_scene, SynthOptions};
+use velox::models::config::{OccupancyLoss, VoxelConfig};
+use velox::models::params::ParamBuilder;
+use velox::models::velox::gaussians::occupied_voxels;
+use velox::models::velox::voxels::{
+    cell_labels, dilate, occupied_centres, VoxelDecoder, VoxelSample, FRAME_WORDS, GRID,
+};
+
+/// The occupancy of procedural scene `seed` (24 frames of 64^3 bits).
+fn occupancy(gpu: &Gpu, seed: u64, test: &str) -> (Vec<u64>, Vec<[f32; 7]>) {
+    let dir = std::env::temp_dir().join(format!("velox-voxels-{}-{test}-{seed}", std::process::id()));
+    let (_, mesh) = procedural::scene(seed, None).unwrap();
+    let opts = SynthOptions { res: 24, points: 20000, supersample: 1, tracks: 0 };
+    write_scene(gpu, &mesh, "test", None, seed, &opts, &dir, &mut |_| {}).unwrap();
+    let s = read_scene(&dir, false).unwrap();
+    std::fs::remove_dir_all(&dir).ok();
+    (s.occupancy, s.points)
+}
+
+fn sample(gpu: &Gpu, seed: u64, occupancy: &[u64]) -> VoxelSample {
+    let tokens = Rng::new(seed).normal_vec(48 * 32);
+    VoxelSample::new(Tensor::from_slice(gpu, &[48, 32], &tokens).unwrap(), occupancy.to_vec()).unwrap()
+}
+
+fn bit(w: &[u64], i: usize) -> bool {
+    w[i / 64] >> (i % 64) & 1 == 1
+}
+
+fn zero(gpu: &Gpu, d: &VoxelDecoder) {
+    let mut rec = gpu.recorder().unwrap();
+    d.store.zero_grads(&mut rec).unwrap();
+    rec.submit().unwrap();
+}
+
+#[test]
+fn grid_helpers_match_plain_loops() {
+    let mut rng = Rng::new(1);
+    let mut words = vec![0u64; FRAME_WORDS];
+    let mut on = Vec::new();
+    for _ in 0..300 {
+        let i = rng.below((GRID * GRID * GRID) as u32) as usize;
+        words[i / 64] |= 1 << (i % 64);
+        on.push(i);
+    }
+    for cells in [16, 8] {
+        let s = GRID / cells;
+        let labels = cell_labels(&words, cells);
+        let mut want = vec![false; cells.pow(3)];
+        for &i in &on {
+            let (x, y, z) = (i % GRID, i / GRID % GRID, i / (GRID * GRID));
+            want[x / s + cells * (y / s + cells * (z / s))] = true;
+        }
+        assert_eq!(labels, want, "cells {cells}");
+        // Dilation by 1: a cell is on where a labelled cell is within one in every axis.
+        let grown = dilate(&labels, cells, 1);
+        for c in 0..cells.pow(3) {
+            let (i, j, l) = (c % cells, c / cells % cells, c / (cells * cells));
+            let near = (0..cells.pow(3)).any(|o| {
+                let (a, b, d) = (o % cells, o / cells % cells, o / (cells * cells));
+                labels[o] && a.abs_diff(i) <= 1 && b.abs_diff(j) <= 1 && d.abs_diff(l) <= 1
+            });
+            assert_eq!(grown[c], near, "cells {cells}, cell {c}");
+        }
+    }
+    // Occupied centres at the full grid and at 32, against occupied_voxels of the same points.
+    let points: Vec<f32> = on
+        .iter()
+        .flat_map(|&i| {
+            let c = |v: usize| -1.0 + (v as f32 + 0.5) * 2.0 / GRID as f32;
+            [c(i % GRID), c(i / GRID % GRID), c(i / (GRID * GRID)), 0.5, 0.5, 0.5, 0.0]
+        })
+        .collect();
+    for grid in [64, 32] {
+        assert_eq!(occupied_centres(&words, grid).unwrap(), occupied_voxels(&points, 0.0, grid), "grid {grid}");
+    }
+    assert!(occupied_centres(&words, 48).is_err());
+}
+
+#[test]
+fn backward_matches_a_directional_finite_difference() {
+    let gpu = gpu();
+    let (occ, _) = occupancy(&gpu, 3, "fd");
+    for loss in [OccupancyLoss::Bce, OccupancyLoss::Focal { gamma: 2.0 }] {
+        let cfg = VoxelConfig { loss, frames_per_sample: 2, ..VoxelConfig::tiny() };
+        let mut d = VoxelDecoder::new(&gpu, &cfg, 2).unwrap();
+        let s = sample(&gpu, 4, &occ);
+        zero(&gpu, &d);
+        let l0 = d.accumulate(&[&s], &mut [Rng::new(9)], 1.0).unwrap();
+        assert_eq!(l0.terms.iter().map(|t| t.0).collect::<Vec<_>>(), ["total", "coarse", "fine"]);
+        assert!(l0.terms.iter().all(|t| t.1 > 0.0), "{l0:?}");
+        let grad: Vec<f32> = d.store.flat_grads().read().unwrap();
+        let theta: Vec<f32> = d.store.flat_params().read().unwrap();
+        let u = Rng::new(5).normal_vec(theta.len());
+        let analytic: f64 = grad.iter().zip(&u).map(|(&g, &v)| g as f64 * v as f64).sum();
+        let eps = 1e-3f32;
+        let mut at = |sign: f32| {
+            let p: Vec<f32> = theta.iter().zip(&u).map(|(&t, &v)| t + sign * eps * v).collect();
+            d.store.flat_params().write(&p).unwrap();
+            d.accumulate(&[&s], &mut [Rng::new(9)], 1.0).unwrap().total()
+        };
+        let numeric = (at(1.0) - at(-1.0)) / (2.0 * eps as f64);
+        let rel = (numeric - analytic).abs() / analytic.abs();
+        assert!(rel < 5e-3, "{loss:?}: analytic {analytic} against finite difference {numeric} ({rel:.2e})");
+    }
+}
+
+#[test]
+fn a_batch_gives_the_mean_of_its_samples_gradients() {
+    let gpu = gpu();
+    let (a, _) = occupancy(&gpu, 3, "batch");
+    let (b, _) = occupancy(&gpu, 8, "batch");
+    let cfg = VoxelConfig { frames_per_sample: 2, ..VoxelConfig::tiny() };
+    let mut d = VoxelDecoder::new(&gpu, &cfg, 1).unwrap();
+    let samples = [sample(&gpu, 1, &a), sample(&gpu, 2, &b), sample(&gpu, 3, &a)];
+    let refs: Vec<&VoxelSample> = samples.iter().collect();
+    let rngs = || (0..3).map(|i| Rng::new(20 + i)).collect::<Vec<_>>();
+    zero(&gpu, &d);
+    let batch = d.accumulate(&refs, &mut rngs(), 1.0 / 3.0).unwrap();
+    let batch_grads: Vec<f32> = d.store.flat_grads().read().unwrap();
+    zero(&gpu, &d);
+    let mut total = 0.0;
+    for (s, mut r) in refs.iter().zip(rngs()) {
+        total += d.accumulate(&[s], std::slice::from_mut(&mut r), 1.0 / 3.0).unwrap().total();
+    }
+    let single_grads: Vec<f32> = d.store.flat_grads().read().unwrap();
+    assert_nmse("batch-3 gradient against three batch-1 gradients", &batch_grads, &f64s(&single_grads), 1e-10);
+    assert!((batch.total() - total).abs() <= 1e-6 * total, "batch {} against singles {total}", batch.total());
+}
+
+#[test]
+fn learns_one_scenes_occupancy() {
+    use velox::models::train::Trainable;
+    let gpu = gpu();
+    let (occ, _) = occupancy(&gpu, 3, "learn");
+    let mut cfg = VoxelConfig { frames_per_sample: 4, ..VoxelConfig::tiny() };
+    cfg.warmup = 10;
+    let mut d = VoxelDecoder::new(&gpu, &cfg, 1).unwrap();
+    let s = sample(&gpu, 7, &occ);
+    let iou = |d: &VoxelDecoder| {
+        let taus: Vec<f32> = (0..24).step_by(6).map(|f| f as f32 / 100.0).collect();
+        let preds = d.predict(&s.tokens, &taus).unwrap();
+        let (mut both, mut either) = (0usize, 0usize);
+        for (p, f) in preds.iter().zip((0..24).step_by(6)) {
+            let truth = &occ[f * FRAME_WORDS..(f + 1) * FRAME_WORDS];
+            for (w, t) in p.occupancy.iter().zip(truth) {
+                both += (w & t).count_ones() as usize;
+                either += (w | t).count_ones() as usize;
+            }
+        }
+        both as f64 / either.max(1) as f64
+    };
+    let before = iou(&d);
+    let steps: u64 = std::env::var("VOXEL_STEPS").ok().and_then(|v| v.parse().ok()).unwrap_or(150);
+    for step in 1..=steps {
+        zero(&gpu, &d);
+        let l = d.accumulate(&[&s], &mut [Rng::new(step)], 1.0).unwrap();
+        if std::env::var_os("VELOX_TEST_VERBOSE").is_some() && step % 10 == 0 {
+            eprintln!("step {step}: {:?} iou {:.3}", l.terms, iou(&d));
+        }
+        let lr = d.learning_rate(step);
+        let mut rec = gpu.recorder().unwrap();
+        let adamw = d.adamw;
+        d.store.adamw_step(&mut rec, &adamw, lr, Some(1.0)).unwrap();
+        rec.submit().unwrap();
+    }
+    let after = iou(&d);
+    if std::env::var_os("VELOX_TEST_VERBOSE").is_some() {
+        eprintln!("tiny voxel decoder, one scene, 150 steps: IoU {before:.3} -> {after:.3}");
+    }
+    assert!(after > 0.5 && after > before + 0.3, "IoU {before} -> {after}");
+    let _ = bit(&occ, 0);
+}
+
+#[test]
+fn the_paper_config_counts_about_65_million_parameters() {
+    let mut b = ParamBuilder::default();
+    VoxelDecoder::register(&mut b, &VoxelConfig::paper()).unwrap();
+    let m = b.num_parameters() as f64 / 1e6;
+    assert!((m - 65.0).abs() < 0.05 * 65.0, "{m:.2} M");
+}
