@@ -8,4 +8,5 @@ pub mod decode;
 pub mod encoder;
 pub mod gaussians;
 pub mod surface;
+pub mod tokens;
 pub mod voxels;
