@@ -1,7 +1,8 @@
 //! The token store end to end: `velox_data::encode::encode_dataset` over a dataset of two tiny
 //! scenes with a tiny autoencoder stores the encoder's tokens bit for bit with their query
 //! points and the dataset's statistics; a re-run keeps what is stored, refuses tokens of
-//! another origin without `force`; and a changed checkpoint is refused.
+//! another origin without `force`; a changed checkpoint is refused; and `TokenScenes` gives
+//! each scene its tokens and occupancy.
 
 mod common;
 use common::*;
@@ -11,14 +12,15 @@ use std::sync::OnceLock;
 
 use velox::data::encode::{encode_dataset, EncodeOptions, EncodeReport};
 use velox::data::format::{read_ply, write_scene};
-use velox::data::{procedural, SynthOptions};
+use velox::data::{procedural, read_scene, SynthOptions, TokenScenes};
 use velox::engine::Precision;
 use velox::models::config::AutoencoderConfig;
+use velox::models::train::source::SampleSource;
 use velox::models::velox::autoencoder::Autoencoder;
 use velox::models::velox::cloud;
 use velox::models::velox::tokens::{
     check_checkpoint, checkpoint_hash, read_scene_file, scene_file, CheckpointCheck, TokenFolder,
-    TokenManifest, MANIFEST,
+    TokenManifest, TokenStats, MANIFEST,
 };
 
 const SCENES: [&str; 2] = ["scene_00000", "scene_00001"];
@@ -223,6 +225,8 @@ fn a_rerun_keeps_what_is_stored_and_refuses_tokens_of_another_origin_without_for
         let e = TokenFolder::open(&tokens_dir, given).unwrap_err().to_string();
         assert!(e.contains("encoder changed") && e.contains("velox encode"), "{e}");
     }
+    let e = TokenScenes::open(&gpu(), &dir.join("data"), None, None).err().unwrap().to_string();
+    assert!(e.contains("encoder changed"), "{e}");
     let e = encode_err(&opts);
     assert!(e.contains("not ") && e.contains("hash") && e.contains("--force"), "{e}");
     let replaced = encode(&EncodeOptions { force: true, ..opts.clone() });
@@ -241,5 +245,63 @@ fn a_rerun_keeps_what_is_stored_and_refuses_tokens_of_another_origin_without_for
     Autoencoder::new(&gpu(), &config(), 3).unwrap().save(&another).unwrap();
     let e = check_checkpoint(&tokens_dir, &folder.manifest, Some(&another)).unwrap_err().to_string();
     assert!(e.contains("another.safetensors") && e.contains("encoder changed"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn token_scenes_give_each_scene_its_tokens_and_occupancy() {
+    let gpu = gpu();
+    let dir = workspace("source");
+    let data = dir.join("data");
+    let ckpt = dir.join("ae.safetensors");
+    encode(&options(&dir, 0));
+    let scenes = TokenScenes::open(&gpu, &data, None, Some(&ckpt)).unwrap();
+    assert_eq!(scenes.names(), SCENES);
+    assert!(matches!(scenes.checkpoint(), CheckpointCheck::Verified(_)));
+    assert_eq!(scenes.manifest().scenes, SCENES);
+    for (i, name) in SCENES.iter().enumerate() {
+        let sample = scenes.load(i).unwrap();
+        let truth = read_scene(&data.join(name), false).unwrap();
+        assert_eq!(sample.occupancy, truth.occupancy, "{name}");
+        assert_eq!(sample.frames(), 24);
+        assert!(sample.occupancy.iter().any(|&w| w != 0));
+        let (_, stored) = read_scene_file(&scene_file(&data.join("tokens"), name)).unwrap();
+        assert_eq!(sample.tokens.shape(), [32, 8]);
+        assert_eq!(bits(&sample.tokens.read::<f32>().unwrap()), bits(&stored.tokens));
+    }
+    // Statistics of a scene's tokens alone are not the dataset's.
+    let (_, one) = read_scene_file(&scene_file(&data.join("tokens"), SCENES[0])).unwrap();
+    assert_ne!(TokenStats::of(&one.tokens, 8).mean(), scenes.manifest().mean.as_slice());
+
+    // A scene the tokens lack, then a scene the dataset lacks: refused by name.
+    copy_dir(&data.join(SCENES[1]), &data.join("scene_00002"));
+    let e = TokenScenes::open(&gpu, &data, None, None).err().unwrap().to_string();
+    assert!(e.contains("lacks 1 scene(s)") && e.contains("scene_00002") && e.contains("velox encode"), "{e}");
+    let report = encode(&options(&dir, 0));
+    assert_eq!(report.encoded, ["scene_00002"]);
+    assert_eq!(TokenScenes::open(&gpu, &data, None, None).unwrap().len(), 3);
+    std::fs::remove_dir_all(data.join(SCENES[0])).unwrap();
+    let e = TokenScenes::open(&gpu, &data, None, None).err().unwrap().to_string();
+    assert!(e.contains("lists 1 scene(s)") && e.contains(SCENES[0]), "{e}");
+    // A scene file gone, or damaged: named.
+    encode(&options(&dir, 0));
+    let file = scene_file(&data.join("tokens"), SCENES[1]);
+    let bytes = std::fs::read(&file).unwrap();
+    std::fs::remove_file(&file).unwrap();
+    let e = TokenScenes::open(&gpu, &data, None, None).err().unwrap().to_string();
+    assert!(e.contains("scene_00001.safetensors") && e.contains("missing"), "{e}");
+    let mut nan = bytes.clone();
+    let at = nan.len() - 4;
+    nan[at..].copy_from_slice(&f32::NAN.to_le_bytes());
+    std::fs::write(&file, &nan).unwrap();
+    let scenes = TokenScenes::open(&gpu, &data, None, None).unwrap();
+    let e = scenes.load(0).err().unwrap().to_string();
+    assert!(e.contains("scene_00001.safetensors") && e.contains("NaN"), "{e}");
+    // Tokens in a folder of their own, named.
+    let elsewhere = dir.join("elsewhere");
+    std::fs::rename(data.join("tokens"), &elsewhere).unwrap();
+    assert!(TokenScenes::open(&gpu, &data, None, None).is_err());
+    std::fs::write(scene_file(&elsewhere, SCENES[1]), &bytes).unwrap();
+    assert_eq!(TokenScenes::open(&gpu, &data, Some(&elsewhere), None).unwrap().len(), 2);
     let _ = std::fs::remove_dir_all(&dir);
 }

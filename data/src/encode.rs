@@ -1,7 +1,8 @@
 //! Encoding a dataset once (`velox encode`): a trained autoencoder's encoder over every scene's
 //! whole cloud, each scene's tokens and query points stored in a token folder with the
 //! dataset's token statistics (`velox_models::velox::tokens` gives the layout), so the models
-//! downstream of the encoder train on stored tokens with the encoder frozen.
+//! downstream of the encoder train on stored tokens with the encoder frozen
+//! ([`crate::training::TokenScenes`]).
 //!
 //! Scene by scene, in name order: the cloud (`points.ply`, checked) is encoded with the
 //! queries drawn from the seed (`Autoencoder::encode_with_queries`, the encoder of `velox
@@ -100,7 +101,7 @@ fn scene_name(dir: &Path) -> DataResult<String> {
 }
 
 /// The dataset's scene folders and their names, in name order; none is an error.
-fn dataset_scenes(data: &Path) -> DataResult<(Vec<PathBuf>, Vec<String>)> {
+pub(crate) fn dataset_scenes(data: &Path) -> DataResult<(Vec<PathBuf>, Vec<String>)> {
     let dirs = list_scenes(data)?;
     if dirs.is_empty() {
         return Err(DataError::Invalid(format!(
