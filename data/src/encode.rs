@@ -33,7 +33,7 @@ use velox_models::velox::tokens::{
     TokenOrigin, TokenStats, DEFAULT_DIR, MANIFEST,
 };
 
-use crate::format::{list_scenes, read_ply};
+use crate::format::{list_some_scenes, read_ply};
 use crate::{DataError, DataResult};
 
 /// What to encode, with what, and where to.
@@ -102,13 +102,7 @@ fn scene_name(dir: &Path) -> DataResult<String> {
 
 /// The dataset's scene folders and their names, in name order; none is an error.
 pub(crate) fn dataset_scenes(data: &Path) -> DataResult<(Vec<PathBuf>, Vec<String>)> {
-    let dirs = list_scenes(data)?;
-    if dirs.is_empty() {
-        return Err(DataError::Invalid(format!(
-            "{} holds no scenes (folders with a meta.json); make some with `velox data synth`",
-            data.display()
-        )));
-    }
+    let dirs = list_some_scenes(data)?;
     let names = dirs.iter().map(|d| scene_name(d)).collect::<DataResult<Vec<_>>>()?;
     Ok((dirs, names))
 }

@@ -447,3 +447,15 @@ pub fn list_scenes(root: &Path) -> DataResult<Vec<PathBuf>> {
     dirs.sort();
     Ok(dirs)
 }
+
+/// [`list_scenes`], where none is an error that says how to make some.
+pub(crate) fn list_some_scenes(root: &Path) -> DataResult<Vec<PathBuf>> {
+    let dirs = list_scenes(root)?;
+    if dirs.is_empty() {
+        return Err(DataError::Invalid(format!(
+            "{} holds no scenes (folders with a meta.json); make some with `velox data synth`",
+            root.display()
+        )));
+    }
+    Ok(dirs)
+}

@@ -16,7 +16,7 @@ use velox_models::velox::tokens::{
 use velox_models::velox::voxels::VoxelSample;
 
 use crate::encode::dataset_scenes;
-use crate::format::{list_scenes, read_occupancy, read_scene, Scene};
+use crate::format::{list_some_scenes, read_occupancy, read_scene, Scene};
 use crate::{DataError, DataResult};
 
 /// A scene read into host memory, ready to upload: what the trainer's background thread
@@ -75,14 +75,7 @@ pub struct SceneFolders {
 impl SceneFolders {
     /// The scenes under `root`; none is an error that says how to make some.
     pub fn open(gpu: &Gpu, root: &Path) -> DataResult<SceneFolders> {
-        let dirs = list_scenes(root)?;
-        if dirs.is_empty() {
-            return Err(DataError::Invalid(format!(
-                "{} holds no scenes (folders with a meta.json); make some with `velox data synth`",
-                root.display()
-            )));
-        }
-        Ok(SceneFolders { gpu: gpu.clone(), dirs })
+        Ok(SceneFolders { gpu: gpu.clone(), dirs: list_some_scenes(root)? })
     }
 
     /// Keeps the first `n` scenes.
