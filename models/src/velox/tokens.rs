@@ -489,8 +489,26 @@ pub struct TokenManifest {
     pub scenes: Vec<String>,
     /// Per channel over every token of every scene: the mean and the population standard
     /// deviation.
+    #[serde(deserialize_with = "exact_f64s")]
     pub mean: Vec<f64>,
+    #[serde(deserialize_with = "exact_f64s")]
     pub std: Vec<f64>,
+}
+
+/// A JSON array of numbers read by Rust's own f64 parser, which rounds correctly: serde_json's
+/// default parser can miss the last bit (0.0017168435151688757 came back as ...755), and the
+/// statistics should read back as they were written. (serde_json's `float_roundtrip` would do
+/// it too, but for every reader of the program: it makes 1e999 an error where the readers now
+/// take it as an infinity and name the field.)
+fn exact_f64s<'de, D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Vec<f64>, D::Error> {
+    let raw = Vec::<Box<serde_json::value::RawValue>>::deserialize(d)?;
+    raw.iter()
+        .map(|r| {
+            r.get()
+                .parse::<f64>()
+                .map_err(|_| serde::de::Error::custom(format!("{} is not a number", r.get())))
+        })
+        .collect()
 }
 
 impl TokenManifest {
