@@ -27,8 +27,8 @@ use velox::models::files::ply;
 use velox::models::params::{Init, ParamStore};
 use velox::models::velox::autoencoder::Autoencoder;
 use velox::models::velox::tokens::{
-    self, read_scene_file, CheckpointCheck, SceneTokens, TokenFolder, TokenManifest, TokenOrigin, TokenStats,
-    MANIFEST,
+    read_scene_file, write_scene_file, CheckpointCheck, SceneTokens, TokenFolder, TokenManifest, TokenOrigin,
+    TokenStats, MANIFEST,
 };
 
 fn temp_dir(name: &str) -> PathBuf {
@@ -669,7 +669,7 @@ fn fuzz_token_files_and_manifests() {
     let points: Vec<f32> =
         (0..k).flat_map(|i| [rng.range(-1.0, 1.0) as f32, 0.5, -0.5, (i % 24) as f32 / 100.0]).collect();
     let stored = SceneTokens::new("scene_00000", values, points, d).unwrap();
-    let path = tokens::write_scene(&dir, &origin, &stored).unwrap();
+    let path = write_scene_file(&dir, &origin, &stored).unwrap();
     let scenes = vec!["scene_00000".to_string(), "scene_00001".to_string()];
     let manifest = TokenManifest::new(origin.clone(), scenes, &TokenStats::of(&stored.tokens, d));
     manifest.write(&dir).unwrap();

@@ -29,8 +29,8 @@ use velox_engine::{Gpu, Precision};
 use velox_models::velox::autoencoder::Autoencoder;
 use velox_models::velox::cloud::{self, CHANNELS};
 use velox_models::velox::tokens::{
-    check_scene_name, checkpoint_hash, read_scene_file, scene_file, write_scene, SceneTokens, TokenManifest,
-    TokenOrigin, TokenStats, DEFAULT_DIR, MANIFEST,
+    check_scene_name, checkpoint_hash, read_scene_file, scene_file, write_scene_file, SceneTokens,
+    TokenManifest, TokenOrigin, TokenStats, DEFAULT_DIR, MANIFEST,
 };
 
 use crate::format::{list_some_scenes, read_ply};
@@ -191,7 +191,7 @@ pub fn encode_dataset(
             .collect::<Vec<f32>>();
         let tokens = SceneTokens::new(name, tokens.read()?, query_points, d)
             .map_err(|e| DataError::Invalid(format!("{}: {e}", dir.display())))?;
-        write_scene(&out, &origin, &tokens)?;
+        write_scene_file(&out, &origin, &tokens)?;
         *stat = Some(TokenStats::of(&tokens.tokens, d));
         points += n;
         encoded.push(name.clone());

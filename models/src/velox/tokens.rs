@@ -304,7 +304,7 @@ pub fn scene_file(dir: &Path, scene: &str) -> PathBuf {
 
 /// Writes a scene's tokens to `dir/SCENE.safetensors` (atomically) with `origin` in its
 /// metadata; returns the path. The tokens must have the origin's shape.
-pub fn write_scene(dir: &Path, origin: &TokenOrigin, tokens: &SceneTokens) -> Result<PathBuf> {
+pub fn write_scene_file(dir: &Path, origin: &TokenOrigin, tokens: &SceneTokens) -> Result<PathBuf> {
     let path = scene_file(dir, &tokens.scene);
     let (k, d) = origin.shape();
     if (tokens.k(), tokens.token_dim) != (k, d) {
@@ -421,7 +421,10 @@ pub struct TokenStats {
 impl TokenStats {
     /// The statistics of rows of `token_dim` channels (two passes in f64).
     pub fn of(tokens: &[f32], token_dim: usize) -> TokenStats {
-        let rows = tokens.len() / token_dim.max(1);
+        if token_dim == 0 {
+            return TokenStats::default();
+        }
+        let rows = tokens.len() / token_dim;
         let mut mean = vec![0f64; token_dim];
         for row in tokens.chunks_exact(token_dim) {
             for (m, &v) in mean.iter_mut().zip(row) {
@@ -738,11 +741,11 @@ mod tests {
         let dir = temp_dir("scene");
         let o = origin(&dir.join("ae.safetensors"), "0123456789abcdef");
         let t = tokens("scene_00003", 0.5);
-        let path = write_scene(&dir, &o, &t).unwrap();
+        let path = write_scene_file(&dir, &o, &t).unwrap();
         assert_eq!(path, dir.join("scene_00003.safetensors"));
         let bytes = std::fs::read(&path).unwrap();
         assert_eq!(read_scene_file(&path).unwrap(), (o.clone(), t.clone()));
-        write_scene(&dir, &o, &t).unwrap();
+        write_scene_file(&dir, &o, &t).unwrap();
         assert_eq!(std::fs::read(&path).unwrap(), bytes, "the same tokens give the same bytes");
         // Renamed, the file no longer says its name.
         let moved = dir.join("scene_00004.safetensors");
@@ -755,7 +758,10 @@ mod tests {
         // Shapes other than the origin's, bad values and bad names are refused.
         let mut wide = o.clone();
         wide.config.encoder.token_dim += 1;
-        assert!(write_scene(&dir, &wide, &t).unwrap_err().to_string().contains("the origin's config makes"));
+        assert!(write_scene_file(&dir, &wide, &t)
+            .unwrap_err()
+            .to_string()
+            .contains("the origin's config makes"));
         let mut nan = t.tokens.clone();
         nan[9] = f32::NAN;
         let e = SceneTokens::new("s", nan, t.query_points.clone(), t.token_dim).unwrap_err().to_string();
@@ -792,6 +798,7 @@ mod tests {
         let mut empty = TokenStats::default();
         empty.merge(&merged);
         assert_eq!(empty, merged);
+        assert_eq!(TokenStats::of(&[1.0, 2.0], 0), TokenStats::default(), "no channels, no rows");
     }
 
     #[test]
