@@ -1,6 +1,7 @@
 //! Hostile input for every reader of files: seeded mutations of real files (the glTF exports in
 //! ../shared/assets/gltf, a GLB made from one of them) and of files the project writes (a scene
-//! from the data pipeline, Gaussians as PLY, a checkpoint, a config): truncation at many
+//! from the data pipeline, Gaussians as PLY, a checkpoint, a config, a scene's stored tokens
+//! and a token folder's manifest): truncation at many
 //! lengths, byte flips, extreme words, huge or negative counts in PLY headers and JSON, NaN and
 //! Inf in float fields, property types and JSON types swapped. Each case must end in an error
 //! that names the file or in a valid result (finite values, consistent counts), never in a
@@ -25,6 +26,10 @@ use velox::models::config::AutoencoderConfig;
 use velox::models::files::ply;
 use velox::models::params::{Init, ParamStore};
 use velox::models::velox::autoencoder::Autoencoder;
+use velox::models::velox::tokens::{
+    read_scene_file, write_scene_file, CheckpointCheck, SceneTokens, TokenFolder, TokenManifest, TokenOrigin,
+    TokenStats, MANIFEST,
+};
 
 fn temp_dir(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("velox-fuzz-{}-{name}", std::process::id()));
@@ -642,4 +647,109 @@ fn fuzz_scene_folders() {
     }
     fuzz.finish();
     let _ = std::fs::remove_dir_all(&root);
+}
+
+/// Stored tokens as `velox encode` writes them, mutated: the scene file (its bytes, its
+/// header's length and JSON, NaN and Inf in its tensors) through `read_scene_file` and
+/// `TokenFolder::read`, and the manifest (its JSON leaves and bytes) through
+/// `TokenManifest::read`.
+#[test]
+fn fuzz_token_files_and_manifests() {
+    let dir = temp_dir("tokens");
+    let origin = TokenOrigin {
+        checkpoint: dir.join("ae.safetensors"),
+        checkpoint_hash: "0123456789abcdef".into(),
+        config: AutoencoderConfig::tiny(),
+        seed: 3,
+        precision: velox::engine::Precision::F32,
+    };
+    let (k, d) = origin.shape();
+    let mut rng = Rng::new(0x70c);
+    let values: Vec<f32> = (0..k * d).map(|_| rng.range(-2.0, 2.0) as f32).collect();
+    let points: Vec<f32> =
+        (0..k).flat_map(|i| [rng.range(-1.0, 1.0) as f32, 0.5, -0.5, (i % 24) as f32 / 100.0]).collect();
+    let stored = SceneTokens::new("scene_00000", values, points, d).unwrap();
+    let path = write_scene_file(&dir, &origin, &stored).unwrap();
+    let scenes = vec!["scene_00000".to_string(), "scene_00001".to_string()];
+    let manifest = TokenManifest::new(origin.clone(), scenes, &TokenStats::of(&stored.tokens, d));
+    manifest.write(&dir).unwrap();
+    // The recorded checkpoint does not exist: the folder reads unchecked, as it would.
+    let folder = TokenFolder {
+        dir: dir.clone(),
+        manifest: manifest.clone(),
+        checkpoint: CheckpointCheck::Unchecked("no checkpoint".into()),
+    };
+    let valid_tokens = |(o, t): (TokenOrigin, SceneTokens)| -> Result<(), String> {
+        o.config.validate().map_err(|e| format!("accepted an invalid config: {e}"))?;
+        let (k, d) = o.shape();
+        if t.token_dim != d || t.tokens.len() != k * d || t.query_points.len() != k * 4 {
+            return Err(format!(
+                "accepted tokens of {} values and {} query values",
+                t.tokens.len(),
+                t.query_points.len()
+            ));
+        }
+        all_finite("tokens", &t.tokens)?;
+        all_finite("query points", &t.query_points)
+    };
+
+    let good = std::fs::read(&path).unwrap();
+    let (header, data) = split_safetensors(&good);
+    let header_text = header.to_string();
+    let mut cases = byte_mutations(&mut rng, &good, 250);
+    for n in [0u64, 1, header_text.len() as u64 - 1, header_text.len() as u64 + 1, u64::MAX] {
+        let mut b = good.clone();
+        b[..8].copy_from_slice(&n.to_le_bytes());
+        cases.push((format!("header length {n}"), b));
+    }
+    for (what, text) in json_mutations(&mut rng, &header_text, 200) {
+        cases.push((format!("header: {what}"), join_safetensors(&text, data)));
+    }
+    let mut slots = Vec::new();
+    for (name, t) in header.as_object().unwrap() {
+        if name != "__metadata__" {
+            let offsets = t["data_offsets"].as_array().unwrap();
+            let (a, b) = (offsets[0].as_u64().unwrap() as usize, offsets[1].as_u64().unwrap() as usize);
+            slots.extend([a, a + 4 * (rng.below(((b - a) / 4) as u32) as usize), b - 4]);
+        }
+    }
+    let data_start = good.len() - data.len();
+    cases.extend(float_mutations(&good, slots.iter().map(|s| data_start + s)));
+    let mut fuzz =
+        Fuzz::new("stored tokens (velox_models::velox::tokens::read_scene_file, TokenFolder::read)");
+    for (what, bytes) in cases {
+        std::fs::write(&path, &bytes).unwrap();
+        fuzz.case(&what, || {
+            named_or_valid(read_scene_file(&path), &path, valid_tokens)?;
+            named_or_valid(folder.read("scene_00000").map(|t| (origin.clone(), t)), &path, valid_tokens)
+        });
+    }
+    fuzz.finish();
+
+    let manifest_path = dir.join(MANIFEST);
+    let good = std::fs::read_to_string(&manifest_path).unwrap();
+    let mut cases: Vec<(String, Vec<u8>)> =
+        json_mutations(&mut rng, &good, 400).into_iter().map(|(w, t)| (w, t.into_bytes())).collect();
+    cases.extend(byte_mutations(&mut rng, good.as_bytes(), 150));
+    let mut fuzz = Fuzz::new("token manifest (velox_models::velox::tokens::TokenManifest::read)");
+    for (what, bytes) in cases {
+        std::fs::write(&manifest_path, &bytes).unwrap();
+        fuzz.case(&what, || {
+            named_or_valid(TokenManifest::read(&dir), &manifest_path, |m| {
+                m.origin.config.validate().map_err(|e| format!("accepted an invalid config: {e}"))?;
+                finite_json(&serde_json::to_value(&m).unwrap(), "")?;
+                let d = m.origin.shape().1;
+                if m.scenes.is_empty()
+                    || m.mean.len() != d
+                    || m.std.len() != d
+                    || m.std.iter().any(|s| *s < 0.0)
+                {
+                    return Err(format!("accepted an inconsistent manifest: {m:?}"));
+                }
+                Ok(())
+            })
+        });
+    }
+    fuzz.finish();
+    let _ = std::fs::remove_dir_all(&dir);
 }

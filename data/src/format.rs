@@ -351,8 +351,7 @@ fn check_cameras(cams: &CameraSet, meta: &SceneMeta) -> Result<(), String> {
 pub fn read_scene(dir: &Path, images: bool) -> DataResult<Scene> {
     let invalid =
         |file: &str, why: String| DataError::Invalid(format!("{}: {why}", dir.join(file).display()));
-    let meta: SceneMeta = read_json(&dir.join("meta.json"))?;
-    check_meta(&meta).map_err(|why| invalid("meta.json", why))?;
+    let meta = read_meta(dir)?;
     let cameras: CameraSet = read_json(&dir.join("cameras.json"))?;
     check_cameras(&cameras, &meta).map_err(|why| invalid("cameras.json", why))?;
     let points = read_ply(&dir.join("points.ply"))?;
@@ -362,11 +361,7 @@ pub fn read_scene(dir: &Path, images: bool) -> DataResult<Scene> {
             format!("{} points, but meta.json says points = {}", points.len(), meta.points),
         ));
     }
-    let occupancy = read_words::<u64>(
-        &dir.join("occupancy.bin"),
-        FRAMES * OCCUPANCY_WORDS,
-        "24 frames of 4096 u64 words",
-    )?;
+    let occupancy = read_occupancy_words(dir)?;
     // meta.tracks is at most MAX_TRACKS: these products do not overflow.
     let tracks_what = format!("{} tracks, as meta.json says, x {FRAMES} frames x 3 f32", meta.tracks);
     let flat = read_words::<f32>(&dir.join("tracks.bin"), meta.tracks * FRAMES * 3, &tracks_what)?;
@@ -422,6 +417,25 @@ pub fn read_scene(dir: &Path, images: bool) -> DataResult<Scene> {
     })
 }
 
+/// A scene's `meta.json`, read and checked against the format.
+fn read_meta(dir: &Path) -> DataResult<SceneMeta> {
+    let path = dir.join("meta.json");
+    let meta: SceneMeta = read_json(&path)?;
+    check_meta(&meta).map_err(|why| DataError::Invalid(format!("{}: {why}", path.display())))?;
+    Ok(meta)
+}
+
+fn read_occupancy_words(dir: &Path) -> DataResult<Vec<u64>> {
+    read_words::<u64>(&dir.join("occupancy.bin"), FRAMES * OCCUPANCY_WORDS, "24 frames of 4096 u64 words")
+}
+
+/// A scene's occupancy alone, as [`read_scene`] reads it (`meta.json` checked first), without
+/// its points, tracks or images: what the voxel decoder trains on beside stored tokens.
+pub fn read_occupancy(dir: &Path) -> DataResult<Vec<u64>> {
+    read_meta(dir)?;
+    read_occupancy_words(dir)
+}
+
 /// The complete scenes under `root` (folders with a `meta.json`, `.partial` ones skipped), in
 /// name order.
 pub fn list_scenes(root: &Path) -> DataResult<Vec<PathBuf>> {
@@ -431,5 +445,17 @@ pub fn list_scenes(root: &Path) -> DataResult<Vec<PathBuf>> {
         .filter(|p| p.join("meta.json").is_file() && p.extension().is_none_or(|e| e != "partial"))
         .collect();
     dirs.sort();
+    Ok(dirs)
+}
+
+/// [`list_scenes`], where none is an error that says how to make some.
+pub(crate) fn list_some_scenes(root: &Path) -> DataResult<Vec<PathBuf>> {
+    let dirs = list_scenes(root)?;
+    if dirs.is_empty() {
+        return Err(DataError::Invalid(format!(
+            "{} holds no scenes (folders with a meta.json); make some with `velox data synth`",
+            root.display()
+        )));
+    }
     Ok(dirs)
 }

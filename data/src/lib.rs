@@ -15,13 +15,17 @@
 //!   from the cameras of [`camera`]: RGB, depth, triangle id and barycentrics;
 //! - [`pipeline`] turns the renders into point clouds, occupancy and tracks;
 //! - [`format`] writes and reads the dataset, [`loader`] reads it in the background in the
-//!   order of [`order`].
+//!   order of [`order`];
+//! - [`encode`] stores a trained encoder's tokens of every scene once, and [`training`] gives
+//!   scenes to the trainer: as the autoencoder trains on them, or as stored tokens and
+//!   occupancy for the models downstream of the frozen encoder.
 //!
 //! It is its own crate because it brings dependencies the runtime and the models do not need:
 //! `gltf` (the glTF 2.0 document and its accessor readers, for skins, animations and
 //! morph targets), and `image` (PNG and JPEG for textures and the supervision views).
 
 pub mod camera;
+pub mod encode;
 pub mod format;
 pub mod gltf_import;
 pub mod gltf_load;
@@ -41,7 +45,7 @@ pub use format::{read_scene, Scene, SceneMeta};
 pub use loader::{Loader, LoaderOptions};
 pub use mesh::{AnimatedMesh, Texture};
 pub use pipeline::{render_scene, SceneArrays, SynthOptions};
-pub use training::{train_scene, SceneFolders};
+pub use training::{train_scene, SceneFolders, TokenScenes};
 
 use std::fmt;
 

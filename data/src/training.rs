@@ -1,6 +1,8 @@
 //! Scenes as the autoencoder trains on them: the cloud, the supervision cameras in the
 //! rasteriser's form, and the supervision images as f32 RGB in [0, 1]; and a dataset folder as
-//! the trainer's [`SampleSource`] of them.
+//! the trainer's [`SampleSource`] of them ([`SceneFolders`]). For the models that train on a
+//! frozen encoder's stored tokens (`velox encode`), a dataset folder and its token folder as
+//! a [`SampleSource`] of [`VoxelSample`]s ([`TokenScenes`]).
 
 use std::path::{Path, PathBuf};
 
@@ -8,8 +10,13 @@ use velox_engine::ops::raster::Camera;
 use velox_engine::Gpu;
 use velox_models::train::source::SampleSource;
 use velox_models::velox::autoencoder::TrainScene;
+use velox_models::velox::tokens::{
+    scene_file, CheckpointCheck, SceneTokens, TokenFolder, TokenManifest, MANIFEST,
+};
+use velox_models::velox::voxels::VoxelSample;
 
-use crate::format::{list_scenes, read_scene, Scene};
+use crate::encode::dataset_scenes;
+use crate::format::{list_some_scenes, read_occupancy, read_scene, Scene};
 use crate::{DataError, DataResult};
 
 /// A scene read into host memory, ready to upload: what the trainer's background thread
@@ -68,14 +75,7 @@ pub struct SceneFolders {
 impl SceneFolders {
     /// The scenes under `root`; none is an error that says how to make some.
     pub fn open(gpu: &Gpu, root: &Path) -> DataResult<SceneFolders> {
-        let dirs = list_scenes(root)?;
-        if dirs.is_empty() {
-            return Err(DataError::Invalid(format!(
-                "{} holds no scenes (folders with a meta.json); make some with `velox data synth`",
-                root.display()
-            )));
-        }
-        Ok(SceneFolders { gpu: gpu.clone(), dirs })
+        Ok(SceneFolders { gpu: gpu.clone(), dirs: list_some_scenes(root)? })
     }
 
     /// Keeps the first `n` scenes.
@@ -111,5 +111,140 @@ impl SampleSource for SceneFolders {
 
     fn prepare(&self, raw: HostScene) -> velox_engine::Result<TrainScene> {
         Ok(raw.upload(&self.gpu)?)
+    }
+}
+
+/// A scene's stored tokens and its occupancy, read into host memory.
+pub struct HostTokenScene {
+    pub tokens: SceneTokens,
+    /// 4096 words per frame, every frame (`occupancy.bin`).
+    pub occupancy: Vec<u64>,
+}
+
+/// The scenes of a dataset folder with their tokens stored by `velox encode`, in the dataset's
+/// name order, as samples for the models that train on the frozen encoder's tokens: each scene's
+/// tokens (checked against the folder's manifest) and its occupancy (`occupancy.bin`, without
+/// the points or the images), uploaded as a [`VoxelSample`] when prepared. The manifest's mean
+/// and standard deviation are at hand for the models that normalise tokens.
+pub struct TokenScenes {
+    gpu: Gpu,
+    dirs: Vec<PathBuf>,
+    names: Vec<String>,
+    folder: TokenFolder,
+}
+
+/// At most this many names in an error that lists scenes.
+const NAMES_SHOWN: usize = 5;
+
+fn some_names(names: &[&String]) -> String {
+    let shown: Vec<&str> = names.iter().take(NAMES_SHOWN).map(|n| n.as_str()).collect();
+    let more = names.len().saturating_sub(NAMES_SHOWN);
+    if more > 0 {
+        format!("{} and {more} more", shown.join(", "))
+    } else {
+        shown.join(", ")
+    }
+}
+
+impl TokenScenes {
+    /// The scenes under `data` and their tokens in the folder `tokens` (`None`: `DATA/tokens`,
+    /// where `velox encode` writes them). The token folder must hold every scene of the dataset
+    /// and no other, each scene's file present; its checkpoint is checked as
+    /// `velox_models::velox::tokens::check_checkpoint` does, against `checkpoint` (the encoder
+    /// the caller uses) when given: a changed checkpoint is an error saying to run `velox
+    /// encode` again, and one that is gone is accepted when none is given, with a note
+    /// ([`TokenScenes::checkpoint`]).
+    pub fn open(
+        gpu: &Gpu,
+        data: &Path,
+        tokens: Option<&Path>,
+        checkpoint: Option<&Path>,
+    ) -> DataResult<TokenScenes> {
+        let (dirs, names) = dataset_scenes(data)?;
+        let token_dir =
+            tokens.map_or_else(|| data.join(velox_models::velox::tokens::DEFAULT_DIR), Path::to_path_buf);
+        let folder = TokenFolder::open(&token_dir, checkpoint)?;
+        let manifest = token_dir.join(MANIFEST);
+        let listed: std::collections::BTreeSet<&String> = folder.manifest.scenes.iter().collect();
+        let present: std::collections::BTreeSet<&String> = names.iter().collect();
+        let missing: Vec<&String> = present.difference(&listed).copied().collect();
+        if !missing.is_empty() {
+            return Err(DataError::Invalid(format!(
+                "{} lacks {} scene(s) of {}: {}; run `velox encode --data {}` to encode them",
+                manifest.display(),
+                missing.len(),
+                data.display(),
+                some_names(&missing),
+                data.display()
+            )));
+        }
+        let extra: Vec<&String> = listed.difference(&present).copied().collect();
+        if !extra.is_empty() {
+            return Err(DataError::Invalid(format!(
+                "{} lists {} scene(s) that {} lacks: {} (the tokens of another dataset, or scenes since \
+                 removed?); run `velox encode --data {}` again",
+                manifest.display(),
+                extra.len(),
+                data.display(),
+                some_names(&extra),
+                data.display()
+            )));
+        }
+        if let Some(name) = names.iter().find(|n| !scene_file(&token_dir, n).is_file()) {
+            return Err(DataError::Invalid(format!(
+                "{} lists scene {name}, but {} is missing; run `velox encode --data {}` again",
+                manifest.display(),
+                scene_file(&token_dir, name).display(),
+                data.display()
+            )));
+        }
+        Ok(TokenScenes { gpu: gpu.clone(), dirs, names, folder })
+    }
+
+    /// The token folder's manifest: the encoder's origin, k and token_dim, the statistics.
+    pub fn manifest(&self) -> &TokenManifest {
+        &self.folder.manifest
+    }
+
+    /// How the checkpoint was checked (a note when it could not be).
+    pub fn checkpoint(&self) -> &CheckpointCheck {
+        &self.folder.checkpoint
+    }
+
+    /// The token folder.
+    pub fn token_dir(&self) -> &Path {
+        &self.folder.dir
+    }
+
+    /// The scene folders, in name order.
+    pub fn dirs(&self) -> &[PathBuf] {
+        &self.dirs
+    }
+}
+
+impl SampleSource for TokenScenes {
+    type Raw = HostTokenScene;
+    type Sample = VoxelSample;
+
+    fn len(&self) -> usize {
+        self.dirs.len()
+    }
+
+    fn name(&self, index: usize) -> String {
+        self.names[index].clone()
+    }
+
+    fn location(&self, index: usize) -> String {
+        self.dirs[index].display().to_string()
+    }
+
+    fn read(&self, index: usize) -> velox_engine::Result<HostTokenScene> {
+        let tokens = self.folder.read(&self.names[index])?;
+        let occupancy = read_occupancy(&self.dirs[index])?;
+        Ok(HostTokenScene { tokens, occupancy })
+    }
+
+    fn prepare(&self, raw: HostTokenScene) -> velox_engine::Result<VoxelSample> {
+        VoxelSample::new(raw.tokens.upload(&self.gpu)?, raw.occupancy)
     }
 }

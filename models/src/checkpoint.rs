@@ -39,9 +39,9 @@ pub struct CheckpointInfo {
 }
 
 /// An f32 slice seen as a safetensors tensor.
-struct F32View<'a> {
-    shape: &'a [usize],
-    data: &'a [f32],
+pub(crate) struct F32View<'a> {
+    pub shape: &'a [usize],
+    pub data: &'a [f32],
 }
 
 impl View for F32View<'_> {
@@ -96,7 +96,7 @@ pub fn save(path: &Path, store: &ParamStore, config: &str) -> Result<()> {
 /// state should give the same bytes (so a resumed run's checkpoint can be compared byte for byte
 /// with an uninterrupted run's). The sorted header has the same characters, so the same length
 /// and the same tensor offsets; should it not, the header stays as it was.
-fn canonical_header(bytes: &mut [u8]) {
+pub(crate) fn canonical_header(bytes: &mut [u8]) {
     let Some(len) = bytes.get(..8).map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes")) as usize)
     else {
         return;

@@ -4,6 +4,7 @@ mod bench;
 mod data;
 mod decode;
 mod demo;
+mod encode;
 mod eval;
 mod info;
 mod interrupt;
@@ -56,6 +57,10 @@ enum Command {
     /// Render Gaussians (a 3D Gaussian splatting PLY) from a camera orbit to PNG frames and
     /// depth EXRs.
     Render(render::RenderArgs),
+    /// Encode every scene of a dataset once with a trained autoencoder's encoder and store the
+    /// tokens beside it (k x token_dim per scene, with their query points, the checkpoint's
+    /// hash and the dataset's token statistics), for the models that train on them.
+    Encode(encode::EncodeArgs),
     /// Encode a 4D point cloud with a trained autoencoder and decode surface points or
     /// Gaussians per frame to PLY.
     Decode {
@@ -154,6 +159,7 @@ fn dispatch(command: Command) -> CliResult<()> {
         Command::Data { what } => data::run(what),
         Command::Config { name, params } => print_config(&name, params),
         Command::Train { what } => train::run(what),
+        Command::Encode(args) => encode::run(&args),
         Command::Decode { what } => decode::run(what),
         Command::Eval { what } => eval::run(what),
     }

@@ -1,6 +1,6 @@
 //! The model commands as a user meets them, on a tiny scene and a tiny autoencoder trained a
-//! few steps in-process: `decode points`, `decode gaussians`, `eval recon`, `config --params`,
-//! `bench models`, `bench train`, and their errors.
+//! few steps in-process: `decode points`, `decode gaussians`, `eval recon`, `encode`, `config
+//! --params`, `bench models`, `bench train`, and their errors.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -235,6 +235,56 @@ fn copy_dir(from: &Path, to: &Path) {
             std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
         }
     }
+}
+
+#[test]
+fn encode_stores_tokens_beside_the_scenes_keeps_them_and_refuses_another_checkpoint() {
+    let dir = std::env::temp_dir().join(format!("velox-encode-cli-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let data = dir.join("data");
+    copy_dir(&fixture().join("data/scene_00000"), &data.join("scene_00000"));
+    let ckpt = fixture().join("ae.safetensors");
+    let encode = |ckpt: &Path, rest: &[&str]| {
+        velox(&[&["encode", "--checkpoint", arg(ckpt), "--data", arg(&data)], rest].concat())
+    };
+    // Beside the scenes by default.
+    let text = ok(&encode(&ckpt, &[]));
+    assert!(text.contains("encoded 1 scenes (4000 points)") && text.contains("kept 0"), "{text}");
+    assert!(text.contains("token statistics per channel"), "{text}");
+    let tokens = data.join("tokens");
+    let manifest: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(tokens.join("tokens.json")).unwrap()).unwrap();
+    assert_eq!(manifest["scenes"], serde_json::json!(["scene_00000"]));
+    assert_eq!((manifest["tokens"].as_u64(), manifest["token_dim"].as_u64()), (Some(32), Some(8)));
+    assert_eq!(manifest["mean"].as_array().unwrap().len(), 8);
+    let stored = std::fs::read(tokens.join("scene_00000.safetensors")).unwrap();
+    // The token folder is no scene to the commands that list a dataset's scenes.
+    assert_eq!(velox_data::format::list_scenes(&data).unwrap(), [data.join("scene_00000")]);
+    // Again: kept.
+    let text = ok(&encode(&ckpt, &[]));
+    assert!(text.contains("encoded 0 scenes") && text.contains("kept 1"), "{text}");
+    assert_eq!(std::fs::read(tokens.join("scene_00000.safetensors")).unwrap(), stored);
+    // Another checkpoint: refused without --force, saying so; replaced with it.
+    let other = dir.join("other.safetensors");
+    Autoencoder::new(&Gpu::new().unwrap(), &AutoencoderConfig::tiny(), 9).unwrap().save(&other).unwrap();
+    let err = fails(&encode(&other, &[]));
+    assert!(
+        err.contains("ae.safetensors") && err.contains("other.safetensors") && err.contains("--force"),
+        "{err}"
+    );
+    let text = ok(&encode(&other, &["--force", "--seed", "3", "--precision", "f16"]));
+    assert!(text.contains("replaced what") && text.contains("encoded 1 scenes"), "{text}");
+    assert_ne!(std::fs::read(tokens.join("scene_00000.safetensors")).unwrap(), stored);
+    // Elsewhere with --out; nothing to encode is an error.
+    let out = dir.join("elsewhere");
+    ok(&encode(&ckpt, &["--out", arg(&out)]));
+    assert_eq!(std::fs::read(out.join("scene_00000.safetensors")).unwrap(), stored);
+    let err = fails(&velox(&["encode", "--checkpoint", arg(&ckpt), "--data", arg(&dir.join("none"))]));
+    assert!(err.contains("none"), "{err}");
+    std::fs::create_dir_all(dir.join("empty")).unwrap();
+    let err = fails(&velox(&["encode", "--checkpoint", arg(&ckpt), "--data", arg(&dir.join("empty"))]));
+    assert!(err.contains("holds no scenes"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// The cases the issue found: a scene whose meta.json says 0 supervision views made eval

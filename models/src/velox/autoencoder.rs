@@ -181,12 +181,19 @@ impl Autoencoder {
 
     /// Tokens of a cloud (no noise), with the queries drawn from `seed`.
     pub fn encode(&self, cloud: &Tensor, seed: u64) -> Result<Tensor> {
+        Ok(self.encode_with_queries(cloud, seed)?.0)
+    }
+
+    /// Tokens of a cloud as [`Autoencoder::encode`] gives them, and the cloud's row of each
+    /// token's query (u32 `[k]`, the encoder layout's `queries`): token i belongs to point
+    /// `queries[i]` of the cloud.
+    pub fn encode_with_queries(&self, cloud: &Tensor, seed: u64) -> Result<(Tensor, Tensor)> {
         let gpu = cloud.gpu();
         let mut rec = gpu.recorder()?;
         rec.set_precision(self.precision);
-        let (s, _) = self.encoder.forward(&mut rec, cloud, &mut Rng::new(seed))?;
+        let (s, cache) = self.encoder.forward(&mut rec, cloud, &mut Rng::new(seed))?;
         rec.submit()?;
-        Ok(s)
+        Ok((s, cache.layout.queries))
     }
 
     /// Surface points `[n, 3]` at frame `tau`, sampled by the flow (in the autoencoder's

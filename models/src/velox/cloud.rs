@@ -6,7 +6,7 @@ use velox_engine::{Error, Gpu, Result, Tensor};
 /// Channels per point.
 pub const CHANNELS: usize = 7;
 /// Slack on the [-1, 1] bounds and the [0, 1] colours, for data normalised in f32.
-const SLACK: f32 = 1e-3;
+pub const SLACK: f32 = 1e-3;
 
 /// Checks host data before upload; the error names the first bad point and what is wrong.
 /// Returns the number of points.

@@ -9,4 +9,5 @@ pub mod encoder;
 pub mod gaussians;
 pub mod perceiver;
 pub mod surface;
+pub mod tokens;
 pub mod voxels;

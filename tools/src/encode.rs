@@ -1,0 +1,114 @@
+//! `velox encode`: a trained autoencoder's encoder over every scene of a dataset, once, the
+//! tokens stored beside the scenes for the models that train on them with the encoder frozen.
+//! `velox_data::encode` does the work (its docs say what a re-run keeps and what it refuses),
+//! `velox_models::velox::tokens` gives the folder's layout; this parses, shows progress and
+//! prints the summary.
+
+use std::path::PathBuf;
+
+use indicatif::ProgressBar;
+use velox_data::encode::{encode_dataset, EncodeObserver, EncodeOptions};
+use velox_engine::Gpu;
+
+use crate::decode::{progress, PrecisionArg};
+use crate::CliResult;
+
+#[derive(clap::Args)]
+pub struct EncodeArgs {
+    /// Autoencoder checkpoint whose encoder encodes (safetensors, as training writes it).
+    #[arg(long)]
+    checkpoint: PathBuf,
+    /// Dataset folder (scenes as `velox data` writes them).
+    #[arg(long)]
+    data: PathBuf,
+    /// Token folder [default: DATA/tokens, beside the scenes].
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Seed of the encoder's queries.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Precision of the encoder: f32, or f16 (matrix products and attention on f16 operands
+    /// with f32 accumulation).
+    #[arg(long, value_enum, default_value_t = PrecisionArg::F32)]
+    precision: PrecisionArg,
+    /// Encode every scene again, and replace tokens of another checkpoint, seed or precision
+    /// (refused without it).
+    #[arg(long)]
+    force: bool,
+}
+
+/// The progress bar over the scenes to encode.
+#[derive(Default)]
+struct Bar(Option<ProgressBar>);
+
+impl EncodeObserver for Bar {
+    fn start(&mut self, to_encode: usize, kept: usize) {
+        if kept > 0 {
+            println!("{kept} scenes are encoded already with this checkpoint, seed and precision: kept");
+        }
+        self.0 = Some(progress(to_encode, "scenes"));
+    }
+
+    fn encoded(&mut self, name: &str) {
+        if let Some(bar) = &self.0 {
+            bar.set_message(name.to_string());
+            bar.inc(1);
+        }
+    }
+}
+
+/// The least and the most of `v`.
+fn range(v: &[f64]) -> String {
+    let (lo, hi) = v.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &x| (lo.min(x), hi.max(x)));
+    format!("{lo:.4} to {hi:.4}")
+}
+
+pub fn run(a: &EncodeArgs) -> CliResult<()> {
+    let gpu = Gpu::new()?;
+    let options = EncodeOptions {
+        checkpoint: a.checkpoint.clone(),
+        data: a.data.clone(),
+        out: a.out.clone(),
+        seed: a.seed,
+        precision: a.precision.into(),
+        force: a.force,
+    };
+    println!(
+        "encoding the scenes of {} with the encoder of {} ({}, seed {}) into {} on {}",
+        a.data.display(),
+        a.checkpoint.display(),
+        options.precision.name(),
+        a.seed,
+        options.out_dir().display(),
+        gpu.caps().name
+    );
+    let mut bar = Bar::default();
+    let result = encode_dataset(&gpu, &options, &mut bar);
+    if let Some(b) = &bar.0 {
+        b.finish_and_clear();
+    }
+    let r = result?;
+    let m = &r.manifest;
+    if let Some(replaced) = &r.replaced {
+        println!("replaced what {} held: {replaced}", r.dir.display());
+    }
+    println!(
+        "encoded {} scenes ({} points) in {:.1} s, kept {}: {} scenes of {} tokens x {} with the {} autoencoder \
+         (checkpoint hash {})",
+        r.encoded.len(),
+        r.points,
+        r.encode_seconds,
+        r.kept.len(),
+        m.scenes.len(),
+        m.tokens,
+        m.token_dim,
+        m.origin.config.name,
+        m.origin.checkpoint_hash
+    );
+    println!("token statistics per channel: mean {}, standard deviation {}", range(&m.mean), range(&m.std));
+    println!(
+        "wrote {} (the scenes, the encoder's origin, the statistics) beside the scene files",
+        r.dir.join(velox_models::velox::tokens::MANIFEST).display()
+    );
+    Ok(())
+}
