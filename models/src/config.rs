@@ -469,6 +469,11 @@ pub struct VoxelConfig {
     pub fine: VoxelStageConfig,
     pub xyz_freqs: usize,
     pub tau_freqs: usize,
+    /// The fine stage's voxel head: each refined cell's feature (the fine trunk's output, this
+    /// wide) plus an embedding of each voxel's offset in the cell (Fourier, `offset_freqs`
+    /// octaves), through GELU to one logit per voxel.
+    pub voxel_hidden: usize,
+    pub offset_freqs: usize,
     pub loss: OccupancyLoss,
     /// A cell (coarse stage) or a voxel (fine stage) is occupied where its probability is above
     /// this.
@@ -514,6 +519,8 @@ impl VoxelConfig {
             },
             xyz_freqs: 16,
             tau_freqs: 8,
+            voxel_hidden: 256,
+            offset_freqs: 3,
             loss: OccupancyLoss::Bce,
             threshold: 0.5,
             dilate: 1,
@@ -543,6 +550,7 @@ impl VoxelConfig {
             fine: stage(64, 2),
             xyz_freqs: 6,
             tau_freqs: 4,
+            voxel_hidden: 64,
             frames_per_sample: 2,
             peak_lr: 2e-3,
             warmup: 50,
@@ -561,6 +569,7 @@ impl VoxelConfig {
         c.fine.blocks = 1;
         c.fine.input_hidden = 32;
         c.fine.head_hidden = 64;
+        c.voxel_hidden = 32;
         c.peak_lr = 5e-3;
         c.warmup = 10;
         c
@@ -583,7 +592,7 @@ impl VoxelConfig {
 
     /// Checks that the sizes fit together, every number is in its range and the kernels exist.
     pub fn validate(&self) -> Result<()> {
-        if self.cells == 0 || 64 % self.cells != 0 {
+        if self.cells == 0 || !64usize.is_multiple_of(self.cells) {
             return Err(Error::Invalid(format!("voxel decoder: cells {} must divide 64", self.cells)));
         }
         const WIDTH: usize = 8192;
@@ -592,6 +601,8 @@ impl VoxelConfig {
             ("cells", self.cells, 1, 64),
             ("xyz_freqs", self.xyz_freqs, 1, 256),
             ("tau_freqs", self.tau_freqs, 1, 256),
+            ("voxel_hidden", self.voxel_hidden, 1, WIDTH),
+            ("offset_freqs", self.offset_freqs, 0, 16),
             ("dilate", self.dilate, 0, 64),
             ("batch", self.batch, 1, 4096),
             ("frames_per_sample", self.frames_per_sample, 1, 24),

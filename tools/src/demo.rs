@@ -14,7 +14,7 @@ use velox_engine::Gpu;
 use velox_models::files::write_bytes;
 
 use crate::interrupt::Interrupt;
-use crate::train::{train_autoencoder, AutoencoderArgs};
+use crate::train::{train_autoencoder, AutoencoderArgs, RunArgs};
 use crate::{run_command, CliResult};
 use velox_models::train::collective::SingleProcess;
 
@@ -98,17 +98,19 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
     let train = AutoencoderArgs {
         data: out.join("data"),
         config: Some(config.clone()),
-        out: out.join("train"),
-        steps: Some(steps),
-        seed: Some(args.seed),
-        resume: false,
-        init: None,
-        steps_per_scene: None,
-        accumulate: None,
-        checkpoint_every: steps,
-        plot_every: 10,
-        cooldown: None,
-        stop_at: None,
+        run: RunArgs {
+            out: out.join("train"),
+            steps: Some(steps),
+            seed: Some(args.seed),
+            resume: false,
+            init: None,
+            steps_per_scene: None,
+            accumulate: None,
+            checkpoint_every: steps,
+            plot_every: 10,
+            cooldown: None,
+            stop_at: None,
+        },
     };
     let summary = train_autoencoder(&gpu, &train, &Interrupt::never(), &SingleProcess)?;
     let ckpt = summary.checkpoint.display().to_string();

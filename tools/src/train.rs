@@ -7,16 +7,19 @@ use std::path::PathBuf;
 
 use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
-use velox_data::SceneFolders;
+use velox_data::{SceneFolders, TokenScenes};
 use velox_engine::Gpu;
-use velox_models::config::AutoencoderConfig;
+use velox_models::config::{AutoencoderConfig, VoxelConfig};
 use velox_models::run::{RunRequest, RunSettings};
 use velox_models::train::collective::Collective;
 use velox_models::train::distributed::Comm;
+use velox_models::train::source::SampleSource;
 use velox_models::train::trainer::{
     train, Begin, Observer, Outcome, Quiet, RunFolder, StepReport, Stop, TimeSplit, TrainOptions,
 };
+use velox_models::train::Trainable;
 use velox_models::velox::autoencoder::Autoencoder;
+use velox_models::velox::voxels::VoxelDecoder;
 
 use crate::interrupt::{signal_name, Interrupt, Interrupted};
 use crate::CliResult;
@@ -29,6 +32,10 @@ pub enum TrainCommand {
     /// with 130 (SIGINT) or 143 (SIGTERM), naming the checkpoint; --resume continues from it. A
     /// second signal quits at once, leaving the previous checkpoint whole.
     Autoencoder(AutoencoderArgs),
+    /// The voxel decoder: the occupied voxels of each frame from the stored tokens of a
+    /// trained encoder (`velox encode`), the encoder frozen. The same run options, stops and
+    /// resumes as `train autoencoder`.
+    Voxels(VoxelArgs),
 }
 
 #[derive(Args, Clone)]
@@ -40,6 +47,34 @@ pub struct AutoencoderArgs {
     /// config of that checkpoint].
     #[arg(long)]
     pub config: Option<String>,
+    #[command(flatten)]
+    pub run: RunArgs,
+}
+
+#[derive(Args, Clone)]
+pub struct VoxelArgs {
+    /// Dataset folder: its scenes' occupancy is what the decoder learns.
+    #[arg(long)]
+    pub data: PathBuf,
+    /// The scenes' stored tokens (`velox encode`) [default: DATA/tokens].
+    #[arg(long)]
+    pub tokens: Option<PathBuf>,
+    /// The autoencoder checkpoint the tokens must come from (else the one they record is
+    /// checked, if it is still there).
+    #[arg(long)]
+    pub checkpoint: Option<PathBuf>,
+    /// Decoder sizes: paper, small, tiny, or a JSON config file [default: small; with --init,
+    /// the config of that checkpoint]. Its token width is the tokens'.
+    #[arg(long)]
+    pub config: Option<String>,
+    #[command(flatten)]
+    pub run: RunArgs,
+}
+
+/// The options every `velox train` command shares: the run's folder, length, seed, batches,
+/// checkpoints and stops.
+#[derive(Args, Clone)]
+pub struct RunArgs {
     /// Output folder: checkpoint.safetensors, log.jsonl, loss.png.
     #[arg(long)]
     pub out: PathBuf,
@@ -86,7 +121,7 @@ pub struct AutoencoderArgs {
     pub stop_at: Option<u64>,
 }
 
-impl AutoencoderArgs {
+impl RunArgs {
     /// The run settings the command line gives (`None` where it leaves one out).
     fn request(&self) -> RunRequest {
         RunRequest {
@@ -108,53 +143,52 @@ impl AutoencoderArgs {
 }
 
 pub fn run(cmd: TrainCommand) -> CliResult<()> {
-    match cmd {
-        TrainCommand::Autoencoder(args) => {
-            // One process, or one of an MPI run's (`mpirun -np N velox train ...`, built with
-            // the feature `mpi`): each takes its own GPU and its share of every step.
-            let comm = Comm::world()?;
-            let interrupt = Interrupt::catch()?;
-            let gpu = if comm.size() > 1 { Gpu::for_local_rank(comm.local_rank())? } else { Gpu::new()? };
-            let outcome = train_autoencoder(&gpu, &args, &interrupt, &comm);
-            let o = match outcome {
-                Ok(o) => o,
-                // A stop ends every process alike (they agree on it before it happens); an error
-                // of one process must end the others, which could wait for it forever.
-                Err(e) if comm.size() > 1 && e.downcast_ref::<Interrupted>().is_none() => {
-                    eprintln!("error on process {} of {}: {e}", comm.rank(), comm.size());
-                    comm.abort_all(1)
-                }
-                Err(e) => return Err(e),
-            };
-            if !comm.is_root() {
-                return Ok(());
-            }
-            let step = o.last.step;
-            if o.stopped.is_some() {
-                println!(
-                    "stopped after step {step} of {} as --stop-at asks: checkpoint {} holds it (continue with --resume)",
-                    o.settings.steps,
-                    o.checkpoint.display()
-                );
-            } else {
-                println!(
-                    "trained {step} steps in {:.0} s: loss {:.4} -> {:.4}; checkpoint {}, log and loss plot in {}",
-                    o.seconds,
-                    o.first.losses.total(),
-                    o.last.losses.total(),
-                    o.checkpoint.display(),
-                    args.out.display()
-                );
-            }
-            println!(
-                "{:.2} samples/s ({} a step); a step: {}",
-                o.samples_per_second,
-                o.settings.global_batch,
-                split_text(&o.time)
-            );
-            Ok(())
+    // One process, or one of an MPI run's (`mpirun -np N velox train ...`, built with the
+    // feature `mpi`): each takes its own GPU and its share of every step.
+    let comm = Comm::world()?;
+    let interrupt = Interrupt::catch()?;
+    let gpu = if comm.size() > 1 { Gpu::for_local_rank(comm.local_rank())? } else { Gpu::new()? };
+    let (outcome, out) = match &cmd {
+        TrainCommand::Autoencoder(args) => (train_autoencoder(&gpu, args, &interrupt, &comm), &args.run.out),
+        TrainCommand::Voxels(args) => (train_voxels(&gpu, args, &interrupt, &comm), &args.run.out),
+    };
+    let o = match outcome {
+        Ok(o) => o,
+        // A stop ends every process alike (they agree on it before it happens); an error of
+        // one process must end the others, which could wait for it forever.
+        Err(e) if comm.size() > 1 && e.downcast_ref::<Interrupted>().is_none() => {
+            eprintln!("error on process {} of {}: {e}", comm.rank(), comm.size());
+            comm.abort_all(1)
         }
+        Err(e) => return Err(e),
+    };
+    if !comm.is_root() {
+        return Ok(());
     }
+    let step = o.last.step;
+    if o.stopped.is_some() {
+        println!(
+            "stopped after step {step} of {} as --stop-at asks: checkpoint {} holds it (continue with --resume)",
+            o.settings.steps,
+            o.checkpoint.display()
+        );
+    } else {
+        println!(
+            "trained {step} steps in {:.0} s: loss {:.4} -> {:.4}; checkpoint {}, log and loss plot in {}",
+            o.seconds,
+            o.first.losses.total(),
+            o.last.losses.total(),
+            o.checkpoint.display(),
+            out.display()
+        );
+    }
+    println!(
+        "{:.2} samples/s ({} a step); a step: {}",
+        o.samples_per_second,
+        o.settings.global_batch,
+        split_text(&o.time)
+    );
+    Ok(())
 }
 
 /// "data 0.001 s, compute 0.31 s, ..." for a time split.
@@ -228,21 +262,17 @@ pub fn train_autoencoder<C: Collective>(
     interrupt: &Interrupt,
     collective: &C,
 ) -> CliResult<Outcome> {
-    let begin = args.begin();
-    let folder = RunFolder::new(&args.out);
+    let run = &args.run;
+    let begin = run.begin();
+    let folder = RunFolder::new(&run.out);
     folder.prepare(&begin)?;
     let scenes = SceneFolders::open(gpu, &args.data)?;
-    let seed = args.seed.unwrap_or(RunSettings::DEFAULT_SEED);
+    let seed = run.seed.unwrap_or(RunSettings::DEFAULT_SEED);
     let named = |name: Option<&str>| AutoencoderConfig::named(name.unwrap_or("small"));
     let mut model = match &begin {
         Begin::Resume => {
             let m = Autoencoder::load(gpu, &folder.checkpoint)?;
-            if let Some(asked) = args.config.as_ref().filter(|&c| *c != m.cfg.name) {
-                eprintln!(
-                    "note: resuming the checkpoint's config {:?} (--config {asked:?} is ignored)",
-                    m.cfg.name
-                );
-            }
+            note_resumed_config(&m.cfg.name, args.config.as_deref());
             m
         }
         Begin::Init(from) => {
@@ -254,19 +284,94 @@ pub fn train_autoencoder<C: Collective>(
         }
         Begin::New => Autoencoder::new(gpu, &named(args.config.as_deref())?, seed)?,
     };
+    run_training(&mut model, &scenes, run, begin, interrupt, collective)
+}
+
+/// Trains the voxel decoder as `velox train voxels` does, as one of `collective`'s processes.
+pub fn train_voxels<C: Collective>(
+    gpu: &Gpu,
+    args: &VoxelArgs,
+    interrupt: &Interrupt,
+    collective: &C,
+) -> CliResult<Outcome> {
+    let run = &args.run;
+    let begin = run.begin();
+    let folder = RunFolder::new(&run.out);
+    folder.prepare(&begin)?;
+    let scenes = TokenScenes::open(gpu, &args.data, args.tokens.as_deref(), args.checkpoint.as_deref())?;
+    if let Some(note) = scenes.checkpoint().note() {
+        eprintln!("note: {note}");
+    }
+    let token_dim = scenes.manifest().token_dim;
+    let seed = run.seed.unwrap_or(RunSettings::DEFAULT_SEED);
+    // A named config takes the tokens' width; a config file must already have it.
+    let named = |name: Option<&str>| -> CliResult<VoxelConfig> {
+        let name = name.unwrap_or("small");
+        let mut cfg = VoxelConfig::named(name)?;
+        if matches!(name, "paper" | "small" | "tiny") {
+            cfg.token_dim = token_dim;
+        }
+        Ok(cfg)
+    };
+    let mut model = match &begin {
+        Begin::Resume => {
+            let m = VoxelDecoder::load(gpu, &folder.checkpoint)?;
+            note_resumed_config(&m.cfg.name, args.config.as_deref());
+            m
+        }
+        Begin::Init(from) => {
+            let cfg = match &args.config {
+                Some(name) => named(Some(name))?,
+                None => VoxelDecoder::checkpoint_config(from)?,
+            };
+            VoxelDecoder::new(gpu, &cfg, seed)?
+        }
+        Begin::New => VoxelDecoder::new(gpu, &named(args.config.as_deref())?, seed)?,
+    };
+    if model.cfg.token_dim != token_dim {
+        return Err(format!(
+            "the voxel decoder reads tokens {} wide and {} holds tokens {token_dim} wide",
+            model.cfg.token_dim,
+            scenes.token_dir().display()
+        )
+        .into());
+    }
+    run_training(&mut model, &scenes, run, begin, interrupt, collective)
+}
+
+fn note_resumed_config(kept: &str, asked: Option<&str>) {
+    if let Some(asked) = asked.filter(|&c| c != kept) {
+        eprintln!("note: resuming the checkpoint's config {kept:?} (--config {asked:?} is ignored)");
+    }
+}
+
+/// The library's trainer with the command's progress bar, signals and stop message.
+fn run_training<M, S, C>(
+    model: &mut M,
+    source: &S,
+    run: &RunArgs,
+    begin: Begin,
+    interrupt: &Interrupt,
+    collective: &C,
+) -> CliResult<Outcome>
+where
+    M: Trainable,
+    S: SampleSource<Sample = M::Sample>,
+    C: Collective,
+{
     let options = TrainOptions {
-        out: args.out.clone(),
+        out: run.out.clone(),
         begin,
-        request: args.request(),
-        checkpoint_every: args.checkpoint_every,
-        plot_every: args.plot_every,
-        stop_at: args.stop_at,
+        request: run.request(),
+        checkpoint_every: run.checkpoint_every,
+        plot_every: run.plot_every,
+        stop_at: run.stop_at,
         prefetch: 2,
     };
     let stop = || interrupt.requested().is_some();
     let mut progress = Progress::default();
     let observer: &mut dyn Observer = if collective.is_root() { &mut progress } else { &mut Quiet };
-    let outcome = train(&mut model, &scenes, &options, collective, observer, &stop)?;
+    let outcome = train(model, source, &options, collective, observer, &stop)?;
     if outcome.stopped == Some(Stop::Asked) {
         let signal = interrupt.requested().expect("the stop was asked for by a signal");
         let step = outcome.last.step;
@@ -310,8 +415,8 @@ mod tests {
             assert!(text.contains(&format!("[default: {default}]")), "{text}");
         }
         let args = Cli::try_parse_from(["train", "--data", "d", "--out", "o", "--seed", "3"]).unwrap().args;
-        assert_eq!(args.request(), RunRequest { seed: Some(3), ..Default::default() });
-        assert_eq!(args.begin(), Begin::New);
+        assert_eq!(args.run.request(), RunRequest { seed: Some(3), ..Default::default() });
+        assert_eq!(args.run.begin(), Begin::New);
         let both = Cli::try_parse_from(["train", "--data", "d", "--out", "o", "--resume", "--init", "c"]);
         assert!(both.is_err(), "--resume and --init exclude each other");
     }

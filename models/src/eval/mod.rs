@@ -2,3 +2,4 @@
 //! (the command writes and prints them).
 
 pub mod recon;
+pub mod voxels;
