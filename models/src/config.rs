@@ -487,6 +487,11 @@ pub struct VoxelConfig {
     pub peak_lr: f64,
     pub warmup: u64,
     pub max_grad_norm: f64,
+    /// The hash (`velox_models::velox::tokens::checkpoint_hash`) of the autoencoder checkpoint
+    /// whose tokens the decoder trained on, recorded by `velox train voxels`: decoding with
+    /// another autoencoder's tokens is refused.
+    #[serde(default)]
+    pub encoder_hash: Option<String>,
 }
 
 impl VoxelConfig {
@@ -529,6 +534,7 @@ impl VoxelConfig {
             peak_lr: 4.9e-4,
             warmup: 4000,
             max_grad_norm: 1.0,
+            encoder_hash: None,
         }
     }
 

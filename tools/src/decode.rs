@@ -26,6 +26,7 @@ use velox_models::velox::autoencoder::{tau_of, Autoencoder, FRAMES};
 use velox_models::velox::cloud::CHANNELS;
 use velox_models::velox::decode::{frame_points, points_ply, Decoding, Sampling, VoxelSource};
 use velox_models::velox::surface::Sampler;
+use velox_models::velox::voxels::VoxelDecoder;
 
 use crate::CliResult;
 
@@ -106,9 +107,14 @@ pub struct PointsArgs {
 pub struct GaussiansArgs {
     #[command(flatten)]
     common: CommonArgs,
-    /// Where the Gaussian decoder's occupied voxels come from.
-    #[arg(long, value_enum, default_value_t = VoxelArg::Surface)]
-    voxels: VoxelArg,
+    /// Where the Gaussian decoder's occupied voxels come from [default: predicted with
+    /// --voxel-decoder, else surface].
+    #[arg(long, value_enum)]
+    voxels: Option<VoxelArg>,
+    /// A voxel decoder (`velox train voxels`) trained on this autoencoder's tokens, for
+    /// `--voxels predicted`.
+    #[arg(long)]
+    voxel_decoder: Option<PathBuf>,
     /// Sampling of the surface points whose voxels are the queries (`--voxels surface`).
     #[command(flatten)]
     sampling: SamplingArgs,
@@ -135,19 +141,42 @@ impl From<SamplerArg> for Sampler {
 /// `--voxels`: where the Gaussian decoder's occupied voxels come from.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum VoxelArg {
+    /// Voxels a voxel decoder predicts from the tokens (needs `--voxel-decoder`).
+    Predicted,
     /// Voxels of surface points sampled from the tokens (needs nothing but the tokens).
     Surface,
     /// Voxels of the input cloud's points of the frame (as in training).
-    Cloud,
+    #[value(alias = "cloud")]
+    Input,
 }
 
 impl From<VoxelArg> for VoxelSource {
     fn from(v: VoxelArg) -> VoxelSource {
         match v {
+            VoxelArg::Predicted => VoxelSource::Predicted,
             VoxelArg::Surface => VoxelSource::Surface,
-            VoxelArg::Cloud => VoxelSource::Cloud,
+            VoxelArg::Input => VoxelSource::Input,
         }
     }
+}
+
+/// The voxel decoder of `--voxel-decoder`, checked against the autoencoder `checkpoint`, if
+/// one is given; an error if `sources` want predicted voxels without one.
+pub fn voxel_decoder(
+    gpu: &Gpu,
+    path: Option<&Path>,
+    checkpoint: &Path,
+    sources: &[VoxelSource],
+) -> CliResult<Option<VoxelDecoder>> {
+    let Some(path) = path else {
+        if sources.contains(&VoxelSource::Predicted) {
+            return Err("--voxels predicted needs a voxel decoder: --voxel-decoder CHECKPOINT".into());
+        }
+        return Ok(None);
+    };
+    let d = VoxelDecoder::load(gpu, path)?;
+    d.check_encoder(checkpoint)?;
+    Ok(Some(d))
 }
 
 /// Requested frames, checked against the clip length when parsed.
@@ -220,10 +249,17 @@ struct Report {
 pub fn run(cmd: DecodeCommand) -> CliResult<()> {
     let (common, sampling, voxels) = match &cmd {
         DecodeCommand::Points(a) => (&a.common, &a.sampling, None),
-        DecodeCommand::Gaussians(a) => (&a.common, &a.sampling, Some(VoxelSource::from(a.voxels))),
+        DecodeCommand::Gaussians(a) => {
+            let default = if a.voxel_decoder.is_some() { VoxelArg::Predicted } else { VoxelArg::Surface };
+            (&a.common, &a.sampling, Some(VoxelSource::from(a.voxels.unwrap_or(default))))
+        }
+    };
+    let decoder_path = match &cmd {
+        DecodeCommand::Gaussians(a) => a.voxel_decoder.clone(),
+        DecodeCommand::Points(_) => None,
     };
     let cloud_host = read_cloud(&common.cloud)?;
-    if voxels == Some(VoxelSource::Cloud) {
+    if voxels == Some(VoxelSource::Input) {
         let per_frame = frame_points(&cloud_host);
         if let Some(f) = common.frames.0.iter().find(|&&f| per_frame[f].is_empty()) {
             return Err(format!(
@@ -248,7 +284,12 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
         gpu.caps().name
     );
     let start = Instant::now();
-    let decoding = Decoding::encode(&ae, &cloud_host, common.seed)?;
+    let sources: Vec<VoxelSource> = voxels.into_iter().collect();
+    let decoder = voxel_decoder(&gpu, decoder_path.as_deref(), &common.checkpoint, &sources)?;
+    let mut decoding = Decoding::encode(&ae, &cloud_host, common.seed)?;
+    if let Some(d) = &decoder {
+        decoding = decoding.with_voxel_decoder(d)?;
+    }
     let encode_seconds = start.elapsed().as_secs_f64();
     let bar = progress(common.frames.0.len(), "frames");
     let mut files = Vec::new();

@@ -18,7 +18,7 @@ use velox_models::velox::autoencoder::Autoencoder;
 use velox_models::velox::decode::{Sampling, VoxelSource};
 use velox_models::velox::voxels::{VoxelDecoder, FRAME_WORDS};
 
-use crate::decode::{progress, PrecisionArg, SamplerArg, VoxelArg};
+use crate::decode::{progress, voxel_decoder, PrecisionArg, SamplerArg, VoxelArg};
 use crate::CliResult;
 
 #[derive(clap::Subcommand)]
@@ -89,9 +89,14 @@ pub struct ReconArgs {
     /// Points on each side of the Chamfer distance.
     #[arg(long, default_value_t = 8000, value_parser = clap::value_parser!(u64).range(1..=1_000_000))]
     points: u64,
-    /// Where the Gaussian decoder's voxels come from.
-    #[arg(long, value_enum, default_value_t = VoxelArg::Cloud)]
-    voxels: VoxelArg,
+    /// Where the Gaussian decoder's voxels come from, comma-separated; each is measured, side
+    /// by side [default: predicted,input with --voxel-decoder, else input].
+    #[arg(long, value_enum, value_delimiter = ',')]
+    voxels: Vec<VoxelArg>,
+    /// A voxel decoder (`velox train voxels`) trained on this autoencoder's tokens, for
+    /// `--voxels predicted`.
+    #[arg(long)]
+    voxel_decoder: Option<PathBuf>,
     /// Side-by-side images (ground truth | ours) saved per scene.
     #[arg(long, default_value_t = 4)]
     images: usize,
@@ -239,6 +244,12 @@ fn run_recon(a: &ReconArgs) -> CliResult<()> {
     }
     let mut ae = Autoencoder::load(&gpu, &a.checkpoint)?;
     ae.set_precision(a.precision.into())?;
+    let sources: Vec<VoxelSource> = match (a.voxels.is_empty(), a.voxel_decoder.is_some()) {
+        (false, _) => a.voxels.iter().map(|&v| v.into()).collect(),
+        (true, true) => vec![VoxelSource::Predicted, VoxelSource::Input],
+        (true, false) => vec![VoxelSource::Input],
+    };
+    let decoder = voxel_decoder(&gpu, a.voxel_decoder.as_deref(), &a.checkpoint, &sources)?;
     std::fs::create_dir_all(&a.out).map_err(|e| format!("creating {}: {e}", a.out.display()))?;
     let json = a.json.clone().unwrap_or_else(|| a.out.join("eval.json"));
     let count = scenes.dirs().len();
@@ -254,13 +265,13 @@ fn run_recon(a: &ReconArgs) -> CliResult<()> {
         views: a.views.map(|v| v as usize),
         frame_step: a.frame_step as usize,
         sampling: Sampling { points: a.points as usize, steps: a.steps as usize, sampler: a.sampler.into() },
-        voxels: a.voxels.into(),
+        voxels: sources,
         images: a.images,
         seed: a.seed,
     };
     let bar = progress(count * frames(options.frame_step).len(), "frames");
     let mut images = Images { out: &a.out, bar };
-    let report = evaluate(&ae, &scenes, &options, &mut images)?;
+    let report = evaluate(&ae, decoder.as_ref(), &scenes, &options, &mut images)?;
     images.bar.finish_and_clear();
     print_table(&report);
     let file = EvalJson {
@@ -298,6 +309,22 @@ fn print_table(r: &ReconReport) {
         "{:<24} {:>7} {:>9.2} {:>7.4} {:>13.4e} {:>13.4e}",
         "mean", "", m.psnr, m.ssim, m.chamfer, m.chamfer_gt_halves
     );
+    if m.sources.len() > 1 {
+        println!("PSNR and SSIM by the source of the Gaussian decoder's voxels (scene means):");
+        print!("{:<24}", "scene");
+        for src in &m.sources {
+            print!(" {:>11} {:>7}", format!("{} dB", format!("{:?}", src.source).to_lowercase()), "SSIM");
+        }
+        println!();
+        let rows = r.scenes.iter().map(|s| (s.name.as_str(), &s.sources)).chain([("mean", &m.sources)]);
+        for (name, sources) in rows {
+            print!("{name:<24}");
+            for src in sources {
+                print!(" {:>11.2} {:>7.4}", src.psnr, src.ssim);
+            }
+            println!();
+        }
+    }
     println!(
         "GT halves: the Chamfer distance between the ground truth's even and odd points, what \
          two samples of the true surface score at this density: a sparse cloud cannot show a \
@@ -306,9 +333,10 @@ fn print_table(r: &ReconReport) {
     println!(
         "paper (Objaverse, 256 scenes, 532 px): PSNR 35.11, SSIM 0.983, Chamfer 36.36e-5; \
          voxels from the {}, Chamfer over {} points",
-        match r.voxels {
-            VoxelSource::Cloud => "input cloud (as in training)",
+        match r.voxels[0] {
+            VoxelSource::Input => "input cloud (as in training)",
             VoxelSource::Surface => "decoded surface samples",
+            VoxelSource::Predicted => "voxel decoder's prediction",
         },
         r.chamfer_points
     );

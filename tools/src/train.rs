@@ -311,6 +311,7 @@ pub fn train_voxels<C: Collective>(
         if matches!(name, "paper" | "small" | "tiny") {
             cfg.token_dim = token_dim;
         }
+        cfg.encoder_hash = Some(scenes.manifest().origin.checkpoint_hash.clone());
         Ok(cfg)
     };
     let mut model = match &begin {
@@ -328,6 +329,15 @@ pub fn train_voxels<C: Collective>(
         }
         Begin::New => VoxelDecoder::new(gpu, &named(args.config.as_deref())?, seed)?,
     };
+    let tokens_from = &scenes.manifest().origin.checkpoint_hash;
+    if model.cfg.encoder_hash.as_ref().is_some_and(|h| h != tokens_from) {
+        return Err(format!(
+            "the voxel decoder trained on tokens of autoencoder checkpoint {}, {} holds tokens of {tokens_from}",
+            model.cfg.encoder_hash.as_deref().unwrap_or_default(),
+            scenes.token_dir().display()
+        )
+        .into());
+    }
     if model.cfg.token_dim != token_dim {
         return Err(format!(
             "the voxel decoder reads tokens {} wide and {} holds tokens {token_dim} wide",

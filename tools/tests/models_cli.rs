@@ -463,3 +463,108 @@ fn bench_train_reports_samples_per_second_and_the_time_split() {
     }
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn voxels_train_evaluate_and_feed_the_gaussian_decoder() {
+    // The voxel decoder's commands end to end on the fixture: encode, train a few steps,
+    // evaluate against the occupancy, and decode Gaussians and evaluate images from its
+    // predicted voxels beside the input's.
+    let dir = fixture();
+    let work = dir.join("voxels");
+    let data = work.join("data");
+    copy_dir(&dir.join("data"), &data);
+    let ckpt = dir.join("ae.safetensors");
+    ok(&velox(&["encode", "--checkpoint", arg(&ckpt), "--data", arg(&data)]));
+    let run = work.join("run");
+    let said = ok(&velox(&[
+        "train",
+        "voxels",
+        "--data",
+        arg(&data),
+        "--config",
+        "tiny",
+        "--out",
+        arg(&run),
+        "--steps",
+        "2",
+    ]));
+    assert!(said.contains("trained 2 steps"), "{said}");
+    let vox = run.join("checkpoint.safetensors");
+    let log = std::fs::read_to_string(run.join("log.jsonl")).unwrap();
+    assert!(log.contains("\"coarse\"") && log.contains("\"fine\""), "{log}");
+
+    let ev = work.join("eval");
+    let said = ok(&velox(&[
+        "eval",
+        "voxels",
+        "--data",
+        arg(&data),
+        "--checkpoint",
+        arg(&vox),
+        "--out",
+        arg(&ev),
+        "--frame-step",
+        "12",
+    ]));
+    assert!(said.contains("IoU") && said.contains("scene_00000"), "{said}");
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(ev.join("voxels.json")).unwrap()).unwrap();
+    let frames = report["scenes"][0]["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), 2, "frames 0 and 12");
+    for f in frames {
+        let m = &f["metrics"];
+        assert!(m["true_voxels"].as_f64().unwrap() > 0.0, "{m}");
+        for k in ["accuracy", "precision", "recall", "iou"] {
+            let v = m[k].as_f64().unwrap();
+            assert!((0.0..=1.0).contains(&v), "{k} {v}");
+        }
+    }
+    assert!(ev.join("scene_00000/f00_xyz.png").is_file());
+
+    // eval recon: predicted voxels beside the input's, both measured.
+    let er = work.join("recon");
+    let said = ok(&velox(&[
+        "eval",
+        "recon",
+        "--data",
+        arg(&data),
+        "--checkpoint",
+        arg(&ckpt),
+        "--voxel-decoder",
+        arg(&vox),
+        "--out",
+        arg(&er),
+        "--frame-step",
+        "12",
+        "--views",
+        "2",
+        "--points",
+        "300",
+        "--steps",
+        "2",
+    ]));
+    assert!(said.contains("predicted dB") && said.contains("input dB"), "{said}");
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(er.join("eval.json")).unwrap()).unwrap();
+    let sources = report["mean"]["sources"].as_array().unwrap();
+    assert_eq!(sources.len(), 2);
+    assert_eq!(
+        (sources[0]["source"].as_str(), sources[1]["source"].as_str()),
+        (Some("predicted"), Some("input"))
+    );
+
+    // Predicted voxels need a voxel decoder; one trained on another autoencoder's tokens is
+    // refused.
+    let (scene, dec) = (data.join("scene_00000"), work.join("dec"));
+    let args = ["decode", "gaussians", "--checkpoint", arg(&ckpt), "--cloud", arg(&scene)];
+    let err = fails(&velox(&[&args[..], &["--out", arg(&dec), "--voxels", "predicted"]].concat()));
+    assert!(err.contains("--voxel-decoder"), "{err}");
+    let other = work.join("other.safetensors");
+    let mut bytes = std::fs::read(&ckpt).unwrap();
+    let last = bytes.len() - 1;
+    bytes[last] ^= 1; // another checkpoint: the same config, one weight's last bit
+    std::fs::write(&other, &bytes).unwrap();
+    let args = ["decode", "gaussians", "--checkpoint", arg(&other), "--cloud", arg(&scene)];
+    let err = fails(&velox(&[&args[..], &["--out", arg(&dec), "--voxel-decoder", arg(&vox)]].concat()));
+    assert!(err.contains("hash") && err.contains("other.safetensors"), "{err}");
+}

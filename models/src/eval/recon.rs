@@ -7,8 +7,10 @@
 //! - images: the frame's Gaussians are rendered (black background, as the data's images) from
 //!   the first `views` supervision cameras and compared with the ground-truth images by PSNR
 //!   and SSIM ([`crate::metrics`]). The Gaussian decoder's queries are the occupied voxels of
-//!   the cloud's points of that frame, as in training ([`VoxelSource::Cloud`]), or those of
-//!   the decoded surface samples below ([`VoxelSource::Surface`], tokens only);
+//!   each of `voxels`' sources, side by side, as the paper's ablation compares them: a voxel
+//!   decoder's prediction ([`VoxelSource::Predicted`]), the cloud's points of that frame, as in
+//!   training ([`VoxelSource::Input`]), or the decoded surface samples below
+//!   ([`VoxelSource::Surface`]); the first source's figures are the headline ones;
 //! - geometry: `points` surface points sampled from the tokens against `points` of the frame's
 //!   input points (evenly strided, [`subsample`]): symmetric Chamfer distance, squared
 //!   distances in the data's [-1, 1]^3 units. Beside it, the Chamfer distance between the
@@ -24,7 +26,7 @@
 use std::time::Instant;
 
 use serde::Serialize;
-use velox_engine::ops::raster::render;
+use velox_engine::ops::raster::{render, GaussianData};
 use velox_engine::{Error, Result};
 
 use crate::metrics::{chamfer, psnr, ssim, subsample};
@@ -32,6 +34,7 @@ use crate::train::source::{prefetch, SampleSource};
 use crate::velox::autoencoder::{tau_of, Autoencoder, TrainScene, FRAMES};
 use crate::velox::cloud::CHANNELS;
 use crate::velox::decode::{sampler_name, Decoding, Sampling, VoxelSource};
+use crate::velox::voxels::VoxelDecoder;
 
 /// How to evaluate.
 #[derive(Clone, Debug)]
@@ -42,8 +45,8 @@ pub struct ReconOptions {
     pub frame_step: usize,
     /// The surface sampler, and the points on each side of the Chamfer distance.
     pub sampling: Sampling,
-    /// Where the Gaussian decoder's voxels come from.
-    pub voxels: VoxelSource,
+    /// Where the Gaussian decoder's voxels come from: each source is measured (at least one).
+    pub voxels: Vec<VoxelSource>,
     /// Side-by-side images kept per scene.
     pub images: usize,
     /// Seed of the encoder's queries and the sampler's noise.
@@ -79,6 +82,24 @@ pub struct ViewMetrics {
     pub ssim: f64,
 }
 
+/// A frame's images decoded from one source of voxels.
+#[derive(Clone, Debug, Serialize)]
+pub struct SourceMetrics {
+    pub source: VoxelSource,
+    pub voxels: usize,
+    pub gaussians: usize,
+    pub psnr: f64,
+    pub ssim: f64,
+}
+
+/// A scene's or the run's mean images from one source of voxels.
+#[derive(Clone, Debug, Serialize)]
+pub struct SourceMean {
+    pub source: VoxelSource,
+    pub psnr: f64,
+    pub ssim: f64,
+}
+
 #[derive(Clone, Debug, Serialize)]
 pub struct FrameMetrics {
     pub frame: usize,
@@ -92,6 +113,8 @@ pub struct FrameMetrics {
     pub psnr: f64,
     pub ssim: f64,
     pub views: Vec<ViewMetrics>,
+    /// Every source's images (the first is the one above).
+    pub sources: Vec<SourceMetrics>,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -105,6 +128,7 @@ pub struct SceneMetrics {
     pub chamfer_gt_halves: f64,
     pub seconds: f64,
     pub images: Vec<String>,
+    pub sources: Vec<SourceMean>,
     pub frames: Vec<FrameMetrics>,
 }
 
@@ -114,6 +138,7 @@ pub struct Mean {
     pub ssim: f64,
     pub chamfer: f64,
     pub chamfer_gt_halves: f64,
+    pub sources: Vec<SourceMean>,
 }
 
 /// Every number of an evaluation (what `eval.json` holds, with the checkpoint and the data).
@@ -122,7 +147,7 @@ pub struct ReconReport {
     pub config: String,
     pub precision: &'static str,
     pub device: String,
-    pub voxels: VoxelSource,
+    pub voxels: Vec<VoxelSource>,
     pub frame_step: usize,
     pub chamfer_points: usize,
     pub sampler: &'static str,
@@ -147,6 +172,7 @@ pub fn frames(frame_step: usize) -> Vec<usize> {
 /// module docs say.
 pub fn evaluate<S>(
     ae: &Autoencoder,
+    voxel_decoder: Option<&VoxelDecoder>,
     scenes: &S,
     options: &ReconOptions,
     observer: &mut dyn ReconObserver,
@@ -154,6 +180,9 @@ pub fn evaluate<S>(
 where
     S: SampleSource<Sample = TrainScene>,
 {
+    if options.voxels.is_empty() {
+        return Err(Error::Invalid("an evaluation needs at least one source of voxels".into()));
+    }
     let start = Instant::now();
     let results = std::thread::scope(|scope| {
         let incoming = prefetch(scope, scenes, 0..scenes.len(), 1)?;
@@ -163,6 +192,7 @@ where
             let scene = scenes.prepare(raw)?;
             results.push(evaluate_scene(
                 ae,
+                voxel_decoder,
                 &scene,
                 &scenes.name(index),
                 &scenes.location(index),
@@ -176,7 +206,7 @@ where
         config: ae.cfg.name.clone(),
         precision: ae.precision().name(),
         device: ae.store.flat_params().gpu().caps().name.clone(),
-        voxels: options.voxels,
+        voxels: options.voxels.clone(),
         frame_step: options.frame_step,
         chamfer_points: options.sampling.points,
         sampler: sampler_name(options.sampling.sampler),
@@ -187,6 +217,7 @@ where
             ssim: mean(results.iter().map(|s| s.ssim)),
             chamfer: mean(results.iter().map(|s| s.chamfer)),
             chamfer_gt_halves: mean(results.iter().map(|s| s.chamfer_gt_halves)),
+            sources: source_means(&options.voxels, results.iter().flat_map(|s| &s.frames)),
         },
         scenes: results,
         seconds: start.elapsed().as_secs_f64(),
@@ -196,6 +227,7 @@ where
 /// One scene's metrics; errors name the scene's folder.
 fn evaluate_scene(
     ae: &Autoencoder,
+    voxel_decoder: Option<&VoxelDecoder>,
     scene: &TrainScene,
     name: &str,
     dir: &str,
@@ -209,7 +241,10 @@ fn evaluate_scene(
     observer.scene(name);
     let t0 = Instant::now();
     let gpu = scene.cloud.gpu();
-    let decoding = Decoding::encode(ae, &scene.cloud_host, options.seed).map_err(named)?;
+    let mut decoding = Decoding::encode(ae, &scene.cloud_host, options.seed).map_err(named)?;
+    if let Some(d) = voxel_decoder {
+        decoding = decoding.with_voxel_decoder(d)?;
+    }
     let cams = &scene.cameras;
     let views = options.views.map_or(cams.len(), |v| v.min(cams.len()));
     let frames = frames(options.frame_step);
@@ -233,41 +268,67 @@ fn evaluate_scene(
         let cd = chamfer(&subsample(&rows(&samples), n), &truth);
         let halves: [Vec<[f32; 3]>; 2] = [0, 1].map(|h| truth.iter().skip(h).step_by(2).copied().collect());
         let floor = chamfer(&halves[0], &halves[1]);
-        let centres = match options.voxels {
-            VoxelSource::Cloud => decoding.cloud_voxels(f),
-            VoxelSource::Surface => decoding.surface_voxels(&samples, f),
-        };
-        if centres.is_empty() {
-            return Err(Error::Invalid(format!(
-                "{dir} frame {f}: no decoded surface sample fell inside [-1, 1]^3, so there are no voxels to decode"
-            )));
-        }
-        let g = decoding.gaussians(f, &centres)?;
-        let mut view_metrics = Vec::new();
-        for (v, cam) in cams.iter().enumerate().take(views) {
-            let rendered = render(gpu, &g, cam, [0.0; 3])?;
-            let ours: Vec<f32> =
-                rendered.image.rgb.read::<f32>()?.iter().map(|v| v.clamp(0.0, 1.0)).collect();
-            let gt = &scene.images[f * cams.len() + v];
-            let (w, h) = (cam.width as usize, cam.height as usize);
-            view_metrics.push(ViewMetrics { view: v, psnr: psnr(&ours, gt), ssim: ssim(&ours, gt, h, w, 3) });
-            if chosen.contains(&pair) {
-                if let Some(image) = observer.image(name, f, v, &side_by_side(gt, &ours, w, h), w, h)? {
-                    images.push(image);
+        let mut sources = Vec::with_capacity(options.voxels.len());
+        let mut first_views = Vec::new();
+        for (k, &source) in options.voxels.iter().enumerate() {
+            let centres = match source {
+                VoxelSource::Input => decoding.cloud_voxels(f),
+                VoxelSource::Surface => decoding.surface_voxels(&samples, f),
+                VoxelSource::Predicted => decoding.predicted_voxels(f).map_err(named)?,
+            };
+            // No voxels (a voxel decoder that predicts none, say) draw the background alone.
+            let g = if centres.is_empty() {
+                GaussianData::default().upload(gpu)?
+            } else {
+                decoding.gaussians(f, &centres)?
+            };
+            let mut view_metrics = Vec::new();
+            for (v, cam) in cams.iter().enumerate().take(views) {
+                let rendered = render(gpu, &g, cam, [0.0; 3])?;
+                let ours: Vec<f32> =
+                    rendered.image.rgb.read::<f32>()?.iter().map(|v| v.clamp(0.0, 1.0)).collect();
+                let gt = &scene.images[f * cams.len() + v];
+                let (w, h) = (cam.width as usize, cam.height as usize);
+                view_metrics.push(ViewMetrics {
+                    view: v,
+                    psnr: psnr(&ours, gt),
+                    ssim: ssim(&ours, gt, h, w, 3),
+                });
+                // The side-by-side images show the first source.
+                if k == 0 {
+                    if chosen.contains(&pair) {
+                        if let Some(image) =
+                            observer.image(name, f, v, &side_by_side(gt, &ours, w, h), w, h)?
+                        {
+                            images.push(image);
+                        }
+                    }
+                    pair += 1;
                 }
             }
-            pair += 1;
+            sources.push(SourceMetrics {
+                source,
+                voxels: centres.len() / 3,
+                gaussians: g.len(),
+                psnr: mean(view_metrics.iter().map(|m| m.psnr)),
+                ssim: mean(view_metrics.iter().map(|m| m.ssim)),
+            });
+            if k == 0 {
+                first_views = view_metrics;
+            }
         }
+        let first = &sources[0];
         results.push(FrameMetrics {
             frame: f,
             tau: tau_of(f),
-            voxels: centres.len() / 3,
-            gaussians: g.len(),
+            voxels: first.voxels,
+            gaussians: first.gaussians,
             chamfer: cd,
             chamfer_gt_halves: floor,
-            psnr: mean(view_metrics.iter().map(|m| m.psnr)),
-            ssim: mean(view_metrics.iter().map(|m| m.ssim)),
-            views: view_metrics,
+            psnr: first.psnr,
+            ssim: first.ssim,
+            views: first_views,
+            sources,
         });
     }
     let all_views = || results.iter().flat_map(|f| f.views.iter());
@@ -281,8 +342,25 @@ fn evaluate_scene(
         chamfer_gt_halves: mean(results.iter().map(|f| f.chamfer_gt_halves)),
         seconds: t0.elapsed().as_secs_f64(),
         images,
+        sources: source_means(&options.voxels, results.iter()),
         frames: results,
     })
+}
+
+/// Each source's PSNR and SSIM, the means over `frames` (each frame's own mean over views).
+fn source_means<'a>(
+    sources: &[VoxelSource],
+    frames: impl Iterator<Item = &'a FrameMetrics> + Clone,
+) -> Vec<SourceMean> {
+    sources
+        .iter()
+        .enumerate()
+        .map(|(k, &source)| SourceMean {
+            source,
+            psnr: mean(frames.clone().map(|f| f.sources[k].psnr)),
+            ssim: mean(frames.clone().map(|f| f.sources[k].ssim)),
+        })
+        .collect()
 }
 
 /// Ground truth on the left, ours on the right, `[h, 2w, 3]`.

@@ -10,10 +10,12 @@
 //! decoded with it, in `decode` and in `eval` alike, and no frame's noise is the encoder's.
 //!
 //! The Gaussian decoder's queries are the occupied voxels of a frame ([`VoxelSource`]): those
-//! of the input cloud's points of that frame (as in training), or those of surface points
-//! sampled from the tokens, which needs nothing but the tokens. Samples outside [-1, 1]^3,
-//! where no normalised surface lies, are dropped first (the grid would clamp them onto its
-//! border voxels).
+//! a voxel decoder predicts from the tokens (the paper's way, fast), those of the input cloud's
+//! points of that frame (as in training), or those of surface points sampled from the tokens
+//! (the surface ODE, slow). Surface samples outside [-1, 1]^3, where no normalised surface
+//! lies, are dropped first (the grid would clamp them onto its border voxels). Predicted voxels
+//! of the 64^3 grid are taken to the Gaussian decoder's grid (a voxel there is occupied where
+//! one of its 64^3 voxels is).
 
 use serde::Serialize;
 use velox_engine::ops::raster::Gaussians;
@@ -22,15 +24,18 @@ use velox_engine::{Error, Precision, Result, Tensor};
 use crate::velox::autoencoder::{tau_of, Autoencoder, FRAMES};
 use crate::velox::cloud::{self, CHANNELS};
 use crate::velox::surface::{SampleSpec, Sampler};
+use crate::velox::voxels::{occupied_centres, VoxelDecoder};
 
 /// Where the Gaussian decoder's occupied voxels come from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum VoxelSource {
+    /// Voxels a voxel decoder predicts from the tokens.
+    Predicted,
     /// Voxels of surface points sampled from the tokens.
     Surface,
     /// Voxels of the input cloud's points of the frame (as in training).
-    Cloud,
+    Input,
 }
 
 /// How surface points are sampled: `points` points, `steps` steps of `sampler`.
@@ -74,6 +79,8 @@ pub fn frame_points(cloud: &[f32]) -> Vec<Vec<f32>> {
 /// A cloud encoded by an autoencoder, ready to decode frame by frame.
 pub struct Decoding<'a> {
     ae: &'a Autoencoder,
+    /// The voxel decoder of [`VoxelSource::Predicted`], if any.
+    voxel_decoder: Option<&'a VoxelDecoder>,
     tokens: Tensor,
     /// xyz of the input cloud's points, per frame.
     input: Vec<Vec<f32>>,
@@ -93,7 +100,29 @@ impl<'a> Decoding<'a> {
         }
         let gpu = ae.store.flat_params().gpu();
         let tokens = ae.encode(&cloud::upload(gpu, cloud)?, seed)?;
-        Ok(Decoding { ae, tokens, input: frame_points(cloud), seed })
+        Ok(Decoding { ae, voxel_decoder: None, tokens, input: frame_points(cloud), seed })
+    }
+
+    /// Predicts voxels with `decoder` ([`VoxelSource::Predicted`]); it must read tokens as wide
+    /// as the autoencoder's.
+    pub fn with_voxel_decoder(mut self, decoder: &'a VoxelDecoder) -> Result<Decoding<'a>> {
+        let (want, got) = (self.ae.cfg.encoder.token_dim, decoder.cfg.token_dim);
+        if want != got {
+            return Err(Error::Invalid(format!(
+                "the voxel decoder reads tokens {got} wide, the autoencoder's are {want}"
+            )));
+        }
+        self.voxel_decoder = Some(decoder);
+        Ok(self)
+    }
+
+    /// Occupied voxel centres at the Gaussian decoder's grid, predicted by the voxel decoder.
+    pub fn predicted_voxels(&self, frame: usize) -> Result<Vec<f32>> {
+        let decoder = self.voxel_decoder.ok_or_else(|| {
+            Error::Invalid("predicted voxels need a voxel decoder (`--voxel-decoder`)".into())
+        })?;
+        let p = decoder.predict(&self.tokens, &[tau_of(frame)])?;
+        occupied_centres(&p[0].occupancy, self.ae.cfg.gaussians.grid)
     }
 
     pub fn tokens(&self) -> &Tensor {
@@ -134,18 +163,23 @@ impl<'a> Decoding<'a> {
     /// [`VoxelSource::Surface`]); an error says why when there are none.
     pub fn voxels(&self, frame: usize, source: VoxelSource, sampling: &Sampling) -> Result<Vec<f32>> {
         let centres = match source {
-            VoxelSource::Cloud if self.input[frame].is_empty() => {
+            VoxelSource::Input if self.input[frame].is_empty() => {
                 return Err(Error::Invalid(format!(
                     "frame {frame} has no points in the cloud, so it has no voxels: choose other frames or \
                      the surface's voxels"
                 )))
             }
-            VoxelSource::Cloud => self.cloud_voxels(frame),
+            VoxelSource::Input => self.cloud_voxels(frame),
             VoxelSource::Surface => self.surface_voxels(&self.surface_points(frame, sampling)?, frame),
+            VoxelSource::Predicted => self.predicted_voxels(frame)?,
         };
         if centres.is_empty() {
             return Err(Error::Invalid(format!(
-                "frame {frame}: no surface sample fell inside [-1, 1]^3, so there are no voxels to decode"
+                "frame {frame}: the {} gives no occupied voxels, so there is nothing to decode",
+                match source {
+                    VoxelSource::Predicted => "voxel decoder",
+                    _ => "surface sampled inside [-1, 1]^3",
+                }
             )));
         }
         Ok(centres)

@@ -319,6 +319,21 @@ impl VoxelDecoder {
         Ok(d)
     }
 
+    /// Fails unless `autoencoder` (a checkpoint file) is the one whose tokens the decoder
+    /// trained on, when the decoder recorded it.
+    pub fn check_encoder(&self, autoencoder: &Path) -> Result<()> {
+        let Some(want) = &self.cfg.encoder_hash else { return Ok(()) };
+        let got = crate::velox::tokens::checkpoint_hash(autoencoder)?;
+        if *want != got {
+            return Err(Error::Invalid(format!(
+                "the voxel decoder trained on the tokens of an autoencoder checkpoint of hash {want}; {} \
+                 has hash {got} (its tokens would mean something else to the decoder)",
+                autoencoder.display()
+            )));
+        }
+        Ok(())
+    }
+
     fn check_tokens(&self, tokens: &Tensor) -> Result<usize> {
         match tokens.shape() {
             &[k, d] if k > 0 && d == self.cfg.token_dim => Ok(k),
