@@ -468,11 +468,50 @@ impl VoxelDecoder {
         Ok(Losses { terms: vec![("total", total), ("coarse", coarse), ("fine", fine)] })
     }
 
+    /// The coarse stage's logits `[F cells^3, 1]` for every cell of each frame time of `taus`
+    /// (one scene's `tokens`), recorded into `rec`.
+    pub fn coarse_logits(&self, rec: &mut Recorder, tokens: &Tensor, taus: &[f32]) -> Result<Tensor> {
+        let k = self.check_tokens(tokens)?;
+        let (cells, gpu) = (self.cfg.cells, tokens.gpu());
+        let n_cells = cells.pow(3);
+        let centres: Vec<f32> = (0..n_cells).flat_map(|c| cell_centre(c, cells)).collect();
+        let positions: Vec<f32> = taus.iter().flat_map(|_| centres.iter().copied()).collect();
+        let frames = VoxelFrames {
+            groups: taus.iter().map(|&t| (t, n_cells)).collect(),
+            segments: Segments::dense(gpu, taus.len() * n_cells, k)?,
+        };
+        Ok(self.coarse.forward(rec, tokens, &rows(gpu, &positions, 3)?, &frames)?.0)
+    }
+
+    /// The fine stage's logits `[sum of chosen, (64 / cells)^3]` for the cells `chosen[f]` of
+    /// each frame time `taus[f]`, recorded into `rec`; `None` when no cell is chosen.
+    pub fn fine_logits(
+        &self,
+        rec: &mut Recorder,
+        tokens: &Tensor,
+        taus: &[f32],
+        chosen: &[Vec<usize>],
+    ) -> Result<Option<Tensor>> {
+        let k = self.check_tokens(tokens)?;
+        let total: usize = chosen.iter().map(Vec::len).sum();
+        if total == 0 {
+            return Ok(None);
+        }
+        let (cells, gpu) = (self.cfg.cells, tokens.gpu());
+        let positions: Vec<f32> = chosen.iter().flatten().flat_map(|&c| cell_centre(c, cells)).collect();
+        let frames = VoxelFrames {
+            groups: taus.iter().zip(chosen).map(|(&t, c)| (t, c.len())).collect(),
+            segments: Segments::dense(gpu, total, k)?,
+        };
+        let (features, _) = self.fine.forward(rec, tokens, &rows(gpu, &positions, 3)?, &frames)?;
+        Ok(Some(self.head.forward(rec, &features)?.0))
+    }
+
     /// The occupied voxels of one scene at each frame time of `taus`, from its `tokens`: the
     /// coarse stage over every cell of every frame in one pass, then the fine stage over the
     /// cells above the threshold, again every frame at once.
     pub fn predict(&self, tokens: &Tensor, taus: &[f32]) -> Result<Vec<Prediction>> {
-        let k = self.check_tokens(tokens)?;
+        self.check_tokens(tokens)?;
         if taus.is_empty() {
             return Ok(Vec::new());
         }
@@ -481,14 +520,8 @@ impl VoxelDecoder {
         let n_cells = cells.pow(3);
         let per_cell = self.cfg.cell_side().pow(3);
         let logit = (self.cfg.threshold / (1.0 - self.cfg.threshold)).ln();
-        let centres: Vec<f32> = (0..n_cells).flat_map(|c| cell_centre(c, cells)).collect();
-        let positions: Vec<f32> = taus.iter().flat_map(|_| centres.iter().copied()).collect();
-        let frames = VoxelFrames {
-            groups: taus.iter().map(|&t| (t, n_cells)).collect(),
-            segments: Segments::dense(&gpu, taus.len() * n_cells, k)?,
-        };
         let mut rec = gpu.recorder()?;
-        let (coarse, _) = self.coarse.forward(&mut rec, tokens, &rows(&gpu, &positions, 3)?, &frames)?;
+        let coarse = self.coarse_logits(&mut rec, tokens, taus)?;
         rec.submit()?;
         let coarse: Vec<f32> = coarse.read()?;
         let chosen: Vec<Vec<usize>> = (0..taus.len())
@@ -498,18 +531,8 @@ impl VoxelDecoder {
             .iter()
             .map(|c| Prediction { occupancy: vec![0; FRAME_WORDS], refined_cells: c.len() })
             .collect();
-        let total: usize = chosen.iter().map(Vec::len).sum();
-        if total == 0 {
-            return Ok(out);
-        }
-        let positions: Vec<f32> = chosen.iter().flatten().flat_map(|&c| cell_centre(c, cells)).collect();
-        let frames = VoxelFrames {
-            groups: taus.iter().zip(&chosen).map(|(&t, c)| (t, c.len())).collect(),
-            segments: Segments::dense(&gpu, total, k)?,
-        };
         let mut rec = gpu.recorder()?;
-        let (features, _) = self.fine.forward(&mut rec, tokens, &rows(&gpu, &positions, 3)?, &frames)?;
-        let (fine, _) = self.head.forward(&mut rec, &features)?;
+        let Some(fine) = self.fine_logits(&mut rec, tokens, taus, &chosen)? else { return Ok(out) };
         rec.submit()?;
         let fine: Vec<f32> = fine.read()?;
         let mut row = 0;

@@ -9,6 +9,9 @@
 //!   at the config's grid, a realistic surface count: about 11.3k of 64^3 at the paper config
 //!   (x 64 = 725k Gaussians), about 2.9k of 32^3 at the small one; the record's shape gives
 //!   it. One recording timed by GPU timestamps;
+//! - voxel decoder, one frame: the coarse stage over every cell and the fine stage over the
+//!   cells of a sphere of radius 0.8 (about 500 of the 4096 at 16^3), one recording timed by
+//!   GPU timestamps (the paper config of the voxel decoder; its small one on CPU devices);
 //! - 4D surface decoder: sampling 16384 points with Heun, 20 and 100 steps (1024 points on a
 //!   CPU device; 256 points and 4 and 20 steps with `--quick`), timed as the whole sampling
 //!   call (one submission per step and chunk, so wall clock, `gpu_timed: false`).
@@ -27,21 +30,23 @@ use velox_engine::ops::columns::copy_columns;
 use velox_engine::rng::Rng;
 use velox_engine::stats::{max_abs_err, nmse};
 use velox_engine::{Gpu, Precision, Result, Tensor};
-use velox_models::config::AutoencoderConfig;
+use velox_models::config::{AutoencoderConfig, VoxelConfig};
 use velox_models::params::ParamStore;
 use velox_models::velox::autoencoder::{tau_of, FRAMES};
 use velox_models::velox::cloud;
 use velox_models::velox::encoder::Encoder;
 use velox_models::velox::gaussians::{occupied_voxels, GaussianDecoder};
 use velox_models::velox::surface::{SampleSpec, Sampler, SurfaceDecoder};
+use velox_models::velox::voxels::{cell_labels, VoxelDecoder, FRAME_WORDS};
 
 use super::{print_header, print_row, time_gpu, Record};
 
 /// The paper's H100 times in ms (MODELS.md): encoder, Gaussian decoder one frame, 4D surface
 /// decoder 16384 points (the table does not give its steps).
-const PAPER_H100_MS: [(&str, f64); 3] = [
+const PAPER_H100_MS: [(&str, f64); 4] = [
     ("encoder, 1.44 M points -> 8192 tokens", 387.66),
     ("Gaussian decoder, one frame", 32.71),
+    ("voxel decoder, one frame", 20.14),
     ("4D surface decoder, 16384 points", 24_800.0),
 ];
 
@@ -301,6 +306,56 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
                 );
             }
         }
+    }
+
+    // Voxel decoder, one frame: the coarse stage over every cell, the fine stage over the
+    // cells of a sphere of radius 0.8 (what the coarse stage would choose for it), one
+    // recording.
+    {
+        let mut vcfg = if cfg.name == "paper" { VoxelConfig::paper() } else { VoxelConfig::small() };
+        vcfg.token_dim = cfg.encoder.token_dim;
+        let decoder = VoxelDecoder::new(gpu, &vcfg, 4)?;
+        liven(&decoder.store, &mut rng)?;
+        let k = cfg.encoder.tokens;
+        let tokens = Tensor::from_slice(gpu, &[k, vcfg.token_dim], &rng.normal_vec(k * vcfg.token_dim))?;
+        let mut frame = vec![0u64; FRAME_WORDS];
+        for _ in 0..200_000 {
+            let d = [rng.normal(), rng.normal(), rng.normal()];
+            let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-9);
+            let v = d.map(|x| (((0.8 * x / l + 1.0) * 32.0) as usize).min(63));
+            let i = v[0] + 64 * (v[1] + 64 * v[2]);
+            frame[i / 64] |= 1 << (i % 64);
+        }
+        let chosen: Vec<usize> =
+            cell_labels(&frame, vcfg.cells).iter().enumerate().filter(|c| *c.1).map(|c| c.0).collect();
+        let per_cell = vcfg.cell_side().pow(3);
+        let decode = |rec: &mut velox_engine::Recorder, p: Precision| {
+            rec.set_precision(p);
+            let coarse = decoder.coarse_logits(rec, &tokens, &[0.1])?;
+            let fine = decoder
+                .fine_logits(rec, &tokens, &[0.1], std::slice::from_ref(&chosen))?
+                .expect("cells chosen");
+            let (nc, nf) = (coarse.numel(), fine.numel());
+            let all = Tensor::empty(gpu, &[nc + nf], velox_engine::DType::F32)?;
+            rec.copy_rows(&coarse.reshape(&[nc])?, 0, &all, 0, nc)?;
+            rec.copy_rows(&fine.reshape(&[nf])?, 0, &all, nc, nf)?;
+            Ok(all)
+        };
+        for (p, t, e, m, over) in both_precisions(gpu, repeats, decode)? {
+            let cells = vcfg.cells.pow(3);
+            let shape = format!("{cells} cells, {} refined x {per_cell}", chosen.len());
+            let voxels = (chosen.len() * per_cell) as f64;
+            push(record("voxel decoder frame", shape, p, t, voxels / 1e6, "Mvoxel/s").error(e, m, over));
+        }
+        println!(
+            "voxel decoder ({} config, {:.1} M parameters): the fine stage refines {} of {} cells; over every \
+             cell it would do {:.1}x its work",
+            vcfg.name,
+            decoder.store.num_parameters() as f64 / 1e6,
+            chosen.len(),
+            vcfg.cells.pow(3),
+            vcfg.cells.pow(3) as f64 / chosen.len() as f64
+        );
     }
 
     println!(
