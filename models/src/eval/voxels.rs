@@ -8,6 +8,7 @@
 use serde::Serialize;
 use velox_engine::{Result, Tensor};
 
+use crate::velox::autoencoder::tau_of;
 use crate::velox::voxels::{VoxelDecoder, FRAME_WORDS, GRID};
 
 /// How a predicted occupied set compares with the true one.
@@ -88,7 +89,7 @@ pub fn evaluate_scene(
     frame_step: usize,
 ) -> Result<SceneVoxels> {
     let frames: Vec<usize> = (0..occupancy.len() / FRAME_WORDS).step_by(frame_step.max(1)).collect();
-    let taus: Vec<f32> = frames.iter().map(|&f| f as f32 / 100.0).collect();
+    let taus: Vec<f32> = frames.iter().map(|&f| tau_of(f)).collect();
     let predictions = decoder.predict(tokens, &taus)?;
     let frames: Vec<FrameVoxels> = frames
         .iter()

@@ -41,9 +41,10 @@ use crate::velox::surface::{FlowNoise, PointFrames, SampleSpec, Sampler, Surface
 /// The `model` a checkpoint of the autoencoder names.
 pub const MODEL_KIND: &str = "velox autoencoder";
 
-/// Frames of a clip; tau = frame / 100.
+/// Frames of a clip.
 pub const FRAMES: usize = 24;
 
+/// The frame time of frame `frame`: tau = frame / 100 (the data's convention).
 pub fn tau_of(frame: usize) -> f32 {
     frame as f32 / 100.0
 }

@@ -20,6 +20,7 @@ use crate::layers::{Fourier, Linear, Loss};
 use crate::params::{ParamBuilder, ParamStore};
 use crate::schedule::noam;
 use crate::train::{Losses, PassSeconds, Trainable};
+use crate::velox::autoencoder::tau_of;
 use crate::velox::blocks::{linear, linear_params};
 use crate::velox::perceiver::{PerceiverShape, VoxelFrames, VoxelPerceiver};
 
@@ -394,7 +395,7 @@ impl VoxelDecoder {
             let mut refined = 0;
             for &f in &frames {
                 let words = &s.occupancy[f * FRAME_WORDS..(f + 1) * FRAME_WORDS];
-                let tau = f as f32 / 100.0;
+                let tau = tau_of(f);
                 let labels = cell_labels(words, cells);
                 coarse_pos.extend_from_slice(&centres);
                 coarse_labels.extend(labels.iter().map(|&l| l as u8 as f32));
