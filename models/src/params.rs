@@ -150,6 +150,11 @@ impl ParamBuilder {
         self.specs.iter().map(|p| p.numel).sum()
     }
 
+    /// Values of the parameters registered so far whose names start with `prefix`.
+    pub fn num_parameters_under(&self, prefix: &str) -> usize {
+        self.specs.iter().filter(|p| p.name.starts_with(prefix)).map(|p| p.numel).sum()
+    }
+
     /// Allocates the flat buffers on `gpu` and initialises the parameters on the host with
     /// `seed`; gradients and moments start at zero and the step counter at 0.
     pub fn build(self, gpu: &Gpu, seed: u64) -> Result<ParamStore> {

@@ -38,12 +38,15 @@ enum Command {
         #[command(subcommand)]
         what: data::DataCommand,
     },
-    /// Print an autoencoder config as JSON (paper, small, tiny, a JSON file, or the config a
+    /// Print a model's config as JSON (paper, small, tiny, a JSON file, or the config a
     /// .safetensors checkpoint was trained with): a start for a config file of one's own.
     Config {
         /// The config's name or path.
         #[arg(default_value = "small")]
         name: String,
+        /// Which model's config (a checkpoint names its own).
+        #[arg(long, value_enum, default_value_t = ConfigModel::Autoencoder)]
+        model: ConfigModel,
         /// Print the parameter count of each part of the model and the total instead (counted
         /// from the parameter declarations: no device needed).
         #[arg(long)]
@@ -79,27 +82,65 @@ enum Command {
     },
 }
 
-fn print_config(name: &str, params: bool) -> CliResult<()> {
+/// The models `velox config` knows.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum ConfigModel {
+    Autoencoder,
+    Voxels,
+}
+
+fn print_config(name: &str, model: ConfigModel, params: bool) -> CliResult<()> {
+    use velox_models::velox::{autoencoder::Autoencoder, count, voxels::VoxelDecoder};
     let path = std::path::Path::new(name);
-    let cfg = if path.extension().is_some_and(|e| e == "safetensors") {
-        velox_models::velox::autoencoder::Autoencoder::checkpoint_config(path)?
-    } else {
-        velox_models::config::AutoencoderConfig::named(name)?
+    let checkpoint = path.extension().is_some_and(|e| e == "safetensors");
+    // A checkpoint says which model it holds.
+    let model = match checkpoint {
+        true => match velox_models::checkpoint::config_json(path)?["model"].as_str() {
+            Some(velox_models::velox::voxels::MODEL_KIND) => ConfigModel::Voxels,
+            _ => ConfigModel::Autoencoder,
+        },
+        false => model,
     };
-    let text = if params {
-        let c = velox_models::velox::count::parameter_counts(&cfg)?;
-        let row =
-            |part: &str, n: usize| format!("  {part:<18} {:>14}  ({:.2} M)\n", thousands(n), n as f64 / 1e6);
-        format!(
-            "parameters of the {} autoencoder:\n{}{}{}{}",
-            cfg.name,
-            row("encoder", c.encoder),
-            row("surface decoder", c.surface),
-            row("Gaussian decoder", c.gaussians),
-            row("total", c.total)
-        )
-    } else {
-        serde_json::to_string_pretty(&cfg)? + "\n"
+    let row =
+        |part: &str, n: usize| format!("  {part:<18} {:>14}  ({:.2} M)\n", thousands(n), n as f64 / 1e6);
+    let text = match model {
+        ConfigModel::Autoencoder => {
+            let cfg = match checkpoint {
+                true => Autoencoder::checkpoint_config(path)?,
+                false => velox_models::config::AutoencoderConfig::named(name)?,
+            };
+            if params {
+                let c = count::parameter_counts(&cfg)?;
+                format!(
+                    "parameters of the {} autoencoder:\n{}{}{}{}",
+                    cfg.name,
+                    row("encoder", c.encoder),
+                    row("surface decoder", c.surface),
+                    row("Gaussian decoder", c.gaussians),
+                    row("total", c.total)
+                )
+            } else {
+                serde_json::to_string_pretty(&cfg)? + "\n"
+            }
+        }
+        ConfigModel::Voxels => {
+            let cfg = match checkpoint {
+                true => VoxelDecoder::checkpoint_config(path)?,
+                false => velox_models::config::VoxelConfig::named(name)?,
+            };
+            if params {
+                let c = count::voxel_parameter_counts(&cfg)?;
+                format!(
+                    "parameters of the {} voxel decoder:\n{}{}{}",
+                    cfg.name,
+                    row("coarse stage", c.coarse),
+                    row("fine stage", c.fine),
+                    row("total", c.total)
+                )
+            } else {
+                serde_json::to_string_pretty(&cfg)? + "\n"
+            }
+        }
     };
     // Written, not printed: a reader that stops early (`| head`) is not an error.
     use std::io::Write;
@@ -157,7 +198,7 @@ fn dispatch(command: Command) -> CliResult<()> {
         Command::Render(args) => render::run(&args),
         Command::Bench { what } => bench::run(what),
         Command::Data { what } => data::run(what),
-        Command::Config { name, params } => print_config(&name, params),
+        Command::Config { name, model, params } => print_config(&name, model, params),
         Command::Train { what } => train::run(what),
         Command::Encode(args) => encode::run(&args),
         Command::Decode { what } => decode::run(what),

@@ -411,8 +411,13 @@ fn decode_and_eval_sample_a_frame_with_the_same_seed() {
 
 /// The counts `velox config NAME --params` prints: encoder, surface, Gaussian decoder, total.
 fn printed_counts(name: &str) -> Vec<usize> {
-    let text = ok(&velox(&["config", name, "--params"]));
-    ["encoder", "surface decoder", "Gaussian decoder", "total"]
+    printed_parts(&["config", name, "--params"], &["encoder", "surface decoder", "Gaussian decoder", "total"])
+}
+
+/// The counts of `parts` that `velox ARGS` prints, one line each.
+fn printed_parts(args: &[&str], parts: &[&str]) -> Vec<usize> {
+    let text = ok(&velox(args));
+    parts
         .iter()
         .map(|part| {
             let line =
@@ -438,6 +443,13 @@ fn config_params_counts_each_part_of_a_named_config_or_a_checkpoint() {
     assert!(paper[3] > 100_000_000, "{paper:?}");
     let err = fails(&velox(&["config", "no-such-config", "--params"]));
     assert!(err.contains("paper, small or tiny"), "{err}");
+    // The voxel decoder's paper config: about 65 M, as the paper counts.
+    let c = printed_parts(
+        &["config", "paper", "--model", "voxels", "--params"],
+        &["coarse stage", "fine stage", "total"],
+    );
+    assert_eq!(c[0] + c[1], c[2], "{c:?}");
+    assert!((c[2] as f64 / 65e6 - 1.0).abs() < 0.05, "{c:?}");
 }
 
 #[test]
@@ -490,6 +502,13 @@ fn voxels_train_evaluate_and_feed_the_gaussian_decoder() {
     ]));
     assert!(said.contains("trained 2 steps"), "{said}");
     let vox = run.join("checkpoint.safetensors");
+    // The checkpoint says it holds a voxel decoder: its config and count need no --model.
+    let counted = printed_parts(&["config", arg(&vox), "--params"], &["total"])[0];
+    let gpu = Gpu::new().unwrap();
+    assert_eq!(
+        counted,
+        velox_models::velox::voxels::VoxelDecoder::load(&gpu, &vox).unwrap().store.num_parameters()
+    );
     let log = std::fs::read_to_string(run.join("log.jsonl")).unwrap();
     assert!(log.contains("\"coarse\"") && log.contains("\"fine\""), "{log}");
 
