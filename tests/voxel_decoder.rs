@@ -154,7 +154,7 @@ fn both_stages_learn_one_frame() {
         zero(&gpu, &d);
         let l = d.accumulate(&[&s], &mut [Rng::new(step)], 1.0).unwrap();
         history.push((l.terms[1].1, l.terms[2].1));
-        let (lr, adamw) = (d.learning_rate(step), d.adamw);
+        let (lr, adamw) = (d.optimisation().learning_rate(step), d.adamw);
         let mut rec = gpu.recorder().unwrap();
         d.store.adamw_step(&mut rec, &adamw, lr, Some(1.0)).unwrap();
         rec.submit().unwrap();

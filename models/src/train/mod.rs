@@ -53,6 +53,27 @@ pub struct PassSeconds {
     pub backward: f64,
 }
 
+/// What the trainer reads from a model's config to optimise it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Optimisation {
+    /// The peak of the Vaswani ("noam") schedule, reached after `warmup` steps.
+    pub peak_lr: f64,
+    pub warmup: u64,
+    /// The global gradient norm the update clips to, if any.
+    pub max_grad_norm: Option<f64>,
+    pub adamw: AdamWConfig,
+    /// Samples a micro-batch holds (the config's `batch`).
+    pub batch: usize,
+}
+
+impl Optimisation {
+    /// The scheduled learning rate of optimiser step `step` (counted from 1), before any
+    /// cooldown the run adds.
+    pub fn learning_rate(&self, step: u64) -> f64 {
+        crate::schedule::noam(self.peak_lr, self.warmup, step)
+    }
+}
+
 /// A model the trainer can train.
 pub trait Trainable {
     /// One training sample (the autoencoder's: a scene).
@@ -65,18 +86,9 @@ pub trait Trainable {
     /// What a checkpoint stores to rebuild the model: `{"model": kind, "config": ...}`.
     fn describe(&self) -> serde_json::Value;
 
-    /// The scheduled learning rate of optimiser step `step` (counted from 1), before any
-    /// cooldown the run adds.
-    fn learning_rate(&self, step: u64) -> f64;
-
-    /// The global gradient norm the update clips to, if any.
-    fn max_grad_norm(&self) -> Option<f64>;
-
-    /// AdamW's settings.
-    fn adamw(&self) -> AdamWConfig;
-
-    /// Samples a micro-batch holds (the config's `batch`).
-    fn batch(&self) -> usize;
+    /// How the model is optimised: its config's learning rate schedule, clipping, AdamW and
+    /// micro-batch.
+    fn optimisation(&self) -> Optimisation;
 
     /// Records and runs the forward and backward passes of a micro-batch and adds `weight`
     /// times the gradient of the sum of its samples' losses into the store's gradients (which

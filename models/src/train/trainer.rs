@@ -127,7 +127,7 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
     /// A trainer of `model` with a run's settings, whose global batch must be the model's
     /// micro-batch times the settings' `accumulate` times the processes.
     pub fn new(model: &'a mut M, collective: &'a C, settings: RunSettings) -> Result<Self> {
-        let (b, p, a) = (model.batch() as u64, collective.size() as u64, settings.accumulate);
+        let (b, p, a) = (model.optimisation().batch as u64, collective.size() as u64, settings.accumulate);
         let mine = b.checked_mul(a).filter(|&n| n > 0 && n <= MAX_SAMPLES_PER_PROCESS);
         if mine.and_then(|n| n.checked_mul(p)) != Some(settings.global_batch) {
             return Err(Error::Invalid(format!(
@@ -156,7 +156,7 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
 
     /// The slots of the global batch that this process's micro-batch `m` holds.
     pub fn slots(&self, m: u64) -> Range<u64> {
-        let b = self.model.batch() as u64;
+        let b = self.model.optimisation().batch as u64;
         let first = (self.collective.rank() as u64 * self.settings.accumulate + m) * b;
         first..first + b
     }
@@ -254,8 +254,9 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
 
         let t = Instant::now();
         let s = &self.settings;
-        let lr = self.model.learning_rate(step) * cooldown(s.steps, s.cooldown, step);
-        let (adamw, max_norm) = (self.model.adamw(), self.model.max_grad_norm());
+        let opt = self.model.optimisation();
+        let lr = opt.learning_rate(step) * cooldown(s.steps, s.cooldown, step);
+        let (adamw, max_norm) = (opt.adamw, opt.max_grad_norm);
         let gpu = self.model.store().flat_params().gpu().clone();
         let mut rec = gpu.recorder()?;
         self.model.store_mut().adamw_step(&mut rec, &adamw, lr, max_norm)?;
@@ -517,7 +518,7 @@ where
         return Err(Error::Invalid("the dataset holds no samples".into()));
     }
     let names = source.names();
-    let (micro, processes) = (model.batch() as u64, collective.size() as u64);
+    let (micro, processes) = (model.optimisation().batch as u64, collective.size() as u64);
     let settings = match &options.begin {
         Begin::New => RunSettings::new(&options.request, names.clone(), micro, processes)?,
         Begin::Init(from) => {
@@ -587,7 +588,7 @@ where
     let settings = trainer.settings().clone();
     let collective = trainer.collective;
     let (global, acc, per_scene) = (settings.global_batch, settings.accumulate, settings.steps_per_scene);
-    let b = trainer.model().batch() as u64;
+    let b = trainer.model().optimisation().batch as u64;
     let start_step = trainer.model().store().step();
     // This process's slots of each group of steps, read in the order they are trained on.
     let mine = (collective.rank() as u64 * acc * b)..((collective.rank() as u64 + 1) * acc * b);

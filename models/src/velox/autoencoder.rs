@@ -31,8 +31,7 @@ use velox_engine::{DType, Error, Gpu, Precision, Result, Tensor};
 use crate::config::AutoencoderConfig;
 use crate::layers::Loss;
 use crate::params::ParamStore;
-use crate::schedule::noam;
-use crate::train::{Losses, PassSeconds, Trainable};
+use crate::train::{Losses, Optimisation, PassSeconds, Trainable};
 use crate::velox::cloud::{self, CHANNELS};
 use crate::velox::encoder::Encoder;
 use crate::velox::gaussians::{occupied_voxels, GaussianDecoder, VoxelFrames};
@@ -232,9 +231,10 @@ impl Autoencoder {
         self.store.zero_grads(&mut rec)?;
         rec.submit()?;
         let losses = self.accumulate(&[scene], std::slice::from_mut(rng), 1.0)?;
-        let lr = noam(self.cfg.peak_lr, self.cfg.warmup, step) * self.lr_scale;
+        let opt = self.optimisation();
+        let lr = opt.learning_rate(step) * self.lr_scale;
         let mut rec = gpu.recorder()?;
-        self.store.adamw_step(&mut rec, &self.adamw, lr, Some(self.cfg.max_grad_norm))?;
+        self.store.adamw_step(&mut rec, &opt.adamw, lr, opt.max_grad_norm)?;
         rec.submit()?;
         let grad_norm = self.store.grad_norm()? as f64;
         let term = |name: &str| losses.terms.iter().find(|t| t.0 == name).map_or(0.0, |t| t.1);
@@ -524,20 +524,14 @@ impl Trainable for Autoencoder {
         serde_json::json!({ "model": MODEL_KIND, "config": self.cfg })
     }
 
-    fn learning_rate(&self, step: u64) -> f64 {
-        noam(self.cfg.peak_lr, self.cfg.warmup, step)
-    }
-
-    fn max_grad_norm(&self) -> Option<f64> {
-        Some(self.cfg.max_grad_norm)
-    }
-
-    fn adamw(&self) -> AdamWConfig {
-        self.adamw
-    }
-
-    fn batch(&self) -> usize {
-        self.cfg.batch
+    fn optimisation(&self) -> Optimisation {
+        Optimisation {
+            peak_lr: self.cfg.peak_lr,
+            warmup: self.cfg.warmup,
+            max_grad_norm: Some(self.cfg.max_grad_norm),
+            adamw: self.adamw,
+            batch: self.cfg.batch,
+        }
     }
 
     fn accumulate(&mut self, samples: &[&TrainScene], rngs: &mut [Rng], weight: f64) -> Result<Losses> {

@@ -18,8 +18,7 @@ use crate::config::{OccupancyLoss, VoxelConfig, VoxelStageConfig};
 use crate::layers::linear::LinearCache;
 use crate::layers::{Fourier, Linear, Loss};
 use crate::params::{ParamBuilder, ParamStore};
-use crate::schedule::noam;
-use crate::train::{Losses, PassSeconds, Trainable};
+use crate::train::{Losses, Optimisation, PassSeconds, Trainable};
 use crate::velox::autoencoder::tau_of;
 use crate::velox::blocks::{linear, linear_params};
 use crate::velox::perceiver::{PerceiverShape, VoxelFrames, VoxelPerceiver};
@@ -567,20 +566,14 @@ impl Trainable for VoxelDecoder {
         serde_json::json!({ "model": MODEL_KIND, "config": self.cfg })
     }
 
-    fn learning_rate(&self, step: u64) -> f64 {
-        noam(self.cfg.peak_lr, self.cfg.warmup, step)
-    }
-
-    fn max_grad_norm(&self) -> Option<f64> {
-        Some(self.cfg.max_grad_norm)
-    }
-
-    fn adamw(&self) -> AdamWConfig {
-        self.adamw
-    }
-
-    fn batch(&self) -> usize {
-        self.cfg.batch
+    fn optimisation(&self) -> Optimisation {
+        Optimisation {
+            peak_lr: self.cfg.peak_lr,
+            warmup: self.cfg.warmup,
+            max_grad_norm: Some(self.cfg.max_grad_norm),
+            adamw: self.adamw,
+            batch: self.cfg.batch,
+        }
     }
 
     fn accumulate(&mut self, samples: &[&VoxelSample], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
