@@ -179,3 +179,27 @@ fn the_paper_config_counts_about_65_million_parameters() {
     let m = b.num_parameters() as f64 / 1e6;
     assert!((m - 65.0).abs() < 0.05 * 65.0, "{m:.2} M");
 }
+
+#[test]
+fn frames_decode_together_as_alone() {
+    // Frames share no window: the logits of a frame among others are its logits alone, and
+    // predictions of several frames at once are each frame's own.
+    let gpu = gpu();
+    let (occ, _) = occupancy(&gpu, 3, "frames");
+    let d = VoxelDecoder::new(&gpu, &VoxelConfig::tiny(), 5).unwrap();
+    let s = sample(&gpu, 4, &occ);
+    let taus = [0.0, 0.07, 0.15];
+    let n = VoxelConfig::tiny().cells.pow(3);
+    let mut rec = gpu.recorder().unwrap();
+    let together = d.coarse_logits(&mut rec, &s.tokens, &taus).unwrap();
+    let alone: Vec<Tensor> =
+        taus.iter().map(|&t| d.coarse_logits(&mut rec, &s.tokens, &[t]).unwrap()).collect();
+    rec.submit().unwrap();
+    let together: Vec<f32> = together.read().unwrap();
+    for (f, a) in alone.iter().enumerate() {
+        let a: Vec<f32> = a.read().unwrap();
+        assert_nmse(&format!("frame {f} among three"), &together[f * n..(f + 1) * n], &f64s(&a), 1e-10);
+    }
+    // Frames differ (tau reaches the queries).
+    assert_ne!(&together[..n], &together[n..2 * n]);
+}

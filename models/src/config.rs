@@ -455,6 +455,10 @@ pub enum OccupancyLoss {
     Focal { gamma: f32 },
 }
 
+fn default_cell_threshold() -> f32 {
+    0.5
+}
+
 /// The voxel decoder: the occupied voxels of the 64^3 grid at a frame time, from the tokens.
 /// A coarse stage predicts which of the `cells`^3 cells hold surface; a fine stage, over those
 /// cells only, predicts each one's (64 / cells)^3 voxels.
@@ -475,9 +479,13 @@ pub struct VoxelConfig {
     pub voxel_hidden: usize,
     pub offset_freqs: usize,
     pub loss: OccupancyLoss,
-    /// A cell (coarse stage) or a voxel (fine stage) is occupied where its probability is above
-    /// this.
+    /// A voxel (fine stage) is occupied where its probability is above this.
     pub threshold: f32,
+    /// The fine stage refines the cells whose probability (coarse stage) is above this: lower
+    /// than `threshold`, as a cell missed loses all its voxels where one refined for nothing
+    /// costs only its share of the fine stage.
+    #[serde(default = "default_cell_threshold")]
+    pub cell_threshold: f32,
     /// In training the fine stage sees the occupied cells and those within this many cells of
     /// one, so it also learns what an empty cell next to the surface holds.
     pub dilate: usize,
@@ -528,6 +536,7 @@ impl VoxelConfig {
             offset_freqs: 3,
             loss: OccupancyLoss::Bce,
             threshold: 0.5,
+            cell_threshold: default_cell_threshold(),
             dilate: 1,
             batch: 1,
             frames_per_sample: 1,
@@ -558,8 +567,10 @@ impl VoxelConfig {
             tau_freqs: 4,
             voxel_hidden: 64,
             frames_per_sample: 2,
-            peak_lr: 2e-3,
-            warmup: 50,
+            // Measured on one scene, 100 steps: 5e-3 with 20 warmup steps reached a coarse loss
+            // of 0.07 where 2e-3 with 50 stayed at the plateau of 0.12.
+            peak_lr: 5e-3,
+            warmup: 20,
             ..VoxelConfig::paper()
         }
     }
@@ -636,6 +647,7 @@ impl VoxelConfig {
         check_numbers(&[
             ("loss.gamma", gamma, 1.0, 16.0, true),
             ("threshold", self.threshold as f64, 0.0, 1.0, false),
+            ("cell_threshold", self.cell_threshold as f64, 0.0, 1.0, false),
             ("peak_lr", self.peak_lr, 0.0, 1.0, false),
             ("max_grad_norm", self.max_grad_norm, 0.0, 1e9, false),
         ])

@@ -61,6 +61,20 @@ pub struct VoxelEvalArgs {
     /// red: missed, blue: predicted wrongly).
     #[arg(long, default_value_t = 2)]
     images: usize,
+    /// A voxel's probability above which it is occupied [default: the checkpoint's].
+    #[arg(long, value_parser = probability)]
+    threshold: Option<f32>,
+    /// A cell's probability above which the fine stage refines it [default: the checkpoint's].
+    #[arg(long, value_parser = probability)]
+    cell_threshold: Option<f32>,
+}
+
+/// A probability strictly between 0 and 1.
+fn probability(s: &str) -> Result<f32, String> {
+    match s.parse::<f32>() {
+        Ok(p) if p > 0.0 && p < 1.0 => Ok(p),
+        _ => Err(format!("{s:?} is not a probability strictly between 0 and 1")),
+    }
 }
 
 #[derive(clap::Args)]
@@ -170,14 +184,18 @@ fn run_voxels(a: &VoxelEvalArgs) -> CliResult<()> {
     if let Some(note) = scenes.checkpoint().note() {
         eprintln!("note: {note}");
     }
-    let decoder = VoxelDecoder::load(&gpu, &a.checkpoint)?;
+    let mut decoder = VoxelDecoder::load(&gpu, &a.checkpoint)?;
+    decoder.cfg.threshold = a.threshold.unwrap_or(decoder.cfg.threshold);
+    decoder.cfg.cell_threshold = a.cell_threshold.unwrap_or(decoder.cfg.cell_threshold);
     std::fs::create_dir_all(&a.out).map_err(|e| format!("creating {}: {e}", a.out.display()))?;
     let json = a.json.clone().unwrap_or_else(|| a.out.join("voxels.json"));
     let count = a.scenes.map_or(scenes.len(), |n| (n as usize).min(scenes.len()));
     println!(
-        "evaluating the {} voxel decoder ({}) on {count} scenes of {} on {}",
+        "evaluating the {} voxel decoder ({}; cells above {}, voxels above {}) on {count} scenes of {} on {}",
         decoder.cfg.name,
         a.checkpoint.display(),
+        decoder.cfg.cell_threshold,
+        decoder.cfg.threshold,
         a.data.display(),
         gpu.caps().name
     );
@@ -205,13 +223,29 @@ fn run_voxels(a: &VoxelEvalArgs) -> CliResult<()> {
     bar.finish_and_clear();
     let mean = VoxelMetrics::mean(&reports.iter().map(|r| r.mean).collect::<Vec<_>>());
     println!(
-        "{:<24} {:>7} {:>9} {:>9} {:>7} {:>7} {:>9} {:>9} {:>8}",
-        "scene", "frames", "accuracy", "precision", "recall", "IoU", "true", "predicted", "cells"
+        "{:<24} {:>7} {:>9} {:>9} {:>7} {:>7} {:>9} {:>9} {:>8} {:>11}",
+        "scene",
+        "frames",
+        "accuracy",
+        "precision",
+        "recall",
+        "IoU",
+        "true",
+        "predicted",
+        "cells",
+        "cell recall"
     );
     let row = |name: &str, frames: String, m: &VoxelMetrics| {
         println!(
-            "{name:<24} {frames:>7} {:>9.5} {:>9.4} {:>7.4} {:>7.4} {:>9.0} {:>9.0} {:>8.0}",
-            m.accuracy, m.precision, m.recall, m.iou, m.true_voxels, m.predicted_voxels, m.refined_cells
+            "{name:<24} {frames:>7} {:>9.5} {:>9.4} {:>7.4} {:>7.4} {:>9.0} {:>9.0} {:>8.0} {:>11.4}",
+            m.accuracy,
+            m.precision,
+            m.recall,
+            m.iou,
+            m.true_voxels,
+            m.predicted_voxels,
+            m.refined_cells,
+            m.cell_recall
         )
     };
     for r in &reports {
@@ -220,13 +254,15 @@ fn run_voxels(a: &VoxelEvalArgs) -> CliResult<()> {
     row("mean", String::new(), &mean);
     println!(
         "means over frames and scenes; true and predicted count occupied voxels of the 64^3 grid, \
-         cells the coarse cells the fine stage refined; accuracy alone says little (an empty \
-         prediction scores about 99 %)"
+         cells the coarse cells the fine stage refined, cell recall the share of the true cells \
+         among them; accuracy alone says little (an empty prediction scores about 99 %)"
     );
     let file = serde_json::json!({
         "checkpoint": a.checkpoint.display().to_string(),
         "data": a.data.display().to_string(),
         "frame_step": a.frame_step,
+        "threshold": decoder.cfg.threshold,
+        "cell_threshold": decoder.cfg.cell_threshold,
         "mean": mean,
         "scenes": reports,
         "images": images,

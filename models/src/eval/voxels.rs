@@ -9,7 +9,7 @@ use serde::Serialize;
 use velox_engine::{Result, Tensor};
 
 use crate::velox::autoencoder::tau_of;
-use crate::velox::voxels::{VoxelDecoder, FRAME_WORDS, GRID};
+use crate::velox::voxels::{cell_labels, VoxelDecoder, FRAME_WORDS, GRID};
 
 /// How a predicted occupied set compares with the true one.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
@@ -21,13 +21,17 @@ pub struct VoxelMetrics {
     pub true_voxels: f64,
     pub predicted_voxels: f64,
     pub refined_cells: f64,
+    /// The fraction of the true cells (those holding an occupied voxel) that the fine stage
+    /// refined: the most of the occupied voxels it could find (1 when no cell is true).
+    pub cell_recall: f64,
 }
 
 impl VoxelMetrics {
-    /// The metrics of one frame's predicted words against its true words. Precision is 1 for
-    /// an empty prediction and recall 1 for an empty truth (nothing claimed wrongly, nothing
-    /// missed); IoU is 1 when both are empty.
-    pub fn of(predicted: &[u64], truth: &[u64], refined_cells: usize) -> VoxelMetrics {
+    /// The metrics of one frame's predicted words against its true words, the fine stage
+    /// having refined the cells `refined` of a `cells`^3 grid. Precision is 1 for an empty
+    /// prediction and recall 1 for an empty truth (nothing claimed wrongly, nothing missed);
+    /// IoU is 1 when both are empty.
+    pub fn of(predicted: &[u64], truth: &[u64], refined: &[usize], cells: usize) -> VoxelMetrics {
         let count = |f: fn(u64, u64) -> u64| -> u64 {
             predicted.iter().zip(truth).map(|(&p, &t)| f(p, t).count_ones() as u64).sum()
         };
@@ -41,7 +45,12 @@ impl VoxelMetrics {
             iou: ratio(tp, tp + fp + fn_),
             true_voxels: (tp + fn_) as f64,
             predicted_voxels: (tp + fp) as f64,
-            refined_cells: refined_cells as f64,
+            refined_cells: refined.len() as f64,
+            cell_recall: {
+                let labels = cell_labels(truth, cells);
+                let found = refined.iter().filter(|&&c| labels[c]).count();
+                ratio(found as u64, labels.iter().filter(|&&l| l).count() as u64)
+            },
         }
     }
 
@@ -57,6 +66,7 @@ impl VoxelMetrics {
             true_voxels: sum(|m| m.true_voxels),
             predicted_voxels: sum(|m| m.predicted_voxels),
             refined_cells: sum(|m| m.refined_cells),
+            cell_recall: sum(|m| m.cell_recall),
         }
     }
 }
@@ -98,7 +108,7 @@ pub fn evaluate_scene(
             let truth = &occupancy[f * FRAME_WORDS..(f + 1) * FRAME_WORDS];
             FrameVoxels {
                 frame: f,
-                metrics: VoxelMetrics::of(&p.occupancy, truth, p.refined_cells),
+                metrics: VoxelMetrics::of(&p.occupancy, truth, &p.refined, decoder.cfg.cells),
                 predicted: p.occupancy,
             }
         })
@@ -151,15 +161,23 @@ mod tests {
         let mut pred = vec![0u64; FRAME_WORDS];
         truth[0] = 0b1111; // 4 true voxels
         pred[0] = 0b0111_0000_0011; // 2 right, 3 wrong
-        let m = VoxelMetrics::of(&pred, &truth, 7);
-        assert_eq!((m.true_voxels, m.predicted_voxels, m.refined_cells), (4.0, 5.0, 7.0));
+                                    // The true voxels (x = 0..3) lie in cell 0 of a 16^3 grid, which was refined.
+        let m = VoxelMetrics::of(&pred, &truth, &[0, 5, 9], 16);
+        assert_eq!((m.true_voxels, m.predicted_voxels, m.refined_cells), (4.0, 5.0, 3.0));
+        assert_eq!(m.cell_recall, 1.0);
+        let mut two = truth.clone();
+        two[0] |= 1 << 5; // x = 5: cell 1, not refined
+        assert_eq!(VoxelMetrics::of(&pred, &two, &[0, 5, 9], 16).cell_recall, 0.5);
         assert!((m.precision - 2.0 / 5.0).abs() < 1e-12);
         assert!((m.recall - 2.0 / 4.0).abs() < 1e-12);
         assert!((m.iou - 2.0 / 7.0).abs() < 1e-12);
         assert!((m.accuracy - (262144.0 - 5.0) / 262144.0).abs() < 1e-12);
-        let empty = VoxelMetrics::of(&vec![0; FRAME_WORDS], &vec![0; FRAME_WORDS], 0);
-        assert_eq!((empty.precision, empty.recall, empty.iou, empty.accuracy), (1.0, 1.0, 1.0, 1.0));
-        let none = VoxelMetrics::of(&vec![0; FRAME_WORDS], &truth, 0);
+        let empty = VoxelMetrics::of(&vec![0; FRAME_WORDS], &vec![0; FRAME_WORDS], &[], 16);
+        assert_eq!(
+            (empty.precision, empty.recall, empty.iou, empty.accuracy, empty.cell_recall),
+            (1.0, 1.0, 1.0, 1.0, 1.0)
+        );
+        let none = VoxelMetrics::of(&vec![0; FRAME_WORDS], &truth, &[], 16);
         assert_eq!((none.precision, none.recall, none.iou), (1.0, 0.0, 0.0));
         let img = projections(&pred, &truth);
         assert_eq!(img.len(), 64 * 192 * 3);

@@ -75,8 +75,9 @@ pub const MODEL_KIND: &str = "velox voxel decoder";
 pub struct Prediction {
     /// [`FRAME_WORDS`] words of occupancy bits.
     pub occupancy: Vec<u64>,
-    /// Coarse cells the fine stage refined (those the coarse stage called occupied).
-    pub refined_cells: usize,
+    /// The coarse cells the fine stage refined (those the coarse stage called occupied), in
+    /// increasing order.
+    pub refined: Vec<usize>,
 }
 
 /// The voxel decoder: a coarse [`VoxelPerceiver`] over every cell of a `cells`^3 grid that
@@ -88,7 +89,7 @@ pub struct Prediction {
 /// occupied cells and of the cells within `dilate` of one (the true cells stand in for the
 /// coarse stage's choice, so the two stages train at once). Each loss is a scene's mean over
 /// its cells or its refined voxels. Prediction ([`VoxelDecoder::predict`]): the cells above
-/// `threshold`, then their voxels above it. The tokens are the frozen encoder's: the decoder
+/// `cell_threshold`, then their voxels above `threshold`. The tokens are the frozen encoder's: the decoder
 /// computes no gradient for them that anything uses.
 pub struct VoxelDecoder {
     pub cfg: VoxelConfig,
@@ -509,7 +510,7 @@ impl VoxelDecoder {
 
     /// The occupied voxels of one scene at each frame time of `taus`, from its `tokens`: the
     /// coarse stage over every cell of every frame in one pass, then the fine stage over the
-    /// cells above the threshold, again every frame at once.
+    /// cells above the cell threshold, again every frame at once.
     pub fn predict(&self, tokens: &Tensor, taus: &[f32]) -> Result<Vec<Prediction>> {
         self.check_tokens(tokens)?;
         if taus.is_empty() {
@@ -519,17 +520,18 @@ impl VoxelDecoder {
         let cells = self.cfg.cells;
         let n_cells = cells.pow(3);
         let per_cell = self.cfg.cell_side().pow(3);
-        let logit = (self.cfg.threshold / (1.0 - self.cfg.threshold)).ln();
+        let logit_of = |p: f32| (p / (1.0 - p)).ln();
+        let (cell_logit, logit) = (logit_of(self.cfg.cell_threshold), logit_of(self.cfg.threshold));
         let mut rec = gpu.recorder()?;
         let coarse = self.coarse_logits(&mut rec, tokens, taus)?;
         rec.submit()?;
         let coarse: Vec<f32> = coarse.read()?;
         let chosen: Vec<Vec<usize>> = (0..taus.len())
-            .map(|f| (0..n_cells).filter(|&c| coarse[f * n_cells + c] > logit).collect())
+            .map(|f| (0..n_cells).filter(|&c| coarse[f * n_cells + c] > cell_logit).collect())
             .collect();
         let mut out: Vec<Prediction> = chosen
             .iter()
-            .map(|c| Prediction { occupancy: vec![0; FRAME_WORDS], refined_cells: c.len() })
+            .map(|c| Prediction { occupancy: vec![0; FRAME_WORDS], refined: c.clone() })
             .collect();
         let mut rec = gpu.recorder()?;
         let Some(fine) = self.fine_logits(&mut rec, tokens, taus, &chosen)? else { return Ok(out) };
