@@ -3,7 +3,7 @@
 //! the model (new, from another run's weights, or the checkpoint to resume), and prints; the
 //! run itself (settings, samples, steps, log, plot, checkpoints, stops) is the library's.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -268,22 +268,8 @@ pub fn train_autoencoder<C: Collective>(
     folder.prepare(&begin)?;
     let scenes = SceneFolders::open(gpu, &args.data)?;
     let seed = run.seed.unwrap_or(RunSettings::DEFAULT_SEED);
-    let named = |name: Option<&str>| AutoencoderConfig::named(name.unwrap_or("small"));
-    let mut model = match &begin {
-        Begin::Resume => {
-            let m = Autoencoder::load(gpu, &folder.checkpoint)?;
-            note_resumed_config(&m.cfg.name, args.config.as_deref());
-            m
-        }
-        Begin::Init(from) => {
-            let cfg = match &args.config {
-                Some(name) => named(Some(name))?,
-                None => Autoencoder::checkpoint_config(from)?,
-            };
-            Autoencoder::new(gpu, &cfg, seed)?
-        }
-        Begin::New => Autoencoder::new(gpu, &named(args.config.as_deref())?, seed)?,
-    };
+    let named = |name: Option<&str>| Ok(AutoencoderConfig::named(name.unwrap_or("small"))?);
+    let mut model: Autoencoder = starting_model(gpu, &begin, &folder, args.config.as_deref(), seed, named)?;
     run_training(&mut model, &scenes, run, begin, interrupt, collective)
 }
 
@@ -314,21 +300,7 @@ pub fn train_voxels<C: Collective>(
         cfg.encoder_hash = Some(scenes.manifest().origin.checkpoint_hash.clone());
         Ok(cfg)
     };
-    let mut model = match &begin {
-        Begin::Resume => {
-            let m = VoxelDecoder::load(gpu, &folder.checkpoint)?;
-            note_resumed_config(&m.cfg.name, args.config.as_deref());
-            m
-        }
-        Begin::Init(from) => {
-            let cfg = match &args.config {
-                Some(name) => named(Some(name))?,
-                None => VoxelDecoder::checkpoint_config(from)?,
-            };
-            VoxelDecoder::new(gpu, &cfg, seed)?
-        }
-        Begin::New => VoxelDecoder::new(gpu, &named(args.config.as_deref())?, seed)?,
-    };
+    let mut model: VoxelDecoder = starting_model(gpu, &begin, &folder, args.config.as_deref(), seed, named)?;
     let tokens_from = &scenes.manifest().origin.checkpoint_hash;
     if model.cfg.encoder_hash.as_ref().is_some_and(|h| h != tokens_from) {
         return Err(format!(
@@ -347,6 +319,77 @@ pub fn train_voxels<C: Collective>(
         .into());
     }
     run_training(&mut model, &scenes, run, begin, interrupt, collective)
+}
+
+/// What a run needs of a model to start it: load a checkpoint, read a checkpoint's config,
+/// build a fresh model of a config.
+trait RunModel: Sized {
+    type Config;
+    fn load(gpu: &Gpu, checkpoint: &Path) -> velox_engine::Result<Self>;
+    fn checkpoint_config(checkpoint: &Path) -> velox_engine::Result<Self::Config>;
+    fn fresh(gpu: &Gpu, cfg: &Self::Config, seed: u64) -> velox_engine::Result<Self>;
+    fn config_name(&self) -> &str;
+}
+
+impl RunModel for Autoencoder {
+    type Config = AutoencoderConfig;
+    fn load(gpu: &Gpu, checkpoint: &Path) -> velox_engine::Result<Self> {
+        Autoencoder::load(gpu, checkpoint)
+    }
+    fn checkpoint_config(checkpoint: &Path) -> velox_engine::Result<AutoencoderConfig> {
+        Autoencoder::checkpoint_config(checkpoint)
+    }
+    fn fresh(gpu: &Gpu, cfg: &AutoencoderConfig, seed: u64) -> velox_engine::Result<Self> {
+        Autoencoder::new(gpu, cfg, seed)
+    }
+    fn config_name(&self) -> &str {
+        &self.cfg.name
+    }
+}
+
+impl RunModel for VoxelDecoder {
+    type Config = VoxelConfig;
+    fn load(gpu: &Gpu, checkpoint: &Path) -> velox_engine::Result<Self> {
+        VoxelDecoder::load(gpu, checkpoint)
+    }
+    fn checkpoint_config(checkpoint: &Path) -> velox_engine::Result<VoxelConfig> {
+        VoxelDecoder::checkpoint_config(checkpoint)
+    }
+    fn fresh(gpu: &Gpu, cfg: &VoxelConfig, seed: u64) -> velox_engine::Result<Self> {
+        VoxelDecoder::new(gpu, cfg, seed)
+    }
+    fn config_name(&self) -> &str {
+        &self.cfg.name
+    }
+}
+
+/// The model a run starts from: its own checkpoint when it resumes (the config asked for, if
+/// another, is ignored with a note); a fresh model of the config asked for, or else of the
+/// checkpoint's, when it starts from another run's parameters; a fresh model of the config
+/// asked for (`named(None)`: the default) when it is new.
+fn starting_model<M: RunModel>(
+    gpu: &Gpu,
+    begin: &Begin,
+    folder: &RunFolder,
+    asked: Option<&str>,
+    seed: u64,
+    named: impl Fn(Option<&str>) -> CliResult<M::Config>,
+) -> CliResult<M> {
+    Ok(match begin {
+        Begin::Resume => {
+            let m = M::load(gpu, &folder.checkpoint)?;
+            note_resumed_config(m.config_name(), asked);
+            m
+        }
+        Begin::Init(from) => {
+            let cfg = match asked {
+                Some(name) => named(Some(name))?,
+                None => M::checkpoint_config(from)?,
+            };
+            M::fresh(gpu, &cfg, seed)?
+        }
+        Begin::New => M::fresh(gpu, &named(asked)?, seed)?,
+    })
 }
 
 fn note_resumed_config(kept: &str, asked: Option<&str>) {
