@@ -87,8 +87,13 @@ fn grid_helpers_match_plain_loops() {
 fn backward_matches_a_directional_finite_difference() {
     let gpu = gpu();
     let (occ, _) = occupancy(&gpu, 3, "fd");
-    for loss in [OccupancyLoss::Bce, OccupancyLoss::Focal { gamma: 2.0 }] {
-        let cfg = VoxelConfig { loss, frames_per_sample: 2, ..VoxelConfig::tiny() };
+    let cases = [
+        (OccupancyLoss::Bce, false),
+        (OccupancyLoss::Focal { gamma: 2.0 }, false),
+        (OccupancyLoss::Bce, true),
+    ];
+    for (loss, cell_directions) in cases {
+        let cfg = VoxelConfig { loss, cell_directions, frames_per_sample: 2, ..VoxelConfig::tiny() };
         let mut d = VoxelDecoder::new(&gpu, &cfg, 2).unwrap();
         let s = sample(&gpu, 4, &occ);
         zero(&gpu, &d);
@@ -107,7 +112,10 @@ fn backward_matches_a_directional_finite_difference() {
         };
         let numeric = (at(1.0) - at(-1.0)) / (2.0 * eps as f64);
         let rel = (numeric - analytic).abs() / analytic.abs();
-        assert!(rel < 5e-3, "{loss:?}: analytic {analytic} against finite difference {numeric} ({rel:.2e})");
+        assert!(
+            rel < 5e-3,
+            "{loss:?}, cell directions {cell_directions}: analytic {analytic} against finite difference {numeric} ({rel:.2e})"
+        );
     }
 }
 

@@ -478,6 +478,11 @@ pub struct VoxelConfig {
     /// octaves), through GELU to one logit per voxel.
     pub voxel_hidden: usize,
     pub offset_freqs: usize,
+    /// The fine trunk also gives each cell its own direction per hidden unit of the voxel head,
+    /// added as `m_c . o_v` (`o_v` the voxel's offset): a cell then places its own planes,
+    /// where `b_v` alone is the same for every cell.
+    #[serde(default)]
+    pub cell_directions: bool,
     pub loss: OccupancyLoss,
     /// A voxel (fine stage) is occupied where its probability is above this.
     pub threshold: f32,
@@ -534,6 +539,7 @@ impl VoxelConfig {
             tau_freqs: 8,
             voxel_hidden: 256,
             offset_freqs: 3,
+            cell_directions: false,
             loss: OccupancyLoss::Bce,
             threshold: 0.5,
             cell_threshold: default_cell_threshold(),

@@ -7,6 +7,7 @@ use std::time::Instant;
 use velox_engine::ops::adamw::AdamWConfig;
 use velox_engine::ops::attention::Segments;
 use velox_engine::ops::binary::{binary, Binary};
+use velox_engine::ops::columns::copy_columns;
 use velox_engine::ops::gelu::gelu_backward;
 use velox_engine::ops::reduce::{reduce, Reduce};
 use velox_engine::ops::unary::{unary, Unary};
@@ -181,6 +182,8 @@ pub fn occupied_centres(frame: &[u64], grid: usize) -> Result<Vec<f32>> {
 struct VoxelHead {
     /// `[s^3, F]`: the offsets' features, fixed.
     offsets: Tensor,
+    /// With `cell_directions`: each axis of the offsets, `[1, s^3, 1]`, fixed.
+    axes: Option<[Tensor; 3]>,
     embed: Linear,
     out: Linear,
 }
@@ -190,6 +193,12 @@ struct VoxelHeadCache {
     pre: Tensor,
     out: LinearCache,
     cells: usize,
+}
+
+/// Width of the fine trunk's output per cell: the head's hidden width, and with
+/// `cell_directions` three more of it (a direction per hidden unit).
+fn fine_out(cfg: &VoxelConfig) -> usize {
+    cfg.voxel_hidden * if cfg.cell_directions { 4 } else { 1 }
 }
 
 impl VoxelHead {
@@ -209,19 +218,40 @@ impl VoxelHead {
         let mut rec = gpu.recorder()?;
         let (offsets, _) = fourier.forward(&mut rec, &Tensor::from_slice(gpu, &[s * s * s, 3], &xyz)?)?;
         rec.submit()?;
+        let axis = |k: usize| {
+            let column: Vec<f32> = xyz.iter().skip(k).step_by(3).copied().collect();
+            Tensor::from_slice(gpu, &[1, s * s * s, 1], &column)
+        };
+        let axes = if cfg.cell_directions { Some([axis(0)?, axis(1)?, axis(2)?]) } else { None };
         Ok(VoxelHead {
             offsets,
+            axes,
             embed: linear(store, &format!("{prefix}.embed"), true)?,
             out: linear(store, &format!("{prefix}.out"), true)?,
         })
     }
 
-    /// Logits `[n, s^3]` from the cells' features `a` (`[n, voxel_hidden]`).
-    fn forward(&self, rec: &mut Recorder, a: &Tensor) -> Result<(Tensor, VoxelHeadCache)> {
-        let (n, h) = (a.shape()[0], a.shape()[1]);
+    /// Logits `[n, s^3]` from the cells' features (`[n, voxel_hidden]`, or with cell
+    /// directions `[n, 4 voxel_hidden]`: `a_c`, then the directions' x, y and z components).
+    fn forward(&self, rec: &mut Recorder, features: &Tensor) -> Result<(Tensor, VoxelHeadCache)> {
         let per = self.offsets.shape()[0];
         let (b, embed) = self.embed.forward(rec, &self.offsets)?;
-        let pre = binary(rec, &a.reshape(&[n, 1, h])?, &b.reshape(&[1, per, h])?, Binary::Add)?;
+        let h = b.shape()[1];
+        let n = features.shape()[0];
+        let column = |rec: &mut Recorder, k: usize| -> Result<Tensor> {
+            let t = Tensor::empty(features.gpu(), &[n, h], DType::F32)?;
+            copy_columns(rec, features, k * h, &t, 0, h, 1.0)?;
+            Ok(t.reshape(&[n, 1, h])?)
+        };
+        let a = if self.axes.is_some() { column(rec, 0)? } else { features.reshape(&[n, 1, h])? };
+        let mut pre = binary(rec, &a, &b.reshape(&[1, per, h])?, Binary::Add)?;
+        if let Some(axes) = &self.axes {
+            for (k, axis) in axes.iter().enumerate() {
+                let m = column(rec, k + 1)?;
+                let along = binary(rec, &m, axis, Binary::Mul)?;
+                pre = binary(rec, &pre, &along, Binary::Add)?;
+            }
+        }
         let g = unary(rec, &pre, Unary::Gelu)?;
         let (logits, out) = self.out.forward(rec, &g.reshape(&[n * per, h])?)?;
         Ok((logits.reshape(&[n, per])?, VoxelHeadCache { embed, pre, out, cells: n }))
@@ -235,7 +265,16 @@ impl VoxelHead {
         let dpre = gelu_backward(rec, &cache.pre, &dg.reshape(&[n, per, h])?)?;
         let db = reduce(rec, &dpre, 0, Reduce::Sum)?;
         self.embed.param_grads(rec, &cache.embed, &db)?;
-        reduce(rec, &dpre, 1, Reduce::Sum)
+        let da = reduce(rec, &dpre, 1, Reduce::Sum)?;
+        let Some(axes) = &self.axes else { return Ok(da) };
+        let d_features = Tensor::empty(da.gpu(), &[n, 4 * h], DType::F32)?;
+        copy_columns(rec, &da, 0, &d_features, 0, h, 1.0)?;
+        for (k, axis) in axes.iter().enumerate() {
+            let along = binary(rec, &dpre, axis, Binary::Mul)?;
+            let dm = reduce(rec, &along, 1, Reduce::Sum)?;
+            copy_columns(rec, &dm, 0, &d_features, (k + 1) * h, h, 1.0)?;
+        }
+        Ok(d_features)
     }
 }
 
@@ -266,7 +305,7 @@ impl VoxelDecoder {
     /// Declares both stages' parameters (`coarse.*`, `fine.*`, `voxel_head.*`).
     pub fn register(b: &mut ParamBuilder, cfg: &VoxelConfig) -> Result<()> {
         VoxelPerceiver::register(b, "coarse", &Self::shape(cfg, &cfg.coarse, 1), cfg.token_dim)?;
-        VoxelPerceiver::register(b, "fine", &Self::shape(cfg, &cfg.fine, cfg.voxel_hidden), cfg.token_dim)?;
+        VoxelPerceiver::register(b, "fine", &Self::shape(cfg, &cfg.fine, fine_out(cfg)), cfg.token_dim)?;
         VoxelHead::register(b, "voxel_head", cfg)
     }
 
@@ -277,7 +316,7 @@ impl VoxelDecoder {
         Self::register(&mut b, cfg)?;
         let store = b.build(gpu, seed)?;
         let coarse = VoxelPerceiver::new(gpu, &store, "coarse", &Self::shape(cfg, &cfg.coarse, 1))?;
-        let fine = VoxelPerceiver::new(gpu, &store, "fine", &Self::shape(cfg, &cfg.fine, cfg.voxel_hidden))?;
+        let fine = VoxelPerceiver::new(gpu, &store, "fine", &Self::shape(cfg, &cfg.fine, fine_out(cfg)))?;
         let head = VoxelHead::new(gpu, &store, "voxel_head", cfg)?;
         Ok(VoxelDecoder {
             cfg: cfg.clone(),
