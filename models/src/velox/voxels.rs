@@ -241,7 +241,7 @@ impl VoxelHead {
         let column = |rec: &mut Recorder, k: usize| -> Result<Tensor> {
             let t = Tensor::empty(features.gpu(), &[n, h], DType::F32)?;
             copy_columns(rec, features, k * h, &t, 0, h, 1.0)?;
-            Ok(t.reshape(&[n, 1, h])?)
+            t.reshape(&[n, 1, h])
         };
         let a = if self.axes.is_some() { column(rec, 0)? } else { features.reshape(&[n, 1, h])? };
         let mut pre = binary(rec, &a, &b.reshape(&[1, per, h])?, Binary::Add)?;
