@@ -539,7 +539,9 @@ impl VoxelConfig {
             tau_freqs: 8,
             voxel_hidden: 256,
             offset_freqs: 3,
-            cell_directions: false,
+            // One scene, 600 steps of the small config: IoU 0.242 against 0.215 without, fine
+            // loss 0.070 against 0.133 (and still falling where the other had stalled).
+            cell_directions: true,
             loss: OccupancyLoss::Bce,
             threshold: 0.5,
             cell_threshold: default_cell_threshold(),
