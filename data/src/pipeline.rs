@@ -152,12 +152,9 @@ pub fn mark_triangle(occ: &mut [u64], tri: [V3; 3]) {
     if normal == [0.0; 3] {
         return;
     }
-    let mut axes = vec![normal];
-    for e in edges {
-        for a in [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]] {
-            axes.push(cross(a, e));
-        }
-    }
+    let unit = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    let axes: [[f64; 3]; 10] =
+        std::array::from_fn(|i| if i == 0 { normal } else { cross(unit[(i - 1) % 3], edges[(i - 1) / 3]) });
     let mut range = [(0usize, 0usize); 3];
     for (k, r) in range.iter_mut().enumerate() {
         let lo = p.iter().map(|v| v[k]).fold(f64::INFINITY, f64::min).floor();

@@ -501,19 +501,36 @@ mod mpi_world {
             )
         }
 
-        fn all_gather_f32(&self, send: &[f32], recv: &mut [f32]) -> Result<()> {
-            debug_assert_eq!(recv.len(), send.len() * self.size);
+        /// `MPI_Allgather`: every rank's `send` into `recv` (`send.len() * size` long), in rank
+        /// order. `datatype` must be the MPI type of `T`.
+        ///
+        /// SAFETY (of the callers): `datatype` describes `T`.
+        unsafe fn all_gather<T: Copy>(
+            &self,
+            send: &[T],
+            recv: &mut [T],
+            datatype: ffi::MPI_Datatype,
+        ) -> Result<()> {
+            if recv.len() != send.len() * self.size {
+                return Err(Error::Invalid(format!(
+                    "MPI_Allgather: {} values received for {} sent by each of {} ranks",
+                    recv.len(),
+                    send.len(),
+                    self.size
+                )));
+            }
             let n = count(send.len(), "MPI_Allgather")?;
-            // SAFETY: `recv` holds `send.len() * size` f32; the communicator is valid.
+            // SAFETY: `recv` holds `send.len()` values of `datatype` per rank; the communicator is
+            // valid.
             check(
                 unsafe {
                     ffi::MPI_Allgather(
                         send.as_ptr().cast::<c_void>(),
                         n,
-                        ffi::RSMPI_FLOAT,
+                        datatype,
                         recv.as_mut_ptr().cast::<c_void>(),
                         n,
-                        ffi::RSMPI_FLOAT,
+                        datatype,
                         self.comm,
                     )
                 },
@@ -521,44 +538,22 @@ mod mpi_world {
             )
         }
 
+        fn all_gather_f32(&self, send: &[f32], recv: &mut [f32]) -> Result<()> {
+            // SAFETY: MPI_FLOAT is f32.
+            unsafe { self.all_gather(send, recv, ffi::RSMPI_FLOAT) }
+        }
+
         pub fn all_gather_f64(&self, x: f64) -> Result<Vec<f64>> {
             let mut all = vec![0f64; self.size];
-            // SAFETY: `all` holds one f64 per rank; the communicator is valid.
-            check(
-                unsafe {
-                    ffi::MPI_Allgather(
-                        (&x as *const f64).cast::<c_void>(),
-                        1,
-                        ffi::RSMPI_DOUBLE,
-                        all.as_mut_ptr().cast::<c_void>(),
-                        1,
-                        ffi::RSMPI_DOUBLE,
-                        self.comm,
-                    )
-                },
-                "MPI_Allgather",
-            )?;
+            // SAFETY: MPI_DOUBLE is f64.
+            unsafe { self.all_gather(&[x], &mut all, ffi::RSMPI_DOUBLE) }?;
             Ok(all)
         }
 
         fn all_gather_u64s(&self, x: &[u64]) -> Result<Vec<u64>> {
             let mut all = vec![0u64; x.len() * self.size];
-            let n = count(x.len(), "MPI_Allgather")?;
-            // SAFETY: `all` holds `x.len()` u64 per rank; the communicator is valid.
-            check(
-                unsafe {
-                    ffi::MPI_Allgather(
-                        x.as_ptr().cast::<c_void>(),
-                        n,
-                        ffi::RSMPI_UINT64_T,
-                        all.as_mut_ptr().cast::<c_void>(),
-                        n,
-                        ffi::RSMPI_UINT64_T,
-                        self.comm,
-                    )
-                },
-                "MPI_Allgather",
-            )?;
+            // SAFETY: MPI_UINT64_T is u64.
+            unsafe { self.all_gather(x, &mut all, ffi::RSMPI_UINT64_T) }?;
             Ok(all)
         }
 
