@@ -488,6 +488,47 @@ fn join_safetensors(header: &str, data: &[u8]) -> Vec<u8> {
     out
 }
 
+/// Mutations of a safetensors file `good`: 250 byte mutations; the header's length at 0, 1,
+/// one off either way, `u64::MAX` and `extra_lengths`; mutations of the header's JSON (dtypes,
+/// shapes, offsets, metadata); NaN and Inf at the start and the end of every tensor's data, and
+/// with `middle` at one random place inside it.
+fn safetensors_mutations(
+    rng: &mut Rng,
+    good: &[u8],
+    extra_lengths: &[u64],
+    middle: bool,
+) -> Vec<(String, Vec<u8>)> {
+    let (header, data) = split_safetensors(good);
+    let header_text = header.to_string();
+    let mut cases = byte_mutations(rng, good, 250);
+    let len = header_text.len() as u64;
+    let mut lengths = [&[0, 1, len - 1, len + 1, u64::MAX][..], extra_lengths].concat();
+    lengths.sort_unstable();
+    for n in lengths {
+        let mut b = good.to_vec();
+        b[..8].copy_from_slice(&n.to_le_bytes());
+        cases.push((format!("header length {n}"), b));
+    }
+    for (what, text) in json_mutations(rng, &header_text, 200) {
+        cases.push((format!("header: {what}"), join_safetensors(&text, data)));
+    }
+    let mut slots = Vec::new();
+    for (name, t) in header.as_object().unwrap() {
+        if name != "__metadata__" {
+            let offsets = t["data_offsets"].as_array().unwrap();
+            let (a, b) = (offsets[0].as_u64().unwrap() as usize, offsets[1].as_u64().unwrap() as usize);
+            slots.push(a);
+            if middle {
+                slots.push(a + 4 * (rng.below(((b - a) / 4) as u32) as usize));
+            }
+            slots.push(b - 4);
+        }
+    }
+    let data_start = good.len() - data.len();
+    cases.extend(float_mutations(good, slots.iter().map(|s| data_start + s)));
+    cases
+}
+
 #[test]
 fn fuzz_checkpoints() {
     let gpu = gpu();
@@ -501,31 +542,10 @@ fn fuzz_checkpoints() {
     let config = json!({"model": "velox autoencoder", "config": AutoencoderConfig::tiny()}).to_string();
     checkpoint::save(&path, &store, &config).unwrap();
     let good = std::fs::read(&path).unwrap();
-    let (header, data) = split_safetensors(&good);
-    let header_text = header.to_string();
     let mut rng = Rng::new(0xc4e);
-    let mut cases = byte_mutations(&mut rng, &good, 250);
-    // The header's length at its limits, its JSON (dtypes, shapes, offsets, metadata).
-    for n in
-        [0u64, 1, 7, header_text.len() as u64 - 1, header_text.len() as u64 + 1, u32::MAX as u64, u64::MAX]
-    {
-        let mut b = good.clone();
-        b[..8].copy_from_slice(&n.to_le_bytes());
-        cases.push((format!("header length {n}"), b));
-    }
-    for (what, text) in json_mutations(&mut rng, &header_text, 200) {
-        cases.push((format!("header: {what}"), join_safetensors(&text, data)));
-    }
-    // NaN and Inf at the start and end of every tensor's data.
-    let mut slots = Vec::new();
-    for (name, t) in header.as_object().unwrap() {
-        if name != "__metadata__" {
-            let offsets = t["data_offsets"].as_array().unwrap();
-            slots.extend([offsets[0].as_u64().unwrap() as usize, offsets[1].as_u64().unwrap() as usize - 4]);
-        }
-    }
-    let data_start = good.len() - data.len();
-    cases.extend(float_mutations(&good, slots.iter().map(|s| data_start + s)));
+    // The header's length at its limits (7 and 2^32 - 1 too), NaN and Inf at each end of
+    // every tensor's data.
+    let cases = safetensors_mutations(&mut rng, &good, &[7, u32::MAX as u64], false);
     let mut fuzz = Fuzz::new("checkpoint (velox_models::checkpoint::load, peek)");
     for (what, bytes) in cases {
         std::fs::write(&path, &bytes).unwrap();
@@ -694,27 +714,8 @@ fn fuzz_token_files_and_manifests() {
     };
 
     let good = std::fs::read(&path).unwrap();
-    let (header, data) = split_safetensors(&good);
-    let header_text = header.to_string();
-    let mut cases = byte_mutations(&mut rng, &good, 250);
-    for n in [0u64, 1, header_text.len() as u64 - 1, header_text.len() as u64 + 1, u64::MAX] {
-        let mut b = good.clone();
-        b[..8].copy_from_slice(&n.to_le_bytes());
-        cases.push((format!("header length {n}"), b));
-    }
-    for (what, text) in json_mutations(&mut rng, &header_text, 200) {
-        cases.push((format!("header: {what}"), join_safetensors(&text, data)));
-    }
-    let mut slots = Vec::new();
-    for (name, t) in header.as_object().unwrap() {
-        if name != "__metadata__" {
-            let offsets = t["data_offsets"].as_array().unwrap();
-            let (a, b) = (offsets[0].as_u64().unwrap() as usize, offsets[1].as_u64().unwrap() as usize);
-            slots.extend([a, a + 4 * (rng.below(((b - a) / 4) as u32) as usize), b - 4]);
-        }
-    }
-    let data_start = good.len() - data.len();
-    cases.extend(float_mutations(&good, slots.iter().map(|s| data_start + s)));
+    // NaN and Inf at each end and at a random place of every tensor's data.
+    let cases = safetensors_mutations(&mut rng, &good, &[], true);
     let mut fuzz =
         Fuzz::new("stored tokens (velox_models::velox::tokens::read_scene_file, TokenFolder::read)");
     for (what, bytes) in cases {
