@@ -771,6 +771,7 @@ fn dataset_on_disk_reads_back_in_the_background() {
             resolution: opts.res,
             points: a.points.len(),
             tracks: a.tracks.len(),
+            video_tracks: a.video_tracks.len(),
             supervision_views: a.supervision_cameras.len(),
             supersample: opts.supersample,
         };
@@ -782,6 +783,8 @@ fn dataset_on_disk_reads_back_in_the_background() {
     assert_eq!(s.occupancy, written[1].occupancy);
     assert_eq!(s.tracks, written[1].tracks);
     assert_eq!(s.visibility, written[1].visibility);
+    assert_eq!(s.video_tracks, written[1].video_tracks);
+    assert_eq!(s.video_visibility, written[1].video_visibility);
     assert_eq!(s.cameras.supervision, written[1].supervision_cameras);
     assert_eq!(s.supervision.len(), FRAMES * 25);
     assert_eq!(s.video.len(), FRAMES);
@@ -1000,4 +1003,62 @@ fn textures_crop_a_folder_of_images() {
     assert!(velox::data::texture::ImageFolder::open(&empty).is_err());
     let _ = std::fs::remove_dir_all(&dir);
     let _ = std::fs::remove_dir_all(&empty);
+}
+
+/// The tracking task's data: the video's depth frames back-project to a cloud of what the
+/// video shows; each query is a back-projected pixel of its first frame, seen there, and
+/// where the video sees a query later it is not behind the depth frame there. A depth frame
+/// that does not fit the camera or the scene's box is refused.
+#[test]
+fn tracking_video_is_rgbd_and_its_queries_lie_on_its_first_frame() {
+    use velox::data::rgbd::{read_rgbd_video, rgbd_cloud};
+    use velox::models::files::image::write_exr_depth;
+    let root = temp_dir("tracking-video");
+    let opts = SynthOptions { res: 48, points: 500, supersample: 1, tracks: 40 };
+    let (_, mesh) = scene(3, None).unwrap();
+    let dir = root.join("scene_00003");
+    let a = render_scene(&gpu(), &mesh, &opts, 3, Some(&dir), &mut |_| {}).unwrap();
+    assert_eq!(a.video_tracks.len(), 40);
+    let cam = a.video_camera.unwrap();
+    let video = read_rgbd_video(&dir.join("video"), cam).unwrap();
+    let all = rgbd_cloud(&video, usize::MAX, 0).unwrap();
+    let surface: usize = video.depth.iter().map(|d| d.iter().filter(|&&z| z > 0.0).count()).sum();
+    assert_eq!(all.len(), surface);
+    assert!(all.windows(2).all(|w| w[0][6] <= w[1][6]), "frame order");
+    let first: Vec<&[f32; 7]> = all.iter().filter(|p| p[6] == 0.0).collect();
+    let w = cam.width as usize;
+    for (t, seen) in a.video_tracks.iter().zip(&a.video_visibility) {
+        assert!(seen[0], "a query is seen on the first frame");
+        let nearest = first
+            .iter()
+            .map(|p| (0..3).map(|k| (p[k] - t[0][k]).powi(2)).sum::<f32>().sqrt())
+            .fold(f32::INFINITY, f32::min);
+        assert!(nearest < 1e-3, "query {:?} is {nearest} from every back-projected pixel", t[0]);
+        for f in (0..FRAMES).filter(|&f| seen[f]) {
+            let (u, v, z) = cam.project(t[f]);
+            let d = video.depth[f][v as usize * w + u as usize];
+            assert!(
+                d > 0.0 && z <= d + 3.0 * z / cam.fx,
+                "frame {f}: seen at depth {z}, the surface is at {d}"
+            );
+        }
+    }
+    assert!(a.video_visibility.iter().any(|s| s.iter().any(|&v| !v)), "some query is hidden at some frame");
+    let some = rgbd_cloud(&video, 100, 1).unwrap();
+    assert_eq!(some.len(), 100);
+    assert!(some.iter().all(|p| all.contains(p)), "a draw keeps points of the cloud");
+    assert_eq!(some, rgbd_cloud(&video, 100, 1).unwrap(), "the same seed draws the same points");
+
+    let far: Vec<f32> = video.depth[5].iter().map(|z| z * 10.0).collect();
+    write_exr_depth(&dir.join("video/f05_depth.exr"), &far, cam.width, cam.height).unwrap();
+    let e = rgbd_cloud(&read_rgbd_video(&dir.join("video"), cam).unwrap(), 100, 0).unwrap_err().to_string();
+    assert!(e.contains("frame 5") && e.contains("outside"), "{e}");
+    let mut bad = video.depth[5].clone();
+    bad[7] = f32::NAN;
+    write_exr_depth(&dir.join("video/f05_depth.exr"), &bad, cam.width, cam.height).unwrap();
+    let e = read_rgbd_video(&dir.join("video"), cam).unwrap_err().to_string();
+    assert!(e.contains("f05_depth.exr") && e.contains("(7, 0)"), "{e}");
+    write_exr_depth(&dir.join("video/f05_depth.exr"), &video.depth[5][..w * 20], cam.width, 20).unwrap();
+    let e = read_rgbd_video(&dir.join("video"), cam).unwrap_err().to_string();
+    assert!(e.contains("48 x 20"), "{e}");
 }

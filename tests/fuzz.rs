@@ -682,6 +682,7 @@ fn fuzz_token_files_and_manifests() {
         config: AutoencoderConfig::tiny(),
         seed: 3,
         precision: velox::engine::Precision::F32,
+        source: Default::default(),
     };
     let (k, d) = origin.shape();
     let mut rng = Rng::new(0x70c);

@@ -19,8 +19,8 @@ use velox::models::train::source::SampleSource;
 use velox::models::velox::autoencoder::Autoencoder;
 use velox::models::velox::cloud;
 use velox::models::velox::tokens::{
-    check_checkpoint, checkpoint_hash, read_scene_file, scene_file, CheckpointCheck, TokenFolder,
-    TokenManifest, TokenStats, MANIFEST,
+    check_checkpoint, checkpoint_hash, read_scene_file, scene_file, CheckpointCheck, CloudSource,
+    TokenFolder, TokenManifest, TokenStats, MANIFEST,
 };
 
 const SCENES: [&str; 2] = ["scene_00000", "scene_00001"];
@@ -80,6 +80,8 @@ fn options(dir: &Path, seed: u64) -> EncodeOptions {
         seed,
         precision: Precision::F32,
         force: false,
+        source: CloudSource::Points,
+        video_points: velox::data::rgbd::DEFAULT_POINTS,
     }
 }
 

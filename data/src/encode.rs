@@ -4,7 +4,8 @@
 //! downstream of the encoder train on stored tokens with the encoder frozen
 //! ([`crate::training::TokenScenes`]).
 //!
-//! Scene by scene, in name order: the cloud (`points.ply`, checked) is encoded with the
+//! Scene by scene, in name order: the cloud (`points.ply`, checked; or with
+//! [`CloudSource::Video`] the scene's RGBD video back-projected, `crate::rgbd`) is encoded with the
 //! queries drawn from the seed (`Autoencoder::encode_with_queries`, the encoder of `velox
 //! decode` and `velox eval`); the tokens, bit for bit, and the cloud's rows at the query
 //! indices (x, y, z, tau) go to `SCENE.safetensors`. The manifest, written last, lists every
@@ -29,8 +30,8 @@ use velox_engine::{Gpu, Precision};
 use velox_models::velox::autoencoder::Autoencoder;
 use velox_models::velox::cloud::{self, CHANNELS};
 use velox_models::velox::tokens::{
-    check_scene_name, checkpoint_hash, read_scene_file, scene_file, write_scene_file, SceneTokens,
-    TokenManifest, TokenOrigin, TokenStats, DEFAULT_DIR, MANIFEST,
+    check_scene_name, checkpoint_hash, read_scene_file, scene_file, write_scene_file, CloudSource,
+    SceneTokens, TokenManifest, TokenOrigin, TokenStats, MANIFEST,
 };
 
 use crate::format::{list_some_scenes, read_ply};
@@ -51,12 +52,16 @@ pub struct EncodeOptions {
     pub precision: Precision,
     /// Encode every scene again, and replace tokens of another checkpoint, seed or precision.
     pub force: bool,
+    /// The cloud to encode: `points.ply`, or the RGBD video back-projected (at most
+    /// `video_points` of its pixels, drawn with `seed`).
+    pub source: CloudSource,
+    pub video_points: usize,
 }
 
 impl EncodeOptions {
     /// The token folder the options name.
     pub fn out_dir(&self) -> PathBuf {
-        self.out.clone().unwrap_or_else(|| self.data.join(DEFAULT_DIR))
+        self.out.clone().unwrap_or_else(|| self.data.join(self.source.default_dir()))
     }
 }
 
@@ -133,6 +138,7 @@ pub fn encode_dataset(
         config: ae.cfg.clone(),
         seed: options.seed,
         precision: options.precision,
+        source: options.source,
     };
     std::fs::create_dir_all(&out)
         .map_err(|e| DataError::Io(format!("cannot create {}: {e}", out.display())))?;
@@ -171,12 +177,19 @@ pub fn encode_dataset(
         if stat.is_some() {
             continue;
         }
-        let cloud: Vec<f32> = read_ply(&dir.join("points.ply"))?.into_iter().flatten().collect();
+        let (cloud, what) = match options.source {
+            CloudSource::Points => (read_ply(&dir.join("points.ply"))?, dir.join("points.ply")),
+            CloudSource::Video => {
+                let video = crate::rgbd::read_scene_video(dir)?;
+                (crate::rgbd::rgbd_cloud(&video, options.video_points, options.seed)?, dir.join("video"))
+            }
+        };
+        let cloud: Vec<f32> = cloud.into_iter().flatten().collect();
         let n = cloud.len() / CHANNELS;
         if n < k {
             return Err(DataError::Invalid(format!(
                 "{}: {n} points, and the encoder of {} needs at least {k}",
-                dir.join("points.ply").display(),
+                what.display(),
                 origin.checkpoint.display()
             )));
         }

@@ -14,8 +14,15 @@
 //!   tracks.bin                per track, per frame: x y z as little-endian f32
 //!   tracks_visibility.bin     per track, per frame: a little-endian u64, bit c set when
 //!                             input camera c sees the point
+//!   video_tracks.bin          the tracking task's queries (frame-0 surface points the video
+//!                             shows), per query, per frame: x y z as little-endian f32
+//!   video_tracks_visibility.bin  per query, per frame: a byte, 1 where the video camera
+//!                             sees the point, else 0
 //!   supervision/fFF_vVV.png   frame FF seen from supervision camera VV (RGB, anti-aliased)
 //!   video/fFF.png             the conditioning video's frame FF (RGB, anti-aliased)
+//!   video/fFF_depth.exr       its depth (one f32 channel Z: camera-space z, 0 where no
+//!                             surface; one sample at each pixel's centre): the RGBD video of
+//!                             the tracking task
 //! ```
 //! Background pixels are black. Everything needed to read a scene is in its folder; a scene
 //! is written into `scene_XXXXX.partial` and renamed when complete, so a crash never leaves a
@@ -53,6 +60,9 @@ pub struct SceneMeta {
     pub resolution: u32,
     pub points: usize,
     pub tracks: usize,
+    /// Queries of the tracking task (`video_tracks.bin`); scenes written before it read 0.
+    #[serde(default)]
+    pub video_tracks: usize,
     pub supervision_views: usize,
     pub supersample: u32,
 }
@@ -110,6 +120,7 @@ pub fn write_scene(
         resolution: opts.res,
         points: arrays.points.len(),
         tracks: arrays.tracks.len(),
+        video_tracks: arrays.video_tracks.len(),
         supervision_views: arrays.supervision_cameras.len(),
         supersample: opts.supersample,
     };
@@ -144,6 +155,10 @@ pub fn write_arrays(dir: &Path, meta: &SceneMeta, a: &SceneArrays) -> DataResult
     write_file(&dir.join("tracks.bin"), bytemuck::cast_slice(&tracks))?;
     let vis: Vec<u64> = a.visibility.iter().flatten().copied().collect();
     write_file(&dir.join("tracks_visibility.bin"), bytemuck::cast_slice(&vis))?;
+    let video: Vec<f32> = a.video_tracks.iter().flatten().flatten().copied().collect();
+    write_file(&dir.join("video_tracks.bin"), bytemuck::cast_slice(&video))?;
+    let seen: Vec<u8> = a.video_visibility.iter().flatten().map(|&v| v as u8).collect();
+    write_file(&dir.join("video_tracks_visibility.bin"), &seen)?;
     Ok(())
 }
 
@@ -230,6 +245,9 @@ pub struct Scene {
     pub occupancy: Vec<u64>,
     pub tracks: Vec<[[f32; 3]; FRAMES]>,
     pub visibility: Vec<[u64; FRAMES]>,
+    /// The tracking task's queries in every frame, and whether the video camera sees each.
+    pub video_tracks: Vec<[[f32; 3]; FRAMES]>,
+    pub video_visibility: Vec<[bool; FRAMES]>,
     /// Supervision images, frame-major then view, 8-bit RGB rows (empty unless asked for).
     pub supervision: Vec<Vec<u8>>,
     /// The conditioning video's frames, 8-bit RGB rows (empty unless asked for).
@@ -295,6 +313,7 @@ fn check_meta(meta: &SceneMeta) -> Result<(), String> {
     in_range("supersample", meta.supersample as usize, 1, MAX_SUPERSAMPLE as usize)?;
     in_range("points", meta.points, 1, MAX_POINTS)?;
     in_range("tracks", meta.tracks, 0, MAX_TRACKS)?;
+    in_range("video_tracks", meta.video_tracks, 0, MAX_TRACKS)?;
     in_range("supervision_views", meta.supervision_views, 1, MAX_SUPERVISION_VIEWS)
 }
 
@@ -362,24 +381,7 @@ pub fn read_scene(dir: &Path, images: bool) -> DataResult<Scene> {
         ));
     }
     let occupancy = read_occupancy_words(dir)?;
-    // meta.tracks is at most MAX_TRACKS: these products do not overflow.
-    let tracks_what = format!("{} tracks, as meta.json says, x {FRAMES} frames x 3 f32", meta.tracks);
-    let flat = read_words::<f32>(&dir.join("tracks.bin"), meta.tracks * FRAMES * 3, &tracks_what)?;
-    if let Some(i) = flat.iter().position(|v| !(v.is_finite() && v.abs() <= 1.0 + TRACK_SLACK)) {
-        return Err(invalid(
-            "tracks.bin",
-            format!(
-                "track {} at frame {} has coordinate {}, outside [-1, 1]",
-                i / (3 * FRAMES),
-                i / 3 % FRAMES,
-                flat[i]
-            ),
-        ));
-    }
-    let tracks = flat
-        .chunks_exact(3 * FRAMES)
-        .map(|c| std::array::from_fn(|f| [c[3 * f], c[3 * f + 1], c[3 * f + 2]]))
-        .collect();
+    let tracks = read_positions(dir, "tracks.bin", meta.tracks)?;
     let vis_what = format!("{} tracks, as meta.json says, x {FRAMES} frames x 1 u64", meta.tracks);
     let vis = read_words::<u64>(&dir.join("tracks_visibility.bin"), meta.tracks * FRAMES, &vis_what)?;
     if let Some(i) = vis.iter().position(|&bits| bits >> NUM_INPUT_CAMERAS != 0) {
@@ -394,6 +396,27 @@ pub fn read_scene(dir: &Path, images: bool) -> DataResult<Scene> {
         ));
     }
     let visibility = vis.chunks_exact(FRAMES).map(|c| std::array::from_fn(|f| c[f])).collect();
+    // Scenes written before the tracking task have neither file (and video_tracks = 0).
+    let (mut video_tracks, mut video_visibility) = (Vec::new(), Vec::new());
+    if meta.video_tracks > 0 {
+        video_tracks = read_positions(dir, "video_tracks.bin", meta.video_tracks)?;
+        let what =
+            format!("{} video tracks, as meta.json says, x {FRAMES} frames x 1 byte", meta.video_tracks);
+        let seen =
+            read_words::<u8>(&dir.join("video_tracks_visibility.bin"), meta.video_tracks * FRAMES, &what)?;
+        if let Some(i) = seen.iter().position(|&b| b > 1) {
+            return Err(invalid(
+                "video_tracks_visibility.bin",
+                format!(
+                    "video track {} at frame {} has byte {}, not 0 or 1",
+                    i / FRAMES,
+                    i % FRAMES,
+                    seen[i]
+                ),
+            ));
+        }
+        video_visibility = seen.chunks_exact(FRAMES).map(|c| std::array::from_fn(|f| c[f] == 1)).collect();
+    }
     let (mut supervision, mut video) = (Vec::new(), Vec::new());
     if images {
         for f in 0..FRAMES {
@@ -412,9 +435,31 @@ pub fn read_scene(dir: &Path, images: bool) -> DataResult<Scene> {
         occupancy,
         tracks,
         visibility,
+        video_tracks,
+        video_visibility,
         supervision,
         video,
     })
+}
+
+/// `count` tracks of [`FRAMES`] positions from `file` in `dir` (`count` at most
+/// [`MAX_TRACKS`], so the sizes do not overflow), every coordinate in [-1, 1].
+fn read_positions(dir: &Path, file: &str, count: usize) -> DataResult<Vec<[[f32; 3]; FRAMES]>> {
+    let what = format!("{count} tracks, as meta.json says, x {FRAMES} frames x 3 f32");
+    let flat = read_words::<f32>(&dir.join(file), count * FRAMES * 3, &what)?;
+    if let Some(i) = flat.iter().position(|v| !(v.is_finite() && v.abs() <= 1.0 + TRACK_SLACK)) {
+        return Err(DataError::Invalid(format!(
+            "{}: track {} at frame {} has coordinate {}, outside [-1, 1]",
+            dir.join(file).display(),
+            i / (3 * FRAMES),
+            i / 3 % FRAMES,
+            flat[i]
+        )));
+    }
+    Ok(flat
+        .chunks_exact(3 * FRAMES)
+        .map(|c| std::array::from_fn(|f| [c[3 * f], c[3 * f + 1], c[3 * f + 2]]))
+        .collect())
 }
 
 /// A scene's `meta.json`, read and checked against the format.

@@ -14,6 +14,7 @@
 //! - [`raster`] renders it on the engine with a compute rasteriser (`shaders/mesh_raster.wgsl`)
 //!   from the cameras of [`camera`]: RGB, depth, triangle id and barycentrics;
 //! - [`pipeline`] turns the renders into point clouds, occupancy and tracks;
+//! - [`rgbd`] reads RGBD videos and back-projects them (the tracking task's input);
 //! - [`format`] writes and reads the dataset, [`loader`] reads it in the background in the
 //!   order of [`order`];
 //! - [`encode`] stores a trained encoder's tokens of every scene once, and [`training`] gives
@@ -37,6 +38,7 @@ pub mod order;
 pub mod pipeline;
 pub mod procedural;
 pub mod raster;
+pub mod rgbd;
 pub mod texture;
 pub mod training;
 

@@ -23,6 +23,10 @@
 //!   in every frame. It is visible from an input camera at a frame when it projects into the
 //!   image, its triangle is not collapsed (a hidden part) and it is not farther than the
 //!   rendered depth there by more than three pixel footprints.
+//! - **Video tracks** (the tracking task): the same, drawn from the video camera's frame-0
+//!   pixels alone, so each query is a surface point the RGBD video's first frame shows, at a
+//!   back-projected pixel of it; visible where the video camera sees it, by the same test.
+//!   They come from a random stream of their own: the cloud and the tracks do not change.
 
 use std::path::Path;
 
@@ -105,6 +109,11 @@ pub struct SceneArrays {
     pub visibility: Vec<[u64; crate::procedural::FRAMES]>,
     /// The frame-0 triangle and barycentrics (b1, b2) of each track.
     pub anchors: Vec<(u32, [f32; 2])>,
+    /// The tracking task's queries: surface points at pixels of the video camera's frame 0
+    /// (drawn like the tracks, from that one camera), in every frame.
+    pub video_tracks: Vec<[V3; crate::procedural::FRAMES]>,
+    /// Per video track and frame: whether the video camera sees it (depth test as for tracks).
+    pub video_visibility: Vec<[bool; crate::procedural::FRAMES]>,
     pub input_cameras: Vec<Camera>,
     pub supervision_cameras: Vec<Camera>,
     pub video_camera: Option<Camera>,
@@ -186,14 +195,14 @@ pub fn mark_triangle(occ: &mut [u64], tri: [V3; 3]) {
 }
 
 /// Draws `k` of a stream uniformly at random, whatever its length (reservoir sampling).
-struct Reservoir<T> {
-    k: usize,
-    seen: u64,
-    items: Vec<T>,
+pub(crate) struct Reservoir<T> {
+    pub(crate) k: usize,
+    pub(crate) seen: u64,
+    pub(crate) items: Vec<T>,
 }
 
 impl<T: Clone> Reservoir<T> {
-    fn offer(&mut self, rng: &mut Rng, item: T) {
+    pub(crate) fn offer(&mut self, rng: &mut Rng, item: T) {
         self.seen += 1;
         if self.items.len() < self.k {
             self.items.push(item);
@@ -208,8 +217,8 @@ impl<T: Clone> Reservoir<T> {
 
 /// Renders a scene. `seed` draws the supervision and video cameras, the point sample and the
 /// tracks. When `dir` is given, the supervision views (`supervision/fFF_vVV.png`) and the
-/// conditioning video (`video/fFF.png`) are written there as they are rendered; `progress`
-/// is called after each frame.
+/// conditioning video (`video/fFF.png`, with its depth `video/fFF_depth.exr`) are written
+/// there as they are rendered; `progress` is called after each frame.
 pub fn render_scene(
     gpu: &Gpu,
     mesh: &AnimatedMesh,
@@ -239,6 +248,9 @@ pub fn render_scene(
         }
     }
     let mut reservoir = Reservoir { k: opts.points, seen: 0, items: Vec::new() };
+    // Its own stream, so the video's queries leave the cloud and the tracks as they were.
+    let mut video_rng = Rng::new(seed ^ 0x5851_f42d_4c95_7f2d);
+    let mut video_anchors = Vec::new();
     let mut out = SceneArrays {
         occupancy: vec![0u64; frames * OCCUPANCY_WORDS],
         input_cameras: inputs.clone(),
@@ -273,6 +285,19 @@ pub fn render_scene(
             out.tracks[t][f] = p;
             out.visibility[t][f] = visibility(mesh, f, tri, p, &frame, &inputs);
         }
+        let seen_by_video = rast.render(verts, std::slice::from_ref(&video))?;
+        if f == 0 {
+            video_anchors = pick_anchors(&seen_by_video, opts.tracks, &mut video_rng);
+            out.video_tracks = vec![[[0.0; 3]; crate::procedural::FRAMES]; video_anchors.len()];
+            out.video_visibility = vec![[false; crate::procedural::FRAMES]; video_anchors.len()];
+        }
+        for (t, &(tri, b)) in video_anchors.iter().enumerate() {
+            let p = mesh.surface_point(f, tri, b);
+            out.video_tracks[t][f] = p;
+            out.video_visibility[t][f] =
+                visibility(mesh, f, tri, p, &seen_by_video, std::slice::from_ref(&video)) & 1 == 1;
+        }
+
         if let Some(dir) = dir {
             let images = rast.render_rgb_supersampled(verts, &sup, opts.supersample)?;
             for (v, img) in images.iter().enumerate() {
@@ -280,21 +305,29 @@ pub fn render_scene(
             }
             let img = rast.render_rgb_supersampled(verts, std::slice::from_ref(&video), opts.supersample)?;
             save_png(&dir.join(format!("video/f{f:02}.png")), opts.res, &img[0])?;
+            let depth = dir.join(format!("video/f{f:02}_depth.exr"));
+            velox_models::files::image::write_exr_depth(&depth, &seen_by_video.depth, opts.res, opts.res)
+                .map_err(|e| DataError::Io(format!("{}: {e}", depth.display())))?;
         }
         progress(f);
     }
-    let mut points = reservoir.items;
-    if points.is_empty() {
+    if reservoir.items.is_empty() {
         return Err(DataError::Invalid("no input camera sees the object in any frame".into()));
     }
+    out.points = fill_in_frame_order(reservoir.items, opts.points, &mut rng);
+    Ok(out)
+}
+
+/// A cloud drawn from candidates (not empty) grown to `n` points by repeating random ones,
+/// then ordered by frame time (a stable sort: the draw's order within a frame stays).
+pub(crate) fn fill_in_frame_order(mut points: Vec<[f32; 7]>, n: usize, rng: &mut Rng) -> Vec<[f32; 7]> {
     let have = points.len();
-    while points.len() < opts.points {
+    while points.len() < n {
         let p = points[rng.below(have as u32) as usize];
         points.push(p);
     }
     points.sort_by(|a, b| a[6].total_cmp(&b[6]));
-    out.points = points;
-    Ok(out)
+    points
 }
 
 /// Up to `n` distinct surface pixels of frame 0, drawn at random over all input views.

@@ -9,6 +9,7 @@ use std::path::PathBuf;
 use indicatif::ProgressBar;
 use velox_data::encode::{encode_dataset, EncodeObserver, EncodeOptions};
 use velox_engine::Gpu;
+use velox_models::velox::tokens::CloudSource;
 
 use crate::decode::{progress, PrecisionArg};
 use crate::CliResult;
@@ -21,7 +22,7 @@ pub struct EncodeArgs {
     /// Dataset folder (scenes as `velox data` writes them).
     #[arg(long)]
     data: PathBuf,
-    /// Token folder [default: DATA/tokens, beside the scenes].
+    /// Token folder [default: DATA/tokens, or DATA/tokens-video with --source video].
     #[arg(long)]
     out: Option<PathBuf>,
     /// Seed of the encoder's queries.
@@ -35,6 +36,19 @@ pub struct EncodeArgs {
     /// (refused without it).
     #[arg(long)]
     force: bool,
+    /// The cloud to encode: the scenes' point clouds (for the voxel decoder and the
+    /// generators), or their RGBD videos back-projected (the tracker's input).
+    #[arg(long, value_enum, default_value_t = SourceArg::Points)]
+    source: SourceArg,
+    /// With --source video: at most this many of a video's surface pixels (a seeded draw).
+    #[arg(long, default_value_t = velox_data::rgbd::DEFAULT_POINTS as u64, value_parser = clap::value_parser!(u64).range(1..=16_777_216))]
+    video_points: u64,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum SourceArg {
+    Points,
+    Video,
 }
 
 /// The progress bar over the scenes to encode.
@@ -72,9 +86,18 @@ pub fn run(a: &EncodeArgs) -> CliResult<()> {
         seed: a.seed,
         precision: a.precision.into(),
         force: a.force,
+        source: match a.source {
+            SourceArg::Points => CloudSource::Points,
+            SourceArg::Video => CloudSource::Video,
+        },
+        video_points: a.video_points as usize,
     };
     println!(
-        "encoding the scenes of {} with the encoder of {} ({}, seed {}) into {} on {}",
+        "encoding the {} of the scenes of {} with the encoder of {} ({}, seed {}) into {} on {}",
+        match options.source {
+            CloudSource::Points => "point clouds",
+            CloudSource::Video => "RGBD videos",
+        },
         a.data.display(),
         a.checkpoint.display(),
         options.precision.name(),

@@ -2,4 +2,5 @@
 //! (the command writes and prints them).
 
 pub mod recon;
+pub mod tracking;
 pub mod voxels;

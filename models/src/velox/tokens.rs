@@ -62,6 +62,35 @@ pub const VERSION: u32 = 1;
 pub const MANIFEST: &str = "tokens.json";
 /// The token folder's name inside a dataset when `velox encode` is not told another.
 pub const DEFAULT_DIR: &str = "tokens";
+
+/// Which cloud of a scene tokens encode.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CloudSource {
+    /// `points.ply`: the input views' cloud, what the autoencoder encodes.
+    #[default]
+    Points,
+    /// The scene's RGBD video back-projected (`velox_data::rgbd`): the tracking task's input.
+    Video,
+}
+
+impl CloudSource {
+    pub fn name(self) -> &'static str {
+        match self {
+            CloudSource::Points => "points",
+            CloudSource::Video => "video",
+        }
+    }
+
+    /// The token folder's name inside a dataset when `velox encode` is not told another:
+    /// `tokens`, or `tokens-video`.
+    pub fn default_dir(self) -> &'static str {
+        match self {
+            CloudSource::Points => DEFAULT_DIR,
+            CloudSource::Video => "tokens-video",
+        }
+    }
+}
 /// Columns of a query point: x, y, z, tau.
 pub const POINT_COLUMNS: usize = 4;
 
@@ -157,6 +186,9 @@ pub struct TokenOrigin {
     /// The precision the encoder ran in.
     #[serde(with = "precision_name")]
     pub precision: Precision,
+    /// The cloud encoded; folders written before there was a choice read `points`.
+    #[serde(default)]
+    pub source: CloudSource,
 }
 
 impl TokenOrigin {
@@ -201,6 +233,9 @@ impl TokenOrigin {
         }
         if self.precision != other.precision {
             out.push(format!("precision {}, not {}", self.precision.name(), other.precision.name()));
+        }
+        if self.source != other.source {
+            out.push(format!("the {} cloud, not the {}", self.source.name(), other.source.name()));
         }
         out
     }
@@ -331,6 +366,7 @@ pub fn write_scene_file(dir: &Path, origin: &TokenOrigin, tokens: &SceneTokens) 
         ("config".to_string(), serde_json::to_string(&origin.config).expect("a config serialises")),
         ("seed".to_string(), origin.seed.to_string()),
         ("precision".to_string(), origin.precision.name().to_string()),
+        ("source".to_string(), origin.source.name().to_string()),
     ]);
     let (token_shape, point_shape) = ([k, d], [k, POINT_COLUMNS]);
     let tensors = [
@@ -376,12 +412,18 @@ pub fn read_scene_file(path: &Path) -> Result<(TokenOrigin, SceneTokens)> {
         field("seed")?.parse().map_err(|_| invalid(format!("seed {:?} is not a u64", meta["seed"])))?;
     let precision = precision_name::parse(field("precision")?)
         .ok_or_else(|| invalid(format!("precision {:?} is not f32 or f16", meta["precision"])))?;
+    let source = match meta.get("source").map(String::as_str) {
+        None | Some("points") => CloudSource::Points,
+        Some("video") => CloudSource::Video,
+        Some(other) => return Err(invalid(format!("source {other:?} is not points or video"))),
+    };
     let origin = TokenOrigin {
         checkpoint: PathBuf::from(field("checkpoint")?),
         checkpoint_hash: field("checkpoint_hash")?.clone(),
         config,
         seed,
         precision,
+        source,
     };
     origin.check(path)?;
 
@@ -701,6 +743,7 @@ mod tests {
             config: AutoencoderConfig::tiny(),
             seed: 5,
             precision: Precision::F16,
+            source: CloudSource::Points,
         }
     }
 
