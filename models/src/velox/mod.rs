@@ -10,4 +10,5 @@ pub mod gaussians;
 pub mod perceiver;
 pub mod surface;
 pub mod tokens;
+pub mod tracker;
 pub mod voxels;

@@ -159,7 +159,8 @@ pub struct VoxelPerceiver {
 
 /// What [`VoxelPerceiver::backward`] needs from the forward pass.
 pub struct PerceiverCache {
-    windows: [WindowLayout; 2],
+    /// The plain and the shifted windows; none without self-attention layers.
+    windows: Vec<WindowLayout>,
     cross_segments: Segments,
     input: DenseCache,
     blocks: Vec<BlockCache>,
@@ -293,13 +294,16 @@ impl VoxelPerceiver {
                 .collect()
         };
         let taus = Tensor::from_slice(&gpu, &[v, 1], &per_query(&|_, tau| tau))?;
-        let group_ids = Tensor::from_slice(&gpu, &[v, 1], &per_query(&|g, _| g as f32))?;
-        let points = Tensor::empty(&gpu, &[v, 4], DType::F32)?;
-        copy_columns(rec, positions, 0, &points, 0, 3, 1.0)?;
-        copy_columns(rec, &group_ids, 0, &points, 3, 1, 1.0)?;
-        let grid = self.grid(frames.groups.len())?;
-        let windows =
-            [WindowLayout::new(rec, &points, &grid)?, WindowLayout::new(rec, &points, &grid.shifted())?];
+        let windows = if self.shape.self_layers == 0 {
+            Vec::new()
+        } else {
+            let group_ids = Tensor::from_slice(&gpu, &[v, 1], &per_query(&|g, _| g as f32))?;
+            let points = Tensor::empty(&gpu, &[v, 4], DType::F32)?;
+            copy_columns(rec, positions, 0, &points, 0, 3, 1.0)?;
+            copy_columns(rec, &group_ids, 0, &points, 3, 1, 1.0)?;
+            let grid = self.grid(frames.groups.len())?;
+            vec![WindowLayout::new(rec, &points, &grid)?, WindowLayout::new(rec, &points, &grid.shifted())?]
+        };
         let (fx, _) = self.fourier_xyz.forward(rec, positions)?;
         let (ft, _) = self.fourier_tau.forward(rec, &taus)?;
         let (wx, wt) = (self.fourier_xyz.out_width(), self.fourier_tau.out_width());

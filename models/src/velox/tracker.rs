@@ -1,0 +1,322 @@
+//! The 3D tracking network (paper: section 3.4, 3D tracking; MODELS.md): from the tokens of an
+//! RGBD video's back-projected cloud and query points on its first frame, each query's
+//! position at every frame.
+//!
+//! The trunk is a [`VoxelPerceiver`] without self-attention: a query's feature is its Fourier
+//! embedded position (and frame time 0, the first frame), `blocks` blocks of cross-attention
+//! to the tokens and SwiGLU feed-forward refine it, and the head gives `3 x 24` numbers: the
+//! query's offset at each frame. Queries never see each other, so a prediction is the same
+//! whatever other queries run with it, and any number of them run in chunks. The head starts
+//! near zero, so an untrained tracker predicts that nothing moves (the static baseline).
+//!
+//! Visibility is not learned (as in the paper): a predicted point is occluded where it lies
+//! behind the video's depth at its pixel, or outside the image ([`occluded`]).
+
+use std::path::Path;
+use std::time::Instant;
+
+use velox_engine::ops::adamw::AdamWConfig;
+use velox_engine::ops::attention::Segments;
+use velox_engine::ops::binary::{binary, Binary};
+use velox_engine::rng::Rng;
+use velox_engine::{Error, Gpu, Result, Tensor};
+
+use crate::config::{TrackLoss, TrackerConfig};
+use crate::layers::Loss;
+use crate::params::{ParamBuilder, ParamStore};
+use crate::train::{Losses, Optimisation, PassSeconds, Trainable};
+use crate::velox::autoencoder::FRAMES;
+use crate::velox::perceiver::{PerceiverShape, VoxelFrames, VoxelPerceiver};
+
+/// The `model` a checkpoint of the tracker names.
+pub const MODEL_KIND: &str = "velox tracker";
+/// Queries one pass of [`Tracker::predict`] runs at most.
+pub const CHUNK: usize = 16384;
+
+/// One track: a point's position at each frame; frame 0 is the query.
+pub type Track = [[f32; 3]; FRAMES];
+
+/// What the tracker trains on from one scene: the tokens of its video's cloud and the true
+/// tracks of its queries.
+pub struct TrackSample {
+    /// `[k, token_dim]` on the device (the frozen encoder's, from `velox encode --source video`).
+    pub tokens: Tensor,
+    pub tracks: Vec<Track>,
+}
+
+impl TrackSample {
+    /// Checks the shapes and values: tokens f32 `[k > 0, d > 0]`, at least one track, every
+    /// position finite.
+    pub fn new(tokens: Tensor, tracks: Vec<Track>) -> Result<TrackSample> {
+        let ok_tokens = matches!(tokens.shape(), [k, d] if *k > 0 && *d > 0)
+            && tokens.dtype() == velox_engine::DType::F32;
+        if !ok_tokens {
+            return Err(Error::Shape(format!("track sample: tokens must be f32 [k, d], got {tokens:?}")));
+        }
+        if tracks.is_empty() {
+            return Err(Error::Invalid(
+                "track sample: the scene has no tracks (made with --tracks 0?): nothing to learn".into(),
+            ));
+        }
+        if let Some(i) = tracks.iter().position(|t| t.iter().flatten().any(|v| !v.is_finite())) {
+            return Err(Error::Invalid(format!("track sample: track {i} has a non-finite position")));
+        }
+        Ok(TrackSample { tokens, tracks })
+    }
+}
+
+/// Whether a point at camera-space `(u, v, z)` (pixel coordinates and depth, as
+/// `Camera::project` gives them) is occluded in a depth frame `[h, w]` (camera z, 0 where no
+/// surface) of a camera with focal length `fx`: outside the image or behind the camera, or
+/// farther than the surface at its pixel by more than three pixel footprints (the data's own
+/// visibility test). A point over the background is visible: nothing hides it.
+pub fn occluded(u: f32, v: f32, z: f32, depth: &[f32], w: u32, h: u32, fx: f32) -> bool {
+    if !(z > 0.0 && u >= 0.0 && v >= 0.0 && u < w as f32 && v < h as f32) {
+        return true;
+    }
+    let d = depth[v as usize * w as usize + u as usize];
+    d > 0.0 && z > d + 3.0 * z / fx
+}
+
+/// The tracking network; see the module docs.
+pub struct Tracker {
+    pub cfg: TrackerConfig,
+    pub store: ParamStore,
+    trunk: VoxelPerceiver,
+    pub adamw: AdamWConfig,
+    pass_seconds: PassSeconds,
+}
+
+impl Tracker {
+    fn shape(cfg: &TrackerConfig) -> PerceiverShape {
+        PerceiverShape {
+            width: cfg.width,
+            heads: cfg.heads,
+            blocks: cfg.blocks,
+            self_layers: 0,
+            ffn_ratio: cfg.ffn_ratio,
+            xyz_freqs: cfg.xyz_freqs,
+            // Every query is at frame time 0: one octave of a constant is all it needs.
+            tau_freqs: 1,
+            window: 2.0,
+            input_hidden: cfg.input_hidden,
+            head_hidden: cfg.head_hidden,
+            out: 3 * FRAMES,
+            head_std: 1e-3,
+        }
+    }
+
+    /// Declares the parameters (`trunk.*`).
+    pub fn register(b: &mut ParamBuilder, cfg: &TrackerConfig) -> Result<()> {
+        VoxelPerceiver::register(b, "trunk", &Self::shape(cfg), cfg.token_dim)
+    }
+
+    /// A freshly initialised tracker (parameters from `seed`).
+    pub fn new(gpu: &Gpu, cfg: &TrackerConfig, seed: u64) -> Result<Tracker> {
+        cfg.validate()?;
+        let mut b = ParamStore::builder();
+        Self::register(&mut b, cfg)?;
+        let store = b.build(gpu, seed)?;
+        let trunk = VoxelPerceiver::new(gpu, &store, "trunk", &Self::shape(cfg))?;
+        Ok(Tracker {
+            cfg: cfg.clone(),
+            store,
+            trunk,
+            adamw: AdamWConfig::default(),
+            pass_seconds: PassSeconds::default(),
+        })
+    }
+
+    /// Writes parameters, AdamW moments, the step and the config to `path` (atomically).
+    pub fn save(&self, path: &Path) -> Result<()> {
+        crate::checkpoint::save(path, &self.store, &self.describe().to_string())
+    }
+
+    /// The config a tracker checkpoint holds.
+    pub fn checkpoint_config(path: &Path) -> Result<TrackerConfig> {
+        let json = crate::checkpoint::config_json(path)?;
+        if json["model"] != MODEL_KIND {
+            return Err(Error::Invalid(format!(
+                "checkpoint {} holds a {}, not a {MODEL_KIND}",
+                path.display(),
+                json["model"]
+            )));
+        }
+        serde_json::from_value(json["config"].clone()).map_err(|e| {
+            Error::Invalid(format!("checkpoint {}: the tracker's config is unreadable: {e}", path.display()))
+        })
+    }
+
+    /// The tracker a checkpoint holds, with its moments and step.
+    pub fn load(gpu: &Gpu, path: &Path) -> Result<Tracker> {
+        let mut t = Tracker::new(gpu, &Tracker::checkpoint_config(path)?, 0)?;
+        crate::checkpoint::load(path, &mut t.store)?;
+        Ok(t)
+    }
+
+    /// Fails unless `autoencoder` (a checkpoint file) is the one whose tokens the tracker
+    /// trained on, when the tracker recorded it.
+    pub fn check_encoder(&self, autoencoder: &Path) -> Result<()> {
+        let Some(want) = &self.cfg.encoder_hash else { return Ok(()) };
+        let got = crate::velox::tokens::checkpoint_hash(autoencoder)?;
+        if *want != got {
+            return Err(Error::Invalid(format!(
+                "the tracker trained on the tokens of an autoencoder checkpoint of hash {want}; {} has hash \
+                 {got} (its tokens would mean something else to the tracker)",
+                autoencoder.display()
+            )));
+        }
+        Ok(())
+    }
+
+    fn check_tokens(&self, tokens: &Tensor) -> Result<usize> {
+        match tokens.shape() {
+            &[k, d] if k > 0 && d == self.cfg.token_dim => Ok(k),
+            _ => Err(Error::Shape(format!(
+                "tracker: tokens must be [k > 0, {}] (the config's token_dim), got {tokens:?}",
+                self.cfg.token_dim
+            ))),
+        }
+    }
+
+    fn loss(&self) -> Loss {
+        match self.cfg.loss {
+            TrackLoss::L1 => Loss::l1(),
+            TrackLoss::L2 => Loss::mse(),
+        }
+    }
+
+    /// The forward and backward passes of a micro-batch of scenes, adding `weight` times the
+    /// gradient of the sum of their losses (each a scene's mean over its drawn queries,
+    /// frames and coordinates) into the store's gradients. Each scene draws
+    /// `queries_per_sample` of its tracks (all when it has fewer) from its generator.
+    pub fn accumulate(&mut self, samples: &[&TrackSample], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
+        if samples.is_empty() || samples.len() != rngs.len() {
+            return Err(Error::Invalid(format!(
+                "a micro-batch needs one generator per scene: {} scenes, {} generators",
+                samples.len(),
+                rngs.len()
+            )));
+        }
+        let started = Instant::now();
+        let gpu = samples[0].tokens.gpu().clone();
+        let counts = samples.iter().map(|s| self.check_tokens(&s.tokens)).collect::<Result<Vec<_>>>()?;
+        let tokens =
+            Tensor::empty(&gpu, &[counts.iter().sum(), self.cfg.token_dim], velox_engine::DType::F32)?;
+        let mut rec = gpu.recorder()?;
+        let mut at = 0;
+        for (s, &k) in samples.iter().zip(&counts) {
+            rec.copy_rows(&s.tokens, 0, &tokens, at, k)?;
+            at += k;
+        }
+        let (mut queries, mut targets, mut rows) = (Vec::new(), Vec::new(), Vec::new());
+        for (s, rng) in samples.iter().zip(rngs.iter_mut()) {
+            let n = s.tracks.len();
+            let take = self.cfg.queries_per_sample.min(n);
+            let mut order: Vec<usize> = (0..n).collect();
+            for i in 0..take {
+                let j = i + rng.below((n - i) as u32) as usize;
+                order.swap(i, j);
+            }
+            for &t in &order[..take] {
+                let track = &s.tracks[t];
+                queries.extend_from_slice(&track[0]);
+                targets.extend(track.iter().flat_map(|p| (0..3).map(move |a| p[a] - track[0][a])));
+            }
+            rows.push(take);
+        }
+        let n: usize = rows.iter().sum();
+        let frames =
+            VoxelFrames { groups: vec![(0.0, n)], segments: Segments::from_lengths(&gpu, &rows, &counts)? };
+        let positions = Tensor::from_slice(&gpu, &[n, 3], &queries)?;
+        let (offsets, cache) = self.trunk.forward(&mut rec, &tokens, &positions, &frames)?;
+        let target = Tensor::from_slice(&gpu, &[n, 3 * FRAMES], &targets)?;
+        let (loss, d_offsets) = self
+            .loss()
+            .weighted(weight as f32)
+            .forward_backward_segments(&mut rec, &offsets, &target, &rows)?;
+        rec.submit()?;
+        let forward_done = Instant::now();
+        self.pass_seconds.forward += (forward_done - started).as_secs_f64();
+        let mut rec = gpu.recorder()?;
+        self.trunk.backward(&mut rec, &cache, &d_offsets)?;
+        rec.submit()?;
+        self.pass_seconds.backward += forward_done.elapsed().as_secs_f64();
+        let total = loss.read::<f32>()?[0] as f64;
+        if !total.is_finite() {
+            return Err(Error::Invalid(format!("the loss became non-finite ({total})")));
+        }
+        Ok(Losses { terms: vec![("total", total)] })
+    }
+
+    /// The tracks of `queries` (points on the first frame, in the scene's [-1, 1]^3 box) from
+    /// one scene's `tokens`: each query's position at every frame, frame 0 its prediction for
+    /// the query itself. Runs [`CHUNK`] queries a pass.
+    pub fn predict(&self, tokens: &Tensor, queries: &[[f32; 3]]) -> Result<Vec<Track>> {
+        let k = self.check_tokens(tokens)?;
+        if let Some(i) = queries.iter().position(|q| q.iter().any(|v| !(v.is_finite() && v.abs() <= 1.0))) {
+            return Err(Error::Invalid(format!(
+                "tracker: query {i} at {:?} is not a finite point of the scene's [-1, 1]^3 box",
+                queries[i]
+            )));
+        }
+        let gpu = tokens.gpu().clone();
+        let mut out = Vec::with_capacity(queries.len());
+        for chunk in queries.chunks(CHUNK) {
+            let n = chunk.len();
+            let flat: Vec<f32> = chunk.iter().flatten().copied().collect();
+            let positions = Tensor::from_slice(&gpu, &[n, 3], &flat)?;
+            let frames = VoxelFrames::single(&gpu, 0.0, n, k)?;
+            let mut rec = gpu.recorder()?;
+            let (offsets, _) = self.trunk.forward(&mut rec, tokens, &positions, &frames)?;
+            let moved = binary(
+                &mut rec,
+                &offsets.reshape(&[n, FRAMES, 3])?,
+                &positions.reshape(&[n, 1, 3])?,
+                Binary::Add,
+            )?;
+            rec.submit()?;
+            let values: Vec<f32> = moved.read()?;
+            out.extend(
+                values
+                    .chunks_exact(3 * FRAMES)
+                    .map(|t| std::array::from_fn(|f| [t[3 * f], t[3 * f + 1], t[3 * f + 2]])),
+            );
+        }
+        Ok(out)
+    }
+}
+
+impl Trainable for Tracker {
+    type Sample = TrackSample;
+
+    fn store(&self) -> &ParamStore {
+        &self.store
+    }
+
+    fn store_mut(&mut self) -> &mut ParamStore {
+        &mut self.store
+    }
+
+    fn describe(&self) -> serde_json::Value {
+        serde_json::json!({ "model": MODEL_KIND, "config": self.cfg })
+    }
+
+    fn optimisation(&self) -> Optimisation {
+        Optimisation {
+            peak_lr: self.cfg.peak_lr,
+            warmup: self.cfg.warmup,
+            max_grad_norm: Some(self.cfg.max_grad_norm),
+            adamw: self.adamw,
+            batch: self.cfg.batch,
+        }
+    }
+
+    fn accumulate(&mut self, samples: &[&TrackSample], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
+        Tracker::accumulate(self, samples, rngs, weight)
+    }
+
+    fn take_pass_seconds(&mut self) -> Option<PassSeconds> {
+        Some(std::mem::take(&mut self.pass_seconds))
+    }
+}

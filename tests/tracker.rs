@@ -1,0 +1,179 @@
+//! The tracking network at the tiny config: its backward pass against a directional finite
+//! difference (L1 and L2), a batch against its samples alone, that it learns a motion, that
+//! queries are tracked independently of each other, the occlusion test, and the paper
+//! config's parameter count.
+
+mod common;
+use common::*;
+use velox::models::config::{TrackLoss, TrackerConfig};
+use velox::models::params::ParamBuilder;
+use velox::models::train::Trainable;
+use velox::models::velox::tracker::{occluded, Track, TrackSample, Tracker};
+
+/// Tracks of `n` random queries under a smooth motion: a drift and a shear growing with time.
+fn tracks(seed: u64, n: usize) -> Vec<Track> {
+    let mut rng = Rng::new(seed);
+    (0..n)
+        .map(|_| {
+            let q = [0; 3].map(|_| rng.range(-0.8, 0.8) as f32);
+            std::array::from_fn(|f| {
+                let s = f as f32 / 23.0;
+                [q[0] + 0.2 * s, q[1] + 0.3 * s * q[0], q[2] - 0.1 * s * s]
+            })
+        })
+        .collect()
+}
+
+fn sample(gpu: &Gpu, seed: u64, n: usize) -> TrackSample {
+    let tokens = Rng::new(seed).normal_vec(48 * 32);
+    TrackSample::new(Tensor::from_slice(gpu, &[48, 32], &tokens).unwrap(), tracks(seed, n)).unwrap()
+}
+
+fn zero(gpu: &Gpu, t: &Tracker) {
+    let mut rec = gpu.recorder().unwrap();
+    t.store.zero_grads(&mut rec).unwrap();
+    rec.submit().unwrap();
+}
+
+#[test]
+fn backward_matches_a_directional_finite_difference() {
+    let gpu = gpu();
+    for loss in [TrackLoss::L2, TrackLoss::L1] {
+        let cfg = TrackerConfig { loss, queries_per_sample: 40, ..TrackerConfig::tiny() };
+        let mut t = Tracker::new(&gpu, &cfg, 2).unwrap();
+        let s = sample(&gpu, 4, 60);
+        zero(&gpu, &t);
+        let l0 = t.accumulate(&[&s], &mut [Rng::new(9)], 1.0).unwrap();
+        assert!(l0.total() > 0.0, "{l0:?}");
+        let grad: Vec<f32> = t.store.flat_grads().read().unwrap();
+        let theta: Vec<f32> = t.store.flat_params().read().unwrap();
+        let u = Rng::new(5).normal_vec(theta.len());
+        let analytic: f64 = grad.iter().zip(&u).map(|(&g, &v)| g as f64 * v as f64).sum();
+        // L1 has a kink wherever a prediction meets its target, and frame 0's target (the
+        // query's own offset, 0) lies within a step of 1e-3 of the untrained head's output:
+        // a step that small crosses few kinks.
+        let (eps, bound) = match loss {
+            TrackLoss::L2 => (1e-3f32, 5e-3),
+            TrackLoss::L1 => (2e-5f32, 2e-2),
+        };
+        let mut at = |sign: f32| {
+            let p: Vec<f32> = theta.iter().zip(&u).map(|(&x, &v)| x + sign * eps * v).collect();
+            t.store.flat_params().write(&p).unwrap();
+            t.accumulate(&[&s], &mut [Rng::new(9)], 1.0).unwrap().total()
+        };
+        let numeric = (at(1.0) - at(-1.0)) / (2.0 * eps as f64);
+        let rel = (numeric - analytic).abs() / analytic.abs();
+        assert!(rel < bound, "{loss:?}: analytic {analytic} against finite difference {numeric} ({rel:.2e})");
+    }
+}
+
+#[test]
+fn a_batch_gives_the_mean_of_its_samples_gradients() {
+    let gpu = gpu();
+    let cfg = TrackerConfig { queries_per_sample: 30, ..TrackerConfig::tiny() };
+    let mut t = Tracker::new(&gpu, &cfg, 1).unwrap();
+    // Different numbers of tracks: the second scene has fewer than a sample draws.
+    let samples = [sample(&gpu, 1, 50), sample(&gpu, 2, 20), sample(&gpu, 3, 35)];
+    let refs: Vec<&TrackSample> = samples.iter().collect();
+    let rngs = || (0..3).map(|i| Rng::new(20 + i)).collect::<Vec<_>>();
+    zero(&gpu, &t);
+    let batch = t.accumulate(&refs, &mut rngs(), 1.0 / 3.0).unwrap();
+    let batch_grads: Vec<f32> = t.store.flat_grads().read().unwrap();
+    zero(&gpu, &t);
+    let mut total = 0.0;
+    for (s, mut r) in refs.iter().zip(rngs()) {
+        total += t.accumulate(&[s], std::slice::from_mut(&mut r), 1.0 / 3.0).unwrap().total();
+    }
+    let single_grads: Vec<f32> = t.store.flat_grads().read().unwrap();
+    assert_nmse(
+        "batch-3 gradient against three batch-1 gradients",
+        &batch_grads,
+        &f64s(&single_grads),
+        1e-10,
+    );
+    assert!((batch.total() - total).abs() <= 1e-6 * total, "batch {} against singles {total}", batch.total());
+}
+
+#[test]
+fn an_untrained_tracker_stays_put_and_a_trained_one_learns_the_motion() {
+    let gpu = gpu();
+    let cfg = TrackerConfig { queries_per_sample: 128, ..TrackerConfig::tiny() };
+    let mut t = Tracker::new(&gpu, &cfg, 3).unwrap();
+    let s = sample(&gpu, 6, 400);
+    let queries: Vec<[f32; 3]> = s.tracks.iter().map(|t| t[0]).collect();
+    // The head starts near zero: every frame predicts about the query (the static baseline).
+    let before = t.predict(&s.tokens, &queries).unwrap();
+    let drift =
+        before.iter().zip(&queries).flat_map(|(p, q)| p.iter().map(move |x| dist(x, q))).fold(0.0, f32::max);
+    assert!(drift < 0.05, "an untrained tracker moves a query by {drift}");
+    let error = |pred: &[Track]| -> f64 {
+        let n = (pred.len() * 24) as f64;
+        pred.iter()
+            .zip(&s.tracks)
+            .flat_map(|(p, t)| p.iter().zip(t).map(|(a, b)| dist(a, b) as f64))
+            .sum::<f64>()
+            / n
+    };
+    let static_error = error(&before);
+    for step in 1..=80u64 {
+        zero(&gpu, &t);
+        t.accumulate(&[&s], &mut [Rng::new(step)], 1.0).unwrap();
+        let (lr, adamw) = (t.optimisation().learning_rate(step), t.adamw);
+        let mut rec = gpu.recorder().unwrap();
+        t.store.adamw_step(&mut rec, &adamw, lr, Some(1.0)).unwrap();
+        rec.submit().unwrap();
+    }
+    let trained = error(&t.predict(&s.tokens, &queries).unwrap());
+    if std::env::var_os("VELOX_TEST_VERBOSE").is_some() {
+        eprintln!("tiny tracker, 80 steps: mean L2 {static_error:.4} (static) -> {trained:.4}");
+    }
+    assert!(trained < 0.3 * static_error, "mean L2 {static_error} (static) -> {trained}");
+}
+
+fn dist(a: &[f32; 3], b: &[f32; 3]) -> f32 {
+    (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f32>().sqrt()
+}
+
+#[test]
+fn queries_are_tracked_on_their_own() {
+    let gpu = gpu();
+    let t = Tracker::new(&gpu, &TrackerConfig::tiny(), 7).unwrap();
+    let s = sample(&gpu, 8, 30);
+    let queries: Vec<[f32; 3]> = s.tracks.iter().map(|t| t[0]).collect();
+    let together = t.predict(&s.tokens, &queries).unwrap();
+    for i in [0, 13, 29] {
+        let alone = t.predict(&s.tokens, &queries[i..i + 1]).unwrap();
+        let flat = |t: &Track| t.iter().flatten().copied().collect::<Vec<f32>>();
+        assert_nmse(&format!("query {i} alone"), &flat(&alone[0]), &f64s(&flat(&together[i])), 1e-10);
+    }
+    let e = t.predict(&s.tokens, &[[0.0, 1.5, 0.0]]).unwrap_err().to_string();
+    assert!(e.contains("query 0"), "{e}");
+    let e = TrackSample::new(s.tokens.clone(), Vec::new()).err().unwrap().to_string();
+    assert!(e.contains("no tracks"), "{e}");
+}
+
+#[test]
+fn occlusion_is_the_depth_test_of_the_data() {
+    // A 4 x 2 depth frame: surface at depth 2 on the left half, background on the right.
+    let depth = [2.0, 2.0, 0.0, 0.0, 2.0, 2.0, 0.0, 0.0];
+    let fx = 100.0;
+    // In front of, on, and a hair behind the surface (within 3 footprints: 3 * 2 / 100).
+    assert!(!occluded(0.5, 0.5, 1.0, &depth, 4, 2, fx));
+    assert!(!occluded(1.5, 1.5, 2.05, &depth, 4, 2, fx));
+    // Behind it by more than 3 footprints.
+    assert!(occluded(1.5, 1.5, 2.1, &depth, 4, 2, fx));
+    // Over the background: visible whatever the depth.
+    assert!(!occluded(2.5, 0.5, 9.0, &depth, 4, 2, fx));
+    // Outside the image or behind the camera.
+    assert!(occluded(4.0, 0.5, 1.0, &depth, 4, 2, fx));
+    assert!(occluded(-0.1, 0.5, 1.0, &depth, 4, 2, fx));
+    assert!(occluded(0.5, 0.5, -1.0, &depth, 4, 2, fx));
+}
+
+#[test]
+fn the_paper_config_counts_about_123_million_parameters() {
+    let mut b = ParamBuilder::default();
+    Tracker::register(&mut b, &TrackerConfig::paper()).unwrap();
+    let m = b.num_parameters() as f64 / 1e6;
+    assert!((m - 123.0).abs() < 0.05 * 123.0, "{m:.2} M");
+}
