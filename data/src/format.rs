@@ -396,27 +396,7 @@ pub fn read_scene(dir: &Path, images: bool) -> DataResult<Scene> {
         ));
     }
     let visibility = vis.chunks_exact(FRAMES).map(|c| std::array::from_fn(|f| c[f])).collect();
-    // Scenes written before the tracking task have neither file (and video_tracks = 0).
-    let (mut video_tracks, mut video_visibility) = (Vec::new(), Vec::new());
-    if meta.video_tracks > 0 {
-        video_tracks = read_positions(dir, "video_tracks.bin", meta.video_tracks)?;
-        let what =
-            format!("{} video tracks, as meta.json says, x {FRAMES} frames x 1 byte", meta.video_tracks);
-        let seen =
-            read_words::<u8>(&dir.join("video_tracks_visibility.bin"), meta.video_tracks * FRAMES, &what)?;
-        if let Some(i) = seen.iter().position(|&b| b > 1) {
-            return Err(invalid(
-                "video_tracks_visibility.bin",
-                format!(
-                    "video track {} at frame {} has byte {}, not 0 or 1",
-                    i / FRAMES,
-                    i % FRAMES,
-                    seen[i]
-                ),
-            ));
-        }
-        video_visibility = seen.chunks_exact(FRAMES).map(|c| std::array::from_fn(|f| c[f] == 1)).collect();
-    }
+    let (video_tracks, video_visibility) = read_video_tracks_of(dir, &meta)?;
     let (mut supervision, mut video) = (Vec::new(), Vec::new());
     if images {
         for f in 0..FRAMES {
@@ -440,6 +420,37 @@ pub fn read_scene(dir: &Path, images: bool) -> DataResult<Scene> {
         supervision,
         video,
     })
+}
+
+/// A scene's video tracks (every frame of each) and whether its video camera sees each.
+pub type VideoTracks = (Vec<[[f32; 3]; FRAMES]>, Vec<[bool; FRAMES]>);
+
+/// The tracking task's queries of the scene in `dir` in every frame, and whether its video
+/// camera sees each, as [`read_scene`] reads them (`meta.json` checked first), without the
+/// rest of the scene: what the tracker trains on beside stored tokens.
+pub fn read_video_tracks(dir: &Path) -> DataResult<VideoTracks> {
+    read_video_tracks_of(dir, &read_meta(dir)?)
+}
+
+/// Scenes written before the tracking task have neither file (and `video_tracks` = 0).
+fn read_video_tracks_of(dir: &Path, meta: &SceneMeta) -> DataResult<VideoTracks> {
+    if meta.video_tracks == 0 {
+        return Ok((Vec::new(), Vec::new()));
+    }
+    let tracks = read_positions(dir, "video_tracks.bin", meta.video_tracks)?;
+    let what = format!("{} video tracks, as meta.json says, x {FRAMES} frames x 1 byte", meta.video_tracks);
+    let file = dir.join("video_tracks_visibility.bin");
+    let seen = read_words::<u8>(&file, meta.video_tracks * FRAMES, &what)?;
+    if let Some(i) = seen.iter().position(|&b| b > 1) {
+        return Err(DataError::Invalid(format!(
+            "{}: video track {} at frame {} has byte {}, not 0 or 1",
+            file.display(),
+            i / FRAMES,
+            i % FRAMES,
+            seen[i]
+        )));
+    }
+    Ok((tracks, seen.chunks_exact(FRAMES).map(|c| std::array::from_fn(|f| c[f] == 1)).collect()))
 }
 
 /// `count` tracks of [`FRAMES`] positions from `file` in `dir` (`count` at most

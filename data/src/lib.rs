@@ -47,7 +47,7 @@ pub use format::{read_scene, Scene, SceneMeta};
 pub use loader::{Loader, LoaderOptions};
 pub use mesh::{AnimatedMesh, Texture};
 pub use pipeline::{render_scene, SceneArrays, SynthOptions};
-pub use training::{train_scene, SceneFolders, TokenScenes};
+pub use training::{train_scene, SceneFolders, TokenScenes, TrackScenes};
 
 use std::fmt;
 

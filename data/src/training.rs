@@ -11,12 +11,13 @@ use velox_engine::Gpu;
 use velox_models::train::source::SampleSource;
 use velox_models::velox::autoencoder::TrainScene;
 use velox_models::velox::tokens::{
-    scene_file, CheckpointCheck, SceneTokens, TokenFolder, TokenManifest, MANIFEST,
+    scene_file, CheckpointCheck, CloudSource, SceneTokens, TokenFolder, TokenManifest, MANIFEST,
 };
+use velox_models::velox::tracker::{Track, TrackSample};
 use velox_models::velox::voxels::VoxelSample;
 
 use crate::encode::dataset_scenes;
-use crate::format::{list_some_scenes, read_occupancy, read_scene, Scene};
+use crate::format::{list_some_scenes, read_occupancy, read_scene, read_video_tracks, Scene};
 use crate::{DataError, DataResult};
 
 /// A scene read into host memory, ready to upload: what the trainer's background thread
@@ -160,42 +161,65 @@ impl TokenScenes {
         tokens: Option<&Path>,
         checkpoint: Option<&Path>,
     ) -> DataResult<TokenScenes> {
+        TokenScenes::open_source(gpu, data, tokens, checkpoint, CloudSource::Points)
+    }
+
+    /// As [`TokenScenes::open`], for tokens of the scenes' `source` cloud (the folder's
+    /// default is that source's, `DATA/tokens-video` for the videos); tokens of the other
+    /// cloud are refused.
+    pub fn open_source(
+        gpu: &Gpu,
+        data: &Path,
+        tokens: Option<&Path>,
+        checkpoint: Option<&Path>,
+        source: CloudSource,
+    ) -> DataResult<TokenScenes> {
         let (dirs, names) = dataset_scenes(data)?;
-        let token_dir =
-            tokens.map_or_else(|| data.join(velox_models::velox::tokens::DEFAULT_DIR), Path::to_path_buf);
-        let folder = TokenFolder::open(&token_dir, checkpoint)?;
+        let token_dir = tokens.map_or_else(|| data.join(source.default_dir()), Path::to_path_buf);
+        let encode = match source {
+            CloudSource::Points => format!("velox encode --data {}", data.display()),
+            CloudSource::Video => format!("velox encode --source video --data {}", data.display()),
+        };
+        let folder = TokenFolder::open(&token_dir, checkpoint)
+            .map_err(|e| DataError::Invalid(format!("{e} (tokens are made by `{encode}`)")))?;
         let manifest = token_dir.join(MANIFEST);
+        let stored = folder.manifest.origin.source;
+        if stored != source {
+            return Err(DataError::Invalid(format!(
+                "{} holds tokens of the scenes' {} clouds; this model reads tokens of their {}: run `{encode}`",
+                manifest.display(),
+                stored.name(),
+                source.name()
+            )));
+        }
         let listed: std::collections::BTreeSet<&String> = folder.manifest.scenes.iter().collect();
         let present: std::collections::BTreeSet<&String> = names.iter().collect();
         let missing: Vec<&String> = present.difference(&listed).copied().collect();
         if !missing.is_empty() {
             return Err(DataError::Invalid(format!(
-                "{} lacks {} scene(s) of {}: {}; run `velox encode --data {}` to encode them",
+                "{} lacks {} scene(s) of {}: {}; run `{encode}` to encode them",
                 manifest.display(),
                 missing.len(),
                 data.display(),
                 some_names(&missing),
-                data.display()
             )));
         }
         let extra: Vec<&String> = listed.difference(&present).copied().collect();
         if !extra.is_empty() {
             return Err(DataError::Invalid(format!(
                 "{} lists {} scene(s) that {} lacks: {} (the tokens of another dataset, or scenes since \
-                 removed?); run `velox encode --data {}` again",
+                 removed?); run `{encode}` again",
                 manifest.display(),
                 extra.len(),
                 data.display(),
                 some_names(&extra),
-                data.display()
             )));
         }
         if let Some(name) = names.iter().find(|n| !scene_file(&token_dir, n).is_file()) {
             return Err(DataError::Invalid(format!(
-                "{} lists scene {name}, but {} is missing; run `velox encode --data {}` again",
+                "{} lists scene {name}, but {} is missing; run `{encode}` again",
                 manifest.display(),
                 scene_file(&token_dir, name).display(),
-                data.display()
             )));
         }
         Ok(TokenScenes { gpu: gpu.clone(), dirs, names, folder })
@@ -246,5 +270,65 @@ impl SampleSource for TokenScenes {
 
     fn prepare(&self, raw: HostTokenScene) -> velox_engine::Result<VoxelSample> {
         VoxelSample::new(raw.tokens.upload(&self.gpu)?, raw.occupancy)
+    }
+}
+
+/// A scene's stored tokens (of its video's cloud) and its video tracks, read into host memory.
+pub struct HostTrackScene {
+    pub tokens: SceneTokens,
+    pub tracks: Vec<Track>,
+}
+
+/// The scenes of a dataset with the tokens of their RGBD videos (`velox encode --source
+/// video`), as the tracker's samples: each scene's tokens and its video tracks (the queries
+/// and their true positions, `video_tracks.bin`).
+pub struct TrackScenes(pub TokenScenes);
+
+impl TrackScenes {
+    /// As [`TokenScenes::open_source`] for the videos' tokens.
+    pub fn open(
+        gpu: &Gpu,
+        data: &Path,
+        tokens: Option<&Path>,
+        checkpoint: Option<&Path>,
+    ) -> DataResult<TrackScenes> {
+        Ok(TrackScenes(TokenScenes::open_source(gpu, data, tokens, checkpoint, CloudSource::Video)?))
+    }
+}
+
+impl SampleSource for TrackScenes {
+    type Raw = HostTrackScene;
+    type Sample = TrackSample;
+
+    fn len(&self) -> usize {
+        self.0.dirs.len()
+    }
+
+    fn name(&self, index: usize) -> String {
+        self.0.names[index].clone()
+    }
+
+    fn location(&self, index: usize) -> String {
+        self.0.dirs[index].display().to_string()
+    }
+
+    fn read(&self, index: usize) -> velox_engine::Result<HostTrackScene> {
+        let tokens = self.0.folder.read(&self.0.names[index])?;
+        let (tracks, _) = read_video_tracks(&self.0.dirs[index])?;
+        if tracks.is_empty() {
+            return Err(DataError::Invalid(format!(
+                "{}: the scene has no video tracks (made with --tracks 0, or before the tracking task): \
+                 make the data again with --tracks N",
+                self.0.dirs[index].display()
+            ))
+            .into());
+        }
+        Ok(HostTrackScene { tokens, tracks })
+    }
+
+    fn prepare(&self, raw: HostTrackScene) -> velox_engine::Result<TrackSample> {
+        let points =
+            velox_engine::Tensor::from_slice(&self.0.gpu, &[raw.tokens.k(), 4], &raw.tokens.query_points)?;
+        TrackSample::new(raw.tokens.upload(&self.0.gpu)?, points, raw.tracks)
     }
 }

@@ -692,6 +692,11 @@ pub struct TrackerConfig {
     pub input_hidden: usize,
     pub head_hidden: usize,
     pub loss: TrackLoss,
+    /// The tokens' own query points (x, y, z, tau, Fourier embedded with `xyz_freqs`
+    /// octaves) join the tokens as the cross-attention's context, so a query finds the
+    /// tokens near it without reading their place out of the 32 numbers.
+    #[serde(default)]
+    pub token_positions: bool,
     /// Queries a scene contributes to a step, drawn at random from its tracks.
     pub queries_per_sample: usize,
     /// Scenes per micro-batch.
@@ -720,6 +725,7 @@ impl TrackerConfig {
             input_hidden: 0,
             head_hidden: 0,
             loss: TrackLoss::L1,
+            token_positions: false,
             queries_per_sample: 2048,
             batch: 1,
             peak_lr: 1e-4,

@@ -1,3 +1,4 @@
+//! `velox eval tracking`: a tracker's TAPVid-3D metrics (`velox_models::eval::tracking`).
 //! `velox eval recon`: reconstruction quality of a trained autoencoder on held-out scenes
 //! (PSNR, SSIM, Chamfer), measured by `velox_models::eval::recon` (its docs give the
 //! protocol). The command reads the scenes, writes `eval.json` (every number) and the chosen
@@ -7,7 +8,7 @@ use std::path::PathBuf;
 
 use indicatif::ProgressBar;
 use serde::Serialize;
-use velox_data::{SceneFolders, TokenScenes};
+use velox_data::{SceneFolders, TokenScenes, TrackScenes};
 use velox_engine::Gpu;
 use velox_models::eval::recon::{evaluate, frames, ReconObserver, ReconOptions, ReconReport};
 use velox_models::eval::voxels::{evaluate_scene, projections, VoxelMetrics};
@@ -16,6 +17,7 @@ use velox_models::files::write_bytes;
 use velox_models::train::source::SampleSource;
 use velox_models::velox::autoencoder::Autoencoder;
 use velox_models::velox::decode::{Sampling, VoxelSource};
+use velox_models::velox::tracker::Tracker;
 use velox_models::velox::voxels::{VoxelDecoder, FRAME_WORDS};
 
 use crate::decode::{progress, voxel_decoder, PrecisionArg, SamplerArg, VoxelArg};
@@ -28,6 +30,41 @@ pub enum EvalCommand {
     /// Accuracy, precision, recall and IoU of a voxel decoder's occupied voxels against the
     /// scenes' occupancy, from their stored tokens (`velox encode`).
     Voxels(VoxelEvalArgs),
+    /// TAPVid-3D's metrics (L2, APD, AJ, OA) of a tracker on held-out scenes, from the stored
+    /// tokens of their videos (`velox encode --source video`), beside the static baseline and
+    /// the truth.
+    Tracking(TrackingEvalArgs),
+}
+
+#[derive(clap::Args)]
+pub struct TrackingEvalArgs {
+    /// Dataset folder of held-out scenes (made with --tracks N: their video tracks are the
+    /// queries and the truth).
+    #[arg(long)]
+    data: PathBuf,
+    /// Tracker checkpoint (`velox train tracker`).
+    #[arg(long)]
+    checkpoint: PathBuf,
+    /// The scenes' video tokens [default: DATA/tokens-video].
+    #[arg(long)]
+    tokens: Option<PathBuf>,
+    /// The autoencoder checkpoint the tokens must come from (else the one they record is
+    /// checked, if it is still there).
+    #[arg(long)]
+    autoencoder: Option<PathBuf>,
+    /// Output folder for the overlay images (and tracking.json unless --json says otherwise).
+    #[arg(long, default_value = "velox-eval-tracking")]
+    out: PathBuf,
+    /// Write the metrics as JSON here (default OUT/tracking.json).
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// Evaluate only the first N scenes (in name order).
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+    scenes: Option<u64>,
+    /// Scenes drawn: frames 0, 8, 16 and 23 of the video with the predicted tracks (top) and
+    /// the true ones (bottom).
+    #[arg(long, default_value_t = 2)]
+    images: usize,
 }
 
 #[derive(clap::Args)]
@@ -175,7 +212,128 @@ pub fn run(cmd: EvalCommand) -> CliResult<()> {
     match cmd {
         EvalCommand::Recon(a) => run_recon(&a),
         EvalCommand::Voxels(a) => run_voxels(&a),
+        EvalCommand::Tracking(a) => run_tracking(&a),
     }
+}
+
+fn run_tracking(a: &TrackingEvalArgs) -> CliResult<()> {
+    use velox_models::eval::tracking::{evaluate_scene, TrackingMetrics, TrackingReport, TrackingScene};
+    let gpu = Gpu::new()?;
+    let scenes = TrackScenes::open(&gpu, &a.data, a.tokens.as_deref(), a.autoencoder.as_deref())?;
+    if let Some(note) = scenes.0.checkpoint().note() {
+        eprintln!("note: {note}");
+    }
+    let tracker = Tracker::load(&gpu, &a.checkpoint)?;
+    let from = &scenes.0.manifest().origin.checkpoint_hash;
+    if let Some(hash) = tracker.cfg.encoder_hash.as_ref().filter(|h| *h != from) {
+        return Err(format!(
+            "the tracker trained on tokens of autoencoder checkpoint {hash}, {} holds tokens of {from}",
+            scenes.0.token_dir().display()
+        )
+        .into());
+    }
+    std::fs::create_dir_all(&a.out).map_err(|e| format!("creating {}: {e}", a.out.display()))?;
+    let json = a.json.clone().unwrap_or_else(|| a.out.join("tracking.json"));
+    let count = a.scenes.map_or(scenes.len(), |n| (n as usize).min(scenes.len()));
+    println!(
+        "evaluating the {} tracker ({}) on {count} scenes of {} on {}",
+        tracker.cfg.name,
+        a.checkpoint.display(),
+        a.data.display(),
+        gpu.caps().name
+    );
+    let bar = progress(count, "scenes");
+    let (mut reports, mut images) = (Vec::with_capacity(count), Vec::new());
+    for i in 0..count {
+        let name = scenes.name(i);
+        bar.set_message(name.clone());
+        let dir = &scenes.0.dirs()[i];
+        let sample = scenes.load(i)?;
+        let (_, visible) = velox_data::format::read_video_tracks(dir)?;
+        let video = velox_data::rgbd::read_scene_video(dir)?;
+        let scene = TrackingScene {
+            truth: &sample.tracks,
+            visible: &visible,
+            camera: &video.camera,
+            depth: &video.depth,
+        };
+        let (report, predicted) =
+            evaluate_scene(&tracker, &name, &sample.tokens, &sample.token_points, &scene)?;
+        if i < a.images {
+            let path = a.out.join(format!("{name}.png"));
+            write_overlays(&path, &video, &scene, &predicted)?;
+            images.push(path.display().to_string());
+        }
+        reports.push(report);
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let mean = TrackingReport::mean(&reports);
+    println!(
+        "{:<24} {:<16} {:>7} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}",
+        "scene", "method", "queries", "L2 all", "L2 vis", "APD all", "APD vis", "AJ", "OA"
+    );
+    let row = |name: &str, method: &str, queries: usize, m: &TrackingMetrics| {
+        println!(
+            "{name:<24} {method:<16} {queries:>7} {:>8.4} {:>8.4} {:>8.4} {:>8.4} {:>8.4} {:>8.4}",
+            m.l2_all, m.l2_visible, m.apd_all, m.apd_visible, m.average_jaccard, m.occlusion_accuracy
+        )
+    };
+    for r in reports.iter().chain(std::iter::once(&mean)) {
+        row(&r.name, "tracker", r.queries, &r.tracker);
+        row("", "static", r.queries, &r.static_baseline);
+        if r.name == "mean" {
+            row("", "truth", r.queries, &r.truth);
+        }
+    }
+    println!(
+        "TAPVid-3D's metrics in the video camera's frame (scene units, thresholds of 1 to 16 px at the true \
+         depth), means over scenes; occlusion is the video's depth test for every method (the tracker \
+         learns none); static: every query stays on its first frame; truth: the true tracks (the ceiling)"
+    );
+    let file = serde_json::json!({
+        "checkpoint": a.checkpoint.display().to_string(),
+        "data": a.data.display().to_string(),
+        "mean": mean,
+        "scenes": reports,
+        "images": images,
+    });
+    write_bytes(&json, serde_json::to_string_pretty(&file)?.as_bytes())?;
+    println!("wrote {} and {} overlay image(s) under {}", json.display(), images.len(), a.out.display());
+    Ok(())
+}
+
+/// Frames 0, 8, 16 and 23 of the video with the predicted tracks over them (top row) and the
+/// true ones (bottom row), occluded stretches faded.
+fn write_overlays(
+    path: &std::path::Path,
+    video: &velox_data::rgbd::RgbdVideo,
+    scene: &velox_models::eval::tracking::TrackingScene,
+    predicted: &[velox_models::velox::tracker::Track],
+) -> CliResult<()> {
+    use crate::overlay::{colours, draw_tracks, side_by_side};
+    let cam = &video.camera;
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    let hidden_of = |tracks: &[velox_models::velox::tracker::Track]| -> Vec<[bool; 24]> {
+        let (_, hidden) = scene.in_camera(tracks);
+        hidden.chunks_exact(24).map(|c| std::array::from_fn(|f| c[f])).collect()
+    };
+    let truth_hidden: Vec<[bool; 24]> = scene.visible.iter().map(|v| v.map(|s| !s)).collect();
+    let colour = colours(scene.truth, cam);
+    let mut rows = Vec::new();
+    for (tracks, hidden) in [(predicted, hidden_of(predicted)), (scene.truth, truth_hidden)] {
+        let frames: Vec<Vec<f32>> = [0, 8, 16, 23]
+            .iter()
+            .map(|&f| {
+                let mut rgb = video.rgb[f].clone();
+                draw_tracks(&mut rgb, cam, tracks, &hidden, &colour, f);
+                rgb
+            })
+            .collect();
+        rows.extend(side_by_side(&frames, w, h));
+    }
+    write_png(path, &rows, 4 * w as u32, 2 * h as u32)?;
+    Ok(())
 }
 
 fn run_voxels(a: &VoxelEvalArgs) -> CliResult<()> {

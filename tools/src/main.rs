@@ -8,6 +8,7 @@ mod encode;
 mod eval;
 mod info;
 mod interrupt;
+mod overlay;
 mod render;
 mod train;
 
@@ -87,16 +88,18 @@ enum Command {
 enum ConfigModel {
     Autoencoder,
     Voxels,
+    Tracker,
 }
 
 fn print_config(name: &str, model: ConfigModel, params: bool) -> CliResult<()> {
-    use velox_models::velox::{autoencoder::Autoencoder, count, voxels::VoxelDecoder};
+    use velox_models::velox::{autoencoder::Autoencoder, count, tracker::Tracker, voxels::VoxelDecoder};
     let path = std::path::Path::new(name);
     let checkpoint = path.extension().is_some_and(|e| e == "safetensors");
     // A checkpoint says which model it holds.
     let model = match checkpoint {
         true => match velox_models::checkpoint::config_json(path)?["model"].as_str() {
             Some(velox_models::velox::voxels::MODEL_KIND) => ConfigModel::Voxels,
+            Some(velox_models::velox::tracker::MODEL_KIND) => ConfigModel::Tracker,
             _ => ConfigModel::Autoencoder,
         },
         false => model,
@@ -137,6 +140,19 @@ fn print_config(name: &str, model: ConfigModel, params: bool) -> CliResult<()> {
                     row("fine stage", c.fine),
                     row("total", c.total)
                 )
+            } else {
+                serde_json::to_string_pretty(&cfg)? + "\n"
+            }
+        }
+        ConfigModel::Tracker => {
+            let cfg = match checkpoint {
+                true => Tracker::checkpoint_config(path)?,
+                false => velox_models::config::TrackerConfig::named(name)?,
+            };
+            if params {
+                let mut b = velox_models::params::ParamStore::builder();
+                Tracker::register(&mut b, &cfg)?;
+                format!("parameters of the {} tracker:\n{}", cfg.name, row("total", b.num_parameters()))
             } else {
                 serde_json::to_string_pretty(&cfg)? + "\n"
             }

@@ -7,9 +7,9 @@ use std::path::{Path, PathBuf};
 
 use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
-use velox_data::{SceneFolders, TokenScenes};
+use velox_data::{SceneFolders, TokenScenes, TrackScenes};
 use velox_engine::Gpu;
-use velox_models::config::{AutoencoderConfig, VoxelConfig};
+use velox_models::config::{AutoencoderConfig, TrackerConfig, VoxelConfig};
 use velox_models::run::{RunRequest, RunSettings};
 use velox_models::train::collective::Collective;
 use velox_models::train::distributed::Comm;
@@ -19,6 +19,7 @@ use velox_models::train::trainer::{
 };
 use velox_models::train::Trainable;
 use velox_models::velox::autoencoder::Autoencoder;
+use velox_models::velox::tracker::Tracker;
 use velox_models::velox::voxels::VoxelDecoder;
 
 use crate::interrupt::{signal_name, Interrupt, Interrupted};
@@ -36,6 +37,10 @@ pub enum TrainCommand {
     /// trained encoder (`velox encode`), the encoder frozen. The same run options, stops and
     /// resumes as `train autoencoder`.
     Voxels(VoxelArgs),
+    /// The 3D tracker: each query's position at every frame from the stored tokens of the
+    /// scenes' RGBD videos (`velox encode --source video`), the encoder frozen. The same run
+    /// options, stops and resumes as `train autoencoder`.
+    Tracker(TrackerArgs),
 }
 
 #[derive(Args, Clone)]
@@ -64,6 +69,27 @@ pub struct VoxelArgs {
     #[arg(long)]
     pub checkpoint: Option<PathBuf>,
     /// Decoder sizes: paper, small, tiny, or a JSON config file [default: small; with --init,
+    /// the config of that checkpoint]. Its token width is the tokens'.
+    #[arg(long)]
+    pub config: Option<String>,
+    #[command(flatten)]
+    pub run: RunArgs,
+}
+
+#[derive(Args, Clone)]
+pub struct TrackerArgs {
+    /// Dataset folder: its scenes' video tracks are what the tracker learns.
+    #[arg(long)]
+    pub data: PathBuf,
+    /// The tokens of the scenes' videos (`velox encode --source video`) [default:
+    /// DATA/tokens-video].
+    #[arg(long)]
+    pub tokens: Option<PathBuf>,
+    /// The autoencoder checkpoint the tokens must come from (else the one they record is
+    /// checked, if it is still there).
+    #[arg(long)]
+    pub checkpoint: Option<PathBuf>,
+    /// Tracker sizes: paper, small, tiny, or a JSON config file [default: small; with --init,
     /// the config of that checkpoint]. Its token width is the tokens'.
     #[arg(long)]
     pub config: Option<String>,
@@ -151,6 +177,7 @@ pub fn run(cmd: TrainCommand) -> CliResult<()> {
     let (outcome, out) = match &cmd {
         TrainCommand::Autoencoder(args) => (train_autoencoder(&gpu, args, &interrupt, &comm), &args.run.out),
         TrainCommand::Voxels(args) => (train_voxels(&gpu, args, &interrupt, &comm), &args.run.out),
+        TrainCommand::Tracker(args) => (train_tracker(&gpu, args, &interrupt, &comm), &args.run.out),
     };
     let o = match outcome {
         Ok(o) => o,
@@ -301,23 +328,61 @@ pub fn train_voxels<C: Collective>(
         Ok(cfg)
     };
     let mut model: VoxelDecoder = starting_model(gpu, &begin, &folder, args.config.as_deref(), seed, named)?;
+    tokens_fit("voxel decoder", model.cfg.encoder_hash.as_deref(), model.cfg.token_dim, &scenes)?;
+    run_training(&mut model, &scenes, run, begin, interrupt, collective)
+}
+
+/// Fails unless a model downstream of the encoder (`what`, trained on the tokens of the
+/// autoencoder of hash `trained_on` if any, reading tokens `token_dim` wide) fits `scenes`'
+/// tokens.
+fn tokens_fit(what: &str, trained_on: Option<&str>, token_dim: usize, scenes: &TokenScenes) -> CliResult<()> {
     let tokens_from = &scenes.manifest().origin.checkpoint_hash;
-    if model.cfg.encoder_hash.as_ref().is_some_and(|h| h != tokens_from) {
+    if let Some(hash) = trained_on.filter(|h| h != tokens_from) {
         return Err(format!(
-            "the voxel decoder trained on tokens of autoencoder checkpoint {}, {} holds tokens of {tokens_from}",
-            model.cfg.encoder_hash.as_deref().unwrap_or_default(),
+            "the {what} trained on tokens of autoencoder checkpoint {hash}, {} holds tokens of {tokens_from}",
             scenes.token_dir().display()
         )
         .into());
     }
-    if model.cfg.token_dim != token_dim {
+    let stored = scenes.manifest().token_dim;
+    if token_dim != stored {
         return Err(format!(
-            "the voxel decoder reads tokens {} wide and {} holds tokens {token_dim} wide",
-            model.cfg.token_dim,
+            "the {what} reads tokens {token_dim} wide and {} holds tokens {stored} wide",
             scenes.token_dir().display()
         )
         .into());
     }
+    Ok(())
+}
+
+/// Trains the tracker as `velox train tracker` does, as one of `collective`'s processes.
+pub fn train_tracker<C: Collective>(
+    gpu: &Gpu,
+    args: &TrackerArgs,
+    interrupt: &Interrupt,
+    collective: &C,
+) -> CliResult<Outcome> {
+    let run = &args.run;
+    let begin = run.begin();
+    let folder = RunFolder::new(&run.out);
+    folder.prepare(&begin)?;
+    let scenes = TrackScenes::open(gpu, &args.data, args.tokens.as_deref(), args.checkpoint.as_deref())?;
+    if let Some(note) = scenes.0.checkpoint().note() {
+        eprintln!("note: {note}");
+    }
+    let token_dim = scenes.0.manifest().token_dim;
+    let seed = run.seed.unwrap_or(RunSettings::DEFAULT_SEED);
+    let named = |name: Option<&str>| -> CliResult<TrackerConfig> {
+        let name = name.unwrap_or("small");
+        let mut cfg = TrackerConfig::named(name)?;
+        if matches!(name, "paper" | "small" | "tiny") {
+            cfg.token_dim = token_dim;
+        }
+        cfg.encoder_hash = Some(scenes.0.manifest().origin.checkpoint_hash.clone());
+        Ok(cfg)
+    };
+    let mut model: Tracker = starting_model(gpu, &begin, &folder, args.config.as_deref(), seed, named)?;
+    tokens_fit("tracker", model.cfg.encoder_hash.as_deref(), model.cfg.token_dim, &scenes.0)?;
     run_training(&mut model, &scenes, run, begin, interrupt, collective)
 }
 
@@ -357,6 +422,22 @@ impl RunModel for VoxelDecoder {
     }
     fn fresh(gpu: &Gpu, cfg: &VoxelConfig, seed: u64) -> velox_engine::Result<Self> {
         VoxelDecoder::new(gpu, cfg, seed)
+    }
+    fn config_name(&self) -> &str {
+        &self.cfg.name
+    }
+}
+
+impl RunModel for Tracker {
+    type Config = TrackerConfig;
+    fn load(gpu: &Gpu, checkpoint: &Path) -> velox_engine::Result<Self> {
+        Tracker::load(gpu, checkpoint)
+    }
+    fn checkpoint_config(checkpoint: &Path) -> velox_engine::Result<TrackerConfig> {
+        Tracker::checkpoint_config(checkpoint)
+    }
+    fn fresh(gpu: &Gpu, cfg: &TrackerConfig, seed: u64) -> velox_engine::Result<Self> {
+        Tracker::new(gpu, cfg, seed)
     }
     fn config_name(&self) -> &str {
         &self.cfg.name

@@ -20,7 +20,12 @@
 //! benchmark's `scaling='none'`): the tracker predicts in the scene's own units, so there is no
 //! unknown scale to remove. Points out of the image are occluded in the truth.
 
-use velox_engine::{Error, Result};
+use serde::Serialize;
+use velox_engine::ops::raster::Camera;
+use velox_engine::{Error, Result, Tensor};
+
+use crate::velox::autoencoder::FRAMES;
+use crate::velox::tracker::{occluded, Track, Tracker};
 
 /// The pixel thresholds.
 pub const THRESHOLDS: [f64; 5] = [1.0, 2.0, 4.0, 8.0, 16.0];
@@ -34,7 +39,7 @@ pub struct CameraTracks<'a> {
 }
 
 /// The metrics of one video (or their mean over videos, as the benchmark averages them).
-#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
 pub struct TrackingMetrics {
     pub l2_all: f64,
     pub l2_visible: f64,
@@ -143,6 +148,115 @@ impl TrackingMetrics {
     }
 }
 
+/// One scene's tracking problem, as `velox eval tracking` reads it: the true tracks of its
+/// queries (frame 0 is the query), whether its video camera sees each at each frame, the
+/// camera and its depth frames (camera z, 0 where no surface).
+pub struct TrackingScene<'a> {
+    pub truth: &'a [Track],
+    pub visible: &'a [[bool; FRAMES]],
+    pub camera: &'a Camera,
+    pub depth: &'a [Vec<f32>],
+}
+
+impl TrackingScene<'_> {
+    /// Predicted tracks in the camera's frame, occluded where the video's depth hides them
+    /// (`crate::velox::tracker::occluded`: the paper's visibility, not learned).
+    pub fn in_camera(&self, tracks: &[Track]) -> (Vec<[f64; 3]>, Vec<bool>) {
+        let c = self.camera;
+        let (mut positions, mut hidden) = (Vec::new(), Vec::new());
+        for t in tracks {
+            for (f, p) in t.iter().enumerate() {
+                let x = c.to_camera(*p);
+                let (u, v, z) = c.project(*p);
+                positions.push(x.map(|v| v as f64));
+                hidden.push(occluded(u, v, z, &self.depth[f], c.width, c.height, c.fx));
+            }
+        }
+        (positions, hidden)
+    }
+
+    /// The metrics of `predicted` (one track per true one, in the same order).
+    pub fn metrics(&self, predicted: &[Track]) -> Result<TrackingMetrics> {
+        if predicted.len() != self.truth.len() || self.visible.len() != self.truth.len() {
+            return Err(Error::Invalid(format!(
+                "tracking: {} predicted tracks and {} visibility rows for {} true tracks",
+                predicted.len(),
+                self.visible.len(),
+                self.truth.len()
+            )));
+        }
+        if self.depth.len() != FRAMES
+            || self.depth.iter().any(|d| d.len() != self.camera.width as usize * self.camera.height as usize)
+        {
+            return Err(Error::Invalid(format!(
+                "tracking: {FRAMES} depth frames of {} x {} are needed",
+                self.camera.width, self.camera.height
+            )));
+        }
+        let (truth, _) = self.in_camera(self.truth);
+        let truth_hidden: Vec<bool> = self.visible.iter().flatten().map(|&v| !v).collect();
+        let (pred, pred_hidden) = self.in_camera(predicted);
+        TrackingMetrics::of(
+            CameraTracks { positions: &truth, occluded: &truth_hidden },
+            CameraTracks { positions: &pred, occluded: &pred_hidden },
+            self.camera.fx as f64,
+            self.camera.fy as f64,
+        )
+    }
+}
+
+/// A scene's figures: the tracker, and in the same table the static baseline (every query
+/// stays where it is on the first frame) and the truth itself (the ceiling: its APD is 1, its
+/// OA how often the depth test agrees with the data's visibility).
+#[derive(Clone, Debug, Serialize)]
+pub struct TrackingReport {
+    pub name: String,
+    pub queries: usize,
+    pub tracker: TrackingMetrics,
+    pub static_baseline: TrackingMetrics,
+    pub truth: TrackingMetrics,
+}
+
+impl TrackingReport {
+    /// The mean of each method's figures over scenes.
+    pub fn mean(all: &[TrackingReport]) -> TrackingReport {
+        let pick = |f: fn(&TrackingReport) -> &TrackingMetrics| {
+            TrackingMetrics::mean(&all.iter().map(|r| f(r).clone()).collect::<Vec<_>>())
+        };
+        TrackingReport {
+            name: "mean".into(),
+            queries: all.iter().map(|r| r.queries).sum(),
+            tracker: pick(|r| &r.tracker),
+            static_baseline: pick(|r| &r.static_baseline),
+            truth: pick(|r| &r.truth),
+        }
+    }
+}
+
+/// Tracks the queries of `scene` (the first frame of its true tracks) from its `tokens` (and
+/// their points) and
+/// scores the tracker, the static baseline and the truth; returns the report and the
+/// predicted tracks.
+pub fn evaluate_scene(
+    tracker: &Tracker,
+    name: &str,
+    tokens: &Tensor,
+    token_points: &Tensor,
+    scene: &TrackingScene,
+) -> Result<(TrackingReport, Vec<Track>)> {
+    let queries: Vec<[f32; 3]> = scene.truth.iter().map(|t| t[0]).collect();
+    let predicted = tracker.predict(tokens, token_points, &queries)?;
+    let still: Vec<Track> = queries.iter().map(|&q| [q; FRAMES]).collect();
+    let report = TrackingReport {
+        name: name.to_string(),
+        queries: queries.len(),
+        tracker: scene.metrics(&predicted)?,
+        static_baseline: scene.metrics(&still)?,
+        truth: scene.metrics(scene.truth)?,
+    };
+    Ok((report, predicted))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -173,8 +287,8 @@ mod tests {
         approx(m.occlusion_accuracy, 0.5);
         // Visible points within per threshold: {3}, {0, 3}, {0, 3}, {0, 1, 3}, {0, 1, 3}.
         let within = [1.0 / 3.0, 2.0 / 3.0, 2.0 / 3.0, 1.0, 1.0];
-        for k in 0..5 {
-            approx(m.within_visible[k], within[k]);
+        for (got, want) in m.within_visible.iter().zip(within) {
+            approx(*got, want);
         }
         approx(m.apd_visible, within.iter().sum::<f64>() / 5.0);
         // All points: the same counts over 4 (track 2 is never within).
@@ -182,8 +296,8 @@ mod tests {
         // Jaccard: predicted visible are 0, 2, 3. Track 2 is always a false positive (occluded
         // in truth); track 0 is one below 2 px. True positives: those of {0, 3} within.
         let jaccard = [1.0 / (3.0 + 2.0), 2.0 / (3.0 + 1.0), 2.0 / 4.0, 2.0 / 4.0, 2.0 / 4.0];
-        for k in 0..5 {
-            approx(m.jaccard[k], jaccard[k]);
+        for (got, want) in m.jaccard.iter().zip(jaccard) {
+            approx(*got, want);
         }
         approx(m.average_jaccard, jaccard.iter().sum::<f64>() / 5.0);
     }

@@ -18,15 +18,17 @@ use std::time::Instant;
 use velox_engine::ops::adamw::AdamWConfig;
 use velox_engine::ops::attention::Segments;
 use velox_engine::ops::binary::{binary, Binary};
+use velox_engine::ops::columns::copy_columns;
 use velox_engine::rng::Rng;
-use velox_engine::{Error, Gpu, Result, Tensor};
+use velox_engine::{DType, Error, Gpu, Recorder, Result, Tensor};
 
 use crate::config::{TrackLoss, TrackerConfig};
-use crate::layers::Loss;
+use crate::layers::{Fourier, Loss};
 use crate::params::{ParamBuilder, ParamStore};
 use crate::train::{Losses, Optimisation, PassSeconds, Trainable};
 use crate::velox::autoencoder::FRAMES;
 use crate::velox::perceiver::{PerceiverShape, VoxelFrames, VoxelPerceiver};
+use velox_engine::ops::fourier::fourier_width;
 
 /// The `model` a checkpoint of the tracker names.
 pub const MODEL_KIND: &str = "velox tracker";
@@ -41,17 +43,26 @@ pub type Track = [[f32; 3]; FRAMES];
 pub struct TrackSample {
     /// `[k, token_dim]` on the device (the frozen encoder's, from `velox encode --source video`).
     pub tokens: Tensor,
+    /// `[k, 4]`: each token's query point (x, y, z, tau), as the token file stores it.
+    pub token_points: Tensor,
     pub tracks: Vec<Track>,
 }
 
 impl TrackSample {
     /// Checks the shapes and values: tokens f32 `[k > 0, d > 0]`, at least one track, every
     /// position finite.
-    pub fn new(tokens: Tensor, tracks: Vec<Track>) -> Result<TrackSample> {
+    pub fn new(tokens: Tensor, token_points: Tensor, tracks: Vec<Track>) -> Result<TrackSample> {
         let ok_tokens = matches!(tokens.shape(), [k, d] if *k > 0 && *d > 0)
             && tokens.dtype() == velox_engine::DType::F32;
         if !ok_tokens {
             return Err(Error::Shape(format!("track sample: tokens must be f32 [k, d], got {tokens:?}")));
+        }
+        if token_points.shape() != [tokens.shape()[0], 4] || token_points.dtype() != velox_engine::DType::F32
+        {
+            return Err(Error::Shape(format!(
+                "track sample: token points must be f32 [{}, 4], got {token_points:?}",
+                tokens.shape()[0]
+            )));
         }
         if tracks.is_empty() {
             return Err(Error::Invalid(
@@ -61,21 +72,23 @@ impl TrackSample {
         if let Some(i) = tracks.iter().position(|t| t.iter().flatten().any(|v| !v.is_finite())) {
             return Err(Error::Invalid(format!("track sample: track {i} has a non-finite position")));
         }
-        Ok(TrackSample { tokens, tracks })
+        Ok(TrackSample { tokens, token_points, tracks })
     }
 }
 
 /// Whether a point at camera-space `(u, v, z)` (pixel coordinates and depth, as
 /// `Camera::project` gives them) is occluded in a depth frame `[h, w]` (camera z, 0 where no
-/// surface) of a camera with focal length `fx`: outside the image or behind the camera, or
-/// farther than the surface at its pixel by more than three pixel footprints (the data's own
-/// visibility test). A point over the background is visible: nothing hides it.
+/// surface) of a camera with focal length `fx`: the data's own visibility test, so that the
+/// truth scores as the truth. Visible where it projects into the image, in front of the
+/// camera, onto a pixel that shows surface, and not farther than that surface by more than
+/// three pixel footprints. A point over the background is occluded as the data counts it:
+/// the depth frame shows nothing there.
 pub fn occluded(u: f32, v: f32, z: f32, depth: &[f32], w: u32, h: u32, fx: f32) -> bool {
     if !(z > 0.0 && u >= 0.0 && v >= 0.0 && u < w as f32 && v < h as f32) {
         return true;
     }
     let d = depth[v as usize * w as usize + u as usize];
-    d > 0.0 && z > d + 3.0 * z / fx
+    !(d > 0.0 && z <= d + 3.0 * z / fx)
 }
 
 /// The tracking network; see the module docs.
@@ -83,6 +96,8 @@ pub struct Tracker {
     pub cfg: TrackerConfig,
     pub store: ParamStore,
     trunk: VoxelPerceiver,
+    /// With `token_positions`: the embedding of the tokens' query points.
+    token_fourier: Option<Fourier>,
     pub adamw: AdamWConfig,
     pass_seconds: PassSeconds,
 }
@@ -106,9 +121,29 @@ impl Tracker {
         }
     }
 
+    /// Width of the cross-attention's context: the tokens, and with `token_positions` their
+    /// points' embedding.
+    fn context_width(cfg: &TrackerConfig) -> usize {
+        cfg.token_dim + if cfg.token_positions { fourier_width(4, cfg.xyz_freqs, true) } else { 0 }
+    }
+
     /// Declares the parameters (`trunk.*`).
     pub fn register(b: &mut ParamBuilder, cfg: &TrackerConfig) -> Result<()> {
-        VoxelPerceiver::register(b, "trunk", &Self::shape(cfg), cfg.token_dim)
+        VoxelPerceiver::register(b, "trunk", &Self::shape(cfg), Self::context_width(cfg))
+    }
+
+    /// The cross-attention's context `[k, context]` of one scene (or a batch's, one after
+    /// another), recorded into `rec`: the tokens as they are, or beside their points'
+    /// embedding.
+    fn context(&self, rec: &mut Recorder, tokens: &Tensor, points: &Tensor) -> Result<Tensor> {
+        let Some(fourier) = &self.token_fourier else { return Ok(tokens.clone()) };
+        let (k, d) = (tokens.shape()[0], self.cfg.token_dim);
+        let (embedded, _) = fourier.forward(rec, points)?;
+        let f = fourier.out_width();
+        let out = Tensor::empty(tokens.gpu(), &[k, d + f], DType::F32)?;
+        copy_columns(rec, tokens, 0, &out, 0, d, 1.0)?;
+        copy_columns(rec, &embedded, 0, &out, d, f, 1.0)?;
+        Ok(out)
     }
 
     /// A freshly initialised tracker (parameters from `seed`).
@@ -118,10 +153,13 @@ impl Tracker {
         Self::register(&mut b, cfg)?;
         let store = b.build(gpu, seed)?;
         let trunk = VoxelPerceiver::new(gpu, &store, "trunk", &Self::shape(cfg))?;
+        let token_fourier =
+            if cfg.token_positions { Some(Fourier::octaves(gpu, 4, cfg.xyz_freqs, true)?) } else { None };
         Ok(Tracker {
             cfg: cfg.clone(),
             store,
             trunk,
+            token_fourier,
             adamw: AdamWConfig::default(),
             pass_seconds: PassSeconds::default(),
         })
@@ -201,14 +239,17 @@ impl Tracker {
         let started = Instant::now();
         let gpu = samples[0].tokens.gpu().clone();
         let counts = samples.iter().map(|s| self.check_tokens(&s.tokens)).collect::<Result<Vec<_>>>()?;
-        let tokens =
-            Tensor::empty(&gpu, &[counts.iter().sum(), self.cfg.token_dim], velox_engine::DType::F32)?;
+        let all = counts.iter().sum();
+        let tokens = Tensor::empty(&gpu, &[all, self.cfg.token_dim], DType::F32)?;
+        let points = Tensor::empty(&gpu, &[all, 4], DType::F32)?;
         let mut rec = gpu.recorder()?;
         let mut at = 0;
         for (s, &k) in samples.iter().zip(&counts) {
             rec.copy_rows(&s.tokens, 0, &tokens, at, k)?;
+            rec.copy_rows(&s.token_points, 0, &points, at, k)?;
             at += k;
         }
+        let context = self.context(&mut rec, &tokens, &points)?;
         let (mut queries, mut targets, mut rows) = (Vec::new(), Vec::new(), Vec::new());
         for (s, rng) in samples.iter().zip(rngs.iter_mut()) {
             let n = s.tracks.len();
@@ -229,7 +270,7 @@ impl Tracker {
         let frames =
             VoxelFrames { groups: vec![(0.0, n)], segments: Segments::from_lengths(&gpu, &rows, &counts)? };
         let positions = Tensor::from_slice(&gpu, &[n, 3], &queries)?;
-        let (offsets, cache) = self.trunk.forward(&mut rec, &tokens, &positions, &frames)?;
+        let (offsets, cache) = self.trunk.forward(&mut rec, &context, &positions, &frames)?;
         let target = Tensor::from_slice(&gpu, &[n, 3 * FRAMES], &targets)?;
         let (loss, d_offsets) = self
             .loss()
@@ -250,10 +291,20 @@ impl Tracker {
     }
 
     /// The tracks of `queries` (points on the first frame, in the scene's [-1, 1]^3 box) from
-    /// one scene's `tokens`: each query's position at every frame, frame 0 its prediction for
-    /// the query itself. Runs [`CHUNK`] queries a pass.
-    pub fn predict(&self, tokens: &Tensor, queries: &[[f32; 3]]) -> Result<Vec<Track>> {
+    /// one scene's `tokens` and their points (`[k, 4]`): each query's position at every
+    /// frame, frame 0 its prediction for the query itself. Runs [`CHUNK`] queries a pass.
+    pub fn predict(
+        &self,
+        tokens: &Tensor,
+        token_points: &Tensor,
+        queries: &[[f32; 3]],
+    ) -> Result<Vec<Track>> {
         let k = self.check_tokens(tokens)?;
+        if token_points.shape() != [k, 4] {
+            return Err(Error::Shape(format!(
+                "tracker: token points must be [{k}, 4], got {token_points:?}"
+            )));
+        }
         if let Some(i) = queries.iter().position(|q| q.iter().any(|v| !(v.is_finite() && v.abs() <= 1.0))) {
             return Err(Error::Invalid(format!(
                 "tracker: query {i} at {:?} is not a finite point of the scene's [-1, 1]^3 box",
@@ -261,6 +312,9 @@ impl Tracker {
             )));
         }
         let gpu = tokens.gpu().clone();
+        let mut rec = gpu.recorder()?;
+        let context = self.context(&mut rec, tokens, token_points)?;
+        rec.submit()?;
         let mut out = Vec::with_capacity(queries.len());
         for chunk in queries.chunks(CHUNK) {
             let n = chunk.len();
@@ -268,7 +322,7 @@ impl Tracker {
             let positions = Tensor::from_slice(&gpu, &[n, 3], &flat)?;
             let frames = VoxelFrames::single(&gpu, 0.0, n, k)?;
             let mut rec = gpu.recorder()?;
-            let (offsets, _) = self.trunk.forward(&mut rec, tokens, &positions, &frames)?;
+            let (offsets, _) = self.trunk.forward(&mut rec, &context, &positions, &frames)?;
             let moved = binary(
                 &mut rec,
                 &offsets.reshape(&[n, FRAMES, 3])?,

@@ -1,0 +1,124 @@
+//! Tracks drawn over video frames, for a person to read: each query's path up to the frame
+//! as a line in its own colour (a hue from where it lies in the first frame, so neighbours
+//! share a colour), solid where the point is visible and faded where it is occluded, with a
+//! dot at the frame's position.
+
+use velox_engine::ops::raster::Camera;
+use velox_models::velox::tracker::Track;
+
+/// A fully saturated colour for hue `h` in [0, 1).
+fn hue(h: f32) -> [f32; 3] {
+    let k = |n: f32| {
+        let x = (n + h * 6.0) % 6.0;
+        1.0 - (x.min(4.0 - x).clamp(0.0, 1.0))
+    };
+    [k(5.0), k(3.0), k(1.0)]
+}
+
+/// Each track's colour: its hue from the first frame's pixel column and row.
+pub fn colours(tracks: &[Track], camera: &Camera) -> Vec<[f32; 3]> {
+    tracks
+        .iter()
+        .map(|t| {
+            let (u, v, _) = camera.project(t[0]);
+            let (x, y) = (u / camera.width as f32, v / camera.height as f32);
+            let c = hue((0.85 * x.clamp(0.0, 1.0) + 0.15 * y.clamp(0.0, 1.0)).fract());
+            c.map(|c| 0.25 + 0.75 * c)
+        })
+        .collect()
+}
+
+/// Blends `colour` with weight `alpha` into pixel (x, y) of `rgb` (`[h, w, 3]`), if inside.
+fn plot(rgb: &mut [f32], w: usize, h: usize, x: i64, y: i64, colour: [f32; 3], alpha: f32) {
+    if x < 0 || y < 0 || x >= w as i64 || y >= h as i64 {
+        return;
+    }
+    let i = 3 * (y as usize * w + x as usize);
+    for k in 0..3 {
+        rgb[i + k] = (1.0 - alpha) * rgb[i + k] + alpha * colour[k];
+    }
+}
+
+/// A line from a to b (pixel coordinates), one plotted pixel per step of the longer axis.
+fn line(rgb: &mut [f32], w: usize, h: usize, a: (f32, f32), b: (f32, f32), colour: [f32; 3], alpha: f32) {
+    let steps = ((b.0 - a.0).abs().max((b.1 - a.1).abs()).ceil() as usize).clamp(1, 4 * (w + h));
+    for s in 0..=steps {
+        let t = s as f32 / steps as f32;
+        let (x, y) = (a.0 + t * (b.0 - a.0), a.1 + t * (b.1 - a.1));
+        plot(rgb, w, h, x.floor() as i64, y.floor() as i64, colour, alpha);
+    }
+}
+
+/// Draws `tracks` (world positions per frame) over `rgb`, the video's frame `frame` seen by
+/// `camera`: each path from frame 0 to `frame`, faded where `hidden[track][f]`, and a dot at
+/// the frame's position (hollow when hidden).
+pub fn draw_tracks(
+    rgb: &mut [f32],
+    camera: &Camera,
+    tracks: &[Track],
+    hidden: &[[bool; 24]],
+    colours: &[[f32; 3]],
+    frame: usize,
+) {
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    for ((t, hid), &c) in tracks.iter().zip(hidden).zip(colours) {
+        let px = |f: usize| {
+            let (u, v, _) = camera.project(t[f]);
+            (u, v)
+        };
+        for f in 1..=frame {
+            let alpha = if hid[f] || hid[f - 1] { 0.3 } else { 0.9 };
+            line(rgb, w, h, px(f - 1), px(f), c, alpha);
+        }
+        let (u, v) = px(frame);
+        let (x, y) = (u.floor() as i64, v.floor() as i64);
+        for (dx, dy) in [(0, 0), (1, 0), (-1, 0), (0, 1), (0, -1)] {
+            if hid[frame] && (dx, dy) == (0, 0) {
+                continue;
+            }
+            plot(rgb, w, h, x + dx, y + dy, c, if hid[frame] { 0.5 } else { 1.0 });
+        }
+    }
+}
+
+/// Frames side by side (each `[h, w, 3]`, all of one size): one image `[h, n w, 3]`.
+pub fn side_by_side(frames: &[Vec<f32>], w: usize, h: usize) -> Vec<f32> {
+    let n = frames.len();
+    let mut out = vec![0.0; h * n * w * 3];
+    for (k, f) in frames.iter().enumerate() {
+        for y in 0..h {
+            let dst = 3 * (y * n * w + k * w);
+            out[dst..dst + 3 * w].copy_from_slice(&f[3 * y * w..3 * (y + 1) * w]);
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_track_is_drawn_where_the_camera_sees_it() {
+        let cam = Camera::look_at([0.0, 0.0, -3.0], [0.0; 3], [0.0, 1.0, 0.0], 40.0, 32, 32);
+        // A point moving along +x in the world, from the centre.
+        let t: Track = std::array::from_fn(|f| [0.02 * f as f32, 0.0, 0.0]);
+        let mut rgb = vec![0.0; 32 * 32 * 3];
+        let colour = [[1.0, 0.0, 0.0]];
+        draw_tracks(&mut rgb, &cam, &[t], &[[false; 24]], &colour, 23);
+        let lit = |x: usize, y: usize| rgb[3 * (y * 32 + x)] > 0.5;
+        let (u0, v0, _) = cam.project(t[0]);
+        let (u1, v1, _) = cam.project(t[23]);
+        assert!(lit(u0 as usize, v0 as usize) && lit(u1 as usize, v1 as usize));
+        let lit_count = (0..32 * 32).filter(|i| rgb[3 * i] > 0.0).count();
+        assert!(lit_count < 64, "{lit_count} pixels for a short path");
+        // Hidden: the path is faded, the dot hollow.
+        let mut faded = vec![0.0; 32 * 32 * 3];
+        draw_tracks(&mut faded, &cam, &[t], &[[true; 24]], &colour, 23);
+        assert!(faded[3 * (v1 as usize * 32 + u1 as usize)] < 0.5);
+        let colours = colours(&[t], &cam);
+        assert!(colours[0].iter().all(|c| (0.25..=1.0).contains(c)));
+        let wide = side_by_side(&[rgb.clone(), faded], 32, 32);
+        assert_eq!(&wide[..96], &rgb[..96]);
+    }
+}
