@@ -10,6 +10,7 @@ mod info;
 mod interrupt;
 mod overlay;
 mod render;
+mod track;
 mod train;
 
 use clap::{Parser, Subcommand};
@@ -65,6 +66,9 @@ enum Command {
     /// tokens beside it (k x token_dim per scene, with their query points, the checkpoint's
     /// hash and the dataset's token statistics), for the models that train on them.
     Encode(encode::EncodeArgs),
+    /// Track query points through an RGBD video with a trained tracker: tracks as JSON and
+    /// PLY per frame, and the video's frames with the tracks drawn over them.
+    Track(track::TrackArgs),
     /// Encode a 4D point cloud with a trained autoencoder and decode surface points or
     /// Gaussians per frame to PLY.
     Decode {
@@ -217,6 +221,7 @@ fn dispatch(command: Command) -> CliResult<()> {
         Command::Config { name, model, params } => print_config(&name, model, params),
         Command::Train { what } => train::run(what),
         Command::Encode(args) => encode::run(&args),
+        Command::Track(args) => track::run(&args),
         Command::Decode { what } => decode::run(what),
         Command::Eval { what } => eval::run(what),
     }

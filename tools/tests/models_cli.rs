@@ -587,3 +587,94 @@ fn voxels_train_evaluate_and_feed_the_gaussian_decoder() {
     let err = fails(&velox(&[&args[..], &["--out", arg(&dec), "--voxel-decoder", arg(&vox)]].concat()));
     assert!(err.contains("hash") && err.contains("other.safetensors"), "{err}");
 }
+
+#[test]
+fn tracker_trains_evaluates_and_tracks_a_video() {
+    // The tracker's commands end to end on the fixture: the videos' tokens, a few steps of
+    // training, TAPVid-3D's metrics beside the baselines, and `velox track` on the scene's
+    // video; tokens of the point clouds and a tracker of another encoder are refused.
+    let dir = fixture();
+    let work = dir.join("tracker");
+    let data = work.join("data");
+    copy_dir(&dir.join("data"), &data);
+    let ckpt = dir.join("ae.safetensors");
+    let run = work.join("run");
+    let train = |tokens: Option<&Path>| {
+        let mut args = vec!["train", "tracker", "--data", arg(&data), "--config", "tiny", "--out", arg(&run)];
+        args.extend(["--steps", "2"]);
+        if let Some(t) = tokens {
+            args.extend(["--tokens", arg(t)]);
+        }
+        velox(&args)
+    };
+    // Tokens of the point clouds are not the tracker's.
+    ok(&velox(&["encode", "--checkpoint", arg(&ckpt), "--data", arg(&data)]));
+    let err = fails(&train(Some(&data.join("tokens"))));
+    assert!(err.contains("points clouds") && err.contains("--source video"), "{err}");
+    let said = ok(&velox(&["encode", "--checkpoint", arg(&ckpt), "--data", arg(&data), "--source", "video"]));
+    assert!(said.contains("RGBD videos") && said.contains("tokens-video"), "{said}");
+    let said = ok(&train(None));
+    assert!(said.contains("trained 2 steps"), "{said}");
+    let tracker = run.join("checkpoint.safetensors");
+    let counted = printed_parts(&["config", arg(&tracker), "--params"], &["total"])[0];
+    let gpu = Gpu::new().unwrap();
+    assert_eq!(
+        counted,
+        velox_models::velox::tracker::Tracker::load(&gpu, &tracker).unwrap().store.num_parameters()
+    );
+
+    let ev = work.join("eval");
+    let said = ok(&velox(&[
+        "eval",
+        "tracking",
+        "--data",
+        arg(&data),
+        "--checkpoint",
+        arg(&tracker),
+        "--out",
+        arg(&ev),
+    ]));
+    assert!(said.contains("APD vis") && said.contains("static") && said.contains("truth"), "{said}");
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(ev.join("tracking.json")).unwrap()).unwrap();
+    let mean = &report["mean"];
+    assert_eq!(mean["truth"]["apd_visible"].as_f64(), Some(1.0), "{mean}");
+    for method in ["tracker", "static_baseline"] {
+        for k in ["apd_all", "apd_visible", "average_jaccard", "occlusion_accuracy"] {
+            let v = mean[method][k].as_f64().unwrap();
+            assert!((0.0..=1.0).contains(&v), "{method} {k} {v}");
+        }
+    }
+    assert!(ev.join("scene_00000.png").is_file());
+
+    let (scene, out) = (data.join("scene_00000"), work.join("track"));
+    let track = |extra: &[&str]| {
+        let args =
+            ["track", "--video", arg(&scene), "--autoencoder", arg(&ckpt), "--checkpoint", arg(&tracker)];
+        velox(&[&args[..], &["--out", arg(&out)], extra].concat())
+    };
+    let said = ok(&track(&["--grid", "8"]));
+    assert!(said.contains("queries"), "{said}");
+    let tracks: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("tracks.json")).unwrap()).unwrap();
+    let queries = tracks["queries"].as_array().unwrap();
+    assert!(!queries.is_empty());
+    assert_eq!(queries[0]["positions"].as_array().unwrap().len(), 24);
+    let (_, vertices, _) = ply_vertices(&out.join("tracks_f23.ply"));
+    assert_eq!(vertices, queries.len());
+    assert!(out.join("overlay/f00.png").is_file() && out.join("overlay/f23.png").is_file());
+    // A query outside the scene's box is named.
+    let file = work.join("queries.json");
+    std::fs::write(&file, "[[0.1, 0.2, 0.3], [0.0, 2.5, 0.0]]").unwrap();
+    let err = fails(&track(&["--queries", arg(&file)]));
+    assert!(err.contains("query 1"), "{err}");
+    // Another autoencoder's tokens would mean something else to the tracker.
+    let other = work.join("other.safetensors");
+    let mut bytes = std::fs::read(&ckpt).unwrap();
+    let last = bytes.len() - 1;
+    bytes[last] ^= 1;
+    std::fs::write(&other, &bytes).unwrap();
+    let args = ["track", "--video", arg(&scene), "--autoencoder", arg(&other), "--checkpoint", arg(&tracker)];
+    let err = fails(&velox(&[&args[..], &["--out", arg(&out)]].concat()));
+    assert!(err.contains("hash"), "{err}");
+}

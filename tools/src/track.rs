@@ -1,0 +1,226 @@
+//! `velox track`: 3D tracks of query points through an RGBD video. The video (a scene's
+//! `video/` or a folder of `fFF.png`, `fFF_depth.exr` and `camera.json`, `velox_data::rgbd`)
+//! is back-projected to a 4D cloud, the autoencoder's encoder turns it into tokens, and the
+//! tracker follows each query from the first frame. Writes into `--out`:
+//!
+//! - `tracks.json`: the inputs, and per query its position at every frame (scene units) and
+//!   whether the video shows it there (the depth test the data uses; not learned);
+//! - `tracks_fFF.ply`: per frame, every query's point (float x y z, uchar red green blue in
+//!   the query's colour, uchar visible);
+//! - `overlay/fFF.png`: the video's frames with each track's path drawn so far, faded where
+//!   the point is hidden.
+
+use std::path::{Path, PathBuf};
+
+use serde::Serialize;
+use velox_engine::Gpu;
+use velox_models::files::image::write_png;
+use velox_models::files::write_bytes;
+use velox_models::velox::autoencoder::{Autoencoder, FRAMES};
+use velox_models::velox::cloud;
+use velox_models::velox::tracker::{occluded, Track, Tracker};
+
+use crate::overlay::{colours, draw_tracks};
+use crate::CliResult;
+
+#[derive(clap::Args)]
+pub struct TrackArgs {
+    /// The RGBD video: a scene folder (its video/ and the video camera of cameras.json), or a
+    /// folder of f00.png..f23.png, f00_depth.exr..f23_depth.exr and camera.json.
+    #[arg(long)]
+    video: PathBuf,
+    /// Autoencoder checkpoint whose encoder makes the tokens (the one the tracker trained on).
+    #[arg(long)]
+    autoencoder: PathBuf,
+    /// Tracker checkpoint (`velox train tracker`).
+    #[arg(long)]
+    checkpoint: PathBuf,
+    /// Query points: a JSON file of [x, y, z] points on the first frame (scene units) [default:
+    /// a grid of --grid x --grid pixels of the first frame, those showing surface,
+    /// back-projected].
+    #[arg(long)]
+    queries: Option<PathBuf>,
+    /// Side of the pixel grid the default queries come from.
+    #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u64).range(1..=1024))]
+    grid: u64,
+    /// Output folder.
+    #[arg(long, default_value = "velox-track")]
+    out: PathBuf,
+    /// Seed of the back-projected cloud's draw and the encoder's queries.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Most points of the back-projected cloud.
+    #[arg(long, default_value_t = velox_data::rgbd::DEFAULT_POINTS as u64, value_parser = clap::value_parser!(u64).range(1..=16_777_216))]
+    points: u64,
+}
+
+#[derive(Serialize)]
+struct TrackJson {
+    video: String,
+    autoencoder: String,
+    checkpoint: String,
+    frames: usize,
+    queries: Vec<QueryJson>,
+}
+
+#[derive(Serialize)]
+struct QueryJson {
+    query: [f32; 3],
+    positions: Vec<[f32; 3]>,
+    visible: Vec<bool>,
+}
+
+/// The video of `dir`: a scene's when it has `cameras.json`, else a video folder's.
+fn read_video(dir: &Path) -> CliResult<velox_data::rgbd::RgbdVideo> {
+    Ok(if dir.join("cameras.json").is_file() {
+        velox_data::rgbd::read_scene_video(dir)?
+    } else {
+        velox_data::rgbd::read_video_folder(dir)?
+    })
+}
+
+/// Queries from a JSON file of [x, y, z] points.
+fn read_queries(path: &Path) -> CliResult<Vec<[f32; 3]>> {
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let q: Vec<[f32; 3]> = serde_json::from_str(&text)
+        .map_err(|e| format!("{}: not a JSON list of [x, y, z] points: {e}", path.display()))?;
+    if q.is_empty() {
+        return Err(format!("{}: no query points", path.display()).into());
+    }
+    Ok(q)
+}
+
+/// The pixels of a `grid` x `grid` lattice of the first frame that show surface,
+/// back-projected.
+fn grid_queries(video: &velox_data::rgbd::RgbdVideo, grid: usize) -> Vec<[f32; 3]> {
+    let cam = &video.camera;
+    let mut out = Vec::new();
+    for j in 0..grid {
+        for i in 0..grid {
+            let u = ((i as f32 + 0.5) * cam.width as f32 / grid as f32).floor();
+            let v = ((j as f32 + 0.5) * cam.height as f32 / grid as f32).floor();
+            let z = video.depth[0][v as usize * cam.width as usize + u as usize];
+            if z > 0.0 {
+                out.push(cam.unproject(u + 0.5, v + 0.5, z).map(|x| x.clamp(-1.0, 1.0)));
+            }
+        }
+    }
+    out
+}
+
+/// The PLY of one frame's points: float x y z, uchar red green blue visible.
+fn frame_ply(points: &[[f32; 3]], colours: &[[f32; 3]], visible: &[bool]) -> Vec<u8> {
+    let mut bytes = format!(
+        "ply\nformat binary_little_endian 1.0\ncomment velox tracks, one frame\nelement vertex {}\n\
+         property float x\nproperty float y\nproperty float z\nproperty uchar red\nproperty uchar green\n\
+         property uchar blue\nproperty uchar visible\nend_header\n",
+        points.len()
+    )
+    .into_bytes();
+    for ((p, c), &v) in points.iter().zip(colours).zip(visible) {
+        for x in p {
+            bytes.extend_from_slice(&x.to_le_bytes());
+        }
+        bytes.extend(c.map(|c| (c.clamp(0.0, 1.0) * 255.0).round() as u8));
+        bytes.push(v as u8);
+    }
+    bytes
+}
+
+pub fn run(a: &TrackArgs) -> CliResult<()> {
+    let gpu = Gpu::new()?;
+    let video = read_video(&a.video)?;
+    let tracker = Tracker::load(&gpu, &a.checkpoint)?;
+    tracker.check_encoder(&a.autoencoder)?;
+    let ae = Autoencoder::load(&gpu, &a.autoencoder)?;
+    let queries = match &a.queries {
+        Some(path) => read_queries(path)?,
+        None => grid_queries(&video, a.grid as usize),
+    };
+    if queries.is_empty() {
+        return Err(format!(
+            "no pixel of a {0} x {0} grid on the first frame of {1} shows surface: pass --queries or a finer --grid",
+            a.grid,
+            a.video.display()
+        )
+        .into());
+    }
+    let points = velox_data::rgbd::rgbd_cloud(&video, a.points as usize, a.seed)?;
+    let k = ae.cfg.encoder.tokens;
+    if points.len() < k {
+        return Err(format!(
+            "the video shows {} surface pixels over its frames; the encoder needs at least {k}",
+            points.len()
+        )
+        .into());
+    }
+    println!(
+        "tracking {} queries through {} ({} back-projected points) with the {} tracker on {}",
+        queries.len(),
+        a.video.display(),
+        points.len(),
+        tracker.cfg.name,
+        gpu.caps().name
+    );
+    let flat: Vec<f32> = points.iter().flatten().copied().collect();
+    let (tokens, picked) = ae.encode_with_queries(&cloud::upload(&gpu, &flat)?, a.seed)?;
+    let token_points: Vec<f32> = picked
+        .read::<u32>()?
+        .iter()
+        .flat_map(|&i| {
+            let p = &points[i as usize];
+            [p[0], p[1], p[2], p[6]]
+        })
+        .collect();
+    let token_points = velox_engine::Tensor::from_slice(&gpu, &[k, 4], &token_points)?;
+    let tracks: Vec<Track> = tracker.predict(&tokens, &token_points, &queries)?;
+    let cam = &video.camera;
+    let hidden: Vec<[bool; FRAMES]> = tracks
+        .iter()
+        .map(|t| {
+            std::array::from_fn(|f| {
+                let (u, v, z) = cam.project(t[f]);
+                occluded(u, v, z, &video.depth[f], cam.width, cam.height, cam.fx)
+            })
+        })
+        .collect();
+
+    let overlay = a.out.join("overlay");
+    std::fs::create_dir_all(&overlay).map_err(|e| format!("creating {}: {e}", overlay.display()))?;
+    let colour = colours(&tracks, cam);
+    for f in 0..FRAMES {
+        let positions: Vec<[f32; 3]> = tracks.iter().map(|t| t[f]).collect();
+        let visible: Vec<bool> = hidden.iter().map(|h| !h[f]).collect();
+        write_bytes(&a.out.join(format!("tracks_f{f:02}.ply")), &frame_ply(&positions, &colour, &visible))?;
+        let mut rgb = video.rgb[f].clone();
+        draw_tracks(&mut rgb, cam, &tracks, &hidden, &colour, f);
+        write_png(&overlay.join(format!("f{f:02}.png")), &rgb, cam.width, cam.height)?;
+    }
+    let json = TrackJson {
+        video: a.video.display().to_string(),
+        autoencoder: a.autoencoder.display().to_string(),
+        checkpoint: a.checkpoint.display().to_string(),
+        frames: FRAMES,
+        queries: queries
+            .iter()
+            .zip(&tracks)
+            .zip(&hidden)
+            .map(|((q, t), h)| QueryJson {
+                query: *q,
+                positions: t.to_vec(),
+                visible: h.iter().map(|&x| !x).collect(),
+            })
+            .collect(),
+    };
+    write_bytes(&a.out.join("tracks.json"), serde_json::to_string_pretty(&json)?.as_bytes())?;
+    let shown = hidden.iter().map(|h| h.iter().filter(|&&x| !x).count()).sum::<usize>();
+    println!(
+        "wrote {} (tracks of {} queries, visible at {:.0} % of their frames), {FRAMES} PLY files and the \
+         overlay frames under {}",
+        a.out.join("tracks.json").display(),
+        queries.len(),
+        100.0 * shown as f64 / (queries.len() * FRAMES) as f64,
+        overlay.display()
+    );
+    Ok(())
+}
