@@ -290,6 +290,22 @@ impl Tracker {
         Ok(Losses { terms: vec![("total", total)] })
     }
 
+    /// Records the tracks `[n, 24, 3]` of the queries `positions` (`[n, 3]`) into `rec`, from
+    /// one scene's `tokens` and their points; unchecked (see [`Tracker::predict`]).
+    pub fn record_tracks(
+        &self,
+        rec: &mut Recorder,
+        tokens: &Tensor,
+        token_points: &Tensor,
+        positions: &Tensor,
+    ) -> Result<Tensor> {
+        let (n, k) = (positions.shape()[0], tokens.shape()[0]);
+        let context = self.context(rec, tokens, token_points)?;
+        let frames = VoxelFrames::single(tokens.gpu(), 0.0, n, k)?;
+        let (offsets, _) = self.trunk.forward(rec, &context, positions, &frames)?;
+        binary(rec, &offsets.reshape(&[n, FRAMES, 3])?, &positions.reshape(&[n, 1, 3])?, Binary::Add)
+    }
+
     /// The tracks of `queries` (points on the first frame, in the scene's [-1, 1]^3 box) from
     /// one scene's `tokens` and their points (`[k, 4]`): each query's position at every
     /// frame, frame 0 its prediction for the query itself. Runs [`CHUNK`] queries a pass.
@@ -312,23 +328,12 @@ impl Tracker {
             )));
         }
         let gpu = tokens.gpu().clone();
-        let mut rec = gpu.recorder()?;
-        let context = self.context(&mut rec, tokens, token_points)?;
-        rec.submit()?;
         let mut out = Vec::with_capacity(queries.len());
         for chunk in queries.chunks(CHUNK) {
-            let n = chunk.len();
             let flat: Vec<f32> = chunk.iter().flatten().copied().collect();
-            let positions = Tensor::from_slice(&gpu, &[n, 3], &flat)?;
-            let frames = VoxelFrames::single(&gpu, 0.0, n, k)?;
+            let positions = Tensor::from_slice(&gpu, &[chunk.len(), 3], &flat)?;
             let mut rec = gpu.recorder()?;
-            let (offsets, _) = self.trunk.forward(&mut rec, &context, &positions, &frames)?;
-            let moved = binary(
-                &mut rec,
-                &offsets.reshape(&[n, FRAMES, 3])?,
-                &positions.reshape(&[n, 1, 3])?,
-                Binary::Add,
-            )?;
+            let moved = self.record_tracks(&mut rec, tokens, token_points, &positions)?;
             rec.submit()?;
             let values: Vec<f32> = moved.read()?;
             out.extend(

@@ -12,6 +12,9 @@
 //! - voxel decoder, one frame: the coarse stage over every cell and the fine stage over the
 //!   cells of a sphere of radius 0.8 (about 500 of the 4096 at 16^3), one recording timed by
 //!   GPU timestamps (the paper config of the voxel decoder; its small one on CPU devices);
+//! - tracking network: 2048 queries' 24 positions from the tokens (the paper config's
+//!   training draw; the paper's evaluation does not say how many), one recording timed by GPU
+//!   timestamps (the small config's 512 on CPU devices);
 //! - 4D surface decoder: sampling 16384 points with Heun, 20 and 100 steps (1024 points on a
 //!   CPU device; 256 points and 4 and 20 steps with `--quick`), timed as the whole sampling
 //!   call (one submission per step and chunk, so wall clock, `gpu_timed: false`).
@@ -30,24 +33,26 @@ use velox_engine::ops::columns::copy_columns;
 use velox_engine::rng::Rng;
 use velox_engine::stats::{max_abs_err, nmse};
 use velox_engine::{Gpu, Precision, Result, Tensor};
-use velox_models::config::{AutoencoderConfig, VoxelConfig};
+use velox_models::config::{AutoencoderConfig, TrackerConfig, VoxelConfig};
 use velox_models::params::ParamStore;
 use velox_models::velox::autoencoder::{tau_of, FRAMES};
 use velox_models::velox::cloud;
 use velox_models::velox::encoder::Encoder;
 use velox_models::velox::gaussians::{occupied_voxels, GaussianDecoder};
 use velox_models::velox::surface::{SampleSpec, Sampler, SurfaceDecoder};
+use velox_models::velox::tracker::Tracker;
 use velox_models::velox::voxels::{cell_labels, VoxelDecoder, FRAME_WORDS};
 
 use super::{print_header, print_row, time_gpu, Record};
 
 /// The paper's H100 times in ms (MODELS.md): encoder, Gaussian decoder one frame, 4D surface
 /// decoder 16384 points (the table does not give its steps).
-const PAPER_H100_MS: [(&str, f64); 4] = [
+const PAPER_H100_MS: [(&str, f64); 5] = [
     ("encoder, 1.44 M points -> 8192 tokens", 387.66),
     ("Gaussian decoder, one frame", 32.71),
     ("voxel decoder, one frame", 20.14),
     ("4D surface decoder, 16384 points", 24_800.0),
+    ("tracking network (after encoding)", 19.65),
 ];
 
 const F32_ERROR_OVER: &str = "the f32 path's first run (determinism check of the last timed run)";
@@ -355,6 +360,37 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
             chosen.len(),
             vcfg.cells.pow(3),
             vcfg.cells.pow(3) as f64 / chosen.len() as f64
+        );
+    }
+
+    // Tracking network: every query's 24 positions from the tokens, one recording; the
+    // paper's evaluation does not say how many queries, so the paper config's training draw.
+    {
+        let mut tcfg = if cfg.name == "paper" { TrackerConfig::paper() } else { TrackerConfig::small() };
+        tcfg.token_dim = cfg.encoder.token_dim;
+        let tracker = Tracker::new(gpu, &tcfg, 5)?;
+        liven(&tracker.store, &mut rng)?;
+        let k = cfg.encoder.tokens;
+        let tokens = Tensor::from_slice(gpu, &[k, tcfg.token_dim], &rng.normal_vec(k * tcfg.token_dim))?;
+        let points: Vec<f32> = (0..k)
+            .flat_map(|i| [rng.uniform() as f32 * 2.0 - 1.0, 0.0, 0.5, (i % 24) as f32 / 100.0])
+            .collect();
+        let token_points = Tensor::from_slice(gpu, &[k, 4], &points)?;
+        let n = tcfg.queries_per_sample;
+        let queries: Vec<f32> = (0..3 * n).map(|_| rng.uniform() as f32 * 1.6 - 0.8).collect();
+        let queries = Tensor::from_slice(gpu, &[n, 3], &queries)?;
+        let track = |rec: &mut velox_engine::Recorder, p: Precision| {
+            rec.set_precision(p);
+            tracker.record_tracks(rec, &tokens, &token_points, &queries)
+        };
+        for (p, t, e, m, over) in both_precisions(gpu, repeats, track)? {
+            let shape = format!("{n} queries x 24 frames, {k} tokens");
+            push(record("tracking network", shape, p, t, n as f64 / 1e6, "Mquery/s").error(e, m, over));
+        }
+        println!(
+            "tracking network ({} config, {:.1} M parameters): {n} queries against {k} tokens",
+            tcfg.name,
+            tracker.store.num_parameters() as f64 / 1e6
         );
     }
 
