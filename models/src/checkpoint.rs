@@ -265,6 +265,22 @@ pub fn config_json(path: &Path) -> Result<serde_json::Value> {
         .map_err(|e| Error::Invalid(format!("checkpoint {}: config is not JSON: {e}", path.display())))
 }
 
+/// The config of a checkpoint that must hold a model of kind `kind` (its JSON's `model`; the
+/// error names `what` the config should be).
+pub fn model_config<C: serde::de::DeserializeOwned>(path: &Path, kind: &str, what: &str) -> Result<C> {
+    let json = config_json(path)?;
+    if json["model"] != kind {
+        return Err(Error::Invalid(format!(
+            "checkpoint {} holds a {}, not a {kind}",
+            path.display(),
+            json["model"]
+        )));
+    }
+    serde_json::from_value(json["config"].clone()).map_err(|e| {
+        Error::Invalid(format!("checkpoint {}: the {what}'s config is unreadable: {e}", path.display()))
+    })
+}
+
 /// Loads a checkpoint written by [`save`] into `store` (parameters, moments and step) and
 /// returns its metadata. Every tensor is checked first: a missing or unexpected tensor, a wrong
 /// dtype or shape, a NaN or Inf in a parameter or moment, a truncated or corrupt file gives an

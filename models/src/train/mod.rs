@@ -106,3 +106,51 @@ pub trait Trainable {
         None
     }
 }
+
+/// Implements [`Trainable`] for a Velox model: a struct with the fields `cfg` (its config,
+/// holding `peak_lr`, `warmup`, `max_grad_norm` and `batch`), `store`, `adamw` and
+/// `pass_seconds`, and an inherent `accumulate`; its checkpoints describe it as
+/// `{"model": MODEL_KIND, "config": cfg}` (the `MODEL_KIND` of the model's module).
+macro_rules! trainable {
+    ($model:ty, $sample:ty) => {
+        impl $crate::train::Trainable for $model {
+            type Sample = $sample;
+
+            fn store(&self) -> &$crate::params::ParamStore {
+                &self.store
+            }
+
+            fn store_mut(&mut self) -> &mut $crate::params::ParamStore {
+                &mut self.store
+            }
+
+            fn describe(&self) -> serde_json::Value {
+                serde_json::json!({ "model": MODEL_KIND, "config": self.cfg })
+            }
+
+            fn optimisation(&self) -> $crate::train::Optimisation {
+                $crate::train::Optimisation {
+                    peak_lr: self.cfg.peak_lr,
+                    warmup: self.cfg.warmup,
+                    max_grad_norm: Some(self.cfg.max_grad_norm),
+                    adamw: self.adamw,
+                    batch: self.cfg.batch,
+                }
+            }
+
+            fn accumulate(
+                &mut self,
+                samples: &[&$sample],
+                rngs: &mut [velox_engine::rng::Rng],
+                weight: f64,
+            ) -> velox_engine::Result<$crate::train::Losses> {
+                <$model>::accumulate(self, samples, rngs, weight)
+            }
+
+            fn take_pass_seconds(&mut self) -> Option<$crate::train::PassSeconds> {
+                Some(std::mem::take(&mut self.pass_seconds))
+            }
+        }
+    };
+}
+pub(crate) use trainable;

@@ -31,7 +31,7 @@ use velox_engine::{DType, Error, Gpu, Precision, Result, Tensor};
 use crate::config::AutoencoderConfig;
 use crate::layers::Loss;
 use crate::params::ParamStore;
-use crate::train::{Losses, Optimisation, PassSeconds, Trainable};
+use crate::train::{Losses, PassSeconds, Trainable};
 use crate::velox::cloud::{self, CHANNELS};
 use crate::velox::encoder::Encoder;
 use crate::velox::gaussians::{occupied_voxels, GaussianDecoder, VoxelFrames};
@@ -509,39 +509,7 @@ impl Autoencoder {
     }
 }
 
-impl Trainable for Autoencoder {
-    type Sample = TrainScene;
-
-    fn store(&self) -> &ParamStore {
-        &self.store
-    }
-
-    fn store_mut(&mut self) -> &mut ParamStore {
-        &mut self.store
-    }
-
-    fn describe(&self) -> serde_json::Value {
-        serde_json::json!({ "model": MODEL_KIND, "config": self.cfg })
-    }
-
-    fn optimisation(&self) -> Optimisation {
-        Optimisation {
-            peak_lr: self.cfg.peak_lr,
-            warmup: self.cfg.warmup,
-            max_grad_norm: Some(self.cfg.max_grad_norm),
-            adamw: self.adamw,
-            batch: self.cfg.batch,
-        }
-    }
-
-    fn accumulate(&mut self, samples: &[&TrainScene], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
-        Autoencoder::accumulate(self, samples, rngs, weight)
-    }
-
-    fn take_pass_seconds(&mut self) -> Option<PassSeconds> {
-        Some(std::mem::take(&mut self.pass_seconds))
-    }
-}
+crate::train::trainable!(Autoencoder, TrainScene);
 
 /// Gaussians `start .. start + len` of a set, as a set of their own (the whole set when it is
 /// all of it).

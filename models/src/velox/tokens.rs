@@ -156,6 +156,21 @@ pub fn checkpoint_hash(path: &Path) -> Result<String> {
     Ok(hash_hex(hash.finish()))
 }
 
+/// Fails unless `autoencoder` (a checkpoint file) hashes to `trained_on`, the autoencoder
+/// whose tokens a downstream model (`what`) trained on, when it recorded one.
+pub fn check_encoder(trained_on: Option<&str>, autoencoder: &Path, what: &str) -> Result<()> {
+    let Some(want) = trained_on else { return Ok(()) };
+    let got = checkpoint_hash(autoencoder)?;
+    if want != got {
+        return Err(Error::Invalid(format!(
+            "the {what} trained on the tokens of an autoencoder checkpoint of hash {want}; {} has hash {got} \
+             (its tokens would mean something else to the {what})",
+            autoencoder.display()
+        )));
+    }
+    Ok(())
+}
+
 /// Checks a scene name as a token folder uses it (a file name: `NAME.safetensors`).
 pub fn check_scene_name(name: &str) -> std::result::Result<(), String> {
     let bad = name.is_empty()

@@ -25,7 +25,7 @@ use velox_engine::{DType, Error, Gpu, Recorder, Result, Tensor};
 use crate::config::{TrackLoss, TrackerConfig};
 use crate::layers::{Fourier, Loss};
 use crate::params::{ParamBuilder, ParamStore};
-use crate::train::{Losses, Optimisation, PassSeconds, Trainable};
+use crate::train::{Losses, PassSeconds, Trainable};
 use crate::velox::autoencoder::FRAMES;
 use crate::velox::perceiver::{PerceiverShape, VoxelFrames, VoxelPerceiver};
 use velox_engine::ops::fourier::fourier_width;
@@ -172,17 +172,7 @@ impl Tracker {
 
     /// The config a tracker checkpoint holds.
     pub fn checkpoint_config(path: &Path) -> Result<TrackerConfig> {
-        let json = crate::checkpoint::config_json(path)?;
-        if json["model"] != MODEL_KIND {
-            return Err(Error::Invalid(format!(
-                "checkpoint {} holds a {}, not a {MODEL_KIND}",
-                path.display(),
-                json["model"]
-            )));
-        }
-        serde_json::from_value(json["config"].clone()).map_err(|e| {
-            Error::Invalid(format!("checkpoint {}: the tracker's config is unreadable: {e}", path.display()))
-        })
+        crate::checkpoint::model_config(path, MODEL_KIND, "tracker")
     }
 
     /// The tracker a checkpoint holds, with its moments and step.
@@ -195,16 +185,7 @@ impl Tracker {
     /// Fails unless `autoencoder` (a checkpoint file) is the one whose tokens the tracker
     /// trained on, when the tracker recorded it.
     pub fn check_encoder(&self, autoencoder: &Path) -> Result<()> {
-        let Some(want) = &self.cfg.encoder_hash else { return Ok(()) };
-        let got = crate::velox::tokens::checkpoint_hash(autoencoder)?;
-        if *want != got {
-            return Err(Error::Invalid(format!(
-                "the tracker trained on the tokens of an autoencoder checkpoint of hash {want}; {} has hash \
-                 {got} (its tokens would mean something else to the tracker)",
-                autoencoder.display()
-            )));
-        }
-        Ok(())
+        crate::velox::tokens::check_encoder(self.cfg.encoder_hash.as_deref(), autoencoder, "tracker")
     }
 
     fn check_tokens(&self, tokens: &Tensor) -> Result<usize> {
@@ -346,36 +327,4 @@ impl Tracker {
     }
 }
 
-impl Trainable for Tracker {
-    type Sample = TrackSample;
-
-    fn store(&self) -> &ParamStore {
-        &self.store
-    }
-
-    fn store_mut(&mut self) -> &mut ParamStore {
-        &mut self.store
-    }
-
-    fn describe(&self) -> serde_json::Value {
-        serde_json::json!({ "model": MODEL_KIND, "config": self.cfg })
-    }
-
-    fn optimisation(&self) -> Optimisation {
-        Optimisation {
-            peak_lr: self.cfg.peak_lr,
-            warmup: self.cfg.warmup,
-            max_grad_norm: Some(self.cfg.max_grad_norm),
-            adamw: self.adamw,
-            batch: self.cfg.batch,
-        }
-    }
-
-    fn accumulate(&mut self, samples: &[&TrackSample], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
-        Tracker::accumulate(self, samples, rngs, weight)
-    }
-
-    fn take_pass_seconds(&mut self) -> Option<PassSeconds> {
-        Some(std::mem::take(&mut self.pass_seconds))
-    }
-}
+crate::train::trainable!(Tracker, TrackSample);

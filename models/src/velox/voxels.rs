@@ -19,7 +19,7 @@ use crate::config::{OccupancyLoss, VoxelConfig, VoxelStageConfig};
 use crate::layers::linear::LinearCache;
 use crate::layers::{Fourier, Linear, Loss};
 use crate::params::{ParamBuilder, ParamStore};
-use crate::train::{Losses, Optimisation, PassSeconds, Trainable};
+use crate::train::{Losses, PassSeconds, Trainable};
 use crate::velox::autoencoder::tau_of;
 use crate::velox::blocks::{linear, linear_params};
 use crate::velox::perceiver::{PerceiverShape, VoxelFrames, VoxelPerceiver};
@@ -336,20 +336,7 @@ impl VoxelDecoder {
 
     /// The config a voxel decoder checkpoint holds.
     pub fn checkpoint_config(path: &Path) -> Result<VoxelConfig> {
-        let json = crate::checkpoint::config_json(path)?;
-        if json["model"] != MODEL_KIND {
-            return Err(Error::Invalid(format!(
-                "checkpoint {} holds a {}, not a {MODEL_KIND}",
-                path.display(),
-                json["model"]
-            )));
-        }
-        serde_json::from_value(json["config"].clone()).map_err(|e| {
-            Error::Invalid(format!(
-                "checkpoint {}: the voxel decoder's config is unreadable: {e}",
-                path.display()
-            ))
-        })
+        crate::checkpoint::model_config(path, MODEL_KIND, "voxel decoder")
     }
 
     /// The decoder a checkpoint holds, with its moments and step.
@@ -362,16 +349,7 @@ impl VoxelDecoder {
     /// Fails unless `autoencoder` (a checkpoint file) is the one whose tokens the decoder
     /// trained on, when the decoder recorded it.
     pub fn check_encoder(&self, autoencoder: &Path) -> Result<()> {
-        let Some(want) = &self.cfg.encoder_hash else { return Ok(()) };
-        let got = crate::velox::tokens::checkpoint_hash(autoencoder)?;
-        if *want != got {
-            return Err(Error::Invalid(format!(
-                "the voxel decoder trained on the tokens of an autoencoder checkpoint of hash {want}; {} \
-                 has hash {got} (its tokens would mean something else to the decoder)",
-                autoencoder.display()
-            )));
-        }
-        Ok(())
+        crate::velox::tokens::check_encoder(self.cfg.encoder_hash.as_deref(), autoencoder, "voxel decoder")
     }
 
     fn check_tokens(&self, tokens: &Tensor) -> Result<usize> {
@@ -592,36 +570,4 @@ impl VoxelDecoder {
     }
 }
 
-impl Trainable for VoxelDecoder {
-    type Sample = VoxelSample;
-
-    fn store(&self) -> &ParamStore {
-        &self.store
-    }
-
-    fn store_mut(&mut self) -> &mut ParamStore {
-        &mut self.store
-    }
-
-    fn describe(&self) -> serde_json::Value {
-        serde_json::json!({ "model": MODEL_KIND, "config": self.cfg })
-    }
-
-    fn optimisation(&self) -> Optimisation {
-        Optimisation {
-            peak_lr: self.cfg.peak_lr,
-            warmup: self.cfg.warmup,
-            max_grad_norm: Some(self.cfg.max_grad_norm),
-            adamw: self.adamw,
-            batch: self.cfg.batch,
-        }
-    }
-
-    fn accumulate(&mut self, samples: &[&VoxelSample], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
-        VoxelDecoder::accumulate(self, samples, rngs, weight)
-    }
-
-    fn take_pass_seconds(&mut self) -> Option<PassSeconds> {
-        Some(std::mem::take(&mut self.pass_seconds))
-    }
-}
+crate::train::trainable!(VoxelDecoder, VoxelSample);
