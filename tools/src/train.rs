@@ -36,11 +36,11 @@ pub enum TrainCommand {
     /// The voxel decoder: the occupied voxels of each frame from the stored tokens of a
     /// trained encoder (`velox encode`), the encoder frozen. The same run options, stops and
     /// resumes as `train autoencoder`.
-    Voxels(VoxelArgs),
+    Voxels(TokenModelArgs),
     /// The 3D tracker: each query's position at every frame from the stored tokens of the
     /// scenes' RGBD videos (`velox encode --source video`), the encoder frozen. The same run
     /// options, stops and resumes as `train autoencoder`.
-    Tracker(TrackerArgs),
+    Tracker(TokenModelArgs),
 }
 
 #[derive(Args, Clone)]
@@ -56,41 +56,24 @@ pub struct AutoencoderArgs {
     pub run: RunArgs,
 }
 
+/// The options of a model that trains on stored tokens with the encoder frozen (the voxel
+/// decoder, the tracker).
 #[derive(Args, Clone)]
-pub struct VoxelArgs {
-    /// Dataset folder: its scenes' occupancy is what the decoder learns.
+pub struct TokenModelArgs {
+    /// Dataset folder: its scenes' occupancy (voxel decoder) or video tracks (tracker) are
+    /// what the model learns.
     #[arg(long)]
     pub data: PathBuf,
-    /// The scenes' stored tokens (`velox encode`) [default: DATA/tokens].
+    /// The scenes' stored tokens (`velox encode`) [default: DATA/tokens; the tracker's,
+    /// DATA/tokens-video, from `velox encode --source video`].
     #[arg(long)]
     pub tokens: Option<PathBuf>,
     /// The autoencoder checkpoint the tokens must come from (else the one they record is
     /// checked, if it is still there).
     #[arg(long)]
     pub checkpoint: Option<PathBuf>,
-    /// Decoder sizes: paper, small, tiny, or a JSON config file [default: small; with --init,
-    /// the config of that checkpoint]. Its token width is the tokens'.
-    #[arg(long)]
-    pub config: Option<String>,
-    #[command(flatten)]
-    pub run: RunArgs,
-}
-
-#[derive(Args, Clone)]
-pub struct TrackerArgs {
-    /// Dataset folder: its scenes' video tracks are what the tracker learns.
-    #[arg(long)]
-    pub data: PathBuf,
-    /// The tokens of the scenes' videos (`velox encode --source video`) [default:
-    /// DATA/tokens-video].
-    #[arg(long)]
-    pub tokens: Option<PathBuf>,
-    /// The autoencoder checkpoint the tokens must come from (else the one they record is
-    /// checked, if it is still there).
-    #[arg(long)]
-    pub checkpoint: Option<PathBuf>,
-    /// Tracker sizes: paper, small, tiny, or a JSON config file [default: small; with --init,
-    /// the config of that checkpoint]. Its token width is the tokens'.
+    /// The model's sizes: paper, small, tiny, or a JSON config file [default: small; with
+    /// --init, the config of that checkpoint]. Its token width is the tokens'.
     #[arg(long)]
     pub config: Option<String>,
     #[command(flatten)]
@@ -303,7 +286,7 @@ pub fn train_autoencoder<C: Collective>(
 /// Trains the voxel decoder as `velox train voxels` does, as one of `collective`'s processes.
 pub fn train_voxels<C: Collective>(
     gpu: &Gpu,
-    args: &VoxelArgs,
+    args: &TokenModelArgs,
     interrupt: &Interrupt,
     collective: &C,
 ) -> CliResult<Outcome> {
@@ -358,7 +341,7 @@ fn tokens_fit(what: &str, trained_on: Option<&str>, token_dim: usize, scenes: &T
 /// Trains the tracker as `velox train tracker` does, as one of `collective`'s processes.
 pub fn train_tracker<C: Collective>(
     gpu: &Gpu,
-    args: &TrackerArgs,
+    args: &TokenModelArgs,
     interrupt: &Interrupt,
     collective: &C,
 ) -> CliResult<Outcome> {
