@@ -8,7 +8,7 @@ use common::*;
 use velox::models::config::{TrackLoss, TrackerConfig};
 use velox::models::params::ParamBuilder;
 use velox::models::train::Trainable;
-use velox::models::velox::tracker::{occluded, Track, TrackSample, Tracker};
+use velox::models::velox::tracker::{Track, TrackSample, Tracker};
 
 /// Tracks of `n` random queries under a smooth motion: a drift and a shear growing with time.
 fn tracks(seed: u64, n: usize) -> Vec<Track> {
@@ -167,20 +167,23 @@ fn queries_are_tracked_on_their_own() {
 
 #[test]
 fn occlusion_is_the_depth_test_of_the_data() {
-    // A 4 x 2 depth frame: surface at depth 2 on the left half, background on the right.
+    use velox::engine::ops::raster::Camera;
+    // A 4 x 2 image at the origin looking down +z, focal length 100; its depth frame shows a
+    // surface at depth 2 on the left half and the background on the right.
+    let cam = Camera { fx: 100.0, fy: 100.0, cx: 2.0, cy: 1.0, ..Camera::identity(60.0, 4, 2) };
     let depth = [2.0, 2.0, 0.0, 0.0, 2.0, 2.0, 0.0, 0.0];
-    let fx = 100.0;
+    let sees = |u: f32, v: f32, z: f32| cam.sees(cam.unproject(u, v, z), &depth);
     // In front of, on, and a hair behind the surface (within 3 footprints: 3 * 2 / 100).
-    assert!(!occluded(0.5, 0.5, 1.0, &depth, 4, 2, fx));
-    assert!(!occluded(1.5, 1.5, 2.05, &depth, 4, 2, fx));
+    assert!(sees(0.5, 0.5, 1.0));
+    assert!(sees(1.5, 1.5, 2.05));
     // Behind it by more than 3 footprints.
-    assert!(occluded(1.5, 1.5, 2.1, &depth, 4, 2, fx));
-    // Over the background: occluded, as the data counts it (no surface shows it).
-    assert!(occluded(2.5, 0.5, 1.0, &depth, 4, 2, fx));
-    // Outside the image or behind the camera.
-    assert!(occluded(4.0, 0.5, 1.0, &depth, 4, 2, fx));
-    assert!(occluded(-0.1, 0.5, 1.0, &depth, 4, 2, fx));
-    assert!(occluded(0.5, 0.5, -1.0, &depth, 4, 2, fx));
+    assert!(!sees(1.5, 1.5, 2.1));
+    // Over the background: unseen, as the data counts it (no surface shows it).
+    assert!(!sees(2.5, 0.5, 1.0));
+    // Outside the image, or behind the camera.
+    assert!(!sees(4.0, 0.5, 1.0));
+    assert!(!sees(-0.1, 0.5, 1.0));
+    assert!(!cam.sees([0.0, 0.0, -1.0], &depth));
 }
 
 #[test]

@@ -348,16 +348,10 @@ fn visibility(mesh: &AnimatedMesh, f: usize, tri: u32, p: V3, frame: &Frame, cam
     if length(cross(sub(t[1], t[0]), sub(t[2], t[0]))) == 0.0 {
         return 0;
     }
+    let px = frame.pixels();
     let mut bits = 0u64;
     for (c, cam) in cams.iter().enumerate() {
-        let (u, v, z) = cam.project(p);
-        if z <= 0.0 || u < 0.0 || v < 0.0 || u >= cam.width as f32 || v >= cam.height as f32 {
-            continue;
-        }
-        let k = c * frame.pixels() + v as usize * frame.width as usize + u as usize;
-        let d = frame.depth[k];
-        let tol = 3.0 * z / cam.fx;
-        if d > 0.0 && z <= d + tol {
+        if cam.sees(p, &frame.depth[c * px..(c + 1) * px]) {
             bits |= 1 << c;
         }
     }

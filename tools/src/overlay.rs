@@ -39,19 +39,19 @@ fn plot(rgb: &mut [f32], w: usize, h: usize, x: i64, y: i64, colour: [f32; 3], a
     }
 }
 
-/// A line from a to b (pixel coordinates), one plotted pixel per step of the longer axis.
-fn line(rgb: &mut [f32], w: usize, h: usize, a: (f32, f32), b: (f32, f32), colour: [f32; 3], alpha: f32) {
+/// The pixels of a line from a to b (pixel coordinates), one per step of the longer axis.
+fn line(a: (f32, f32), b: (f32, f32), w: usize, h: usize, out: &mut Vec<(i64, i64)>) {
     let steps = ((b.0 - a.0).abs().max((b.1 - a.1).abs()).ceil() as usize).clamp(1, 4 * (w + h));
     for s in 0..=steps {
         let t = s as f32 / steps as f32;
-        let (x, y) = (a.0 + t * (b.0 - a.0), a.1 + t * (b.1 - a.1));
-        plot(rgb, w, h, x.floor() as i64, y.floor() as i64, colour, alpha);
+        out.push(((a.0 + t * (b.0 - a.0)).floor() as i64, (a.1 + t * (b.1 - a.1)).floor() as i64));
     }
 }
 
 /// Draws `tracks` (world positions per frame) over `rgb`, the video's frame `frame` seen by
 /// `camera`: each path from frame 0 to `frame`, faded where `hidden[track][f]`, and a dot at
-/// the frame's position (hollow when hidden).
+/// the frame's position (hollow when hidden). A pixel a path crosses several times is blended
+/// once, at its most opaque, so a slow track's faded stretch stays faded.
 pub fn draw_tracks(
     rgb: &mut [f32],
     camera: &Camera,
@@ -66,17 +66,26 @@ pub fn draw_tracks(
             let (u, v, _) = camera.project(t[f]);
             (u, v)
         };
+        let mut marks: Vec<(i64, i64, f32)> = Vec::new();
+        let mut pixels = Vec::new();
         for f in 1..=frame {
             let alpha = if hid[f] || hid[f - 1] { 0.3 } else { 0.9 };
-            line(rgb, w, h, px(f - 1), px(f), c, alpha);
+            pixels.clear();
+            line(px(f - 1), px(f), w, h, &mut pixels);
+            marks.extend(pixels.iter().map(|&(x, y)| (x, y, alpha)));
         }
         let (u, v) = px(frame);
         let (x, y) = (u.floor() as i64, v.floor() as i64);
         for (dx, dy) in [(0, 0), (1, 0), (-1, 0), (0, 1), (0, -1)] {
-            if hid[frame] && (dx, dy) == (0, 0) {
-                continue;
+            if !(hid[frame] && (dx, dy) == (0, 0)) {
+                marks.push((x + dx, y + dy, if hid[frame] { 0.5 } else { 1.0 }));
             }
-            plot(rgb, w, h, x + dx, y + dy, c, if hid[frame] { 0.5 } else { 1.0 });
+        }
+        // The most opaque mark of each pixel first, then one blend per pixel.
+        marks.sort_by(|a, b| (a.0, a.1).cmp(&(b.0, b.1)).then(b.2.total_cmp(&a.2)));
+        marks.dedup_by_key(|m| (m.0, m.1));
+        for (x, y, alpha) in marks {
+            plot(rgb, w, h, x, y, c, alpha);
         }
     }
 }

@@ -18,7 +18,7 @@ use velox_models::files::image::write_png;
 use velox_models::files::write_bytes;
 use velox_models::velox::autoencoder::{Autoencoder, FRAMES};
 use velox_models::velox::cloud;
-use velox_models::velox::tracker::{occluded, Track, Tracker};
+use velox_models::velox::tracker::{Track, Tracker};
 
 use crate::overlay::{colours, draw_tracks};
 use crate::CliResult;
@@ -175,15 +175,8 @@ pub fn run(a: &TrackArgs) -> CliResult<()> {
     let token_points = velox_engine::Tensor::from_slice(&gpu, &[k, 4], &token_points)?;
     let tracks: Vec<Track> = tracker.predict(&tokens, &token_points, &queries)?;
     let cam = &video.camera;
-    let hidden: Vec<[bool; FRAMES]> = tracks
-        .iter()
-        .map(|t| {
-            std::array::from_fn(|f| {
-                let (u, v, z) = cam.project(t[f]);
-                occluded(u, v, z, &video.depth[f], cam.width, cam.height, cam.fx)
-            })
-        })
-        .collect();
+    let hidden: Vec<[bool; FRAMES]> =
+        tracks.iter().map(|t| std::array::from_fn(|f| !cam.sees(t[f], &video.depth[f]))).collect();
 
     let overlay = a.out.join("overlay");
     std::fs::create_dir_all(&overlay).map_err(|e| format!("creating {}: {e}", overlay.display()))?;

@@ -25,7 +25,7 @@ use velox_engine::ops::raster::Camera;
 use velox_engine::{Error, Result, Tensor};
 
 use crate::velox::autoencoder::FRAMES;
-use crate::velox::tracker::{occluded, Track, Tracker};
+use crate::velox::tracker::{Track, Tracker};
 
 /// The pixel thresholds.
 pub const THRESHOLDS: [f64; 5] = [1.0, 2.0, 4.0, 8.0, 16.0];
@@ -159,17 +159,15 @@ pub struct TrackingScene<'a> {
 }
 
 impl TrackingScene<'_> {
-    /// Predicted tracks in the camera's frame, occluded where the video's depth hides them
-    /// (`crate::velox::tracker::occluded`: the paper's visibility, not learned).
+    /// Tracks in the camera's frame, occluded where the camera does not see them in the
+    /// video's depth (`Camera::sees`: the paper's visibility, not learned).
     pub fn in_camera(&self, tracks: &[Track]) -> (Vec<[f64; 3]>, Vec<bool>) {
         let c = self.camera;
         let (mut positions, mut hidden) = (Vec::new(), Vec::new());
         for t in tracks {
             for (f, p) in t.iter().enumerate() {
-                let x = c.to_camera(*p);
-                let (u, v, z) = c.project(*p);
-                positions.push(x.map(|v| v as f64));
-                hidden.push(occluded(u, v, z, &self.depth[f], c.width, c.height, c.fx));
+                positions.push(c.to_camera(*p).map(|v| v as f64));
+                hidden.push(!c.sees(*p, &self.depth[f]));
             }
         }
         (positions, hidden)

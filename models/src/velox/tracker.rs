@@ -9,8 +9,8 @@
 //! whatever other queries run with it, and any number of them run in chunks. The head starts
 //! near zero, so an untrained tracker predicts that nothing moves (the static baseline).
 //!
-//! Visibility is not learned (as in the paper): a predicted point is occluded where it lies
-//! behind the video's depth at its pixel, or outside the image ([`occluded`]).
+//! Visibility is not learned (as in the paper): a predicted point is occluded where the
+//! video's camera does not see it in its depth frame (`Camera::sees`, the data's own test).
 
 use std::path::Path;
 use std::time::Instant;
@@ -74,21 +74,6 @@ impl TrackSample {
         }
         Ok(TrackSample { tokens, token_points, tracks })
     }
-}
-
-/// Whether a point at camera-space `(u, v, z)` (pixel coordinates and depth, as
-/// `Camera::project` gives them) is occluded in a depth frame `[h, w]` (camera z, 0 where no
-/// surface) of a camera with focal length `fx`: the data's own visibility test, so that the
-/// truth scores as the truth. Visible where it projects into the image, in front of the
-/// camera, onto a pixel that shows surface, and not farther than that surface by more than
-/// three pixel footprints. A point over the background is occluded as the data counts it:
-/// the depth frame shows nothing there.
-pub fn occluded(u: f32, v: f32, z: f32, depth: &[f32], w: u32, h: u32, fx: f32) -> bool {
-    if !(z > 0.0 && u >= 0.0 && v >= 0.0 && u < w as f32 && v < h as f32) {
-        return true;
-    }
-    let d = depth[v as usize * w as usize + u as usize];
-    !(d > 0.0 && z <= d + 3.0 * z / fx)
 }
 
 /// The tracking network; see the module docs.

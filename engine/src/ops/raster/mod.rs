@@ -162,6 +162,22 @@ impl Camera {
         (self.fx * c[0] / c[2] + self.cx, self.fy * c[1] / c[2] + self.cy, c[2])
     }
 
+    /// Whether the camera sees world point `p` in `depth`, a depth frame of its image
+    /// (camera z per pixel, row-major, 0 where no surface): `p` projects into the image, in
+    /// front of the camera, onto a pixel that shows surface, and lies not farther than that
+    /// surface by more than three pixel footprints (`3 z / fx`). The data's tracks and the
+    /// tracker's occlusion both use this test. A point on a silhouette whose pixel's centre
+    /// sample misses the object counts as unseen: the depth frame shows nothing there.
+    pub fn sees(&self, p: [f32; 3], depth: &[f32]) -> bool {
+        let (u, v, z) = self.project(p);
+        let inside = z > 0.0 && u >= 0.0 && v >= 0.0 && u < self.width as f32 && v < self.height as f32;
+        if !inside {
+            return false;
+        }
+        let d = depth[v as usize * self.width as usize + u as usize];
+        d > 0.0 && z <= d + 3.0 * z / self.fx
+    }
+
     /// The world point at depth `z` under pixel position (u, v).
     pub fn unproject(&self, u: f32, v: f32, z: f32) -> [f32; 3] {
         let c = [(u - self.cx) / self.fx * z, (v - self.cy) / self.fy * z, z];
