@@ -36,31 +36,38 @@ pub enum EvalCommand {
     Tracking(TrackingEvalArgs),
 }
 
+/// What every evaluation of a model on stored tokens takes.
 #[derive(clap::Args)]
-pub struct TrackingEvalArgs {
-    /// Dataset folder of held-out scenes (made with --tracks N: their video tracks are the
-    /// queries and the truth).
+pub struct TokenEvalArgs {
+    /// Dataset folder of held-out scenes (for the tracker, made with --tracks N: their video
+    /// tracks are the queries and the truth).
     #[arg(long)]
     data: PathBuf,
-    /// Tracker checkpoint (`velox train tracker`).
+    /// The model's checkpoint (`velox train voxels` or `velox train tracker`).
     #[arg(long)]
     checkpoint: PathBuf,
-    /// The scenes' video tokens [default: DATA/tokens-video].
+    /// The scenes' stored tokens [default: DATA/tokens; the tracker's, DATA/tokens-video].
     #[arg(long)]
     tokens: Option<PathBuf>,
     /// The autoencoder checkpoint the tokens must come from (else the one they record is
     /// checked, if it is still there).
     #[arg(long)]
     autoencoder: Option<PathBuf>,
-    /// Output folder for the overlay images (and tracking.json unless --json says otherwise).
-    #[arg(long, default_value = "velox-eval-tracking")]
-    out: PathBuf,
-    /// Write the metrics as JSON here (default OUT/tracking.json).
+    /// Write the metrics as JSON here [default: OUT/voxels.json or OUT/tracking.json].
     #[arg(long)]
     json: Option<PathBuf>,
     /// Evaluate only the first N scenes (in name order).
     #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
     scenes: Option<u64>,
+}
+
+#[derive(clap::Args)]
+pub struct TrackingEvalArgs {
+    #[command(flatten)]
+    common: TokenEvalArgs,
+    /// Output folder for the overlay images and tracking.json.
+    #[arg(long, default_value = "velox-eval-tracking")]
+    out: PathBuf,
     /// Scenes drawn: frames 0, 8, 16 and 23 of the video with the predicted tracks (top) and
     /// the true ones (bottom).
     #[arg(long, default_value_t = 2)]
@@ -69,28 +76,11 @@ pub struct TrackingEvalArgs {
 
 #[derive(clap::Args)]
 pub struct VoxelEvalArgs {
-    /// Dataset folder of held-out scenes.
-    #[arg(long)]
-    data: PathBuf,
-    /// Voxel decoder checkpoint (`velox train voxels`).
-    #[arg(long)]
-    checkpoint: PathBuf,
-    /// The scenes' stored tokens [default: DATA/tokens].
-    #[arg(long)]
-    tokens: Option<PathBuf>,
-    /// The autoencoder checkpoint the tokens must come from (else the one they record is
-    /// checked, if it is still there).
-    #[arg(long)]
-    autoencoder: Option<PathBuf>,
-    /// Output folder for the projection images (and voxels.json unless --json says otherwise).
+    #[command(flatten)]
+    common: TokenEvalArgs,
+    /// Output folder for the projection images and voxels.json.
     #[arg(long, default_value = "velox-eval-voxels")]
     out: PathBuf,
-    /// Write the metrics as JSON here (default OUT/voxels.json).
-    #[arg(long)]
-    json: Option<PathBuf>,
-    /// Evaluate only the first N scenes (in name order).
-    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
-    scenes: Option<u64>,
     /// Evaluate every Nth frame (0, N, 2N, ...).
     #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u64).range(1..=24))]
     frame_step: u64,
@@ -217,13 +207,14 @@ pub fn run(cmd: EvalCommand) -> CliResult<()> {
 }
 
 fn run_tracking(a: &TrackingEvalArgs) -> CliResult<()> {
+    let c = &a.common;
     use velox_models::eval::tracking::{evaluate_scene, TrackingMetrics, TrackingReport, TrackingScene};
     let gpu = Gpu::new()?;
-    let scenes = TrackScenes::open(&gpu, &a.data, a.tokens.as_deref(), a.autoencoder.as_deref())?;
+    let scenes = TrackScenes::open(&gpu, &c.data, c.tokens.as_deref(), c.autoencoder.as_deref())?;
     if let Some(note) = scenes.0.checkpoint().note() {
         eprintln!("note: {note}");
     }
-    let tracker = Tracker::load(&gpu, &a.checkpoint)?;
+    let tracker = Tracker::load(&gpu, &c.checkpoint)?;
     let from = &scenes.0.manifest().origin.checkpoint_hash;
     if let Some(hash) = tracker.cfg.encoder_hash.as_ref().filter(|h| *h != from) {
         return Err(format!(
@@ -233,13 +224,13 @@ fn run_tracking(a: &TrackingEvalArgs) -> CliResult<()> {
         .into());
     }
     std::fs::create_dir_all(&a.out).map_err(|e| format!("creating {}: {e}", a.out.display()))?;
-    let json = a.json.clone().unwrap_or_else(|| a.out.join("tracking.json"));
-    let count = a.scenes.map_or(scenes.len(), |n| (n as usize).min(scenes.len()));
+    let json = c.json.clone().unwrap_or_else(|| a.out.join("tracking.json"));
+    let count = c.scenes.map_or(scenes.len(), |n| (n as usize).min(scenes.len()));
     println!(
         "evaluating the {} tracker ({}) on {count} scenes of {} on {}",
         tracker.cfg.name,
-        a.checkpoint.display(),
-        a.data.display(),
+        c.checkpoint.display(),
+        c.data.display(),
         gpu.caps().name
     );
     let bar = progress(count, "scenes");
@@ -292,8 +283,8 @@ fn run_tracking(a: &TrackingEvalArgs) -> CliResult<()> {
          learns none); static: every query stays on its first frame; truth: the true tracks (the ceiling)"
     );
     let file = serde_json::json!({
-        "checkpoint": a.checkpoint.display().to_string(),
-        "data": a.data.display().to_string(),
+        "checkpoint": c.checkpoint.display().to_string(),
+        "data": c.data.display().to_string(),
         "mean": mean,
         "scenes": reports,
         "images": images,
@@ -337,24 +328,25 @@ fn write_overlays(
 }
 
 fn run_voxels(a: &VoxelEvalArgs) -> CliResult<()> {
+    let c = &a.common;
     let gpu = Gpu::new()?;
-    let scenes = TokenScenes::open(&gpu, &a.data, a.tokens.as_deref(), a.autoencoder.as_deref())?;
+    let scenes = TokenScenes::open(&gpu, &c.data, c.tokens.as_deref(), c.autoencoder.as_deref())?;
     if let Some(note) = scenes.checkpoint().note() {
         eprintln!("note: {note}");
     }
-    let mut decoder = VoxelDecoder::load(&gpu, &a.checkpoint)?;
+    let mut decoder = VoxelDecoder::load(&gpu, &c.checkpoint)?;
     decoder.cfg.threshold = a.threshold.unwrap_or(decoder.cfg.threshold);
     decoder.cfg.cell_threshold = a.cell_threshold.unwrap_or(decoder.cfg.cell_threshold);
     std::fs::create_dir_all(&a.out).map_err(|e| format!("creating {}: {e}", a.out.display()))?;
-    let json = a.json.clone().unwrap_or_else(|| a.out.join("voxels.json"));
-    let count = a.scenes.map_or(scenes.len(), |n| (n as usize).min(scenes.len()));
+    let json = c.json.clone().unwrap_or_else(|| a.out.join("voxels.json"));
+    let count = c.scenes.map_or(scenes.len(), |n| (n as usize).min(scenes.len()));
     println!(
         "evaluating the {} voxel decoder ({}; cells above {}, voxels above {}) on {count} scenes of {} on {}",
         decoder.cfg.name,
-        a.checkpoint.display(),
+        c.checkpoint.display(),
         decoder.cfg.cell_threshold,
         decoder.cfg.threshold,
-        a.data.display(),
+        c.data.display(),
         gpu.caps().name
     );
     let bar = progress(count, "scenes");
@@ -416,8 +408,8 @@ fn run_voxels(a: &VoxelEvalArgs) -> CliResult<()> {
          among them; accuracy alone says little (an empty prediction scores about 99 %)"
     );
     let file = serde_json::json!({
-        "checkpoint": a.checkpoint.display().to_string(),
-        "data": a.data.display().to_string(),
+        "checkpoint": c.checkpoint.display().to_string(),
+        "data": c.data.display().to_string(),
         "frame_step": a.frame_step,
         "threshold": decoder.cfg.threshold,
         "cell_threshold": decoder.cfg.cell_threshold,

@@ -379,53 +379,31 @@ trait RunModel: Sized {
     fn config_name(&self) -> &str;
 }
 
-impl RunModel for Autoencoder {
-    type Config = AutoencoderConfig;
-    fn load(gpu: &Gpu, checkpoint: &Path) -> velox_engine::Result<Self> {
-        Autoencoder::load(gpu, checkpoint)
-    }
-    fn checkpoint_config(checkpoint: &Path) -> velox_engine::Result<AutoencoderConfig> {
-        Autoencoder::checkpoint_config(checkpoint)
-    }
-    fn fresh(gpu: &Gpu, cfg: &AutoencoderConfig, seed: u64) -> velox_engine::Result<Self> {
-        Autoencoder::new(gpu, cfg, seed)
-    }
-    fn config_name(&self) -> &str {
-        &self.cfg.name
-    }
+/// [`RunModel`] for a model whose `load`, `checkpoint_config` and `new` have the usual
+/// signatures and whose config has a `name`.
+macro_rules! run_model {
+    ($model:ty, $config:ty) => {
+        impl RunModel for $model {
+            type Config = $config;
+            fn load(gpu: &Gpu, checkpoint: &Path) -> velox_engine::Result<Self> {
+                <$model>::load(gpu, checkpoint)
+            }
+            fn checkpoint_config(checkpoint: &Path) -> velox_engine::Result<$config> {
+                <$model>::checkpoint_config(checkpoint)
+            }
+            fn fresh(gpu: &Gpu, cfg: &$config, seed: u64) -> velox_engine::Result<Self> {
+                <$model>::new(gpu, cfg, seed)
+            }
+            fn config_name(&self) -> &str {
+                &self.cfg.name
+            }
+        }
+    };
 }
 
-impl RunModel for VoxelDecoder {
-    type Config = VoxelConfig;
-    fn load(gpu: &Gpu, checkpoint: &Path) -> velox_engine::Result<Self> {
-        VoxelDecoder::load(gpu, checkpoint)
-    }
-    fn checkpoint_config(checkpoint: &Path) -> velox_engine::Result<VoxelConfig> {
-        VoxelDecoder::checkpoint_config(checkpoint)
-    }
-    fn fresh(gpu: &Gpu, cfg: &VoxelConfig, seed: u64) -> velox_engine::Result<Self> {
-        VoxelDecoder::new(gpu, cfg, seed)
-    }
-    fn config_name(&self) -> &str {
-        &self.cfg.name
-    }
-}
-
-impl RunModel for Tracker {
-    type Config = TrackerConfig;
-    fn load(gpu: &Gpu, checkpoint: &Path) -> velox_engine::Result<Self> {
-        Tracker::load(gpu, checkpoint)
-    }
-    fn checkpoint_config(checkpoint: &Path) -> velox_engine::Result<TrackerConfig> {
-        Tracker::checkpoint_config(checkpoint)
-    }
-    fn fresh(gpu: &Gpu, cfg: &TrackerConfig, seed: u64) -> velox_engine::Result<Self> {
-        Tracker::new(gpu, cfg, seed)
-    }
-    fn config_name(&self) -> &str {
-        &self.cfg.name
-    }
-}
+run_model!(Autoencoder, AutoencoderConfig);
+run_model!(VoxelDecoder, VoxelConfig);
+run_model!(Tracker, TrackerConfig);
 
 /// The model a run starts from: its own checkpoint when it resumes (the config asked for, if
 /// another, is ignored with a note); a fresh model of the config asked for, or else of the
