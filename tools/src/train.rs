@@ -290,52 +290,8 @@ pub fn train_voxels<C: Collective>(
     interrupt: &Interrupt,
     collective: &C,
 ) -> CliResult<Outcome> {
-    let run = &args.run;
-    let begin = run.begin();
-    let folder = RunFolder::new(&run.out);
-    folder.prepare(&begin)?;
     let scenes = TokenScenes::open(gpu, &args.data, args.tokens.as_deref(), args.checkpoint.as_deref())?;
-    if let Some(note) = scenes.checkpoint().note() {
-        eprintln!("note: {note}");
-    }
-    let token_dim = scenes.manifest().token_dim;
-    let seed = run.seed.unwrap_or(RunSettings::DEFAULT_SEED);
-    // A named config takes the tokens' width; a config file must already have it.
-    let named = |name: Option<&str>| -> CliResult<VoxelConfig> {
-        let name = name.unwrap_or("small");
-        let mut cfg = VoxelConfig::named(name)?;
-        if matches!(name, "paper" | "small" | "tiny") {
-            cfg.token_dim = token_dim;
-        }
-        cfg.encoder_hash = Some(scenes.manifest().origin.checkpoint_hash.clone());
-        Ok(cfg)
-    };
-    let mut model: VoxelDecoder = starting_model(gpu, &begin, &folder, args.config.as_deref(), seed, named)?;
-    tokens_fit("voxel decoder", model.cfg.encoder_hash.as_deref(), model.cfg.token_dim, &scenes)?;
-    run_training(&mut model, &scenes, run, begin, interrupt, collective)
-}
-
-/// Fails unless a model downstream of the encoder (`what`, trained on the tokens of the
-/// autoencoder of hash `trained_on` if any, reading tokens `token_dim` wide) fits `scenes`'
-/// tokens.
-fn tokens_fit(what: &str, trained_on: Option<&str>, token_dim: usize, scenes: &TokenScenes) -> CliResult<()> {
-    let tokens_from = &scenes.manifest().origin.checkpoint_hash;
-    if let Some(hash) = trained_on.filter(|h| h != tokens_from) {
-        return Err(format!(
-            "the {what} trained on tokens of autoencoder checkpoint {hash}, {} holds tokens of {tokens_from}",
-            scenes.token_dir().display()
-        )
-        .into());
-    }
-    let stored = scenes.manifest().token_dim;
-    if token_dim != stored {
-        return Err(format!(
-            "the {what} reads tokens {token_dim} wide and {} holds tokens {stored} wide",
-            scenes.token_dir().display()
-        )
-        .into());
-    }
-    Ok(())
+    train_on_tokens::<VoxelDecoder, _, _>(gpu, args, &scenes, &scenes, interrupt, collective)
 }
 
 /// Trains the tracker as `velox train tracker` does, as one of `collective`'s processes.
@@ -345,28 +301,93 @@ pub fn train_tracker<C: Collective>(
     interrupt: &Interrupt,
     collective: &C,
 ) -> CliResult<Outcome> {
+    let scenes = TrackScenes::open(gpu, &args.data, args.tokens.as_deref(), args.checkpoint.as_deref())?;
+    train_on_tokens::<Tracker, _, _>(gpu, args, &scenes, &scenes.0, interrupt, collective)
+}
+
+/// The config of a model that trains on stored tokens: its name for messages, and the token
+/// width and autoencoder hash it records.
+trait TokenModelConfig: Sized {
+    const WHAT: &'static str;
+    fn named(name: &str) -> velox_engine::Result<Self>;
+    fn tokens(&mut self) -> (&mut usize, &mut Option<String>);
+}
+
+impl TokenModelConfig for VoxelConfig {
+    const WHAT: &'static str = "voxel decoder";
+    fn named(name: &str) -> velox_engine::Result<Self> {
+        VoxelConfig::named(name)
+    }
+    fn tokens(&mut self) -> (&mut usize, &mut Option<String>) {
+        (&mut self.token_dim, &mut self.encoder_hash)
+    }
+}
+
+impl TokenModelConfig for TrackerConfig {
+    const WHAT: &'static str = "tracker";
+    fn named(name: &str) -> velox_engine::Result<Self> {
+        TrackerConfig::named(name)
+    }
+    fn tokens(&mut self) -> (&mut usize, &mut Option<String>) {
+        (&mut self.token_dim, &mut self.encoder_hash)
+    }
+}
+
+/// A run of a model downstream of the encoder on `source` (whose tokens are `tokens`'): a
+/// named config takes the tokens' width and records their autoencoder; a model that learned
+/// another autoencoder's tokens, or tokens of another width, is refused.
+fn train_on_tokens<M, S, C>(
+    gpu: &Gpu,
+    args: &TokenModelArgs,
+    source: &S,
+    tokens: &TokenScenes,
+    interrupt: &Interrupt,
+    collective: &C,
+) -> CliResult<Outcome>
+where
+    M: RunModel + Trainable,
+    M::Config: TokenModelConfig,
+    S: SampleSource<Sample = M::Sample>,
+    C: Collective,
+{
     let run = &args.run;
     let begin = run.begin();
     let folder = RunFolder::new(&run.out);
     folder.prepare(&begin)?;
-    let scenes = TrackScenes::open(gpu, &args.data, args.tokens.as_deref(), args.checkpoint.as_deref())?;
-    if let Some(note) = scenes.0.checkpoint().note() {
+    if let Some(note) = tokens.checkpoint().note() {
         eprintln!("note: {note}");
     }
-    let token_dim = scenes.0.manifest().token_dim;
+    let (token_dim, hash) = (tokens.manifest().token_dim, &tokens.manifest().origin.checkpoint_hash);
     let seed = run.seed.unwrap_or(RunSettings::DEFAULT_SEED);
-    let named = |name: Option<&str>| -> CliResult<TrackerConfig> {
+    // A named config takes the tokens' width; a config file must already have it.
+    let named = |name: Option<&str>| -> CliResult<M::Config> {
         let name = name.unwrap_or("small");
-        let mut cfg = TrackerConfig::named(name)?;
+        let mut cfg = M::Config::named(name)?;
+        let (dim, from) = cfg.tokens();
         if matches!(name, "paper" | "small" | "tiny") {
-            cfg.token_dim = token_dim;
+            *dim = token_dim;
         }
-        cfg.encoder_hash = Some(scenes.0.manifest().origin.checkpoint_hash.clone());
+        *from = Some(hash.clone());
         Ok(cfg)
     };
-    let mut model: Tracker = starting_model(gpu, &begin, &folder, args.config.as_deref(), seed, named)?;
-    tokens_fit("tracker", model.cfg.encoder_hash.as_deref(), model.cfg.token_dim, &scenes.0)?;
-    run_training(&mut model, &scenes, run, begin, interrupt, collective)
+    let mut model: M = starting_model(gpu, &begin, &folder, args.config.as_deref(), seed, named)?;
+    let (dim, from) = model.config_mut().tokens();
+    let what = <M::Config as TokenModelConfig>::WHAT;
+    if let Some(trained_on) = from.as_deref().filter(|h| *h != hash) {
+        return Err(format!(
+            "the {what} trained on tokens of autoencoder checkpoint {trained_on}, {} holds tokens of {hash}",
+            tokens.token_dir().display()
+        )
+        .into());
+    }
+    if *dim != token_dim {
+        return Err(format!(
+            "the {what} reads tokens {dim} wide and {} holds tokens {token_dim} wide",
+            tokens.token_dir().display()
+        )
+        .into());
+    }
+    run_training(&mut model, source, run, begin, interrupt, collective)
 }
 
 /// What a run needs of a model to start it: load a checkpoint, read a checkpoint's config,
@@ -377,6 +398,7 @@ trait RunModel: Sized {
     fn checkpoint_config(checkpoint: &Path) -> velox_engine::Result<Self::Config>;
     fn fresh(gpu: &Gpu, cfg: &Self::Config, seed: u64) -> velox_engine::Result<Self>;
     fn config_name(&self) -> &str;
+    fn config_mut(&mut self) -> &mut Self::Config;
 }
 
 /// [`RunModel`] for a model whose `load`, `checkpoint_config` and `new` have the usual
@@ -396,6 +418,9 @@ macro_rules! run_model {
             }
             fn config_name(&self) -> &str {
                 &self.cfg.name
+            }
+            fn config_mut(&mut self) -> &mut $config {
+                &mut self.cfg
             }
         }
     };

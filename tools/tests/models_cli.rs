@@ -677,4 +677,12 @@ fn tracker_trains_evaluates_and_tracks_a_video() {
     let args = ["track", "--video", arg(&scene), "--autoencoder", arg(&other), "--checkpoint", arg(&tracker)];
     let err = fails(&velox(&[&args[..], &["--out", arg(&out)]].concat()));
     assert!(err.contains("hash"), "{err}");
+    // Nor does it train on them: fine-tuning it on that autoencoder's tokens is refused.
+    let other_tokens = work.join("tokens-other");
+    let args = ["encode", "--checkpoint", arg(&other), "--data", arg(&data), "--source", "video"];
+    ok(&velox(&[&args[..], &["--out", arg(&other_tokens)]].concat()));
+    let args =
+        ["train", "tracker", "--data", arg(&data), "--tokens", arg(&other_tokens), "--init", arg(&tracker)];
+    let err = fails(&velox(&[&args[..], &["--out", arg(&work.join("run2")), "--steps", "1"]].concat()));
+    assert!(err.contains("the tracker trained on tokens of autoencoder checkpoint"), "{err}");
 }
