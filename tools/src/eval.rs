@@ -295,7 +295,8 @@ fn run_tracking(a: &TrackingEvalArgs) -> CliResult<()> {
 }
 
 /// Frames 0, 8, 16 and 23 of the video with the predicted tracks over them (top row) and the
-/// true ones (bottom row), occluded stretches faded.
+/// true ones (bottom row), occluded stretches faded; enlarged (each pixel a k x k block) to at
+/// least 128 px a frame.
 fn write_overlays(
     path: &std::path::Path,
     video: &velox_data::rgbd::RgbdVideo,
@@ -323,7 +324,10 @@ fn write_overlays(
             .collect();
         rows.extend(side_by_side(&frames, w, h));
     }
-    write_png(path, &rows, 4 * w as u32, 2 * h as u32)?;
+    // Small videos are drawn at their own pixels, then shown at least 128 px a frame.
+    let k = 128usize.div_ceil(w.min(h)).max(1);
+    let sheet = crate::overlay::enlarged(&rows, 4 * w, 2 * h, k);
+    write_png(path, &sheet, (4 * w * k) as u32, (2 * h * k) as u32)?;
     Ok(())
 }
 

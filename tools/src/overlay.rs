@@ -103,6 +103,18 @@ pub fn side_by_side(frames: &[Vec<f32>], w: usize, h: usize) -> Vec<f32> {
     out
 }
 
+/// `rgb` (`[h, w, 3]`) with each pixel a `k` x `k` block: `[k h, k w, 3]`.
+pub fn enlarged(rgb: &[f32], w: usize, h: usize, k: usize) -> Vec<f32> {
+    let mut out = Vec::with_capacity(rgb.len() * k * k);
+    for y in 0..h * k {
+        for x in 0..w * k {
+            let i = 3 * ((y / k) * w + x / k);
+            out.extend_from_slice(&rgb[i..i + 3]);
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -129,5 +141,10 @@ mod tests {
         assert!(colours[0].iter().all(|c| (0.25..=1.0).contains(c)));
         let wide = side_by_side(&[rgb.clone(), faded], 32, 32);
         assert_eq!(&wide[..96], &rgb[..96]);
+        let big = enlarged(&[0.1, 0.2, 0.3, 0.4, 0.5, 0.6], 2, 1, 2);
+        assert_eq!(big.len(), 2 * 4 * 3);
+        assert_eq!(&big[..6], &[0.1, 0.2, 0.3, 0.1, 0.2, 0.3]);
+        assert_eq!(&big[12..18], &[0.1, 0.2, 0.3, 0.1, 0.2, 0.3]);
+        assert_eq!(&big[18..], &[0.4, 0.5, 0.6, 0.4, 0.5, 0.6]);
     }
 }
