@@ -261,7 +261,7 @@ impl Scene {
     }
 }
 
-fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> DataResult<T> {
+pub(crate) fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> DataResult<T> {
     let text = std::fs::read_to_string(path).map_err(|e| io(path, e))?;
     serde_json::from_str(&text).map_err(|e| DataError::Invalid(format!("{}: {e}", path.display())))
 }
@@ -334,32 +334,42 @@ fn check_cameras(cams: &CameraSet, meta: &SceneMeta) -> Result<(), String> {
     let named =
         named.chain(cams.supervision.iter().enumerate().map(|(i, c)| (format!("supervision camera {i}"), c)));
     for (name, c) in named.chain(cams.video.iter().map(|c| ("the video camera".to_string(), c))) {
-        let values = c.rotation.iter().flatten().chain(&c.translation).chain([&c.cx, &c.cy]);
-        if values.clone().any(|v| !v.is_finite()) {
-            return Err(format!("{name} has a non-finite rotation, translation or principal point"));
-        }
-        let r = &c.rotation;
-        let orthonormal = (0..3).all(|i| {
-            (0..3).all(|j| {
-                let d: f32 = (0..3).map(|k| r[i][k] * r[j][k]).sum();
-                (d - (i == j) as u8 as f32).abs() < 1e-3
-            })
-        });
-        if !orthonormal {
-            return Err(format!("{name}: the rotation {r:?} is not a rotation matrix"));
-        }
-        if !(c.fx.is_finite() && c.fx > 0.0 && c.fy.is_finite() && c.fy > 0.0) {
-            return Err(format!(
-                "{name}: focal lengths fx = {}, fy = {} must be positive and finite",
-                c.fx, c.fy
-            ));
-        }
+        check_camera(&name, c)?;
         if c.width != meta.resolution || c.height != meta.resolution {
             return Err(format!(
                 "{name} is {} x {}, the scene's resolution is {}",
                 c.width, c.height, meta.resolution
             ));
         }
+    }
+    Ok(())
+}
+
+/// Checks one camera (`name` for the message): finite values, a rotation, positive focal
+/// lengths, an image of at least a pixel.
+pub(crate) fn check_camera(name: &str, c: &Camera) -> Result<(), String> {
+    let values = c.rotation.iter().flatten().chain(&c.translation).chain([&c.cx, &c.cy]);
+    if values.clone().any(|v| !v.is_finite()) {
+        return Err(format!("{name} has a non-finite rotation, translation or principal point"));
+    }
+    let r = &c.rotation;
+    let orthonormal = (0..3).all(|i| {
+        (0..3).all(|j| {
+            let d: f32 = (0..3).map(|k| r[i][k] * r[j][k]).sum();
+            (d - (i == j) as u8 as f32).abs() < 1e-3
+        })
+    });
+    if !orthonormal {
+        return Err(format!("{name}: the rotation {r:?} is not a rotation matrix"));
+    }
+    if !(c.fx.is_finite() && c.fx > 0.0 && c.fy.is_finite() && c.fy > 0.0) {
+        return Err(format!(
+            "{name}: focal lengths fx = {}, fy = {} must be positive and finite",
+            c.fx, c.fy
+        ));
+    }
+    if c.width == 0 || c.height == 0 {
+        return Err(format!("{name}: an image of {} x {} pixels", c.width, c.height));
     }
     Ok(())
 }

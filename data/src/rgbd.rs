@@ -13,7 +13,7 @@ use std::path::Path;
 use velox_engine::rng::Rng;
 
 use crate::camera::Camera;
-use crate::format::CameraSet;
+use crate::format::{check_camera, read_json, CameraSet};
 use crate::pipeline::{fill_in_frame_order, Reservoir, FPS};
 use crate::procedural::FRAMES;
 use crate::{DataError, DataResult};
@@ -77,23 +77,17 @@ pub fn read_rgbd_video(dir: &Path, camera: Camera) -> DataResult<RgbdVideo> {
 /// The video of the scene in `scene` (`video/` and the `video` camera of `cameras.json`).
 pub fn read_scene_video(scene: &Path) -> DataResult<RgbdVideo> {
     let path = scene.join("cameras.json");
-    let text =
-        std::fs::read_to_string(&path).map_err(|e| DataError::Io(format!("{}: {e}", path.display())))?;
-    let cams: CameraSet = serde_json::from_str(&text).map_err(|e| invalid(&path, e))?;
+    let cams: CameraSet = read_json(&path)?;
     let camera = cams.video.ok_or_else(|| invalid(&path, "the scene has no video camera"))?;
+    check_camera("the video camera", &camera).map_err(|why| invalid(&path, why))?;
     read_rgbd_video(&scene.join("video"), camera)
 }
 
 /// Reads a video folder of any origin: `camera.json` and the frames (see the module docs).
 pub fn read_video_folder(dir: &Path) -> DataResult<RgbdVideo> {
     let path = dir.join("camera.json");
-    let text =
-        std::fs::read_to_string(&path).map_err(|e| DataError::Io(format!("{}: {e}", path.display())))?;
-    let camera: Camera = serde_json::from_str(&text).map_err(|e| invalid(&path, e))?;
-    let finite = camera.rotation.iter().flatten().chain(&camera.translation).chain([&camera.cx, &camera.cy]);
-    if finite.clone().any(|v| !v.is_finite()) || !(camera.fx > 0.0 && camera.fy > 0.0) || camera.width == 0 {
-        return Err(invalid(&path, "the camera needs positive focal lengths, a size and finite values"));
-    }
+    let camera: Camera = read_json(&path)?;
+    check_camera("the camera", &camera).map_err(|why| invalid(&path, why))?;
     read_rgbd_video(dir, camera)
 }
 
