@@ -194,14 +194,7 @@ pub fn encode_dataset(
             )));
         }
         let (tokens, queries) = ae.encode_with_queries(&cloud::upload(gpu, &cloud)?, origin.seed)?;
-        let query_points = queries
-            .read::<u32>()?
-            .iter()
-            .flat_map(|&q| {
-                let p = &cloud[q as usize * CHANNELS..][..CHANNELS];
-                [p[0], p[1], p[2], p[6]]
-            })
-            .collect::<Vec<f32>>();
+        let query_points = cloud::query_points(&cloud, &queries.read::<u32>()?);
         let tokens = SceneTokens::new(name, tokens.read()?, query_points, d)
             .map_err(|e| DataError::Invalid(format!("{}: {e}", dir.display())))?;
         write_scene_file(&out, &origin, &tokens)?;

@@ -164,14 +164,7 @@ pub fn run(a: &TrackArgs) -> CliResult<()> {
     );
     let flat: Vec<f32> = points.iter().flatten().copied().collect();
     let (tokens, picked) = ae.encode_with_queries(&cloud::upload(&gpu, &flat)?, a.seed)?;
-    let token_points: Vec<f32> = picked
-        .read::<u32>()?
-        .iter()
-        .flat_map(|&i| {
-            let p = &points[i as usize];
-            [p[0], p[1], p[2], p[6]]
-        })
-        .collect();
+    let token_points = cloud::query_points(&flat, &picked.read::<u32>()?);
     let token_points = velox_engine::Tensor::from_slice(&gpu, &[k, 4], &token_points)?;
     let tracks: Vec<Track> = tracker.predict(&tokens, &token_points, &queries)?;
     let cam = &video.camera;

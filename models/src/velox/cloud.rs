@@ -46,6 +46,18 @@ pub fn upload(gpu: &Gpu, data: &[f32]) -> Result<Tensor> {
     Tensor::from_slice(gpu, &[n, CHANNELS], data)
 }
 
+/// The query points (x, y, z, tau; `[k, 4]` row-major) of the cloud's rows `picked` (the
+/// encoder's query indices): what a token file stores beside the tokens.
+pub fn query_points(data: &[f32], picked: &[u32]) -> Vec<f32> {
+    picked
+        .iter()
+        .flat_map(|&q| {
+            let p = &data[q as usize * CHANNELS..][..CHANNELS];
+            [p[0], p[1], p[2], p[6]]
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
