@@ -225,6 +225,25 @@ impl TokenScenes {
         Ok(TokenScenes { gpu: gpu.clone(), dirs, names, folder })
     }
 
+    /// Fails unless a model downstream of the encoder (`what`, trained on the tokens of the
+    /// autoencoder of hash `trained_on` if it recorded one, reading tokens `token_dim` wide)
+    /// fits these tokens.
+    pub fn check_model(&self, what: &str, trained_on: Option<&str>, token_dim: usize) -> DataResult<()> {
+        let (from, stored) = (&self.folder.manifest.origin.checkpoint_hash, self.folder.manifest.token_dim);
+        let dir = self.folder.dir.display();
+        if let Some(hash) = trained_on.filter(|h| h != from) {
+            return Err(DataError::Invalid(format!(
+                "the {what} trained on tokens of autoencoder checkpoint {hash}, {dir} holds tokens of {from}"
+            )));
+        }
+        if token_dim != stored {
+            return Err(DataError::Invalid(format!(
+                "the {what} reads tokens {token_dim} wide and {dir} holds tokens {stored} wide"
+            )));
+        }
+        Ok(())
+    }
+
     /// The token folder's manifest: the encoder's origin, k and token_dim, the statistics.
     pub fn manifest(&self) -> &TokenManifest {
         &self.folder.manifest

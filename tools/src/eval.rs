@@ -207,22 +207,15 @@ pub fn run(cmd: EvalCommand) -> CliResult<()> {
 }
 
 fn run_tracking(a: &TrackingEvalArgs) -> CliResult<()> {
-    let c = &a.common;
     use velox_models::eval::tracking::{evaluate_scene, TrackingMetrics, TrackingReport, TrackingScene};
+    let c = &a.common;
     let gpu = Gpu::new()?;
     let scenes = TrackScenes::open(&gpu, &c.data, c.tokens.as_deref(), c.autoencoder.as_deref())?;
     if let Some(note) = scenes.0.checkpoint().note() {
         eprintln!("note: {note}");
     }
     let tracker = Tracker::load(&gpu, &c.checkpoint)?;
-    let from = &scenes.0.manifest().origin.checkpoint_hash;
-    if let Some(hash) = tracker.cfg.encoder_hash.as_ref().filter(|h| *h != from) {
-        return Err(format!(
-            "the tracker trained on tokens of autoencoder checkpoint {hash}, {} holds tokens of {from}",
-            scenes.0.token_dir().display()
-        )
-        .into());
-    }
+    scenes.0.check_model("tracker", tracker.cfg.encoder_hash.as_deref(), tracker.cfg.token_dim)?;
     std::fs::create_dir_all(&a.out).map_err(|e| format!("creating {}: {e}", a.out.display()))?;
     let json = c.json.clone().unwrap_or_else(|| a.out.join("tracking.json"));
     let count = c.scenes.map_or(scenes.len(), |n| (n as usize).min(scenes.len()));

@@ -372,21 +372,7 @@ where
     };
     let mut model: M = starting_model(gpu, &begin, &folder, args.config.as_deref(), seed, named)?;
     let (dim, from) = model.config_mut().tokens();
-    let what = <M::Config as TokenModelConfig>::WHAT;
-    if let Some(trained_on) = from.as_deref().filter(|h| *h != hash) {
-        return Err(format!(
-            "the {what} trained on tokens of autoencoder checkpoint {trained_on}, {} holds tokens of {hash}",
-            tokens.token_dir().display()
-        )
-        .into());
-    }
-    if *dim != token_dim {
-        return Err(format!(
-            "the {what} reads tokens {dim} wide and {} holds tokens {token_dim} wide",
-            tokens.token_dir().display()
-        )
-        .into());
-    }
+    tokens.check_model(<M::Config as TokenModelConfig>::WHAT, from.as_deref(), *dim)?;
     run_training(&mut model, source, run, begin, interrupt, collective)
 }
 
