@@ -332,6 +332,7 @@ fn run_voxels(a: &VoxelEvalArgs) -> CliResult<()> {
         eprintln!("note: {note}");
     }
     let mut decoder = VoxelDecoder::load(&gpu, &c.checkpoint)?;
+    scenes.check_model("voxel decoder", decoder.cfg.encoder_hash.as_deref(), decoder.cfg.token_dim)?;
     decoder.cfg.threshold = a.threshold.unwrap_or(decoder.cfg.threshold);
     decoder.cfg.cell_threshold = a.cell_threshold.unwrap_or(decoder.cfg.cell_threshold);
     std::fs::create_dir_all(&a.out).map_err(|e| format!("creating {}: {e}", a.out.display()))?;
