@@ -296,6 +296,9 @@ impl SampleSource for TokenScenes {
 pub struct HostTrackScene {
     pub tokens: SceneTokens,
     pub tracks: Vec<Track>,
+    /// Whether the video camera sees each track at each frame (the evaluation's truth; the
+    /// training does not use it).
+    pub visible: Vec<[bool; velox_models::velox::autoencoder::FRAMES]>,
 }
 
 /// The scenes of a dataset with the tokens of their RGBD videos (`velox encode --source
@@ -312,6 +315,17 @@ impl TrackScenes {
         checkpoint: Option<&Path>,
     ) -> DataResult<TrackScenes> {
         Ok(TrackScenes(TokenScenes::open_source(gpu, data, tokens, checkpoint, CloudSource::Video)?))
+    }
+
+    /// Scene `index` as a sample, with whether the video camera sees each track at each
+    /// frame: what the evaluation needs, read once.
+    pub fn load_with_visibility(
+        &self,
+        index: usize,
+    ) -> velox_engine::Result<(TrackSample, Vec<[bool; velox_models::velox::autoencoder::FRAMES]>)> {
+        let mut raw = self.read(index)?;
+        let visible = std::mem::take(&mut raw.visible);
+        Ok((self.prepare(raw)?, visible))
     }
 }
 
@@ -333,7 +347,7 @@ impl SampleSource for TrackScenes {
 
     fn read(&self, index: usize) -> velox_engine::Result<HostTrackScene> {
         let tokens = self.0.folder.read(&self.0.names[index])?;
-        let (tracks, _) = read_video_tracks(&self.0.dirs[index])?;
+        let (tracks, visible) = read_video_tracks(&self.0.dirs[index])?;
         if tracks.is_empty() {
             return Err(DataError::Invalid(format!(
                 "{}: the scene has no video tracks (made with --tracks 0, or before the tracking task): \
@@ -342,7 +356,7 @@ impl SampleSource for TrackScenes {
             ))
             .into());
         }
-        Ok(HostTrackScene { tokens, tracks })
+        Ok(HostTrackScene { tokens, tracks, visible })
     }
 
     fn prepare(&self, raw: HostTrackScene) -> velox_engine::Result<TrackSample> {

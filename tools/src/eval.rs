@@ -232,8 +232,7 @@ fn run_tracking(a: &TrackingEvalArgs) -> CliResult<()> {
         let name = scenes.name(i);
         bar.set_message(name.clone());
         let dir = &scenes.0.dirs()[i];
-        let sample = scenes.load(i)?;
-        let (_, visible) = velox_data::format::read_video_tracks(dir)?;
+        let (sample, visible) = scenes.load_with_visibility(i)?;
         let video = velox_data::rgbd::read_scene_video(dir)?;
         let scene = TrackingScene {
             truth: &sample.tracks,
