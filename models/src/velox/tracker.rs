@@ -207,15 +207,25 @@ impl Tracker {
         let counts = samples.iter().map(|s| self.check_tokens(&s.tokens)).collect::<Result<Vec<_>>>()?;
         let all = counts.iter().sum();
         let tokens = Tensor::empty(&gpu, &[all, self.cfg.token_dim], DType::F32)?;
-        let points = Tensor::empty(&gpu, &[all, 4], DType::F32)?;
+        // The tokens' points join the context only with `token_positions`.
+        let points = if self.token_fourier.is_some() {
+            Some(Tensor::empty(&gpu, &[all, 4], DType::F32)?)
+        } else {
+            None
+        };
         let mut rec = gpu.recorder()?;
         let mut at = 0;
         for (s, &k) in samples.iter().zip(&counts) {
             rec.copy_rows(&s.tokens, 0, &tokens, at, k)?;
-            rec.copy_rows(&s.token_points, 0, &points, at, k)?;
+            if let Some(points) = &points {
+                rec.copy_rows(&s.token_points, 0, points, at, k)?;
+            }
             at += k;
         }
-        let context = self.context(&mut rec, &tokens, &points)?;
+        let context = match &points {
+            Some(points) => self.context(&mut rec, &tokens, points)?,
+            None => tokens,
+        };
         let (mut queries, mut targets, mut rows) = (Vec::new(), Vec::new(), Vec::new());
         for (s, rng) in samples.iter().zip(rngs.iter_mut()) {
             let n = s.tracks.len();
