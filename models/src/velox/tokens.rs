@@ -171,6 +171,17 @@ pub fn check_encoder(trained_on: Option<&str>, autoencoder: &Path, what: &str) -
     Ok(())
 }
 
+/// The token count `k` of a scene's tokens for a downstream model (`what`) that reads tokens
+/// `token_dim` wide: they must be `[k > 0, token_dim]`.
+pub fn check_shape(what: &str, tokens: &Tensor, token_dim: usize) -> Result<usize> {
+    match tokens.shape() {
+        &[k, d] if k > 0 && d == token_dim => Ok(k),
+        _ => Err(Error::Shape(format!(
+            "{what}: tokens must be [k > 0, {token_dim}] (the config's token_dim), got {tokens:?}"
+        ))),
+    }
+}
+
 /// Checks a scene name as a token folder uses it (a file name: `NAME.safetensors`).
 pub fn check_scene_name(name: &str) -> std::result::Result<(), String> {
     let bad = name.is_empty()

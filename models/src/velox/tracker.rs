@@ -174,13 +174,7 @@ impl Tracker {
     }
 
     fn check_tokens(&self, tokens: &Tensor) -> Result<usize> {
-        match tokens.shape() {
-            &[k, d] if k > 0 && d == self.cfg.token_dim => Ok(k),
-            _ => Err(Error::Shape(format!(
-                "tracker: tokens must be [k > 0, {}] (the config's token_dim), got {tokens:?}",
-                self.cfg.token_dim
-            ))),
-        }
+        crate::velox::tokens::check_shape("tracker", tokens, self.cfg.token_dim)
     }
 
     fn loss(&self) -> Loss {

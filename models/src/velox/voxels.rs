@@ -353,13 +353,7 @@ impl VoxelDecoder {
     }
 
     fn check_tokens(&self, tokens: &Tensor) -> Result<usize> {
-        match tokens.shape() {
-            &[k, d] if k > 0 && d == self.cfg.token_dim => Ok(k),
-            _ => Err(Error::Shape(format!(
-                "voxel decoder: tokens must be [k > 0, {}] (the config's token_dim), got {tokens:?}",
-                self.cfg.token_dim
-            ))),
-        }
+        crate::velox::tokens::check_shape("voxel decoder", tokens, self.cfg.token_dim)
     }
 
     /// The frames a sample trains on: `frames_per_sample` distinct frames drawn from `rng`.
