@@ -93,6 +93,13 @@ impl Param {
         Ok(Param { value, grad, half: None })
     }
 
+    /// A parameter that is never trained (a pretrained network's weights): its gradient is an
+    /// empty tensor, so a backward pass through it fails on the shape instead of writing.
+    pub fn frozen(gpu: &Gpu, shape: &[usize], value: &[f32]) -> Result<Param> {
+        let value = Tensor::from_slice(gpu, shape, value)?;
+        Ok(Param { value, grad: Tensor::empty(gpu, &[0], DType::F32)?, half: None })
+    }
+
     pub fn shape(&self) -> &[usize] {
         self.value.shape()
     }

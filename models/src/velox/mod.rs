@@ -5,6 +5,7 @@ pub mod blocks;
 pub mod cloud;
 pub mod count;
 pub mod decode;
+pub mod dinov2;
 pub mod encoder;
 pub mod gaussians;
 pub mod perceiver;
