@@ -107,6 +107,38 @@ impl MultiHeadAttention {
         Ok((y, cache))
     }
 
+    /// The keys and values `[Nk, heads, head_dim]` of a context, for a cross-attention whose
+    /// context stays the same over many calls (a generator's condition over its sampling
+    /// steps): computed once, then read by [`MultiHeadAttention::forward_kv`]. In an f16
+    /// recording they are f16.
+    pub fn context_kv(&self, rec: &mut Recorder, context: &Tensor) -> Result<(Tensor, Tensor)> {
+        let (k, _) = self.k.forward(rec, context)?;
+        let (v, _) = self.v.forward(rec, context)?;
+        let (k, v) = (self.split_heads(&k)?, self.split_heads(&v)?);
+        match rec.precision() {
+            Precision::F32 => Ok((k, v)),
+            Precision::F16 => Ok((cast(rec, &k, DType::F16)?, cast(rec, &v, DType::F16)?)),
+        }
+    }
+
+    /// Cross-attention of `x [Nq, width]` to keys and values from
+    /// [`MultiHeadAttention::context_kv`] (inference: nothing is kept for a backward pass).
+    pub fn forward_kv(
+        &self,
+        rec: &mut Recorder,
+        x: &Tensor,
+        k: &Tensor,
+        v: &Tensor,
+        seg: &Segments,
+    ) -> Result<Tensor> {
+        let (q, _) = self.q.forward(rec, x)?;
+        let q = self.split_heads(&q)?;
+        let q = if k.dtype() == DType::F16 { cast(rec, &q, DType::F16)? } else { q };
+        let out = attention(rec, &q, k, v, seg, self.scale())?;
+        let flat = out.o.reshape(&[out.o.shape()[0], self.heads * self.head_dim])?;
+        Ok(self.o.forward(rec, &flat)?.0)
+    }
+
     /// Adds the projections' gradients; returns `dx` and, for cross-attention, `dcontext`.
     pub fn backward(
         &self,

@@ -8,6 +8,7 @@ pub mod decode;
 pub mod dinov2;
 pub mod encoder;
 pub mod gaussians;
+pub mod generator;
 pub mod perceiver;
 pub mod surface;
 pub mod tokens;

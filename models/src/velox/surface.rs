@@ -248,7 +248,7 @@ pub fn points_tensor(gpu: &Gpu, points: &[f32]) -> Result<Tensor> {
 }
 
 /// `silu'(a) * dy`: SiLU is the SwiGLU gate with `b = 1`, so its backward is the gate's `da`.
-fn silu_backward(rec: &mut Recorder, a: &Tensor, dy: &Tensor) -> Result<Tensor> {
+pub(crate) fn silu_backward(rec: &mut Recorder, a: &Tensor, dy: &Tensor) -> Result<Tensor> {
     let ones = Tensor::empty(a.gpu(), a.shape(), DType::F32)?;
     fill(rec, &ones, 1.0)?;
     Ok(swiglu_backward(rec, a, &ones, dy)?.0)
