@@ -85,7 +85,27 @@ pub fn supervision_cameras(rng: &mut Rng, res: u32) -> Vec<Camera> {
 /// (MODELS.md rotates the world so the camera lies on +x; objects here have random
 /// orientations already, so the camera is put there instead.)
 pub fn video_camera(rng: &mut Rng, res: u32) -> Camera {
-    let r = rng.range(1.75, 5.0) as f32;
+    video_camera_at(rng.range(1.75, 5.0) as f32, res)
+}
+
+/// The conditioning camera at distance `r` on +x, looking at the origin with the field of view
+/// the data gives it there (the object fills the frame at any distance).
+pub fn video_camera_at(r: f32, res: u32) -> Camera {
     let fov = 2.0 * (1.25 / (r - 0.5)).atan();
     look_at([r, 0.0, 0.0], [0.0; 3], fov.to_degrees(), res)
+}
+
+/// `count` views around the object for a generated scene: on a ring about the up axis (y), 20
+/// degrees above the horizon, at distance `r`, the first a `360 / (count + 1)` degree turn
+/// from +x (the conditioning camera's side), with the conditioning camera's field of view.
+pub fn ring_cameras(r: f32, count: usize, res: u32) -> Vec<Camera> {
+    let fov = 2.0 * (1.25 / (r - 0.5)).atan();
+    let elevation = 20f32.to_radians();
+    (1..=count)
+        .map(|i| {
+            let a = std::f32::consts::TAU * i as f32 / (count + 1) as f32;
+            let dir = [elevation.cos() * a.cos(), elevation.sin(), elevation.cos() * a.sin()];
+            look_at(scale(dir, r), [0.0; 3], fov.to_degrees(), res)
+        })
+        .collect()
 }

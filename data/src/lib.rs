@@ -15,6 +15,7 @@
 //!   from the cameras of [`camera`]: RGB, depth, triangle id and barycentrics;
 //! - [`pipeline`] turns the renders into point clouds, occupancy and tracks;
 //! - [`rgbd`] reads RGBD videos and back-projects them (the tracking task's input);
+//! - [`condition`] reads a video's frames as the generators' condition;
 //! - [`format`] writes and reads the dataset, [`loader`] reads it in the background in the
 //!   order of [`order`];
 //! - [`encode`] stores a trained encoder's tokens of every scene once, and [`training`] gives
@@ -26,6 +27,7 @@
 //! morph targets), and `image` (PNG and JPEG for textures and the supervision views).
 
 pub mod camera;
+pub mod condition;
 pub mod encode;
 pub mod format;
 pub mod gltf_import;
@@ -47,7 +49,7 @@ pub use format::{read_scene, Scene, SceneMeta};
 pub use loader::{Loader, LoaderOptions};
 pub use mesh::{AnimatedMesh, Texture};
 pub use pipeline::{render_scene, SceneArrays, SynthOptions};
-pub use training::{train_scene, SceneFolders, TokenScenes, TrackScenes};
+pub use training::{train_scene, GenScenes, SceneFolders, TokenScenes, TrackScenes};
 
 use std::fmt;
 

@@ -76,19 +76,28 @@ pub fn read_rgbd_video(dir: &Path, camera: Camera) -> DataResult<RgbdVideo> {
 
 /// The video of the scene in `scene` (`video/` and the `video` camera of `cameras.json`).
 pub fn read_scene_video(scene: &Path) -> DataResult<RgbdVideo> {
+    read_rgbd_video(&scene.join("video"), scene_video_camera(scene)?)
+}
+
+/// The `video` camera of a scene's `cameras.json`, checked.
+pub fn scene_video_camera(scene: &Path) -> DataResult<Camera> {
     let path = scene.join("cameras.json");
     let cams: CameraSet = read_json(&path)?;
     let camera = cams.video.ok_or_else(|| invalid(&path, "the scene has no video camera"))?;
     check_camera("the video camera", &camera).map_err(|why| invalid(&path, why))?;
-    read_rgbd_video(&scene.join("video"), camera)
+    Ok(camera)
+}
+
+/// A camera file (`camera.json` of a video folder), checked.
+pub fn read_camera(path: &Path) -> DataResult<Camera> {
+    let camera: Camera = read_json(path)?;
+    check_camera("the camera", &camera).map_err(|why| invalid(path, why))?;
+    Ok(camera)
 }
 
 /// Reads a video folder of any origin: `camera.json` and the frames (see the module docs).
 pub fn read_video_folder(dir: &Path) -> DataResult<RgbdVideo> {
-    let path = dir.join("camera.json");
-    let camera: Camera = read_json(&path)?;
-    check_camera("the camera", &camera).map_err(|why| invalid(&path, why))?;
-    read_rgbd_video(dir, camera)
+    read_rgbd_video(dir, read_camera(&dir.join("camera.json"))?)
 }
 
 /// The 4D colour cloud (x, y, z, r, g, b, tau) of the video: every pixel with a depth,

@@ -5,17 +5,22 @@
 //! a [`SampleSource`] of [`VoxelSample`]s ([`TokenScenes`]).
 
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
 
 use velox_engine::ops::raster::Camera;
 use velox_engine::Gpu;
+use velox_models::config::GeneratorConfig;
 use velox_models::train::source::SampleSource;
 use velox_models::velox::autoencoder::TrainScene;
+use velox_models::velox::dinov2::{Dinov2, PATCH_VALUES};
+use velox_models::velox::generator::{Condition, GenSample};
 use velox_models::velox::tokens::{
     scene_file, CheckpointCheck, CloudSource, SceneTokens, TokenFolder, TokenManifest, MANIFEST,
 };
 use velox_models::velox::tracker::{Track, TrackSample};
 use velox_models::velox::voxels::VoxelSample;
 
+use crate::condition::read_condition_video;
 use crate::encode::dataset_scenes;
 use crate::format::{list_some_scenes, read_occupancy, read_scene, read_video_tracks, Scene};
 use crate::{DataError, DataResult};
@@ -363,5 +368,117 @@ impl SampleSource for TrackScenes {
         let points =
             velox_engine::Tensor::from_slice(&self.0.gpu, &[raw.tokens.k(), 4], &raw.tokens.query_points)?;
         TrackSample::new(raw.tokens.upload(&self.0.gpu)?, points, raw.tracks)
+    }
+}
+
+/// A scene's tokens, normalised by the dataset's statistics, and its condition frames
+/// (`[frames, 3, size, size]`, see [`crate::condition`]), read into host memory.
+pub struct HostGenScene {
+    pub index: usize,
+    pub tokens: Vec<f32>,
+    pub pixels: Vec<f32>,
+}
+
+/// The scenes of a dataset with their stored tokens (`velox encode`) as the generator's
+/// samples: each scene's tokens normalised by the statistics the generator records, and the
+/// condition of its conditioning video (its RGB patches and, with DINOv2, their features,
+/// computed once per scene and kept on the device).
+pub struct GenScenes {
+    pub tokens: TokenScenes,
+    cfg: GeneratorConfig,
+    dino: Option<Dinov2>,
+    dino_cache: Mutex<Vec<Option<velox_engine::Tensor>>>,
+}
+
+impl GenScenes {
+    /// Fails unless the generator `cfg` fits the stored tokens (their count, width and
+    /// statistics) and `dino` (features as wide as it reads, or none when it reads none).
+    pub fn new(tokens: TokenScenes, cfg: &GeneratorConfig, dino: Option<Dinov2>) -> DataResult<GenScenes> {
+        let m = tokens.manifest();
+        if (cfg.tokens, cfg.token_dim) != (m.tokens, m.token_dim) {
+            return Err(DataError::Invalid(format!(
+                "the generator makes {} tokens {} wide; {} holds {} tokens {} wide",
+                cfg.tokens,
+                cfg.token_dim,
+                tokens.token_dir().display(),
+                m.tokens,
+                m.token_dim
+            )));
+        }
+        if cfg.token_mean.len() != cfg.token_dim {
+            return Err(DataError::Invalid("the generator has no token statistics to normalise by".into()));
+        }
+        let width = dino.as_ref().map_or(0, |d| d.config.width);
+        if width != cfg.dino_width {
+            return Err(DataError::Invalid(match cfg.dino_width {
+                0 => "the generator reads no DINOv2 features, but DINOv2 weights were given".into(),
+                w => format!(
+                    "the generator reads {w}-wide DINOv2 features; give its DINOv2 weights (--dinov2)"
+                ),
+            }));
+        }
+        let n = tokens.dirs().len();
+        Ok(GenScenes { tokens, cfg: cfg.clone(), dino, dino_cache: Mutex::new(vec![None; n]) })
+    }
+
+    /// The condition of frames `pixels` (`[frames, 3, size, size]`) for the generator `cfg`:
+    /// the RGB patches, and DINOv2's patch features of them when it reads them.
+    pub fn condition(
+        gpu: &Gpu,
+        cfg: &GeneratorConfig,
+        dino: Option<&Dinov2>,
+        pixels: &[f32],
+    ) -> velox_engine::Result<Condition> {
+        let (frames, size) = (cfg.task.frames(), cfg.image_size);
+        let patches = Dinov2::image_patches(pixels, frames, size, size)?;
+        let patches =
+            velox_engine::Tensor::from_slice(gpu, &[patches.len() / PATCH_VALUES, PATCH_VALUES], &patches)?;
+        let dino = dino
+            .map(|d| d.patch_features(gpu, pixels, frames, size, size, velox_engine::Precision::F32))
+            .transpose()?;
+        Ok(Condition { patches, dino })
+    }
+}
+
+impl SampleSource for GenScenes {
+    type Raw = HostGenScene;
+    type Sample = GenSample;
+
+    fn len(&self) -> usize {
+        self.tokens.dirs.len()
+    }
+
+    fn name(&self, index: usize) -> String {
+        self.tokens.names[index].clone()
+    }
+
+    fn location(&self, index: usize) -> String {
+        self.tokens.dirs[index].display().to_string()
+    }
+
+    fn read(&self, index: usize) -> velox_engine::Result<HostGenScene> {
+        let raw = self.tokens.folder.read(&self.tokens.names[index])?;
+        let d = self.cfg.token_dim;
+        let (mean, std) = (&self.cfg.token_mean, &self.cfg.token_std);
+        let tokens = raw.tokens.iter().enumerate().map(|(i, &v)| (v - mean[i % d]) / std[i % d]).collect();
+        let video = self.tokens.dirs[index].join("video");
+        let pixels = read_condition_video(&video, self.cfg.task.frames(), self.cfg.image_size)?;
+        Ok(HostGenScene { index, tokens, pixels })
+    }
+
+    fn prepare(&self, raw: HostGenScene) -> velox_engine::Result<GenSample> {
+        let gpu = &self.tokens.gpu;
+        let (k, d) = (self.cfg.tokens, self.cfg.token_dim);
+        let tokens = velox_engine::Tensor::from_slice(gpu, &[k, d], &raw.tokens)?;
+        // DINOv2 runs once per scene; its features stay on the device for the later steps.
+        let cached = self.dino_cache.lock().unwrap()[raw.index].clone();
+        let fresh = cached.is_none().then_some(self.dino.as_ref()).flatten();
+        let mut condition = GenScenes::condition(gpu, &self.cfg, fresh, &raw.pixels)?;
+        match (cached, &condition.dino) {
+            (Some(features), _) => condition.dino = Some(features),
+            (None, Some(features)) => self.dino_cache.lock().unwrap()[raw.index] = Some(features.clone()),
+            (None, None) => {}
+        }
+        Ok(GenSample { tokens, condition })
     }
 }

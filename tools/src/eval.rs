@@ -34,6 +34,60 @@ pub enum EvalCommand {
     /// tokens of their videos (`velox encode --source video`), beside the static baseline and
     /// the truth.
     Tracking(TrackingEvalArgs),
+    /// PSNR and SSIM of a generator's scenes on the conditioning view and novel views, beside
+    /// those of the encoder's tokens of the same scenes (what the generator learned to make).
+    Generation(GenerationEvalArgs),
+}
+
+#[derive(clap::Args)]
+pub struct GenerationEvalArgs {
+    /// Dataset folder (scenes with their conditioning videos and supervision views).
+    #[arg(long)]
+    data: PathBuf,
+    /// Generator checkpoint (`velox train generator`).
+    #[arg(long)]
+    checkpoint: PathBuf,
+    /// The autoencoder whose tokens the generator learned: it decodes both token sets.
+    #[arg(long)]
+    autoencoder: PathBuf,
+    /// The scenes' stored tokens of that autoencoder [default: DATA/tokens].
+    #[arg(long)]
+    tokens: Option<PathBuf>,
+    /// DINOv2 weights, when the generator was trained with them.
+    #[arg(long, value_name = "FILE")]
+    dinov2: Option<PathBuf>,
+    /// Where the Gaussian decoder's voxels come from for both token sets [default: predicted
+    /// with --voxel-decoder, else surface]. `input` (the scene cloud's voxels) hands both the
+    /// true shape, so it measures colour alone.
+    #[arg(long, value_enum)]
+    voxels: Option<VoxelArg>,
+    /// A voxel decoder trained on the autoencoder's tokens, for `--voxels predicted`.
+    #[arg(long)]
+    voxel_decoder: Option<PathBuf>,
+    /// Output folder: generation.json and a sheet per scene.
+    #[arg(long, default_value = "velox-eval-generation")]
+    out: PathBuf,
+    /// Evaluate every Nth frame (0, N, 2N, ...).
+    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u64).range(1..=24))]
+    frame_step: u64,
+    /// Novel views: the first N supervision cameras of each scene.
+    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u64).range(1..=64))]
+    views: u64,
+    /// Sampler steps, sampler, guidance and seed of the generation.
+    #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u64).range(1..=10_000))]
+    steps: u64,
+    #[arg(long, value_enum, default_value_t = SamplerArg::Euler)]
+    sampler: SamplerArg,
+    #[arg(long, default_value_t = 3.0)]
+    guidance: f32,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Surface points per frame sampled for `--voxels surface` (20 Heun steps).
+    #[arg(long, default_value_t = 4096, value_parser = clap::value_parser!(u64).range(1..=100_000_000))]
+    points: u64,
+    /// Evaluate only the first N scenes (in name order).
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+    scenes: Option<u64>,
 }
 
 /// What every evaluation of a model on stored tokens takes.
@@ -203,6 +257,7 @@ pub fn run(cmd: EvalCommand) -> CliResult<()> {
         EvalCommand::Recon(a) => run_recon(&a),
         EvalCommand::Voxels(a) => run_voxels(&a),
         EvalCommand::Tracking(a) => run_tracking(&a),
+        EvalCommand::Generation(a) => run_generation(&a),
     }
 }
 
@@ -523,4 +578,170 @@ fn print_table(r: &ReconReport) {
         },
         r.chamfer_points
     );
+}
+
+fn run_generation(a: &GenerationEvalArgs) -> CliResult<()> {
+    use velox_models::eval::generation::{evaluate_scene, GenerationMean, GenerationScene, GenerationViews};
+    use velox_models::velox::decode::Decoding;
+    use velox_models::velox::generator::GenerateSpec;
+
+    let gpu = Gpu::new()?;
+    let m = crate::generate::Models::load(&gpu, &a.checkpoint, &a.autoencoder, a.dinov2.as_deref())?;
+    let scenes = TokenScenes::open(&gpu, &a.data, a.tokens.as_deref(), Some(&a.autoencoder))?;
+    let cfg = &m.generator.cfg;
+    scenes.check_model("generator", cfg.encoder_hash.as_deref(), cfg.token_dim)?;
+    let default_voxels = if a.voxel_decoder.is_some() { VoxelArg::Predicted } else { VoxelArg::Surface };
+    let source = VoxelSource::from(a.voxels.unwrap_or(default_voxels));
+    let decoder = voxel_decoder(&gpu, a.voxel_decoder.as_deref(), &a.autoencoder, &[source])?;
+    if source == VoxelSource::Input {
+        eprintln!(
+            "note: --voxels input decodes both token sets over the scene's true voxels: the shape is given"
+        );
+    }
+    let count = a.scenes.map_or(scenes.len(), |n| (n as usize).min(scenes.len()));
+    std::fs::create_dir_all(&a.out).map_err(|e| format!("creating {}: {e}", a.out.display()))?;
+    let frames = frames(a.frame_step as usize);
+    let sheet_at = crate::generate::sheet_frames(&frames);
+    let spec = GenerateSpec {
+        steps: a.steps as usize,
+        sampler: a.sampler.into(),
+        guidance: a.guidance,
+        seed: a.seed,
+        precision: velox_engine::Precision::F32,
+    };
+    let sampling = Sampling { points: a.points as usize, steps: 20, sampler: SamplerArg::Heun.into() };
+    println!(
+        "evaluating the {} generator on {count} scene(s) of {}: {} frames, the input view and {} novel views, \
+         voxels {source:?}, {} {:?} steps, guidance {}",
+        cfg.name,
+        a.data.display(),
+        frames.len(),
+        a.views,
+        a.steps,
+        a.sampler,
+        a.guidance
+    );
+    let bar = progress(count, "scenes");
+    let mut results: Vec<GenerationScene> = Vec::new();
+    for i in 0..count {
+        let dir = &scenes.dirs()[i];
+        let name = scenes.name(i);
+        bar.set_message(name.clone());
+        let scene = velox_data::read_scene(dir, true)?;
+        let input =
+            scene.cameras.video.ok_or_else(|| format!("{}: the scene has no video camera", dir.display()))?;
+        let to_f32 = |img: &Vec<u8>| img.iter().map(|&b| b as f32 / 255.0).collect::<Vec<f32>>();
+        let sup = &scene.cameras.supervision;
+        let views = (a.views as usize).min(sup.len());
+        let per_frame = sup.len();
+        let views = GenerationViews {
+            input,
+            input_truth: scene.video.iter().map(to_f32).collect(),
+            novel: sup[..views].to_vec(),
+            novel_truth: (0..velox_models::velox::autoencoder::FRAMES)
+                .map(|f| (0..views).map(|v| to_f32(&scene.supervision[f * per_frame + v])).collect())
+                .collect(),
+        };
+        let pixels = velox_data::condition::read_condition_video(
+            &dir.join("video"),
+            cfg.task.frames(),
+            cfg.image_size,
+        )?;
+        let made = m.generate(&gpu, &pixels, &spec, false)?;
+        let stored = scenes.read(i)?.tokens.upload(&gpu)?;
+        let cloud: Vec<f32> = scene.points.iter().flatten().copied().collect();
+        let cloud = (source == VoxelSource::Input).then_some(cloud.as_slice());
+        let mut generated = Decoding::from_tokens(&m.ae, made, cloud, a.seed)?;
+        let mut encoded = Decoding::from_tokens(&m.ae, stored, cloud, a.seed)?;
+        if let Some(d) = &decoder {
+            generated = generated.with_voxel_decoder(d)?;
+            encoded = encoded.with_voxel_decoder(d)?;
+        }
+        // The sheet: per kept frame a column; rows truth, generated, encoded for the input
+        // view and the first novel view.
+        let mut columns: Vec<Vec<Vec<f32>>> = Vec::new();
+        let keep = |f: usize| sheet_at.contains(&f);
+        let r = evaluate_scene(
+            &name,
+            &generated,
+            &encoded,
+            source,
+            &sampling,
+            &frames,
+            &views,
+            &keep,
+            &mut |fr| {
+                columns.push(fr.views.into_iter().take(2).flatten().collect());
+                Ok(())
+            },
+        )?;
+        let (w, h) = (views.input.width as usize, views.input.height as usize);
+        let same_size = views.novel.iter().all(|c| (c.width as usize, c.height as usize) == (w, h));
+        if same_size && !columns.is_empty() {
+            let rows = columns[0].len();
+            let images: Vec<Vec<f32>> =
+                (0..rows).flat_map(|r| columns.iter().map(move |c| c[r].clone())).collect();
+            let cols = columns.len();
+            let k = (128 / w.max(1)).clamp(1, 4);
+            let sheet =
+                crate::overlay::enlarged(&crate::generate::grid(&images, cols, w, h), cols * w, rows * h, k);
+            write_png(
+                &a.out.join(format!("{name}.png")),
+                &sheet,
+                (cols * w * k) as u32,
+                (rows * h * k) as u32,
+            )?;
+        }
+        results.push(r);
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let mean = GenerationMean::of(&results);
+    println!("{:<16} {:>22} {:>22}", "", "input view PSNR / SSIM", "novel views PSNR / SSIM");
+    let row = |label: &str, s: &velox_models::eval::generation::ViewScores| {
+        println!(
+            "{label:<16} {:>14.2} / {:.4} {:>14.2} / {:.4}",
+            s.input.psnr, s.input.ssim, s.novel.psnr, s.novel.ssim
+        );
+    };
+    for r in &results {
+        row(&format!("{} gen", r.scene), &r.generated);
+        row(&format!("{} enc", r.scene), &r.encoded);
+    }
+    row("mean generated", &mean.generated);
+    row("mean encoded", &mean.encoded);
+    #[derive(Serialize)]
+    struct Report<'a> {
+        generator: String,
+        autoencoder: String,
+        voxels: VoxelSource,
+        steps: u64,
+        sampler: SamplerArg,
+        guidance: f32,
+        seed: u64,
+        frames: Vec<usize>,
+        novel_views: u64,
+        mean: GenerationMean,
+        scenes: &'a [GenerationScene],
+    }
+    let report = Report {
+        generator: a.checkpoint.display().to_string(),
+        autoencoder: a.autoencoder.display().to_string(),
+        voxels: source,
+        steps: a.steps,
+        sampler: a.sampler,
+        guidance: a.guidance,
+        seed: a.seed,
+        frames,
+        novel_views: a.views,
+        mean,
+        scenes: &results,
+    };
+    write_bytes(&a.out.join("generation.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
+    println!(
+        "wrote {} and a sheet per scene (columns: frames; rows: truth, generated, encoded, for the input view \
+         and the first novel view)",
+        a.out.join("generation.json").display()
+    );
+    Ok(())
 }

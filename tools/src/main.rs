@@ -6,6 +6,7 @@ mod decode;
 mod demo;
 mod encode;
 mod eval;
+mod generate;
 mod info;
 mod interrupt;
 mod overlay;
@@ -69,6 +70,10 @@ enum Command {
     /// Track query points through an RGBD video with a trained tracker: tracks as JSON and
     /// PLY per frame, and the video's frames with the tracks drawn over them.
     Track(track::TrackArgs),
+    /// Generate the dynamic tokens of the object a video (or an image) shows with a trained
+    /// generator, decode its Gaussians frame by frame and render them from the input view and
+    /// from views around it, with a contact sheet.
+    Generate(generate::GenerateArgs),
     /// Encode a 4D point cloud with a trained autoencoder and decode surface points or
     /// Gaussians per frame to PLY.
     Decode {
@@ -93,6 +98,7 @@ enum ConfigModel {
     Autoencoder,
     Voxels,
     Tracker,
+    Generator,
 }
 
 fn print_config(name: &str, model: ConfigModel, params: bool) -> CliResult<()> {
@@ -104,6 +110,7 @@ fn print_config(name: &str, model: ConfigModel, params: bool) -> CliResult<()> {
         true => match velox_models::checkpoint::config_json(path)?["model"].as_str() {
             Some(velox_models::velox::voxels::MODEL_KIND) => ConfigModel::Voxels,
             Some(velox_models::velox::tracker::MODEL_KIND) => ConfigModel::Tracker,
+            Some(velox_models::velox::generator::MODEL_KIND) => ConfigModel::Generator,
             _ => ConfigModel::Autoencoder,
         },
         false => model,
@@ -157,6 +164,30 @@ fn print_config(name: &str, model: ConfigModel, params: bool) -> CliResult<()> {
                 let mut b = velox_models::params::ParamStore::builder();
                 Tracker::register(&mut b, &cfg)?;
                 format!("parameters of the {} tracker:\n{}", cfg.name, row("total", b.num_parameters()))
+            } else {
+                serde_json::to_string_pretty(&cfg)? + "\n"
+            }
+        }
+        ConfigModel::Generator => {
+            use velox_models::velox::generator::Generator;
+            let cfg = match checkpoint {
+                true => Generator::checkpoint_config(path)?,
+                false => velox_models::config::GeneratorConfig::named(name)?,
+            };
+            if params {
+                let mut b = velox_models::params::ParamStore::builder();
+                Generator::register(&mut b, &cfg)?;
+                let total = b.num_parameters();
+                let blocks = b.num_parameters_under("blocks.");
+                let condition = b.num_parameters_under("rgb.") + b.num_parameters_under("cond.");
+                format!(
+                    "parameters of the {} generator:\n{}{}{}{}",
+                    cfg.name,
+                    row("blocks", blocks),
+                    row("condition", condition),
+                    row("embeddings, head", total - blocks - condition),
+                    row("total", total)
+                )
             } else {
                 serde_json::to_string_pretty(&cfg)? + "\n"
             }
@@ -222,6 +253,7 @@ fn dispatch(command: Command) -> CliResult<()> {
         Command::Train { what } => train::run(what),
         Command::Encode(args) => encode::run(&args),
         Command::Track(args) => track::run(&args),
+        Command::Generate(args) => generate::run(&args),
         Command::Decode { what } => decode::run(what),
         Command::Eval { what } => eval::run(what),
     }

@@ -7,9 +7,9 @@ use std::path::{Path, PathBuf};
 
 use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
-use velox_data::{SceneFolders, TokenScenes, TrackScenes};
+use velox_data::{GenScenes, SceneFolders, TokenScenes, TrackScenes};
 use velox_engine::Gpu;
-use velox_models::config::{AutoencoderConfig, TrackerConfig, VoxelConfig};
+use velox_models::config::{AutoencoderConfig, GenerationTask, GeneratorConfig, TrackerConfig, VoxelConfig};
 use velox_models::run::{RunRequest, RunSettings};
 use velox_models::train::collective::Collective;
 use velox_models::train::distributed::Comm;
@@ -19,6 +19,9 @@ use velox_models::train::trainer::{
 };
 use velox_models::train::Trainable;
 use velox_models::velox::autoencoder::Autoencoder;
+use velox_models::velox::dinov2::Dinov2;
+use velox_models::velox::generator::Generator;
+use velox_models::velox::tokens::{checkpoint_hash, TokenManifest};
 use velox_models::velox::tracker::Tracker;
 use velox_models::velox::voxels::VoxelDecoder;
 
@@ -41,6 +44,42 @@ pub enum TrainCommand {
     /// scenes' RGBD videos (`velox encode --source video`), the encoder frozen. The same run
     /// options, stops and resumes as `train autoencoder`.
     Tracker(TokenModelArgs),
+    /// The generator (video-to-4D, or image-to-4D with --task image): a DiT that makes the
+    /// tokens of a scene from its conditioning video, trained by rectified flow on the stored
+    /// tokens (`velox encode`), normalised by their statistics. The same run options, stops
+    /// and resumes as `train autoencoder`.
+    Generator(GeneratorArgs),
+}
+
+/// `velox train generator`: a model on stored tokens, its task, and DINOv2.
+#[derive(Args, Clone)]
+pub struct GeneratorArgs {
+    #[command(flatten)]
+    pub model: TokenModelArgs,
+    /// What the generator is conditioned on: the scenes' 24-frame videos, or their first frame.
+    #[arg(long, value_enum, default_value_t = TaskArg::Video)]
+    pub task: TaskArg,
+    /// DINOv2 weights (safetensors in the Hugging Face `facebook/dinov2-large` layout, with its
+    /// config.json beside it if it is another size): the condition then holds DINOv2's patch
+    /// features; without them it holds the RGB patch embedding alone.
+    #[arg(long, value_name = "FILE")]
+    pub dinov2: Option<PathBuf>,
+}
+
+/// `--task` of the generator commands.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum TaskArg {
+    Video,
+    Image,
+}
+
+impl From<TaskArg> for GenerationTask {
+    fn from(t: TaskArg) -> GenerationTask {
+        match t {
+            TaskArg::Video => GenerationTask::Video,
+            TaskArg::Image => GenerationTask::Image,
+        }
+    }
 }
 
 #[derive(Args, Clone)]
@@ -161,6 +200,9 @@ pub fn run(cmd: TrainCommand) -> CliResult<()> {
         TrainCommand::Autoencoder(args) => (train_autoencoder(&gpu, args, &interrupt, &comm), &args.run.out),
         TrainCommand::Voxels(args) => (train_voxels(&gpu, args, &interrupt, &comm), &args.run.out),
         TrainCommand::Tracker(args) => (train_tracker(&gpu, args, &interrupt, &comm), &args.run.out),
+        TrainCommand::Generator(args) => {
+            (train_generator(&gpu, args, &interrupt, &comm), &args.model.run.out)
+        }
     };
     let o = match outcome {
         Ok(o) => o,
@@ -305,12 +347,78 @@ pub fn train_tracker<C: Collective>(
     train_on_tokens::<Tracker, _, _>(gpu, args, &scenes, &scenes.0, interrupt, collective)
 }
 
+/// Trains the generator as `velox train generator` does, as one of `collective`'s processes.
+pub fn train_generator<C: Collective>(
+    gpu: &Gpu,
+    args: &GeneratorArgs,
+    interrupt: &Interrupt,
+    collective: &C,
+) -> CliResult<Outcome> {
+    let m = &args.model;
+    let tokens = TokenScenes::open(gpu, &m.data, m.tokens.as_deref(), m.checkpoint.as_deref())?;
+    let dino = match &args.dinov2 {
+        Some(path) => Some((Dinov2::load(gpu, path)?, checkpoint_hash(path)?)),
+        None => {
+            eprintln!("note: no DINOv2 weights (--dinov2): the condition is the RGB patch embedding alone");
+            None
+        }
+    };
+    let task: GenerationTask = args.task.into();
+    let (dino_width, dino_hash) = dino.as_ref().map_or((0, None), |(d, h)| (d.config.width, Some(h.clone())));
+    let model: Generator = start_token_model(gpu, m, &tokens, |cfg: &mut GeneratorConfig| {
+        cfg.task = task;
+        cfg.dino_width = dino_width;
+        cfg.dino_hash = dino_hash.clone();
+    })?;
+    let cfg = &model.cfg;
+    if cfg.task != task {
+        return Err(format!(
+            "the generator was trained for the {:?} task, not {:?} (--task)",
+            cfg.task, task
+        )
+        .into());
+    }
+    if cfg.dino_hash != dino_hash {
+        return Err(match &cfg.dino_hash {
+            Some(h) => format!(
+                "the generator was trained on the DINOv2 weights of hash {h}: give them with --dinov2"
+            ),
+            None => "the generator was trained without DINOv2: leave out --dinov2".to_string(),
+        }
+        .into());
+    }
+    let source = GenScenes::new(tokens, cfg, dino.map(|(d, _)| d))?;
+    let mut model = model;
+    run_training(&mut model, &source, &m.run, m.run.begin(), interrupt, collective)
+}
+
 /// The config of a model that trains on stored tokens: its name for messages, and the token
 /// width and autoencoder hash it records.
 trait TokenModelConfig: Sized {
     const WHAT: &'static str;
     fn named(name: &str) -> velox_engine::Result<Self>;
     fn tokens(&mut self) -> (&mut usize, &mut Option<String>);
+    /// What else a new config takes from the tokens (the generator: their count, for a named
+    /// config, and their statistics).
+    fn fit(&mut self, _manifest: &TokenManifest, _named: bool) {}
+}
+
+impl TokenModelConfig for GeneratorConfig {
+    const WHAT: &'static str = "generator";
+    fn named(name: &str) -> velox_engine::Result<Self> {
+        GeneratorConfig::named(name)
+    }
+    fn tokens(&mut self) -> (&mut usize, &mut Option<String>) {
+        (&mut self.token_dim, &mut self.encoder_hash)
+    }
+    fn fit(&mut self, manifest: &TokenManifest, named: bool) {
+        if named {
+            self.tokens = manifest.tokens;
+        }
+        self.token_mean = manifest.mean.iter().map(|&v| v as f32).collect();
+        // A channel that never varies keeps a deviation of 1 (it normalises to its offset).
+        self.token_std = manifest.std.iter().map(|&v| if v > 0.0 { v as f32 } else { 1.0 }).collect();
+    }
 }
 
 impl TokenModelConfig for VoxelConfig {
@@ -333,9 +441,7 @@ impl TokenModelConfig for TrackerConfig {
     }
 }
 
-/// A run of a model downstream of the encoder on `source` (whose tokens are `tokens`'): a
-/// named config takes the tokens' width and records their autoencoder; a model that learned
-/// another autoencoder's tokens, or tokens of another width, is refused.
+/// A run of a model downstream of the encoder on `source` (whose tokens are `tokens`').
 fn train_on_tokens<M, S, C>(
     gpu: &Gpu,
     args: &TokenModelArgs,
@@ -350,6 +456,24 @@ where
     S: SampleSource<Sample = M::Sample>,
     C: Collective,
 {
+    let mut model: M = start_token_model(gpu, args, tokens, |_| {})?;
+    run_training(&mut model, source, &args.run, args.run.begin(), interrupt, collective)
+}
+
+/// The model a run on stored tokens starts from, its folder prepared: a named config takes
+/// the tokens' width (and what [`TokenModelConfig::fit`] takes) and records their
+/// autoencoder, then `adjust` sets what the command decides; a model that learned another
+/// autoencoder's tokens, or tokens of another width, is refused.
+fn start_token_model<M>(
+    gpu: &Gpu,
+    args: &TokenModelArgs,
+    tokens: &TokenScenes,
+    adjust: impl Fn(&mut M::Config),
+) -> CliResult<M>
+where
+    M: RunModel,
+    M::Config: TokenModelConfig,
+{
     let run = &args.run;
     let begin = run.begin();
     let folder = RunFolder::new(&run.out);
@@ -357,23 +481,27 @@ where
     if let Some(note) = tokens.checkpoint().note() {
         eprintln!("note: {note}");
     }
-    let (token_dim, hash) = (tokens.manifest().token_dim, &tokens.manifest().origin.checkpoint_hash);
+    let manifest = tokens.manifest();
+    let (token_dim, hash) = (manifest.token_dim, &manifest.origin.checkpoint_hash);
     let seed = run.seed.unwrap_or(RunSettings::DEFAULT_SEED);
     // A named config takes the tokens' width; a config file must already have it.
     let named = |name: Option<&str>| -> CliResult<M::Config> {
         let name = name.unwrap_or("small");
         let mut cfg = M::Config::named(name)?;
+        let is_named = matches!(name, "paper" | "small" | "tiny");
         let (dim, from) = cfg.tokens();
-        if matches!(name, "paper" | "small" | "tiny") {
+        if is_named {
             *dim = token_dim;
         }
         *from = Some(hash.clone());
+        cfg.fit(manifest, is_named);
+        adjust(&mut cfg);
         Ok(cfg)
     };
     let mut model: M = starting_model(gpu, &begin, &folder, args.config.as_deref(), seed, named)?;
     let (dim, from) = model.config_mut().tokens();
     tokens.check_model(<M::Config as TokenModelConfig>::WHAT, from.as_deref(), *dim)?;
-    run_training(&mut model, source, run, begin, interrupt, collective)
+    Ok(model)
 }
 
 /// What a run needs of a model to start it: load a checkpoint, read a checkpoint's config,
@@ -415,6 +543,7 @@ macro_rules! run_model {
 run_model!(Autoencoder, AutoencoderConfig);
 run_model!(VoxelDecoder, VoxelConfig);
 run_model!(Tracker, TrackerConfig);
+run_model!(Generator, GeneratorConfig);
 
 /// The model a run starts from: its own checkpoint when it resumes (the config asked for, if
 /// another, is ignored with a note); a fresh model of the config asked for, or else of the

@@ -686,3 +686,113 @@ fn tracker_trains_evaluates_and_tracks_a_video() {
     let err = fails(&velox(&[&args[..], &["--out", arg(&work.join("run2")), "--steps", "1"]].concat()));
     assert!(err.contains("the tracker trained on tokens of autoencoder checkpoint"), "{err}");
 }
+
+#[test]
+fn generator_trains_generates_and_evaluates() {
+    // The generator's commands end to end on the fixture: a few steps of training on the
+    // scene's tokens and video, `velox generate` from the scene (Gaussians, renders, sheet),
+    // `velox eval generation` beside the encoder's tokens, the image task from one PNG; a
+    // DINOv2 file it did not train with, an image for a video generator and another
+    // autoencoder are refused.
+    let dir = fixture();
+    let work = dir.join("generator");
+    let data = work.join("data");
+    copy_dir(&dir.join("data"), &data);
+    let ckpt = dir.join("ae.safetensors");
+    ok(&velox(&["encode", "--checkpoint", arg(&ckpt), "--data", arg(&data)]));
+    let run = work.join("run");
+    let args = ["train", "generator", "--data", arg(&data), "--config", "tiny", "--steps", "2"];
+    let said = ok(&velox(&[&args[..], &["--out", arg(&run)]].concat()));
+    assert!(said.contains("trained 2 steps"), "{said}");
+    let generator = run.join("checkpoint.safetensors");
+    let counted = printed_parts(&["config", arg(&generator), "--params"], &["total"])[0];
+    let gpu = Gpu::new().unwrap();
+    let g = velox_models::velox::generator::Generator::load(&gpu, &generator).unwrap();
+    assert_eq!(counted, g.store.num_parameters());
+    // The named config took the tokens' count and width, and their statistics.
+    let ae_cfg = Autoencoder::checkpoint_config(&ckpt).unwrap();
+    assert_eq!((g.cfg.tokens, g.cfg.token_dim), (ae_cfg.encoder.tokens, ae_cfg.encoder.token_dim));
+    assert_eq!(g.cfg.token_std.len(), g.cfg.token_dim);
+
+    let scene = data.join("scene_00000");
+    let out = work.join("gen");
+    let generate = |extra: &[&str]| {
+        let args = ["generate", "--checkpoint", arg(&generator), "--autoencoder", arg(&ckpt)];
+        velox(
+            &[&args[..], &["--out", arg(&out), "--steps", "2", "--frames", "0,23", "--views", "2"], extra]
+                .concat(),
+        )
+    };
+    let said = ok(&generate(&["--video", arg(&scene), "--voxels", "input"]));
+    assert!(said.contains("generated in"), "{said}");
+    for f in
+        ["tokens.safetensors", "gaussians_f00.ply", "gaussians_f23.ply", "input/f23.png", "novel/v2_f00.png"]
+    {
+        assert!(out.join(f).is_file(), "{f}");
+    }
+    let (sw, sh) = image::image_dimensions(out.join("sheet.png")).unwrap();
+    // Rows: the video, the input view and 2 novel views; columns: frames 0 and 23.
+    assert_eq!(sh * 2, sw * 4, "{sw} x {sh}");
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("generate.json")).unwrap()).unwrap();
+    assert_eq!(report["frames"].as_array().unwrap().len(), 2);
+    let err = fails(&generate(&["--video", arg(&scene), "--dinov2", arg(&ckpt)]));
+    assert!(err.contains("without DINOv2"), "{err}");
+    let png = scene.join("video/f00.png");
+    let err = fails(&generate(&["--image", arg(&png)]));
+    assert!(err.contains("reads videos"), "{err}");
+
+    let ev = work.join("eval");
+    let args = ["eval", "generation", "--data", arg(&data), "--checkpoint", arg(&generator)];
+    let more = [
+        "--autoencoder",
+        arg(&ckpt),
+        "--voxels",
+        "input",
+        "--steps",
+        "2",
+        "--frame-step",
+        "12",
+        "--views",
+        "2",
+    ];
+    let said = ok(&velox(&[&args[..], &more[..], &["--out", arg(&ev)]].concat()));
+    assert!(said.contains("mean generated") && said.contains("mean encoded"), "{said}");
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(ev.join("generation.json")).unwrap()).unwrap();
+    for set in ["generated", "encoded"] {
+        for view in ["input", "novel"] {
+            let s = &report["mean"][set][view];
+            assert!(
+                s["psnr"].as_f64().unwrap() > 5.0 && s["ssim"].as_f64().unwrap() <= 1.0,
+                "{set} {view}: {s}"
+            );
+        }
+    }
+    assert!(ev.join("scene_00000.png").is_file());
+
+    // The image task: trained on each scene's first frame, generating from one PNG.
+    let run_image = work.join("run-image");
+    let args =
+        ["train", "generator", "--data", arg(&data), "--config", "tiny", "--steps", "1", "--task", "image"];
+    ok(&velox(&[&args[..], &["--out", arg(&run_image)]].concat()));
+    let image_gen = run_image.join("checkpoint.safetensors");
+    let args =
+        ["generate", "--checkpoint", arg(&image_gen), "--autoencoder", arg(&ckpt), "--image", arg(&png)];
+    let out_image = work.join("gen-image");
+    let said = ok(&velox(
+        &[&args[..], &["--out", arg(&out_image), "--steps", "1", "--frames", "0", "--views", "1"]].concat(),
+    ));
+    assert!(said.contains("generated in") && out_image.join("input/f00.png").is_file(), "{said}");
+
+    // Another autoencoder's tokens would mean something else to the generator.
+    let other = work.join("other.safetensors");
+    let mut bytes = std::fs::read(&ckpt).unwrap();
+    let last = bytes.len() - 1;
+    bytes[last] ^= 1;
+    std::fs::write(&other, &bytes).unwrap();
+    let args =
+        ["generate", "--checkpoint", arg(&generator), "--autoencoder", arg(&other), "--video", arg(&scene)];
+    let err = fails(&velox(&[&args[..], &["--out", arg(&out)]].concat()));
+    assert!(err.contains("hash"), "{err}");
+}

@@ -103,6 +103,29 @@ impl<'a> Decoding<'a> {
         Ok(Decoding { ae, voxel_decoder: None, tokens, input: frame_points(cloud), seed })
     }
 
+    /// Tokens made elsewhere (a generator's, or stored ones), `[k, token_dim]` of this
+    /// autoencoder's width, with the cloud whose points [`VoxelSource::Input`] reads when there
+    /// is one (host rows, checked; without one, every frame has no input points).
+    pub fn from_tokens(
+        ae: &'a Autoencoder,
+        tokens: Tensor,
+        cloud: Option<&[f32]>,
+        seed: u64,
+    ) -> Result<Decoding<'a>> {
+        let d = ae.cfg.encoder.token_dim;
+        if !matches!(tokens.shape(), [k, w] if *k > 0 && *w == d) {
+            return Err(Error::Shape(format!("tokens for the autoencoder must be [k, {d}], got {tokens:?}")));
+        }
+        let input = match cloud {
+            Some(c) => {
+                cloud::validate(c)?;
+                frame_points(c)
+            }
+            None => vec![Vec::new(); FRAMES],
+        };
+        Ok(Decoding { ae, voxel_decoder: None, tokens, input, seed })
+    }
+
     /// Predicts voxels with `decoder` ([`VoxelSource::Predicted`]); it must read tokens as wide
     /// as the autoencoder's.
     pub fn with_voxel_decoder(mut self, decoder: &'a VoxelDecoder) -> Result<Decoding<'a>> {

@@ -294,6 +294,50 @@ impl Dinov2 {
         Ok(Dinov2 { config, patch, patch_bias, cls, positions, blocks, norm: final_norm })
     }
 
+    /// A DINOv2 of `config` with random weights (for benchmarks): every matrix and position
+    /// N(0, 0.02^2), norms at 1 and 0, LayerScale 0.1, as an untrained ViT starts.
+    pub fn random(gpu: &Gpu, config: &Dinov2Config, seed: u64) -> Result<Dinov2> {
+        let mut rng = velox_engine::rng::Rng::new(seed);
+        let (d, h) = (config.width, config.hidden);
+        let mut t = Tensors::new();
+        let mut add = |name: String, shape: Vec<usize>, fill: Option<f32>| {
+            let n = shape.iter().product();
+            let v = match fill {
+                Some(c) => vec![c; n],
+                None => rng.normal_vec(n).iter().map(|x| 0.02 * x).collect(),
+            };
+            t.insert(name, (shape, v));
+        };
+        add("embeddings.cls_token".into(), vec![1, 1, d], None);
+        add("embeddings.position_embeddings".into(), vec![1, 1 + config.grid * config.grid, d], None);
+        add("embeddings.patch_embeddings.projection.weight".into(), vec![d, 3, PATCH, PATCH], None);
+        add("embeddings.patch_embeddings.projection.bias".into(), vec![d], Some(0.0));
+        for i in 0..config.depth {
+            let p = format!("encoder.layer.{i}");
+            for (name, out, inp) in [
+                ("attention.q_proj", d, d),
+                ("attention.k_proj", d, d),
+                ("attention.v_proj", d, d),
+                ("attention.o_proj", d, d),
+                ("mlp.fc1", h, d),
+                ("mlp.fc2", d, h),
+            ] {
+                add(format!("{p}.{name}.weight"), vec![out, inp], None);
+                add(format!("{p}.{name}.bias"), vec![out], Some(0.0));
+            }
+            for n in ["norm1", "norm2"] {
+                add(format!("{p}.{n}.weight"), vec![d], Some(1.0));
+                add(format!("{p}.{n}.bias"), vec![d], Some(0.0));
+            }
+            for n in ["layer_scale1", "layer_scale2"] {
+                add(format!("{p}.{n}.lambda1"), vec![d], Some(0.1));
+            }
+        }
+        add("layernorm.weight".into(), vec![d], Some(1.0));
+        add("layernorm.bias".into(), vec![d], Some(0.0));
+        Dinov2::from_tensors(gpu, Path::new("(random weights)"), t, Some(config.heads), config.eps)
+    }
+
     /// The patch grid of an image of `height x width` pixels, which must both be positive
     /// multiples of [`PATCH`].
     pub fn grid_of(height: usize, width: usize) -> Result<(usize, usize)> {
@@ -337,10 +381,10 @@ impl Dinov2 {
         table
     }
 
-    /// Rows for the patch product of `frames` images, `[frames * (1 + N), PATCH_VALUES]`: per
-    /// image a zero row (the class token's place) and its patches in raster order, each channel-
-    /// major. `pixels` are `[frames, 3, height, width]`, already normalised.
-    pub fn patch_rows(pixels: &[f32], frames: usize, height: usize, width: usize) -> Result<Vec<f32>> {
+    /// The patches of `frames` images as rows, `[frames * N, PATCH_VALUES]`: per image its
+    /// patches in raster order, each channel-major (as the patch convolution's weight is laid
+    /// out). `pixels` are `[frames, 3, height, width]`; non-finite values are refused.
+    pub fn image_patches(pixels: &[f32], frames: usize, height: usize, width: usize) -> Result<Vec<f32>> {
         let (gh, gw) = Dinov2::grid_of(height, width)?;
         if pixels.len() != frames * 3 * height * width {
             return Err(Error::Shape(format!(
@@ -351,13 +395,12 @@ impl Dinov2 {
         if let Some(i) = pixels.iter().position(|v| !v.is_finite()) {
             return Err(Error::Invalid(format!("DINOv2: pixel value {i} is not finite")));
         }
-        let per_image = 1 + gh * gw;
-        let mut rows = vec![0.0f32; frames * per_image * PATCH_VALUES];
+        let mut rows = vec![0.0f32; frames * gh * gw * PATCH_VALUES];
         for f in 0..frames {
             let image = &pixels[f * 3 * height * width..][..3 * height * width];
             for py in 0..gh {
                 for px in 0..gw {
-                    let row = &mut rows[(f * per_image + 1 + py * gw + px) * PATCH_VALUES..][..PATCH_VALUES];
+                    let row = &mut rows[((f * gh + py) * gw + px) * PATCH_VALUES..][..PATCH_VALUES];
                     for c in 0..3 {
                         for ky in 0..PATCH {
                             let src = &image[(c * height + py * PATCH + ky) * width + px * PATCH..][..PATCH];
@@ -366,6 +409,19 @@ impl Dinov2 {
                     }
                 }
             }
+        }
+        Ok(rows)
+    }
+
+    /// Rows for the patch product, `[frames * (1 + N), PATCH_VALUES]`: per image a zero row
+    /// (the class token's place) and then its [`Dinov2::image_patches`].
+    pub fn patch_rows(pixels: &[f32], frames: usize, height: usize, width: usize) -> Result<Vec<f32>> {
+        let patches = Dinov2::image_patches(pixels, frames, height, width)?;
+        let per_image = patches.len() / frames.max(1);
+        let mut rows = Vec::with_capacity(patches.len() + frames * PATCH_VALUES);
+        for image in patches.chunks(per_image.max(1)) {
+            rows.extend_from_slice(&[0.0; PATCH_VALUES]);
+            rows.extend_from_slice(image);
         }
         Ok(rows)
     }
@@ -451,6 +507,32 @@ impl Dinov2 {
             rec.submit()?;
             f0 += n;
         }
+        Ok(out)
+    }
+}
+
+impl Dinov2 {
+    /// The patch features of `frames` images (the last layer's, after the final norm, without
+    /// the class tokens): `[frames * N, width]` on the device, as the generator's condition
+    /// reads them.
+    pub fn patch_features(
+        &self,
+        gpu: &Gpu,
+        pixels: &[f32],
+        frames: usize,
+        height: usize,
+        width: usize,
+        precision: Precision,
+    ) -> Result<Tensor> {
+        let (gh, gw) = Dinov2::grid_of(height, width)?;
+        let n = gh * gw;
+        let all = self.forward(gpu, pixels, frames, height, width, precision)?;
+        let out = Tensor::empty(gpu, &[frames * n, self.config.width], DType::F32)?;
+        let mut rec = gpu.recorder()?;
+        for f in 0..frames {
+            rec.copy_rows(&all, f * (1 + n) + 1, &out, f * n, n)?;
+        }
+        rec.submit()?;
         Ok(out)
     }
 }

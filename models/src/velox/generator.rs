@@ -692,6 +692,17 @@ impl Generator {
     /// [`Generator::denormalise`]): noise from `spec.seed` integrated from `t = 0` to 1. The
     /// condition's keys and values are computed once, before the first step.
     pub fn generate(&self, condition: &Condition, spec: &GenerateSpec) -> Result<Tensor> {
+        self.generate_with_progress(condition, spec, &mut |_| {})
+    }
+
+    /// [`Generator::generate`], calling `step_done(i)` as the sampler finishes step `i` (of
+    /// `spec.steps`, from 1).
+    pub fn generate_with_progress(
+        &self,
+        condition: &Condition,
+        spec: &GenerateSpec,
+        step_done: &mut dyn FnMut(usize),
+    ) -> Result<Tensor> {
         if spec.steps == 0 {
             return Err(Error::Invalid("generation needs at least one integration step".into()));
         }
@@ -731,7 +742,17 @@ impl Generator {
         rec.submit()?;
         let batch = lens.len();
         let x0 = Tensor::from_slice(&gpu, &[k, d], &Rng::new(spec.seed).normal_vec(k * d))?;
+        let per_step = match spec.sampler {
+            Sampler::Euler => 1,
+            Sampler::Heun => 2,
+        };
+        let mut calls = 0;
         integrate(&x0, spec.steps, spec.sampler, |rec, x, t| {
+            // A step's velocities are recorded before it runs: the previous step is done.
+            if calls > 0 && calls % per_step == 0 {
+                step_done(calls / per_step);
+            }
+            calls += 1;
             rec.set_precision(spec.precision);
             let xs = Tensor::empty(&gpu, &[batch * k, d], DType::F32)?;
             for s in 0..batch {
@@ -750,6 +771,7 @@ impl Generator {
             let scaled = unary(rec, &diff, Unary::Affine(spec.guidance, 0.0))?;
             binary(rec, &vn, &scaled, Binary::Add)
         })
+        .inspect(|_| step_done(spec.steps))
     }
 
     /// Tokens back from the generator's normalised space: `x std + mean` per channel (as they

@@ -17,7 +17,11 @@
 //!   timestamps (the small config's 512 on CPU devices);
 //! - 4D surface decoder: sampling 16384 points with Heun, 20 and 100 steps (1024 points on a
 //!   CPU device; 256 points and 4 and 20 steps with `--quick`), timed as the whole sampling
-//!   call (one submission per step and chunk, so wall clock, `gpu_timed: false`).
+//!   call (one submission per step and chunk, so wall clock, `gpu_timed: false`);
+//! - DINOv2 over a video's 24 frames (ViT-L/14 at 532 px at the paper config; a 2-block,
+//!   128-wide one at 56 px on CPU devices), random weights, wall clock;
+//! - generator: 20 Euler steps with guidance (the paper config with DINOv2 features; the small
+//!   one on CPU devices), the condition's keys and values computed once, wall clock.
 //!
 //! Weights: the store's initialisation, with every parameter that starts at zero (adaLN-Zero
 //! maps, output layers, biases) drawn from N(0, 0.02^2) instead, so that no path is a
@@ -33,12 +37,14 @@ use velox_engine::ops::columns::copy_columns;
 use velox_engine::rng::Rng;
 use velox_engine::stats::{max_abs_err, nmse};
 use velox_engine::{Gpu, Precision, Result, Tensor};
-use velox_models::config::{AutoencoderConfig, TrackerConfig, VoxelConfig};
+use velox_models::config::{AutoencoderConfig, GeneratorConfig, TrackerConfig, VoxelConfig};
 use velox_models::params::ParamStore;
 use velox_models::velox::autoencoder::{tau_of, FRAMES};
 use velox_models::velox::cloud;
+use velox_models::velox::dinov2::{Dinov2, Dinov2Config, PATCH, PATCH_VALUES};
 use velox_models::velox::encoder::Encoder;
 use velox_models::velox::gaussians::{occupied_voxels, GaussianDecoder};
+use velox_models::velox::generator::{Condition, GenerateSpec, Generator};
 use velox_models::velox::surface::{SampleSpec, Sampler, SurfaceDecoder};
 use velox_models::velox::tracker::Tracker;
 use velox_models::velox::voxels::{cell_labels, VoxelDecoder, FRAME_WORDS};
@@ -47,12 +53,13 @@ use super::{print_header, print_row, time_gpu, Record};
 
 /// The paper's H100 times in ms (MODELS.md): encoder, Gaussian decoder one frame, 4D surface
 /// decoder 16384 points (the table does not give its steps).
-const PAPER_H100_MS: [(&str, f64); 5] = [
+const PAPER_H100_MS: [(&str, f64); 6] = [
     ("encoder, 1.44 M points -> 8192 tokens", 387.66),
     ("Gaussian decoder, one frame", 32.71),
     ("voxel decoder, one frame", 20.14),
     ("4D surface decoder, 16384 points", 24_800.0),
     ("tracking network (after encoding)", 19.65),
+    ("video-to-4D, 20 Euler steps", 12_870.0),
 ];
 
 const F32_ERROR_OVER: &str = "the f32 path's first run (determinism check of the last timed run)";
@@ -164,6 +171,31 @@ fn timed_outputs(
     Ok((t, first, last))
 }
 
+/// Times `run` by the wall clock in f32 and in f16 (`repeats` runs after an untimed first, for
+/// calls of many submissions); errors as [`error_reference`] says.
+fn wall_clock_both(repeats: u32, run: impl Fn(Precision) -> Result<Vec<f32>>) -> Result<Vec<PrecisionRun>> {
+    let mut f32_first = Vec::new();
+    let mut out = Vec::new();
+    for p in PRECISIONS {
+        let first = run(p)?;
+        if p == Precision::F32 {
+            f32_first = first.clone();
+        }
+        let mut times = Vec::new();
+        let mut last = Vec::new();
+        for _ in 0..repeats {
+            let t0 = std::time::Instant::now();
+            last = run(p)?;
+            times.push(t0.elapsed().as_secs_f64() * 1e3);
+        }
+        times.sort_by(f64::total_cmp);
+        let (reference, over) = error_reference(p, &f32_first, &first);
+        let (e, m) = errors(reference, &last);
+        out.push((p, (times[times.len() / 2], times[0], false), e, m, over));
+    }
+    Ok(out)
+}
+
 fn errors(first: &[f32], last: &[f32]) -> (f64, f64) {
     let reference: Vec<f64> = first.iter().map(|&v| v as f64).collect();
     (nmse(last, &reference), max_abs_err(last, &reference))
@@ -265,8 +297,7 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         let tokens =
             Tensor::from_slice(gpu, &[k, cfg.encoder.token_dim], &rng.normal_vec(k * cfg.encoder.token_dim))?;
         for steps in s.steps {
-            let mut f32_first = Vec::new();
-            for p in PRECISIONS {
+            let sample = |p: Precision| -> Result<Vec<f32>> {
                 let spec = SampleSpec {
                     points: s.surface_points,
                     steps,
@@ -274,26 +305,9 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
                     seed: 9,
                     precision: p,
                 };
-                let sample = || -> Result<(Vec<f32>, f64)> {
-                    let t0 = std::time::Instant::now();
-                    let x = decoder.sample(&tokens, 0.1, &spec)?;
-                    let v: Vec<f32> = x.read()?;
-                    Ok((v, t0.elapsed().as_secs_f64() * 1e3))
-                };
-                let (first, _) = sample()?;
-                if p == Precision::F32 {
-                    f32_first = first.clone();
-                }
-                let mut times = Vec::new();
-                let mut last = Vec::new();
-                for _ in 0..repeats {
-                    let (v, ms) = sample()?;
-                    times.push(ms);
-                    last = v;
-                }
-                times.sort_by(f64::total_cmp);
-                let (reference, over) = error_reference(p, &f32_first, &first);
-                let (e, m) = errors(reference, &last);
+                decoder.sample(&tokens, 0.1, &spec)?.read()
+            };
+            for (p, t, e, m, over) in wall_clock_both(repeats, sample)? {
                 let flops = 2.0
                     * steps as f64
                     * SurfaceDecoder::forward_flops(&cfg.surface, cfg.encoder.token_dim, s.surface_points, k)
@@ -303,7 +317,7 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
                         &format!("surface decoder heun {steps}"),
                         format!("{} points, {} evaluations", s.surface_points, 2 * steps),
                         p,
-                        (times[times.len() / 2], times[0], false),
+                        t,
                         flops / 1e12,
                         "TFLOP/s",
                     )
@@ -391,6 +405,60 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
             "tracking network ({} config, {:.1} M parameters): {n} queries against {k} tokens",
             tcfg.name,
             tracker.store.num_parameters() as f64 / 1e6
+        );
+    }
+
+    // DINOv2 over a video's 24 frames, and the generator's 20 Euler steps with guidance (two
+    // network evaluations a step), both by the wall clock (one submission per block or step).
+    {
+        let paper = cfg.name == "paper";
+        let gcfg = if paper { GeneratorConfig::paper() } else { GeneratorConfig::small() };
+        let dcfg = if paper {
+            Dinov2Config::large()
+        } else {
+            Dinov2Config { width: 128, depth: 2, heads: 2, hidden: 512, grid: 4, eps: 1e-6 }
+        };
+        let dino = Dinov2::random(gpu, &dcfg, 3)?;
+        let (frames, size) = (gcfg.task.frames(), gcfg.image_size);
+        let pixels = rng.normal_vec(frames * 3 * size * size);
+        let features = |p: Precision| dino.patch_features(gpu, &pixels, frames, size, size, p)?.read::<f32>();
+        let grid = size / PATCH;
+        for (p, t, e, m, over) in wall_clock_both(repeats, features)? {
+            let shape = format!("{frames} frames of {size} px, {} x {grid} patches", grid);
+            let images = frames as f64;
+            push(record("DINOv2 video", shape, p, t, images, "frame/s").error(e, m, over));
+        }
+        println!(
+            "DINOv2 ({} wide, {} blocks, {:.1} M parameters, random weights) over {frames} frames of {size} px",
+            dcfg.width,
+            dcfg.depth,
+            dcfg.num_parameters() as f64 / 1e6
+        );
+        let mut gcfg = GeneratorConfig { dino_width: dcfg.width, ..gcfg };
+        gcfg.tokens = cfg.encoder.tokens;
+        let generator = Generator::new(gpu, &gcfg, 7)?;
+        liven(&generator.store, &mut rng)?;
+        let rows = gcfg.cond_tokens();
+        let condition = Condition {
+            patches: Tensor::from_slice(gpu, &[rows, PATCH_VALUES], &rng.normal_vec(rows * PATCH_VALUES))?,
+            dino: Some(Tensor::from_slice(gpu, &[rows, dcfg.width], &rng.normal_vec(rows * dcfg.width))?),
+        };
+        let steps = 20;
+        let generate = |p: Precision| {
+            let spec = GenerateSpec { steps, sampler: Sampler::Euler, guidance: 3.0, seed: 5, precision: p };
+            generator.generate(&condition, &spec)?.read::<f32>()
+        };
+        for (p, t, e, m, over) in wall_clock_both(repeats, generate)? {
+            let shape =
+                format!("{} tokens, {rows} condition tokens, {steps} Euler steps, guidance", gcfg.tokens);
+            push(record("generator 20 euler", shape, p, t, steps as f64, "step/s").error(e, m, over));
+        }
+        println!(
+            "generator ({} config, {:.1} M parameters): {steps} Euler steps with guidance over {} tokens, \
+             {rows} condition tokens",
+            gcfg.name,
+            generator.store.num_parameters() as f64 / 1e6,
+            gcfg.tokens
         );
     }
 
