@@ -697,19 +697,23 @@ fn run_generation(a: &GenerationEvalArgs) -> CliResult<()> {
     }
     bar.finish_and_clear();
     let mean = GenerationMean::of(&results);
-    println!("{:<16} {:>22} {:>22}", "", "input view PSNR / SSIM", "novel views PSNR / SSIM");
-    let row = |label: &str, s: &velox_models::eval::generation::ViewScores| {
+    println!(
+        "{:<20} {:>22} {:>24} {:>11}",
+        "", "input view PSNR / SSIM", "novel views PSNR / SSIM", "token NMSE"
+    );
+    let row = |label: &str, s: &velox_models::eval::generation::ViewScores, nmse: Option<f64>| {
+        let nmse = nmse.map_or(String::new(), |v| format!("{v:>11.4}"));
         println!(
-            "{label:<16} {:>14.2} / {:.4} {:>14.2} / {:.4}",
+            "{label:<20} {:>14.2} / {:.4} {:>16.2} / {:.4} {nmse}",
             s.input.psnr, s.input.ssim, s.novel.psnr, s.novel.ssim
         );
     };
     for r in &results {
-        row(&format!("{} gen", r.scene), &r.generated);
-        row(&format!("{} enc", r.scene), &r.encoded);
+        row(&format!("{} gen", r.scene), &r.generated, Some(r.token_nmse));
+        row(&format!("{} enc", r.scene), &r.encoded, None);
     }
-    row("mean generated", &mean.generated);
-    row("mean encoded", &mean.encoded);
+    row("mean generated", &mean.generated, Some(mean.token_nmse));
+    row("mean encoded", &mean.encoded, None);
     #[derive(Serialize)]
     struct Report<'a> {
         generator: String,
