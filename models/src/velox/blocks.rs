@@ -8,9 +8,16 @@ use velox_engine::ops::gather::{gather, invert_permutation};
 use velox_engine::ops::window::{group_by_window, window_ids, WindowGrid};
 use velox_engine::{Recorder, Result, Tensor};
 
+use velox_engine::ops::fill::fill;
+use velox_engine::ops::swiglu::swiglu_backward;
+use velox_engine::ops::unary::{unary, Unary};
+use velox_engine::DType;
+
 use crate::layers::attention::{MultiHeadAttention, MultiHeadAttentionCache};
 use crate::layers::feedforward::SwiGluCache;
+use crate::layers::linear::LinearCache;
 use crate::layers::norm::RmsNormCache;
+use crate::layers::Fourier;
 use crate::layers::{Linear, Param, RmsNorm, SwiGlu};
 use crate::params::{Init, ParamBuilder, ParamStore};
 
@@ -173,5 +180,48 @@ impl WindowLayer {
         let dn = gather(rec, &dn_sorted, &w.inverse)?;
         let dx = self.norm.backward(rec, &cache.norm, &dn)?;
         binary(rec, &dx1, &dx, Binary::Add)
+    }
+}
+
+/// The flow time's embedding of the adaLN networks (the surface decoder, the generator):
+/// `e = silu(fc2(silu(fc1(Fourier(t)))))`, one row per time.
+pub struct TimeEmbedding {
+    pub fourier: Fourier,
+    pub fc1: Linear,
+    pub fc2: Linear,
+}
+
+/// The two pre-activations and the linears' inputs.
+pub struct TimeEmbeddingCache {
+    fc1: LinearCache,
+    a1: Tensor,
+    fc2: LinearCache,
+    a2: Tensor,
+}
+
+/// `silu'(a) * dy`: SiLU is the SwiGLU gate with `b = 1`, so its backward is the gate's `da`.
+fn silu_backward(rec: &mut Recorder, a: &Tensor, dy: &Tensor) -> Result<Tensor> {
+    let ones = Tensor::empty(a.gpu(), a.shape(), DType::F32)?;
+    fill(rec, &ones, 1.0)?;
+    Ok(swiglu_backward(rec, a, &ones, dy)?.0)
+}
+
+impl TimeEmbedding {
+    /// `e [n, width]` for the flow times `t` (`n` of them).
+    pub fn forward(&self, rec: &mut Recorder, t: &Tensor) -> Result<(Tensor, TimeEmbeddingCache)> {
+        let (ft, _) = self.fourier.forward(rec, &t.reshape(&[t.numel(), 1])?)?;
+        let (a1, fc1) = self.fc1.forward(rec, &ft)?;
+        let s1 = unary(rec, &a1, Unary::Silu)?;
+        let (a2, fc2) = self.fc2.forward(rec, &s1)?;
+        let e = unary(rec, &a2, Unary::Silu)?;
+        Ok((e, TimeEmbeddingCache { fc1, a1, fc2, a2 }))
+    }
+
+    /// Adds the parameters' gradients for `de` (the times themselves get none).
+    pub fn backward(&self, rec: &mut Recorder, cache: &TimeEmbeddingCache, de: &Tensor) -> Result<()> {
+        let da2 = silu_backward(rec, &cache.a2, de)?;
+        let ds1 = self.fc2.backward(rec, &cache.fc2, &da2)?;
+        let da1 = silu_backward(rec, &cache.a1, &ds1)?;
+        self.fc1.param_grads(rec, &cache.fc1, &da1)
     }
 }

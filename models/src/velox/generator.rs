@@ -32,7 +32,6 @@
 //! Heun steps and guidance `v = v_null + s (v_cond - v_null)`; the condition's keys and values
 //! are computed once per generation, not once per step.
 
-use std::path::Path;
 use std::time::Instant;
 
 use velox_engine::ops::adamw::AdamWConfig;
@@ -55,8 +54,9 @@ use crate::layers::{
 };
 use crate::params::{Init, ParamBuilder, ParamStore};
 use crate::train::{Losses, PassSeconds};
+use crate::velox::blocks::{TimeEmbedding, TimeEmbeddingCache};
 use crate::velox::dinov2::{PATCH, PATCH_VALUES};
-use crate::velox::surface::{integrate, silu_backward, Sampler};
+use crate::velox::surface::{integrate, Sampler};
 
 /// The `model` a checkpoint of the generator names.
 pub const MODEL_KIND: &str = "velox generator";
@@ -115,10 +115,7 @@ pub struct GenCache {
     self_seg: Segments,
     cross_seg: Segments,
     input: LinearCache,
-    time_fc1: LinearCache,
-    a1: Tensor,
-    time_fc2: LinearCache,
-    a2: Tensor,
+    time: TimeEmbeddingCache,
     e: LinearCache,
     blocks: Vec<BlockCache>,
     final_norm: RmsNormCache,
@@ -159,9 +156,7 @@ pub struct Generator {
     pub store: ParamStore,
     input: Linear,
     positions: Param,
-    time_fourier: Fourier,
-    time_fc1: Linear,
-    time_fc2: Linear,
+    time: TimeEmbedding,
     adaln: Vec<Linear>,
     final_adaln: Vec<Linear>,
     blocks: Vec<Block>,
@@ -271,9 +266,11 @@ impl Generator {
         Ok(Generator {
             input: lin("input", true)?,
             positions: p("positions")?,
-            time_fourier: Fourier::log_spaced(gpu, 1, cfg.time_freqs, cfg.time_max_octave, true)?,
-            time_fc1: lin("time.fc1", true)?,
-            time_fc2: lin("time.fc2", true)?,
+            time: TimeEmbedding {
+                fourier: Fourier::log_spaced(gpu, 1, cfg.time_freqs, cfg.time_max_octave, true)?,
+                fc1: lin("time.fc1", true)?,
+                fc2: lin("time.fc2", true)?,
+            },
             adaln: BLOCK_ROLES.iter().map(|r| lin(&format!("adaln.{r}"), true)).collect::<Result<_>>()?,
             final_adaln: FINAL_ROLES
                 .iter()
@@ -297,29 +294,6 @@ impl Generator {
         let mut b = ParamStore::builder();
         Generator::register(&mut b, cfg)?;
         Ok(b.num_parameters())
-    }
-
-    /// Writes parameters, AdamW moments, the step and the config to `path` (atomically).
-    pub fn save(&self, path: &Path) -> Result<()> {
-        crate::checkpoint::save(path, &self.store, &crate::train::Trainable::describe(self).to_string())
-    }
-
-    /// The config a generator checkpoint holds.
-    pub fn checkpoint_config(path: &Path) -> Result<GeneratorConfig> {
-        crate::checkpoint::model_config(path, MODEL_KIND, "generator")
-    }
-
-    /// The generator a checkpoint holds, with its moments and step.
-    pub fn load(gpu: &Gpu, path: &Path) -> Result<Generator> {
-        let mut g = Generator::new(gpu, &Generator::checkpoint_config(path)?, 0)?;
-        crate::checkpoint::load(path, &mut g.store)?;
-        Ok(g)
-    }
-
-    /// Fails unless `autoencoder` (a checkpoint file) is the one whose tokens the generator
-    /// learned, when it recorded one.
-    pub fn check_encoder(&self, autoencoder: &Path) -> Result<()> {
-        crate::velox::tokens::check_encoder(self.cfg.encoder_hash.as_deref(), autoencoder, "generator")
     }
 
     /// Condition rows of one scene.
@@ -428,11 +402,7 @@ impl Generator {
         let self_seg = Segments::from_lengths(&gpu, &vec![k; b], &vec![k; b])?;
         let cross_seg = Segments::from_lengths(&gpu, &vec![k; b], cond_lens)?;
 
-        let (ft, _) = self.time_fourier.forward(rec, &t.reshape(&[b, 1])?)?;
-        let (a1, time_fc1) = self.time_fc1.forward(rec, &ft)?;
-        let s1 = unary(rec, &a1, Unary::Silu)?;
-        let (a2, time_fc2) = self.time_fc2.forward(rec, &s1)?;
-        let e = unary(rec, &a2, Unary::Silu)?;
+        let (e, time) = self.time.forward(rec, t)?;
         let mut e_cache = None;
         let mut modulation = |rec: &mut Recorder, l: &Linear| -> Result<Tensor> {
             let (m, c) = l.forward(rec, &e)?;
@@ -495,10 +465,7 @@ impl Generator {
             self_seg,
             cross_seg,
             input,
-            time_fc1,
-            a1,
-            time_fc2,
-            a2,
+            time,
             e: e_cache.expect("the blocks always read a modulation"),
             blocks,
             final_norm,
@@ -586,10 +553,7 @@ impl Generator {
             l.input_grad_into(rec, dm, &de, de_started)?;
             de_started = true;
         }
-        let da2 = silu_backward(rec, &cache.a2, &de)?;
-        let ds1 = self.time_fc2.backward(rec, &cache.time_fc2, &da2)?;
-        let da1 = silu_backward(rec, &cache.a1, &ds1)?;
-        self.time_fc1.param_grads(rec, &cache.time_fc1, &da1)?;
+        self.time.backward(rec, &cache.time, &de)?;
         // The condition: its projection, the null rows masked, the RGB embedding's columns.
         if let (Some(cc), Some(dctx)) = (&cache.cond, &dctx) {
             let dbig = self.cond_embed.backward(rec, &cc.embed, dctx)?;
@@ -803,4 +767,5 @@ impl GenCache {
     }
 }
 
+crate::train::token_model_files!(Generator, GeneratorConfig, "generator");
 crate::train::trainable!(Generator, GenSample);

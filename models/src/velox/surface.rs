@@ -30,7 +30,6 @@ use velox_engine::ops::attention::Segments;
 use velox_engine::ops::binary::{binary, binary_into, Binary};
 use velox_engine::ops::fill::fill;
 use velox_engine::ops::reduce::{reduce, Reduce};
-use velox_engine::ops::swiglu::swiglu_backward;
 use velox_engine::ops::unary::{unary, Unary};
 use velox_engine::rng::Rng;
 use velox_engine::{DType, Error, Gpu, Precision, Recorder, Result, Tensor};
@@ -45,6 +44,7 @@ use crate::layers::{
     Fourier, GatedResidual, GeluMlp, LayerNorm, Linear, Loss, Modulate, MultiHeadAttention, Param,
 };
 use crate::params::{Init, ParamBuilder, ParamStore};
+use crate::velox::blocks::{TimeEmbedding, TimeEmbeddingCache};
 
 /// LayerNorm epsilon under adaLN (DiT's value).
 const LN_EPS: f32 = 1e-6;
@@ -107,13 +107,11 @@ pub struct SurfaceDecoder {
     pub token_dim: usize,
     xyz_fourier: Fourier,
     tau_fourier: Option<Fourier>,
-    time_fourier: Fourier,
     /// The rows of the input linear that read `x_t ++ Fourier(x_t)` (with the bias), and those
     /// that read `Fourier(tau)`.
     input: Linear,
     input_tau: Option<Linear>,
-    time_fc1: Linear,
-    time_fc2: Linear,
+    time: TimeEmbedding,
     blocks: Vec<Block>,
     final_adaln: Vec<Linear>,
     out: Linear,
@@ -141,14 +139,11 @@ pub struct SurfaceCache {
     tt: usize,
     k: usize,
     seg: Segments,
-    time_fc1: LinearCache,
-    /// Pre-activations of the two SiLUs of the time embedding, and the embedding `e`.
-    a1: Tensor,
-    a2: Tensor,
+    time: TimeEmbeddingCache,
+    /// The time embedding `e`, as the modulations read it.
     e: LinearCache,
     input: LinearCache,
     input_tau: Option<LinearCache>,
-    time_fc2: LinearCache,
     blocks: Vec<BlockCache>,
     ln_final: LayerNormCache,
     mod_final: ModulateCache,
@@ -245,13 +240,6 @@ pub fn points_tensor(gpu: &Gpu, points: &[f32]) -> Result<Tensor> {
         )));
     }
     Tensor::from_slice(gpu, &[points.len() / 3, 3], points)
-}
-
-/// `silu'(a) * dy`: SiLU is the SwiGLU gate with `b = 1`, so its backward is the gate's `da`.
-pub(crate) fn silu_backward(rec: &mut Recorder, a: &Tensor, dy: &Tensor) -> Result<Tensor> {
-    let ones = Tensor::empty(a.gpu(), a.shape(), DType::F32)?;
-    fill(rec, &ones, 1.0)?;
-    Ok(swiglu_backward(rec, a, &ones, dy)?.0)
 }
 
 /// Integrates `dx/dt = velocity(x, t)` from `t = 0` to `t = 1` in `steps` equal steps, one
@@ -393,11 +381,13 @@ impl SurfaceDecoder {
             token_dim,
             xyz_fourier: Fourier::log_spaced(&gpu, 3, cfg.xyz_freqs, cfg.xyz_max_octave, true)?,
             tau_fourier,
-            time_fourier: Fourier::log_spaced(&gpu, 1, cfg.time_freqs, cfg.time_max_octave, true)?,
             input: lin("input.w", Some("input.b"))?,
             input_tau,
-            time_fc1: lin("time.fc1.w", Some("time.fc1.b"))?,
-            time_fc2: lin("time.fc2.w", Some("time.fc2.b"))?,
+            time: TimeEmbedding {
+                fourier: Fourier::log_spaced(&gpu, 1, cfg.time_freqs, cfg.time_max_octave, true)?,
+                fc1: lin("time.fc1.w", Some("time.fc1.b"))?,
+                fc2: lin("time.fc2.w", Some("time.fc2.b"))?,
+            },
             blocks,
             final_adaln: FINAL_ROLES
                 .iter()
@@ -518,11 +508,7 @@ impl SurfaceDecoder {
         let (b, tt) = if nt == n { (n, 1) } else { (1, n) };
 
         // Time embedding e [nt, time_embed] and the modulation chunks [nt, width].
-        let (ft, _) = self.time_fourier.forward(rec, &t.reshape(&[nt, 1])?)?;
-        let (a1, time_fc1) = self.time_fc1.forward(rec, &ft)?;
-        let s1 = unary(rec, &a1, Unary::Silu)?;
-        let (a2, time_fc2) = self.time_fc2.forward(rec, &s1)?;
-        let e = unary(rec, &a2, Unary::Silu)?;
+        let (e, time) = self.time.forward(rec, t)?;
         let mut e_cache = None;
         let mut modulation = |rec: &mut Recorder, l: &Linear| -> Result<Tensor> {
             let (m, c) = l.forward(rec, &e)?;
@@ -573,13 +559,10 @@ impl SurfaceDecoder {
             tt,
             k,
             seg,
-            time_fc1,
-            a1,
-            a2,
+            time,
             e: e_cache.expect("the final layer always has a modulation"),
             input,
             input_tau,
-            time_fc2,
             blocks,
             ln_final,
             mod_final,
@@ -658,10 +641,7 @@ impl SurfaceDecoder {
         }
 
         // Time embedding: e = silu(fc2(silu(fc1(Fourier(t))))).
-        let da2 = silu_backward(rec, &cache.a2, &de)?;
-        let ds1 = self.time_fc2.backward(rec, &cache.time_fc2, &da2)?;
-        let da1 = silu_backward(rec, &cache.a1, &ds1)?;
-        self.time_fc1.param_grads(rec, &cache.time_fc1, &da1)?; // t itself gets no gradient
+        self.time.backward(rec, &cache.time, &de)?;
         Ok(dtokens)
     }
 

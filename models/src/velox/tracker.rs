@@ -12,7 +12,6 @@
 //! Visibility is not learned (as in the paper): a predicted point is occluded where the
 //! video's camera does not see it in its depth frame (`Camera::sees`, the data's own test).
 
-use std::path::Path;
 use std::time::Instant;
 
 use velox_engine::ops::adamw::AdamWConfig;
@@ -25,7 +24,7 @@ use velox_engine::{DType, Error, Gpu, Recorder, Result, Tensor};
 use crate::config::{TrackLoss, TrackerConfig};
 use crate::layers::{Fourier, Loss};
 use crate::params::{ParamBuilder, ParamStore};
-use crate::train::{Losses, PassSeconds, Trainable};
+use crate::train::{Losses, PassSeconds};
 use crate::velox::autoencoder::FRAMES;
 use crate::velox::perceiver::{PerceiverShape, VoxelFrames, VoxelPerceiver};
 use velox_engine::ops::fourier::fourier_width;
@@ -148,29 +147,6 @@ impl Tracker {
             adamw: AdamWConfig::default(),
             pass_seconds: PassSeconds::default(),
         })
-    }
-
-    /// Writes parameters, AdamW moments, the step and the config to `path` (atomically).
-    pub fn save(&self, path: &Path) -> Result<()> {
-        crate::checkpoint::save(path, &self.store, &self.describe().to_string())
-    }
-
-    /// The config a tracker checkpoint holds.
-    pub fn checkpoint_config(path: &Path) -> Result<TrackerConfig> {
-        crate::checkpoint::model_config(path, MODEL_KIND, "tracker")
-    }
-
-    /// The tracker a checkpoint holds, with its moments and step.
-    pub fn load(gpu: &Gpu, path: &Path) -> Result<Tracker> {
-        let mut t = Tracker::new(gpu, &Tracker::checkpoint_config(path)?, 0)?;
-        crate::checkpoint::load(path, &mut t.store)?;
-        Ok(t)
-    }
-
-    /// Fails unless `autoencoder` (a checkpoint file) is the one whose tokens the tracker
-    /// trained on, when the tracker recorded it.
-    pub fn check_encoder(&self, autoencoder: &Path) -> Result<()> {
-        crate::velox::tokens::check_encoder(self.cfg.encoder_hash.as_deref(), autoencoder, "tracker")
     }
 
     fn check_tokens(&self, tokens: &Tensor) -> Result<usize> {
@@ -316,4 +292,5 @@ impl Tracker {
     }
 }
 
+crate::train::token_model_files!(Tracker, TrackerConfig, "tracker");
 crate::train::trainable!(Tracker, TrackSample);

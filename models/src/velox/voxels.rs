@@ -1,7 +1,6 @@
 //! The voxel decoder (paper: section 3.3; the occupied voxels of a frame predicted from the
 //! dynamic tokens, so Gaussians decode without sampling the surface ODE).
 
-use std::path::Path;
 use std::time::Instant;
 
 use velox_engine::ops::adamw::AdamWConfig;
@@ -19,7 +18,7 @@ use crate::config::{OccupancyLoss, VoxelConfig, VoxelStageConfig};
 use crate::layers::linear::LinearCache;
 use crate::layers::{Fourier, Linear, Loss};
 use crate::params::{ParamBuilder, ParamStore};
-use crate::train::{Losses, PassSeconds, Trainable};
+use crate::train::{Losses, PassSeconds};
 use crate::velox::autoencoder::tau_of;
 use crate::velox::blocks::{linear, linear_params};
 use crate::velox::perceiver::{PerceiverShape, VoxelFrames, VoxelPerceiver};
@@ -329,29 +328,6 @@ impl VoxelDecoder {
         })
     }
 
-    /// Writes parameters, AdamW moments, the step and the config to `path` (atomically).
-    pub fn save(&self, path: &Path) -> Result<()> {
-        crate::checkpoint::save(path, &self.store, &self.describe().to_string())
-    }
-
-    /// The config a voxel decoder checkpoint holds.
-    pub fn checkpoint_config(path: &Path) -> Result<VoxelConfig> {
-        crate::checkpoint::model_config(path, MODEL_KIND, "voxel decoder")
-    }
-
-    /// The decoder a checkpoint holds, with its moments and step.
-    pub fn load(gpu: &Gpu, path: &Path) -> Result<VoxelDecoder> {
-        let mut d = VoxelDecoder::new(gpu, &VoxelDecoder::checkpoint_config(path)?, 0)?;
-        crate::checkpoint::load(path, &mut d.store)?;
-        Ok(d)
-    }
-
-    /// Fails unless `autoencoder` (a checkpoint file) is the one whose tokens the decoder
-    /// trained on, when the decoder recorded it.
-    pub fn check_encoder(&self, autoencoder: &Path) -> Result<()> {
-        crate::velox::tokens::check_encoder(self.cfg.encoder_hash.as_deref(), autoencoder, "voxel decoder")
-    }
-
     fn check_tokens(&self, tokens: &Tensor) -> Result<usize> {
         crate::velox::tokens::check_shape("voxel decoder", tokens, self.cfg.token_dim)
     }
@@ -564,4 +540,5 @@ impl VoxelDecoder {
     }
 }
 
+crate::train::token_model_files!(VoxelDecoder, VoxelConfig, "voxel decoder");
 crate::train::trainable!(VoxelDecoder, VoxelSample);
