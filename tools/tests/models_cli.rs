@@ -771,6 +771,25 @@ fn generator_trains_generates_and_evaluates() {
     }
     assert!(ev.join("scene_00000.png").is_file());
 
+    // With DINOv2 (the test fixture's small random model, 64 wide): its features join the
+    // condition, and generating without the same weights is refused.
+    let dino = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/fixtures/dinov2/weights.safetensors");
+    let run_dino = work.join("run-dino");
+    let args = ["train", "generator", "--data", arg(&data), "--config", "tiny", "--steps", "1"];
+    ok(&velox(&[&args[..], &["--out", arg(&run_dino), "--dinov2", arg(&dino)]].concat()));
+    let dino_gen = run_dino.join("checkpoint.safetensors");
+    let g = velox_models::velox::generator::Generator::load(&gpu, &dino_gen).unwrap();
+    assert_eq!(g.cfg.dino_width, 64);
+    let args =
+        ["generate", "--checkpoint", arg(&dino_gen), "--autoencoder", arg(&ckpt), "--video", arg(&scene)];
+    let out_dino = work.join("gen-dino");
+    let more =
+        ["--out", arg(&out_dino), "--steps", "1", "--frames", "0", "--views", "1", "--voxels", "input"];
+    let err = fails(&velox(&[&args[..], &more[..]].concat()));
+    assert!(err.contains("--dinov2"), "{err}");
+    ok(&velox(&[&args[..], &more[..], &["--dinov2", arg(&dino)]].concat()));
+    assert!(out_dino.join("sheet.png").is_file());
+
     // The image task: trained on each scene's first frame, generating from one PNG.
     let run_image = work.join("run-image");
     let args =
