@@ -6,6 +6,7 @@ pub mod assign;
 pub mod attention;
 pub mod binary;
 pub mod cast;
+pub mod cloth;
 pub mod columns;
 pub mod concat;
 pub mod fill;

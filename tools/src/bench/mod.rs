@@ -1,6 +1,7 @@
 //! `velox bench`: GPU time against error, printed as a table and written as JSON records.
 
 mod attention;
+mod cloth;
 mod kernels;
 mod layers;
 mod models;
@@ -33,6 +34,9 @@ pub enum BenchCommand {
     /// points), Gaussian decoder (one frame), surface decoder (16384 points, 20 and 100 Heun
     /// steps), against the paper's H100 times.
     Models(BenchArgs),
+    /// Cloth simulation: frames per second of a towel-sized sheet falling onto the ground, with
+    /// and without self-collision.
+    Cloth(BenchArgs),
     /// Training throughput: samples per second against the batch size for a config, with the
     /// step's time split into data, compute, all-reduce and optimiser.
     Train(TrainBenchArgs),
@@ -75,6 +79,7 @@ pub fn run(cmd: BenchCommand) -> CliResult<()> {
         BenchCommand::Layers(a) => (a, layers::run),
         BenchCommand::Raster(a) => (a, raster::run),
         BenchCommand::Models(a) => (a, models::run),
+        BenchCommand::Cloth(a) => (a, cloth::run),
     };
     let gpu = Gpu::new()?;
     let records = which(&gpu, args.quick, args.repeats)?;
