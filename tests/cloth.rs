@@ -251,3 +251,33 @@ fn bad_meshes_and_parameters_are_refused_by_name() {
     let mut sim = ClothSim::new(&gpu, &m, ClothParams::default()).unwrap();
     assert!(sim.step(&gpu, f32::NAN).unwrap_err().to_string().contains("seconds"));
 }
+
+/// A whole cloth scene: the garment falls as gravity says until it lands, ends on the ground,
+/// stays in the scene's box, and the same seed gives the same bits.
+#[test]
+fn a_cloth_scene_falls_lands_and_repeats() {
+    use velox::data::cloth::{scene, up, FRAME_DT, GRAVITY, GROUND};
+    let gpu = gpu();
+    let (mesh, record) = scene(&gpu, 11, None).unwrap();
+    assert_eq!(mesh.frames.len(), 24);
+    assert!(mesh.frames.iter().flatten().flatten().all(|v| v.is_finite() && v.abs() <= 1.0));
+    let u = up();
+    let height = |p: [f32; 3]| (0..3).map(|k| p[k] as f64 * u[k] as f64).sum::<f64>();
+    let com: Vec<f64> = record.centre_of_mass.iter().map(|&c| height(c)).collect();
+    assert!(com.windows(2).all(|w| w[1] <= w[0] + 1e-4), "the centre of mass rose: {com:?}");
+    // Free fall until the lowest particle nears the ground (the air's damping of 1 per second
+    // slows it by a few per cent).
+    let lowest = |f: usize| mesh.frames[f].iter().map(|&p| height(p)).fold(f64::INFINITY, f64::min);
+    let free = (1..24).take_while(|&f| lowest(f) > GROUND as f64 + 0.05).last().unwrap_or(0);
+    assert!(free >= 3, "the cloth landed by frame {free}");
+    let t = free as f64 * FRAME_DT as f64;
+    let fallen = com[0] - com[free];
+    let expected = GRAVITY as f64 * t * t / 2.0;
+    assert!((fallen - expected).abs() < 0.1 * expected, "fell {fallen} in {t} s, gravity says {expected}");
+    assert!(lowest(23) >= GROUND as f64 - 1e-3, "a particle below the ground");
+    let (again, _) = scene(&gpu, 11, None).unwrap();
+    assert_eq!(mesh, again);
+    let (other, _) = scene(&gpu, 12, None).unwrap();
+    assert_ne!(mesh.frames[0].len(), 0);
+    assert!(other.frames != mesh.frames);
+}

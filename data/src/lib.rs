@@ -14,6 +14,7 @@
 //! - [`raster`] renders it on the engine with a compute rasteriser (`shaders/mesh_raster.wgsl`)
 //!   from the cameras of [`camera`]: RGB, depth, triangle id and barycentrics;
 //! - [`pipeline`] turns the renders into point clouds, occupancy and tracks;
+//! - [`cloth`]: garments folded and dropped by the engine's cloth solver, as animated meshes;
 //! - [`rgbd`] reads RGBD videos and back-projects them (the tracking task's input);
 //! - [`condition`] reads a video's frames as the generators' condition;
 //! - [`format`] writes and reads the dataset, [`loader`] reads it in the background in the
@@ -27,6 +28,7 @@
 //! morph targets), and `image` (PNG and JPEG for textures and the supervision views).
 
 pub mod camera;
+pub mod cloth;
 pub mod condition;
 pub mod encode;
 pub mod format;

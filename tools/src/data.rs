@@ -35,6 +35,26 @@ pub enum DataCommand {
         #[arg(long)]
         textures: Option<PathBuf>,
     },
+    /// Cloth scenes: a random t-shirt, pair of shorts or towel, folded once or twice, lifted and
+    /// dropped, simulated by the engine's cloth solver; each scene also has `cloth.json` (the
+    /// garment, its folds and drop height, and the simulated centre of mass per frame).
+    Cloth {
+        #[command(flatten)]
+        common: CommonArgs,
+        /// Number of scenes, 1 to 1000000.
+        #[arg(long, default_value_t = 8, value_parser = RangedU64ValueParser::<usize>::new().range(1..=1_000_000))]
+        scenes: usize,
+        /// Which split: its scenes draw from seeds no other split uses, so splits never share
+        /// a garment shape or a texture.
+        #[arg(long, value_enum, default_value_t = Split::Train)]
+        split: Split,
+        /// Seed of the first scene within the split; scene i uses seed + i.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Folder of PNG/JPEG images to crop textures from (else procedural textures only).
+        #[arg(long)]
+        textures: Option<PathBuf>,
+    },
     /// Scenes from glTF 2.0 files (.gltf or .glb), one per file.
     Gltf {
         /// The files to import.
@@ -74,12 +94,38 @@ pub struct CommonArgs {
     supersample: u32,
 }
 
+/// The splits of `velox data cloth`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Split {
+    Train,
+    Val,
+    Test,
+}
+
+impl Split {
+    /// Where the split's seeds start: 2^40 apart, so no two splits share one.
+    fn base(self) -> u64 {
+        match self {
+            Split::Train => 0,
+            Split::Val => 1 << 40,
+            Split::Test => 2 << 40,
+        }
+    }
+}
+
+/// What a job makes: the mesh, a description, and files to write beside the scene's.
+struct Made {
+    mesh: AnimatedMesh,
+    detail: Option<String>,
+    extra: Vec<(&'static str, Vec<u8>)>,
+}
+
 /// One scene to make: its folder name, a description, a seed and how to get its mesh.
 struct Job {
     name: String,
     source: String,
     seed: u64,
-    make: Box<dyn FnOnce() -> velox_data::DataResult<(AnimatedMesh, Option<String>)>>,
+    make: Box<dyn FnOnce(&Gpu) -> CliResult<Made>>,
 }
 
 pub fn run(cmd: DataCommand) -> CliResult<()> {
@@ -95,9 +141,35 @@ pub fn run(cmd: DataCommand) -> CliResult<()> {
                         name: format!("scene_{s:05}"),
                         source: format!("procedural seed {s}"),
                         seed: s,
-                        make: Box::new(move || {
+                        make: Box::new(move |_| {
                             let (recipe, mesh) = procedural::scene(s, folder.as_deref())?;
-                            Ok((mesh, Some(recipe.objects.join(", "))))
+                            Ok(Made { mesh, detail: Some(recipe.objects.join(", ")), extra: Vec::new() })
+                        }),
+                    }
+                })
+                .collect();
+            (common, jobs)
+        }
+        DataCommand::Cloth { common, scenes, split, seed, textures } => {
+            let folder = textures.as_deref().map(velox_data::texture::ImageFolder::open).transpose()?;
+            let folder = folder.map(std::sync::Arc::new);
+            let jobs = (0..scenes as u64)
+                .map(|i| {
+                    let s = split.base() + seed + i;
+                    let folder = folder.clone();
+                    Job {
+                        name: format!("cloth_{:05}", seed + i),
+                        source: format!("cloth seed {s}"),
+                        seed: s,
+                        make: Box::new(move |gpu| {
+                            let (mesh, record) = velox_data::cloth::scene(gpu, s, folder.as_deref())?;
+                            let detail = format!(
+                                "{:?}, {} fold(s), dropped from {:.2}",
+                                record.kind, record.folds, record.drop_height
+                            )
+                            .to_lowercase();
+                            let json = serde_json::to_string_pretty(&record)?.into_bytes();
+                            Ok(Made { mesh, detail: Some(detail), extra: vec![("cloth.json", json)] })
                         }),
                     }
                 })
@@ -114,9 +186,9 @@ pub fn run(cmd: DataCommand) -> CliResult<()> {
                         name: format!("{stem}_{i:03}"),
                         source: file.display().to_string(),
                         seed: seed + i as u64,
-                        make: Box::new(move || {
+                        make: Box::new(move |_| {
                             let imported = gltf_import::import(&file, animation)?;
-                            Ok((imported.mesh, imported.credits))
+                            Ok(Made { mesh: imported.mesh, detail: imported.credits, extra: Vec::new() })
                         }),
                     }
                 })
@@ -164,11 +236,15 @@ pub fn run(cmd: DataCommand) -> CliResult<()> {
 
 fn make_scene(gpu: &Gpu, job: Job, opts: &SynthOptions, out: &Path, bar: &ProgressBar) -> CliResult<()> {
     let start_pos = bar.position();
-    let (mesh, detail) = (job.make)().map_err(|e| e.to_string())?;
-    let meta = write_scene(gpu, &mesh, &job.source, detail, job.seed, opts, &out.join(&job.name), &mut |f| {
+    let made = (job.make)(gpu).map_err(|e| format!("{}: {e}", job.source))?;
+    let dir = out.join(&job.name);
+    let meta = write_scene(gpu, &made.mesh, &job.source, made.detail, job.seed, opts, &dir, &mut |f| {
         bar.set_position(start_pos + f as u64 + 1)
     })
     .map_err(|e| format!("{}: {e}", job.source))?;
+    for (file, bytes) in &made.extra {
+        velox_models::files::write_bytes(&dir.join(file), bytes)?;
+    }
     if meta.tracks < opts.tracks {
         bar.suspend(|| {
             eprintln!(

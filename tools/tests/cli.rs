@@ -291,3 +291,34 @@ fn config_files_with_huge_sizes_or_infinite_numbers_are_refused() {
     }
     std::fs::remove_file(&path).ok();
 }
+
+#[test]
+fn data_cloth_writes_scenes_with_their_centre_of_mass_and_refuses_bad_requests() {
+    let dir = std::env::temp_dir().join(format!("velox-cloth-{}", std::process::id()));
+    let cloth =
+        |extra: &[&str]| velox().args(["data", "cloth", "--out"]).arg(&dir).args(extra).output().unwrap();
+    for (args, needle) in
+        [(&["--scenes", "0"][..], "1..=1000000"), (&["--split", "dev"][..], "train, val, test")]
+    {
+        let out = cloth(args);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?} was accepted");
+        assert!(err.contains(needle), "{args:?}: {err}");
+    }
+    assert!(!dir.exists(), "a refused request wrote {}", dir.display());
+    let out =
+        cloth(&["--scenes", "1", "--res", "16", "--points", "2000", "--tracks", "8", "--split", "test"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let scene = dir.join("cloth_00000");
+    let meta: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(scene.join("meta.json")).unwrap()).unwrap();
+    assert!(meta["source"].as_str().unwrap().contains("cloth seed 2199023255552"), "{meta}");
+    let record: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(scene.join("cloth.json")).unwrap()).unwrap();
+    let com = record["centre_of_mass"].as_array().unwrap();
+    assert_eq!(com.len(), 24);
+    let up: Vec<f64> = record["up"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+    let height = |f: usize| (0..3).map(|k| com[f][k].as_f64().unwrap() * up[k]).sum::<f64>();
+    assert!(height(23) < height(0) - 0.05, "the cloth did not fall: {} -> {}", height(0), height(23));
+    std::fs::remove_dir_all(&dir).ok();
+}

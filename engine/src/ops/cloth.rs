@@ -373,6 +373,31 @@ impl ClothSim {
         Ok(())
     }
 
+    /// Overwrites the positions (`[n * 3]`, finite): a hand that carries pinned particles
+    /// moves them this way between frames.
+    pub fn set_positions(&self, x: &[f32]) -> Result<()> {
+        if x.len() != 3 * self.n || x.iter().any(|v| !v.is_finite()) {
+            return Err(Error::Invalid(format!(
+                "cloth: {} positions for {} particles, or one not finite",
+                x.len() / 3,
+                self.n
+            )));
+        }
+        self.x.write(x)
+    }
+
+    /// Overwrites the inverse masses (`[n]`, finite, >= 0; 0 pins a particle).
+    pub fn set_inv_mass(&self, w: &[f32]) -> Result<()> {
+        if w.len() != self.n || w.iter().any(|v| !(v.is_finite() && *v >= 0.0)) {
+            return Err(Error::Invalid(format!(
+                "cloth: {} inverse masses for {} particles, or one bad",
+                w.len(),
+                self.n
+            )));
+        }
+        self.w.write(w)
+    }
+
     /// Positions, `[n * 3]`.
     pub fn positions(&self) -> Result<Vec<f32>> {
         self.x.read()
