@@ -97,8 +97,11 @@ fn inside_rect(p: [f32; 2], x0: f32, x1: f32, z0: f32, z1: f32) -> bool {
     p[0] >= x0 && p[0] <= x1 && p[1] >= z0 && p[1] <= z1
 }
 
+/// Whether a point of the plane is inside a pattern's outline.
+type Inside = Box<dyn Fn([f32; 2]) -> bool>;
+
 /// The inside test of a random pattern of `kind`, and its extent (half width, half depth).
-fn outline(kind: GarmentKind, rng: &mut Rng) -> (Box<dyn Fn([f32; 2]) -> bool>, [f32; 2]) {
+fn outline(kind: GarmentKind, rng: &mut Rng) -> (Inside, [f32; 2]) {
     let r = |rng: &mut Rng, lo: f64, hi: f64| rng.range(lo, hi) as f32;
     match kind {
         GarmentKind::Towel => {

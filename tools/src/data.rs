@@ -120,12 +120,15 @@ struct Made {
     extra: Vec<(&'static str, Vec<u8>)>,
 }
 
+/// How a job gets its mesh (on the device, for the simulated ones).
+type Make = Box<dyn FnOnce(&Gpu) -> CliResult<Made>>;
+
 /// One scene to make: its folder name, a description, a seed and how to get its mesh.
 struct Job {
     name: String,
     source: String,
     seed: u64,
-    make: Box<dyn FnOnce(&Gpu) -> CliResult<Made>>,
+    make: Make,
 }
 
 pub fn run(cmd: DataCommand) -> CliResult<()> {
