@@ -37,6 +37,49 @@ pub enum EvalCommand {
     /// PSNR and SSIM of a generator's scenes on the conditioning view and novel views, beside
     /// those of the encoder's tokens of the same scenes (what the generator learned to make).
     Generation(GenerationEvalArgs),
+    /// The physics of an image-to-4D generator on cloth scenes (`velox data cloth`): the
+    /// centre of mass of the decoded points per frame against the simulation's, RMSE along
+    /// gravity, with plots of height, velocity and acceleration (`eval generation` gives the
+    /// image metrics).
+    Cloth(ClothEvalArgs),
+}
+
+#[derive(clap::Args)]
+pub struct ClothEvalArgs {
+    /// Dataset folder of cloth scenes (each with its cloth.json).
+    #[arg(long)]
+    data: PathBuf,
+    /// Generator checkpoint (`velox train generator --task image`).
+    #[arg(long)]
+    checkpoint: PathBuf,
+    /// The autoencoder whose tokens the generator learned: its surface decoder decodes them.
+    #[arg(long)]
+    autoencoder: PathBuf,
+    /// The scenes' stored tokens of that autoencoder [default: DATA/tokens]: decoded the same
+    /// way, they give the ceiling.
+    #[arg(long)]
+    tokens: Option<PathBuf>,
+    /// DINOv2 weights, when the generator was trained with them.
+    #[arg(long, value_name = "FILE")]
+    dinov2: Option<PathBuf>,
+    /// Output folder: cloth.json and three plots per scene.
+    #[arg(long, default_value = "velox-eval-cloth")]
+    out: PathBuf,
+    /// Surface points sampled per frame for its centre of mass, and the sampler's steps.
+    #[arg(long, default_value_t = 2048, value_parser = clap::value_parser!(u64).range(1..=10_000_000))]
+    points: u64,
+    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u64).range(1..=1000))]
+    sample_steps: u64,
+    /// Sampler steps, guidance and seed of the generation.
+    #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u64).range(1..=10_000))]
+    steps: u64,
+    #[arg(long, default_value_t = 3.0)]
+    guidance: f32,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Evaluate only the first N scenes (in name order).
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+    scenes: Option<u64>,
 }
 
 #[derive(clap::Args)]
@@ -258,6 +301,7 @@ pub fn run(cmd: EvalCommand) -> CliResult<()> {
         EvalCommand::Voxels(a) => run_voxels(&a),
         EvalCommand::Tracking(a) => run_tracking(&a),
         EvalCommand::Generation(a) => run_generation(&a),
+        EvalCommand::Cloth(a) => run_cloth(&a),
     }
 }
 
@@ -746,6 +790,135 @@ fn run_generation(a: &GenerationEvalArgs) -> CliResult<()> {
         "wrote {} and a sheet per scene (columns: frames; rows: truth, generated, encoded, for the input view \
          and the first novel view)",
         a.out.join("generation.json").display()
+    );
+    Ok(())
+}
+
+fn run_cloth(a: &ClothEvalArgs) -> CliResult<()> {
+    use velox_data::cloth::ClothRecord;
+    use velox_models::eval::cloth::{centre_of_mass, heights, ClothScene};
+    use velox_models::velox::decode::Decoding;
+    use velox_models::velox::generator::GenerateSpec;
+
+    let gpu = Gpu::new()?;
+    let m = crate::generate::Models::load(&gpu, &a.checkpoint, &a.autoencoder, a.dinov2.as_deref())?;
+    let scenes = TokenScenes::open(&gpu, &a.data, a.tokens.as_deref(), Some(&a.autoencoder))?;
+    let cfg = &m.generator.cfg;
+    scenes.check_model("generator", cfg.encoder_hash.as_deref(), cfg.token_dim)?;
+    let count = a.scenes.map_or(scenes.len(), |n| (n as usize).min(scenes.len()));
+    std::fs::create_dir_all(&a.out).map_err(|e| format!("creating {}: {e}", a.out.display()))?;
+    let spec = GenerateSpec {
+        steps: a.steps as usize,
+        sampler: SamplerArg::Euler.into(),
+        guidance: a.guidance,
+        seed: a.seed,
+        precision: velox_engine::Precision::F32,
+    };
+    let sampling = Sampling {
+        points: a.points as usize,
+        steps: a.sample_steps as usize,
+        sampler: SamplerArg::Heun.into(),
+    };
+    println!(
+        "evaluating the {} generator ({:?} task) on {count} cloth scene(s) of {}: the centre of mass of {} surface \
+         points a frame",
+        cfg.name,
+        cfg.task,
+        a.data.display(),
+        a.points
+    );
+    let frames = velox_models::velox::autoencoder::FRAMES;
+    let bar = progress(count * 2 * frames, "frames decoded (generated, then encoded)");
+    let mut results: Vec<ClothScene> = Vec::new();
+    let mut dt = 0.01;
+    for i in 0..count {
+        let dir = &scenes.dirs()[i];
+        let name = scenes.name(i);
+        bar.set_message(name.clone());
+        let path = dir.join("cloth.json");
+        let text = std::fs::read_to_string(&path).map_err(|e| {
+            format!("{}: {e} (not a cloth scene? `velox data cloth` writes it)", path.display())
+        })?;
+        let record: ClothRecord =
+            serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+        let good = record.centre_of_mass.len() == frames
+            && record.centre_of_mass.iter().flatten().chain(&record.up).all(|v| v.is_finite())
+            && record.frame_seconds.is_finite()
+            && record.frame_seconds > 0.0;
+        if !good {
+            return Err(format!(
+                "{}: needs {frames} finite centres of mass, a finite up vector and a positive frame time",
+                path.display()
+            )
+            .into());
+        }
+        dt = record.frame_seconds as f64;
+        let up = record.up.map(|v| v as f64);
+        let simulated =
+            heights(&record.centre_of_mass.iter().map(|c| c.map(|v| v as f64)).collect::<Vec<_>>(), up)?;
+        let pixels = velox_data::condition::read_condition_video(
+            &dir.join("video"),
+            cfg.task.frames(),
+            cfg.image_size,
+        )?;
+        let made = m.generate(&gpu, &pixels, &spec, false)?;
+        let stored = scenes.read(i)?.tokens.upload(&gpu)?;
+        let mut decoded = Vec::new();
+        for tokens in [made, stored] {
+            let d = Decoding::from_tokens(&m.ae, tokens, None, a.seed)?;
+            let mut centres = Vec::with_capacity(frames);
+            for f in 0..frames {
+                centres.push(centre_of_mass(&d.surface_points(f, &sampling)?)?);
+                bar.inc(1);
+            }
+            decoded.push(heights(&centres, up)?);
+        }
+        let encoded = decoded.pop().expect("two decodings");
+        let generated = decoded.pop().expect("two decodings");
+        let scene = ClothScene::new(&name, generated, encoded, simulated)?;
+        scene.plot(&a.out.join(&name), dt)?;
+        results.push(scene);
+    }
+    bar.finish_and_clear();
+    println!("{:<20} {:>28} {:>26}", "", "RMSE along gravity, generated", "encoded (the ceiling)");
+    for r in &results {
+        println!("{:<20} {:>28.4} {:>26.4}", r.scene, r.rmse_generated, r.rmse_encoded);
+    }
+    let mean =
+        |f: &dyn Fn(&ClothScene) -> f64| results.iter().map(f).sum::<f64>() / results.len().max(1) as f64;
+    let (gen, enc) = (mean(&|r| r.rmse_generated), mean(&|r| r.rmse_encoded));
+    println!("{:<20} {gen:>28.4} {enc:>26.4}", "mean");
+    #[derive(Serialize)]
+    struct Report<'a> {
+        generator: String,
+        autoencoder: String,
+        points: u64,
+        sample_steps: u64,
+        steps: u64,
+        guidance: f32,
+        seed: u64,
+        frame_seconds: f64,
+        mean_rmse_generated: f64,
+        mean_rmse_encoded: f64,
+        scenes: &'a [ClothScene],
+    }
+    let report = Report {
+        generator: a.checkpoint.display().to_string(),
+        autoencoder: a.autoencoder.display().to_string(),
+        points: a.points,
+        sample_steps: a.sample_steps,
+        steps: a.steps,
+        guidance: a.guidance,
+        seed: a.seed,
+        frame_seconds: dt,
+        mean_rmse_generated: gen,
+        mean_rmse_encoded: enc,
+        scenes: &results,
+    };
+    write_bytes(&a.out.join("cloth.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
+    println!(
+        "wrote {} and SCENE_height.png, _velocity.png, _acceleration.png per scene (simulated, generated, encoded)",
+        a.out.join("cloth.json").display()
     );
     Ok(())
 }

@@ -815,3 +815,40 @@ fn generator_trains_generates_and_evaluates() {
     let err = fails(&velox(&[&args[..], &["--out", arg(&out)]].concat()));
     assert!(err.contains("hash"), "{err}");
 }
+
+#[test]
+fn eval_cloth_reports_the_centre_of_mass_along_gravity_with_plots() {
+    // A cloth scene, its tokens from the fixture's autoencoder, an image-to-4D generator
+    // trained one step, and `velox eval cloth`: the report and the three plots.
+    let dir = fixture();
+    let work = dir.join("cloth");
+    let data = work.join("data");
+    let args = ["data", "cloth", "--scenes", "1", "--res", "16", "--points", "4000", "--tracks", "8"];
+    ok(&velox(&[&args[..], &["--out", arg(&data)]].concat()));
+    let ckpt = dir.join("ae.safetensors");
+    ok(&velox(&["encode", "--checkpoint", arg(&ckpt), "--data", arg(&data)]));
+    let run = work.join("run");
+    let args =
+        ["train", "generator", "--data", arg(&data), "--config", "tiny", "--steps", "1", "--task", "image"];
+    ok(&velox(&[&args[..], &["--out", arg(&run)]].concat()));
+    let out = work.join("eval");
+    let generator = run.join("checkpoint.safetensors");
+    let args = ["eval", "cloth", "--data", arg(&data), "--checkpoint", arg(&generator)];
+    let more = ["--autoencoder", arg(&ckpt), "--points", "64", "--sample-steps", "2", "--steps", "2"];
+    let said = ok(&velox(&[&args[..], &more[..], &["--out", arg(&out)]].concat()));
+    assert!(said.contains("RMSE along gravity") && said.contains("mean"), "{said}");
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("cloth.json")).unwrap()).unwrap();
+    let scene = &report["scenes"][0];
+    assert_eq!(scene["simulated"].as_array().unwrap().len(), 24);
+    for k in ["rmse_generated", "rmse_encoded"] {
+        assert!(scene[k].as_f64().unwrap().is_finite(), "{k}: {scene}");
+    }
+    for plot in ["height", "velocity", "acceleration"] {
+        assert!(out.join(format!("cloth_00000_{plot}.png")).is_file(), "{plot}");
+    }
+    // A scene without cloth.json is not a cloth scene.
+    std::fs::remove_file(data.join("cloth_00000/cloth.json")).unwrap();
+    let err = fails(&velox(&[&args[..], &more[..], &["--out", arg(&out)]].concat()));
+    assert!(err.contains("cloth.json") && err.contains("velox data cloth"), "{err}");
+}
