@@ -1,11 +1,13 @@
 //! `velox bench cloth`: frames of cloth simulation per second (`velox_engine::ops::cloth`) for
-//! a towel-sized sheet falling onto the ground: a 48 x 48 grid of 2.5 cm spacing (2304
-//! particles, about 13.6 k constraints) at the default 20 substeps a frame of 0.01 s, with and
-//! without self-collision (a 24 x 24 grid on CPU devices or with `--quick`). Each frame is one
-//! recording, timed by GPU timestamps; the error is the positions of the last timed frame
-//! against an untimed run's (the solver is deterministic, so 0).
+//! a typical garment of `velox data cloth` (a t-shirt pattern at the data's spacing, about
+//! 350 particles) and for a towel-sized sheet of 48 x 48 particles (24 x 24 on CPU devices or
+//! with `--quick`), falling tilted onto the ground at the data's 20 substeps a frame of 0.01 s,
+//! with and without self-collision. Each frame is one recording, timed by GPU timestamps; the
+//! error is the positions of the last timed frame against an untimed run's (the solver is
+//! deterministic, so 0).
 
 use velox_engine::ops::cloth::{ClothMesh, ClothParams, ClothSim};
+use velox_engine::rng::Rng;
 use velox_engine::stats::{max_abs_err, nmse};
 use velox_engine::{Gpu, Result};
 
@@ -32,21 +34,32 @@ fn sheet(side: usize) -> Result<ClothMesh> {
     ClothMesh::from_triangles(pos, &tris, 1e-7, 1e-3)
 }
 
+/// The t-shirt of the cloth data's seed 2, flat and tilted like the sheet.
+fn garment() -> Result<ClothMesh> {
+    let pattern = velox_data::cloth::pattern(velox_data::cloth::GarmentKind::Shirt, &mut Rng::new(2));
+    let pos = pattern.points.iter().map(|p| [p[0], 0.2 + 0.3 * p[0], p[1]]).collect();
+    ClothMesh::from_triangles(pos, &pattern.triangles, 1e-7, 1e-3)
+}
+
 pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
     let side = if quick || gpu.caps().kind == "CPU" { 24 } else { 48 };
-    let mesh = sheet(side)?;
     let device = gpu.caps().name.clone();
-    println!(
-        "device: {device}; a {side} x {side} sheet, {} constraints, frames of 0.01 s",
-        mesh.constraints.len()
-    );
+    println!("device: {device}; a t-shirt of the cloth data and a {side} x {side} sheet, frames of 0.01 s");
     print_header();
+    let mut out = Vec::new();
+    for (what, mesh) in [("t-shirt", garment()?), ("sheet", sheet(side)?)] {
+        out.extend(bench_mesh(gpu, &device, repeats, what, &mesh)?);
+    }
+    Ok(out)
+}
+
+fn bench_mesh(gpu: &Gpu, device: &str, repeats: u32, what: &str, mesh: &ClothMesh) -> Result<Vec<Record>> {
     let mut out = Vec::new();
     for collide in [false, true] {
         let params = ClothParams { collide, ..ClothParams::default() };
         let frames_before = 30;
         let run = |frames: usize| -> Result<(ClothSim, Vec<f32>)> {
-            let mut sim = ClothSim::new(gpu, &mesh, params)?;
+            let mut sim = ClothSim::new(gpu, mesh, params)?;
             for _ in 0..frames {
                 sim.step(gpu, 0.01)?;
             }
@@ -65,10 +78,10 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         let got = sim.positions()?;
         let (_, want) = run(frames_before + repeats as usize + 1)?;
         let want: Vec<f64> = want.iter().map(|&v| v as f64).collect();
-        let name = if collide { "cloth frame, self-collision" } else { "cloth frame" };
+        let name = if collide { format!("cloth {what}, self-collision") } else { format!("cloth {what}") };
         let shape =
             format!("{} particles, {} colours, {} substeps", sim.particles(), sim.colours(), params.substeps);
-        let r = Record::timed(name, shape, "f32", &device, t, repeats, 1e3 / t.0, "frame/s").error(
+        let r = Record::timed(name, shape, "f32", device, t, repeats, 1e3 / t.0, "frame/s").error(
             nmse(&got, &want),
             max_abs_err(&got, &want),
             "an untimed run of the same frames",
