@@ -44,35 +44,32 @@ pub enum EvalCommand {
     Cloth(ClothEvalArgs),
 }
 
+/// What both evaluations of a generator take: the generator, its autoencoder and DINOv2, the
+/// scenes with their stored tokens, and how to generate.
 #[derive(clap::Args)]
-pub struct ClothEvalArgs {
-    /// Dataset folder of cloth scenes (each with its cloth.json).
+pub struct GeneratorEvalArgs {
+    /// Dataset folder (scenes with their conditioning videos and supervision views; for `eval
+    /// cloth`, cloth scenes with their cloth.json).
     #[arg(long)]
     data: PathBuf,
-    /// Generator checkpoint (`velox train generator --task image`).
+    /// Generator checkpoint (`velox train generator`).
     #[arg(long)]
     checkpoint: PathBuf,
-    /// The autoencoder whose tokens the generator learned: its surface decoder decodes them.
+    /// The autoencoder whose tokens the generator learned: it decodes both token sets.
     #[arg(long)]
     autoencoder: PathBuf,
     /// The scenes' stored tokens of that autoencoder [default: DATA/tokens]: decoded the same
-    /// way, they give the ceiling.
+    /// way as the generated ones, they give the ceiling.
     #[arg(long)]
     tokens: Option<PathBuf>,
     /// DINOv2 weights, when the generator was trained with them.
     #[arg(long, value_name = "FILE")]
     dinov2: Option<PathBuf>,
-    /// Output folder: cloth.json and three plots per scene.
-    #[arg(long, default_value = "velox-eval-cloth")]
-    out: PathBuf,
-    /// Surface points sampled per frame for its centre of mass, and the sampler's steps.
-    #[arg(long, default_value_t = 2048, value_parser = clap::value_parser!(u64).range(1..=10_000_000))]
-    points: u64,
-    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u64).range(1..=1000))]
-    sample_steps: u64,
-    /// Sampler steps, guidance and seed of the generation.
+    /// Sampler steps, sampler, guidance and seed of the generation.
     #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u64).range(1..=10_000))]
     steps: u64,
+    #[arg(long, value_enum, default_value_t = SamplerArg::Euler)]
+    sampler: SamplerArg,
     #[arg(long, default_value_t = 3.0)]
     guidance: f32,
     #[arg(long, default_value_t = 0)]
@@ -82,23 +79,53 @@ pub struct ClothEvalArgs {
     scenes: Option<u64>,
 }
 
+/// A generator's evaluation, ready: its models, the scenes, how many are evaluated, and the
+/// generation.
+struct GeneratorEval {
+    models: crate::generate::Models,
+    scenes: TokenScenes,
+    count: usize,
+    spec: velox_models::velox::generator::GenerateSpec,
+}
+
+impl GeneratorEvalArgs {
+    fn open(&self, gpu: &Gpu, out: &std::path::Path) -> CliResult<GeneratorEval> {
+        let models =
+            crate::generate::Models::load(gpu, &self.checkpoint, &self.autoencoder, self.dinov2.as_deref())?;
+        let scenes = TokenScenes::open(gpu, &self.data, self.tokens.as_deref(), Some(&self.autoencoder))?;
+        let cfg = &models.generator.cfg;
+        scenes.check_model("generator", cfg.encoder_hash.as_deref(), cfg.token_dim)?;
+        let count = self.scenes.map_or(scenes.len(), |n| (n as usize).min(scenes.len()));
+        std::fs::create_dir_all(out).map_err(|e| format!("creating {}: {e}", out.display()))?;
+        let spec = velox_models::velox::generator::GenerateSpec {
+            steps: self.steps as usize,
+            sampler: self.sampler.into(),
+            guidance: self.guidance,
+            seed: self.seed,
+            precision: velox_engine::Precision::F32,
+        };
+        Ok(GeneratorEval { models, scenes, count, spec })
+    }
+}
+
+#[derive(clap::Args)]
+pub struct ClothEvalArgs {
+    #[command(flatten)]
+    common: GeneratorEvalArgs,
+    /// Output folder: cloth.json and three plots per scene.
+    #[arg(long, default_value = "velox-eval-cloth")]
+    out: PathBuf,
+    /// Surface points sampled per frame for its centre of mass, and the sampler's steps.
+    #[arg(long, default_value_t = 2048, value_parser = clap::value_parser!(u64).range(1..=10_000_000))]
+    points: u64,
+    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u64).range(1..=1000))]
+    sample_steps: u64,
+}
+
 #[derive(clap::Args)]
 pub struct GenerationEvalArgs {
-    /// Dataset folder (scenes with their conditioning videos and supervision views).
-    #[arg(long)]
-    data: PathBuf,
-    /// Generator checkpoint (`velox train generator`).
-    #[arg(long)]
-    checkpoint: PathBuf,
-    /// The autoencoder whose tokens the generator learned: it decodes both token sets.
-    #[arg(long)]
-    autoencoder: PathBuf,
-    /// The scenes' stored tokens of that autoencoder [default: DATA/tokens].
-    #[arg(long)]
-    tokens: Option<PathBuf>,
-    /// DINOv2 weights, when the generator was trained with them.
-    #[arg(long, value_name = "FILE")]
-    dinov2: Option<PathBuf>,
+    #[command(flatten)]
+    common: GeneratorEvalArgs,
     /// Where the Gaussian decoder's voxels come from for both token sets [default: predicted
     /// with --voxel-decoder, else surface]. `input` (the scene cloud's voxels) hands both the
     /// true shape, so it measures colour alone.
@@ -116,21 +143,9 @@ pub struct GenerationEvalArgs {
     /// Novel views: the first N supervision cameras of each scene.
     #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u64).range(1..=64))]
     views: u64,
-    /// Sampler steps, sampler, guidance and seed of the generation.
-    #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u64).range(1..=10_000))]
-    steps: u64,
-    #[arg(long, value_enum, default_value_t = SamplerArg::Euler)]
-    sampler: SamplerArg,
-    #[arg(long, default_value_t = 3.0)]
-    guidance: f32,
-    #[arg(long, default_value_t = 0)]
-    seed: u64,
     /// Surface points per frame sampled for `--voxels surface` (20 Heun steps).
     #[arg(long, default_value_t = 4096, value_parser = clap::value_parser!(u64).range(1..=100_000_000))]
     points: u64,
-    /// Evaluate only the first N scenes (in name order).
-    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
-    scenes: Option<u64>,
 }
 
 /// What every evaluation of a model on stored tokens takes.
@@ -627,43 +642,32 @@ fn print_table(r: &ReconReport) {
 fn run_generation(a: &GenerationEvalArgs) -> CliResult<()> {
     use velox_models::eval::generation::{evaluate_scene, GenerationMean, GenerationScene, GenerationViews};
     use velox_models::velox::decode::Decoding;
-    use velox_models::velox::generator::GenerateSpec;
 
+    let c = &a.common;
     let gpu = Gpu::new()?;
-    let m = crate::generate::Models::load(&gpu, &a.checkpoint, &a.autoencoder, a.dinov2.as_deref())?;
-    let scenes = TokenScenes::open(&gpu, &a.data, a.tokens.as_deref(), Some(&a.autoencoder))?;
+    let GeneratorEval { models: m, scenes, count, spec } = c.open(&gpu, &a.out)?;
     let cfg = &m.generator.cfg;
-    scenes.check_model("generator", cfg.encoder_hash.as_deref(), cfg.token_dim)?;
     let default_voxels = if a.voxel_decoder.is_some() { VoxelArg::Predicted } else { VoxelArg::Surface };
     let source = VoxelSource::from(a.voxels.unwrap_or(default_voxels));
-    let decoder = voxel_decoder(&gpu, a.voxel_decoder.as_deref(), &a.autoencoder, &[source])?;
+    let decoder = voxel_decoder(&gpu, a.voxel_decoder.as_deref(), &c.autoencoder, &[source])?;
     if source == VoxelSource::Input {
         eprintln!(
             "note: --voxels input decodes both token sets over the scene's true voxels: the shape is given"
         );
     }
-    let count = a.scenes.map_or(scenes.len(), |n| (n as usize).min(scenes.len()));
-    std::fs::create_dir_all(&a.out).map_err(|e| format!("creating {}: {e}", a.out.display()))?;
     let frames = frames(a.frame_step as usize);
     let sheet_at = crate::generate::sheet_frames(&frames);
-    let spec = GenerateSpec {
-        steps: a.steps as usize,
-        sampler: a.sampler.into(),
-        guidance: a.guidance,
-        seed: a.seed,
-        precision: velox_engine::Precision::F32,
-    };
     let sampling = Sampling { points: a.points as usize, steps: 20, sampler: SamplerArg::Heun.into() };
     println!(
         "evaluating the {} generator on {count} scene(s) of {}: {} frames, the input view and {} novel views, \
          voxels {source:?}, {} {:?} steps, guidance {}",
         cfg.name,
-        a.data.display(),
+        c.data.display(),
         frames.len(),
         a.views,
-        a.steps,
-        a.sampler,
-        a.guidance
+        c.steps,
+        c.sampler,
+        c.guidance
     );
     let bar = progress(count, "scenes");
     let mut results: Vec<GenerationScene> = Vec::new();
@@ -695,8 +699,8 @@ fn run_generation(a: &GenerationEvalArgs) -> CliResult<()> {
         let stored = scenes.read(i)?.tokens.upload(&gpu)?;
         let cloud: Vec<f32> = scene.points.iter().flatten().copied().collect();
         let cloud = (source == VoxelSource::Input).then_some(cloud.as_slice());
-        let mut generated = Decoding::from_tokens(&m.ae, made, cloud, a.seed)?;
-        let mut encoded = Decoding::from_tokens(&m.ae, stored, cloud, a.seed)?;
+        let mut generated = Decoding::from_tokens(&m.ae, made, cloud, c.seed)?;
+        let mut encoded = Decoding::from_tokens(&m.ae, stored, cloud, c.seed)?;
         if let Some(d) = &decoder {
             generated = generated.with_voxel_decoder(d)?;
             encoded = encoded.with_voxel_decoder(d)?;
@@ -773,13 +777,13 @@ fn run_generation(a: &GenerationEvalArgs) -> CliResult<()> {
         scenes: &'a [GenerationScene],
     }
     let report = Report {
-        generator: a.checkpoint.display().to_string(),
-        autoencoder: a.autoencoder.display().to_string(),
+        generator: c.checkpoint.display().to_string(),
+        autoencoder: c.autoencoder.display().to_string(),
         voxels: source,
-        steps: a.steps,
-        sampler: a.sampler,
-        guidance: a.guidance,
-        seed: a.seed,
+        steps: c.steps,
+        sampler: c.sampler,
+        guidance: c.guidance,
+        seed: c.seed,
         frames,
         novel_views: a.views,
         mean,
@@ -798,22 +802,11 @@ fn run_cloth(a: &ClothEvalArgs) -> CliResult<()> {
     use velox_data::cloth::ClothRecord;
     use velox_models::eval::cloth::{centre_of_mass, heights, ClothScene};
     use velox_models::velox::decode::Decoding;
-    use velox_models::velox::generator::GenerateSpec;
 
+    let c = &a.common;
     let gpu = Gpu::new()?;
-    let m = crate::generate::Models::load(&gpu, &a.checkpoint, &a.autoencoder, a.dinov2.as_deref())?;
-    let scenes = TokenScenes::open(&gpu, &a.data, a.tokens.as_deref(), Some(&a.autoencoder))?;
+    let GeneratorEval { models: m, scenes, count, spec } = c.open(&gpu, &a.out)?;
     let cfg = &m.generator.cfg;
-    scenes.check_model("generator", cfg.encoder_hash.as_deref(), cfg.token_dim)?;
-    let count = a.scenes.map_or(scenes.len(), |n| (n as usize).min(scenes.len()));
-    std::fs::create_dir_all(&a.out).map_err(|e| format!("creating {}: {e}", a.out.display()))?;
-    let spec = GenerateSpec {
-        steps: a.steps as usize,
-        sampler: SamplerArg::Euler.into(),
-        guidance: a.guidance,
-        seed: a.seed,
-        precision: velox_engine::Precision::F32,
-    };
     let sampling = Sampling {
         points: a.points as usize,
         steps: a.sample_steps as usize,
@@ -824,7 +817,7 @@ fn run_cloth(a: &ClothEvalArgs) -> CliResult<()> {
          points a frame",
         cfg.name,
         cfg.task,
-        a.data.display(),
+        c.data.display(),
         a.points
     );
     let frames = velox_models::velox::autoencoder::FRAMES;
@@ -865,7 +858,7 @@ fn run_cloth(a: &ClothEvalArgs) -> CliResult<()> {
         let stored = scenes.read(i)?.tokens.upload(&gpu)?;
         let mut decoded = Vec::new();
         for tokens in [made, stored] {
-            let d = Decoding::from_tokens(&m.ae, tokens, None, a.seed)?;
+            let d = Decoding::from_tokens(&m.ae, tokens, None, c.seed)?;
             let mut centres = Vec::with_capacity(frames);
             for f in 0..frames {
                 centres.push(centre_of_mass(&d.surface_points(f, &sampling)?)?);
@@ -903,13 +896,13 @@ fn run_cloth(a: &ClothEvalArgs) -> CliResult<()> {
         scenes: &'a [ClothScene],
     }
     let report = Report {
-        generator: a.checkpoint.display().to_string(),
-        autoencoder: a.autoencoder.display().to_string(),
+        generator: c.checkpoint.display().to_string(),
+        autoencoder: c.autoencoder.display().to_string(),
         points: a.points,
         sample_steps: a.sample_steps,
-        steps: a.steps,
-        guidance: a.guidance,
-        seed: a.seed,
+        steps: c.steps,
+        guidance: c.guidance,
+        seed: c.seed,
         frame_seconds: dt,
         mean_rmse_generated: gen,
         mean_rmse_encoded: enc,

@@ -107,6 +107,17 @@ pub trait Trainable {
     }
 }
 
+/// Fails unless a micro-batch of `samples` scenes has one random generator each (and at
+/// least one scene).
+pub(crate) fn check_micro_batch(samples: usize, rngs: usize) -> velox_engine::Result<()> {
+    if samples == 0 || samples != rngs {
+        return Err(velox_engine::Error::Invalid(format!(
+            "a micro-batch needs one generator per scene: {samples} scenes, {rngs} generators"
+        )));
+    }
+    Ok(())
+}
+
 /// Implements [`Trainable`] for a Velox model: a struct with the fields `cfg` (its config,
 /// holding `peak_lr`, `warmup`, `max_grad_norm` and `batch`), `store`, `adamw` and
 /// `pass_seconds`, and an inherent `accumulate`; its checkpoints describe it as

@@ -260,13 +260,7 @@ impl Autoencoder {
     /// order whatever the batch, so a scene adds the same gradient alone or in a batch (to
     /// the summation order of the products over the batch's rows).
     pub fn accumulate(&mut self, scenes: &[&TrainScene], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
-        if scenes.is_empty() || scenes.len() != rngs.len() {
-            return Err(Error::Invalid(format!(
-                "a micro-batch needs one generator per scene: {} scenes, {} generators",
-                scenes.len(),
-                rngs.len()
-            )));
-        }
+        crate::train::check_micro_batch(scenes.len(), rngs.len())?;
         let gpu = scenes[0].cloud.gpu().clone();
         let started = Instant::now();
         let nb = scenes.len();

@@ -620,13 +620,7 @@ impl Generator {
     /// the sum of the scenes' losses into the store's gradients. Each scene draws its noise,
     /// flow time and condition dropout from its generator.
     pub fn accumulate(&mut self, samples: &[&GenSample], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
-        if samples.is_empty() || samples.len() != rngs.len() {
-            return Err(Error::Invalid(format!(
-                "a micro-batch needs one generator per scene: {} scenes, {} generators",
-                samples.len(),
-                rngs.len()
-            )));
-        }
+        crate::train::check_micro_batch(samples.len(), rngs.len())?;
         let started = Instant::now();
         let gpu = samples[0].tokens.gpu().clone();
         let n = self.cfg.tokens * self.cfg.token_dim;

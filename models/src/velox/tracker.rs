@@ -165,13 +165,7 @@ impl Tracker {
     /// frames and coordinates) into the store's gradients. Each scene draws
     /// `queries_per_sample` of its tracks (all when it has fewer) from its generator.
     pub fn accumulate(&mut self, samples: &[&TrackSample], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
-        if samples.is_empty() || samples.len() != rngs.len() {
-            return Err(Error::Invalid(format!(
-                "a micro-batch needs one generator per scene: {} scenes, {} generators",
-                samples.len(),
-                rngs.len()
-            )));
-        }
+        crate::train::check_micro_batch(samples.len(), rngs.len())?;
         let started = Instant::now();
         let gpu = samples[0].tokens.gpu().clone();
         let counts = samples.iter().map(|s| self.check_tokens(&s.tokens)).collect::<Result<Vec<_>>>()?;

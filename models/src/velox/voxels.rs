@@ -349,13 +349,7 @@ impl VoxelDecoder {
     /// scene's generator. Returns the terms ("total", "coarse", "fine"), summed over the
     /// scenes, times `weight`.
     pub fn accumulate(&mut self, samples: &[&VoxelSample], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
-        if samples.is_empty() || samples.len() != rngs.len() {
-            return Err(Error::Invalid(format!(
-                "a micro-batch needs one generator per scene: {} scenes, {} generators",
-                samples.len(),
-                rngs.len()
-            )));
-        }
+        crate::train::check_micro_batch(samples.len(), rngs.len())?;
         let started = Instant::now();
         let gpu = samples[0].tokens.gpu().clone();
         let (cells, weight) = (self.cfg.cells, weight as f32);
