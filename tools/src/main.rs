@@ -35,8 +35,8 @@ enum Command {
     /// The demo, on whatever device is present: make a scene, train a small autoencoder on it,
     /// decode its points and Gaussians, render and measure them.
     Demo(demo::DemoArgs),
-    /// Training data: procedural animated scenes and glTF imports, rendered to point clouds,
-    /// images, occupancy and tracks.
+    /// Training data: procedural animated scenes, glTF imports and simulated cloth, rendered to
+    /// point clouds, images, occupancy and tracks.
     Data {
         #[command(subcommand)]
         what: data::DataCommand,
@@ -80,7 +80,8 @@ enum Command {
         #[command(subcommand)]
         what: decode::DecodeCommand,
     },
-    /// Evaluate a trained autoencoder: PSNR, SSIM and Chamfer on held-out scenes.
+    /// Evaluate a trained model: the autoencoder's reconstructions, the voxel decoder, the
+    /// tracker, the generator's scenes and the physics of its cloth.
     Eval {
         #[command(subcommand)]
         what: eval::EvalCommand,
