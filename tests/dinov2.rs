@@ -56,6 +56,9 @@ fn run(model: &Dinov2, case: &str, precision: Precision) -> (Vec<f32>, Vec<f64>)
 fn matches_transformers_at_the_trained_grid_and_interpolated() {
     let model = Dinov2::load(&gpu(), &fixture("weights.safetensors")).unwrap();
     assert_eq!(model.config, Dinov2Config { width: 64, depth: 2, heads: 4, hidden: 256, grid: 4, eps: 1e-6 });
+    // The file's hash, as the token store hashes checkpoints (a generator records it).
+    let hash = velox::models::velox::tokens::checkpoint_hash(&fixture("weights.safetensors")).unwrap();
+    assert_eq!(model.file_hash, Some(hash));
     for case in ["trained_grid", "interpolated"] {
         let (got, want) = run(&model, case, Precision::F32);
         assert_nmse(&format!("{case} f32"), &got, &want, 1e-8);

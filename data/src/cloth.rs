@@ -210,6 +210,8 @@ fn fold(gpu: &Gpu, sim: &mut ClothSim, inv_mass: &[f32], origin: [f32; 2], dir: 
     sim.set_inv_mass(&w)?;
     let start: Vec<[f32; 3]> = grabbed.iter().map(|&i| [x[3 * i], x[3 * i + 1], x[3 * i + 2]]).collect();
     let carry = 30;
+    // The last carried frame lays the edge on the layer below.
+    let lift = 2.5 * sim.params.radius;
     for f in 1..=carry {
         let a = std::f32::consts::PI * f as f32 / carry as f32;
         let mut now = sim.positions()?;
@@ -219,7 +221,7 @@ fn fold(gpu: &Gpu, sim: &mut ClothSim, inv_mass: &[f32], origin: [f32; 2], dir: 
             let (across, up) = (d * a.cos(), d * a.sin());
             let base = [s[0] - d * -dir[1], s[2] - d * dir[0]];
             now[3 * i] = base[0] + across * -dir[1];
-            now[3 * i + 1] = s[1] + up + 2.5 * params().radius * (f == carry) as u8 as f32;
+            now[3 * i + 1] = s[1] + up + if f == carry { lift } else { 0.0 };
             now[3 * i + 2] = base[1] + across * dir[0];
         }
         sim.set_positions(&now)?;
@@ -241,15 +243,16 @@ pub fn scene(gpu: &Gpu, seed: u64, images: Option<&ImageFolder>) -> DataResult<(
     let yaw = rng.range(0.0, std::f64::consts::TAU) as f32;
     let (c, s) = (yaw.cos(), yaw.sin());
     let flat: Vec<[f32; 3]> = pat.points.iter().map(|p| [p[0], 0.0, p[1]]).collect();
+    let params = params();
     let laid: Vec<[f32; 3]> = pat
         .points
         .iter()
-        .map(|p| [c * p[0] - s * p[1], GROUND + params().radius, s * p[0] + c * p[1]])
+        .map(|p| [c * p[0] - s * p[1], GROUND + params.radius, s * p[0] + c * p[1]])
         .collect();
     let mut mesh = ClothMesh::from_triangles(laid, &pat.triangles, 1e-7, 2e-3)?;
     mesh.rest_positions = flat;
     let inv_mass = mesh.inv_mass.clone();
-    let mut sim = ClothSim::new(gpu, &mesh, params())?;
+    let mut sim = ClothSim::new(gpu, &mesh, params)?;
     let folds = 1 + rng.below(2) as usize;
     for _ in 0..folds {
         let a = rng.range(0.0, std::f64::consts::TAU) as f32;
@@ -264,7 +267,7 @@ pub fn scene(gpu: &Gpu, seed: u64, images: Option<&ImageFolder>) -> DataResult<(
     }
     let mut dropped = mesh.clone();
     dropped.positions = lifted.chunks(3).map(|p| [p[0], p[1], p[2]]).collect();
-    let mut sim = ClothSim::new(gpu, &dropped, params())?;
+    let mut sim = ClothSim::new(gpu, &dropped, params)?;
     let mut frames = Vec::with_capacity(FRAMES);
     let mut centre_of_mass = Vec::with_capacity(FRAMES);
     for f in 0..FRAMES {

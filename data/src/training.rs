@@ -458,9 +458,7 @@ impl SampleSource for GenScenes {
 
     fn read(&self, index: usize) -> velox_engine::Result<HostGenScene> {
         let raw = self.tokens.folder.read(&self.tokens.names[index])?;
-        let d = self.cfg.token_dim;
-        let (mean, std) = (&self.cfg.token_mean, &self.cfg.token_std);
-        let tokens = raw.tokens.iter().enumerate().map(|(i, &v)| (v - mean[i % d]) / std[i % d]).collect();
+        let tokens = self.cfg.normalise(&raw.tokens);
         let video = self.tokens.dirs[index].join("video");
         let pixels = read_condition_video(&video, self.cfg.task.frames(), self.cfg.image_size)?;
         Ok(HostGenScene { index, tokens, pixels })

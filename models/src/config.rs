@@ -952,6 +952,25 @@ impl GeneratorConfig {
         }
     }
 
+    /// Tokens (`[.., token_dim]` rows) into the generator's normalised space: `(x - mean) / std`
+    /// per channel (identity where no statistics are set).
+    pub fn normalise(&self, tokens: &[f32]) -> Vec<f32> {
+        self.map_tokens(tokens, |v, m, s| (v - m) / s)
+    }
+
+    /// Tokens back from the generator's normalised space: `x std + mean` per channel.
+    pub fn denormalise(&self, tokens: &[f32]) -> Vec<f32> {
+        self.map_tokens(tokens, |v, m, s| v * s + m)
+    }
+
+    fn map_tokens(&self, tokens: &[f32], f: impl Fn(f32, f32, f32) -> f32) -> Vec<f32> {
+        let (mean, std, d) = (&self.token_mean, &self.token_std, self.token_dim);
+        if mean.is_empty() {
+            return tokens.to_vec();
+        }
+        tokens.iter().enumerate().map(|(i, &v)| f(v, mean[i % d], std[i % d])).collect()
+    }
+
     /// Width of a condition token: DINOv2 features ++ RGB embedding ++ Fourier(frame time).
     pub fn cond_width(&self) -> usize {
         self.dino_width + self.rgb_width + 1 + 2 * self.frame_freqs
@@ -1050,6 +1069,14 @@ mod tests {
         assert!(bad(|c| c.heads = 3).contains("heads"));
         assert!(bad(|c| c.cond_dropout = 1.5).contains("cond_dropout"));
         assert!(bad(|c| c.token_mean = vec![0.0; 3]).contains("statistics"));
+        let c = GeneratorConfig {
+            token_dim: 2,
+            token_mean: vec![1.0, -2.0],
+            token_std: vec![2.0, 0.5],
+            ..GeneratorConfig::tiny()
+        };
+        assert_eq!(c.normalise(&[3.0, -1.0, 1.0, -2.0]), vec![1.0, 2.0, 0.0, 0.0]);
+        assert_eq!(c.denormalise(&[1.0, 2.0, 0.0, 0.0]), vec![3.0, -1.0, 1.0, -2.0]);
     }
 
     #[test]

@@ -88,6 +88,18 @@ struct GeneratorEval {
     spec: velox_models::velox::generator::GenerateSpec,
 }
 
+impl GeneratorEval {
+    /// Scene `i`'s generated tokens (from its conditioning video, as the generator reads it)
+    /// and the encoder's stored tokens of it, both on the device.
+    fn token_pair(&self, gpu: &Gpu, i: usize) -> CliResult<(velox_engine::Tensor, velox_engine::Tensor)> {
+        let cfg = &self.models.generator.cfg;
+        let video = self.scenes.dirs()[i].join("video");
+        let pixels = velox_data::condition::read_condition_video(&video, cfg.task.frames(), cfg.image_size)?;
+        let made = self.models.generate(gpu, &pixels, &self.spec, false)?;
+        Ok((made, self.scenes.read(i)?.tokens.upload(gpu)?))
+    }
+}
+
 impl GeneratorEvalArgs {
     fn open(&self, gpu: &Gpu, out: &std::path::Path) -> CliResult<GeneratorEval> {
         let models =
@@ -645,7 +657,8 @@ fn run_generation(a: &GenerationEvalArgs) -> CliResult<()> {
 
     let c = &a.common;
     let gpu = Gpu::new()?;
-    let GeneratorEval { models: m, scenes, count, spec } = c.open(&gpu, &a.out)?;
+    let eval = c.open(&gpu, &a.out)?;
+    let (m, scenes, count) = (&eval.models, &eval.scenes, eval.count);
     let cfg = &m.generator.cfg;
     let default_voxels = if a.voxel_decoder.is_some() { VoxelArg::Predicted } else { VoxelArg::Surface };
     let source = VoxelSource::from(a.voxels.unwrap_or(default_voxels));
@@ -690,13 +703,7 @@ fn run_generation(a: &GenerationEvalArgs) -> CliResult<()> {
                 .map(|f| (0..views).map(|v| to_f32(&scene.supervision[f * per_frame + v])).collect())
                 .collect(),
         };
-        let pixels = velox_data::condition::read_condition_video(
-            &dir.join("video"),
-            cfg.task.frames(),
-            cfg.image_size,
-        )?;
-        let made = m.generate(&gpu, &pixels, &spec, false)?;
-        let stored = scenes.read(i)?.tokens.upload(&gpu)?;
+        let (made, stored) = eval.token_pair(&gpu, i)?;
         let cloud: Vec<f32> = scene.points.iter().flatten().copied().collect();
         let cloud = (source == VoxelSource::Input).then_some(cloud.as_slice());
         let mut generated = Decoding::from_tokens(&m.ae, made, cloud, c.seed)?;
@@ -805,7 +812,8 @@ fn run_cloth(a: &ClothEvalArgs) -> CliResult<()> {
 
     let c = &a.common;
     let gpu = Gpu::new()?;
-    let GeneratorEval { models: m, scenes, count, spec } = c.open(&gpu, &a.out)?;
+    let eval = c.open(&gpu, &a.out)?;
+    let (m, scenes, count) = (&eval.models, &eval.scenes, eval.count);
     let cfg = &m.generator.cfg;
     let sampling = Sampling {
         points: a.points as usize,
@@ -849,13 +857,7 @@ fn run_cloth(a: &ClothEvalArgs) -> CliResult<()> {
         let up = record.up.map(|v| v as f64);
         let simulated =
             heights(&record.centre_of_mass.iter().map(|c| c.map(|v| v as f64)).collect::<Vec<_>>(), up)?;
-        let pixels = velox_data::condition::read_condition_video(
-            &dir.join("video"),
-            cfg.task.frames(),
-            cfg.image_size,
-        )?;
-        let made = m.generate(&gpu, &pixels, &spec, false)?;
-        let stored = scenes.read(i)?.tokens.upload(&gpu)?;
+        let (made, stored) = eval.token_pair(&gpu, i)?;
         let mut decoded = Vec::new();
         for tokens in [made, stored] {
             let d = Decoding::from_tokens(&m.ae, tokens, None, c.seed)?;

@@ -32,7 +32,6 @@ use velox_models::velox::autoencoder::Autoencoder;
 use velox_models::velox::decode::{Decoding, Sampling, VoxelSource};
 use velox_models::velox::dinov2::Dinov2;
 use velox_models::velox::generator::{GenerateSpec, Generator};
-use velox_models::velox::tokens::checkpoint_hash;
 
 use crate::decode::{
     name, parse_frames, progress, voxel_decoder, Frames, PrecisionArg, SamplerArg, VoxelArg,
@@ -146,15 +145,16 @@ impl Models {
                 )
             }
             (Some(want), Some(path)) => {
-                let got = checkpoint_hash(path)?;
-                if &got != want {
+                let d = Dinov2::load(gpu, path)?;
+                let got = d.file_hash.as_deref().unwrap_or_default();
+                if got != want {
                     return Err(format!(
                         "the generator was trained on DINOv2 weights of hash {want}; {} has hash {got}",
                         path.display()
                     )
                     .into());
                 }
-                Some(Dinov2::load(gpu, path)?)
+                Some(d)
             }
         };
         Ok(Models { generator: g, ae, dino })
@@ -174,7 +174,7 @@ impl Models {
         if let Some(p) = progress {
             p.finish_and_clear();
         }
-        let tokens = g.denormalise(&made.read::<f32>()?);
+        let tokens = g.cfg.denormalise(&made.read::<f32>()?);
         Ok(Tensor::from_slice(gpu, made.shape(), &tokens)?)
     }
 }

@@ -21,7 +21,7 @@ use velox_models::train::Trainable;
 use velox_models::velox::autoencoder::Autoencoder;
 use velox_models::velox::dinov2::Dinov2;
 use velox_models::velox::generator::Generator;
-use velox_models::velox::tokens::{checkpoint_hash, TokenManifest};
+use velox_models::velox::tokens::TokenManifest;
 use velox_models::velox::tracker::Tracker;
 use velox_models::velox::voxels::VoxelDecoder;
 
@@ -357,14 +357,14 @@ pub fn train_generator<C: Collective>(
     let m = &args.model;
     let tokens = TokenScenes::open(gpu, &m.data, m.tokens.as_deref(), m.checkpoint.as_deref())?;
     let dino = match &args.dinov2 {
-        Some(path) => Some((Dinov2::load(gpu, path)?, checkpoint_hash(path)?)),
+        Some(path) => Some(Dinov2::load(gpu, path)?),
         None => {
             eprintln!("note: no DINOv2 weights (--dinov2): the condition is the RGB patch embedding alone");
             None
         }
     };
     let task: GenerationTask = args.task.into();
-    let (dino_width, dino_hash) = dino.as_ref().map_or((0, None), |(d, h)| (d.config.width, Some(h.clone())));
+    let (dino_width, dino_hash) = dino.as_ref().map_or((0, None), |d| (d.config.width, d.file_hash.clone()));
     let model: Generator = start_token_model(gpu, m, &tokens, |cfg: &mut GeneratorConfig| {
         cfg.task = task;
         cfg.dino_width = dino_width;
@@ -387,7 +387,7 @@ pub fn train_generator<C: Collective>(
         }
         .into());
     }
-    let source = GenScenes::new(tokens, cfg, dino.map(|(d, _)| d))?;
+    let source = GenScenes::new(tokens, cfg, dino)?;
     let mut model = model;
     run_training(&mut model, &source, &m.run, m.run.begin(), interrupt, collective)
 }

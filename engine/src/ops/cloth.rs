@@ -244,6 +244,9 @@ pub struct ClothSim {
     colours: Vec<(usize, usize)>,
     rest_pos: Tensor,
     delta: Tensor,
+    /// Each particle's hashed cell and the identity order, the sort's input.
+    keys: Tensor,
+    order: Tensor,
     cell_start: Tensor,
     cell_end: Tensor,
     table_bits: u32,
@@ -283,6 +286,8 @@ impl ClothSim {
             colours,
             rest_pos: Tensor::from_slice(gpu, &[n, 3], &flat(&mesh.rest_positions))?,
             delta: Tensor::empty(gpu, &[n, 3], DType::F32)?,
+            keys: Tensor::empty(gpu, &[n], DType::U32)?,
+            order: Tensor::empty(gpu, &[n], DType::U32)?,
             cell_start: Tensor::empty(gpu, &[table], DType::U32)?,
             cell_end: Tensor::empty(gpu, &[table], DType::U32)?,
             table_bits,
@@ -331,11 +336,8 @@ impl ClothSim {
             rec.dispatch_linear(CLOTH_DISTANCE, (count as u64).div_ceil(256), &args, &pc)?;
         }
         if self.params.collide {
-            let gpu = rec.gpu().clone();
-            let keys = Tensor::empty(&gpu, &[self.n], DType::U32)?;
-            let order = Tensor::empty(&gpu, &[self.n], DType::U32)?;
-            rec.dispatch_linear(CLOTH_HASH_KEYS, groups, &[&self.x, &keys, &order], &pc)?;
-            let (sorted_keys, sorted_order) = sort_pairs(rec, &keys, &order, self.table_bits)?;
+            rec.dispatch_linear(CLOTH_HASH_KEYS, groups, &[&self.x, &self.keys, &self.order], &pc)?;
+            let (sorted_keys, sorted_order) = sort_pairs(rec, &self.keys, &self.order, self.table_bits)?;
             fill_bits(rec, &self.cell_start, 0)?;
             fill_bits(rec, &self.cell_end, 0)?;
             rec.dispatch_linear(

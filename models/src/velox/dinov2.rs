@@ -91,6 +91,9 @@ pub struct Dinov2 {
     positions: Vec<f32>,
     blocks: Vec<Block>,
     norm: LayerNorm,
+    /// The weight file's hash (as `velox_models::velox::tokens::checkpoint_hash` gives it), by
+    /// which a generator names the DINOv2 it read; none for random weights.
+    pub file_hash: Option<String>,
 }
 
 /// A weight file's tensors by name, as f32 with their shapes.
@@ -100,9 +103,12 @@ fn invalid(path: &Path, what: String) -> Error {
     Error::Invalid(format!("DINOv2 weights {}: {what}", path.display()))
 }
 
-/// Every tensor of a safetensors file as f32 (from f32, f16 or bf16).
-fn read_safetensors(path: &Path) -> Result<Tensors> {
+/// Every tensor of a safetensors file as f32 (from f32, f16 or bf16), and the file's hash.
+fn read_safetensors(path: &Path) -> Result<(Tensors, String)> {
     let bytes = std::fs::read(path).map_err(|e| invalid(path, format!("cannot read: {e}")))?;
+    let mut hash = crate::velox::tokens::Fnv1a::new();
+    hash.update(&bytes);
+    let hash = crate::velox::tokens::hash_hex(hash.finish());
     let file = SafeTensors::deserialize(&bytes)
         .map_err(|e| invalid(path, format!("not a safetensors file, or truncated: {e}")))?;
     let mut out = Tensors::new();
@@ -127,7 +133,7 @@ fn read_safetensors(path: &Path) -> Result<Tensors> {
         }
         out.insert(name, (t.shape().to_vec(), values));
     }
-    Ok(out)
+    Ok((out, hash))
 }
 
 /// `num_attention_heads` and `layer_norm_eps` from a Hugging Face `config.json` beside the
@@ -188,9 +194,10 @@ impl Dinov2 {
     /// Loads a safetensors file of DINOv2 weights; the head count comes from `config.json` beside
     /// it where there is one, else every head is [`HEAD_WIDTH`] wide.
     pub fn load(gpu: &Gpu, path: &Path) -> Result<Dinov2> {
-        let tensors = read_safetensors(path)?;
+        let (tensors, hash) = read_safetensors(path)?;
         let (heads, eps) = read_hf_config(path)?;
-        Dinov2::from_tensors(gpu, path, tensors, heads, eps.unwrap_or(1e-6))
+        let d = Dinov2::from_tensors(gpu, path, tensors, heads, eps.unwrap_or(1e-6))?;
+        Ok(Dinov2 { file_hash: Some(hash), ..d })
     }
 
     fn from_tensors(
@@ -291,7 +298,7 @@ impl Dinov2 {
                 format!("unexpected tensor {extra:?} ({} left unread)", r.tensors.len()),
             ));
         }
-        Ok(Dinov2 { config, patch, patch_bias, cls, positions, blocks, norm: final_norm })
+        Ok(Dinov2 { config, patch, patch_bias, cls, positions, blocks, norm: final_norm, file_hash: None })
     }
 
     /// A DINOv2 of `config` with random weights (for benchmarks): every matrix and position

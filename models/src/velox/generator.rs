@@ -731,27 +731,6 @@ impl Generator {
         })
         .inspect(|_| step_done(spec.steps))
     }
-
-    /// Tokens back from the generator's normalised space: `x std + mean` per channel (as they
-    /// were when training began; identity where no statistics were set).
-    pub fn denormalise(&self, tokens: &[f32]) -> Vec<f32> {
-        let (mean, std) = (&self.cfg.token_mean, &self.cfg.token_std);
-        if mean.is_empty() {
-            return tokens.to_vec();
-        }
-        let d = self.cfg.token_dim;
-        tokens.iter().enumerate().map(|(i, &v)| v * std[i % d] + mean[i % d]).collect()
-    }
-
-    /// Tokens into the generator's normalised space: `(x - mean) / std` per channel.
-    pub fn normalise(&self, tokens: &[f32]) -> Vec<f32> {
-        let (mean, std) = (&self.cfg.token_mean, &self.cfg.token_std);
-        if mean.is_empty() {
-            return tokens.to_vec();
-        }
-        let d = self.cfg.token_dim;
-        tokens.iter().enumerate().map(|(i, &v)| (v - mean[i % d]) / std[i % d]).collect()
-    }
 }
 
 impl GenCache {
