@@ -2,12 +2,15 @@
 // `rows` (inner == 1): one workgroup per row; each invocation folds a strided slice of the row,
 // then a tree in workgroup memory. `strided` (inner > 1): one invocation per output, walking
 // the axis; neighbouring invocations read neighbouring addresses, so the walk is coalesced.
+// With `accumulate` the result is added to what y holds (a bias gradient summed into its
+// parameter's gradient in the same pass).
 
 struct Params {
     outer: u32,
     len: u32,
     inner: u32,
     op: u32, // 0 sum, 1 mean, 2 max
+    accumulate: u32, // 1: y += result
 }
 
 @group(0) @binding(0) var<storage, read> x: array<f32>;
@@ -41,6 +44,14 @@ fn finish(v: f32) -> f32 {
     return v;
 }
 
+fn store(o: u32, v: f32) {
+    if (pc.accumulate != 0u) {
+        y[o] += v;
+    } else {
+        y[o] = v;
+    }
+}
+
 @compute @workgroup_size(256)
 fn rows(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
         @builtin(local_invocation_index) lid: u32) {
@@ -63,7 +74,7 @@ fn rows(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
         workgroupBarrier();
     }
     if (lid == 0u) {
-        y[row] = finish(partial[0]);
+        store(row, finish(partial[0]));
     }
 }
 
@@ -82,7 +93,7 @@ fn strided(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
         for (var j = 0u; j < pc.len; j++) {
             m = max(m, x[base + j * pc.inner]);
         }
-        y[o] = m;
+        store(o, m);
         return;
     }
     // A serial walk along a long axis, summed in blocks of 64 whose sums are then added: the
@@ -97,5 +108,5 @@ fn strided(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
         }
         sum += block;
     }
-    y[o] = finish(sum);
+    store(o, finish(sum));
 }

@@ -145,6 +145,7 @@ fn runs_repeat_and_resume_bit_for_bit() {
         global_batch: 1,
         accumulate: 1,
         scenes: vec!["scene_00000".into()],
+        precision: velox::engine::Precision::F16,
     };
     save_checkpoint(&first, &settings, &path).unwrap();
     assert_eq!(run_settings(&path).unwrap(), Some(settings));

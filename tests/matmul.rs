@@ -358,10 +358,13 @@ fn long_k_products_are_split_along_k_with(narrow: NarrowMatmul) {
         let a16 = Tensor::from_slice(&gpu, &sa, &round_f16(&a)).unwrap();
         let b16 = Tensor::from_slice(&gpu, &sb, &round_f16(&b)).unwrap();
         let acc = Tensor::from_slice(&gpu, &[m, n], &old).unwrap();
+        // The weight gradient of f16 training: f16 operands added into an f32 gradient.
+        let acc16 = Tensor::from_slice(&gpu, &[m, n], &old).unwrap();
         let mut rec = recorder(&gpu, narrow);
         let plain = matmul(&mut rec, &a32, &b32, ta, tb).unwrap();
         matmul_into(&mut rec, &a32, &b32, ta, tb, &acc, true).unwrap();
         let half = matmul(&mut rec, &a16, &b16, ta, tb).unwrap();
+        matmul_into(&mut rec, &a16, &b16, ta, tb, &acc16, true).unwrap();
         rec.submit().unwrap();
         let what = format!("m {m} n {n} k {k} ta {ta} tb {tb}");
         let (r, _) = reference::matmul(&f64s(&a), &sa, &f64s(&b), &sb, ta, tb).unwrap();
@@ -371,6 +374,9 @@ fn long_k_products_are_split_along_k_with(narrow: NarrowMatmul) {
         let rounded = |x: &[f32]| -> Vec<f64> { round_f16(x).iter().map(|h| h.to_f64()).collect() };
         let (r16, _) = reference::matmul(&rounded(&a), &sa, &rounded(&b), &sb, ta, tb).unwrap();
         assert_nmse(&format!("split f16 {what}"), &half.read::<f32>().unwrap(), &r16, F16_ROUNDED_BOUND);
+        let summed16: Vec<f64> = r16.iter().zip(&old).map(|(x, &o)| x + o as f64).collect();
+        let got = acc16.read::<f32>().unwrap();
+        assert_nmse(&format!("split f16 accumulate {what}"), &got, &summed16, F16_ROUNDED_BOUND);
     }
 }
 

@@ -17,11 +17,11 @@ use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
 
 use safetensors::tensor::{Dtype, SafeTensors, View};
-use velox_engine::{Error, Result};
+use velox_engine::{Error, Precision, Result};
 
 pub use crate::files::temp_path;
 use crate::files::write_bytes;
-use crate::params::ParamStore;
+use crate::params::{LossScale, ParamStore};
 
 pub const FORMAT: &str = "velox-checkpoint";
 pub const VERSION: &str = "1";
@@ -36,6 +36,8 @@ pub struct CheckpointInfo {
     pub step: u64,
     /// The JSON the run stored (config name, hyperparameters...).
     pub config: String,
+    /// The loss scale of an f16 training run when it was written.
+    pub loss_scale: Option<LossScale>,
 }
 
 /// An f32 slice seen as a safetensors tensor.
@@ -78,12 +80,17 @@ pub fn save(path: &Path, store: &ParamStore, config: &str) -> Result<()> {
             tensors.push((format!("{prefix}{}", p.name), view));
         }
     }
-    let meta = HashMap::from([
+    let mut meta = HashMap::from([
         ("format".to_string(), FORMAT.to_string()),
         ("version".to_string(), VERSION.to_string()),
         ("step".to_string(), store.step().to_string()),
         ("config".to_string(), config.to_string()),
     ]);
+    // The loss scale of f16 training, which a resumed run must start from to repeat the run.
+    if store.training_precision() == Precision::F16 {
+        let scale = serde_json::to_string(&store.loss_scale()).expect("plain data serialises");
+        meta.insert("loss_scale".to_string(), scale);
+    }
     let mut bytes = safetensors::serialize(tensors, Some(meta))
         .map_err(|e| Error::Invalid(format!("checkpoint {}: cannot serialise: {e}", path.display())))?;
     drop(host);
@@ -143,7 +150,15 @@ fn read_info(bytes: &[u8], path: &Path) -> Result<CheckpointInfo> {
         Error::Invalid(format!("checkpoint {shown}: step {:?} is not a number", meta["step"]))
     })?;
     let config = field("config")?.clone();
-    Ok(CheckpointInfo { step, config })
+    let loss_scale = match meta.get("loss_scale") {
+        None => None,
+        Some(s) => {
+            Some(serde_json::from_str::<LossScale>(s).ok().filter(LossScale::valid).ok_or_else(|| {
+                Error::Invalid(format!("checkpoint {shown}: loss scale {s:?} is unreadable"))
+            })?)
+        }
+    };
+    Ok(CheckpointInfo { step, config, loss_scale })
 }
 
 fn read_file(path: &Path) -> Result<Vec<u8>> {
@@ -292,5 +307,8 @@ pub fn load(path: &Path, store: &mut ParamStore) -> Result<CheckpointInfo> {
     m.write(&host[1])?;
     v.write(&host[2])?;
     store.set_step(info.step);
+    if let Some(scale) = info.loss_scale {
+        store.set_loss_scale(scale);
+    }
     Ok(info)
 }

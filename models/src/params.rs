@@ -22,7 +22,7 @@ use velox_engine::ops::cast::cast_into;
 use velox_engine::ops::fill::fill;
 use velox_engine::ops::norm::{check_finite, chunk_len, global_norm_into, NormScratch};
 use velox_engine::rng::Rng;
-use velox_engine::{DType, Error, Gpu, Recorder, Result, Tensor};
+use velox_engine::{DType, Error, Gpu, Precision, Recorder, Result, Tensor};
 
 /// How a parameter starts. Random rules draw from [`Rng`] seeded by the store's seed and the
 /// parameter's name, so a parameter's initial values do not depend on which others exist.
@@ -211,6 +211,8 @@ impl ParamBuilder {
             step: 0,
             half,
             half_views,
+            training: Precision::F32,
+            loss_scale: LossScale::default(),
         };
         let mut rec = gpu.recorder()?;
         store.sync_half(&mut rec)?;
@@ -235,6 +237,67 @@ pub struct ParamStore {
     /// `params` only through [`ParamStore::sync_half`].
     half: Tensor,
     half_views: Vec<Tensor>,
+    /// The precision of the training passes ([`ParamStore::recorder`]); f16 reads the f16
+    /// copies, which the trainer refreshes after every step.
+    training: Precision,
+    /// The loss scale of f16 training.
+    loss_scale: LossScale,
+}
+
+/// Dynamic loss scaling for f16 training (Micikevicius et al., "Mixed Precision Training"):
+/// the loss, and so every gradient, is multiplied by `scale` so that small gradients survive
+/// the rounding to f16 (whose smallest normal is 6.1e-5); the optimiser divides it out. A step
+/// whose gradients overflow (NaN or Inf) is skipped and redone at half the scale; after
+/// [`LossScale::GROWTH_INTERVAL`] good steps in a row the scale doubles. Powers of two only, so
+/// scaling is exact wherever it neither overflows nor underflows.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct LossScale {
+    pub scale: f64,
+    /// Good steps since the scale last changed.
+    pub good_steps: u64,
+}
+
+impl Default for LossScale {
+    fn default() -> Self {
+        LossScale { scale: LossScale::INITIAL, good_steps: 0 }
+    }
+}
+
+impl LossScale {
+    /// 2^16, as PyTorch's gradient scaler starts.
+    pub const INITIAL: f64 = 65536.0;
+    pub const GROWTH_INTERVAL: u64 = 1000;
+    /// 2^24: a scale past this gains nothing (f16's range spans 2^-24 to 2^16).
+    pub const MAX: f64 = 16_777_216.0;
+    /// 2^-24: gradients that overflow f16 even at this scale are broken, not small.
+    pub const MIN: f64 = 1.0 / 16_777_216.0;
+
+    /// Whether this is a scale training can have: a power of two from [`LossScale::MIN`] to
+    /// [`LossScale::MAX`].
+    pub fn valid(&self) -> bool {
+        let s = self.scale;
+        s.is_finite() && (LossScale::MIN..=LossScale::MAX).contains(&s) && s.log2().fract() == 0.0
+    }
+
+    /// After a step whose gradients overflowed: halves the scale; fails below [`LossScale::MIN`].
+    pub fn overflowed(&mut self) -> Result<()> {
+        if self.scale / 2.0 < LossScale::MIN {
+            return Err(Error::Invalid(format!(
+                "the gradients are NaN or Inf even with the loss scaled by {:e}: not an f16 overflow",
+                self.scale
+            )));
+        }
+        *self = LossScale { scale: self.scale / 2.0, good_steps: 0 };
+        Ok(())
+    }
+
+    /// After a good step: counts it, and doubles the scale after a run of them.
+    pub fn good(&mut self) {
+        self.good_steps += 1;
+        if self.good_steps >= LossScale::GROWTH_INTERVAL && self.scale * 2.0 <= LossScale::MAX {
+            *self = LossScale { scale: self.scale * 2.0, good_steps: 0 };
+        }
+    }
 }
 
 impl ParamStore {
@@ -264,6 +327,40 @@ impl ParamStore {
             cast_into(rec, &self.params.view(start, &[len])?, &self.half.view(start, &[len])?)?;
         }
         Ok(())
+    }
+
+    /// The precision of training passes.
+    pub fn training_precision(&self) -> Precision {
+        self.training
+    }
+
+    /// Sets the precision of training passes; for f16, rounds the parameters to their f16
+    /// copies now (in a recording of its own).
+    pub fn set_training_precision(&mut self, precision: Precision) -> Result<()> {
+        if precision == Precision::F16 {
+            let mut rec = self.params.gpu().recorder()?;
+            self.sync_half(&mut rec)?;
+            rec.submit()?;
+        }
+        self.training = precision;
+        Ok(())
+    }
+
+    /// A recorder for a training pass: in the training precision, so that the layers' products
+    /// read f16 operands in f16 training.
+    pub fn recorder(&self) -> Result<Recorder> {
+        let mut rec = self.params.gpu().recorder()?;
+        rec.set_precision(self.training);
+        Ok(rec)
+    }
+
+    /// The loss scale of f16 training (its state; f32 training does not use it).
+    pub fn loss_scale(&self) -> LossScale {
+        self.loss_scale
+    }
+
+    pub fn set_loss_scale(&mut self, scale: LossScale) {
+        self.loss_scale = scale;
     }
 
     /// The gradient of the parameter called `name` (same shape, in the flat gradient buffer).
@@ -352,6 +449,22 @@ impl ParamStore {
         lr: f64,
         max_norm: Option<f64>,
     ) -> Result<()> {
+        self.adamw_step_scaled(rec, cfg, lr, max_norm, 1.0)
+    }
+
+    /// [`ParamStore::adamw_step`] on gradients that hold `loss_scale` times the true ones (the
+    /// gradients of a scaled loss): the update divides it out, clipping included.
+    pub fn adamw_step_scaled(
+        &mut self,
+        rec: &mut Recorder,
+        cfg: &AdamWConfig,
+        lr: f64,
+        max_norm: Option<f64>,
+        loss_scale: f64,
+    ) -> Result<()> {
+        if !(loss_scale.is_finite() && loss_scale > 0.0) {
+            return Err(Error::Invalid(format!("adamw: loss scale {loss_scale} is not a positive number")));
+        }
         self.record_grad_norm(rec)?;
         let tensors = AdamWTensors {
             params: &self.params,
@@ -361,7 +474,7 @@ impl ParamStore {
             decay_len: self.decay_len,
             norm: Some(self.norm.result()),
         };
-        let step = AdamWStep { lr, step: self.step + 1, grad_scale: 1.0, max_norm };
+        let step = AdamWStep { lr, step: self.step + 1, grad_scale: 1.0 / loss_scale, max_norm };
         adamw(rec, &tensors, cfg, &step)?;
         self.step += 1;
         Ok(())
@@ -407,6 +520,30 @@ fn name_hash(name: &str) -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_loss_scale_halves_on_overflow_and_doubles_after_a_run_of_good_steps() {
+        let mut s = LossScale::default();
+        assert!(s.valid() && s.scale == 65536.0);
+        for _ in 0..LossScale::GROWTH_INTERVAL - 1 {
+            s.good();
+        }
+        assert_eq!(s, LossScale { scale: 65536.0, good_steps: LossScale::GROWTH_INTERVAL - 1 });
+        s.good();
+        assert_eq!(s, LossScale { scale: 131072.0, good_steps: 0 });
+        s.good();
+        s.overflowed().unwrap();
+        assert_eq!(s, LossScale { scale: 65536.0, good_steps: 0 });
+        // Never past the largest scale, never below the smallest.
+        let mut top = LossScale { scale: LossScale::MAX, good_steps: 0 };
+        (0..LossScale::GROWTH_INTERVAL).for_each(|_| top.good());
+        assert_eq!(top.scale, LossScale::MAX);
+        let mut bottom = LossScale { scale: LossScale::MIN, good_steps: 0 };
+        assert!(bottom.overflowed().unwrap_err().to_string().contains("not an f16 overflow"));
+        for bad in [0.0, 3.0, f64::INFINITY, f64::NAN, LossScale::MAX * 2.0, -2.0] {
+            assert!(!LossScale { scale: bad, good_steps: 0 }.valid(), "{bad}");
+        }
+    }
 
     #[test]
     fn init_rules_have_the_documented_spread() {

@@ -6,7 +6,7 @@
 use std::path::Path;
 
 use serde::{Deserialize, Serialize};
-use velox_engine::{Error, Result};
+use velox_engine::{Error, Precision, Result};
 
 /// What a checkpoint stores of its run (in its config JSON, under `"run"`).
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -29,6 +29,34 @@ pub struct RunSettings {
     pub accumulate: u64,
     /// The dataset's scene folders (their names, in name order), which the scene order indexes.
     pub scenes: Vec<String>,
+    /// The precision of the products in the training passes: f32, or f16 operands with f32
+    /// accumulation, f32 master weights and a dynamic loss scale (runs that predate the field
+    /// trained in f32).
+    #[serde(default = "f32_precision", with = "precision_name")]
+    pub precision: Precision,
+}
+
+fn f32_precision() -> Precision {
+    Precision::F32
+}
+
+/// `Precision` as its name ("f32", "f16") in JSON and metadata.
+pub(crate) mod precision_name {
+    use serde::{Deserialize, Deserializer, Serializer};
+    use velox_engine::Precision;
+
+    pub fn parse(s: &str) -> Option<Precision> {
+        [Precision::F32, Precision::F16].into_iter().find(|p| p.name() == s)
+    }
+
+    pub fn serialize<S: Serializer>(p: &Precision, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(p.name())
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Precision, D::Error> {
+        let s = String::deserialize(d)?;
+        parse(&s).ok_or_else(|| serde::de::Error::custom(format!("precision {s:?} is not f32 or f16")))
+    }
 }
 
 /// The settings a command line asks for; `None` where it leaves one out.
@@ -39,6 +67,7 @@ pub struct RunRequest {
     pub steps_per_scene: Option<u64>,
     pub cooldown: Option<u64>,
     pub accumulate: Option<u64>,
+    pub precision: Option<Precision>,
 }
 
 fn one() -> u64 {
@@ -80,6 +109,7 @@ impl RunSettings {
             global_batch,
             accumulate,
             scenes,
+            precision: request.precision.unwrap_or(Precision::F32),
         })
     }
 
@@ -113,6 +143,14 @@ impl RunSettings {
                      run keeps its settings; leave {flag} out, or start a new run in another folder"
                 )));
             }
+        }
+        if let Some(asked) = request.precision.filter(|&p| p != self.precision) {
+            return Err(Error::Invalid(format!(
+                "--precision {} differs from the {} the run started with ({stored}): a resumed run keeps \
+                 its settings; leave --precision out, or start a new run in another folder",
+                asked.name(),
+                self.precision.name()
+            )));
         }
         if scenes != self.scenes.as_slice() {
             let gone = self.scenes.iter().find(|s| !scenes.contains(s));
@@ -225,6 +263,7 @@ mod tests {
             global_batch: 1,
             accumulate: 1,
             scenes: scenes(&["a", "b"]),
+            precision: Precision::F16,
         };
         let ab = scenes(&["a", "b"]);
         let resume = |request: &RunRequest, now: &[String]| stored.resume(request, now, path, 1, 1);
@@ -237,6 +276,7 @@ mod tests {
             steps_per_scene: Some(4),
             cooldown: Some(10),
             accumulate: Some(1),
+            precision: Some(Precision::F16),
         };
         let (longer, notes) = resume(&same, &ab).unwrap();
         assert_eq!(longer, RunSettings { steps: 150, ..stored.clone() });
@@ -248,6 +288,10 @@ mod tests {
                 "--steps-per-scene 8 differs from the 4",
             ),
             (RunRequest { cooldown: Some(0), ..Default::default() }, "--cooldown 0 differs from the 10"),
+            (
+                RunRequest { precision: Some(Precision::F32), ..Default::default() },
+                "--precision f32 differs from the f16",
+            ),
         ] {
             let e = resume(&request, &ab).unwrap_err().to_string();
             assert!(e.contains(flag) && e.contains("run/checkpoint.safetensors"), "{e}");

@@ -110,6 +110,7 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
             plot_every: 10,
             cooldown: None,
             stop_at: None,
+            precision: None,
         },
     };
     let summary = train_autoencoder(&gpu, &train, &Interrupt::never(), &SingleProcess)?;

@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use velox_data::{GenScenes, SceneFolders, TokenScenes, TrackScenes};
-use velox_engine::Gpu;
+use velox_engine::{Gpu, Precision};
 use velox_models::config::{AutoencoderConfig, GenerationTask, GeneratorConfig, TrackerConfig, VoxelConfig};
 use velox_models::run::{RunRequest, RunSettings};
 use velox_models::train::collective::Collective;
@@ -25,6 +25,7 @@ use velox_models::velox::tokens::TokenManifest;
 use velox_models::velox::tracker::Tracker;
 use velox_models::velox::voxels::VoxelDecoder;
 
+use crate::decode::PrecisionArg;
 use crate::interrupt::{signal_name, Interrupt, Interrupted};
 use crate::CliResult;
 
@@ -167,17 +168,27 @@ pub struct RunArgs {
     /// status 0): --resume continues the same run later, as if it had not stopped.
     #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
     pub stop_at: Option<u64>,
+    /// Precision of the training passes: f32, or f16 (the products of linear layers and
+    /// attention read f16 operands and accumulate in f32, forward and backward; f32 master
+    /// weights and optimiser moments; the loss scaled dynamically, a step that overflows skipped
+    /// and run again at half the scale) [default: f16 where the device has cooperative
+    /// matrices, else f32; a resumed run keeps its own].
+    #[arg(long, value_enum)]
+    pub precision: Option<PrecisionArg>,
 }
 
 impl RunArgs {
-    /// The run settings the command line gives (`None` where it leaves one out).
-    fn request(&self) -> RunRequest {
+    /// The run settings the command line gives (`None` where it leaves one out; a new run
+    /// without --precision takes `default_precision`, the device's).
+    fn request(&self, default_precision: Precision) -> RunRequest {
+        let default = (!self.resume).then_some(default_precision);
         RunRequest {
             seed: self.seed,
             steps: self.steps,
             steps_per_scene: self.steps_per_scene,
             cooldown: self.cooldown,
             accumulate: self.accumulate,
+            precision: self.precision.map(Precision::from).or(default),
         }
     }
 
@@ -574,6 +585,15 @@ fn starting_model<M: RunModel>(
     })
 }
 
+/// f16 where the device multiplies f16 on cooperative matrices (tensor cores), else f32: the
+/// portable f16 kernels save memory but not time.
+pub fn default_training_precision(gpu: &Gpu) -> Precision {
+    match velox_engine::ops::matmul::coop_kernel(gpu.caps()) {
+        Some(k) if gpu.supports(k) => Precision::F16,
+        _ => Precision::F32,
+    }
+}
+
 fn note_resumed_config(kept: &str, asked: Option<&str>) {
     if let Some(asked) = asked.filter(|&c| c != kept) {
         eprintln!("note: resuming the checkpoint's config {kept:?} (--config {asked:?} is ignored)");
@@ -597,7 +617,7 @@ where
     let options = TrainOptions {
         out: run.out.clone(),
         begin,
-        request: run.request(),
+        request: run.request(default_training_precision(model.store().flat_params().gpu())),
         checkpoint_every: run.checkpoint_every,
         plot_every: run.plot_every,
         stop_at: run.stop_at,
@@ -650,7 +670,16 @@ mod tests {
             assert!(text.contains(&format!("[default: {default}]")), "{text}");
         }
         let args = Cli::try_parse_from(["train", "--data", "d", "--out", "o", "--seed", "3"]).unwrap().args;
-        assert_eq!(args.run.request(), RunRequest { seed: Some(3), ..Default::default() });
+        let precision = Some(Precision::F16);
+        assert_eq!(
+            args.run.request(Precision::F16),
+            RunRequest { seed: Some(3), precision, ..Default::default() }
+        );
+        let args = Cli::try_parse_from(["train", "--data", "d", "--out", "o", "--resume"]).unwrap().args;
+        assert_eq!(args.run.request(Precision::F16).precision, None, "a resumed run keeps its precision");
+        let args =
+            Cli::try_parse_from(["train", "--data", "d", "--out", "o", "--precision", "f32"]).unwrap().args;
+        assert_eq!(args.run.request(Precision::F16).precision, Some(Precision::F32));
         assert_eq!(args.run.begin(), Begin::New);
         let both = Cli::try_parse_from(["train", "--data", "d", "--out", "o", "--resume", "--init", "c"]);
         assert!(both.is_err(), "--resume and --init exclude each other");

@@ -19,11 +19,31 @@ struct Params {
     len: u32,
     inner: u32,
     op: u32,
+    accumulate: u32,
 }
 
 /// Reduces `x` along `axis`, which is removed from the shape. The sum and mean of an empty
 /// axis are 0; the max of an empty axis is an error.
 pub fn reduce(rec: &mut Recorder, x: &Tensor, axis: usize, op: Reduce) -> Result<Tensor> {
+    let mut out_shape = x.shape().to_vec();
+    if axis < out_shape.len() {
+        out_shape.remove(axis);
+    }
+    let out = Tensor::empty(x.gpu(), &out_shape, DType::F32)?;
+    reduce_into(rec, x, axis, op, &out, false)?;
+    Ok(out)
+}
+
+/// [`reduce`] into `out` (f32, the reduced shape or any shape of as many elements), or added
+/// to what `out` holds when `accumulate` (a bias gradient into its parameter's gradient).
+pub fn reduce_into(
+    rec: &mut Recorder,
+    x: &Tensor,
+    axis: usize,
+    op: Reduce,
+    out: &Tensor,
+    accumulate: bool,
+) -> Result<()> {
     let shape = x.shape();
     if x.dtype() != DType::F32 {
         return Err(Error::Shape(format!("reduce {op:?} needs f32, got {x:?}")));
@@ -37,18 +57,30 @@ pub fn reduce(rec: &mut Recorder, x: &Tensor, axis: usize, op: Reduce) -> Result
     if len == 0 && op == Reduce::Max {
         return Err(Error::Shape(format!("max over an empty axis of {x:?}")));
     }
-    let mut out_shape = shape.to_vec();
-    out_shape.remove(axis);
-    let out = Tensor::empty(x.gpu(), &out_shape, DType::F32)?;
+    if out.dtype() != DType::F32 || out.numel() != outer * inner {
+        return Err(Error::Shape(format!(
+            "reduce {op:?} of {x:?} along axis {axis}: out must be f32 with {} values, got {out:?}",
+            outer * inner
+        )));
+    }
+    if out.same_storage(x) {
+        return Err(Error::Shape(format!("reduce {op:?}: out shares storage with the input")));
+    }
     let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("reduce of {x:?}")));
-    let p = Params { outer: fit(outer)?, len: fit(len)?, inner: fit(inner)?, op: op as u32 };
+    let p = Params {
+        outer: fit(outer)?,
+        len: fit(len)?,
+        inner: fit(inner)?,
+        op: op as u32,
+        accumulate: accumulate as u32,
+    };
     fit(x.numel())?;
     if inner == 1 {
-        rec.dispatch_linear(REDUCE_ROWS, outer as u64, &[x, &out], &p)?;
+        rec.dispatch_linear(REDUCE_ROWS, outer as u64, &[x, out], &p)?;
     } else {
-        rec.dispatch_linear(REDUCE_STRIDED, ((outer * inner) as u64).div_ceil(256), &[x, &out], &p)?;
+        rec.dispatch_linear(REDUCE_STRIDED, ((outer * inner) as u64).div_ceil(256), &[x, out], &p)?;
     }
-    Ok(out)
+    Ok(())
 }
 
 pub mod reference {

@@ -10,7 +10,8 @@
 //! `dk W_k^T + dv W_v^T` for self-attention), `dc = dk W_k^T + dv W_v^T` for cross-attention.
 //!
 //! In an f16 recording the projections run on f16 operands (see [`Linear::forward`]) and the
-//! attention reads q, k, v rounded to f16; the backward pass is f32 only.
+//! attention reads q, k, v rounded to f16, in the forward and the backward pass (mixed-precision
+//! training); gradients, softmax statistics and outputs stay f32.
 
 use velox_engine::ops::attention::{attention, attention_backward, AttentionOut, Segments};
 use velox_engine::ops::cast::cast;
@@ -83,14 +84,14 @@ impl MultiHeadAttention {
         let (k, k_in) = self.k.forward(rec, c)?;
         let (v, v_in) = self.v.forward(rec, c)?;
         let (q, k, v) = (self.split_heads(&q)?, self.split_heads(&k)?, self.split_heads(&v)?);
-        let out = match rec.precision() {
-            Precision::F32 => attention(rec, &q, &k, &v, seg, self.scale())?,
+        // In an f16 recording the kernels read q, k and v rounded to f16, forward and backward.
+        let (q, k, v) = match rec.precision() {
+            Precision::F32 => (q, k, v),
             Precision::F16 => {
-                let (q16, k16, v16) =
-                    (cast(rec, &q, DType::F16)?, cast(rec, &k, DType::F16)?, cast(rec, &v, DType::F16)?);
-                attention(rec, &q16, &k16, &v16, seg, self.scale())?
+                (cast(rec, &q, DType::F16)?, cast(rec, &k, DType::F16)?, cast(rec, &v, DType::F16)?)
             }
         };
+        let out = attention(rec, &q, &k, &v, seg, self.scale())?;
         let flat = out.o.reshape(&[out.o.shape()[0], self.heads * self.head_dim])?;
         let (y, o_in) = self.o.forward(rec, &flat)?;
         let cache = MultiHeadAttentionCache {
@@ -152,24 +153,19 @@ impl MultiHeadAttention {
         let g = attention_backward(rec, &cache.q, &cache.k, &cache.v, &cache.out, &d_o, seg, self.scale())?;
         let flat = |t: &Tensor| t.reshape(&[t.shape()[0], self.heads * self.head_dim]);
         let (dq, dk, dv) = (flat(&g.dq)?, flat(&g.dk)?, flat(&g.dv)?);
-        self.q.param_grads(rec, &cache.q_in, &dq)?;
-        self.k.param_grads(rec, &cache.k_in, &dk)?;
-        self.v.param_grads(rec, &cache.v_in, &dv)?;
         let gpu = dy.gpu();
         let dx = Tensor::empty(gpu, &[dq.shape()[0], self.q.in_features], DType::F32)?;
-        self.q.input_grad_into(rec, &dq, &dx, false)?;
+        self.q.grads_into(rec, &cache.q_in, &dq, &dx, false)?;
         // The context gradient, through k and v; for self-attention it adds into dx.
         let dc = if cache.self_attention {
+            self.k.grads_into(rec, &cache.k_in, &dk, &dx, true)?;
             dx.clone()
         } else {
             let dc = Tensor::empty(gpu, &[dk.shape()[0], self.k.in_features], DType::F32)?;
-            self.k.input_grad_into(rec, &dk, &dc, false)?;
+            self.k.grads_into(rec, &cache.k_in, &dk, &dc, false)?;
             dc
         };
-        if cache.self_attention {
-            self.k.input_grad_into(rec, &dk, &dc, true)?;
-        }
-        self.v.input_grad_into(rec, &dv, &dc, true)?;
+        self.v.grads_into(rec, &cache.v_in, &dv, &dc, true)?;
         Ok((dx, (!cache.self_attention).then_some(dc)))
     }
 }

@@ -63,8 +63,7 @@ impl SwiGlu {
         let dh = self.w2.backward(rec, &cache.h, dy)?;
         let (da, db) = swiglu_backward(rec, &cache.a, &cache.b, &dh)?;
         let dx = self.w1.backward(rec, &cache.x, &da)?;
-        self.w3.param_grads(rec, &cache.x, &db)?;
-        self.w3.input_grad_into(rec, &db, &dx, true)?;
+        self.w3.grads_into(rec, &cache.x, &db, &dx, true)?;
         Ok(dx)
     }
 }

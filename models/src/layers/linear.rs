@@ -2,10 +2,9 @@
 //!
 //! Backward: `dx = dy @ W^T`, `dW += x^T @ dy`, `db += sum over rows of dy`.
 
-use velox_engine::ops::binary::{binary_into, Binary};
 use velox_engine::ops::cast::cast;
 use velox_engine::ops::matmul::{matmul, matmul_bias, matmul_into};
-use velox_engine::ops::reduce::{reduce, Reduce};
+use velox_engine::ops::reduce::{reduce_into, Reduce};
 use velox_engine::{DType, Precision, Recorder, Result, Tensor};
 
 use super::{as_rows, expect_shape, Param};
@@ -19,7 +18,8 @@ pub struct Linear {
     pub out_features: usize,
 }
 
-/// The input, kept for the weight gradient.
+/// The input, kept for the weight gradient: as the product read it, f32, or rounded to f16 in
+/// an f16 recording.
 #[derive(Clone, Debug)]
 pub struct LinearCache {
     /// `x` as `[rows, in]`.
@@ -44,7 +44,7 @@ impl Linear {
 
     /// `y [.., out]` for `x [.., in]`. In an f16 recording (see [`Precision`]) the product reads
     /// `x` rounded to f16 and the weight's f16 copy, and accumulates in f32; `y` is f32 either
-    /// way.
+    /// way. The backward pass of an f16 forward pass is f16 too (see [`Linear::backward`]).
     pub fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<(Tensor, LinearCache)> {
         let x2 = as_rows("linear", x, self.in_features)?;
         let (xm, w) = match rec.precision() {
@@ -58,39 +58,57 @@ impl Linear {
         };
         let mut y_shape = x.shape().to_vec();
         *y_shape.last_mut().unwrap() = self.out_features;
-        Ok((y.reshape(&y_shape)?, LinearCache { x: x2, x_shape: x.shape().to_vec() }))
+        Ok((y.reshape(&y_shape)?, LinearCache { x: xm, x_shape: x.shape().to_vec() }))
     }
 
-    /// Adds `dW` (and `db`) into the gradients and returns `dx`.
+    /// Adds `dW` (and `db`) into the gradients and returns `dx`. After an f16 forward pass the
+    /// products read `dy` rounded to f16 (`dW += x16^T dy16`, `dx = dy16 W16^T`, f32
+    /// accumulation, as mixed-precision training does); `db` sums the f32 `dy`.
     pub fn backward(&self, rec: &mut Recorder, cache: &LinearCache, dy: &Tensor) -> Result<Tensor> {
-        self.param_grads(rec, cache, dy)?;
-        let dy2 = as_rows("linear backward", dy, self.out_features)?;
-        matmul(rec, &dy2, &self.weight.value, false, true)?.reshape(&cache.x_shape)
+        let dx = Tensor::empty(dy.gpu(), &[cache.x.shape()[0], self.in_features], DType::F32)?;
+        self.grads(rec, cache, dy, Some((&dx, false)))?;
+        dx.reshape(&cache.x_shape)
     }
 
     /// Adds `dW = x^T dy` and `db = sum_rows dy` into the gradients only (the first layer of a
     /// model needs no `dx`).
     pub fn param_grads(&self, rec: &mut Recorder, cache: &LinearCache, dy: &Tensor) -> Result<()> {
-        let dy2 = as_rows("linear backward", dy, self.out_features)?;
-        matmul_into(rec, &cache.x, &dy2, true, false, &self.weight.grad, true)?;
-        if let Some(b) = &self.bias {
-            let db = reduce(rec, &dy2, 0, Reduce::Sum)?;
-            binary_into(rec, &b.grad, &db, &b.grad, Binary::Add)?;
-        }
-        Ok(())
+        self.grads(rec, cache, dy, None)
     }
 
-    /// `dx (+)= dy @ W^T` into an existing `dx` of the input's shape (`accumulate` adds, for an
-    /// input that feeds several layers).
-    pub fn input_grad_into(
+    /// Adds the parameter gradients and writes `dx = dy @ W^T` into an existing tensor of the
+    /// input's shape, or adds it there (`accumulate`: an input that feeds several layers).
+    pub fn grads_into(
         &self,
         rec: &mut Recorder,
+        cache: &LinearCache,
         dy: &Tensor,
         dx: &Tensor,
         accumulate: bool,
     ) -> Result<()> {
+        self.grads(rec, cache, dy, Some((dx, accumulate)))
+    }
+
+    fn grads(
+        &self,
+        rec: &mut Recorder,
+        cache: &LinearCache,
+        dy: &Tensor,
+        dx: Option<(&Tensor, bool)>,
+    ) -> Result<()> {
         let dy2 = as_rows("linear backward", dy, self.out_features)?;
-        let dx2 = as_rows("linear backward dx", dx, self.in_features)?;
-        matmul_into(rec, &dy2, &self.weight.value, false, true, &dx2, accumulate)
+        let (dym, w) = match cache.x.dtype() {
+            DType::F16 => (cast(rec, &dy2, DType::F16)?, dx.map(|_| self.weight.value_f16(rec)).transpose()?),
+            _ => (dy2.clone(), Some(self.weight.value.clone())),
+        };
+        matmul_into(rec, &cache.x, &dym, true, false, &self.weight.grad, true)?;
+        if let Some(b) = &self.bias {
+            reduce_into(rec, &dy2, 0, Reduce::Sum, &b.grad, true)?;
+        }
+        if let (Some((dx, accumulate)), Some(w)) = (dx, w) {
+            let dx2 = as_rows("linear backward dx", dx, self.in_features)?;
+            matmul_into(rec, &dym, &w, false, true, &dx2, accumulate)?;
+        }
+        Ok(())
     }
 }

@@ -7,6 +7,9 @@
 //!  "time": {"data": 0.001, "compute": 0.35, "all_reduce": 0.0, "optimiser": 0.004}}
 //! ```
 //!
+//! An f16 run adds `loss_scale` (the step's) and, after an overflow, `overflows` (the tries
+//! of the step that were skipped).
+//!
 //! `seconds` counts from the start of the run, earlier parts of a resumed run included;
 //! `samples` names the step's samples slot by slot (see [`super::order`]); `loss` holds the
 //! model's loss terms, means over the step's batch, the total first; `time` the seconds of the
@@ -76,6 +79,16 @@ pub struct LogLine {
     pub grad_norm: f64,
     pub lr: f64,
     pub time: TimeSplit,
+    /// f16 training: the loss scale of the step, and how many tries at a higher scale
+    /// overflowed before it (each skipped and redone at half the scale).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub loss_scale: Option<f64>,
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub overflows: u32,
+}
+
+fn is_zero(n: &u32) -> bool {
+    *n == 0
 }
 
 /// A run's log, open for appending.
@@ -152,6 +165,8 @@ mod tests {
             grad_norm: 2.0,
             lr: 1e-3,
             time: TimeSplit { data: 0.5, compute: 1.5, ..Default::default() },
+            loss_scale: None,
+            overflows: 0,
         }
     }
 

@@ -17,6 +17,13 @@
 //!    cooldown factor, clipped to the model's gradient norm; a NaN or Inf gradient norm leaves
 //!    the parameters as they were and stops the run.
 //!
+//! In f16 training (the run's `precision`) the passes' products read f16 operands (the
+//! parameters' f16 copies, refreshed after every update from the f32 masters) and the loss is
+//! scaled by the store's [`crate::params::LossScale`]: the weight of step 2 is `scale / G`, the update divides
+//! the scale out. Gradients that overflow (a NaN or Inf norm) skip the update: the scale is
+//! halved and the step is run again on the same samples with the same generators
+//! ([`Finished::Overflowed`]), so the steps of a run, and its resumption, stay the same.
+//!
 //! Every process then holds the same parameters; process 0 alone writes `log.jsonl`, the loss
 //! plot and the checkpoints (atomically), and every file failure or stop request is agreed on
 //! by all processes. The samples of a step depend on the seed, the step and the dataset, not
@@ -28,7 +35,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
-use velox_engine::{Error, Result};
+use velox_engine::{Error, Precision, Result};
 
 use super::collective::Collective;
 use super::log::{Log, LogLine, Terms};
@@ -107,6 +114,20 @@ pub struct StepReport {
     pub lr: f64,
     /// This process's seconds by part.
     pub time: TimeSplit,
+    /// f16 training: the loss scale the step ran at, and the tries of the step at higher
+    /// scales that overflowed before it.
+    pub loss_scale: Option<f64>,
+    pub overflows: u32,
+}
+
+/// How [`Trainer::finish_step`] ended.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Finished {
+    /// The parameters were updated.
+    Done(StepReport),
+    /// f16 training: the gradients overflowed at loss scale `scale`; the update was skipped
+    /// and the scale halved. Run the step again ([`Trainer::begin_step`] with the same step).
+    Overflowed { scale: f64 },
 }
 
 /// Optimiser steps of a model, one at a time: [`Trainer::begin_step`], then
@@ -121,6 +142,9 @@ pub struct Trainer<'a, M: Trainable, C: Collective> {
     /// What went wrong in this process's share of the step, reported by `finish_step` once
     /// every process knows.
     failed: Option<Error>,
+    /// Tries of the step under way that overflowed, and which step that is.
+    overflows: u32,
+    retry_of: Option<u64>,
 }
 
 impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
@@ -136,6 +160,7 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
                 settings.global_batch
             )));
         }
+        model.store_mut().set_training_precision(settings.precision)?;
         Ok(Trainer {
             model,
             collective,
@@ -143,6 +168,8 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
             losses: Losses::default(),
             time: TimeSplit::default(),
             failed: None,
+            overflows: 0,
+            retry_of: None,
         })
     }
 
@@ -154,6 +181,14 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
         &self.settings
     }
 
+    /// What the step's loss is multiplied by: the loss scale in f16 training, else 1.
+    fn loss_scale(&self) -> f64 {
+        match self.settings.precision {
+            Precision::F16 => self.model.store().loss_scale().scale,
+            Precision::F32 => 1.0,
+        }
+    }
+
     /// The slots of the global batch that this process's micro-batch `m` holds.
     pub fn slots(&self, m: u64) -> Range<u64> {
         let b = self.model.optimisation().batch as u64;
@@ -161,11 +196,15 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
         first..first + b
     }
 
-    /// Starts step `step`: zeroes the gradients. The parameters must be at step `step - 1`.
+    /// Starts step `step` (or runs it again after [`Finished::Overflowed`]): zeroes the
+    /// gradients. The parameters must be at step `step - 1`.
     pub fn begin_step(&mut self, step: u64) -> Result<()> {
         let at = self.model.store().step();
         if at + 1 != step {
             return Err(Error::Invalid(format!("step {step} asked of a model at step {at}")));
+        }
+        if self.retry_of.take() != Some(step) {
+            self.overflows = 0;
         }
         self.losses = Losses::default();
         self.time = TimeSplit::default();
@@ -210,10 +249,14 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
             return Ok(());
         }
         let mut rngs: Vec<_> = slots.map(|g| slot_rng(self.settings.seed, step, g)).collect();
-        let weight = 1.0 / self.settings.global_batch as f64;
+        let scale = self.loss_scale();
+        let weight = scale / self.settings.global_batch as f64;
         let t = Instant::now();
         match self.model.accumulate(samples, &mut rngs, weight) {
-            Ok(l) => self.losses.add(&l),
+            Ok(mut l) => {
+                l.terms.iter_mut().for_each(|t| t.1 /= scale);
+                self.losses.add(&l)
+            }
             Err(e) => self.fail(e),
         }
         self.time.compute += t.elapsed().as_secs_f64();
@@ -223,8 +266,9 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
     /// Ends step `step`: gathers the losses and sums the gradients over the processes, then
     /// updates the parameters. Fails, on every process, if any process's share failed or its
     /// loss is not finite, and when the gradient norm is NaN or Inf (the parameters then stay
-    /// as they were).
-    pub fn finish_step(&mut self, step: u64) -> Result<StepReport> {
+    /// as they were) in f32 training; in f16 training such a step comes back as
+    /// [`Finished::Overflowed`], to be run again at the halved loss scale.
+    pub fn finish_step(&mut self, step: u64) -> Result<Finished> {
         if let Some(p) = self.model.take_pass_seconds() {
             self.time.forward = Some(p.forward);
             self.time.backward = Some(p.backward);
@@ -258,12 +302,44 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
         let lr = opt.learning_rate(step) * cooldown(s.steps, s.cooldown, step);
         let (adamw, max_norm) = (opt.adamw, opt.max_grad_norm);
         let gpu = self.model.store().flat_params().gpu().clone();
+        let scale = self.loss_scale();
+        let half = self.settings.precision == Precision::F16;
         let mut rec = gpu.recorder()?;
-        self.model.store_mut().adamw_step(&mut rec, &adamw, lr, max_norm)?;
+        let store = self.model.store_mut();
+        store.adamw_step_scaled(&mut rec, &adamw, lr, max_norm, scale)?;
+        if half {
+            // The f16 copies the next passes read (unchanged when the update was skipped).
+            store.sync_half(&mut rec)?;
+        }
         rec.submit()?;
-        let grad_norm = self.model.store_mut().grad_norm()? as f64;
+        let grad_norm = match store.grad_norm() {
+            Ok(norm) => norm as f64 / scale,
+            Err(_) if half => {
+                let mut ls = store.loss_scale();
+                ls.overflowed()?;
+                store.set_loss_scale(ls);
+                self.overflows += 1;
+                self.retry_of = Some(step);
+                self.time.optimiser = t.elapsed().as_secs_f64();
+                return Ok(Finished::Overflowed { scale });
+            }
+            Err(e) => return Err(e),
+        };
+        if half {
+            let mut ls = store.loss_scale();
+            ls.good();
+            store.set_loss_scale(ls);
+        }
         self.time.optimiser = t.elapsed().as_secs_f64();
-        Ok(StepReport { step, losses: Losses { terms }, grad_norm, lr, time: self.time })
+        Ok(Finished::Done(StepReport {
+            step,
+            losses: Losses { terms },
+            grad_norm,
+            lr,
+            time: self.time,
+            loss_scale: half.then_some(scale),
+            overflows: self.overflows,
+        }))
     }
 
     /// Runs the steps `steps` with every slot of every step taking `samples[g % len]` (for
@@ -274,13 +350,18 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
         }
         let mut reports = Vec::new();
         for step in steps {
-            self.begin_step(step)?;
-            for m in 0..self.settings.accumulate {
-                let mine: Vec<&M::Sample> =
-                    self.slots(m).map(|g| samples[(g % samples.len() as u64) as usize]).collect();
-                self.micro_batch(step, m, &mine)?;
+            loop {
+                self.begin_step(step)?;
+                for m in 0..self.settings.accumulate {
+                    let mine: Vec<&M::Sample> =
+                        self.slots(m).map(|g| samples[(g % samples.len() as u64) as usize]).collect();
+                    self.micro_batch(step, m, &mine)?;
+                }
+                if let Finished::Done(report) = self.finish_step(step)? {
+                    reports.push(report);
+                    break;
+                }
             }
-            reports.push(self.finish_step(step)?);
         }
         Ok(reports)
     }
@@ -619,41 +700,57 @@ where
                 .map(|g| names[order.at(slot_position(step, per_scene, global, g))].clone())
                 .collect();
         }
-        // The group's last step lets its samples go after each micro-batch.
+        // The group's last step lets its samples go after each micro-batch (after the step in
+        // f16 training, which may have to run it again).
         let keep = !step.is_multiple_of(per_scene) && step < settings.steps;
-        trainer.begin_step(step)?;
-        for m in 0..acc {
-            let range = (m * b) as usize..((m + 1) * b) as usize;
-            let t = Instant::now();
-            for slot in range.clone() {
-                if held[slot].is_none() && !trainer.failed() {
-                    let sample = samples
-                        .recv()
-                        .map_err(|_| Error::Io("the sample-reading thread stopped".into()))
-                        .and_then(|raw| source.prepare(raw?));
-                    match sample {
-                        Ok(s) => held[slot] = Some(s),
-                        Err(e) => trainer.fail(e),
+        let retry = settings.precision == Precision::F16;
+        let report = loop {
+            trainer.begin_step(step)?;
+            for m in 0..acc {
+                let range = (m * b) as usize..((m + 1) * b) as usize;
+                let t = Instant::now();
+                for slot in range.clone() {
+                    if held[slot].is_none() && !trainer.failed() {
+                        let sample = samples
+                            .recv()
+                            .map_err(|_| Error::Io("the sample-reading thread stopped".into()))
+                            .and_then(|raw| source.prepare(raw?));
+                        match sample {
+                            Ok(s) => held[slot] = Some(s),
+                            Err(e) => trainer.fail(e),
+                        }
                     }
                 }
+                trainer.add_data_seconds(t.elapsed().as_secs_f64());
+                if !trainer.failed() {
+                    let batch: Vec<&S::Sample> =
+                        held[range.clone()].iter().map(|s| s.as_ref().expect("read above")).collect();
+                    trainer.micro_batch(step, m, &batch)?;
+                }
+                if !keep && !retry {
+                    held[range].iter_mut().for_each(|s| *s = None);
+                }
             }
-            trainer.add_data_seconds(t.elapsed().as_secs_f64());
-            if !trainer.failed() {
-                let batch: Vec<&S::Sample> =
-                    held[range.clone()].iter().map(|s| s.as_ref().expect("read above")).collect();
-                trainer.micro_batch(step, m, &batch)?;
+            let finished = trainer.finish_step(step).map_err(|e| {
+                Error::Invalid(format!(
+                    "training stopped at step {step}: {}; {}",
+                    words(&e),
+                    last_good(&folder.checkpoint)
+                ))
+            })?;
+            match finished {
+                Finished::Done(report) => break report,
+                Finished::Overflowed { scale } => {
+                    let again = scale / 2.0;
+                    observer.note(&format!(
+                        "step {step}: the f16 gradients overflowed at loss scale {scale}; run again at {again}"
+                    ))
+                }
             }
-            if !keep {
-                held[range].iter_mut().for_each(|s| *s = None);
-            }
+        };
+        if !keep {
+            held.iter_mut().for_each(|s| *s = None);
         }
-        let report = trainer.finish_step(step).map_err(|e| {
-            Error::Invalid(format!(
-                "training stopped at step {step}: {}; {}",
-                words(&e),
-                last_good(&folder.checkpoint)
-            ))
-        })?;
         steps_run += 1;
         time = time.add(&report.time);
         let rate = (steps_run * global) as f64 / started.elapsed().as_secs_f64().max(1e-9);
@@ -668,6 +765,8 @@ where
                 grad_norm: report.grad_norm,
                 lr: report.lr,
                 time: report.time,
+                loss_scale: report.loss_scale,
+                overflows: report.overflows,
             })?;
             if step.is_multiple_of(options.plot_every) {
                 plot_log(&folder.plot, log.history())?;

@@ -126,7 +126,8 @@ pub struct Autoencoder {
     pub surface: SurfaceDecoder,
     pub gaussians: GaussianDecoder,
     pub adamw: AdamWConfig,
-    /// The precision of encoding and decoding (training is f32 whatever this says); set it with
+    /// The precision of encoding and decoding (training passes follow the store's training
+    /// precision, which the trainer sets); set it with
     /// [`Autoencoder::set_precision`].
     precision: Precision,
     /// A factor on the scheduled learning rate (a cooldown at the end of a run); 1 by default,
@@ -283,7 +284,7 @@ impl Autoencoder {
 
         // Forward: the encoder and the token loss, then per scene its token noise, then the
         // surface decoder's points and flow noise and the Gaussian decoder's voxels per frame.
-        let mut rec = gpu.recorder()?;
+        let mut rec = self.store.recorder()?;
         let (s, enc_cache) = self.encoder.forward_batch(&mut rec, &clouds, rngs)?;
         let zeros = Tensor::empty(&gpu, &[nb * k, dim], DType::F32)?;
         fill(&mut rec, &zeros, 0.0)?;
@@ -379,7 +380,7 @@ impl Autoencoder {
         // the Gaussian decoder, the surface decoder, then the encoder.
         let forward_done = Instant::now();
         self.pass_seconds.forward += (forward_done - started).as_secs_f64();
-        let mut rec = gpu.recorder()?;
+        let mut rec = self.store.recorder()?;
         let image_loss = Tensor::empty(&gpu, &[1], DType::F32)?;
         fill(&mut rec, &image_loss, 0.0)?;
         let d_gaussians = Gaussians::empty(&gpu, gaussians.len())?;

@@ -549,8 +549,7 @@ impl Generator {
         let roles =
             self.adaln.iter().zip(&dshared).chain(self.final_adaln.iter().zip([&gf.dshift, &gf.dscale]));
         for (l, dm) in roles {
-            l.param_grads(rec, &cache.e, dm)?;
-            l.input_grad_into(rec, dm, &de, de_started)?;
+            l.grads_into(rec, &cache.e, dm, &de, de_started)?;
             de_started = true;
         }
         self.time.backward(rec, &cache.time, &de)?;
@@ -622,7 +621,6 @@ impl Generator {
     pub fn accumulate(&mut self, samples: &[&GenSample], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
         crate::train::check_micro_batch(samples.len(), rngs.len())?;
         let started = Instant::now();
-        let gpu = samples[0].tokens.gpu().clone();
         let n = self.cfg.tokens * self.cfg.token_dim;
         let (mut eps, mut t, mut keep) = (Vec::new(), Vec::new(), Vec::new());
         for rng in rngs.iter_mut() {
@@ -630,12 +628,12 @@ impl Generator {
             t.push(rng.range(self.cfg.t_min as f64, 1.0 - self.cfg.t_min as f64) as f32);
             keep.push(rng.uniform() >= self.cfg.cond_dropout);
         }
-        let mut rec = gpu.recorder()?;
+        let mut rec = self.store.recorder()?;
         let (loss, cache, dv) = self.flow_loss(&mut rec, samples, &eps, &t, &keep, weight as f32)?;
         rec.submit()?;
         let forward_done = Instant::now();
         self.pass_seconds.forward += (forward_done - started).as_secs_f64();
-        let mut rec = gpu.recorder()?;
+        let mut rec = self.store.recorder()?;
         self.backward(&mut rec, &cache, &dv)?;
         rec.submit()?;
         self.pass_seconds.backward += forward_done.elapsed().as_secs_f64();

@@ -586,8 +586,7 @@ impl SurfaceDecoder {
         let de = Tensor::empty(&gpu, &[nt, te], DType::F32)?;
         let mut de_started = false;
         let mut modulation_grad = |rec: &mut Recorder, l: &Linear, dm: &Tensor| -> Result<()> {
-            l.param_grads(rec, &cache.e, dm)?;
-            l.input_grad_into(rec, dm, &de, de_started)?;
+            l.grads_into(rec, &cache.e, dm, &de, de_started)?;
             de_started = true;
             Ok(())
         };

@@ -210,7 +210,7 @@ pub struct TokenOrigin {
     /// Seed of the encoder's queries (`Autoencoder::encode`).
     pub seed: u64,
     /// The precision the encoder ran in.
-    #[serde(with = "precision_name")]
+    #[serde(with = "crate::run::precision_name")]
     pub precision: Precision,
     /// The cloud encoded; folders written before there was a choice read `points`.
     #[serde(default)]
@@ -264,25 +264,6 @@ impl TokenOrigin {
             out.push(format!("the {} cloud, not the {}", self.source.name(), other.source.name()));
         }
         out
-    }
-}
-
-/// `Precision` as its name ("f32", "f16") in JSON and metadata.
-mod precision_name {
-    use serde::{Deserialize, Deserializer, Serializer};
-    use velox_engine::Precision;
-
-    pub fn parse(s: &str) -> Option<Precision> {
-        [Precision::F32, Precision::F16].into_iter().find(|p| p.name() == s)
-    }
-
-    pub fn serialize<S: Serializer>(p: &Precision, s: S) -> Result<S::Ok, S::Error> {
-        s.serialize_str(p.name())
-    }
-
-    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Precision, D::Error> {
-        let s = String::deserialize(d)?;
-        parse(&s).ok_or_else(|| serde::de::Error::custom(format!("precision {s:?} is not f32 or f16")))
     }
 }
 
@@ -436,7 +417,7 @@ pub fn read_scene_file(path: &Path) -> Result<(TokenOrigin, SceneTokens)> {
         .map_err(|e| invalid(format!("config is not an autoencoder config: {e}")))?;
     let seed =
         field("seed")?.parse().map_err(|_| invalid(format!("seed {:?} is not a u64", meta["seed"])))?;
-    let precision = precision_name::parse(field("precision")?)
+    let precision = crate::run::precision_name::parse(field("precision")?)
         .ok_or_else(|| invalid(format!("precision {:?} is not f32 or f16", meta["precision"])))?;
     let source = match meta.get("source").map(String::as_str) {
         None | Some("points") => CloudSource::Points,

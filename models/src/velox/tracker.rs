@@ -177,7 +177,7 @@ impl Tracker {
         } else {
             None
         };
-        let mut rec = gpu.recorder()?;
+        let mut rec = self.store.recorder()?;
         let mut at = 0;
         for (s, &k) in samples.iter().zip(&counts) {
             rec.copy_rows(&s.tokens, 0, &tokens, at, k)?;
@@ -219,7 +219,7 @@ impl Tracker {
         rec.submit()?;
         let forward_done = Instant::now();
         self.pass_seconds.forward += (forward_done - started).as_secs_f64();
-        let mut rec = gpu.recorder()?;
+        let mut rec = self.store.recorder()?;
         self.trunk.backward(&mut rec, &cache, &d_offsets)?;
         rec.submit()?;
         self.pass_seconds.backward += forward_done.elapsed().as_secs_f64();

@@ -361,7 +361,7 @@ impl VoxelDecoder {
         let token_counts =
             samples.iter().map(|s| self.check_tokens(&s.tokens)).collect::<Result<Vec<_>>>()?;
         let tokens = Tensor::empty(&gpu, &[token_counts.iter().sum(), self.cfg.token_dim], DType::F32)?;
-        let mut rec = gpu.recorder()?;
+        let mut rec = self.store.recorder()?;
         let mut at = 0;
         for (s, &k) in samples.iter().zip(&token_counts) {
             rec.copy_rows(&s.tokens, 0, &tokens, at, k)?;
@@ -428,7 +428,7 @@ impl VoxelDecoder {
         let forward_done = Instant::now();
         self.pass_seconds.forward += (forward_done - started).as_secs_f64();
 
-        let mut rec = gpu.recorder()?;
+        let mut rec = self.store.recorder()?;
         self.coarse.backward(&mut rec, &coarse_cache, &d_coarse)?;
         if let Some((_, d, cache, head)) = &fine {
             let d_features = self.head.backward(&mut rec, head, d)?;
