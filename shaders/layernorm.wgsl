@@ -15,8 +15,8 @@ struct Params {
     rows_per_chunk: u32,
     affine: u32,
     lanes: u32,
-    _pad1: u32,
-    _pad2: u32,
+    residual: u32, // backward: add `res` into dx
+    _pad: u32,
 }
 
 @group(0) @binding(0) var<storage, read> x: array<f32>;
@@ -29,6 +29,7 @@ struct Params {
 @group(0) @binding(7) var<storage, read_write> dx: array<f32>;
 @group(0) @binding(8) var<storage, read_write> dw_part: array<f32>;
 @group(0) @binding(9) var<storage, read_write> db_part: array<f32>;
+@group(0) @binding(10) var<storage, read> res: array<f32>;
 var<immediate> pc: Params;
 
 // @include row_reduce.wgsl
@@ -116,7 +117,11 @@ fn backward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
             g *= w[j];
         }
         let xhat = (x[base + j] - mu) * r;
-        dx[base + j] = r * (g - m.x - xhat * m.y);
+        var v = r * (g - m.x - xhat * m.y);
+        if (pc.residual != 0u) {
+            v += res[base + j];
+        }
+        dx[base + j] = v;
     }
 }
 

@@ -3,7 +3,8 @@
 // (row_reduce.wgsl). `param_grads` gives each invocation one column and a chunk of rows
 // and writes partial sums of dw = sum_rows dy * x * rstd, which the host reduces over chunks.
 //
-// Backward (xhat = x * rstd, g = dy * w):  dx = rstd * (g - xhat * mean(g * xhat)).
+// Backward (xhat = x * rstd, g = dy * w):  dx = rstd * (g - xhat * mean(g * xhat)), plus `res`
+// when `residual` is set (a pre-norm residual block's dx = dres + RMSNorm'(dy) in one pass).
 
 struct Params {
     rows: u32,
@@ -11,6 +12,7 @@ struct Params {
     eps: f32,
     rows_per_chunk: u32,
     lanes: u32,
+    residual: u32,
 }
 
 @group(0) @binding(0) var<storage, read> x: array<f32>;
@@ -20,6 +22,7 @@ struct Params {
 @group(0) @binding(4) var<storage, read> dy: array<f32>;
 @group(0) @binding(5) var<storage, read_write> dx: array<f32>;
 @group(0) @binding(6) var<storage, read_write> dw_part: array<f32>;
+@group(0) @binding(7) var<storage, read> res: array<f32>;
 var<immediate> pc: Params;
 
 // @include row_reduce.wgsl
@@ -65,7 +68,11 @@ fn backward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
     let m = reduce_sum(lid, pc.lanes, dot) / f32(pc.width);
     for (var j = at.lane; j < end; j += pc.lanes) {
         let xhat = x[base + j] * r;
-        dx[base + j] = r * (dy[base + j] * w[j] - xhat * m);
+        var v = r * (dy[base + j] * w[j] - xhat * m);
+        if (pc.residual != 0u) {
+            v += res[base + j];
+        }
+        dx[base + j] = v;
     }
 }
 

@@ -264,6 +264,58 @@ fn check_f16(case: &Case, q: &[f32], k: &[f32], v: &[f32], bwd_bound: Option<f64
 }
 
 #[test]
+fn segments_build_their_work_lists_once_for_every_later_attention() {
+    // The first attention over a set of segments records its work list (four dispatches);
+    // later ones in the same recording, or in a recording after it has run, reuse it; a
+    // recording dropped without running leaves nothing behind that another would read.
+    let gpu = gpu();
+    let (h, d) = (2, 16);
+    let lens = [5usize, 0, 40, 7];
+    let n: usize = lens.iter().sum();
+    let seg = Segments::from_lengths(&gpu, &lens, &lens).unwrap();
+    let mut rng = Rng::new(90);
+    let x = Tensor::from_slice(&gpu, &[n, h, d], &rng.normal_vec(n * h * d)).unwrap();
+    let offsets = reference::offsets(&lens);
+    let (want, _) = reference::attention(
+        &f64s(&x.read::<f32>().unwrap()),
+        &f64s(&x.read::<f32>().unwrap()),
+        &f64s(&x.read::<f32>().unwrap()),
+        &offsets,
+        &offsets,
+        h,
+        d,
+        0.25,
+    );
+    let run = |rec: &mut velox::engine::Recorder| {
+        let before = rec.dispatch_count();
+        let out = attention(rec, &x, &x, &x, &seg, 0.25).unwrap();
+        (out, rec.dispatch_count() - before)
+    };
+    // Dropped before it ran: its list must not be used.
+    let mut dropped = gpu.recorder().unwrap();
+    assert_eq!(run(&mut dropped).1, 5);
+    drop(dropped);
+    let mut rec = gpu.recorder().unwrap();
+    let (first, built) = run(&mut rec);
+    let (second, reused) = run(&mut rec);
+    rec.submit().unwrap();
+    assert_eq!((built, reused), (5, 1), "the list is built once per recording that needs it");
+    let mut later = gpu.recorder().unwrap();
+    let (third, after) = run(&mut later);
+    // The backward pass builds the key list once and reuses the query list.
+    let g = Tensor::from_slice(&gpu, &[n, h, d], &rng.normal_vec(n * h * d)).unwrap();
+    let before = later.dispatch_count();
+    attention_backward(&mut later, &x, &x, &x, &third, &g, &seg, 0.25).unwrap();
+    let backward = later.dispatch_count() - before;
+    later.submit().unwrap();
+    assert_eq!(after, 1, "a recording after the first has run reuses its list");
+    assert_eq!(backward, 4 + 2, "key list and the two kernels; dk, dv need no zeroing");
+    for out in [&first, &second, &third] {
+        assert_nmse("attention over cached lists", &out.o.read::<f32>().unwrap(), &want, 1e-12);
+    }
+}
+
+#[test]
 fn f16_inputs_forward() {
     for (i, &d) in attention::HEAD_DIMS.iter().enumerate() {
         run_f16(
@@ -345,10 +397,10 @@ fn bad_shapes_widths_and_offsets_are_handled() {
     let (n, h, d) = (40, 2, 16);
     let x = Tensor::from_slice(&gpu, &[n, h, d], &rng.normal_vec(n * h * d)).unwrap();
     let bad = [0u32, 30, 10, 1000, 5];
-    let seg = Segments {
-        q_offsets: Tensor::from_slice(&gpu, &[5], &bad).unwrap(),
-        k_offsets: Tensor::from_slice(&gpu, &[5], &bad).unwrap(),
-    };
+    let seg = Segments::new(
+        Tensor::from_slice(&gpu, &[5], &bad).unwrap(),
+        Tensor::from_slice(&gpu, &[5], &bad).unwrap(),
+    );
     let mut rec = gpu.recorder().unwrap();
     let out = attention(&mut rec, &x, &x, &x, &seg, 0.25).unwrap();
     let g = attention_backward(&mut rec, &x, &x, &x, &out, &x, &seg, 0.25).unwrap();

@@ -168,14 +168,18 @@ fn reductions_match_reference() {
                 let t = Tensor::from_slice(&gpu, shape, &x).unwrap();
                 let mut rec = gpu.recorder().unwrap();
                 let y = reduce(&mut rec, &t, axis, op).unwrap();
+                // The same into a tensor that holds values already: added to them.
+                let m: usize =
+                    shape.iter().enumerate().filter(|&(a, _)| a != axis).map(|(_, &s)| s).product();
+                let old = rng.normal_vec(m);
+                let acc = Tensor::from_slice(&gpu, &[m], &old).unwrap();
+                reduce::reduce_into(&mut rec, &t, axis, op, &acc, true).unwrap();
                 rec.submit().unwrap();
                 let want = reduce::reference::reduce(&x, shape, axis, op);
-                assert_nmse(
-                    &format!("{op:?} axis {axis} of {shape:?}"),
-                    &y.read::<f32>().unwrap(),
-                    &want,
-                    1e-10,
-                );
+                let what = format!("{op:?} axis {axis} of {shape:?}");
+                assert_nmse(&what, &y.read::<f32>().unwrap(), &want, 1e-10);
+                let added: Vec<f64> = want.iter().zip(&old).map(|(w, &o)| w + o as f64).collect();
+                assert_nmse(&format!("{what}, accumulated"), &acc.read::<f32>().unwrap(), &added, 1e-10);
             }
         }
     }
@@ -183,6 +187,11 @@ fn reductions_match_reference() {
     let mut rec = gpu.recorder().unwrap();
     assert!(reduce(&mut rec, &t, 1, Reduce::Max).is_err());
     assert!(reduce(&mut rec, &t, 2, Reduce::Sum).is_err());
+    // An output of the wrong size, or the input itself, is refused.
+    let x = Tensor::from_slice(&gpu, &[2, 3], &[1.0f32; 6]).unwrap();
+    let wrong = Tensor::empty(&gpu, &[2], DType::F32).unwrap();
+    assert!(reduce::reduce_into(&mut rec, &x, 0, Reduce::Sum, &wrong, true).is_err());
+    assert!(reduce::reduce_into(&mut rec, &x, 0, Reduce::Sum, &x.view(0, &[3]).unwrap(), true).is_err());
 }
 
 #[test]

@@ -105,6 +105,106 @@ fn linear_matches_reference() {
 }
 
 #[test]
+fn a_stack_of_linears_is_the_linears_side_by_side() {
+    // k linears reading one input, their parameters stacked: the same outputs and gradients
+    // as the linears one by one (f32), and the same as their f16 path in an f16 recording.
+    use velox::models::layers::linear::LinearStack;
+    use velox::models::params::{Init, ParamStore};
+    let gpu = gpu();
+    let (k, n, din, dout) = (3, 37, 24, 40);
+    let mut b = ParamStore::builder();
+    for i in 0..k {
+        b.add(&format!("l{i}.w"), &[din, dout], Init::Xavier).unwrap();
+        b.add(&format!("l{i}.b"), &[dout], Init::Normal { std: 0.5 }).unwrap();
+    }
+    let store = b.build(&gpu, 4).unwrap();
+    let names = |s: &str| (0..k).map(|i| format!("l{i}.{s}")).collect::<Vec<_>>();
+    let (w, bias) = (names("w"), names("b"));
+    let stack = LinearStack::new(
+        store.stacked(&w).unwrap().expect("registered one after another"),
+        store.stacked(&bias).unwrap(),
+    )
+    .unwrap();
+    let linears: Vec<Linear> = (0..k)
+        .map(|i| {
+            let p = |s: &str| Param::from_store(&store, s).unwrap();
+            Linear::new(p(&w[i]), Some(p(&bias[i]))).unwrap()
+        })
+        .collect();
+    let mut rng = Rng::new(12);
+    let x = upload(&[n, din], &rng.normal_vec(n * din));
+    let dy = rng.normal_vec(k * n * dout);
+    let dx0 = rng.normal_vec(n * din);
+    for precision in [velox::engine::Precision::F32, velox::engine::Precision::F16] {
+        let mut r1 = rec();
+        r1.set_precision(precision);
+        store.zero_grads(&mut r1).unwrap();
+        let (ys, cache) = stack.forward(&mut r1, &x).unwrap();
+        let dx_stack = upload(&[n, din], &dx0);
+        stack.grads_into(&mut r1, &cache, &upload(&[k, n, dout], &dy), Some((&dx_stack, true))).unwrap();
+        r1.submit().unwrap();
+        let (y_stack, g_stack) = (read(&ys), read(store.flat_grads()));
+        let mut r2 = rec();
+        r2.set_precision(precision);
+        store.zero_grads(&mut r2).unwrap();
+        let dx_one = upload(&[n, din], &dx0);
+        let mut y_one = Vec::new();
+        for (i, l) in linears.iter().enumerate() {
+            let (y, c) = l.forward(&mut r2, &x).unwrap();
+            y_one.push(y);
+            let d = upload(&[n, dout], &dy[i * n * dout..(i + 1) * n * dout]);
+            l.grads_into(&mut r2, &c, &d, &dx_one, true).unwrap();
+        }
+        r2.submit().unwrap();
+        let y_one: Vec<f32> = y_one.iter().flat_map(read).collect();
+        let what = format!("stack of {k} in {precision:?}");
+        assert_nmse(&format!("y {what}"), &y_stack, &f64s(&y_one), 1e-13);
+        assert_nmse(&format!("grads {what}"), &g_stack, &f64s(&read(store.flat_grads())), 1e-13);
+        assert_nmse(&format!("dx {what}"), &read(&dx_stack), &f64s(&read(&dx_one)), 1e-13);
+    }
+    // Parameters with others between them do not stack.
+    let mut b = ParamStore::builder();
+    for name in ["a", "between", "c"] {
+        b.add(name, &[4, 16], Init::Xavier).unwrap();
+    }
+    let store = b.build(&gpu, 0).unwrap();
+    assert!(store.stacked(&["a", "c"]).unwrap().is_none());
+    assert!(store.stacked(&["a", "between", "c"]).unwrap().is_some());
+}
+
+#[test]
+fn norms_add_a_residual_gradient_in_their_backward_pass() {
+    let mut rng = Rng::new(21);
+    let (n, width) = (19, 48);
+    let x = upload(&[n, width], &rng.normal_vec(n * width));
+    let dy = upload(&[n, width], &rng.normal_vec(n * width));
+    let res = rng.normal_vec(n * width);
+    let rms =
+        RmsNorm::new(param(&[width], &rng.uniform_vec(width, 0.5, 1.5), &vec![0.0; width]), 1e-6).unwrap();
+    let affine = (
+        param(&[width], &rng.normal_vec(width), &vec![0.0; width]),
+        param(&[width], &vec![0.0; width], &vec![0.0; width]),
+    );
+    let ln = LayerNorm::new(width, Some(affine), 1e-6).unwrap();
+    let mut rec = rec();
+    let (_, rc) = rms.forward(&mut rec, &x).unwrap();
+    let (_, lc) = ln.forward(&mut rec, &x).unwrap();
+    let plain = [rms.backward(&mut rec, &rc, &dy).unwrap(), ln.backward(&mut rec, &lc, &dy).unwrap()];
+    let res_t = upload(&[n, width], &res);
+    let plus = [
+        rms.backward_plus(&mut rec, &rc, &dy, Some(&res_t)).unwrap(),
+        ln.backward_plus(&mut rec, &lc, &dy, Some(&res_t)).unwrap(),
+    ];
+    let wrong = upload(&[n, width + 1], &vec![0.0; n * (width + 1)]);
+    assert!(rms.backward_plus(&mut rec, &rc, &dy, Some(&wrong)).is_err());
+    rec.submit().unwrap();
+    for (name, (a, b)) in ["rmsnorm", "layernorm"].iter().zip(plain.iter().zip(&plus)) {
+        let want: Vec<f64> = read(a).iter().zip(&res).map(|(v, r)| *v as f64 + *r as f64).collect();
+        assert_nmse(&format!("{name} dx + residual"), &read(b), &want, 1e-14);
+    }
+}
+
+#[test]
 fn linear_in_an_f16_recording_reads_rounded_operands() {
     // The f16 path: x and W rounded to f16, f32 accumulation, the bias added in f32. A weight
     // without an f16 copy (Param::new) is rounded as the layer runs.

@@ -22,5 +22,5 @@ pub mod tensor;
 pub use caps::Caps;
 pub use device::{list_devices, DeviceSummary, Gpu};
 pub use error::{Error, Result};
-pub use recorder::{Finished, NarrowMatmul, Precision, Recorder};
+pub use recorder::{Completion, Finished, NarrowMatmul, Precision, Recorder};
 pub use tensor::{DType, Element, Tensor};

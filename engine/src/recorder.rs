@@ -7,6 +7,7 @@
 //! shader. Workgroup counts above the per-dimension limit are folded into a second dimension;
 //! kernels recover the linear workgroup index as `wid.x + wid.y * nwg.x`.
 
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use ash::vk;
@@ -24,8 +25,8 @@ const PROFILE_TIMESTAMPS: u32 = 16384;
 /// The precision a recording's layers compute in. The ops take their operands' types as given;
 /// the model layers read this to choose (`velox_models::layers`): `F32` everywhere, or `F16`,
 /// where matrix products and attention read f16 operands (weights from a store's f16 mirror,
-/// activations cast before the product) and accumulate in f32, and everything else stays f32.
-/// Training runs in f32; the f16 path is for inference.
+/// activations cast before the product) and accumulate in f32, and everything else stays f32;
+/// in training the backward products read f16 operands too (mixed-precision training).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Precision {
     #[default]
@@ -72,6 +73,32 @@ pub struct Recorder {
     capacity: u32,
     /// With `VELOX_PROFILE`: the query written before each dispatch, and its kernel.
     profiled: Vec<(u32, KernelId)>,
+    /// Set once the recording has run to completion (see [`Completion`]).
+    done: Completion,
+}
+
+/// Whether a recording has run: what a result cached across recordings (an attention work
+/// list) checks before another recording reads it. Cloned handles share the flag.
+#[derive(Clone, Debug, Default)]
+pub struct Completion(Arc<AtomicBool>);
+
+impl Completion {
+    /// The recording finished on the device (its `submit` returned successfully).
+    pub fn is_done(&self) -> bool {
+        self.0.load(Ordering::Acquire)
+    }
+
+    /// Whether the two handles are of the same recording.
+    pub fn same(&self, other: &Completion) -> bool {
+        Arc::ptr_eq(&self.0, &other.0)
+    }
+
+    /// Whether work recorded in the recording of `self` is visible to later dispatches of the
+    /// recording `now`: the same recording (the recorder's barriers order them), or one that
+    /// has finished.
+    pub fn visible_in(&self, now: &Completion) -> bool {
+        self.same(now) || self.is_done()
+    }
 }
 
 /// What a finished recording reports.
@@ -115,6 +142,7 @@ impl Gpu {
             narrow_matmul: NarrowMatmul::Device,
             capacity: 0,
             profiled: Vec::new(),
+            done: Completion::default(),
         };
         let begin = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
         // SAFETY: a freshly allocated command buffer.
@@ -398,6 +426,11 @@ impl Recorder {
         self.dispatches
     }
 
+    /// This recording's completion flag, set when [`Recorder::submit`] has waited for it.
+    pub fn completion(&self) -> &Completion {
+        &self.done
+    }
+
     /// Submits the recording and waits for it to finish.
     pub fn submit(mut self) -> Result<Finished> {
         let device = self.gpu.device().clone();
@@ -416,6 +449,7 @@ impl Recorder {
             self.submitted = true;
             device.wait_for_fences(&[self.fence], true, u64::MAX).vk("vkWaitForFences")?;
         }
+        self.done.0.store(true, Ordering::Release);
         let mut timestamps_ns = Vec::new();
         if let (Some(pool), n) = (self.queries, self.timestamps) {
             if n > 0 {

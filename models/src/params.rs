@@ -363,6 +363,31 @@ impl ParamStore {
         self.loss_scale = scale;
     }
 
+    /// The parameters `names`, all of one shape `S`, as one parameter `[names.len(), S..]`
+    /// (views of the value, gradient and f16 buffers) when they lie one after another in the
+    /// buffers; `None` when they do not (padding between them).
+    pub fn stacked<S: AsRef<str>>(&self, names: &[S]) -> Result<Option<crate::layers::Param>> {
+        let infos = names
+            .iter()
+            .map(|n| self.find(n.as_ref()).map(|i| &self.specs[i]))
+            .collect::<Result<Vec<_>>>()?;
+        let Some(first) = infos.first() else {
+            return Err(Error::Invalid("a stack of no parameters".into()));
+        };
+        if infos.iter().any(|i| i.shape != first.shape) {
+            let names: Vec<&str> = names.iter().map(AsRef::as_ref).collect();
+            return Err(Error::Invalid(format!("parameters {names:?} differ in shape: they do not stack")));
+        }
+        let consecutive = infos.windows(2).all(|w| w[1].offset == w[0].offset + w[0].numel);
+        if !consecutive {
+            return Ok(None);
+        }
+        let shape: Vec<usize> = std::iter::once(infos.len()).chain(first.shape.iter().copied()).collect();
+        let value = self.params.view(first.offset, &shape)?;
+        let p = crate::layers::Param::from_tensors(value, self.grads.view(first.offset, &shape)?)?;
+        Ok(Some(crate::layers::Param { half: Some(self.half.view(first.offset, &shape)?), ..p }))
+    }
+
     /// The gradient of the parameter called `name` (same shape, in the flat gradient buffer).
     pub fn grad(&self, name: &str) -> Result<&Tensor> {
         Ok(&self.views[self.find(name)?].1)

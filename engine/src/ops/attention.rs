@@ -12,9 +12,10 @@ use crate::error::{Error, Result};
 use crate::kernels::{self, KernelId};
 use crate::ops::fill::fill_bits;
 use crate::ops::scan::exclusive_scan;
-use crate::recorder::Recorder;
+use crate::recorder::{Completion, Recorder};
 use crate::tensor::{DType, Tensor};
 use crate::Gpu;
+use std::sync::{Arc, Mutex};
 
 /// Rows per work item and per staged tile of the portable kernels (`B` in the shader).
 pub const BLOCK: usize = 32;
@@ -22,13 +23,46 @@ pub const BLOCK: usize = 32;
 pub const HEAD_DIMS: [usize; 4] = [16, 32, 64, 72];
 
 /// Segment boundaries: two u32 tensors of `S + 1` offsets each.
+///
+/// The kernels walk work lists built from the offsets (blocks of rows, each in one segment;
+/// four dispatches each). The layers of a model attend over the same segments many times, so
+/// the lists are built once and kept here, shared by clones, for every later attention over
+/// these segments in the same recording or after it has run.
 #[derive(Clone, Debug)]
 pub struct Segments {
     pub q_offsets: Tensor,
     pub k_offsets: Tensor,
+    /// `Some(n)` when the keys of the segments are known to be exactly rows `0..n`, each in
+    /// one segment: the backward pass then writes every row of dk and dv and needs no zeroed
+    /// start.
+    all_keys: Option<usize>,
+    lists: Arc<Mutex<Vec<WorkList>>>,
+}
+
+/// A cached work list: over the query (`keys` false) or key offsets, in blocks of `block`
+/// rows, recorded in the recording of `ready`.
+#[derive(Clone, Debug)]
+struct WorkList {
+    keys: bool,
+    block: usize,
+    rows: usize,
+    list: Tensor,
+    capacity: usize,
+    ready: Completion,
 }
 
 impl Segments {
+    /// Segments from offsets on the device (u32 `[S + 1]` each, non-decreasing).
+    pub fn new(q_offsets: Tensor, k_offsets: Tensor) -> Segments {
+        Segments { q_offsets, k_offsets, all_keys: None, lists: Default::default() }
+    }
+
+    /// Segments whose keys are exactly rows `0..keys`, each in one segment (offsets that
+    /// start at 0 and end at `keys`, as a grouping of every row gives).
+    pub fn covering_keys(q_offsets: Tensor, k_offsets: Tensor, keys: usize) -> Segments {
+        Segments { all_keys: Some(keys), ..Segments::new(q_offsets, k_offsets) }
+    }
+
     /// One segment: every query sees every key.
     pub fn dense(gpu: &Gpu, nq: usize, nk: usize) -> Result<Segments> {
         Segments::from_lengths(gpu, &[nq], &[nk])
@@ -53,10 +87,37 @@ impl Segments {
             Ok(out)
         };
         let (qo, ko) = (offsets(q_lens)?, offsets(k_lens)?);
-        Ok(Segments {
-            q_offsets: Tensor::from_slice(gpu, &[qo.len()], &qo)?,
-            k_offsets: Tensor::from_slice(gpu, &[ko.len()], &ko)?,
-        })
+        let keys = *ko.last().expect("one offset at least") as usize;
+        Ok(Segments::covering_keys(
+            Tensor::from_slice(gpu, &[qo.len()], &qo)?,
+            Tensor::from_slice(gpu, &[ko.len()], &ko)?,
+            keys,
+        ))
+    }
+
+    /// The work list over the query or key rows in blocks of `block`, from the cache when it
+    /// holds one that `rec` may read.
+    fn work_list(
+        &self,
+        rec: &mut Recorder,
+        keys: bool,
+        rows: usize,
+        block: usize,
+    ) -> Result<(Tensor, usize)> {
+        let mut lists = self.lists.lock().unwrap();
+        let now = rec.completion().clone();
+        if let Some(w) = lists
+            .iter()
+            .find(|w| w.keys == keys && w.block == block && w.rows == rows && w.ready.visible_in(&now))
+        {
+            return Ok((w.list.clone(), w.capacity));
+        }
+        let offsets = if keys { &self.k_offsets } else { &self.q_offsets };
+        let (list, capacity) = work_list(rec, offsets, rows, block)?;
+        // A list of a recording that never ran is of no use: replace it.
+        lists.retain(|w| !(w.keys == keys && w.block == block && w.rows == rows));
+        lists.push(WorkList { keys, block, rows, list: list.clone(), capacity, ready: now });
+        Ok((list, capacity))
     }
 
     pub fn count(&self) -> usize {
@@ -307,7 +368,7 @@ pub fn attention(
         DType::F16 => coop_forward_chosen(&gpu, d, nq, seg.count()).unwrap_or((kern.fwd_f16, BLOCK)),
         _ => (kern.fwd, BLOCK),
     };
-    let (list, capacity) = work_list(rec, &seg.q_offsets, nq, block)?;
+    let (list, capacity) = seg.work_list(rec, false, nq, block)?;
     let p = params(h, capacity, scale, nq, nk)?;
     let args = [q, k, v, &seg.q_offsets, &seg.k_offsets, &list, &o, &lse];
     rec.dispatch_linear(kernel, (capacity * h) as u64, &args, &p)?;
@@ -358,22 +419,25 @@ pub fn attention_backward(
     if h == 0 {
         return Ok(AttentionGrads { dq, dk, dv });
     }
-    // Keys outside every segment get no gradient from the kernels: start from zeros.
-    fill_bits(rec, &dk, 0)?;
-    fill_bits(rec, &dv, 0)?;
+    // Keys outside every segment get no gradient from the kernels: start from zeros, unless
+    // the segments hold every key.
+    if seg.all_keys != Some(nk) {
+        fill_bits(rec, &dk, 0)?;
+        fill_bits(rec, &dv, 0)?;
+    }
     let delta = Tensor::empty(&gpu, &[nq, h], DType::F32)?;
     let kern = kernels_for(d).expect("checked");
     let (dq_kernel, dkv_kernel) =
         if q.dtype() == DType::F16 { (kern.dq_f16, kern.dkv_f16) } else { (kern.dq, kern.dkv) };
     let (o, lse) = (&out.o, &out.lse);
     if nq > 0 {
-        let (q_list, q_capacity) = work_list(rec, &seg.q_offsets, nq, BLOCK)?;
+        let (q_list, q_capacity) = seg.work_list(rec, false, nq, BLOCK)?;
         let p = params(h, q_capacity, scale, nq, nk)?;
         let args = [q, k, v, &seg.q_offsets, &seg.k_offsets, &q_list, o, lse, d_o, &delta, &dq];
         rec.dispatch_linear(dq_kernel, (q_capacity * h) as u64, &args, &p)?;
     }
     if nk > 0 {
-        let (k_list, k_capacity) = work_list(rec, &seg.k_offsets, nk, BLOCK)?;
+        let (k_list, k_capacity) = seg.work_list(rec, true, nk, BLOCK)?;
         let p = params(h, k_capacity, scale, nq, nk)?;
         let args = [q, k, v, &seg.q_offsets, &seg.k_offsets, &k_list, lse, d_o, &delta, &dk, &dv];
         rec.dispatch_linear(dkv_kernel, (k_capacity * h) as u64, &args, &p)?;

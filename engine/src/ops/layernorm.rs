@@ -6,7 +6,9 @@
 
 use crate::error::{Error, Result};
 use crate::kernels::{LAYERNORM_BACKWARD, LAYERNORM_FORWARD, LAYERNORM_PARAM_GRADS};
-use crate::ops::rmsnorm::{add_partials, check_vector, chunking, row_groups, row_lanes, rows_and_width};
+use crate::ops::rmsnorm::{
+    add_partials, check_residual, check_vector, chunking, row_groups, row_lanes, rows_and_width,
+};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
@@ -19,7 +21,8 @@ struct Params {
     rows_per_chunk: u32,
     affine: u32,
     lanes: u32,
-    _pad: [u32; 2],
+    residual: u32,
+    _pad: u32,
 }
 
 /// What the forward saves for the backward.
@@ -52,13 +55,15 @@ pub fn layernorm(
     let rstd = Tensor::empty(x.gpu(), stats_shape, DType::F32)?;
     let lanes = row_lanes(w32);
     let affine = affine.is_some() as u32;
-    let p = Params { rows, width: w32, eps, rows_per_chunk: 0, affine, lanes, _pad: [0; 2] };
+    let p = Params { rows, width: w32, eps, rows_per_chunk: 0, affine, lanes, residual: 0, _pad: 0 };
     rec.dispatch_linear(LAYERNORM_FORWARD, row_groups(rows, lanes), &[x, w, b, &y, &mean, &rstd], &p)?;
     Ok(LayerNormOut { y, mean, rstd })
 }
 
-/// Backward of [`layernorm`]: returns `dx`. With `affine = Some((w, dw, db))` the weight enters
-/// `dx` and the parameter gradients are added into `dw` and `db`.
+/// Backward of [`layernorm`]: returns `dx` (plus `residual`, when given). With
+/// `affine = Some((w, dw, db))` the weight enters `dx` and the parameter gradients are added
+/// into `dw` and `db`.
+#[allow(clippy::too_many_arguments)]
 pub fn layernorm_backward(
     rec: &mut Recorder,
     x: &Tensor,
@@ -67,8 +72,10 @@ pub fn layernorm_backward(
     mean: &Tensor,
     rstd: &Tensor,
     dy: &Tensor,
+    residual: Option<&Tensor>,
 ) -> Result<Tensor> {
     let (rows, w32) = rows_and_width("layernorm backward", x, width)?;
+    check_residual("layernorm backward", residual, x)?;
     check_vector("layernorm mean", mean, rows as usize)?;
     check_vector("layernorm rstd", rstd, rows as usize)?;
     if dy.shape() != x.shape() || dy.dtype() != DType::F32 {
@@ -91,10 +98,17 @@ pub fn layernorm_backward(
         rows_per_chunk: 0,
         affine: affine.is_some() as u32,
         lanes: row_lanes(w32),
-        _pad: [0; 2],
+        residual: residual.is_some() as u32,
+        _pad: 0,
     };
     let groups = row_groups(rows, p.lanes);
-    rec.dispatch_linear(LAYERNORM_BACKWARD, groups, &[x, w, mean, rstd, dy, &dx], &p)?;
+    // Without a residual, dy stands in for the binding the kernel then does not read.
+    rec.dispatch_linear(
+        LAYERNORM_BACKWARD,
+        groups,
+        &[x, w, mean, rstd, dy, &dx, residual.unwrap_or(dy)],
+        &p,
+    )?;
     if let Some((_, dw, db)) = affine {
         let (per, chunks) = chunking(rows, x.gpu().caps().max_workgroup_count[1]);
         p.rows_per_chunk = per;

@@ -18,7 +18,7 @@ use crate::kernels::{
     MATMUL_SMALL_TS32_MAIN, MATMUL_SMALL_TS64_MAIN,
 };
 use crate::ops::binary::{binary_into, Binary};
-use crate::ops::reduce::{reduce, Reduce};
+use crate::ops::reduce::{reduce_into, Reduce};
 use crate::recorder::{NarrowMatmul, Recorder};
 use crate::tensor::{DType, Tensor};
 
@@ -387,12 +387,7 @@ fn split_k_into(
         let tail = Params { k: rem as u32, batch_base: splits as u32, ..split };
         rec.dispatch(kernel, [gx, gy, 1], &[a, b, &partial, b], &tail)?;
     }
-    let sums = reduce(rec, &partial, 0, Reduce::Sum)?.reshape(out.shape())?;
-    if accumulate {
-        binary_into(rec, out, &sums, out, Binary::Add)
-    } else {
-        rec.copy(&sums, out)
-    }
+    reduce_into(rec, &partial, 0, Reduce::Sum, out, accumulate)
 }
 
 /// The kernel for one product (`narrow_choice`: the recording's choice for narrow f32 ones).

@@ -5,8 +5,7 @@
 
 use crate::error::{Error, Result};
 use crate::kernels::{RMSNORM_BACKWARD, RMSNORM_FORWARD, RMSNORM_PARAM_GRADS};
-use crate::ops::binary::{binary_into, Binary};
-use crate::ops::reduce::{reduce, Reduce};
+use crate::ops::reduce::{reduce_into, Reduce};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
@@ -18,6 +17,7 @@ struct Params {
     eps: f32,
     rows_per_chunk: u32,
     lanes: u32,
+    residual: u32,
 }
 
 /// Rows of `x` over its last axis, checked against the width of `w` (rows, width).
@@ -59,8 +59,17 @@ pub(crate) fn chunking(rows: u32, max_groups: u32) -> (u32, u32) {
 
 /// `grad += sum over axis 0 of partial [chunks, width]`.
 pub(crate) fn add_partials(rec: &mut Recorder, partial: &Tensor, grad: &Tensor) -> Result<()> {
-    let sums = reduce(rec, partial, 0, Reduce::Sum)?.reshape(grad.shape())?;
-    binary_into(rec, grad, &sums, grad, Binary::Add)
+    reduce_into(rec, partial, 0, Reduce::Sum, grad, true)
+}
+
+/// Checks a residual gradient that a norm's backward adds into `dx` (like `x`).
+pub(crate) fn check_residual(what: &str, residual: Option<&Tensor>, x: &Tensor) -> Result<()> {
+    match residual {
+        Some(r) if r.shape() != x.shape() || r.dtype() != DType::F32 => {
+            Err(Error::Shape(format!("{what}: the residual gradient {r:?} must match x {x:?}")))
+        }
+        _ => Ok(()),
+    }
 }
 
 /// RMSNorm of every row of `x` (last axis = `w.numel()`): returns `y` and the per-row `rstd`
@@ -72,13 +81,14 @@ pub fn rmsnorm(rec: &mut Recorder, x: &Tensor, w: &Tensor, eps: f32) -> Result<(
     let y = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
     let rstd = Tensor::empty(x.gpu(), &x.shape()[..x.shape().len() - 1], DType::F32)?;
     let lanes = row_lanes(width);
-    let p = Params { rows, width, eps, rows_per_chunk: 0, lanes };
+    let p = Params { rows, width, eps, rows_per_chunk: 0, lanes, residual: 0 };
     rec.dispatch_linear(RMSNORM_FORWARD, row_groups(rows, lanes), &[x, w, &y, &rstd], &p)?;
     Ok((y, rstd))
 }
 
-/// Backward of [`rmsnorm`]: returns `dx` and, when `dw` is given, adds the weight gradient
-/// into it (accumulation, so a weight used twice sums its gradients).
+/// Backward of [`rmsnorm`]: returns `dx` (plus `residual`, when given: the gradient of a
+/// pre-norm residual block's input in one pass) and, when `dw` is given, adds the weight
+/// gradient into it (accumulation, so a weight used twice sums its gradients).
 pub fn rmsnorm_backward(
     rec: &mut Recorder,
     x: &Tensor,
@@ -86,6 +96,7 @@ pub fn rmsnorm_backward(
     rstd: &Tensor,
     dy: &Tensor,
     dw: Option<&Tensor>,
+    residual: Option<&Tensor>,
 ) -> Result<Tensor> {
     let width = w.numel();
     check_vector("rmsnorm weight", w, width)?;
@@ -94,10 +105,14 @@ pub fn rmsnorm_backward(
     if dy.shape() != x.shape() || dy.dtype() != DType::F32 {
         return Err(Error::Shape(format!("rmsnorm backward: dy {dy:?} must match x {x:?}")));
     }
+    check_residual("rmsnorm backward", residual, x)?;
     let dx = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
     let lanes = row_lanes(width);
-    let mut p = Params { rows, width, eps: 0.0, rows_per_chunk: 0, lanes };
-    rec.dispatch_linear(RMSNORM_BACKWARD, row_groups(rows, lanes), &[x, w, rstd, dy, &dx], &p)?;
+    let mut p =
+        Params { rows, width, eps: 0.0, rows_per_chunk: 0, lanes, residual: residual.is_some() as u32 };
+    // Without a residual, dy stands in for the binding the kernel then does not read.
+    let args = [x, w, rstd, dy, &dx, residual.unwrap_or(dy)];
+    rec.dispatch_linear(RMSNORM_BACKWARD, row_groups(rows, lanes), &args, &p)?;
     if let Some(dw) = dw {
         check_vector("rmsnorm weight gradient", dw, width as usize)?;
         let (per, chunks) = chunking(rows, x.gpu().caps().max_workgroup_count[1]);

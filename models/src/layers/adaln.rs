@@ -6,18 +6,17 @@
 //! - [`GatedResidual`]: `out = res + gate * y`;
 //!   backward `dres = dout`, `dgate = sum_t dout * y`, `dy = dout * gate`.
 
-use velox_engine::ops::binary::{binary, binary_into, Binary};
+use velox_engine::ops::adaln;
 use velox_engine::ops::reduce::{reduce, Reduce};
-use velox_engine::ops::unary::{unary, Unary};
-use velox_engine::{DType, Error, Recorder, Result, Tensor};
+use velox_engine::{Recorder, Result, Tensor};
 
-/// `[B, T, D]` and `[B, D]` agree; returns the per-sample tensor as `[B, 1, D]`.
-fn per_sample(what: &str, x: &Tensor, s: &Tensor) -> Result<Tensor> {
-    let xs = x.shape();
-    if x.dtype() != DType::F32 || s.dtype() != DType::F32 || xs.len() != 3 || s.shape() != [xs[0], xs[2]] {
-        return Err(Error::Shape(format!("{what}: needs f32 x [B, T, D] and [B, D], got {x:?} and {s:?}")));
+/// The per-sample gradient `[B, D]` of a `[B, T, D]` one: summed over T (a view when T = 1).
+fn per_sample_sum(rec: &mut Recorder, g: &Tensor) -> Result<Tensor> {
+    let s = g.shape();
+    match s[1] {
+        1 => g.reshape(&[s[0], s[2]]),
+        _ => reduce(rec, g, 1, Reduce::Sum),
     }
-    s.reshape(&[xs[0], 1, xs[2]])
 }
 
 /// `y = x * (1 + scale) + shift`.
@@ -26,17 +25,18 @@ pub struct Modulate;
 #[derive(Clone, Debug)]
 pub struct ModulateCache {
     x: Tensor,
-    /// `1 + scale` as `[B, 1, D]`.
-    one_plus_scale: Tensor,
+    scale: Tensor,
 }
 
 pub struct ModulateGrads {
     pub dx: Tensor,
+    /// `dy` summed over T: a view of `dy` itself when T = 1 (do not write it in place).
     pub dshift: Tensor,
     pub dscale: Tensor,
 }
 
 impl Modulate {
+    /// One pass ([`adaln::modulate`]).
     pub fn forward(
         &self,
         rec: &mut Recorder,
@@ -44,20 +44,14 @@ impl Modulate {
         shift: &Tensor,
         scale: &Tensor,
     ) -> Result<(Tensor, ModulateCache)> {
-        let shift = per_sample("modulate shift", x, shift)?;
-        let scale = per_sample("modulate scale", x, scale)?;
-        let one_plus_scale = unary(rec, &scale, Unary::Affine(1.0, 1.0))?;
-        let y = binary(rec, x, &one_plus_scale, Binary::Mul)?;
-        binary_into(rec, &y, &shift, &y, Binary::Add)?;
-        Ok((y, ModulateCache { x: x.clone(), one_plus_scale }))
+        let y = adaln::modulate(rec, x, scale, shift)?;
+        Ok((y, ModulateCache { x: x.clone(), scale: scale.clone() }))
     }
 
+    /// One pass when T = 1; two more sums otherwise.
     pub fn backward(&self, rec: &mut Recorder, cache: &ModulateCache, dy: &Tensor) -> Result<ModulateGrads> {
-        let dx = binary(rec, dy, &cache.one_plus_scale, Binary::Mul)?;
-        let dshift = reduce(rec, dy, 1, Reduce::Sum)?;
-        let dy_x = binary(rec, dy, &cache.x, Binary::Mul)?;
-        let dscale = reduce(rec, &dy_x, 1, Reduce::Sum)?;
-        Ok(ModulateGrads { dx, dshift, dscale })
+        let (dx, dy_x) = adaln::backward(rec, &cache.x, &cache.scale, dy, 1.0)?;
+        Ok(ModulateGrads { dx, dshift: per_sample_sum(rec, dy)?, dscale: per_sample_sum(rec, &dy_x)? })
     }
 }
 
@@ -66,7 +60,7 @@ pub struct GatedResidual;
 
 #[derive(Clone, Debug)]
 pub struct GatedResidualCache {
-    /// `[B, 1, D]`
+    /// `[B, D]`
     gate: Tensor,
     y: Tensor,
 }
@@ -79,6 +73,7 @@ pub struct GatedResidualGrads {
 }
 
 impl GatedResidual {
+    /// One pass ([`adaln::gate`]).
     pub fn forward(
         &self,
         rec: &mut Recorder,
@@ -86,24 +81,18 @@ impl GatedResidual {
         gate: &Tensor,
         y: &Tensor,
     ) -> Result<(Tensor, GatedResidualCache)> {
-        let gate = per_sample("gated residual gate", y, gate)?;
-        if res.shape() != y.shape() {
-            return Err(Error::Shape(format!("gated residual: res {res:?} and y {y:?} differ")));
-        }
-        let out = binary(rec, y, &gate, Binary::Mul)?;
-        binary_into(rec, &out, res, &out, Binary::Add)?;
-        Ok((out, GatedResidualCache { gate, y: y.clone() }))
+        let out = adaln::gate(rec, y, gate, res)?;
+        Ok((out, GatedResidualCache { gate: gate.clone(), y: y.clone() }))
     }
 
+    /// One pass when T = 1; one more sum otherwise.
     pub fn backward(
         &self,
         rec: &mut Recorder,
         cache: &GatedResidualCache,
         dout: &Tensor,
     ) -> Result<GatedResidualGrads> {
-        let dy = binary(rec, dout, &cache.gate, Binary::Mul)?;
-        let dout_y = binary(rec, dout, &cache.y, Binary::Mul)?;
-        let dgate = reduce(rec, &dout_y, 1, Reduce::Sum)?;
-        Ok(GatedResidualGrads { dres: dout.clone(), dgate, dy })
+        let (dy, dout_y) = adaln::backward(rec, &cache.y, &cache.gate, dout, 0.0)?;
+        Ok(GatedResidualGrads { dres: dout.clone(), dgate: per_sample_sum(rec, &dout_y)?, dy })
     }
 }

@@ -2,6 +2,7 @@
 //!
 //! Backward: `dx = dy @ W^T`, `dW += x^T @ dy`, `db += sum over rows of dy`.
 
+use velox_engine::ops::binary::{binary_into, Binary};
 use velox_engine::ops::cast::cast;
 use velox_engine::ops::matmul::{matmul, matmul_bias, matmul_into};
 use velox_engine::ops::reduce::{reduce_into, Reduce};
@@ -108,6 +109,84 @@ impl Linear {
         if let (Some((dx, accumulate)), Some(w)) = (dx, w) {
             let dx2 = as_rows("linear backward dx", dx, self.in_features)?;
             matmul_into(rec, &dym, &w, false, true, &dx2, accumulate)?;
+        }
+        Ok(())
+    }
+}
+
+/// `k` linear layers that read the same input, their weights `[k, in, out]` and biases
+/// `[k, out]` stacked in one tensor each (parameters that lie one after another in a store,
+/// [`crate::params::ParamStore::stacked`]): the k products are one batched product, the k
+/// weight gradients another, the bias gradients one sum. An adaLN block's six modulations take
+/// 2 dispatches forward and 4 backward this way instead of 6 and 18.
+pub struct LinearStack {
+    /// `[k, in, out]`
+    pub weight: Param,
+    /// `[k, out]`
+    pub bias: Option<Param>,
+    pub k: usize,
+    pub in_features: usize,
+    pub out_features: usize,
+}
+
+impl LinearStack {
+    pub fn new(weight: Param, bias: Option<Param>) -> Result<LinearStack> {
+        let shape = weight.shape().to_vec();
+        if shape.len() != 3 {
+            return Err(velox_engine::Error::Shape(format!(
+                "stacked linear weights must be [k, in, out], got {shape:?}"
+            )));
+        }
+        if let Some(b) = &bias {
+            expect_shape("stacked linear biases", b, &[shape[0], shape[2]])?;
+        }
+        Ok(LinearStack { weight, bias, k: shape[0], in_features: shape[1], out_features: shape[2] })
+    }
+
+    /// `y [k, rows, out]` for `x [rows, in]`: layer i's output is `y[i]`. Precision as in
+    /// [`Linear::forward`].
+    pub fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<(Tensor, LinearCache)> {
+        let x2 = as_rows("stacked linear", x, self.in_features)?;
+        let (xm, w) = match rec.precision() {
+            Precision::F32 => (x2.clone(), self.weight.value.clone()),
+            Precision::F16 => (cast(rec, &x2, DType::F16)?, self.weight.value_f16(rec)?),
+        };
+        let y = matmul(rec, &xm, &w, false, false)?;
+        if let Some(b) = &self.bias {
+            let b = b.value.reshape(&[self.k, 1, self.out_features])?;
+            binary_into(rec, &y, &b, &y, Binary::Add)?;
+        }
+        Ok((y, LinearCache { x: xm, x_shape: x.shape().to_vec() }))
+    }
+
+    /// Adds the gradients for `dy [k, rows, out]` and, with `dx`, writes `dx = sum_i dy[i]
+    /// W[i]^T` there (or adds it, `accumulate`).
+    pub fn grads_into(
+        &self,
+        rec: &mut Recorder,
+        cache: &LinearCache,
+        dy: &Tensor,
+        dx: Option<(&Tensor, bool)>,
+    ) -> Result<()> {
+        let rows = cache.x.shape()[0];
+        let expect = [self.k, rows, self.out_features];
+        if dy.dtype() != DType::F32 || dy.shape() != expect {
+            return Err(velox_engine::Error::Shape(format!(
+                "stacked linear backward: dy must be f32 {expect:?}, got {dy:?}"
+            )));
+        }
+        let (dym, w) = match cache.x.dtype() {
+            DType::F16 => (cast(rec, dy, DType::F16)?, dx.map(|_| self.weight.value_f16(rec)).transpose()?),
+            _ => (dy.clone(), Some(self.weight.value.clone())),
+        };
+        matmul_into(rec, &cache.x, &dym, true, false, &self.weight.grad, true)?;
+        if let Some(b) = &self.bias {
+            reduce_into(rec, dy, 1, Reduce::Sum, &b.grad, true)?;
+        }
+        if let (Some((dx, accumulate)), Some(w)) = (dx, w) {
+            let parts = matmul(rec, &dym, &w, false, true)?;
+            let dx2 = as_rows("stacked linear backward dx", dx, self.in_features)?;
+            reduce_into(rec, &parts, 0, Reduce::Sum, &dx2, accumulate)?;
         }
         Ok(())
     }

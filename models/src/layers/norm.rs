@@ -35,7 +35,20 @@ impl RmsNorm {
 
     /// Adds `dw` into the weight's gradient and returns `dx`.
     pub fn backward(&self, rec: &mut Recorder, cache: &RmsNormCache, dy: &Tensor) -> Result<Tensor> {
-        rmsnorm_backward(rec, &cache.x, &self.weight.value, &cache.rstd, dy, Some(&self.weight.grad))
+        self.backward_plus(rec, cache, dy, None)
+    }
+
+    /// [`RmsNorm::backward`] with `residual` added into `dx` in the same pass: the input
+    /// gradient of a pre-norm residual block `x + f(norm(x))`, `residual` being its output's.
+    pub fn backward_plus(
+        &self,
+        rec: &mut Recorder,
+        cache: &RmsNormCache,
+        dy: &Tensor,
+        residual: Option<&Tensor>,
+    ) -> Result<Tensor> {
+        let (w, dw) = (&self.weight.value, Some(&self.weight.grad));
+        rmsnorm_backward(rec, &cache.x, w, &cache.rstd, dy, dw, residual)
     }
 }
 
@@ -71,7 +84,18 @@ impl LayerNorm {
 
     /// Adds `dw`, `db` into the gradients (with affine) and returns `dx`.
     pub fn backward(&self, rec: &mut Recorder, cache: &LayerNormCache, dy: &Tensor) -> Result<Tensor> {
+        self.backward_plus(rec, cache, dy, None)
+    }
+
+    /// [`LayerNorm::backward`] with `residual` added into `dx` in the same pass.
+    pub fn backward_plus(
+        &self,
+        rec: &mut Recorder,
+        cache: &LayerNormCache,
+        dy: &Tensor,
+        residual: Option<&Tensor>,
+    ) -> Result<Tensor> {
         let affine = self.affine.as_ref().map(|(w, b)| (&w.value, &w.grad, &b.grad));
-        layernorm_backward(rec, &cache.x, self.width, affine, &cache.mean, &cache.rstd, dy)
+        layernorm_backward(rec, &cache.x, self.width, affine, &cache.mean, &cache.rstd, dy, residual)
     }
 }

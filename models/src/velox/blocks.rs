@@ -101,11 +101,10 @@ impl FeedForward {
         Ok((binary(rec, x, &f, Binary::Add)?, FeedForwardCache { norm, ffn }))
     }
 
-    /// `dx = dy + RMSNorm'(SwiGLU'(dy))`.
+    /// `dx = dy + RMSNorm'(SwiGLU'(dy))` (the sum in the norm's pass).
     pub fn backward(&self, rec: &mut Recorder, cache: &FeedForwardCache, dy: &Tensor) -> Result<Tensor> {
         let dn = self.ffn.backward(rec, &cache.ffn, dy)?;
-        let dx = self.norm.backward(rec, &cache.norm, &dn)?;
-        binary(rec, dy, &dx, Binary::Add)
+        self.norm.backward_plus(rec, &cache.norm, &dn, Some(dy))
     }
 }
 
@@ -128,7 +127,8 @@ impl WindowLayout {
     pub fn from_ids(rec: &mut Recorder, ids: &Tensor, num_windows: u64) -> Result<WindowLayout> {
         let groups = group_by_window(rec, ids, num_windows)?;
         let inverse = invert_permutation(rec, &groups.order)?;
-        let segments = Segments { q_offsets: groups.offsets.clone(), k_offsets: groups.offsets };
+        // Every token is in the run of its window.
+        let segments = Segments::covering_keys(groups.offsets.clone(), groups.offsets, ids.numel());
         Ok(WindowLayout { order: groups.order, inverse, segments })
     }
 }
@@ -178,8 +178,7 @@ impl WindowLayer {
         let da_sorted = gather(rec, &dx1, &w.order)?;
         let (dn_sorted, _) = self.attn.backward(rec, &cache.attn, &da_sorted, &w.segments)?;
         let dn = gather(rec, &dn_sorted, &w.inverse)?;
-        let dx = self.norm.backward(rec, &cache.norm, &dn)?;
-        binary(rec, &dx1, &dx, Binary::Add)
+        self.norm.backward_plus(rec, &cache.norm, &dn, Some(&dx1))
     }
 }
 

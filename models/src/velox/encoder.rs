@@ -262,10 +262,7 @@ impl Encoder {
         }
         let cell_inverse = invert_permutation(rec, &cell_order)?;
         let one_each: Vec<u32> = (0..=(batch * k) as u32).collect();
-        let cells = Segments {
-            q_offsets: Tensor::from_slice(&gpu, &[batch * k + 1], &one_each)?,
-            k_offsets: cell_offsets,
-        };
+        let cells = Segments::new(Tensor::from_slice(&gpu, &[batch * k + 1], &one_each)?, cell_offsets);
         let windows = [
             WindowLayout::from_ids(rec, &window_ids_all[0], batch as u64 * grids[0].num_windows())?,
             WindowLayout::from_ids(rec, &window_ids_all[1], batch as u64 * grids[1].num_windows())?,

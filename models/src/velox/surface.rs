@@ -38,7 +38,7 @@ use crate::config::SurfaceConfig;
 use crate::layers::adaln::{GatedResidualCache, ModulateCache};
 use crate::layers::attention::MultiHeadAttentionCache;
 use crate::layers::feedforward::GeluMlpCache;
-use crate::layers::linear::LinearCache;
+use crate::layers::linear::{LinearCache, LinearStack};
 use crate::layers::norm::LayerNormCache;
 use crate::layers::{
     Fourier, GatedResidual, GeluMlp, LayerNorm, Linear, Loss, Modulate, MultiHeadAttention, Param,
@@ -99,7 +99,96 @@ struct Block {
     attn: MultiHeadAttention,
     mlp: GeluMlp,
     /// `BLOCK_ROLES`, each `time_embed -> width`.
-    adaln: Vec<Linear>,
+    adaln: Modulation,
+}
+
+/// The adaLN linears of a block or of the final layer, which all read the time embedding:
+/// one stacked product where the store holds their parameters one after another (it does as
+/// the decoder registers them), the linears one by one otherwise.
+struct Modulation {
+    linears: Vec<Linear>,
+    stack: Option<LinearStack>,
+}
+
+impl Modulation {
+    fn new(store: &ParamStore, bases: &[String]) -> Result<Modulation> {
+        let names = |suffix: &str| bases.iter().map(|b| format!("{b}.{suffix}")).collect::<Vec<_>>();
+        let (w, b) = (names("w"), names("b"));
+        let linears = w
+            .iter()
+            .zip(&b)
+            .map(|(w, b)| Linear::new(Param::from_store(store, w)?, Some(Param::from_store(store, b)?)))
+            .collect::<Result<Vec<_>>>()?;
+        let stack = match (store.stacked(&w)?, store.stacked(&b)?) {
+            (Some(w), Some(b)) => Some(LinearStack::new(w, Some(b))?),
+            _ => None,
+        };
+        Ok(Modulation { linears, stack })
+    }
+
+    /// The stack, where its output `[k, rows, width]` splits into views (the device's offset
+    /// alignment divides `rows * width`).
+    fn stack_for(&self, e: &Tensor) -> Option<&LinearStack> {
+        let s = self.stack.as_ref()?;
+        let rows = e.numel() / s.in_features.max(1);
+        (rows * s.out_features).is_multiple_of(e.view_alignment()).then_some(s)
+    }
+
+    /// Each linear's output `[rows, width]` for the time embedding `e [rows, time_embed]`;
+    /// `e_cache` keeps what the backward pass needs of `e` (once for every modulation).
+    fn forward(
+        &self,
+        rec: &mut Recorder,
+        e: &Tensor,
+        e_cache: &mut Option<LinearCache>,
+    ) -> Result<Vec<Tensor>> {
+        let Some(s) = self.stack_for(e) else {
+            return self
+                .linears
+                .iter()
+                .map(|l| {
+                    let (m, c) = l.forward(rec, e)?;
+                    e_cache.get_or_insert(c);
+                    Ok(m)
+                })
+                .collect();
+        };
+        let (y, c) = s.forward(rec, e)?;
+        e_cache.get_or_insert(c);
+        let chunk = y.numel() / s.k;
+        (0..s.k).map(|i| y.view(i * chunk, &[chunk / s.out_features, s.out_features])).collect()
+    }
+
+    /// Adds the gradients for `dm` (one per linear, `[rows, width]`) and adds their input
+    /// gradient into `de` (writes it when `*de_started` is false, then sets it).
+    fn backward(
+        &self,
+        rec: &mut Recorder,
+        e_cache: &LinearCache,
+        dm: &[&Tensor],
+        de: &Tensor,
+        de_started: &mut bool,
+    ) -> Result<()> {
+        match self.stack_for(de) {
+            Some(s) => {
+                let rows = de.numel() / s.in_features;
+                let all = Tensor::empty(de.gpu(), &[s.k, rows, s.out_features], DType::F32)?;
+                let chunk = rows * s.out_features;
+                for (i, d) in dm.iter().enumerate() {
+                    rec.copy(d, &all.view(i * chunk, &[rows, s.out_features])?)?;
+                }
+                s.grads_into(rec, e_cache, &all, Some((de, *de_started)))?;
+            }
+            None => {
+                for (l, d) in self.linears.iter().zip(dm) {
+                    l.grads_into(rec, e_cache, d, de, *de_started)?;
+                    *de_started = true;
+                }
+            }
+        }
+        *de_started = true;
+        Ok(())
+    }
 }
 
 pub struct SurfaceDecoder {
@@ -113,7 +202,7 @@ pub struct SurfaceDecoder {
     input_tau: Option<Linear>,
     time: TimeEmbedding,
     blocks: Vec<Block>,
-    final_adaln: Vec<Linear>,
+    final_adaln: Modulation,
     out: Linear,
     norm: LayerNorm,
 }
@@ -346,12 +435,11 @@ impl SurfaceDecoder {
     ) -> Result<SurfaceDecoder> {
         check_config(cfg, token_dim)?;
         let gpu = store.flat_params().gpu().clone();
-        let p = |s: &str| -> Result<Param> {
-            let n = format!("{prefix}.{s}");
-            Param::from_tensors(store.param(&n)?.clone(), store.grad(&n)?.clone())
-        };
+        let p = |s: &str| Param::from_store(store, &format!("{prefix}.{s}"));
         let lin = |w: &str, b: Option<&str>| -> Result<Linear> { Linear::new(p(w)?, b.map(p).transpose()?) };
-        let adaln = |base: &str| lin(&format!("{base}.w"), Some(&format!("{base}.b")));
+        let adaln = |bases: Vec<String>| {
+            Modulation::new(store, &bases.iter().map(|b| format!("{prefix}.{b}")).collect::<Vec<_>>())
+        };
         let mut blocks = Vec::with_capacity(cfg.blocks);
         for i in 0..cfg.blocks {
             let blk = |s: &str| format!("blocks.{i}.{s}");
@@ -368,8 +456,7 @@ impl SurfaceDecoder {
                 p(&blk("mlp.fc2.w"))?,
                 p(&blk("mlp.fc2.b"))?,
             )?;
-            let adaln =
-                BLOCK_ROLES.iter().map(|r| adaln(&blk(&format!("adaln.{r}")))).collect::<Result<Vec<_>>>()?;
+            let adaln = adaln(BLOCK_ROLES.iter().map(|r| blk(&format!("adaln.{r}"))).collect())?;
             blocks.push(Block { attn, mlp, adaln });
         }
         let tau_fourier = (cfg.tau_freqs > 0)
@@ -389,10 +476,7 @@ impl SurfaceDecoder {
                 fc2: lin("time.fc2.w", Some("time.fc2.b"))?,
             },
             blocks,
-            final_adaln: FINAL_ROLES
-                .iter()
-                .map(|r| adaln(&format!("final.adaln.{r}")))
-                .collect::<Result<Vec<_>>>()?,
+            final_adaln: adaln(FINAL_ROLES.iter().map(|r| format!("final.adaln.{r}")).collect())?,
             out: lin("out.w", Some("out.b"))?,
             norm: LayerNorm::new(cfg.width, None, LN_EPS)?,
         })
@@ -510,11 +594,6 @@ impl SurfaceDecoder {
         // Time embedding e [nt, time_embed] and the modulation chunks [nt, width].
         let (e, time) = self.time.forward(rec, t)?;
         let mut e_cache = None;
-        let mut modulation = |rec: &mut Recorder, l: &Linear| -> Result<Tensor> {
-            let (m, c) = l.forward(rec, &e)?;
-            e_cache.get_or_insert(c);
-            Ok(m)
-        };
 
         // Input features.
         let (fx, _) = self.xyz_fourier.forward(rec, x_t)?;
@@ -536,7 +615,7 @@ impl SurfaceDecoder {
         let mut h = h.reshape(&[b, tt, w])?;
         let mut blocks = Vec::with_capacity(self.blocks.len());
         for blk in &self.blocks {
-            let m: Vec<Tensor> = blk.adaln.iter().map(|l| modulation(rec, l)).collect::<Result<_>>()?;
+            let m = blk.adaln.forward(rec, &e, &mut e_cache)?;
             let (n1, ln1) = self.norm.forward(rec, &h)?;
             let (m1, mod1) = Modulate.forward(rec, &n1, &m[0], &m[1])?;
             let (a, attn) = blk.attn.forward(rec, &m1.reshape(&[n, w])?, Some(tokens), &seg)?;
@@ -548,7 +627,7 @@ impl SurfaceDecoder {
             blocks.push(BlockCache { ln1, mod1, attn, res1, ln2, mod2, mlp, res2 });
             h = h2;
         }
-        let m: Vec<Tensor> = self.final_adaln.iter().map(|l| modulation(rec, l)).collect::<Result<_>>()?;
+        let m = self.final_adaln.forward(rec, &e, &mut e_cache)?;
         let (nf, ln_final) = self.norm.forward(rec, &h)?;
         let (mf, mod_final) = Modulate.forward(rec, &nf, &m[0], &m[1])?;
         let (v, out) = self.out.forward(rec, &mf.reshape(&[n, w])?)?;
@@ -585,33 +664,22 @@ impl SurfaceDecoder {
         // The time embedding's gradient, summed over every modulation that reads it.
         let de = Tensor::empty(&gpu, &[nt, te], DType::F32)?;
         let mut de_started = false;
-        let mut modulation_grad = |rec: &mut Recorder, l: &Linear, dm: &Tensor| -> Result<()> {
-            l.grads_into(rec, &cache.e, dm, &de, de_started)?;
-            de_started = true;
-            Ok(())
-        };
 
         let dmf = self.out.backward(rec, &cache.out, dv)?;
         let g = Modulate.backward(rec, &cache.mod_final, &dmf.reshape(&[b, tt, w])?)?;
-        modulation_grad(rec, &self.final_adaln[0], &g.dshift)?;
-        modulation_grad(rec, &self.final_adaln[1], &g.dscale)?;
+        self.final_adaln.backward(rec, &cache.e, &[&g.dshift, &g.dscale], &de, &mut de_started)?;
         let mut dh = self.norm.backward(rec, &cache.ln_final, &g.dx)?;
 
         let dtokens = Tensor::empty(&gpu, &[cache.k, self.token_dim], DType::F32)?;
         let mut dtokens_started = false;
         for (blk, c) in self.blocks.iter().zip(&cache.blocks).rev() {
             // MLP branch: h2 = h1 + gate_m * mlp(mod(LN(h1))).
-            let r = GatedResidual.backward(rec, &c.res2, &dh)?;
-            modulation_grad(rec, &blk.adaln[5], &r.dgate)?;
-            let dm2 = blk.mlp.backward(rec, &c.mlp, &r.dy)?;
-            let g = Modulate.backward(rec, &c.mod2, &dm2)?;
-            modulation_grad(rec, &blk.adaln[3], &g.dshift)?;
-            modulation_grad(rec, &blk.adaln[4], &g.dscale)?;
-            let dn2 = self.norm.backward(rec, &c.ln2, &g.dx)?;
-            let dh1 = binary(rec, &r.dres, &dn2, Binary::Add)?;
+            let r2 = GatedResidual.backward(rec, &c.res2, &dh)?;
+            let dm2 = blk.mlp.backward(rec, &c.mlp, &r2.dy)?;
+            let g2 = Modulate.backward(rec, &c.mod2, &dm2)?;
+            let dh1 = self.norm.backward_plus(rec, &c.ln2, &g2.dx, Some(&r2.dres))?;
             // Attention branch: h1 = h + gate_a * attn(mod(LN(h)), tokens).
             let r = GatedResidual.backward(rec, &c.res1, &dh1)?;
-            modulation_grad(rec, &blk.adaln[2], &r.dgate)?;
             let (dm1, dc) = blk.attn.backward(rec, &c.attn, &r.dy.reshape(&[n, w])?, &cache.seg)?;
             let dc = dc.expect("cross-attention returns the context gradient");
             if dtokens_started {
@@ -621,10 +689,10 @@ impl SurfaceDecoder {
                 dtokens_started = true;
             }
             let g = Modulate.backward(rec, &c.mod1, &dm1.reshape(&[b, tt, w])?)?;
-            modulation_grad(rec, &blk.adaln[0], &g.dshift)?;
-            modulation_grad(rec, &blk.adaln[1], &g.dscale)?;
-            let dn1 = self.norm.backward(rec, &c.ln1, &g.dx)?;
-            dh = binary(rec, &r.dres, &dn1, Binary::Add)?;
+            // The block's six modulations, in BLOCK_ROLES order.
+            let dm = [&g.dshift, &g.dscale, &r.dgate, &g2.dshift, &g2.dscale, &r2.dgate];
+            blk.adaln.backward(rec, &cache.e, &dm, &de, &mut de_started)?;
+            dh = self.norm.backward_plus(rec, &c.ln1, &g.dx, Some(&r.dres))?;
         }
         if !dtokens_started {
             fill(rec, &dtokens, 0.0)?;

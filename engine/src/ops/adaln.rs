@@ -1,0 +1,75 @@
+//! adaLN modulation, fused (DiT's adaLN-Zero): `x [B, T, D]` with per-sample `[B, D]` shift,
+//! scale and gate broadcast over each sample's T rows. Kernel: `shaders/adaln.wgsl`.
+//!
+//! - [`modulate`]: `y = x * (1 + scale) + shift` in one pass;
+//! - [`gate`]: `out = res + gate * y` in one pass;
+//! - [`backward`]: `ga = dy * (one + p)` and `gp = dy * a` in one pass, the elementwise part of
+//!   both backward passes (`one` = 1: modulate's `dx` and `dy * x`; `one` = 0: the gate's
+//!   `dy` and `dout * y`); the per-sample gradients are `gp` (and `dy`) summed over T, which
+//!   is `gp` itself when T = 1 (a per-point modulation, as the surface decoder trains with).
+
+use crate::error::{Error, Result};
+use crate::kernels::{ADALN_BACKWARD, ADALN_GATE, ADALN_MODULATE};
+use crate::recorder::Recorder;
+use crate::tensor::{DType, Tensor};
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    n: u32,
+    t: u32,
+    d: u32,
+    one: f32,
+}
+
+/// Checks `x [B, T, D]` against per-sample tensors `[B, D]` and full-size ones.
+fn check(what: &str, x: &Tensor, per_sample: &[&Tensor], full: &[&Tensor]) -> Result<Params> {
+    let xs = x.shape();
+    let bad = x.dtype() != DType::F32
+        || xs.len() != 3
+        || per_sample.iter().any(|s| s.dtype() != DType::F32 || s.shape() != [xs[0], xs[2]])
+        || full.iter().any(|f| f.dtype() != DType::F32 || f.shape() != xs);
+    if bad {
+        return Err(Error::Shape(format!(
+            "{what}: needs f32 x [B, T, D], per-sample [B, D] and full-size tensors like x; got x {x:?}, \
+             per sample {per_sample:?}, full {full:?}"
+        )));
+    }
+    let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("{what} of {x:?}")));
+    Ok(Params { n: fit(x.numel())?, t: fit(xs[1])?, d: fit(xs[2])?, one: 0.0 })
+}
+
+fn groups(p: &Params) -> u64 {
+    (p.n as u64).div_ceil(256)
+}
+
+/// `y = x * (1 + scale) + shift`.
+pub fn modulate(rec: &mut Recorder, x: &Tensor, scale: &Tensor, shift: &Tensor) -> Result<Tensor> {
+    let p = check("modulate", x, &[scale, shift], &[])?;
+    let y = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
+    rec.dispatch_linear(ADALN_MODULATE, groups(&p), &[x, scale, shift, &y], &p)?;
+    Ok(y)
+}
+
+/// `out = res + gate * y`.
+pub fn gate(rec: &mut Recorder, y: &Tensor, gate: &Tensor, res: &Tensor) -> Result<Tensor> {
+    let p = check("gated residual", y, &[gate], &[res])?;
+    let out = Tensor::empty(y.gpu(), y.shape(), DType::F32)?;
+    rec.dispatch_linear(ADALN_GATE, groups(&p), &[y, gate, res, &out], &p)?;
+    Ok(out)
+}
+
+/// `(dy * (one + p), dy * a)` for `a [B, T, D]`, per-sample `p [B, D]` and `dy` like `a`.
+pub fn backward(
+    rec: &mut Recorder,
+    a: &Tensor,
+    p: &Tensor,
+    dy: &Tensor,
+    one: f32,
+) -> Result<(Tensor, Tensor)> {
+    let params = Params { one, ..check("adaln backward", a, &[p], &[dy])? };
+    let ga = Tensor::empty(a.gpu(), a.shape(), DType::F32)?;
+    let gp = Tensor::empty(a.gpu(), a.shape(), DType::F32)?;
+    rec.dispatch_linear(ADALN_BACKWARD, groups(&params), &[a, p, dy, &ga, &gp], &params)?;
+    Ok((ga, gp))
+}
