@@ -39,20 +39,27 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     for (var j = 0u; j < NC; j++) {
         acc[j] = 0.0;
     }
-    let a_at = z * pc.a_batch + row * pc.a_row;
-    let b_at = z * pc.b_batch + col0 * pc.b_col;
-    for (var kk = 0u; kk < pc.k; kk++) {
-        let x = a[a_at + kk * pc.a_col];
-        let b_row = b_at + kk * pc.b_row;
-        for (var j = 0u; j < NC; j++) {
-            acc[j] = fma(x, b[b_row + min(j, last) * pc.b_col], acc[j]);
+    // Flags bit 3: every batch entry's product summed into output 0 (a stack of linear
+    // layers' input gradient, sum_i dY_i W_i^T, without a pass to add them up).
+    let summed = (pc.flags & 8u) != 0u;
+    let entries = select(1u, pc.batch_base, summed);
+    let first = select(z, 0u, summed);
+    for (var e = 0u; e < entries; e++) {
+        let a_at = (first + e) * pc.a_batch + row * pc.a_row;
+        let b_at = (first + e) * pc.b_batch + col0 * pc.b_col;
+        for (var kk = 0u; kk < pc.k; kk++) {
+            let x = a[a_at + kk * pc.a_col];
+            let b_row = b_at + kk * pc.b_row;
+            for (var j = 0u; j < NC; j++) {
+                acc[j] = fma(x, b[b_row + min(j, last) * pc.b_col], acc[j]);
+            }
         }
     }
-    let o_at = z * pc.m * pc.n + row * pc.n + col0;
+    let o_at = select(z, 0u, summed) * pc.m * pc.n + row * pc.n + col0;
     for (var j = 0u; j < min(NC, pc.n - col0); j++) {
         var x = acc[j];
         if (pc.flags & 4u) != 0u {
-            x += bias[col0 + j];
+            x += bias[select(0u, z * pc.n, (pc.flags & 16u) != 0u) + col0 + j];
         }
         if pc.accumulate != 0u {
             x += out[o_at + j];

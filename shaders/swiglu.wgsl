@@ -12,6 +12,7 @@ struct Params {
 @group(0) @binding(3) var<storage, read> dh: array<f32>;
 @group(0) @binding(4) var<storage, read_write> da: array<f32>;
 @group(0) @binding(5) var<storage, read_write> db: array<f32>;
+@group(0) @binding(6) var<storage, read_write> dsilu: array<f32>;
 var<immediate> pc: Params;
 
 fn sigmoid(v: f32) -> f32 {
@@ -42,4 +43,17 @@ fn backward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
     let g = dh[i];
     da[i] = g * b[i] * s * (1.0 + v * (1.0 - s));
     db[i] = g * v * s;
+}
+
+// SiLU's backward alone (the gate with b = 1): dsilu = dh * silu'(a).
+@compute @workgroup_size(256)
+fn silu_backward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                 @builtin(local_invocation_index) lid: u32) {
+    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
+    if (i >= pc.n) {
+        return;
+    }
+    let v = a[i];
+    let s = sigmoid(v);
+    dsilu[i] = dh[i] * s * (1.0 + v * (1.0 - s));
 }

@@ -7,7 +7,7 @@
 // bit for bit (sub and mul are correctly rounded in Vulkan, and there is no a * b + c to
 // contract). The id is the row-major index over (x, y, z, t): t varies fastest.
 //
-// `iota`, `heads`, `segments`: after the host has sorted (id, point) pairs by id, `heads` flags
+// `heads`, `segments`: after the host has sorted (id, point index) pairs by id, `heads` flags
 // the first element of each run of equal ids, the host scans the flags, and `segments` writes
 // each run's start to its place in the compact offsets list, with the run's window id.
 
@@ -16,7 +16,7 @@ struct WindowParams {
     inv_cell: vec4<f32>,
     cells: vec4<u32>,
     n: u32,
-    _pad0: u32,
+    capacity: u32, // `segments`: entries of segment_ids (offsets has one more)
     _pad1: u32,
     _pad2: u32,
 }
@@ -28,7 +28,6 @@ struct WindowParams {
 @group(0) @binding(4) var<storage, read> positions: array<u32>;
 @group(0) @binding(5) var<storage, read_write> offsets: array<u32>;
 @group(0) @binding(6) var<storage, read_write> segment_ids: array<u32>;
-@group(0) @binding(7) var<storage, read_write> sequence: array<u32>;
 var<immediate> pc: WindowParams;
 
 fn linear_index(wid: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
@@ -57,16 +56,6 @@ fn window_ids(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     ids[i] = ((cx * pc.cells.y + cy) * pc.cells.z + cz) * pc.cells.w + ct;
 }
 
-// sequence[i] = i: the point indices that travel with the ids through the sort.
-@compute @workgroup_size(256)
-fn iota(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-        @builtin(local_invocation_index) lid: u32) {
-    let i = linear_index(wid, nwg, lid);
-    if (i < pc.n) {
-        sequence[i] = i;
-    }
-}
-
 fn is_head(i: u32) -> bool {
     return i == 0u || sorted_ids[i] != sorted_ids[i - 1u];
 }
@@ -80,16 +69,27 @@ fn heads(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: ve
     }
 }
 
-// `positions` is the exclusive scan of the flags: a head's segment number. The host has
-// filled `offsets` with n, so every entry from the segment count on reads as an empty segment
-// ending at n.
+// `positions` is the exclusive scan of the flags: a head's segment number. The entries from
+// the segment count on (count <= capacity <= n, so invocation i covers entry i) read as empty
+// segments ending at n with no window (0xffffffff), and offsets[capacity] is n.
 @compute @workgroup_size(256)
 fn segments(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
             @builtin(local_invocation_index) lid: u32) {
     let i = linear_index(wid, nwg, lid);
-    if (i < pc.n && is_head(i)) {
+    if (i >= pc.n) {
+        return;
+    }
+    if (is_head(i)) {
         let s = positions[i];
         offsets[s] = i;
         segment_ids[s] = sorted_ids[i];
+    }
+    let count = positions[pc.n - 1u] + flags[pc.n - 1u];
+    if (i >= count && i < pc.capacity) {
+        offsets[i] = pc.n;
+        segment_ids[i] = 0xffffffffu;
+    }
+    if (i == 0u) {
+        offsets[pc.capacity] = pc.n;
     }
 }

@@ -125,3 +125,19 @@ fn row_copies_and_index_concatenation() {
     assert!(copy_add(&mut rec, &t, 2, &t, 0, 3, 1).is_err());
     assert!(copy_add(&mut rec, &ta, 0, &t, 0, 1, 1).is_err(), "f32 source");
 }
+
+#[test]
+fn the_device_counts_the_memory_its_buffers_hold() {
+    // Live bytes grow by at least a buffer's size when it is made and shrink when it goes;
+    // the peak keeps the most held since it was reset. (Other tests of this binary allocate in
+    // parallel, so the checks are bounds, not equalities.)
+    let gpu = gpu();
+    let bytes = 64 << 20;
+    gpu.reset_peak_memory();
+    let t = Tensor::empty(&gpu, &[bytes / 4], DType::F32).unwrap();
+    let (live, peak) = gpu.memory();
+    assert!(live >= bytes as u64 && peak >= live, "live {live}, peak {peak}");
+    drop(t);
+    let (_, peak_after) = gpu.memory();
+    assert!(peak_after >= bytes as u64, "the peak remembers the buffer: {peak_after}");
+}

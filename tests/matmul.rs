@@ -6,8 +6,8 @@ use common::*;
 use half::f16;
 use velox::engine::kernels::{MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN};
 use velox::engine::ops::matmul::{
-    coop_eligible, coop_kernel, coop_layout_ok, matmul, matmul_bias, matmul_into, matmul_variant, plan,
-    reference,
+    coop_eligible, coop_kernel, coop_layout_ok, matmul, matmul_bias, matmul_into, matmul_sum_into,
+    matmul_variant, plan, reference,
 };
 use velox::engine::{Error, Gpu, NarrowMatmul, Recorder};
 
@@ -613,4 +613,99 @@ fn kernel_choice_follows_the_device() {
     assert!(!coop_layout_ok(&plan(&[24, 41], &[41, 16], false, false).unwrap(), false, false));
     assert!(coop_layout_ok(&plan(&[24, 40], &[17, 40], false, true).unwrap(), false, true));
     assert!(!coop_layout_ok(&plan(&[24, 40], &[40, 17], false, false).unwrap(), false, false));
+}
+
+#[test]
+fn products_summed_over_the_batch() {
+    // sum_i op(a[i]) @ op(b[i]) into one output: in one dispatch on the narrow-side kernel,
+    // as a batched product and a sum elsewhere; plain and accumulating, every transpose, f16
+    // operands too, and a broadcast operand.
+    let gpu = gpu();
+    let mut rng = Rng::new(31);
+    for narrow in NARROW_CHOICES {
+        for (i, &(m, n, k, batch)) in [(300, 24, 40, 3), (7, 64, 130, 2), (65, 17, 5, 6)].iter().enumerate() {
+            for (ta, tb) in [(false, false), (false, true), (true, false), (true, true)] {
+                let bb = if i == 2 { None } else { Some(batch) };
+                let (sa, sb) = shapes(m, n, k, ta, tb, Some(batch), bb);
+                let (a, b) = (round_f16(&rng.normal_vec(numel(&sa))), round_f16(&rng.normal_vec(numel(&sb))));
+                let widen = |h: &[f16]| h.iter().map(|v| v.to_f32()).collect::<Vec<_>>();
+                let (a32, b32) = (widen(&a), widen(&b));
+                let old = rng.normal_vec(m * n);
+                let (r, _) = reference::matmul(&f64s(&a32), &sa, &f64s(&b32), &sb, ta, tb).unwrap();
+                let summed: Vec<f64> =
+                    (0..m * n).map(|j| (0..batch).map(|z| r[z * m * n + j]).sum::<f64>()).collect();
+                let added: Vec<f64> = summed.iter().zip(&old).map(|(s, &o)| s + o as f64).collect();
+                let what = format!("sum of {batch} [{m}, {n}] k {k} ta {ta} tb {tb} {narrow:?}");
+                for (name, ta_, tb_) in [
+                    (
+                        "f32",
+                        Tensor::from_slice(&gpu, &sa, &a32).unwrap(),
+                        Tensor::from_slice(&gpu, &sb, &b32).unwrap(),
+                    ),
+                    (
+                        "f16",
+                        Tensor::from_slice(&gpu, &sa, &a).unwrap(),
+                        Tensor::from_slice(&gpu, &sb, &b).unwrap(),
+                    ),
+                ] {
+                    let plain = Tensor::from_slice(&gpu, &[m, n], &vec![f32::NAN; m * n]).unwrap();
+                    let acc = Tensor::from_slice(&gpu, &[m, n], &old).unwrap();
+                    let mut rec = recorder(&gpu, narrow);
+                    matmul_sum_into(&mut rec, &ta_, &tb_, ta, tb, &plain, false).unwrap();
+                    matmul_sum_into(&mut rec, &ta_, &tb_, ta, tb, &acc, true).unwrap();
+                    rec.submit().unwrap();
+                    assert_nmse(&format!("{what} {name}"), &plain.read::<f32>().unwrap(), &summed, F32_BOUND);
+                    assert_nmse(
+                        &format!("{what} {name} accumulate"),
+                        &acc.read::<f32>().unwrap(),
+                        &added,
+                        F32_BOUND,
+                    );
+                }
+            }
+        }
+    }
+    let a = Tensor::empty(&gpu, &[2, 4, 3], DType::F32).unwrap();
+    let b = Tensor::empty(&gpu, &[2, 3, 5], DType::F32).unwrap();
+    let wrong = Tensor::empty(&gpu, &[2, 4, 5], DType::F32).unwrap();
+    let mut rec = gpu.recorder().unwrap();
+    assert!(matmul_sum_into(&mut rec, &a, &b, false, false, &wrong, false).is_err());
+}
+
+#[test]
+fn a_batched_product_takes_a_bias_per_entry() {
+    // A stack of linear layers: x [rows, in] against W [k, in, out] with a bias [k, out], each
+    // entry's row of biases added to its own output, fused or as a separate add.
+    let gpu = gpu();
+    let mut rng = Rng::new(32);
+    let (k, rows, din, dout) = (3, 70, 12, 40);
+    let x = rng.normal_vec(rows * din);
+    let w = rng.normal_vec(k * din * dout);
+    let bias = rng.normal_vec(k * dout);
+    let (r, _) =
+        reference::matmul(&f64s(&x), &[rows, din], &f64s(&w), &[k, din, dout], false, false).unwrap();
+    let want: Vec<f64> =
+        r.iter().enumerate().map(|(i, v)| v + bias[(i / (rows * dout)) * dout + i % dout] as f64).collect();
+    for narrow in NARROW_CHOICES {
+        let mut rec = recorder(&gpu, narrow);
+        let t = |s: &[usize], d: &[f32]| Tensor::from_slice(&gpu, s, d).unwrap();
+        let y = matmul_bias(
+            &mut rec,
+            &t(&[rows, din], &x),
+            &t(&[k, din, dout], &w),
+            false,
+            false,
+            &t(&[k, dout], &bias),
+        )
+        .unwrap();
+        rec.submit().unwrap();
+        assert_nmse(&format!("bias per entry, {narrow:?}"), &y.read::<f32>().unwrap(), &want, F32_BOUND);
+    }
+    let mut rec = gpu.recorder().unwrap();
+    let wrong = Tensor::empty(&gpu, &[k + 1, dout], DType::F32).unwrap();
+    let (xt, wt) = (
+        Tensor::empty(&gpu, &[rows, din], DType::F32).unwrap(),
+        Tensor::empty(&gpu, &[k, din, dout], DType::F32).unwrap(),
+    );
+    assert!(matmul_bias(&mut rec, &xt, &wt, false, false, &wrong).is_err());
 }

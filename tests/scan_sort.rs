@@ -119,9 +119,10 @@ fn sort_random_keys_with_many_duplicates_is_stable() {
 fn sort_on_few_key_bits_orders_by_the_low_bits_only() {
     // Every key has high bits set above `key_bits`: they must neither order the keys nor be
     // lost from them.
+    // One block (every pass in one dispatch, odd and even numbers of passes) and several.
     let mut rng = Rng::new(3);
-    for key_bits in [1, 4, 13, 32] {
-        for n in [4097, 100_003] {
+    for key_bits in [1, 4, 9, 13, 32] {
+        for n in [300, 4096, 4097, 100_003] {
             let keys: Vec<u32> = (0..n).map(|_| rng.next_u32() | 0x8000_0000).collect();
             check_sort(&keys, key_bits, "high bits set");
         }

@@ -8,6 +8,7 @@
 
 use std::ffi::{c_char, CStr};
 use std::mem::ManuallyDrop;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 use ash::vk;
@@ -36,6 +37,10 @@ pub(crate) struct GpuInner {
     /// (`VELOX_FORCE_STAGING=1`): the path discrete GPUs take, testable on any device.
     pub force_staging: bool,
     pub pipelines: PipelineCache,
+    /// Bytes of device memory the engine's buffers hold now, and the most they have held since
+    /// [`Gpu::reset_peak_memory`] (staging buffers included).
+    pub memory_live: AtomicU64,
+    pub memory_peak: AtomicU64,
 }
 
 /// One line of the device list shown by `velox info`.
@@ -335,8 +340,32 @@ impl Gpu {
                 caps,
                 force_staging: std::env::var("VELOX_FORCE_STAGING").is_ok_and(|v| v == "1"),
                 pipelines: PipelineCache::new(),
+                memory_live: AtomicU64::new(0),
+                memory_peak: AtomicU64::new(0),
             }),
         })
+    }
+
+    /// `(live, peak)`: bytes of device memory the engine's buffers hold now, and the most they
+    /// held at once since the last [`Gpu::reset_peak_memory`] (or since the device was opened).
+    pub fn memory(&self) -> (u64, u64) {
+        (self.inner.memory_live.load(Ordering::Relaxed), self.inner.memory_peak.load(Ordering::Relaxed))
+    }
+
+    /// Starts a new peak from what is held now.
+    pub fn reset_peak_memory(&self) {
+        let live = self.inner.memory_live.load(Ordering::Relaxed);
+        self.inner.memory_peak.store(live, Ordering::Relaxed);
+    }
+
+    /// Counts `bytes` allocated (`grow`) or freed.
+    pub(crate) fn account_memory(&self, bytes: u64, grow: bool) {
+        if grow {
+            let live = self.inner.memory_live.fetch_add(bytes, Ordering::Relaxed) + bytes;
+            self.inner.memory_peak.fetch_max(live, Ordering::Relaxed);
+        } else {
+            self.inner.memory_live.fetch_sub(bytes, Ordering::Relaxed);
+        }
     }
 
     /// What the device offers and what the kernels will use.

@@ -6,12 +6,74 @@
 //! one after the other, so there they are exact.
 
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Mutex, OnceLock};
 
-/// Whether `VELOX_PROFILE` is set (to anything but `0`), read once.
+/// Profiling turned on from code ([`set_enabled`]), beside the environment variable.
+static FORCED: AtomicBool = AtomicBool::new(false);
+
+/// Dispatches recorded by every recorder of the process, profiled or not.
+static DISPATCHES: AtomicU64 = AtomicU64::new(0);
+
+/// Dispatches recorded so far by the whole process (a cheap count, always kept): the
+/// difference across a piece of work is what it recorded, when nothing else records meanwhile.
+pub fn dispatches() -> u64 {
+    DISPATCHES.load(Ordering::Relaxed)
+}
+
+pub(crate) fn count_dispatch() {
+    DISPATCHES.fetch_add(1, Ordering::Relaxed);
+}
+
+/// Whether `VELOX_PROFILE` is set (to anything but `0`, read once), or [`set_enabled`] turned
+/// profiling on.
 pub fn enabled() -> bool {
     static ON: OnceLock<bool> = OnceLock::new();
-    *ON.get_or_init(|| std::env::var_os("VELOX_PROFILE").is_some_and(|v| v != "0"))
+    FORCED.load(Ordering::Relaxed)
+        || *ON.get_or_init(|| std::env::var_os("VELOX_PROFILE").is_some_and(|v| v != "0"))
+}
+
+/// Turns profiling on or off for recorders created from now on (a benchmark that profiles
+/// one step of several); `VELOX_PROFILE` keeps it on regardless.
+pub fn set_enabled(on: bool) {
+    FORCED.store(on, Ordering::Relaxed);
+}
+
+/// One kernel's totals: dispatches and GPU nanoseconds.
+#[derive(Clone, Debug, PartialEq)]
+pub struct KernelTotal {
+    pub kernel: String,
+    pub dispatches: u64,
+    pub ns: f64,
+}
+
+/// The totals gathered so far, longest first, and clears them.
+pub fn take() -> Vec<KernelTotal> {
+    let mut t = totals().lock().unwrap();
+    let mut rows: Vec<KernelTotal> =
+        t.drain().map(|(kernel, (dispatches, ns))| KernelTotal { kernel, dispatches, ns }).collect();
+    rows.sort_by(|a, b| b.ns.total_cmp(&a.ns));
+    rows
+}
+
+/// The family a kernel (`file::entry`) belongs to, for a step's time by kind of work: matrix
+/// products, attention, norms, elementwise passes, reductions, layouts (sorts, scans, windows,
+/// cells), rasterisation, the optimiser.
+pub fn family(kernel: &str) -> &'static str {
+    let file = kernel.split("::").next().unwrap_or(kernel);
+    match file {
+        f if f.starts_with("matmul") => "matmul",
+        f if f.starts_with("attention") => "attention",
+        f if f.starts_with("raster") || f == "gaussian_head" || f == "mesh_raster" => "raster",
+        "rmsnorm" | "layernorm" => "norm",
+        "reduce" | "loss" => "reduce",
+        "sort" | "scan" | "window" | "assign" | "fps" | "gather" | "scatter_add" | "columns" | "concat" => {
+            "layout"
+        }
+        "adamw" | "norm" => "optimiser",
+        "cast" => "cast",
+        _ => "elementwise",
+    }
 }
 
 /// kernel name -> (dispatches, nanoseconds).
@@ -37,8 +99,13 @@ pub fn report() -> Option<String> {
     rows.sort_by(|a, b| b.1 .1.total_cmp(&a.1 .1));
     let all: f64 = rows.iter().map(|r| r.1 .1).sum();
     let count: u64 = rows.iter().map(|r| r.1 .0).sum();
+    let recorded = dispatches();
+    let untimed = match recorded.saturating_sub(count) {
+        0 => String::new(),
+        n => format!(" ({n} more recorded without a timestamp)"),
+    };
     let mut out = format!(
-        "GPU time by kernel (VELOX_PROFILE): {count} dispatches, {:.1} ms\n{:<44} {:>9} {:>11} {:>6} {:>10}\n",
+        "GPU time by kernel (VELOX_PROFILE): {count} dispatches{untimed}, {:.1} ms\n{:<44} {:>9} {:>11} {:>6} {:>10}\n",
         all / 1e6,
         "kernel",
         "calls",

@@ -313,6 +313,7 @@ impl Recorder {
         }
         self.keep.extend(args.iter().map(|t| t.buf.clone()));
         self.dispatches += 1;
+        profile::count_dispatch();
         Ok(())
     }
 

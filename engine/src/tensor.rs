@@ -96,6 +96,7 @@ impl Buffer {
             let _ = gpu.inner.allocator.lock().unwrap().free(allocation);
             return Err(Error::Vulkan { call: "vkBindBufferMemory", result: e });
         }
+        gpu.account_memory(allocation.size(), true);
         Ok(Buffer { gpu: gpu.clone(), raw, allocation: Some(allocation), size })
     }
 
@@ -111,6 +112,7 @@ impl Drop for Buffer {
         // has finished, so the last drop happens when no command uses the buffer.
         unsafe { self.gpu.device().destroy_buffer(self.raw, None) };
         if let Some(a) = self.allocation.take() {
+            self.gpu.account_memory(a.size(), false);
             let _ = self.gpu.inner.allocator.lock().unwrap().free(a);
         }
     }

@@ -16,6 +16,9 @@ struct Params {
     // Bit 0: A is transposed ([K, M] in memory); bit 1: B is transposed ([N, K]). The tiled f32
     // kernel uses the strides alone; the cooperative-matrix kernel switches layouts on them.
     // Bit 2 (tiled and narrow-tile kernels): add bias[j] (binding 3) to every output of column j.
+    // Bit 3 (matmul_rows.wgsl): sum the products of the batch entries into one [M, N] output,
+    // `batch_base` of them, in one dispatch of one z layer.
+    // Bit 4 (matmul_rows.wgsl, with bit 2): the bias holds a row per batch entry, [batch, N].
     flags: u32,
     batch_base: u32, // first batch entry of this dispatch (batches beyond the z limit are split)
 }

@@ -6,6 +6,7 @@ struct Params {
     rows: u32,     // rows of src (= length of idx)
     width: u32,
     dst_rows: u32,
+    _add: u32,     // the gather's flag (the two share their push constants), unused here
 }
 
 @group(0) @binding(0) var<storage, read> src: array<f32>;

@@ -453,18 +453,29 @@ fn config_params_counts_each_part_of_a_named_config_or_a_checkpoint() {
 }
 
 #[test]
-fn bench_train_reports_samples_per_second_and_the_time_split() {
+fn bench_train_reports_samples_per_second_the_time_split_dispatches_and_memory() {
     let dir = std::env::temp_dir().join(format!("velox-bench-train-test-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let json = dir.join("train.json");
     let args = ["bench", "train", "--quick", "--repeats", "1", "--config", "tiny", "--batches", "1,2"];
     let text = ok(&velox(&[&args[..], &["--json", arg(&json)]].concat()));
-    assert!(text.contains("samples/s") && text.contains("optimiser ms"), "{text}");
+    assert!(
+        text.contains("samples/s") && text.contains("optimiser ms") && text.contains("GPU ms by family"),
+        "{text}"
+    );
     let records: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     let records = records.as_array().unwrap();
-    assert_eq!(records.len(), 2);
-    for (r, batch) in records.iter().zip([1, 2]) {
+    assert_eq!(records.len(), 4, "two precisions x two batches");
+    for (r, (precision, batch)) in records.iter().zip([("f32", 1), ("f32", 2), ("f16", 1), ("f16", 2)]) {
         assert_eq!(r["shape"], format!("tiny config, batch {batch}"));
+        assert_eq!(r["precision"], precision);
+        assert!(r["dispatches_per_step"].as_u64().unwrap() > 50, "{r}");
+        assert!(r["peak_memory_bytes"].as_u64().unwrap() > 1 << 20, "{r}");
+        let families = r["family_ms"].as_object().unwrap();
+        for family in ["matmul", "attention", "norm", "raster", "optimiser"] {
+            assert!(families[family].as_f64().unwrap() > 0.0, "{family} in {r}");
+        }
+        assert_eq!(families.contains_key("cast"), precision == "f16", "f16 passes round their operands: {r}");
         assert_eq!(r["throughput_unit"], "samples/s");
         assert!(r["throughput"].as_f64().unwrap() > 0.0, "{r}");
         let split = &r["time_split_ms"];

@@ -19,8 +19,8 @@
 
 use crate::error::{Error, Result};
 use crate::kernels::{ASSIGN_CELL_OFFSETS, ASSIGN_NEAREST};
-use crate::ops::sort::{self, sort_pairs};
-use crate::ops::window::{iota, key_bits_for, point_rows};
+use crate::ops::sort::{self, sort_indices};
+use crate::ops::window::{key_bits_for, point_rows};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
@@ -92,8 +92,7 @@ pub fn group_by_cell(rec: &mut Recorder, cells: &Tensor, k: usize) -> Result<(Te
     let n = u32::try_from(cells.numel())
         .map_err(|_| Error::TooLarge(format!("group_by_cell: {cells:?} has 2^32 elements or more")))?;
     let gpu = cells.gpu().clone();
-    let seq = iota(rec, &gpu, n)?;
-    let (sorted_cells, order) = sort_pairs(rec, cells, &seq, key_bits_for(k as u64))?;
+    let (sorted_cells, order) = sort_indices(rec, cells, key_bits_for(k as u64))?;
     let offsets = Tensor::empty(&gpu, &[k + 1], DType::U32)?;
     let params = Params { n, k: k as u32 };
     rec.dispatch_linear(

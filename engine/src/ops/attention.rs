@@ -321,14 +321,16 @@ pub fn f16_forward_variant(gpu: &Gpu, d: usize) -> String {
     )
 }
 
+/// Segments up to which a work list is built by one workgroup in one dispatch (the `build`
+/// kernel walks them 256 at a time) rather than in four dispatches over the whole device.
+pub const BUILD_MAX_SEGMENTS: usize = 4096;
+
 /// The work list over the rows of `offsets` (blocks of `block` rows, one segment each):
 /// returns the list and its capacity.
 fn work_list(rec: &mut Recorder, offsets: &Tensor, rows: usize, block: usize) -> Result<(Tensor, usize)> {
     let gpu = offsets.gpu().clone();
     let segments = offsets.numel() - 1;
     let capacity = segments + rows.div_ceil(block);
-    let items = Tensor::empty(&gpu, &[segments], DType::U32)?;
-    let first = Tensor::empty(&gpu, &[segments], DType::U32)?;
     let list = Tensor::empty(&gpu, &[capacity, 2], DType::U32)?;
     let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("{v} attention work items")));
     let p = BlockParams {
@@ -337,6 +339,12 @@ fn work_list(rec: &mut Recorder, offsets: &Tensor, rows: usize, block: usize) ->
         rows: fit(rows)?,
         capacity: fit(capacity)?,
     };
+    if segments <= BUILD_MAX_SEGMENTS {
+        rec.dispatch(kernels::ATTENTION_BLOCKS_BUILD, [1, 1, 1], &[offsets, &list], &p)?;
+        return Ok((list, capacity));
+    }
+    let items = Tensor::empty(&gpu, &[segments], DType::U32)?;
+    let first = Tensor::empty(&gpu, &[segments], DType::U32)?;
     let groups = (segments as u64).div_ceil(256);
     fill_bits(rec, &list, u32::MAX)?;
     rec.dispatch_linear(kernels::ATTENTION_BLOCKS_COUNT, groups, &[offsets, &items], &p)?;
@@ -401,6 +409,31 @@ pub fn attention_backward(
     scale: f32,
 ) -> Result<AttentionGrads> {
     let (nq, nk, h, d) = check(q, k, v, seg)?;
+    let gpu = q.gpu().clone();
+    let grads = AttentionGrads {
+        dq: Tensor::empty(&gpu, &[nq, h, d], DType::F32)?,
+        dk: Tensor::empty(&gpu, &[nk, h, d], DType::F32)?,
+        dv: Tensor::empty(&gpu, &[nk, h, d], DType::F32)?,
+    };
+    attention_backward_into(rec, q, k, v, out, d_o, seg, scale, &grads)?;
+    Ok(grads)
+}
+
+/// [`attention_backward`] into given tensors (f32, `dq` like q, `dk` and `dv` like k; views
+/// of one buffer, say, for projections stacked in one product).
+#[allow(clippy::too_many_arguments)]
+pub fn attention_backward_into(
+    rec: &mut Recorder,
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    out: &AttentionOut,
+    d_o: &Tensor,
+    seg: &Segments,
+    scale: f32,
+    grads: &AttentionGrads,
+) -> Result<()> {
+    let (nq, nk, h, d) = check(q, k, v, seg)?;
     for (what, t) in [("dO", d_o), ("o", &out.o), ("lse", &out.lse)] {
         if t.dtype() != DType::F32 {
             return Err(Error::Shape(format!("attention backward: {what} {t:?} must be f32")));
@@ -412,18 +445,23 @@ pub fn attention_backward(
             out.o, out.lse
         )));
     }
+    let AttentionGrads { dq, dk, dv } = grads;
+    for (what, t, like) in [("dq", dq, q), ("dk", dk, k), ("dv", dv, v)] {
+        if t.dtype() != DType::F32 || t.shape() != like.shape() {
+            return Err(Error::Shape(format!(
+                "attention backward: {what} {t:?} must be f32 shaped like {like:?}"
+            )));
+        }
+    }
     let gpu = q.gpu().clone();
-    let dq = Tensor::empty(&gpu, &[nq, h, d], DType::F32)?;
-    let dk = Tensor::empty(&gpu, &[nk, h, d], DType::F32)?;
-    let dv = Tensor::empty(&gpu, &[nk, h, d], DType::F32)?;
     if h == 0 {
-        return Ok(AttentionGrads { dq, dk, dv });
+        return Ok(());
     }
     // Keys outside every segment get no gradient from the kernels: start from zeros, unless
     // the segments hold every key.
     if seg.all_keys != Some(nk) {
-        fill_bits(rec, &dk, 0)?;
-        fill_bits(rec, &dv, 0)?;
+        fill_bits(rec, dk, 0)?;
+        fill_bits(rec, dv, 0)?;
     }
     let delta = Tensor::empty(&gpu, &[nq, h], DType::F32)?;
     let kern = kernels_for(d).expect("checked");
@@ -433,16 +471,16 @@ pub fn attention_backward(
     if nq > 0 {
         let (q_list, q_capacity) = seg.work_list(rec, false, nq, BLOCK)?;
         let p = params(h, q_capacity, scale, nq, nk)?;
-        let args = [q, k, v, &seg.q_offsets, &seg.k_offsets, &q_list, o, lse, d_o, &delta, &dq];
+        let args = [q, k, v, &seg.q_offsets, &seg.k_offsets, &q_list, o, lse, d_o, &delta, dq];
         rec.dispatch_linear(dq_kernel, (q_capacity * h) as u64, &args, &p)?;
     }
     if nk > 0 {
         let (k_list, k_capacity) = seg.work_list(rec, true, nk, BLOCK)?;
         let p = params(h, k_capacity, scale, nq, nk)?;
-        let args = [q, k, v, &seg.q_offsets, &seg.k_offsets, &k_list, lse, d_o, &delta, &dk, &dv];
+        let args = [q, k, v, &seg.q_offsets, &seg.k_offsets, &k_list, lse, d_o, &delta, dk, dv];
         rec.dispatch_linear(dkv_kernel, (k_capacity * h) as u64, &args, &p)?;
     }
-    Ok(AttentionGrads { dq, dk, dv })
+    Ok(())
 }
 
 /// FLOPs of the forward pass (two matmuls of 2 flops per multiply-add) for given segment

@@ -11,6 +11,7 @@ pub(crate) struct RowParams {
     pub rows: u32,
     pub width: u32,
     pub other_rows: u32,
+    pub add: u32,
 }
 
 /// Splits a tensor into (rows, width) with width the product of all but the first axis.
@@ -24,18 +25,42 @@ pub(crate) fn rows_width(t: &Tensor) -> Result<(usize, usize)> {
 /// out[r] = src[idx[r]] for every r (rows are the first axis; idx is u32 of any shape whose
 /// elements count the output rows). An index past src's rows gives a row of zeros.
 pub fn gather(rec: &mut Recorder, src: &Tensor, idx: &Tensor) -> Result<Tensor> {
+    gather_with(rec, src, idx, None)
+}
+
+/// `base + gather(src, idx)` in one pass (`base` f32 shaped like the gather's output): a
+/// residual added as the rows come back from another order.
+pub fn gather_plus(rec: &mut Recorder, src: &Tensor, idx: &Tensor, base: &Tensor) -> Result<Tensor> {
+    gather_with(rec, src, idx, Some(base))
+}
+
+fn gather_with(rec: &mut Recorder, src: &Tensor, idx: &Tensor, base: Option<&Tensor>) -> Result<Tensor> {
     let (src_rows, width) = rows_width(src)?;
     if src.dtype() != DType::F32 || idx.dtype() != DType::U32 {
         return Err(Error::Shape(format!("gather needs f32 rows and u32 indices, got {src:?}, {idx:?}")));
     }
     let mut shape = vec![idx.numel()];
     shape.extend_from_slice(&src.shape()[1..]);
+    if let Some(b) = base.filter(|b| b.shape() != shape.as_slice() || b.dtype() != DType::F32) {
+        return Err(Error::Shape(format!("gather: the added rows {b:?} must be f32 {shape:?}")));
+    }
     let out = Tensor::empty(src.gpu(), &shape, DType::F32)?;
     let total = out.numel();
     let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("gather into {shape:?}")));
-    let p = RowParams { rows: fit(idx.numel())?, width: fit(width)?, other_rows: fit(src_rows)? };
+    let p = RowParams {
+        rows: fit(idx.numel())?,
+        width: fit(width)?,
+        other_rows: fit(src_rows)?,
+        add: base.is_some() as u32,
+    };
     fit(total)?;
-    rec.dispatch_linear(GATHER_MAIN, (total as u64).div_ceil(256), &[src, idx, &out], &p)?;
+    // Without `base`, src stands in for the binding the kernel then does not read.
+    rec.dispatch_linear(
+        GATHER_MAIN,
+        (total as u64).div_ceil(256),
+        &[src, idx, &out, base.unwrap_or(src)],
+        &p,
+    )?;
     Ok(out)
 }
 
@@ -48,7 +73,7 @@ pub fn invert_permutation(rec: &mut Recorder, perm: &Tensor) -> Result<Tensor> {
     let n = perm.numel();
     let fit = u32::try_from(n).map_err(|_| Error::TooLarge(format!("permutation of {n}")))?;
     let inverse = Tensor::empty(perm.gpu(), &[n], DType::U32)?;
-    let p = RowParams { rows: fit, width: 1, other_rows: fit };
+    let p = RowParams { rows: fit, width: 1, other_rows: fit, add: 0 };
     rec.dispatch_linear(GATHER_INVERT, (n as u64).div_ceil(256), &[perm, &inverse], &p)?;
     Ok(inverse)
 }

@@ -4,7 +4,7 @@
 
 use crate::error::{Error, Result};
 use crate::kernels::LOSS_MAIN;
-use crate::ops::reduce::{reduce, Reduce};
+use crate::ops::reduce::{reduce_into, Reduce};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
@@ -55,6 +55,22 @@ pub fn loss(
     target: &Tensor,
     weight: f32,
 ) -> Result<(Tensor, Tensor)> {
+    let total = Tensor::empty(pred.gpu(), &[1], DType::F32)?;
+    let grad = loss_into(rec, kind, pred, target, weight, &total, false)?;
+    Ok((total, grad))
+}
+
+/// [`loss`] with the loss written into `total` (f32 `[1]`), or added to it (`accumulate`: a
+/// sum of losses over views or segments without an add of its own); returns the gradient.
+pub fn loss_into(
+    rec: &mut Recorder,
+    kind: LossKind,
+    pred: &Tensor,
+    target: &Tensor,
+    weight: f32,
+    total: &Tensor,
+    accumulate: bool,
+) -> Result<Tensor> {
     if pred.dtype() != DType::F32 || target.dtype() != DType::F32 || pred.shape() != target.shape() {
         return Err(Error::Shape(format!(
             "{kind:?} loss: pred {pred:?} and target {target:?} must be f32 of one shape"
@@ -71,8 +87,8 @@ pub fn loss(
     let per = Tensor::empty(pred.gpu(), &[n as usize], DType::F32)?;
     let grad = Tensor::empty(pred.gpu(), pred.shape(), DType::F32)?;
     rec.dispatch_linear(LOSS_MAIN, (n as u64).div_ceil(256), &[pred, target, &per, &grad], &p)?;
-    let total = reduce(rec, &per, 0, Reduce::Sum)?.reshape(&[1])?;
-    Ok((total, grad))
+    reduce_into(rec, &per, 0, Reduce::Sum, total, accumulate)?;
+    Ok(grad)
 }
 
 /// Plain f64 loops.

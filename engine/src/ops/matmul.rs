@@ -187,9 +187,10 @@ pub fn matmul(rec: &mut Recorder, a: &Tensor, b: &Tensor, trans_a: bool, trans_b
 }
 
 /// `op(a) @ op(b) + bias` into a new f32 tensor: `bias` is f32 with one value per output column
-/// (a linear layer's bias), added to every row. The tiled and narrow-tile kernels add it as
-/// they write their outputs; elsewhere (cooperative matrices, products split along K) it is a
-/// separate add.
+/// (a linear layer's bias), added to every row; or, for a batched product, one such row per
+/// batch entry (`[batch, N]`: a stack of linear layers). The tiled and narrow-tile kernels add
+/// it as they write their outputs (a bias per entry: the narrow-side kernel); elsewhere
+/// (cooperative matrices, products split along K) it is a separate add.
 pub fn matmul_bias(
     rec: &mut Recorder,
     a: &Tensor,
@@ -230,6 +231,79 @@ pub fn matmul_into(
     product(rec, a, b, trans_a, trans_b, out, accumulate, None)
 }
 
+/// `out (+)= op(a) @ op(b) + bias`: [`matmul_into`] with a linear layer's bias (f32, one value
+/// per output column), added as the kernels write where they can. Accumulating onto a residual
+/// copied into `out` is a pre-norm block's `x + f(x) W + b` in one product.
+#[allow(clippy::too_many_arguments)]
+pub fn matmul_bias_into(
+    rec: &mut Recorder,
+    a: &Tensor,
+    b: &Tensor,
+    trans_a: bool,
+    trans_b: bool,
+    bias: Option<&Tensor>,
+    out: &Tensor,
+    accumulate: bool,
+) -> Result<()> {
+    product(rec, a, b, trans_a, trans_b, out, accumulate, bias)
+}
+
+/// `out (+)= sum_i op(a[i]) @ op(b[i])` over the batch entries of a batched product (`out`
+/// f32 `[M, N]`): the input gradient of a stack of linear layers that read one input. One
+/// dispatch where the kernel sums the entries itself (the narrow-side kernel on CPU devices),
+/// else the batched product and a sum over the batch.
+pub fn matmul_sum_into(
+    rec: &mut Recorder,
+    a: &Tensor,
+    b: &Tensor,
+    trans_a: bool,
+    trans_b: bool,
+    out: &Tensor,
+    accumulate: bool,
+) -> Result<()> {
+    let p = plan(a.shape(), b.shape(), trans_a, trans_b)?;
+    check_dtypes(a, b)?;
+    if out.dtype() != DType::F32 || out.shape() != [p.m, p.n] {
+        return Err(Error::Shape(format!("matmul sum: out must be f32 [{}, {}], got {out:?}", p.m, p.n)));
+    }
+    if out.same_storage(a) || out.same_storage(b) {
+        return Err(Error::Shape("matmul sum: out shares storage with an operand".into()));
+    }
+    let kernel = choose_kernel(a.gpu(), a.dtype(), &p, trans_a, trans_b, rec.narrow_matmul());
+    let fits = u32::try_from(p.batch).is_ok() && [a, b].iter().all(|t| t.numel() <= u32::MAX as usize);
+    if kernel != MATMUL_ROWS_MAIN || !fits || p.m == 0 || p.n == 0 {
+        let parts = Tensor::empty(a.gpu(), &p.out_shape, DType::F32)?;
+        product(rec, a, b, trans_a, trans_b, &parts, false, None)?;
+        let parts = parts.reshape(&[p.batch, p.m, p.n])?;
+        return reduce_into(rec, &parts, 0, Reduce::Sum, out, accumulate);
+    }
+    let groups = [p.n.div_ceil(ROWS_NC), p.m.div_ceil(ROWS_WG), 1];
+    let max = a.gpu().caps().max_workgroup_count;
+    if groups[..2].iter().zip(max).any(|(&g, lim)| g > lim as usize) {
+        return Err(Error::TooLarge(format!(
+            "matmul sum: [{}, {}] outputs need {groups:?} workgroups",
+            p.m, p.n
+        )));
+    }
+    let params = Params {
+        m: p.m as u32,
+        n: p.n as u32,
+        k: p.k as u32,
+        accumulate: accumulate as u32,
+        a_row: if trans_a { 1 } else { p.k as u32 },
+        a_col: if trans_a { p.m as u32 } else { 1 },
+        a_batch: p.a_batch_stride as u32,
+        b_row: if trans_b { 1 } else { p.n as u32 },
+        b_col: if trans_b { p.k as u32 } else { 1 },
+        b_batch: p.b_batch_stride as u32,
+        flags: trans_a as u32 | (trans_b as u32) << 1 | 8,
+        batch_base: p.batch as u32,
+    };
+    let g = [groups[0] as u32, groups[1] as u32, 1];
+    // The bias binding is unused (flags bit 2 clear): b stands in.
+    rec.dispatch(MATMUL_ROWS_MAIN, g, &[a, b, out, b], &params)
+}
+
 /// Kernels that take a bias (binding 3, flags bit 2); the others have three bindings.
 fn takes_bias(kernel: KernelId) -> bool {
     [MATMUL_MAIN, MATMUL_MAIN_F16, MATMUL_SMALL_TS32_MAIN, MATMUL_SMALL_TS64_MAIN, MATMUL_ROWS_MAIN]
@@ -248,9 +322,14 @@ fn product(
     bias: Option<&Tensor>,
 ) -> Result<()> {
     let p = plan(a.shape(), b.shape(), trans_a, trans_b)?;
+    // One bias row for every batch entry, or one per entry (a stack of linear layers).
+    let per_entry = bias.is_some_and(|b| p.batch > 1 && b.numel() == p.batch * p.n);
     if let Some(bias) = bias {
-        if bias.dtype() != DType::F32 || bias.numel() != p.n {
-            return Err(Error::Shape(format!("matmul: bias must be f32 with {} values, got {bias:?}", p.n)));
+        if bias.dtype() != DType::F32 || (bias.numel() != p.n && !per_entry) {
+            return Err(Error::Shape(format!(
+                "matmul: bias must be f32 with {} values (or {} x {} for a batch), got {bias:?}",
+                p.n, p.batch, p.n
+            )));
         }
     }
     check_dtypes(a, b)?;
@@ -307,8 +386,14 @@ fn product(
         return add_bias(rec, out, bias);
     }
     // The bias binding: the bias itself, or any buffer when there is none (nothing reads it).
-    let fused = bias.filter(|_| takes_bias(kernel));
-    let params = Params { flags: params.flags | if fused.is_some() { 4 } else { 0 }, ..params };
+    // Only the narrow-side kernel reads a bias per batch entry.
+    let fused = bias.filter(|_| takes_bias(kernel) && (!per_entry || kernel == MATMUL_ROWS_MAIN));
+    let bias_flags = match (fused.is_some(), per_entry) {
+        (false, _) => 0,
+        (true, false) => 4,
+        (true, true) => 4 | 16,
+    };
+    let params = Params { flags: params.flags | bias_flags, ..params };
     let with_bias = [a, b, out, fused.unwrap_or(b)];
     let args: &[&Tensor] = if takes_bias(kernel) { &with_bias } else { &with_bias[..3] };
     // Batches beyond the device's z limit go in several dispatches.
@@ -330,7 +415,10 @@ fn product(
 fn add_bias(rec: &mut Recorder, out: &Tensor, bias: Option<&Tensor>) -> Result<()> {
     match bias {
         Some(bias) if out.numel() > 0 => {
-            binary_into(rec, out, &bias.reshape(&[bias.numel()])?, out, Binary::Add)
+            // [n] for every row, or [batch, 1, n] for each entry's rows.
+            let n = *out.shape().last().expect("a matrix");
+            let shape = if bias.numel() == n { vec![n] } else { vec![bias.numel() / n, 1, n] };
+            binary_into(rec, out, &bias.reshape(&shape)?, out, Binary::Add)
         }
         _ => Ok(()),
     }

@@ -12,7 +12,7 @@
 //! back with its key, and one that wants masked keys can mask them.
 
 use crate::error::{Error, Result};
-use crate::kernels::{SORT_HISTOGRAM, SORT_SCATTER};
+use crate::kernels::{SORT_BLOCK, SORT_HISTOGRAM, SORT_SCATTER};
 use crate::ops::scan::exclusive_scan;
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
@@ -29,6 +29,8 @@ struct Params {
     num_blocks: u32,
     shift: u32,
     mask: u32,
+    key_bits: u32,
+    iota: u32,
 }
 
 /// Sorts `keys` (u32) with their `values` (u32, i32 or f32, moved as raw bits) by the low
@@ -40,6 +42,25 @@ pub fn sort_pairs(
     values: &Tensor,
     key_bits: u32,
 ) -> Result<(Tensor, Tensor)> {
+    sort_with(rec, keys, Some(values), key_bits)
+}
+
+/// The keys sorted as [`sort_pairs`] sorts them, and the order that sorts them (each sorted
+/// key's index in `keys`, u32): a sort of (key, index) pairs whose indices the kernels make
+/// as they read the keys, with no pass to write them first.
+pub fn sort_indices(rec: &mut Recorder, keys: &Tensor, key_bits: u32) -> Result<(Tensor, Tensor)> {
+    sort_with(rec, keys, None, key_bits)
+}
+
+fn sort_with(
+    rec: &mut Recorder,
+    keys: &Tensor,
+    values: Option<&Tensor>,
+    key_bits: u32,
+) -> Result<(Tensor, Tensor)> {
+    let mut iota = values.is_none() as u32;
+    // Without values the keys stand in for the bindings the kernels then do not read.
+    let values = values.unwrap_or(keys);
     if keys.dtype() != DType::U32 {
         return Err(Error::Shape(format!("sort_pairs: keys {keys:?} must be u32")));
     }
@@ -57,11 +78,9 @@ pub fn sort_pairs(
     let n = u32::try_from(keys.numel())
         .map_err(|_| Error::TooLarge(format!("sort_pairs: {keys:?} has 2^32 elements or more")))?;
     let gpu = keys.gpu();
+    let value_type = if iota == 1 { DType::U32 } else { values.dtype() };
     let new_pair = || -> Result<(Tensor, Tensor)> {
-        Ok((
-            Tensor::empty(gpu, keys.shape(), DType::U32)?,
-            Tensor::empty(gpu, values.shape(), values.dtype())?,
-        ))
+        Ok((Tensor::empty(gpu, keys.shape(), DType::U32)?, Tensor::empty(gpu, values.shape(), value_type)?))
     };
     let mut out = new_pair()?;
     if n == 0 {
@@ -69,6 +88,14 @@ pub fn sort_pairs(
     }
 
     let num_blocks = (n as usize).div_ceil(BLOCK);
+    if num_blocks == 1 {
+        // Every pass in one workgroup, one dispatch (`block` in the shader).
+        let tmp = if passes(key_bits) > 1 { new_pair()? } else { out.clone() };
+        let params = Params { n, num_blocks: 1, shift: 0, mask: 0, key_bits, iota };
+        let args = [keys, values, &out.0, &out.1, &tmp.0, &tmp.1];
+        rec.dispatch(SORT_BLOCK, [1, 1, 1], &args, &params)?;
+        return Ok(out);
+    }
     let counts = Tensor::empty(gpu, &[16 * num_blocks], DType::U32)?;
     let offsets = Tensor::empty(gpu, &[16 * num_blocks], DType::U32)?;
     // A second pair is allocated only when there is a second pass.
@@ -76,7 +103,8 @@ pub fn sort_pairs(
     let mut shift = 0;
     while shift < key_bits {
         let bits = RADIX_BITS.min(key_bits - shift);
-        let params = Params { n, num_blocks: num_blocks as u32, shift, mask: (1u32 << bits) - 1 };
+        let params =
+            Params { n, num_blocks: num_blocks as u32, shift, mask: (1u32 << bits) - 1, key_bits, iota };
         rec.dispatch_linear(SORT_HISTOGRAM, num_blocks as u64, &[&src.0, &counts], &params)?;
         exclusive_scan(rec, &counts, &offsets)?;
         rec.dispatch_linear(
@@ -86,6 +114,7 @@ pub fn sort_pairs(
             &params,
         )?;
         shift += bits;
+        iota = 0;
         if shift < key_bits {
             // This pass's output is the next one's input, and this pass's input is free to be
             // the next output, unless it is the caller's.

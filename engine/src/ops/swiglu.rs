@@ -1,7 +1,7 @@
 //! The SwiGLU gate `h = silu(a) * b` and its backward, fused. Kernel: `shaders/swiglu.wgsl`.
 
 use crate::error::{Error, Result};
-use crate::kernels::{SWIGLU_BACKWARD, SWIGLU_FORWARD};
+use crate::kernels::{SWIGLU_BACKWARD, SWIGLU_FORWARD, SWIGLU_SILU_BACKWARD};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
@@ -30,11 +30,32 @@ pub fn swiglu(rec: &mut Recorder, a: &Tensor, b: &Tensor) -> Result<Tensor> {
 
 /// Returns `(da, db)` from `dh`.
 pub fn swiglu_backward(rec: &mut Recorder, a: &Tensor, b: &Tensor, dh: &Tensor) -> Result<(Tensor, Tensor)> {
-    let p = check("swiglu backward", &[a, b, dh])?;
     let da = Tensor::empty(a.gpu(), a.shape(), DType::F32)?;
     let db = Tensor::empty(a.gpu(), a.shape(), DType::F32)?;
-    rec.dispatch_linear(SWIGLU_BACKWARD, (p.n as u64).div_ceil(256), &[a, b, dh, &da, &db], &p)?;
+    swiglu_backward_into(rec, a, b, dh, &da, &db)?;
     Ok((da, db))
+}
+
+/// [`swiglu_backward`] into given tensors (shaped like `a`; views of one stacked gradient,
+/// say).
+pub fn swiglu_backward_into(
+    rec: &mut Recorder,
+    a: &Tensor,
+    b: &Tensor,
+    dh: &Tensor,
+    da: &Tensor,
+    db: &Tensor,
+) -> Result<()> {
+    let p = check("swiglu backward", &[a, b, dh, da, db])?;
+    rec.dispatch_linear(SWIGLU_BACKWARD, (p.n as u64).div_ceil(256), &[a, b, dh, da, db], &p)
+}
+
+/// `silu'(a) * dy`, the backward of `silu(a) = a sigmoid(a)` (the gate's `da` with `b = 1`).
+pub fn silu_backward(rec: &mut Recorder, a: &Tensor, dy: &Tensor) -> Result<Tensor> {
+    let p = check("silu backward", &[a, dy])?;
+    let da = Tensor::empty(a.gpu(), a.shape(), DType::F32)?;
+    rec.dispatch_linear(SWIGLU_SILU_BACKWARD, (p.n as u64).div_ceil(256), &[a, dy, &da], &p)?;
+    Ok(da)
 }
 
 /// Plain f64 loops.

@@ -32,10 +32,10 @@
 //! segment bounds `offsets[..=S]`. Empty windows cost nothing.
 
 use crate::error::{Error, Result};
-use crate::kernels::{WINDOW_HEADS, WINDOW_IOTA, WINDOW_SEGMENTS, WINDOW_WINDOW_IDS};
+use crate::kernels::{WINDOW_HEADS, WINDOW_SEGMENTS, WINDOW_WINDOW_IDS};
 use crate::ops::fill::fill_bits;
 use crate::ops::scan::{self, exclusive_scan};
-use crate::ops::sort::{self, sort_pairs};
+use crate::ops::sort::{self, sort_indices};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
@@ -132,12 +132,13 @@ struct Params {
     inv_cell: [f32; 4],
     cells: [u32; 4],
     n: u32,
-    _pad: [u32; 3],
+    capacity: u32,
+    _pad: [u32; 2],
 }
 
 impl Params {
     fn count(n: u32) -> Params {
-        Params { origin: [0.0; 4], inv_cell: [0.0; 4], cells: [1; 4], n, _pad: [0; 3] }
+        Params { origin: [0.0; 4], inv_cell: [0.0; 4], cells: [1; 4], n, capacity: 0, _pad: [0; 2] }
     }
 }
 
@@ -179,17 +180,16 @@ pub fn window_ids(rec: &mut Recorder, points: &Tensor, grid: &WindowGrid) -> Res
     let n = point_rows(points, "window_ids")?;
     let grid = grid.checked()?;
     let ids = Tensor::empty(points.gpu(), &[n as usize], DType::U32)?;
-    let params =
-        Params { origin: grid.origin, inv_cell: grid.inv_cell(), cells: grid.cells, n, _pad: [0; 3] };
+    let params = Params {
+        origin: grid.origin,
+        inv_cell: grid.inv_cell(),
+        cells: grid.cells,
+        n,
+        capacity: 0,
+        _pad: [0; 2],
+    };
     rec.dispatch_linear(WINDOW_WINDOW_IDS, (n as u64).div_ceil(WG), &[points, &ids], &params)?;
     Ok(ids)
-}
-
-/// `[0, 1, ..., n - 1]` as u32: the payload a sort by id carries.
-pub(crate) fn iota(rec: &mut Recorder, gpu: &crate::Gpu, n: u32) -> Result<Tensor> {
-    let seq = Tensor::empty(gpu, &[n as usize], DType::U32)?;
-    rec.dispatch_linear(WINDOW_IOTA, (n as u64).div_ceil(WG), &[&seq], &Params::count(n))?;
-    Ok(seq)
 }
 
 /// Bits that hold every id below `num_ids` (at least 1): how far the radix sort must go.
@@ -218,8 +218,8 @@ impl WindowGroups {
 /// Sorts the points by window id and lists the occupied windows (format in the module header).
 /// `ids` is u32 `[N]` with every id below `num_windows` (as [`window_ids`] gives).
 ///
-/// Cost: a stable radix sort of N pairs on [`key_bits_for`]`(num_windows)` bits, plus three
-/// passes over N and one scan of N ([`group_bytes`]).
+/// Cost: a stable radix sort of N keys and their indices on [`key_bits_for`]`(num_windows)`
+/// bits, plus two passes over N and one scan of N ([`group_bytes`]).
 pub fn group_by_window(rec: &mut Recorder, ids: &Tensor, num_windows: u64) -> Result<WindowGroups> {
     if ids.dtype() != DType::U32 || ids.shape().len() != 1 {
         return Err(Error::Shape(format!("group_by_window: ids must be u32 [N], got {ids:?}")));
@@ -233,20 +233,22 @@ pub fn group_by_window(rec: &mut Recorder, ids: &Tensor, num_windows: u64) -> Re
     let capacity = num_windows.min(n as u64) as usize;
     let offsets = Tensor::empty(&gpu, &[capacity + 1], DType::U32)?;
     let segment_ids = Tensor::empty(&gpu, &[capacity], DType::U32)?;
-    fill_bits(rec, &offsets, n)?;
-    fill_bits(rec, &segment_ids, u32::MAX)?;
-    let seq = iota(rec, &gpu, n)?;
-    let (sorted_ids, order) = sort_pairs(rec, ids, &seq, key_bits_for(num_windows))?;
+    if n == 0 {
+        // No points: no invocation of `segments` to write the one offset.
+        fill_bits(rec, &offsets, 0)?;
+    }
+    let (sorted_ids, order) = sort_indices(rec, ids, key_bits_for(num_windows))?;
     let flags = Tensor::empty(&gpu, &[n as usize], DType::U32)?;
     let positions = Tensor::empty(&gpu, &[n as usize], DType::U32)?;
     let groups = (n as u64).div_ceil(WG);
     rec.dispatch_linear(WINDOW_HEADS, groups, &[&sorted_ids, &flags], &Params::count(n))?;
     let count = exclusive_scan(rec, &flags, &positions)?;
+    let fit = u32::try_from(capacity).expect("at most n");
     rec.dispatch_linear(
         WINDOW_SEGMENTS,
         groups,
-        &[&sorted_ids, &positions, &offsets, &segment_ids],
-        &Params::count(n),
+        &[&sorted_ids, &flags, &positions, &offsets, &segment_ids],
+        &Params { capacity: fit, ..Params::count(n) },
     )?;
     Ok(WindowGroups { order, sorted_ids, offsets, segment_ids, count })
 }
@@ -257,10 +259,10 @@ pub fn window_ids_bytes(n: usize) -> u64 {
 }
 
 /// Bytes [`group_by_window`] reads and writes for `n` points in `num_windows` windows: the
-/// sort, the scan, and the iota, heads and segments passes.
+/// sort, the scan, and the heads and segments passes.
 pub fn group_bytes(n: usize, num_windows: u64) -> u64 {
     let capacity = num_windows.min(n as u64);
-    sort::bytes_moved(n, key_bits_for(num_windows)) + scan::bytes_moved(n) + 4 * (6 * n as u64 + 2 * capacity)
+    sort::bytes_moved(n, key_bits_for(num_windows)) + scan::bytes_moved(n) + 4 * (5 * n as u64 + 2 * capacity)
 }
 
 /// The CPU versions the kernels are checked against.

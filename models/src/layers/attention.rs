@@ -13,11 +13,14 @@
 //! attention reads q, k, v rounded to f16, in the forward and the backward pass (mixed-precision
 //! training); gradients, softmax statistics and outputs stay f32.
 
-use velox_engine::ops::attention::{attention, attention_backward, AttentionOut, Segments};
+use velox_engine::ops::attention::{
+    attention, attention_backward_into, AttentionGrads, AttentionOut, Segments,
+};
 use velox_engine::ops::cast::cast;
 use velox_engine::{DType, Error, Precision, Recorder, Result, Tensor};
 
-use super::linear::{Linear, LinearCache};
+use super::linear::{Linear, LinearCache, LinearStack};
+use crate::params::ParamStore;
 
 pub struct MultiHeadAttention {
     /// `[width, heads * head_dim]`
@@ -29,12 +32,31 @@ pub struct MultiHeadAttention {
     pub o: Linear,
     pub heads: usize,
     pub head_dim: usize,
+    /// The q, k and v projections as one stack (self-attention: one product for all three)
+    /// and the k and v ones (cross-attention), where their parameters lie one after another
+    /// in the store ([`MultiHeadAttention::with_store_stacks`]).
+    qkv: Option<LinearStack>,
+    kv: Option<LinearStack>,
+}
+
+/// What the projections kept of their inputs.
+enum Projections {
+    Separate {
+        q: LinearCache,
+        k: LinearCache,
+        v: LinearCache,
+    },
+    /// q, k and v from one stacked product.
+    Qkv(LinearCache),
+    /// q alone, k and v from one stacked product.
+    QandKv {
+        q: LinearCache,
+        kv: LinearCache,
+    },
 }
 
 pub struct MultiHeadAttentionCache {
-    q_in: LinearCache,
-    k_in: LinearCache,
-    v_in: LinearCache,
+    projections: Projections,
     o_in: LinearCache,
     q: Tensor,
     k: Tensor,
@@ -60,7 +82,26 @@ impl MultiHeadAttention {
         if k.in_features != v.in_features {
             return Err(Error::Shape("attention: k and v read contexts of different widths".into()));
         }
-        Ok(MultiHeadAttention { q, k, v, o, heads, head_dim: inner / heads })
+        Ok(MultiHeadAttention { q, k, v, o, heads, head_dim: inner / heads, qkv: None, kv: None })
+    }
+
+    /// Stacks the projections whose weights (`names`: q, k and v, without biases) lie one
+    /// after another in `store`: q, k, v for self-attention, k, v for cross-attention. Each
+    /// stack saves the products and dispatches of the projections it joins.
+    pub fn with_store_stacks(mut self, store: &ParamStore, names: [&str; 3]) -> Result<MultiHeadAttention> {
+        if [&self.q, &self.k, &self.v].iter().any(|l| l.bias.is_some()) {
+            return Ok(self);
+        }
+        if self.q.in_features == self.k.in_features {
+            self.qkv = store.stacked(&names)?.map(|w| LinearStack::new(w, None)).transpose()?;
+        }
+        self.kv = store.stacked(&names[1..])?.map(|w| LinearStack::new(w, None)).transpose()?;
+        Ok(self)
+    }
+
+    /// The stack `s` where its output over `rows` rows splits into views.
+    fn usable<'a>(&self, s: &'a Option<LinearStack>, x: &Tensor, rows: usize) -> Option<&'a LinearStack> {
+        s.as_ref().filter(|s| (rows * s.out_features).is_multiple_of(x.view_alignment()))
     }
 
     fn scale(&self) -> f32 {
@@ -79,32 +120,74 @@ impl MultiHeadAttention {
         context: Option<&Tensor>,
         seg: &Segments,
     ) -> Result<(Tensor, MultiHeadAttentionCache)> {
+        self.forward_with(rec, x, context, seg, None)
+    }
+
+    /// `residual + y`, added by the output projection's product (a residual block's output
+    /// without a separate add).
+    pub fn forward_plus(
+        &self,
+        rec: &mut Recorder,
+        x: &Tensor,
+        context: Option<&Tensor>,
+        seg: &Segments,
+        residual: &Tensor,
+    ) -> Result<(Tensor, MultiHeadAttentionCache)> {
+        self.forward_with(rec, x, context, seg, Some(residual))
+    }
+
+    fn forward_with(
+        &self,
+        rec: &mut Recorder,
+        x: &Tensor,
+        context: Option<&Tensor>,
+        seg: &Segments,
+        residual: Option<&Tensor>,
+    ) -> Result<(Tensor, MultiHeadAttentionCache)> {
         let c = context.unwrap_or(x);
-        let (q, q_in) = self.q.forward(rec, x)?;
-        let (k, k_in) = self.k.forward(rec, c)?;
-        let (v, v_in) = self.v.forward(rec, c)?;
-        let (q, k, v) = (self.split_heads(&q)?, self.split_heads(&k)?, self.split_heads(&v)?);
-        // In an f16 recording the kernels read q, k and v rounded to f16, forward and backward.
-        let (q, k, v) = match rec.precision() {
-            Precision::F32 => (q, k, v),
-            Precision::F16 => {
-                (cast(rec, &q, DType::F16)?, cast(rec, &k, DType::F16)?, cast(rec, &v, DType::F16)?)
-            }
+        let (nq, nk) = (x.numel() / self.q.in_features.max(1), c.numel() / self.k.in_features.max(1));
+        // In an f16 recording the kernels read q, k and v rounded to f16, forward and backward
+        // (a stack's outputs rounded in one pass).
+        let half = |rec: &mut Recorder, t: Tensor| match rec.precision() {
+            Precision::F32 => Ok(t),
+            Precision::F16 => cast(rec, &t, DType::F16),
         };
+        let inner = self.heads * self.head_dim;
+        let (q, k, v, projections) =
+            match (context, self.usable(&self.qkv, x, nq), self.usable(&self.kv, c, nk)) {
+                (None, Some(s), _) => {
+                    let (y, cache) = s.forward(rec, x)?;
+                    let y = half(rec, y)?;
+                    let [q, k, v] =
+                        [0, 1, 2].map(|i| y.view(i * nq * inner, &[nq, self.heads, self.head_dim]));
+                    (q?, k?, v?, Projections::Qkv(cache))
+                }
+                (Some(_), _, Some(s)) => {
+                    let (q, q_in) = self.q.forward(rec, x)?;
+                    let q = half(rec, self.split_heads(&q)?)?;
+                    let (y, kv) = s.forward(rec, c)?;
+                    let y = half(rec, y)?;
+                    let [k, v] = [0, 1].map(|i| y.view(i * nk * inner, &[nk, self.heads, self.head_dim]));
+                    (q, k?, v?, Projections::QandKv { q: q_in, kv })
+                }
+                _ => {
+                    let (q, q_in) = self.q.forward(rec, x)?;
+                    let (k, k_in) = self.k.forward(rec, c)?;
+                    let (v, v_in) = self.v.forward(rec, c)?;
+                    let q = half(rec, self.split_heads(&q)?)?;
+                    let k = half(rec, self.split_heads(&k)?)?;
+                    let v = half(rec, self.split_heads(&v)?)?;
+                    (q, k, v, Projections::Separate { q: q_in, k: k_in, v: v_in })
+                }
+            };
         let out = attention(rec, &q, &k, &v, seg, self.scale())?;
         let flat = out.o.reshape(&[out.o.shape()[0], self.heads * self.head_dim])?;
-        let (y, o_in) = self.o.forward(rec, &flat)?;
-        let cache = MultiHeadAttentionCache {
-            q_in,
-            k_in,
-            v_in,
-            o_in,
-            q,
-            k,
-            v,
-            out,
-            self_attention: context.is_none(),
+        let (y, o_in) = match residual {
+            Some(r) => self.o.forward_plus(rec, &flat, r)?,
+            None => self.o.forward(rec, &flat)?,
         };
+        let cache =
+            MultiHeadAttentionCache { projections, o_in, q, k, v, out, self_attention: context.is_none() };
         Ok((y, cache))
     }
 
@@ -148,24 +231,110 @@ impl MultiHeadAttention {
         dy: &Tensor,
         seg: &Segments,
     ) -> Result<(Tensor, Option<Tensor>)> {
+        self.backward_with(rec, cache, dy, seg, None)
+    }
+
+    /// The backward pass of a cross-attention with the context's gradient written into
+    /// `dcontext` (`[Nk, cwidth]`), or added to what it holds (`accumulate`: a context several
+    /// layers read); returns `dx`.
+    pub fn backward_into(
+        &self,
+        rec: &mut Recorder,
+        cache: &MultiHeadAttentionCache,
+        dy: &Tensor,
+        seg: &Segments,
+        dcontext: &Tensor,
+        accumulate: bool,
+    ) -> Result<Tensor> {
+        if cache.self_attention {
+            return Err(Error::Shape("attention backward: a self-attention has no separate context".into()));
+        }
+        Ok(self.backward_with(rec, cache, dy, seg, Some((dcontext, accumulate)))?.0)
+    }
+
+    fn backward_with(
+        &self,
+        rec: &mut Recorder,
+        cache: &MultiHeadAttentionCache,
+        dy: &Tensor,
+        seg: &Segments,
+        dcontext: Option<(&Tensor, bool)>,
+    ) -> Result<(Tensor, Option<Tensor>)> {
         let d_flat = self.o.backward(rec, &cache.o_in, dy)?;
         let d_o = self.split_heads(&d_flat)?;
-        let g = attention_backward(rec, &cache.q, &cache.k, &cache.v, &cache.out, &d_o, seg, self.scale())?;
-        let flat = |t: &Tensor| t.reshape(&[t.shape()[0], self.heads * self.head_dim]);
-        let (dq, dk, dv) = (flat(&g.dq)?, flat(&g.dk)?, flat(&g.dv)?);
         let gpu = dy.gpu();
-        let dx = Tensor::empty(gpu, &[dq.shape()[0], self.q.in_features], DType::F32)?;
-        self.q.grads_into(rec, &cache.q_in, &dq, &dx, false)?;
-        // The context gradient, through k and v; for self-attention it adds into dx.
-        let dc = if cache.self_attention {
-            self.k.grads_into(rec, &cache.k_in, &dk, &dx, true)?;
-            dx.clone()
-        } else {
-            let dc = Tensor::empty(gpu, &[dk.shape()[0], self.k.in_features], DType::F32)?;
-            self.k.grads_into(rec, &cache.k_in, &dk, &dc, false)?;
-            dc
+        let (nq, nk) = (cache.q.shape()[0], cache.k.shape()[0]);
+        let inner = self.heads * self.head_dim;
+        let heads = |t: Tensor| t.reshape(&[t.shape()[0], self.heads, self.head_dim]);
+        // The gradients of q, k and v where the projections' backward wants them: one
+        // [3, n, inner] (or [2, nk, inner]) tensor for a stack.
+        let (dq_all, dkv_all, grads) = match &cache.projections {
+            Projections::Qkv(_) => {
+                let all = Tensor::empty(gpu, &[3, nq, inner], DType::F32)?;
+                let [dq, dk, dv] =
+                    [0, 1, 2].map(|i| all.view(i * nq * inner, &[nq, self.heads, self.head_dim]));
+                (Some(all), None, AttentionGrads { dq: dq?, dk: dk?, dv: dv? })
+            }
+            Projections::QandKv { .. } => {
+                let all = Tensor::empty(gpu, &[2, nk, inner], DType::F32)?;
+                let [dk, dv] = [0, 1].map(|i| all.view(i * nk * inner, &[nk, self.heads, self.head_dim]));
+                let dq = heads(Tensor::empty(gpu, &[nq, inner], DType::F32)?)?;
+                (None, Some(all), AttentionGrads { dq, dk: dk?, dv: dv? })
+            }
+            Projections::Separate { .. } => {
+                let t = |n: usize| heads(Tensor::empty(gpu, &[n, inner], DType::F32)?);
+                (None, None, AttentionGrads { dq: t(nq)?, dk: t(nk)?, dv: t(nk)? })
+            }
         };
-        self.v.grads_into(rec, &cache.v_in, &dv, &dc, true)?;
+        attention_backward_into(
+            rec,
+            &cache.q,
+            &cache.k,
+            &cache.v,
+            &cache.out,
+            &d_o,
+            seg,
+            self.scale(),
+            &grads,
+        )?;
+        let flat = |t: &Tensor| t.reshape(&[t.shape()[0], inner]);
+        let (dq, dk, dv) = (flat(&grads.dq)?, flat(&grads.dk)?, flat(&grads.dv)?);
+        let dx = Tensor::empty(gpu, &[nq, self.q.in_features], DType::F32)?;
+        // Where the context's gradient goes: a new tensor, or the caller's.
+        let context_out = |given: Option<(&Tensor, bool)>| -> Result<(Tensor, bool)> {
+            match given {
+                Some((t, accumulate)) => Ok((t.reshape(&[nk, self.k.in_features])?, accumulate)),
+                None => Ok((Tensor::empty(gpu, &[nk, self.k.in_features], DType::F32)?, false)),
+            }
+        };
+        let dc = match &cache.projections {
+            Projections::Qkv(c) => {
+                let s = self.qkv.as_ref().expect("a qkv cache comes from the stack");
+                s.grads_into(rec, c, dq_all.as_ref().expect("stacked"), Some((&dx, false)))?;
+                dx.clone()
+            }
+            Projections::QandKv { q, kv } => {
+                self.q.grads_into(rec, q, &dq, &dx, false)?;
+                let (dc, accumulate) = context_out(dcontext)?;
+                let s = self.kv.as_ref().expect("a kv cache comes from the stack");
+                s.grads_into(rec, kv, dkv_all.as_ref().expect("stacked"), Some((&dc, accumulate)))?;
+                dc
+            }
+            Projections::Separate { q, k, v } => {
+                self.q.grads_into(rec, q, &dq, &dx, false)?;
+                // The context gradient, through k and v; for self-attention it adds into dx.
+                let dc = if cache.self_attention {
+                    self.k.grads_into(rec, k, &dk, &dx, true)?;
+                    dx.clone()
+                } else {
+                    let (dc, accumulate) = context_out(dcontext)?;
+                    self.k.grads_into(rec, k, &dk, &dc, accumulate)?;
+                    dc
+                };
+                self.v.grads_into(rec, v, &dv, &dc, true)?;
+                dc
+            }
+        };
         Ok((dx, (!cache.self_attention).then_some(dc)))
     }
 }

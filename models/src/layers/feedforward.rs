@@ -5,12 +5,13 @@
 //!   `shaders/gelu.wgsl` backward).
 
 use velox_engine::ops::gelu::gelu_backward;
-use velox_engine::ops::swiglu::{swiglu, swiglu_backward};
+use velox_engine::ops::swiglu::{swiglu, swiglu_backward, swiglu_backward_into};
 use velox_engine::ops::unary::{unary, Unary};
 use velox_engine::{Error, Recorder, Result, Tensor};
 
-use super::linear::{Linear, LinearCache};
+use super::linear::{Linear, LinearCache, LinearStack};
 use super::Param;
+use crate::params::ParamStore;
 
 pub struct SwiGlu {
     /// `[d, hidden]`, the gated branch.
@@ -19,14 +20,18 @@ pub struct SwiGlu {
     pub w3: Linear,
     /// `[hidden, d_out]`
     pub w2: Linear,
+    /// W1 and W3 as one stack, where a store holds them one after another
+    /// ([`SwiGlu::with_store_stack`]): one product for both branches.
+    w13: Option<LinearStack>,
 }
 
 #[derive(Clone, Debug)]
 pub struct SwiGluCache {
     x: LinearCache,
-    /// `x W1`, `x W3`.
+    /// `x W1`, `x W3` (views of one `[2, rows, hidden]` tensor when stacked).
     a: Tensor,
     b: Tensor,
+    stacked: bool,
     h: LinearCache,
 }
 
@@ -47,24 +52,80 @@ impl SwiGlu {
                 w2.out_features
             )));
         }
-        Ok(SwiGlu { w1, w3, w2 })
+        Ok(SwiGlu { w1, w3, w2, w13: None })
+    }
+
+    /// Stacks W1 and W3 (the weights called `names` in `store`) when the store holds them one
+    /// after another.
+    pub fn with_store_stack(mut self, store: &ParamStore, names: [&str; 2]) -> Result<SwiGlu> {
+        self.w13 = store.stacked(&names)?.map(|w| LinearStack::new(w, None)).transpose()?;
+        Ok(self)
     }
 
     pub fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<(Tensor, SwiGluCache)> {
-        let (a, cx) = self.w1.forward(rec, x)?;
-        let (b, _) = self.w3.forward(rec, x)?;
+        self.forward_with(rec, x, None)
+    }
+
+    /// `residual + SwiGLU(x)`, the residual added by the last product.
+    pub fn forward_plus(
+        &self,
+        rec: &mut Recorder,
+        x: &Tensor,
+        residual: &Tensor,
+    ) -> Result<(Tensor, SwiGluCache)> {
+        self.forward_with(rec, x, Some(residual))
+    }
+
+    fn forward_with(
+        &self,
+        rec: &mut Recorder,
+        x: &Tensor,
+        residual: Option<&Tensor>,
+    ) -> Result<(Tensor, SwiGluCache)> {
+        let hidden = self.w1.out_features;
+        let rows = x.numel() / self.w1.in_features.max(1);
+        let stack = self.w13.as_ref().filter(|_| (rows * hidden).is_multiple_of(x.view_alignment()));
+        let (a, b, cx, stacked) = match stack {
+            Some(s) => {
+                let (ab, cx) = s.forward(rec, x)?;
+                (ab.view(0, &[rows, hidden])?, ab.view(rows * hidden, &[rows, hidden])?, cx, true)
+            }
+            None => {
+                let (a, cx) = self.w1.forward(rec, x)?;
+                let (b, _) = self.w3.forward(rec, x)?;
+                (a, b, cx, false)
+            }
+        };
         let h = swiglu(rec, &a, &b)?;
-        let (y, ch) = self.w2.forward(rec, &h)?;
-        Ok((y, SwiGluCache { x: cx, a, b, h: ch }))
+        let (y, ch) = match residual {
+            Some(r) => self.w2.forward_plus(rec, &h, r)?,
+            None => self.w2.forward(rec, &h)?,
+        };
+        Ok((y, SwiGluCache { x: cx, a, b, stacked, h: ch }))
     }
 
     /// Adds `dW1`, `dW3`, `dW2` into the gradients and returns `dx = da W1^T + db W3^T`.
     pub fn backward(&self, rec: &mut Recorder, cache: &SwiGluCache, dy: &Tensor) -> Result<Tensor> {
         let dh = self.w2.backward(rec, &cache.h, dy)?;
-        let (da, db) = swiglu_backward(rec, &cache.a, &cache.b, &dh)?;
-        let dx = self.w1.backward(rec, &cache.x, &da)?;
-        self.w3.grads_into(rec, &cache.x, &db, &dx, true)?;
-        Ok(dx)
+        match self.w13.as_ref().filter(|_| cache.stacked) {
+            Some(s) => {
+                let (rows, hidden) = (cache.a.shape()[0], self.w1.out_features);
+                let dab = Tensor::empty(dy.gpu(), &[2, rows, hidden], velox_engine::DType::F32)?;
+                let (da, db) = (dab.view(0, &[rows, hidden])?, dab.view(rows * hidden, &[rows, hidden])?);
+                swiglu_backward_into(rec, &cache.a, &cache.b, &dh, &da, &db)?;
+                let dx = Tensor::empty(dy.gpu(), &[rows, self.w1.in_features], velox_engine::DType::F32)?;
+                s.grads_into(rec, &cache.x, &dab, Some((&dx, false)))?;
+                let mut shape = dy.shape().to_vec();
+                *shape.last_mut().expect("rows of features") = self.w1.in_features;
+                dx.reshape(&shape)
+            }
+            None => {
+                let (da, db) = swiglu_backward(rec, &cache.a, &cache.b, &dh)?;
+                let dx = self.w1.backward(rec, &cache.x, &da)?;
+                self.w3.grads_into(rec, &cache.x, &db, &dx, true)?;
+                Ok(dx)
+            }
+        }
     }
 }
 

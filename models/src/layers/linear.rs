@@ -2,9 +2,8 @@
 //!
 //! Backward: `dx = dy @ W^T`, `dW += x^T @ dy`, `db += sum over rows of dy`.
 
-use velox_engine::ops::binary::{binary_into, Binary};
 use velox_engine::ops::cast::cast;
-use velox_engine::ops::matmul::{matmul, matmul_bias, matmul_into};
+use velox_engine::ops::matmul::{matmul, matmul_bias, matmul_bias_into, matmul_into, matmul_sum_into};
 use velox_engine::ops::reduce::{reduce_into, Reduce};
 use velox_engine::{DType, Precision, Recorder, Result, Tensor};
 
@@ -59,6 +58,32 @@ impl Linear {
         };
         let mut y_shape = x.shape().to_vec();
         *y_shape.last_mut().unwrap() = self.out_features;
+        Ok((y.reshape(&y_shape)?, LinearCache { x: xm, x_shape: x.shape().to_vec() }))
+    }
+
+    /// `y = residual + x @ W (+ b)` in one product (the residual copied into the output, the
+    /// product added onto it): a residual block's output without a separate add.
+    pub fn forward_plus(
+        &self,
+        rec: &mut Recorder,
+        x: &Tensor,
+        residual: &Tensor,
+    ) -> Result<(Tensor, LinearCache)> {
+        let x2 = as_rows("linear", x, self.in_features)?;
+        let mut y_shape = x.shape().to_vec();
+        *y_shape.last_mut().unwrap() = self.out_features;
+        if residual.shape() != y_shape.as_slice() || residual.dtype() != DType::F32 {
+            return Err(velox_engine::Error::Shape(format!(
+                "linear: the residual {residual:?} must be f32 {y_shape:?}"
+            )));
+        }
+        let (xm, w) = match rec.precision() {
+            Precision::F32 => (x2.clone(), self.weight.value.clone()),
+            Precision::F16 => (cast(rec, &x2, DType::F16)?, self.weight.value_f16(rec)?),
+        };
+        let y = Tensor::empty(x.gpu(), &[x2.shape()[0], self.out_features], DType::F32)?;
+        rec.copy(residual, &y)?;
+        matmul_bias_into(rec, &xm, &w, false, false, self.bias.as_ref().map(|b| &b.value), &y, true)?;
         Ok((y.reshape(&y_shape)?, LinearCache { x: xm, x_shape: x.shape().to_vec() }))
     }
 
@@ -151,11 +176,11 @@ impl LinearStack {
             Precision::F32 => (x2.clone(), self.weight.value.clone()),
             Precision::F16 => (cast(rec, &x2, DType::F16)?, self.weight.value_f16(rec)?),
         };
-        let y = matmul(rec, &xm, &w, false, false)?;
-        if let Some(b) = &self.bias {
-            let b = b.value.reshape(&[self.k, 1, self.out_features])?;
-            binary_into(rec, &y, &b, &y, Binary::Add)?;
-        }
+        // Each layer's bias onto its own output, by the product where the kernel can.
+        let y = match &self.bias {
+            Some(b) => matmul_bias(rec, &xm, &w, false, false, &b.value)?,
+            None => matmul(rec, &xm, &w, false, false)?,
+        };
         Ok((y, LinearCache { x: xm, x_shape: x.shape().to_vec() }))
     }
 
@@ -184,9 +209,8 @@ impl LinearStack {
             reduce_into(rec, dy, 1, Reduce::Sum, &b.grad, true)?;
         }
         if let (Some((dx, accumulate)), Some(w)) = (dx, w) {
-            let parts = matmul(rec, &dym, &w, false, true)?;
             let dx2 = as_rows("stacked linear backward dx", dx, self.in_features)?;
-            reduce_into(rec, &parts, 0, Reduce::Sum, &dx2, accumulate)?;
+            matmul_sum_into(rec, &dym, &w, false, true, &dx2, accumulate)?;
         }
         Ok(())
     }

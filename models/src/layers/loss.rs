@@ -1,10 +1,9 @@
 //! Mean losses: each gives the scalar loss as a 1-element tensor and the gradient of its input.
 //! Kernel: `shaders/loss.wgsl`; host side `engine/src/ops/loss.rs`.
 
-use velox_engine::ops::binary::{binary_into, Binary};
 use velox_engine::ops::fill::fill;
-use velox_engine::ops::loss::loss;
 pub use velox_engine::ops::loss::LossKind;
+use velox_engine::ops::loss::{loss, loss_into};
 use velox_engine::{DType, Error, Recorder, Result, Tensor};
 
 /// `weight * mean(loss(pred, target))`.
@@ -46,6 +45,19 @@ impl Loss {
         loss(rec, self.kind, pred, target, self.weight)
     }
 
+    /// `dloss/dpred`, with the loss written into `total` (f32 `[1]`) or added to what it holds
+    /// (`accumulate`).
+    pub fn forward_backward_into(
+        &self,
+        rec: &mut Recorder,
+        pred: &Tensor,
+        target: &Tensor,
+        total: &Tensor,
+        accumulate: bool,
+    ) -> Result<Tensor> {
+        loss_into(rec, self.kind, pred, target, self.weight, total, accumulate)
+    }
+
     /// `(loss [1], dloss/dpred)` for `pred` and `target` split into consecutive segments of
     /// `rows` rows each (the first axis): `weight` times the sum over the segments of each
     /// segment's mean. A batch's samples with different numbers of rows each get their own
@@ -65,10 +77,12 @@ impl Loss {
         }
         let gpu = pred.gpu().clone();
         let sum = Tensor::empty(&gpu, &[1], DType::F32)?;
-        fill(rec, &sum, 0.0)?;
+        if rows.is_empty() {
+            fill(rec, &sum, 0.0)?;
+        }
         let grad = Tensor::empty(&gpu, pred.shape(), DType::F32)?;
         let mut at = 0;
-        for &count in rows {
+        for (i, &count) in rows.iter().enumerate() {
             let slice = |rec: &mut Recorder, t: &Tensor| -> Result<Tensor> {
                 let mut shape = t.shape().to_vec();
                 shape[0] = count;
@@ -77,8 +91,7 @@ impl Loss {
                 Ok(out)
             };
             let (p, t) = (slice(rec, pred)?, slice(rec, target)?);
-            let (l, g) = self.forward_backward(rec, &p, &t)?;
-            binary_into(rec, &sum, &l, &sum, Binary::Add)?;
+            let g = self.forward_backward_into(rec, &p, &t, &sum, i > 0)?;
             rec.copy_rows(&g, 0, &grad, at, count)?;
             at += count;
         }

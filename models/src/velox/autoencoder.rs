@@ -382,16 +382,27 @@ impl Autoencoder {
         self.pass_seconds.forward += (forward_done - started).as_secs_f64();
         let mut rec = self.store.recorder()?;
         let image_loss = Tensor::empty(&gpu, &[1], DType::F32)?;
-        fill(&mut rec, &image_loss, 0.0)?;
+        let mut image_loss_started = false;
+        // The alpha and depth gradients are zero: one zero image per size, for every view.
+        let mut zeros: Vec<Tensor> = Vec::new();
         let d_gaussians = Gaussians::empty(&gpu, gaussians.len())?;
         for ((g, views, image_weight), &(start, len)) in rendered.iter().zip(&frame_gaussians) {
             let mut d_frame: Option<Gaussians> = None;
             for (r, gt) in views {
-                let (loss, d_rgb) =
-                    Loss::mse().weighted(*image_weight).forward_backward(&mut rec, &r.image.rgb, gt)?;
-                binary_into(&mut rec, &image_loss, &loss, &image_loss, Binary::Add)?;
-                let d_zero = Tensor::empty(&gpu, gt.shape()[..2].as_ref(), DType::F32)?;
-                fill(&mut rec, &d_zero, 0.0)?;
+                let loss = Loss::mse().weighted(*image_weight);
+                let d_rgb =
+                    loss.forward_backward_into(&mut rec, &r.image.rgb, gt, &image_loss, image_loss_started)?;
+                image_loss_started = true;
+                let hw = &gt.shape()[..2];
+                let d_zero = match zeros.iter().find(|z| z.shape() == hw) {
+                    Some(z) => z.clone(),
+                    None => {
+                        let z = Tensor::empty(&gpu, hw, DType::F32)?;
+                        fill(&mut rec, &z, 0.0)?;
+                        zeros.push(z.clone());
+                        z
+                    }
+                };
                 let d = render_backward(&mut rec, g, r, &d_rgb, &d_zero, &d_zero)?;
                 match &d_frame {
                     None => d_frame = Some(d),
@@ -407,10 +418,9 @@ impl Autoencoder {
                 rec.copy_rows(src, 0, dst, start, len)?;
             }
         }
-        let ds_gauss = self.gaussians.backward(&mut rec, &g_cache, &d_gaussians)?;
-        binary_into(&mut rec, &ds, &ds_gauss, &ds, Binary::Add)?;
-        let ds_surface = self.surface.backward(&mut rec, &surface_cache, &dv)?;
-        binary_into(&mut rec, &ds, &ds_surface, &ds, Binary::Add)?;
+        // Both decoders add their tokens' gradients into the token loss's.
+        self.gaussians.backward_into(&mut rec, &g_cache, &d_gaussians, &ds, true)?;
+        self.surface.backward_into(&mut rec, &surface_cache, &dv, &ds, true)?;
         self.encoder.backward(&mut rec, &enc_cache, &ds)?;
         rec.submit()?;
         self.pass_seconds.backward += forward_done.elapsed().as_secs_f64();

@@ -3,15 +3,12 @@
 //! windows (tokens gathered into window order, attended per window, gathered back).
 
 use velox_engine::ops::attention::Segments;
-use velox_engine::ops::binary::{binary, Binary};
-use velox_engine::ops::gather::{gather, invert_permutation};
+use velox_engine::ops::gather::{gather, gather_plus, invert_permutation};
 use velox_engine::ops::window::{group_by_window, window_ids, WindowGrid};
 use velox_engine::{Recorder, Result, Tensor};
 
-use velox_engine::ops::fill::fill;
-use velox_engine::ops::swiglu::swiglu_backward;
+use velox_engine::ops::swiglu::silu_backward;
 use velox_engine::ops::unary::{unary, Unary};
-use velox_engine::DType;
 
 use crate::layers::attention::{MultiHeadAttention, MultiHeadAttentionCache};
 use crate::layers::feedforward::SwiGluCache;
@@ -75,7 +72,9 @@ pub fn attention_params(b: &mut ParamBuilder, name: &str, width: usize) -> Resul
 
 pub fn attention(store: &ParamStore, name: &str, heads: usize) -> Result<MultiHeadAttention> {
     let l = |p: &str| linear(store, &format!("{name}.{p}"), false);
-    MultiHeadAttention::new(l("q")?, l("k")?, l("v")?, l("o")?, heads)
+    let w = ["q", "k", "v"].map(|p| format!("{name}.{p}.w"));
+    MultiHeadAttention::new(l("q")?, l("k")?, l("v")?, l("o")?, heads)?
+        .with_store_stacks(store, [&w[0], &w[1], &w[2]])
 }
 
 pub fn ff_params(b: &mut ParamBuilder, name: &str, width: usize, ratio: usize) -> Result<()> {
@@ -89,7 +88,8 @@ pub fn ff(store: &ParamStore, name: &str) -> Result<FeedForward> {
     let p = |s: &str| Param::from_store(store, &format!("{name}.{s}.w"));
     Ok(FeedForward {
         norm: norm(store, &format!("{name}.norm"))?,
-        ffn: SwiGlu::new(p("w1")?, p("w3")?, p("w2")?)?,
+        ffn: SwiGlu::new(p("w1")?, p("w3")?, p("w2")?)?
+            .with_store_stack(store, [&format!("{name}.w1.w"), &format!("{name}.w3.w")])?,
     })
 }
 
@@ -97,8 +97,8 @@ impl FeedForward {
     /// `x + SwiGLU(RMSNorm(x))`.
     pub fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<(Tensor, FeedForwardCache)> {
         let (n, norm) = self.norm.forward(rec, x)?;
-        let (f, ffn) = self.ffn.forward(rec, &n)?;
-        Ok((binary(rec, x, &f, Binary::Add)?, FeedForwardCache { norm, ffn }))
+        let (y, ffn) = self.ffn.forward_plus(rec, &n, x)?;
+        Ok((y, FeedForwardCache { norm, ffn }))
     }
 
     /// `dx = dy + RMSNorm'(SwiGLU'(dy))` (the sum in the norm's pass).
@@ -160,8 +160,7 @@ impl WindowLayer {
         let (n, norm) = self.norm.forward(rec, x)?;
         let n_sorted = gather(rec, &n, &w.order)?;
         let (a_sorted, attn) = self.attn.forward(rec, &n_sorted, None, &w.segments)?;
-        let a = gather(rec, &a_sorted, &w.inverse)?;
-        let x1 = binary(rec, x, &a, Binary::Add)?;
+        let x1 = gather_plus(rec, &a_sorted, &w.inverse, x)?;
         let (y, ff) = self.ff.forward(rec, &x1)?;
         Ok((y, WindowLayerCache { norm, attn, ff }))
     }
@@ -196,13 +195,6 @@ pub struct TimeEmbeddingCache {
     a1: Tensor,
     fc2: LinearCache,
     a2: Tensor,
-}
-
-/// `silu'(a) * dy`: SiLU is the SwiGLU gate with `b = 1`, so its backward is the gate's `da`.
-fn silu_backward(rec: &mut Recorder, a: &Tensor, dy: &Tensor) -> Result<Tensor> {
-    let ones = Tensor::empty(a.gpu(), a.shape(), DType::F32)?;
-    fill(rec, &ones, 1.0)?;
-    Ok(swiglu_backward(rec, a, &ones, dy)?.0)
 }
 
 impl TimeEmbedding {

@@ -20,7 +20,6 @@
 
 use velox_engine::ops::assign::assign_grouped;
 use velox_engine::ops::attention::Segments;
-use velox_engine::ops::binary::{binary, binary_into, Binary};
 use velox_engine::ops::columns::copy_columns;
 use velox_engine::ops::concat::copy_add;
 use velox_engine::ops::fill::fill;
@@ -262,7 +261,9 @@ impl Encoder {
         }
         let cell_inverse = invert_permutation(rec, &cell_order)?;
         let one_each: Vec<u32> = (0..=(batch * k) as u32).collect();
-        let cells = Segments::new(Tensor::from_slice(&gpu, &[batch * k + 1], &one_each)?, cell_offsets);
+        // Every point of every cloud is in its nearest query's cell.
+        let q_offsets = Tensor::from_slice(&gpu, &[batch * k + 1], &one_each)?;
+        let cells = Segments::covering_keys(q_offsets, cell_offsets, total);
         let windows = [
             WindowLayout::from_ids(rec, &window_ids_all[0], batch as u64 * grids[0].num_windows())?,
             WindowLayout::from_ids(rec, &window_ids_all[1], batch as u64 * grids[1].num_windows())?,
@@ -327,8 +328,7 @@ impl Encoder {
         for blk in &self.blocks {
             let (qn, norm_q) = blk.norm_q.forward(rec, &q)?;
             let (kvn, norm_kv) = blk.norm_kv.forward(rec, &kv)?;
-            let (a, cross) = blk.cross.forward(rec, &qn, Some(&kvn), &layout.cells)?;
-            let q1 = binary(rec, &q, &a, Binary::Add)?;
+            let (q1, cross) = blk.cross.forward_plus(rec, &qn, Some(&kvn), &layout.cells, &q)?;
             let (q2, cross_ff) = blk.cross_ff.forward(rec, &q1)?;
             q = q2;
             let mut layers = Vec::new();
@@ -351,8 +351,7 @@ impl Encoder {
         let dn = self.out.backward(rec, &cache.out, ds)?;
         let mut dq = self.out_norm.backward(rec, &cache.out_norm, &dn)?;
         // Gradient of the cell-ordered input tokens, summed over the blocks.
-        let dkv = Tensor::empty(&gpu, &[cache.points, self.cfg.width], DType::F32)?;
-        fill(rec, &dkv, 0.0)?;
+        let mut dkv: Option<Tensor> = None;
         for (blk, c) in self.blocks.iter().zip(&cache.blocks).rev() {
             for (layer, lc) in blk.layers.iter().zip(&c.layers).rev() {
                 dq = layer.backward(rec, lc, &dq, &layout.windows[layer.shifted as usize])?;
@@ -360,11 +359,17 @@ impl Encoder {
             let dq1 = blk.cross_ff.backward(rec, &c.cross_ff, &dq)?;
             let (dqn, dkvn) = blk.cross.backward(rec, &c.cross, &dq1, &layout.cells)?;
             let dkvn = dkvn.expect("cross-attention returns a context gradient");
-            let dx = blk.norm_q.backward(rec, &c.norm_q, &dqn)?;
-            dq = binary(rec, &dq1, &dx, Binary::Add)?;
-            let dkv_blk = blk.norm_kv.backward(rec, &c.norm_kv, &dkvn)?;
-            binary_into(rec, &dkv, &dkv_blk, &dkv, Binary::Add)?;
+            dq = blk.norm_q.backward_plus(rec, &c.norm_q, &dqn, Some(&dq1))?;
+            dkv = Some(blk.norm_kv.backward_plus(rec, &c.norm_kv, &dkvn, dkv.as_ref())?);
         }
+        let dkv = match dkv {
+            Some(d) => d,
+            None => {
+                let d = Tensor::empty(&gpu, &[cache.points, self.cfg.width], DType::F32)?;
+                fill(rec, &d, 0.0)?;
+                d
+            }
+        };
         // Input tokens: through the cell order (a permutation) and the query gather. FPS never
         // picks a point twice, so each row of the scatter takes one addition: the same bits on
         // every run.

@@ -131,9 +131,27 @@ impl GaussianDecoder {
     /// Adds every parameter's gradient given the gradients of the Gaussians (the rasteriser's
     /// backward output); returns the gradient with respect to the tokens.
     pub fn backward(&self, rec: &mut Recorder, cache: &GaussianCache, d: &Gaussians) -> Result<Tensor> {
+        let d_raw = self.raw_backward(rec, cache, d)?;
+        self.trunk.backward(rec, &cache.trunk, &d_raw)
+    }
+
+    /// [`GaussianDecoder::backward`] with the tokens' gradient added into `d_tokens` (or
+    /// written there, without `accumulate`).
+    pub fn backward_into(
+        &self,
+        rec: &mut Recorder,
+        cache: &GaussianCache,
+        d: &Gaussians,
+        d_tokens: &Tensor,
+        accumulate: bool,
+    ) -> Result<()> {
+        let d_raw = self.raw_backward(rec, cache, d)?;
+        self.trunk.backward_into(rec, &cache.trunk, &d_raw, d_tokens, accumulate)
+    }
+
+    fn raw_backward(&self, rec: &mut Recorder, cache: &GaussianCache, d: &Gaussians) -> Result<Tensor> {
         let d_raw = head_backward(rec, &cache.raw, &cache.centres, &self.range(), d)?;
         let v = cache.centres.shape()[0];
-        let d_raw = d_raw.reshape(&[v, self.cfg.gaussians_per_voxel * RAW])?;
-        self.trunk.backward(rec, &cache.trunk, &d_raw)
+        d_raw.reshape(&[v, self.cfg.gaussians_per_voxel * RAW])
     }
 }

@@ -17,7 +17,6 @@
 //! The backward pass takes the gradient of the head's output and returns the tokens'.
 
 use velox_engine::ops::attention::Segments;
-use velox_engine::ops::binary::{binary, binary_into, Binary};
 use velox_engine::ops::columns::copy_columns;
 use velox_engine::ops::fill::fill;
 use velox_engine::ops::window::WindowGrid;
@@ -224,10 +223,9 @@ impl VoxelPerceiver {
         let mut blocks = Vec::new();
         for i in 0..shape.blocks {
             let blk = format!("{prefix}.block{i}");
-            let l = |p: &str| linear(store, &format!("{blk}.cross.{p}"), false);
             blocks.push(Block {
                 norm_q: norm(store, &format!("{blk}.norm_q"))?,
-                cross: MultiHeadAttention::new(l("q")?, l("k")?, l("v")?, l("o")?, shape.heads)?,
+                cross: crate::velox::blocks::attention(store, &format!("{blk}.cross"), shape.heads)?,
                 cross_ff: ff(store, &format!("{blk}.cross_ff"))?,
                 layers: (0..shape.self_layers)
                     .map(|s| WindowLayer::new(store, &format!("{blk}.self{s}"), shape.heads, s % 2 == 1))
@@ -315,8 +313,7 @@ impl VoxelPerceiver {
         let mut blocks = Vec::new();
         for blk in &self.blocks {
             let (qn, norm_q) = blk.norm_q.forward(rec, &x)?;
-            let (a, cross) = blk.cross.forward(rec, &qn, Some(tokens), &cross_segments)?;
-            let x1 = binary(rec, &x, &a, Binary::Add)?;
+            let (x1, cross) = blk.cross.forward_plus(rec, &qn, Some(tokens), &cross_segments, &x)?;
             let (x2, cross_ff) = blk.cross_ff.forward(rec, &x1)?;
             x = x2;
             let mut layers = Vec::new();
@@ -344,23 +341,44 @@ impl VoxelPerceiver {
     /// Adds every parameter's gradient given `d_out` (`[V, out]`); returns the gradient with
     /// respect to the tokens.
     pub fn backward(&self, rec: &mut Recorder, cache: &PerceiverCache, d_out: &Tensor) -> Result<Tensor> {
-        let gpu = d_out.gpu().clone();
+        let d_tokens = Tensor::empty(d_out.gpu(), &cache.tokens_shape, DType::F32)?;
+        self.backward_into(rec, cache, d_out, &d_tokens, false)?;
+        Ok(d_tokens)
+    }
+
+    /// [`VoxelPerceiver::backward`] with the tokens' gradient written into `d_tokens`, or added
+    /// to what it holds (`accumulate`).
+    pub fn backward_into(
+        &self,
+        rec: &mut Recorder,
+        cache: &PerceiverCache,
+        d_out: &Tensor,
+        d_tokens: &Tensor,
+        accumulate: bool,
+    ) -> Result<()> {
+        if d_tokens.shape() != cache.tokens_shape.as_slice() || d_tokens.dtype() != DType::F32 {
+            return Err(Error::Shape(format!(
+                "perceiver backward: the tokens' gradient must be f32 {:?}, got {d_tokens:?}",
+                cache.tokens_shape
+            )));
+        }
         let dn = self.head.backward(rec, &cache.head, d_out)?;
         let mut dx = self.head_norm.backward(rec, &cache.head_norm, &dn)?;
-        let d_tokens = Tensor::empty(&gpu, &cache.tokens_shape, DType::F32)?;
-        fill(rec, &d_tokens, 0.0)?;
+        let mut started = accumulate;
         for (blk, c) in self.blocks.iter().zip(&cache.blocks).rev() {
             for (layer, lc) in blk.layers.iter().zip(&c.layers).rev() {
                 dx = layer.backward(rec, lc, &dx, &cache.windows[layer.shifted as usize])?;
             }
             let dx1 = blk.cross_ff.backward(rec, &c.cross_ff, &dx)?;
-            let (dqn, dtok) = blk.cross.backward(rec, &c.cross, &dx1, &cache.cross_segments)?;
-            let dq = blk.norm_q.backward(rec, &c.norm_q, &dqn)?;
-            dx = binary(rec, &dx1, &dq, Binary::Add)?;
-            let dtok = dtok.expect("cross-attention returns a context gradient");
-            binary_into(rec, &d_tokens, &dtok, &d_tokens, Binary::Add)?;
+            let dqn =
+                blk.cross.backward_into(rec, &c.cross, &dx1, &cache.cross_segments, d_tokens, started)?;
+            started = true;
+            dx = blk.norm_q.backward_plus(rec, &c.norm_q, &dqn, Some(&dx1))?;
         }
         self.input.param_grads(rec, &cache.input, &dx)?;
-        Ok(d_tokens)
+        if !started {
+            fill(rec, d_tokens, 0.0)?;
+        }
+        Ok(())
     }
 }

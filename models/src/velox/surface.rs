@@ -449,6 +449,13 @@ impl SurfaceDecoder {
                 lin(&blk("attn.v.w"), None)?,
                 lin(&blk("attn.o.w"), None)?,
                 cfg.heads,
+            )?
+            .with_store_stacks(
+                store,
+                ["q", "k", "v"]
+                    .map(|r| format!("{prefix}.{}", blk(&format!("attn.{r}.w"))))
+                    .each_ref()
+                    .map(String::as_str),
             )?;
             let mlp = GeluMlp::new(
                 p(&blk("mlp.fc1.w"))?,
@@ -652,6 +659,21 @@ impl SurfaceDecoder {
 
     /// Adds every parameter gradient for `dv [N, 3]`; returns the tokens' gradient `[k, token_dim]`.
     pub fn backward(&self, rec: &mut Recorder, cache: &SurfaceCache, dv: &Tensor) -> Result<Tensor> {
+        let dtokens = Tensor::empty(dv.gpu(), &[cache.k, self.token_dim], DType::F32)?;
+        self.backward_into(rec, cache, dv, &dtokens, false)?;
+        Ok(dtokens)
+    }
+
+    /// [`SurfaceDecoder::backward`] with the tokens' gradient written into `dtokens`, or added
+    /// to what it holds (`accumulate`: the tokens feed other decoders too).
+    pub fn backward_into(
+        &self,
+        rec: &mut Recorder,
+        cache: &SurfaceCache,
+        dv: &Tensor,
+        dtokens: &Tensor,
+        accumulate: bool,
+    ) -> Result<()> {
         let (n, b, tt, w) = (cache.n, cache.b, cache.tt, self.cfg.width);
         if dv.shape() != [n, 3] || dv.dtype() != DType::F32 {
             return Err(Error::Shape(format!(
@@ -670,8 +692,13 @@ impl SurfaceDecoder {
         self.final_adaln.backward(rec, &cache.e, &[&g.dshift, &g.dscale], &de, &mut de_started)?;
         let mut dh = self.norm.backward(rec, &cache.ln_final, &g.dx)?;
 
-        let dtokens = Tensor::empty(&gpu, &[cache.k, self.token_dim], DType::F32)?;
-        let mut dtokens_started = false;
+        if dtokens.shape() != [cache.k, self.token_dim] || dtokens.dtype() != DType::F32 {
+            return Err(Error::Shape(format!(
+                "surface decoder backward: the tokens' gradient must be f32 [{}, {}], got {dtokens:?}",
+                cache.k, self.token_dim
+            )));
+        }
+        let mut dtokens_started = accumulate;
         for (blk, c) in self.blocks.iter().zip(&cache.blocks).rev() {
             // MLP branch: h2 = h1 + gate_m * mlp(mod(LN(h1))).
             let r2 = GatedResidual.backward(rec, &c.res2, &dh)?;
@@ -680,14 +707,9 @@ impl SurfaceDecoder {
             let dh1 = self.norm.backward_plus(rec, &c.ln2, &g2.dx, Some(&r2.dres))?;
             // Attention branch: h1 = h + gate_a * attn(mod(LN(h)), tokens).
             let r = GatedResidual.backward(rec, &c.res1, &dh1)?;
-            let (dm1, dc) = blk.attn.backward(rec, &c.attn, &r.dy.reshape(&[n, w])?, &cache.seg)?;
-            let dc = dc.expect("cross-attention returns the context gradient");
-            if dtokens_started {
-                binary_into(rec, &dtokens, &dc, &dtokens, Binary::Add)?;
-            } else {
-                rec.copy(&dc, &dtokens)?;
-                dtokens_started = true;
-            }
+            let dy = r.dy.reshape(&[n, w])?;
+            let dm1 = blk.attn.backward_into(rec, &c.attn, &dy, &cache.seg, dtokens, dtokens_started)?;
+            dtokens_started = true;
             let g = Modulate.backward(rec, &c.mod1, &dm1.reshape(&[b, tt, w])?)?;
             // The block's six modulations, in BLOCK_ROLES order.
             let dm = [&g.dshift, &g.dscale, &r.dgate, &g2.dshift, &g2.dscale, &r2.dgate];
@@ -695,7 +717,7 @@ impl SurfaceDecoder {
             dh = self.norm.backward_plus(rec, &c.ln1, &g.dx, Some(&r.dres))?;
         }
         if !dtokens_started {
-            fill(rec, &dtokens, 0.0)?;
+            fill(rec, dtokens, 0.0)?;
         }
 
         // Input linear: the point rows see every point's gradient, the tau rows their sum.
@@ -708,8 +730,7 @@ impl SurfaceDecoder {
         }
 
         // Time embedding: e = silu(fc2(silu(fc1(Fourier(t))))).
-        self.time.backward(rec, &cache.time, &de)?;
-        Ok(dtokens)
+        self.time.backward(rec, &cache.time, &de)
     }
 
     /// `x_t = t x + (1 - t) eps` and the target velocity `u = x - eps`.
@@ -720,12 +741,11 @@ impl SurfaceDecoder {
                 noise.eps.shape()
             )));
         }
+        // x_t = t x + (1 - t) eps = eps + t u.
         let t = noise.t.reshape(&[noise.t.numel(), 1])?;
-        let x_t = binary(rec, x, &t, Binary::Mul)?;
-        let one_minus_t = unary(rec, &t, Unary::Affine(-1.0, 1.0))?;
-        let noise_part = binary(rec, &noise.eps, &one_minus_t, Binary::Mul)?;
-        binary_into(rec, &x_t, &noise_part, &x_t, Binary::Add)?;
         let u = binary(rec, x, &noise.eps, Binary::Sub)?;
+        let x_t = binary(rec, &u, &t, Binary::Mul)?;
+        binary_into(rec, &x_t, &noise.eps, &x_t, Binary::Add)?;
         Ok((x_t, u))
     }
 

@@ -53,6 +53,10 @@ pub struct TrainBenchArgs {
     /// 1,2,4,8,16 on a GPU].
     #[arg(long, value_delimiter = ',', value_parser = clap::value_parser!(u16).range(1..=4096))]
     batches: Option<Vec<u16>>,
+    /// Precisions of the training passes to time, comma-separated: f32, f16 (f16 operands with
+    /// f32 accumulation, f32 master weights, a dynamic loss scale).
+    #[arg(long, value_delimiter = ',', value_enum, default_value = "f32,f16")]
+    precision: Vec<crate::decode::PrecisionArg>,
 }
 
 #[derive(clap::Args)]
@@ -92,7 +96,9 @@ pub fn run(cmd: BenchCommand) -> CliResult<()> {
 fn run_train(t: TrainBenchArgs) -> CliResult<()> {
     let gpu = Gpu::new()?;
     let batches: Option<Vec<usize>> = t.batches.map(|b| b.into_iter().map(usize::from).collect());
-    let records = train::run(&gpu, t.bench.quick, t.bench.repeats, &t.config, batches.as_deref())?;
+    let precisions: Vec<velox_engine::Precision> = t.precision.into_iter().map(Into::into).collect();
+    let records =
+        train::run(&gpu, t.bench.quick, t.bench.repeats, &t.config, batches.as_deref(), &precisions)?;
     if let Some(path) = t.bench.json {
         write_json(&path, &records)?;
     }
@@ -122,6 +128,14 @@ pub struct Record {
     /// `bench train`: the mean step's milliseconds by part.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub time_split_ms: Option<velox_models::train::trainer::TimeSplit>,
+    /// `bench train`: the dispatches one step records, the most device memory the engine held
+    /// during the timed steps, and one step's GPU milliseconds by kernel family.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub dispatches_per_step: Option<u64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub peak_memory_bytes: Option<u64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub family_ms: Option<std::collections::BTreeMap<String, f64>>,
 }
 
 impl Record {
@@ -155,6 +169,9 @@ impl Record {
             error_over: "not measured".into(),
             gpu_timed,
             time_split_ms: None,
+            dispatches_per_step: None,
+            peak_memory_bytes: None,
+            family_ms: None,
         }
     }
 
