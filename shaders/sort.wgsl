@@ -95,6 +95,35 @@ fn one_hot(digit: u32) -> array<vec4<u32>, 2> {
                                select(vec4<u32>(0u), one, lanes + 4u == w));
 }
 
+// The inclusive scan of every invocation's packed counters over the workgroup (Hillis-Steele,
+// all 16 counters at once): this invocation's, and the scan row that holds them all (its entry
+// WG - 1 has the block's totals).
+struct Scanned {
+    lo: vec4<u32>,
+    hi: vec4<u32>,
+    row: u32,
+}
+
+fn scan_counters(lid: u32, own_lo: vec4<u32>, own_hi: vec4<u32>) -> Scanned {
+    var lo = own_lo;
+    var hi = own_hi;
+    scan_lo[0][lid] = lo;
+    scan_hi[0][lid] = hi;
+    workgroupBarrier();
+    var cur = 0u;
+    for (var offset = 1u; offset < WG; offset = offset << 1u) {
+        if (lid >= offset) {
+            lo = lo + scan_lo[cur][lid - offset];
+            hi = hi + scan_hi[cur][lid - offset];
+        }
+        scan_lo[1u - cur][lid] = lo;
+        scan_hi[1u - cur][lid] = hi;
+        cur = 1u - cur;
+        workgroupBarrier();
+    }
+    return Scanned(lo, hi, cur);
+}
+
 @compute @workgroup_size(256)
 fn scatter(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
            @builtin(local_invocation_index) lid: u32) {
@@ -119,26 +148,10 @@ fn scatter(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
             hi = hi + h[1];
         }
     }
-    let own_lo = lo;
-    let own_hi = hi;
-    scan_lo[0][lid] = lo;
-    scan_hi[0][lid] = hi;
-    workgroupBarrier();
-    // Inclusive Hillis-Steele scan over the 256 invocations, all 16 counters at once.
-    var cur = 0u;
-    for (var offset = 1u; offset < WG; offset = offset << 1u) {
-        if (lid >= offset) {
-            lo = lo + scan_lo[cur][lid - offset];
-            hi = hi + scan_hi[cur][lid - offset];
-        }
-        scan_lo[1u - cur][lid] = lo;
-        scan_hi[1u - cur][lid] = hi;
-        cur = 1u - cur;
-        workgroupBarrier();
-    }
     // Exclusive counts: the elements of each digit in earlier invocations.
-    lo = lo - own_lo;
-    hi = hi - own_hi;
+    let counts = scan_counters(lid, lo, hi);
+    lo = counts.lo - lo;
+    hi = counts.hi - hi;
     for (var j = 0u; j < ITEMS; j = j + 1u) {
         let i = first + j;
         if (i < pc.n) {
@@ -214,27 +227,12 @@ fn block(@builtin(local_invocation_index) lid: u32) {
                 hi = hi + h[1];
             }
         }
-        let own_lo = lo;
-        let own_hi = hi;
-        scan_lo[0][lid] = lo;
-        scan_hi[0][lid] = hi;
-        workgroupBarrier();
-        var cur = 0u;
-        for (var offset = 1u; offset < WG; offset = offset << 1u) {
-            if (lid >= offset) {
-                lo = lo + scan_lo[cur][lid - offset];
-                hi = hi + scan_hi[cur][lid - offset];
-            }
-            scan_lo[1u - cur][lid] = lo;
-            scan_hi[1u - cur][lid] = hi;
-            cur = 1u - cur;
-            workgroupBarrier();
-        }
+        let counts = scan_counters(lid, lo, hi);
         // The block's totals per digit (the last invocation's inclusive counts), and where
         // each digit starts: after every smaller one.
         if (lid == 0u) {
-            let total_lo = scan_lo[cur][WG - 1u];
-            let total_hi = scan_hi[cur][WG - 1u];
+            let total_lo = scan_lo[counts.row][WG - 1u];
+            let total_hi = scan_hi[counts.row][WG - 1u];
             var at = 0u;
             for (var d = 0u; d < 16u; d = d + 1u) {
                 base[d] = at;
@@ -242,8 +240,8 @@ fn block(@builtin(local_invocation_index) lid: u32) {
             }
         }
         workgroupBarrier();
-        lo = lo - own_lo;
-        hi = hi - own_hi;
+        lo = counts.lo - lo;
+        hi = counts.hi - hi;
         for (var j = 0u; j < ITEMS; j = j + 1u) {
             if (first + j < pc.n) {
                 let digit = (keys[j] >> shift) & mask;

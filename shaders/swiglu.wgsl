@@ -39,10 +39,15 @@ fn backward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
         return;
     }
     let v = a[i];
-    let s = sigmoid(v);
     let g = dh[i];
-    da[i] = g * b[i] * s * (1.0 + v * (1.0 - s));
-    db[i] = g * v * s;
+    da[i] = g * b[i] * silu_grad(v);
+    db[i] = g * v * sigmoid(v);
+}
+
+// silu'(v) = s (1 + v (1 - s)), s = sigmoid(v).
+fn silu_grad(v: f32) -> f32 {
+    let s = sigmoid(v);
+    return s * (1.0 + v * (1.0 - s));
 }
 
 // SiLU's backward alone (the gate with b = 1): dsilu = dh * silu'(a).
@@ -53,7 +58,5 @@ fn silu_backward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups)
     if (i >= pc.n) {
         return;
     }
-    let v = a[i];
-    let s = sigmoid(v);
-    dsilu[i] = dh[i] * s * (1.0 + v * (1.0 - s));
+    dsilu[i] = dh[i] * silu_grad(a[i]);
 }

@@ -61,6 +61,27 @@ struct Params {
     batch_base: u32,
 }
 
+impl Params {
+    /// The push constants of a product of plan `p` (strides from the transposes; no bias, the
+    /// first batch entry first). The caller has checked every size fits in u32.
+    fn of(p: &Plan, trans_a: bool, trans_b: bool, accumulate: bool) -> Params {
+        Params {
+            m: p.m as u32,
+            n: p.n as u32,
+            k: p.k as u32,
+            accumulate: accumulate as u32,
+            a_row: if trans_a { 1 } else { p.k as u32 },
+            a_col: if trans_a { p.m as u32 } else { 1 },
+            a_batch: p.a_batch_stride as u32,
+            b_row: if trans_b { 1 } else { p.n as u32 },
+            b_col: if trans_b { p.k as u32 } else { 1 },
+            b_batch: p.b_batch_stride as u32,
+            flags: trans_a as u32 | (trans_b as u32) << 1,
+            batch_base: 0,
+        }
+    }
+}
+
 /// The sizes of one product, checked.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Plan {
@@ -285,20 +306,8 @@ pub fn matmul_sum_into(
             p.m, p.n
         )));
     }
-    let params = Params {
-        m: p.m as u32,
-        n: p.n as u32,
-        k: p.k as u32,
-        accumulate: accumulate as u32,
-        a_row: if trans_a { 1 } else { p.k as u32 },
-        a_col: if trans_a { p.m as u32 } else { 1 },
-        a_batch: p.a_batch_stride as u32,
-        b_row: if trans_b { 1 } else { p.n as u32 },
-        b_col: if trans_b { p.k as u32 } else { 1 },
-        b_batch: p.b_batch_stride as u32,
-        flags: trans_a as u32 | (trans_b as u32) << 1 | 8,
-        batch_base: p.batch as u32,
-    };
+    let base = Params::of(&p, trans_a, trans_b, accumulate);
+    let params = Params { flags: base.flags | 8, batch_base: p.batch as u32, ..base };
     let g = [groups[0] as u32, groups[1] as u32, 1];
     // The bias binding is unused (flags bit 2 clear): b stands in.
     rec.dispatch(MATMUL_ROWS_MAIN, g, &[a, b, out, b], &params)
@@ -364,20 +373,7 @@ fn product(
             return Err(Error::TooLarge(format!("matmul: {t:?} has more than 2^32 elements")));
         }
     }
-    let params = Params {
-        m: p.m as u32,
-        n: p.n as u32,
-        k: p.k as u32,
-        accumulate: accumulate as u32,
-        a_row: if trans_a { 1 } else { p.k as u32 },
-        a_col: if trans_a { p.m as u32 } else { 1 },
-        a_batch: p.a_batch_stride as u32,
-        b_row: if trans_b { 1 } else { p.n as u32 },
-        b_col: if trans_b { p.k as u32 } else { 1 },
-        b_batch: p.b_batch_stride as u32,
-        flags: trans_a as u32 | (trans_b as u32) << 1,
-        batch_base: 0,
-    };
+    let params = Params::of(&p, trans_a, trans_b, accumulate);
     let tiles = groups[0] * groups[1];
     let splits = split_k(p.batch, tiles, p.k);
     if splits > 1 && takes_bias(kernel) {

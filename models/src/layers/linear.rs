@@ -9,6 +9,30 @@ use velox_engine::{DType, Precision, Recorder, Result, Tensor};
 
 use super::{as_rows, expect_shape, Param};
 
+/// The operands a product reads in `rec`'s precision: `x` (as rows) and the weight, as they
+/// are in f32, or `x` rounded to f16 and the weight's f16 copy.
+fn operands(rec: &mut Recorder, x2: &Tensor, weight: &Param) -> Result<(Tensor, Tensor)> {
+    match rec.precision() {
+        Precision::F32 => Ok((x2.clone(), weight.value.clone())),
+        Precision::F16 => Ok((cast(rec, x2, DType::F16)?, weight.value_f16(rec)?)),
+    }
+}
+
+/// What a backward pass's products read: `dy` as the forward pass's product read its input
+/// (rounded to f16 after an f16 forward pass), and the weight alike when `dx` is wanted.
+fn gradient_operands(
+    rec: &mut Recorder,
+    cache: &LinearCache,
+    dy: &Tensor,
+    weight: &Param,
+    want_dx: bool,
+) -> Result<(Tensor, Option<Tensor>)> {
+    match cache.x.dtype() {
+        DType::F16 => Ok((cast(rec, dy, DType::F16)?, want_dx.then(|| weight.value_f16(rec)).transpose()?)),
+        _ => Ok((dy.clone(), Some(weight.value.clone()))),
+    }
+}
+
 pub struct Linear {
     /// `[in, out]`
     pub weight: Param,
@@ -47,10 +71,7 @@ impl Linear {
     /// way. The backward pass of an f16 forward pass is f16 too (see [`Linear::backward`]).
     pub fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<(Tensor, LinearCache)> {
         let x2 = as_rows("linear", x, self.in_features)?;
-        let (xm, w) = match rec.precision() {
-            Precision::F32 => (x2.clone(), self.weight.value.clone()),
-            Precision::F16 => (cast(rec, &x2, DType::F16)?, self.weight.value_f16(rec)?),
-        };
+        let (xm, w) = operands(rec, &x2, &self.weight)?;
         // The bias is added by the matmul kernel as it writes (a separate pass where it cannot).
         let y = match &self.bias {
             Some(b) => matmul_bias(rec, &xm, &w, false, false, &b.value)?,
@@ -77,10 +98,7 @@ impl Linear {
                 "linear: the residual {residual:?} must be f32 {y_shape:?}"
             )));
         }
-        let (xm, w) = match rec.precision() {
-            Precision::F32 => (x2.clone(), self.weight.value.clone()),
-            Precision::F16 => (cast(rec, &x2, DType::F16)?, self.weight.value_f16(rec)?),
-        };
+        let (xm, w) = operands(rec, &x2, &self.weight)?;
         let y = Tensor::empty(x.gpu(), &[x2.shape()[0], self.out_features], DType::F32)?;
         rec.copy(residual, &y)?;
         matmul_bias_into(rec, &xm, &w, false, false, self.bias.as_ref().map(|b| &b.value), &y, true)?;
@@ -123,10 +141,7 @@ impl Linear {
         dx: Option<(&Tensor, bool)>,
     ) -> Result<()> {
         let dy2 = as_rows("linear backward", dy, self.out_features)?;
-        let (dym, w) = match cache.x.dtype() {
-            DType::F16 => (cast(rec, &dy2, DType::F16)?, dx.map(|_| self.weight.value_f16(rec)).transpose()?),
-            _ => (dy2.clone(), Some(self.weight.value.clone())),
-        };
+        let (dym, w) = gradient_operands(rec, cache, &dy2, &self.weight, dx.is_some())?;
         matmul_into(rec, &cache.x, &dym, true, false, &self.weight.grad, true)?;
         if let Some(b) = &self.bias {
             reduce_into(rec, &dy2, 0, Reduce::Sum, &b.grad, true)?;
@@ -172,10 +187,7 @@ impl LinearStack {
     /// [`Linear::forward`].
     pub fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<(Tensor, LinearCache)> {
         let x2 = as_rows("stacked linear", x, self.in_features)?;
-        let (xm, w) = match rec.precision() {
-            Precision::F32 => (x2.clone(), self.weight.value.clone()),
-            Precision::F16 => (cast(rec, &x2, DType::F16)?, self.weight.value_f16(rec)?),
-        };
+        let (xm, w) = operands(rec, &x2, &self.weight)?;
         // Each layer's bias onto its own output, by the product where the kernel can.
         let y = match &self.bias {
             Some(b) => matmul_bias(rec, &xm, &w, false, false, &b.value)?,
@@ -200,10 +212,7 @@ impl LinearStack {
                 "stacked linear backward: dy must be f32 {expect:?}, got {dy:?}"
             )));
         }
-        let (dym, w) = match cache.x.dtype() {
-            DType::F16 => (cast(rec, dy, DType::F16)?, dx.map(|_| self.weight.value_f16(rec)).transpose()?),
-            _ => (dy.clone(), Some(self.weight.value.clone())),
-        };
+        let (dym, w) = gradient_operands(rec, cache, dy, &self.weight, dx.is_some())?;
         matmul_into(rec, &cache.x, &dym, true, false, &self.weight.grad, true)?;
         if let Some(b) = &self.bias {
             reduce_into(rec, dy, 1, Reduce::Sum, &b.grad, true)?;
