@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Runs every benchmark suite on the present device and keeps the records: the device report
 # (info.json), then kernels, attention, layers, raster, models and train (a training step in
-# f32 and f16 at the small config against the batch, and at the paper config at batch 1),
-# each as JSON and as the printed table. Usage: tools/bench-all.sh [OUT_DIR [SUITE...]] (default bench-out, every
+# f32 and f16: the autoencoder at the small config against the batch and at the paper config
+# at batch 1, the voxel decoder, tracker and generator at the small and paper configs), each
+# as JSON and as the printed table. Usage: tools/bench-all.sh [OUT_DIR [SUITE...]] (default bench-out, every
 # suite; name suites to split the run across calls with a time limit). VELOX_BIN picks the
 # binary (default target/release/velox, built with `cargo build --release`).
 set -euo pipefail
@@ -23,6 +24,12 @@ for suite in "${suites[@]}"; do
     "$bin" bench train --config small --json "$out/train.json" 2>&1 | tee "$out/train.txt"
     "$bin" bench train --config paper --batches 1 --repeats 3 --json "$out/train-paper.json" 2>&1 \
       | tee "$out/train-paper.txt"
+    for model in voxels tracker generator; do
+      for config in small paper; do
+        "$bin" bench train --model "$model" --config "$config" --repeats 3 \
+          --json "$out/train-$model-$config.json" 2>&1 | tee "$out/train-$model-$config.txt"
+      done
+    done
   else
     "$bin" bench "$suite" --json "$out/$suite.json" 2>&1 | tee "$out/$suite.txt"
   fi

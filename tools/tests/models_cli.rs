@@ -488,6 +488,27 @@ fn bench_train_reports_samples_per_second_the_time_split_dispatches_and_memory()
 }
 
 #[test]
+fn bench_train_times_a_model_downstream_of_the_encoder() {
+    let dir = std::env::temp_dir().join(format!("velox-bench-train-tracker-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let json = dir.join("tracker.json");
+    let args = ["bench", "train", "--model", "tracker", "--quick", "--repeats", "1", "--config", "tiny"];
+    let text = ok(&velox(&[&args[..], &["--json", arg(&json)]].concat()));
+    assert!(text.contains("GPU ms by family"), "{text}");
+    let records: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let records = records.as_array().unwrap();
+    assert_eq!(records.len(), 2, "f32 and f16");
+    for (r, precision) in records.iter().zip(["f32", "f16"]) {
+        assert_eq!(r["precision"], precision);
+        assert!(r["shape"].as_str().unwrap().starts_with("tiny tracker config"), "{r}");
+        assert!(r["throughput"].as_f64().unwrap() > 0.0, "{r}");
+        assert!(r["dispatches_per_step"].as_u64().unwrap() > 10, "{r}");
+        assert!(r["family_ms"]["matmul"].as_f64().unwrap() > 0.0, "{r}");
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
 fn voxels_train_evaluate_and_feed_the_gaussian_decoder() {
     // The voxel decoder's commands end to end on the fixture: encode, train a few steps,
     // evaluate against the occupancy, and decode Gaussians and evaluate images from its

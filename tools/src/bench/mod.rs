@@ -57,6 +57,10 @@ pub struct TrainBenchArgs {
     /// f32 accumulation, f32 master weights, a dynamic loss scale).
     #[arg(long, value_delimiter = ',', value_enum, default_value = "f32,f16")]
     precision: Vec<crate::decode::PrecisionArg>,
+    /// The model to train: the autoencoder (against the batch), or one downstream of the
+    /// encoder, on a scene's tokens.
+    #[arg(long, value_enum, default_value = "autoencoder")]
+    model: train::ModelArg,
 }
 
 #[derive(clap::Args)]
@@ -97,8 +101,12 @@ fn run_train(t: TrainBenchArgs) -> CliResult<()> {
     let gpu = Gpu::new()?;
     let batches: Option<Vec<usize>> = t.batches.map(|b| b.into_iter().map(usize::from).collect());
     let precisions: Vec<velox_engine::Precision> = t.precision.into_iter().map(Into::into).collect();
-    let records =
-        train::run(&gpu, t.bench.quick, t.bench.repeats, &t.config, batches.as_deref(), &precisions)?;
+    let records = match t.model {
+        train::ModelArg::Autoencoder => {
+            train::run(&gpu, t.bench.quick, t.bench.repeats, &t.config, batches.as_deref(), &precisions)?
+        }
+        model => train::run_token_model(&gpu, model, t.bench.quick, t.bench.repeats, &t.config, &precisions)?,
+    };
     if let Some(path) = t.bench.json {
         write_json(&path, &records)?;
     }

@@ -16,7 +16,8 @@
 //! that step's. The peak memory is the most the engine's buffers held during the timed steps
 //! (the model, its moments and f16 copies included). One more step runs with per-dispatch
 //! timestamps (which slow it, so it is not among the timed ones) for the dispatch count and
-//! the family split.
+//! the family split. `--model voxels|tracker|generator` times a model downstream of the
+//! encoder the same way on one scene's tokens ([`run_token_model`]).
 
 use std::collections::BTreeMap;
 use velox_data::format::write_scene;
@@ -167,5 +168,155 @@ pub fn run(
          is nothing on one process; the family split comes from one more step with a timestamp per \
          dispatch"
     );
+    Ok(out)
+}
+
+/// The models downstream of the encoder that `velox bench train --model` times.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum ModelArg {
+    Autoencoder,
+    Voxels,
+    Tracker,
+    Generator,
+}
+
+/// `bench train --model voxels|tracker|generator`: the benchmark's scene written to a folder,
+/// encoded by an untrained small autoencoder (its tokens have the shapes a trained one gives;
+/// the tracker's from the scene's RGBD video), then a run of `1 + repeats` steps of the model
+/// through the command's own training function in each precision. The figures are means over
+/// the run's steps (the first, warm-up one included): step time, dispatches (the process's
+/// count over the run), the peak device memory, and the GPU time by kernel family (every step
+/// profiled, so the step times include the timestamps' cost).
+pub fn run_token_model(
+    gpu: &Gpu,
+    model: ModelArg,
+    quick: bool,
+    repeats: u32,
+    config: &str,
+    precisions: &[Precision],
+) -> crate::CliResult<Vec<Record>> {
+    use crate::interrupt::Interrupt;
+    use crate::train::{
+        train_generator, train_tracker, train_voxels, GeneratorArgs, RunArgs, TaskArg, TokenModelArgs,
+    };
+    use velox_data::encode::{encode_dataset, EncodeOptions};
+    use velox_models::velox::tokens::CloudSource;
+
+    let small = quick || gpu.caps().kind == "CPU";
+    let dir = std::env::temp_dir().join(format!("velox-bench-train-tokens-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let data = dir.join("data");
+    let (res, points) = if small { (32, 4000) } else { (128, 60_000) };
+    let (_, mesh) = procedural::scene(3, None)?;
+    let opts = SynthOptions { res, points, supersample: 1, tracks: 64 };
+    write_scene(gpu, &mesh, "bench train", None, 3, &opts, &data.join("scene_00000"), &mut |_| {})?;
+    let ae = dir.join("autoencoder.safetensors");
+    Autoencoder::new(gpu, &AutoencoderConfig::small(), 0)?.save(&ae)?;
+    let source = if model == ModelArg::Tracker { CloudSource::Video } else { CloudSource::Points };
+    let encode = EncodeOptions {
+        checkpoint: ae,
+        data: data.clone(),
+        out: None,
+        seed: 0,
+        precision: Precision::F32,
+        force: false,
+        source,
+        video_points: velox_data::rgbd::DEFAULT_POINTS,
+    };
+    encode_dataset(gpu, &encode, &mut ())?;
+    let device = gpu.caps().name.clone();
+    let name = format!("{model:?}").to_lowercase();
+    println!(
+        "device: {device} ({}); the {config} {name} config on one scene's tokens (an untrained small \
+         autoencoder's); {} steps, means over them",
+        gpu.caps().kind,
+        1 + repeats
+    );
+    println!(
+        "{:>5} {:>10} {:>10} {:>12} {:>11} {:>10}",
+        "prec", "samples/s", "step ms", "compute ms", "dispatches", "peak MiB"
+    );
+    let mut out = Vec::new();
+    for &precision in precisions {
+        let steps = 1 + repeats as u64;
+        let run = RunArgs {
+            out: dir.join(format!("run-{}", precision.name())),
+            steps: Some(steps),
+            seed: None,
+            resume: false,
+            init: None,
+            steps_per_scene: None,
+            accumulate: None,
+            checkpoint_every: steps,
+            plot_every: steps,
+            cooldown: None,
+            stop_at: None,
+            precision: Some(match precision {
+                Precision::F32 => crate::decode::PrecisionArg::F32,
+                Precision::F16 => crate::decode::PrecisionArg::F16,
+            }),
+        };
+        let args = TokenModelArgs {
+            data: data.clone(),
+            tokens: None,
+            checkpoint: None,
+            config: Some(config.into()),
+            run,
+        };
+        gpu.reset_peak_memory();
+        let before = profile::dispatches();
+        let mut outcome = None;
+        let profiled = profile_step(|| {
+            let never = Interrupt::never();
+            let done = match model {
+                ModelArg::Voxels => train_voxels(gpu, &args, &never, &SingleProcess),
+                ModelArg::Tracker => train_tracker(gpu, &args, &never, &SingleProcess),
+                ModelArg::Generator => {
+                    let g = GeneratorArgs { model: args.clone(), task: TaskArg::Video, dinov2: None };
+                    train_generator(gpu, &g, &never, &SingleProcess)
+                }
+                ModelArg::Autoencoder => unreachable!("the autoencoder has its own bench"),
+            };
+            outcome = Some(done.map_err(|e| Error::Invalid(e.to_string()))?);
+            Ok(())
+        })?;
+        let dispatches = (profile::dispatches() - before) / steps;
+        let peak = gpu.memory().1;
+        let o = outcome.expect("the run finished");
+        let split = o.time.scale(1e3);
+        let step_ms = split.total();
+        let rate = o.settings.global_batch as f64 / (step_ms * 1e-3);
+        let label = precision.name();
+        println!(
+            "{label:>5} {rate:>10.3} {step_ms:>10.1} {:>12.1} {dispatches:>11} {:>10.1}",
+            split.compute,
+            peak as f64 / (1 << 20) as f64
+        );
+        let family_ms: BTreeMap<String, f64> =
+            profiled.family_ms.into_iter().map(|(f, ms)| (f, ms / steps as f64)).collect();
+        let mut families: Vec<(&String, &f64)> = family_ms.iter().collect();
+        families.sort_by(|a, b| b.1.total_cmp(a.1));
+        let families: Vec<String> = families.iter().map(|(f, ms)| format!("{f} {ms:.1}")).collect();
+        println!("{:>12} GPU ms by family, a step: {}", "", families.join(", "));
+        let shape = format!("{config} {name} config, batch {}", o.settings.global_batch);
+        let record = Record::timed(
+            "train step",
+            shape,
+            label,
+            &device,
+            (step_ms, step_ms, false),
+            repeats,
+            rate,
+            "samples/s",
+        );
+        out.push(Record {
+            time_split_ms: Some(split),
+            dispatches_per_step: Some(dispatches),
+            peak_memory_bytes: Some(peak),
+            family_ms: Some(family_ms),
+            ..record
+        });
+    }
+    let _ = std::fs::remove_dir_all(&dir);
     Ok(out)
 }
