@@ -29,4 +29,5 @@ pub mod softmax;
 pub mod sort;
 pub mod swiglu;
 pub mod unary;
+pub mod voxel_head;
 pub mod window;

@@ -5,11 +5,9 @@ use std::time::Instant;
 
 use velox_engine::ops::adamw::AdamWConfig;
 use velox_engine::ops::attention::Segments;
-use velox_engine::ops::binary::{binary, Binary};
-use velox_engine::ops::columns::copy_columns;
 use velox_engine::ops::gelu::gelu_backward;
 use velox_engine::ops::reduce::{reduce, Reduce};
-use velox_engine::ops::unary::{unary, Unary};
+use velox_engine::ops::voxel_head;
 use velox_engine::rng::Rng;
 use velox_engine::Recorder;
 use velox_engine::{DType, Error, Gpu, Result, Tensor};
@@ -181,17 +179,20 @@ pub fn occupied_centres(frame: &[u64], grid: usize) -> Result<Vec<f32>> {
 struct VoxelHead {
     /// `[s^3, F]`: the offsets' features, fixed.
     offsets: Tensor,
-    /// With `cell_directions`: each axis of the offsets, `[1, s^3, 1]`, fixed.
-    axes: Option<[Tensor; 3]>,
+    /// `[s^3, 3]`: the offsets themselves, which `cell_directions` weighs the directions by.
+    xyz: Tensor,
+    directions: bool,
     embed: Linear,
     out: Linear,
 }
 
 struct VoxelHeadCache {
     embed: LinearCache,
+    /// The cells' features and the offsets' embedding the pre-activation was made of.
+    features: Tensor,
+    embedded: Tensor,
     pre: Tensor,
     out: LinearCache,
-    cells: usize,
 }
 
 /// Width of the fine trunk's output per cell: the head's hidden width, and with
@@ -217,14 +218,10 @@ impl VoxelHead {
         let mut rec = gpu.recorder()?;
         let (offsets, _) = fourier.forward(&mut rec, &Tensor::from_slice(gpu, &[s * s * s, 3], &xyz)?)?;
         rec.submit()?;
-        let axis = |k: usize| {
-            let column: Vec<f32> = xyz.iter().skip(k).step_by(3).copied().collect();
-            Tensor::from_slice(gpu, &[1, s * s * s, 1], &column)
-        };
-        let axes = if cfg.cell_directions { Some([axis(0)?, axis(1)?, axis(2)?]) } else { None };
         Ok(VoxelHead {
             offsets,
-            axes,
+            xyz: Tensor::from_slice(gpu, &[s * s * s, 3], &xyz)?,
+            directions: cfg.cell_directions,
             embed: linear(store, &format!("{prefix}.embed"), true)?,
             out: linear(store, &format!("{prefix}.out"), true)?,
         })
@@ -237,43 +234,21 @@ impl VoxelHead {
         let (b, embed) = self.embed.forward(rec, &self.offsets)?;
         let h = b.shape()[1];
         let n = features.shape()[0];
-        let column = |rec: &mut Recorder, k: usize| -> Result<Tensor> {
-            let t = Tensor::empty(features.gpu(), &[n, h], DType::F32)?;
-            copy_columns(rec, features, k * h, &t, 0, h, 1.0)?;
-            t.reshape(&[n, 1, h])
-        };
-        let a = if self.axes.is_some() { column(rec, 0)? } else { features.reshape(&[n, 1, h])? };
-        let mut pre = binary(rec, &a, &b.reshape(&[1, per, h])?, Binary::Add)?;
-        if let Some(axes) = &self.axes {
-            for (k, axis) in axes.iter().enumerate() {
-                let m = column(rec, k + 1)?;
-                let along = binary(rec, &m, axis, Binary::Mul)?;
-                pre = binary(rec, &pre, &along, Binary::Add)?;
-            }
-        }
-        let g = unary(rec, &pre, Unary::Gelu)?;
+        // The pre-activation and its GELU in one pass (`shaders/voxel_head.wgsl`).
+        let (pre, g) = voxel_head::forward(rec, features, &b, &self.xyz, self.directions)?;
         let (logits, out) = self.out.forward(rec, &g.reshape(&[n * per, h])?)?;
-        Ok((logits.reshape(&[n, per])?, VoxelHeadCache { embed, pre, out, cells: n }))
+        let cache = VoxelHeadCache { embed, features: features.clone(), embedded: b, pre, out };
+        Ok((logits.reshape(&[n, per])?, cache))
     }
 
     /// Adds the head's parameter gradients; returns the gradient of the cells' features.
     fn backward(&self, rec: &mut Recorder, cache: &VoxelHeadCache, d_logits: &Tensor) -> Result<Tensor> {
-        let (n, per) = (cache.cells, self.offsets.shape()[0]);
-        let h = cache.pre.numel() / (n * per);
+        let [n, per, h] = *cache.pre.shape() else { unreachable!("the head's pre-activation is 3-D") };
         let dg = self.out.backward(rec, &cache.out, &d_logits.reshape(&[n * per, 1])?)?;
         let dpre = gelu_backward(rec, &cache.pre, &dg.reshape(&[n, per, h])?)?;
         let db = reduce(rec, &dpre, 0, Reduce::Sum)?;
         self.embed.param_grads(rec, &cache.embed, &db)?;
-        let da = reduce(rec, &dpre, 1, Reduce::Sum)?;
-        let Some(axes) = &self.axes else { return Ok(da) };
-        let d_features = Tensor::empty(da.gpu(), &[n, 4 * h], DType::F32)?;
-        copy_columns(rec, &da, 0, &d_features, 0, h, 1.0)?;
-        for (k, axis) in axes.iter().enumerate() {
-            let along = binary(rec, &dpre, axis, Binary::Mul)?;
-            let dm = reduce(rec, &along, 1, Reduce::Sum)?;
-            copy_columns(rec, &dm, 0, &d_features, (k + 1) * h, h, 1.0)?;
-        }
-        Ok(d_features)
+        voxel_head::backward(rec, &cache.features, &cache.embedded, &self.xyz, self.directions, &dpre)
     }
 }
 
