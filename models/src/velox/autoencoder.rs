@@ -225,7 +225,8 @@ impl Autoencoder {
     }
 
     /// One optimiser step on one scene (a batch of one, outside the trainer): zero the
-    /// gradients, [`Autoencoder::accumulate`], AdamW. `step` counts from 1.
+    /// gradients, [`Autoencoder::accumulate`], AdamW. `step` counts from 1. The passes run in
+    /// the store's training precision, without the trainer's loss scaling.
     pub fn train_step(&mut self, scene: &TrainScene, step: u64, rng: &mut Rng) -> Result<StepLosses> {
         let gpu = scene.cloud.gpu().clone();
         let mut rec = gpu.recorder()?;
@@ -236,6 +237,10 @@ impl Autoencoder {
         let lr = opt.learning_rate(step) * self.lr_scale;
         let mut rec = gpu.recorder()?;
         self.store.adamw_step(&mut rec, &opt.adamw, lr, opt.max_grad_norm)?;
+        if self.store.training_precision() == Precision::F16 {
+            // The f16 passes read the copies: refresh them from the updated masters.
+            self.store.sync_half(&mut rec)?;
+        }
         rec.submit()?;
         let grad_norm = self.store.grad_norm()? as f64;
         let term = |name: &str| losses.terms.iter().find(|t| t.0 == name).map_or(0.0, |t| t.1);
