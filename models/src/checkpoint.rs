@@ -308,7 +308,7 @@ pub fn load(path: &Path, store: &mut ParamStore) -> Result<CheckpointInfo> {
     v.write(&host[2])?;
     store.set_step(info.step);
     if let Some(scale) = info.loss_scale {
-        store.set_loss_scale(scale);
+        *store.loss_scale_mut() = scale;
     }
     Ok(info)
 }

@@ -359,8 +359,8 @@ impl ParamStore {
         self.loss_scale
     }
 
-    pub fn set_loss_scale(&mut self, scale: LossScale) {
-        self.loss_scale = scale;
+    pub fn loss_scale_mut(&mut self) -> &mut LossScale {
+        &mut self.loss_scale
     }
 
     /// The parameters `names`, all of one shape `S`, as one parameter `[names.len(), S..]`

@@ -284,12 +284,7 @@ pub fn matmul_sum_into(
 ) -> Result<()> {
     let p = plan(a.shape(), b.shape(), trans_a, trans_b)?;
     check_dtypes(a, b)?;
-    if out.dtype() != DType::F32 || out.shape() != [p.m, p.n] {
-        return Err(Error::Shape(format!("matmul sum: out must be f32 [{}, {}], got {out:?}", p.m, p.n)));
-    }
-    if out.same_storage(a) || out.same_storage(b) {
-        return Err(Error::Shape("matmul sum: out shares storage with an operand".into()));
-    }
+    check_out(a, b, out, &[p.m, p.n])?;
     let kernel = choose_kernel(a.gpu(), a.dtype(), &p, trans_a, trans_b, rec.narrow_matmul());
     let fits = u32::try_from(p.batch).is_ok() && [a, b].iter().all(|t| t.numel() <= u32::MAX as usize);
     if kernel != MATMUL_ROWS_MAIN || !fits || p.m == 0 || p.n == 0 {
@@ -298,19 +293,46 @@ pub fn matmul_sum_into(
         let parts = parts.reshape(&[p.batch, p.m, p.n])?;
         return reduce_into(rec, &parts, 0, Reduce::Sum, out, accumulate);
     }
-    let groups = [p.n.div_ceil(ROWS_NC), p.m.div_ceil(ROWS_WG), 1];
-    let max = a.gpu().caps().max_workgroup_count;
-    if groups[..2].iter().zip(max).any(|(&g, lim)| g > lim as usize) {
-        return Err(Error::TooLarge(format!(
-            "matmul sum: [{}, {}] outputs need {groups:?} workgroups",
-            p.m, p.n
-        )));
-    }
+    let groups = grid(a.gpu(), MATMUL_ROWS_MAIN, &p, 1)?;
     let base = Params::of(&p, trans_a, trans_b, accumulate);
     let params = Params { flags: base.flags | 8, batch_base: p.batch as u32, ..base };
     let g = [groups[0] as u32, groups[1] as u32, 1];
     // The bias binding is unused (flags bit 2 clear): b stands in.
     rec.dispatch(MATMUL_ROWS_MAIN, g, &[a, b, out, b], &params)
+}
+
+/// Fails unless `out` is f32 of `shape` and apart from the operands.
+fn check_out(a: &Tensor, b: &Tensor, out: &Tensor, shape: &[usize]) -> Result<()> {
+    if out.dtype() != DType::F32 || out.shape() != shape {
+        return Err(Error::Shape(format!("matmul: out must be f32 {shape:?}, got {out:?}")));
+    }
+    if out.same_storage(a) || out.same_storage(b) {
+        return Err(Error::Shape(
+            "matmul: out shares storage with an operand; write into a separate tensor".into(),
+        ));
+    }
+    Ok(())
+}
+
+/// The workgroups of a product of plan `p` on `kernel`, `z` layers deep: columns, rows and
+/// layers, the first two checked against the device's limits.
+fn grid(gpu: &Gpu, kernel: KernelId, p: &Plan, z: usize) -> Result<[usize; 3]> {
+    // Output rows and columns of one workgroup.
+    let (tm, tn) = match kernel {
+        MATMUL_SMALL_TS32_MAIN => (32, 32),
+        MATMUL_SMALL_TS64_MAIN => (64, 64),
+        MATMUL_ROWS_MAIN => (ROWS_WG, ROWS_NC),
+        _ => (TILE, TILE),
+    };
+    let groups = [p.n.div_ceil(tn), p.m.div_ceil(tm), z];
+    let max = gpu.caps().max_workgroup_count;
+    if groups[..2].iter().zip(max).any(|(&g, lim)| g > lim as usize) {
+        return Err(Error::TooLarge(format!(
+            "matmul: [{}, {}] outputs need {groups:?} workgroups of {tm}x{tn}, the device allows {max:?}",
+            p.m, p.n
+        )));
+    }
+    Ok(groups)
 }
 
 /// Kernels that take a bias (binding 3, flags bit 2); the others have three bindings.
@@ -342,30 +364,10 @@ fn product(
         }
     }
     check_dtypes(a, b)?;
-    if out.dtype() != DType::F32 || out.shape() != p.out_shape.as_slice() {
-        return Err(Error::Shape(format!("matmul: out must be f32 {:?}, got {out:?}", p.out_shape)));
-    }
-    if out.same_storage(a) || out.same_storage(b) {
-        return Err(Error::Shape(
-            "matmul: out shares storage with an operand; write into a separate tensor".into(),
-        ));
-    }
+    check_out(a, b, out, &p.out_shape)?;
     let max = a.gpu().caps().max_workgroup_count;
     let kernel = choose_kernel(a.gpu(), a.dtype(), &p, trans_a, trans_b, rec.narrow_matmul());
-    // Output rows and columns of one workgroup.
-    let (tm, tn) = match kernel {
-        MATMUL_SMALL_TS32_MAIN => (32, 32),
-        MATMUL_SMALL_TS64_MAIN => (64, 64),
-        MATMUL_ROWS_MAIN => (ROWS_WG, ROWS_NC),
-        _ => (TILE, TILE),
-    };
-    let groups = [p.n.div_ceil(tn), p.m.div_ceil(tm), if p.m == 0 || p.n == 0 { 0 } else { p.batch }];
-    if groups[..2].iter().zip(max).any(|(&g, lim)| g > lim as usize) {
-        return Err(Error::TooLarge(format!(
-            "matmul: [{}, {}] outputs need {groups:?} workgroups of {tm}x{tn}, the device allows {max:?}",
-            p.m, p.n
-        )));
-    }
+    let groups = grid(a.gpu(), kernel, &p, if p.m == 0 || p.n == 0 { 0 } else { p.batch })?;
     // Every index the kernels form stays below the largest operand, which is bindable and so
     // below 2^32 bytes; check the element counts anyway so an index can never wrap.
     for t in [a, b, out] {

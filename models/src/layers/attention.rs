@@ -88,7 +88,11 @@ impl MultiHeadAttention {
     /// Stacks the projections whose weights (`names`: q, k and v, without biases) lie one
     /// after another in `store`: q, k, v for self-attention, k, v for cross-attention. Each
     /// stack saves the products and dispatches of the projections it joins.
-    pub fn with_store_stacks(mut self, store: &ParamStore, names: [&str; 3]) -> Result<MultiHeadAttention> {
+    pub fn with_store_stacks<S: AsRef<str>>(
+        mut self,
+        store: &ParamStore,
+        names: [S; 3],
+    ) -> Result<MultiHeadAttention> {
         if [&self.q, &self.k, &self.v].iter().any(|l| l.bias.is_some()) {
             return Ok(self);
         }
@@ -99,17 +103,18 @@ impl MultiHeadAttention {
         Ok(self)
     }
 
-    /// The stack `s` where its output over `rows` rows splits into views.
-    fn usable<'a>(&self, s: &'a Option<LinearStack>, x: &Tensor, rows: usize) -> Option<&'a LinearStack> {
-        s.as_ref().filter(|s| (rows * s.out_features).is_multiple_of(x.view_alignment()))
-    }
-
     fn scale(&self) -> f32 {
         1.0 / (self.head_dim as f32).sqrt()
     }
 
     fn split_heads(&self, t: &Tensor) -> Result<Tensor> {
         t.reshape(&[t.shape()[0], self.heads, self.head_dim])
+    }
+
+    /// The projections' parts of a stacked `[N, rows, inner]` tensor, split into heads.
+    fn heads_of<const N: usize>(&self, s: &LinearStack, all: &Tensor) -> Result<[Tensor; N]> {
+        let parts = s.parts(all)?.iter().map(|p| self.split_heads(p)).collect::<Result<Vec<_>>>()?;
+        Ok(parts.try_into().expect("a stack of as many projections as asked for"))
     }
 
     /// `y [Nq, width]` for `x [Nq, width]` and, for cross-attention, `context [Nk, cwidth]`.
@@ -145,41 +150,38 @@ impl MultiHeadAttention {
         residual: Option<&Tensor>,
     ) -> Result<(Tensor, MultiHeadAttentionCache)> {
         let c = context.unwrap_or(x);
-        let (nq, nk) = (x.numel() / self.q.in_features.max(1), c.numel() / self.k.in_features.max(1));
         // In an f16 recording the kernels read q, k and v rounded to f16, forward and backward
         // (a stack's outputs rounded in one pass).
         let half = |rec: &mut Recorder, t: Tensor| match rec.precision() {
             Precision::F32 => Ok(t),
             Precision::F16 => cast(rec, &t, DType::F16),
         };
-        let inner = self.heads * self.head_dim;
-        let (q, k, v, projections) =
-            match (context, self.usable(&self.qkv, x, nq), self.usable(&self.kv, c, nk)) {
-                (None, Some(s), _) => {
-                    let (y, cache) = s.forward(rec, x)?;
-                    let y = half(rec, y)?;
-                    let [q, k, v] =
-                        [0, 1, 2].map(|i| y.view(i * nq * inner, &[nq, self.heads, self.head_dim]));
-                    (q?, k?, v?, Projections::Qkv(cache))
-                }
-                (Some(_), _, Some(s)) => {
-                    let (q, q_in) = self.q.forward(rec, x)?;
-                    let q = half(rec, self.split_heads(&q)?)?;
-                    let (y, kv) = s.forward(rec, c)?;
-                    let y = half(rec, y)?;
-                    let [k, v] = [0, 1].map(|i| y.view(i * nk * inner, &[nk, self.heads, self.head_dim]));
-                    (q, k?, v?, Projections::QandKv { q: q_in, kv })
-                }
-                _ => {
-                    let (q, q_in) = self.q.forward(rec, x)?;
-                    let (k, k_in) = self.k.forward(rec, c)?;
-                    let (v, v_in) = self.v.forward(rec, c)?;
-                    let q = half(rec, self.split_heads(&q)?)?;
-                    let k = half(rec, self.split_heads(&k)?)?;
-                    let v = half(rec, self.split_heads(&v)?)?;
-                    (q, k, v, Projections::Separate { q: q_in, k: k_in, v: v_in })
-                }
-            };
+        let (qkv, kv) = (self.qkv.as_ref().filter(|s| s.fits(x)), self.kv.as_ref().filter(|s| s.fits(c)));
+        let (q, k, v, projections) = match (context, qkv, kv) {
+            (None, Some(s), _) => {
+                let (y, cache) = s.forward(rec, x)?;
+                let y = half(rec, y)?;
+                let [q, k, v] = self.heads_of(s, &y)?;
+                (q, k, v, Projections::Qkv(cache))
+            }
+            (Some(_), _, Some(s)) => {
+                let (q, q_in) = self.q.forward(rec, x)?;
+                let q = half(rec, self.split_heads(&q)?)?;
+                let (y, kv) = s.forward(rec, c)?;
+                let y = half(rec, y)?;
+                let [k, v] = self.heads_of(s, &y)?;
+                (q, k, v, Projections::QandKv { q: q_in, kv })
+            }
+            _ => {
+                let (q, q_in) = self.q.forward(rec, x)?;
+                let (k, k_in) = self.k.forward(rec, c)?;
+                let (v, v_in) = self.v.forward(rec, c)?;
+                let q = half(rec, self.split_heads(&q)?)?;
+                let k = half(rec, self.split_heads(&k)?)?;
+                let v = half(rec, self.split_heads(&v)?)?;
+                (q, k, v, Projections::Separate { q: q_in, k: k_in, v: v_in })
+            }
+        };
         let out = attention(rec, &q, &k, &v, seg, self.scale())?;
         let flat = out.o.reshape(&[out.o.shape()[0], self.heads * self.head_dim])?;
         let (y, o_in) = match residual {
@@ -270,16 +272,17 @@ impl MultiHeadAttention {
         // [3, n, inner] (or [2, nk, inner]) tensor for a stack.
         let (dq_all, dkv_all, grads) = match &cache.projections {
             Projections::Qkv(_) => {
+                let s = self.qkv.as_ref().expect("a qkv cache comes from the stack");
                 let all = Tensor::empty(gpu, &[3, nq, inner], DType::F32)?;
-                let [dq, dk, dv] =
-                    [0, 1, 2].map(|i| all.view(i * nq * inner, &[nq, self.heads, self.head_dim]));
-                (Some(all), None, AttentionGrads { dq: dq?, dk: dk?, dv: dv? })
+                let [dq, dk, dv] = self.heads_of(s, &all)?;
+                (Some(all), None, AttentionGrads { dq, dk, dv })
             }
             Projections::QandKv { .. } => {
+                let s = self.kv.as_ref().expect("a kv cache comes from the stack");
                 let all = Tensor::empty(gpu, &[2, nk, inner], DType::F32)?;
-                let [dk, dv] = [0, 1].map(|i| all.view(i * nk * inner, &[nk, self.heads, self.head_dim]));
+                let [dk, dv] = self.heads_of(s, &all)?;
                 let dq = heads(Tensor::empty(gpu, &[nq, inner], DType::F32)?)?;
-                (None, Some(all), AttentionGrads { dq, dk: dk?, dv: dv? })
+                (None, Some(all), AttentionGrads { dq, dk, dv })
             }
             Projections::Separate { .. } => {
                 let t = |n: usize| heads(Tensor::empty(gpu, &[n, inner], DType::F32)?);

@@ -82,13 +82,11 @@ impl SwiGlu {
         x: &Tensor,
         residual: Option<&Tensor>,
     ) -> Result<(Tensor, SwiGluCache)> {
-        let hidden = self.w1.out_features;
-        let rows = x.numel() / self.w1.in_features.max(1);
-        let stack = self.w13.as_ref().filter(|_| (rows * hidden).is_multiple_of(x.view_alignment()));
-        let (a, b, cx, stacked) = match stack {
+        let (a, b, cx, stacked) = match self.w13.as_ref().filter(|s| s.fits(x)) {
             Some(s) => {
                 let (ab, cx) = s.forward(rec, x)?;
-                (ab.view(0, &[rows, hidden])?, ab.view(rows * hidden, &[rows, hidden])?, cx, true)
+                let [a, b]: [Tensor; 2] = s.parts(&ab)?.try_into().expect("two layers");
+                (a, b, cx, true)
             }
             None => {
                 let (a, cx) = self.w1.forward(rec, x)?;
@@ -111,7 +109,7 @@ impl SwiGlu {
             Some(s) => {
                 let (rows, hidden) = (cache.a.shape()[0], self.w1.out_features);
                 let dab = Tensor::empty(dy.gpu(), &[2, rows, hidden], velox_engine::DType::F32)?;
-                let (da, db) = (dab.view(0, &[rows, hidden])?, dab.view(rows * hidden, &[rows, hidden])?);
+                let [da, db]: [Tensor; 2] = s.parts(&dab)?.try_into().expect("two layers");
                 swiglu_backward_into(rec, &cache.a, &cache.b, &dh, &da, &db)?;
                 let dx = Tensor::empty(dy.gpu(), &[rows, self.w1.in_features], velox_engine::DType::F32)?;
                 s.grads_into(rec, &cache.x, &dab, Some((&dx, false)))?;

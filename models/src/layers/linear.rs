@@ -18,6 +18,15 @@ fn operands(rec: &mut Recorder, x2: &Tensor, weight: &Param) -> Result<(Tensor, 
     }
 }
 
+/// `x @ W (+ bias)`, the bias added by the product as it writes (a separate pass where the
+/// kernel cannot).
+fn biased(rec: &mut Recorder, x: &Tensor, w: &Tensor, bias: Option<&Tensor>) -> Result<Tensor> {
+    match bias {
+        Some(b) => matmul_bias(rec, x, w, false, false, b),
+        None => matmul(rec, x, w, false, false),
+    }
+}
+
 /// What a backward pass's products read: `dy` as the forward pass's product read its input
 /// (rounded to f16 after an f16 forward pass), and the weight alike when `dx` is wanted.
 fn gradient_operands(
@@ -70,16 +79,7 @@ impl Linear {
     /// `x` rounded to f16 and the weight's f16 copy, and accumulates in f32; `y` is f32 either
     /// way. The backward pass of an f16 forward pass is f16 too (see [`Linear::backward`]).
     pub fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<(Tensor, LinearCache)> {
-        let x2 = as_rows("linear", x, self.in_features)?;
-        let (xm, w) = operands(rec, &x2, &self.weight)?;
-        // The bias is added by the matmul kernel as it writes (a separate pass where it cannot).
-        let y = match &self.bias {
-            Some(b) => matmul_bias(rec, &xm, &w, false, false, &b.value)?,
-            None => matmul(rec, &xm, &w, false, false)?,
-        };
-        let mut y_shape = x.shape().to_vec();
-        *y_shape.last_mut().unwrap() = self.out_features;
-        Ok((y.reshape(&y_shape)?, LinearCache { x: xm, x_shape: x.shape().to_vec() }))
+        self.forward_with(rec, x, None)
     }
 
     /// `y = residual + x @ W (+ b)` in one product (the residual copied into the output, the
@@ -90,18 +90,34 @@ impl Linear {
         x: &Tensor,
         residual: &Tensor,
     ) -> Result<(Tensor, LinearCache)> {
+        self.forward_with(rec, x, Some(residual))
+    }
+
+    fn forward_with(
+        &self,
+        rec: &mut Recorder,
+        x: &Tensor,
+        residual: Option<&Tensor>,
+    ) -> Result<(Tensor, LinearCache)> {
         let x2 = as_rows("linear", x, self.in_features)?;
         let mut y_shape = x.shape().to_vec();
         *y_shape.last_mut().unwrap() = self.out_features;
-        if residual.shape() != y_shape.as_slice() || residual.dtype() != DType::F32 {
+        if let Some(r) = residual.filter(|r| r.shape() != y_shape.as_slice() || r.dtype() != DType::F32) {
             return Err(velox_engine::Error::Shape(format!(
-                "linear: the residual {residual:?} must be f32 {y_shape:?}"
+                "linear: the residual {r:?} must be f32 {y_shape:?}"
             )));
         }
         let (xm, w) = operands(rec, &x2, &self.weight)?;
-        let y = Tensor::empty(x.gpu(), &[x2.shape()[0], self.out_features], DType::F32)?;
-        rec.copy(residual, &y)?;
-        matmul_bias_into(rec, &xm, &w, false, false, self.bias.as_ref().map(|b| &b.value), &y, true)?;
+        let bias = self.bias.as_ref().map(|b| &b.value);
+        let y = match residual {
+            Some(r) => {
+                let y = Tensor::empty(x.gpu(), &[x2.shape()[0], self.out_features], DType::F32)?;
+                rec.copy(r, &y)?;
+                matmul_bias_into(rec, &xm, &w, false, false, bias, &y, true)?;
+                y
+            }
+            None => biased(rec, &xm, &w, bias)?,
+        };
         Ok((y.reshape(&y_shape)?, LinearCache { x: xm, x_shape: x.shape().to_vec() }))
     }
 
@@ -183,16 +199,29 @@ impl LinearStack {
         Ok(LinearStack { weight, bias, k: shape[0], in_features: shape[1], out_features: shape[2] })
     }
 
+    /// Whether the outputs over `x`'s rows split into views of one layer's output each (the
+    /// device's offset alignment divides `rows * out`); where they do not, use the layers one
+    /// by one.
+    pub fn fits(&self, x: &Tensor) -> bool {
+        let rows = x.numel() / self.in_features.max(1);
+        (rows * self.out_features).is_multiple_of(x.view_alignment())
+    }
+
+    /// The layers' parts `[rows, out]` of a stacked `[k, rows, out]` tensor (the forward pass's
+    /// output, or a gradient laid out like it), as views.
+    pub fn parts(&self, y: &Tensor) -> Result<Vec<Tensor>> {
+        let rows = y.numel() / (self.k * self.out_features).max(1);
+        let chunk = rows * self.out_features;
+        (0..self.k).map(|i| y.view(i * chunk, &[rows, self.out_features])).collect()
+    }
+
     /// `y [k, rows, out]` for `x [rows, in]`: layer i's output is `y[i]`. Precision as in
     /// [`Linear::forward`].
     pub fn forward(&self, rec: &mut Recorder, x: &Tensor) -> Result<(Tensor, LinearCache)> {
         let x2 = as_rows("stacked linear", x, self.in_features)?;
         let (xm, w) = operands(rec, &x2, &self.weight)?;
-        // Each layer's bias onto its own output, by the product where the kernel can.
-        let y = match &self.bias {
-            Some(b) => matmul_bias(rec, &xm, &w, false, false, &b.value)?,
-            None => matmul(rec, &xm, &w, false, false)?,
-        };
+        // Each layer's bias ([k, out]) onto its own output.
+        let y = biased(rec, &xm, &w, self.bias.as_ref().map(|b| &b.value))?;
         Ok((y, LinearCache { x: xm, x_shape: x.shape().to_vec() }))
     }
 

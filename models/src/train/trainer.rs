@@ -315,9 +315,7 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
         let grad_norm = match store.grad_norm() {
             Ok(norm) => norm as f64 / scale,
             Err(_) if half => {
-                let mut ls = store.loss_scale();
-                ls.overflowed()?;
-                store.set_loss_scale(ls);
+                store.loss_scale_mut().overflowed()?;
                 self.overflows += 1;
                 self.retry_of = Some(step);
                 self.time.optimiser = t.elapsed().as_secs_f64();
@@ -326,9 +324,7 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
             Err(e) => return Err(e),
         };
         if half {
-            let mut ls = store.loss_scale();
-            ls.good();
-            store.set_loss_scale(ls);
+            store.loss_scale_mut().good();
         }
         self.time.optimiser = t.elapsed().as_secs_f64();
         Ok(Finished::Done(StepReport {

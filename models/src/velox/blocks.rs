@@ -72,9 +72,8 @@ pub fn attention_params(b: &mut ParamBuilder, name: &str, width: usize) -> Resul
 
 pub fn attention(store: &ParamStore, name: &str, heads: usize) -> Result<MultiHeadAttention> {
     let l = |p: &str| linear(store, &format!("{name}.{p}"), false);
-    let w = ["q", "k", "v"].map(|p| format!("{name}.{p}.w"));
     MultiHeadAttention::new(l("q")?, l("k")?, l("v")?, l("o")?, heads)?
-        .with_store_stacks(store, [&w[0], &w[1], &w[2]])
+        .with_store_stacks(store, ["q", "k", "v"].map(|p| format!("{name}.{p}.w")))
 }
 
 pub fn ff_params(b: &mut ParamBuilder, name: &str, width: usize, ratio: usize) -> Result<()> {

@@ -232,9 +232,8 @@ impl Generator {
         let norm = |n: &str| RmsNorm::new(p(n)?, NORM_EPS);
         let attention = |n: &str| -> Result<MultiHeadAttention> {
             let l = |m: &str| lin(&format!("{n}.{m}"), false);
-            let w = ["q", "k", "v"].map(|m| format!("{n}.{m}.w"));
             MultiHeadAttention::new(l("q")?, l("k")?, l("v")?, l("o")?, cfg.heads)?
-                .with_store_stacks(&store, [&w[0], &w[1], &w[2]])
+                .with_store_stacks(&store, ["q", "k", "v"].map(|m| format!("{n}.{m}.w")))
         };
         let mut blocks = Vec::with_capacity(cfg.blocks);
         for i in 0..cfg.blocks {

@@ -126,12 +126,9 @@ impl Modulation {
         Ok(Modulation { linears, stack })
     }
 
-    /// The stack, where its output `[k, rows, width]` splits into views (the device's offset
-    /// alignment divides `rows * width`).
+    /// The stack, where its output over `e`'s rows splits into views.
     fn stack_for(&self, e: &Tensor) -> Option<&LinearStack> {
-        let s = self.stack.as_ref()?;
-        let rows = e.numel() / s.in_features.max(1);
-        (rows * s.out_features).is_multiple_of(e.view_alignment()).then_some(s)
+        self.stack.as_ref().filter(|s| s.fits(e))
     }
 
     /// Each linear's output `[rows, width]` for the time embedding `e [rows, time_embed]`;
@@ -155,8 +152,7 @@ impl Modulation {
         };
         let (y, c) = s.forward(rec, e)?;
         e_cache.get_or_insert(c);
-        let chunk = y.numel() / s.k;
-        (0..s.k).map(|i| y.view(i * chunk, &[chunk / s.out_features, s.out_features])).collect()
+        s.parts(&y)
     }
 
     /// Adds the gradients for `dm` (one per linear, `[rows, width]`) and adds their input
@@ -173,9 +169,8 @@ impl Modulation {
             Some(s) => {
                 let rows = de.numel() / s.in_features;
                 let all = Tensor::empty(de.gpu(), &[s.k, rows, s.out_features], DType::F32)?;
-                let chunk = rows * s.out_features;
-                for (i, d) in dm.iter().enumerate() {
-                    rec.copy(d, &all.view(i * chunk, &[rows, s.out_features])?)?;
+                for (d, part) in dm.iter().zip(s.parts(&all)?) {
+                    rec.copy(d, &part)?;
                 }
                 s.grads_into(rec, e_cache, &all, Some((de, *de_started)))?;
             }
@@ -452,10 +447,7 @@ impl SurfaceDecoder {
             )?
             .with_store_stacks(
                 store,
-                ["q", "k", "v"]
-                    .map(|r| format!("{prefix}.{}", blk(&format!("attn.{r}.w"))))
-                    .each_ref()
-                    .map(String::as_str),
+                ["q", "k", "v"].map(|r| format!("{prefix}.{}", blk(&format!("attn.{r}.w")))),
             )?;
             let mlp = GeluMlp::new(
                 p(&blk("mlp.fc1.w"))?,

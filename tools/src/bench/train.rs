@@ -69,6 +69,13 @@ pub fn profile_step(step: impl FnOnce() -> Result<()>) -> Result<StepProfile> {
     Ok(StepProfile { dispatches: totals.iter().map(|t| t.dispatches).sum(), family_ms })
 }
 
+/// `family ms, ...`, the longest first.
+fn longest_first(family_ms: &BTreeMap<String, f64>) -> String {
+    let mut families: Vec<(&String, &f64)> = family_ms.iter().collect();
+    families.sort_by(|a, b| b.1.total_cmp(a.1));
+    families.iter().map(|(f, ms)| format!("{f} {ms:.1}")).collect::<Vec<_>>().join(", ")
+}
+
 pub fn run(
     gpu: &Gpu,
     quick: bool,
@@ -139,10 +146,7 @@ pub fn run(
                 profiled.dispatches,
                 peak as f64 / (1 << 20) as f64
             );
-            let mut families: Vec<(&String, &f64)> = profiled.family_ms.iter().collect();
-            families.sort_by(|a, b| b.1.total_cmp(a.1));
-            let families: Vec<String> = families.iter().map(|(f, ms)| format!("{f} {ms:.1}")).collect();
-            println!("{:>12} GPU ms by family (profiled step): {}", "", families.join(", "));
+            println!("{:>12} GPU ms by family (profiled step): {}", "", longest_first(&profiled.family_ms));
             let shape = format!("{} config, batch {batch}", cfg.name);
             let record = Record::timed(
                 "train step",
@@ -294,10 +298,7 @@ pub fn run_token_model(
         );
         let family_ms: BTreeMap<String, f64> =
             profiled.family_ms.into_iter().map(|(f, ms)| (f, ms / steps as f64)).collect();
-        let mut families: Vec<(&String, &f64)> = family_ms.iter().collect();
-        families.sort_by(|a, b| b.1.total_cmp(a.1));
-        let families: Vec<String> = families.iter().map(|(f, ms)| format!("{f} {ms:.1}")).collect();
-        println!("{:>12} GPU ms by family, a step: {}", "", families.join(", "));
+        println!("{:>12} GPU ms by family, a step: {}", "", longest_first(&family_ms));
         let shape = format!("{config} {name} config, batch {}", o.settings.global_batch);
         let record = Record::timed(
             "train step",
