@@ -7,7 +7,6 @@
 
 mod common;
 use common::*;
-use velox::engine::Precision;
 use velox::models::config::GeneratorConfig;
 use velox::models::train::Trainable;
 use velox::models::velox::dinov2::PATCH_VALUES;
@@ -210,24 +209,15 @@ fn f16_training_follows_f32() {
     // The adaLN-single DiT with cross-attention to the condition, trained by the library
     // trainer 60 steps on two scenes from the same start in f32 and in f16 (f16 operands of
     // every product forward and backward, f32 masters, the loss scaled by 2^16).
-    use velox::models::run::{RunRequest, RunSettings};
-    use velox::models::train::collective::SingleProcess;
-    use velox::models::train::trainer::Trainer;
     let gpu = gpu();
     let cfg = GeneratorConfig { warmup: 20, ..GeneratorConfig::tiny() };
     let scenes = [sample(&gpu, &cfg, 60), sample(&gpu, &cfg, 61)];
     let losses = |precision| {
         let mut g = Generator::new(&gpu, &cfg, 7).unwrap();
-        let request = RunRequest { steps: Some(60), precision: Some(precision), ..Default::default() };
-        let settings = RunSettings::new(&request, vec!["a".into(), "b".into()], cfg.batch as u64, 1).unwrap();
-        let mut trainer = Trainer::new(&mut g, &SingleProcess, settings).unwrap();
-        let reports = trainer.repeat_steps(&[&scenes[0], &scenes[1]], 1..61).unwrap();
-        reports.iter().map(|r| r.losses.total()).collect::<Vec<f64>>()
+        trainer_losses(&mut g, &[&scenes[0], &scenes[1]], 60, precision)
     };
     let (full, half) = (losses(Precision::F32), losses(Precision::F16));
-    let rel: Vec<f64> = full.iter().zip(&half).map(|(a, b)| (a - b).abs() / a.abs()).collect();
-    let worst = rel.iter().cloned().fold(0.0, f64::max);
-    let mean = rel.iter().sum::<f64>() / rel.len() as f64;
+    let (worst, mean) = relative_gaps(&full, &half);
     eprintln!(
         "generator f16 against f32, 60 steps: loss {:.4} -> {:.4} (f32 {:.4} -> {:.4}); relative difference \
          at most {worst:.2e}, mean {mean:.2e}",
@@ -236,7 +226,6 @@ fn f16_training_follows_f32() {
     assert!(worst < 0.02 && mean < 2e-3, "f16 strays from f32: worst {worst:.3e}, mean {mean:.3e}");
     // Measured on lavapipe: at most 7.9e-3, mean 7.8e-4; the flow loss 1.82 -> 1.67 (noisy: each
     // step draws its own flow times), so the run is checked to learn on the mean of 20 steps.
-    let mean_of = |l: &[f64]| l.iter().sum::<f64>() / l.len() as f64;
     assert!(mean_of(&full[40..]) < mean_of(&full[..20]), "the run must learn: {full:?}");
 }
 

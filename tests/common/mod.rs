@@ -5,7 +5,7 @@ use std::sync::OnceLock;
 
 pub use velox::engine::rng::Rng;
 pub use velox::engine::stats::{max_abs_err, nmse};
-pub use velox::engine::{DType, Gpu, Tensor};
+pub use velox::engine::{DType, Gpu, Precision, Tensor};
 
 /// The device every test of this binary shares (lavapipe in CI).
 pub fn gpu() -> Gpu {
@@ -68,4 +68,48 @@ pub fn glb(json: &str, bin: &[u8]) -> Vec<u8> {
     out.extend(0x004E_4942u32.to_le_bytes());
     out.extend(b);
     out
+}
+
+/// The total loss of each of `steps` steps of the library trainer, from the model as given,
+/// in `precision`: every step a global batch of `samples` (micro-batches of the model's own
+/// size, accumulated).
+pub fn trainer_losses<M: velox::models::train::Trainable>(
+    model: &mut M,
+    samples: &[&M::Sample],
+    steps: u64,
+    precision: velox::engine::Precision,
+) -> Vec<f64> {
+    use velox::models::run::{RunRequest, RunSettings};
+    use velox::models::train::collective::SingleProcess;
+    use velox::models::train::trainer::Trainer;
+    let micro = model.optimisation().batch as u64;
+    assert_eq!(
+        samples.len() as u64 % micro,
+        0,
+        "{} samples are not whole micro-batches of {micro}",
+        samples.len()
+    );
+    let request = RunRequest {
+        steps: Some(steps),
+        precision: Some(precision),
+        accumulate: Some(samples.len() as u64 / micro),
+        ..Default::default()
+    };
+    let names = (0..samples.len()).map(|i| format!("sample {i}")).collect();
+    let settings = RunSettings::new(&request, names, micro, 1).unwrap();
+    let mut trainer = Trainer::new(model, &SingleProcess, settings).unwrap();
+    let reports = trainer.repeat_steps(samples, 1..steps + 1).unwrap();
+    reports.iter().map(|r| r.losses.total()).collect()
+}
+
+/// The largest and the mean relative difference of `half`'s losses from `full`'s, step by step.
+pub fn relative_gaps(full: &[f64], half: &[f64]) -> (f64, f64) {
+    assert_eq!(full.len(), half.len());
+    let rel: Vec<f64> = full.iter().zip(half).map(|(a, b)| (a - b).abs() / a.abs()).collect();
+    (rel.iter().cloned().fold(0.0, f64::max), rel.iter().sum::<f64>() / rel.len() as f64)
+}
+
+/// Mean of a run of losses.
+pub fn mean_of(losses: &[f64]) -> f64 {
+    losses.iter().sum::<f64>() / losses.len() as f64
 }
