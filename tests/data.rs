@@ -1011,7 +1011,7 @@ fn textures_crop_a_folder_of_images() {
 /// that does not fit the camera or the scene's box is refused.
 #[test]
 fn tracking_video_is_rgbd_and_its_queries_lie_on_its_first_frame() {
-    use velox::data::rgbd::{read_rgbd_video, rgbd_cloud};
+    use velox::data::rgbd::{colours_at, read_rgbd_video, rgbd_cloud};
     use velox::models::files::image::write_exr_depth;
     let root = temp_dir("tracking-video");
     let opts = SynthOptions { res: 48, points: 500, supersample: 1, tracks: 40 };
@@ -1027,13 +1027,20 @@ fn tracking_video_is_rgbd_and_its_queries_lie_on_its_first_frame() {
     assert!(all.windows(2).all(|w| w[0][6] <= w[1][6]), "frame order");
     let first: Vec<&[f32; 7]> = all.iter().filter(|p| p[6] == 0.0).collect();
     let w = cam.width as usize;
-    for (t, seen) in a.video_tracks.iter().zip(&a.video_visibility) {
+    let queries: Vec<[f32; 3]> = a.video_tracks.iter().map(|t| t[0]).collect();
+    let colours = colours_at(&video.rgb[0], &cam, &queries);
+    for ((t, seen), colour) in a.video_tracks.iter().zip(&a.video_visibility).zip(&colours) {
         assert!(seen[0], "a query is seen on the first frame");
-        let nearest = first
-            .iter()
-            .map(|p| (0..3).map(|k| (p[k] - t[0][k]).powi(2)).sum::<f32>().sqrt())
-            .fold(f32::INFINITY, f32::min);
-        assert!(nearest < 1e-3, "query {:?} is {nearest} from every back-projected pixel", t[0]);
+        let distance = |p: &[f32; 7]| (0..3).map(|k| (p[k] - t[0][k]).powi(2)).sum::<f32>().sqrt();
+        let nearest = first.iter().min_by(|p, q| distance(p).total_cmp(&distance(q))).unwrap();
+        assert!(
+            distance(nearest) < 1e-3,
+            "query {:?} is {} from every back-projected pixel",
+            t[0],
+            distance(nearest)
+        );
+        // A query's colour is its pixel's: the back-projected point it lies on carries it.
+        assert_eq!(colour[..], nearest[3..6], "the colour of query {:?}", t[0]);
         for f in (0..FRAMES).filter(|&f| seen[f]) {
             let (u, v, z) = cam.project(t[f]);
             let d = video.depth[f][v as usize * w + u as usize];
@@ -1044,6 +1051,10 @@ fn tracking_video_is_rgbd_and_its_queries_lie_on_its_first_frame() {
         }
     }
     assert!(a.video_visibility.iter().any(|s| s.iter().any(|&v| !v)), "some query is hidden at some frame");
+    // A point beyond the image's left edge takes the colour of the edge's pixel in its row.
+    let outside = cam.unproject(-7.5, 10.5, 2.0);
+    let pixel = |u: usize, v: usize| video.rgb[0][3 * (v * w + u)..3 * (v * w + u) + 3].to_vec();
+    assert_eq!(colours_at(&video.rgb[0], &cam, &[outside])[0].to_vec(), pixel(0, 10));
     let some = rgbd_cloud(&video, 100, 1).unwrap();
     assert_eq!(some.len(), 100);
     assert!(some.iter().all(|p| all.contains(p)), "a draw keeps points of the cloud");

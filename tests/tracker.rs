@@ -32,10 +32,12 @@ fn sample(gpu: &Gpu, seed: u64, n: usize) -> TrackSample {
             [0; 3].map(|_| rng.range(-1.0, 1.0) as f32).into_iter().chain([(i % 24) as f32 / 100.0])
         })
         .collect();
+    let colours = (0..n).map(|_| [0; 3].map(|_| rng.uniform() as f32)).collect();
     TrackSample::new(
         Tensor::from_slice(gpu, &[48, 32], &tokens).unwrap(),
         Tensor::from_slice(gpu, &[48, 4], &points).unwrap(),
         tracks(seed, n),
+        colours,
     )
     .unwrap()
 }
@@ -49,8 +51,16 @@ fn zero(gpu: &Gpu, t: &Tracker) {
 #[test]
 fn backward_matches_a_directional_finite_difference() {
     let gpu = gpu();
-    for (loss, token_positions) in [(TrackLoss::L2, false), (TrackLoss::L1, false), (TrackLoss::L2, true)] {
-        let cfg = TrackerConfig { loss, token_positions, queries_per_sample: 40, ..TrackerConfig::tiny() };
+    for (loss, token_positions, query_colour) in
+        [(TrackLoss::L2, false, false), (TrackLoss::L1, false, false), (TrackLoss::L2, true, true)]
+    {
+        let cfg = TrackerConfig {
+            loss,
+            token_positions,
+            query_colour,
+            queries_per_sample: 40,
+            ..TrackerConfig::tiny()
+        };
         let mut t = Tracker::new(&gpu, &cfg, 2).unwrap();
         let s = sample(&gpu, 4, 60);
         zero(&gpu, &t);
@@ -76,7 +86,7 @@ fn backward_matches_a_directional_finite_difference() {
         };
         let numeric = (at(1.0) - at(-1.0)) / (2.0 * eps as f64);
         let rel = (numeric - analytic).abs() / analytic.abs();
-        assert!(rel < bound, "{loss:?}, token positions {token_positions}: analytic {analytic} against finite difference {numeric} ({rel:.2e})");
+        assert!(rel < bound, "{loss:?}, token positions {token_positions}, colour {query_colour}: analytic {analytic} against finite difference {numeric} ({rel:.2e})");
     }
 }
 
@@ -115,7 +125,7 @@ fn an_untrained_tracker_stays_put_and_a_trained_one_learns_the_motion() {
     let s = sample(&gpu, 6, 400);
     let queries: Vec<[f32; 3]> = s.tracks.iter().map(|t| t[0]).collect();
     // The head starts near zero: every frame predicts about the query (the static baseline).
-    let before = t.predict(&s.tokens, &s.token_points, &queries).unwrap();
+    let before = t.predict(&s.tokens, &s.token_points, &queries, &s.colours).unwrap();
     let drift =
         before.iter().zip(&queries).flat_map(|(p, q)| p.iter().map(move |x| dist(x, q))).fold(0.0, f32::max);
     assert!(drift < 0.05, "an untrained tracker moves a query by {drift}");
@@ -136,7 +146,7 @@ fn an_untrained_tracker_stays_put_and_a_trained_one_learns_the_motion() {
         t.store.adamw_step(&mut rec, &adamw, lr, Some(1.0)).unwrap();
         rec.submit().unwrap();
     }
-    let trained = error(&t.predict(&s.tokens, &s.token_points, &queries).unwrap());
+    let trained = error(&t.predict(&s.tokens, &s.token_points, &queries, &s.colours).unwrap());
     if std::env::var_os("VELOX_TEST_VERBOSE").is_some() {
         eprintln!("tiny tracker, 80 steps: mean L2 {static_error:.4} (static) -> {trained:.4}");
     }
@@ -150,19 +160,41 @@ fn dist(a: &[f32; 3], b: &[f32; 3]) -> f32 {
 #[test]
 fn queries_are_tracked_on_their_own() {
     let gpu = gpu();
-    let t = Tracker::new(&gpu, &TrackerConfig::tiny(), 7).unwrap();
-    let s = sample(&gpu, 8, 30);
+    for query_colour in [false, true] {
+        queries_alone(&gpu, &TrackerConfig { query_colour, ..TrackerConfig::tiny() });
+    }
+}
+
+fn queries_alone(gpu: &Gpu, cfg: &TrackerConfig) {
+    let t = Tracker::new(gpu, cfg, 7).unwrap();
+    let s = sample(gpu, 8, 30);
     let queries: Vec<[f32; 3]> = s.tracks.iter().map(|t| t[0]).collect();
-    let together = t.predict(&s.tokens, &s.token_points, &queries).unwrap();
+    let together = t.predict(&s.tokens, &s.token_points, &queries, &s.colours).unwrap();
     for i in [0, 13, 29] {
-        let alone = t.predict(&s.tokens, &s.token_points, &queries[i..i + 1]).unwrap();
+        let alone = t.predict(&s.tokens, &s.token_points, &queries[i..i + 1], &s.colours[i..i + 1]).unwrap();
         let flat = |t: &Track| t.iter().flatten().copied().collect::<Vec<f32>>();
         assert_nmse(&format!("query {i} alone"), &flat(&alone[0]), &f64s(&flat(&together[i])), 1e-10);
     }
-    let e = t.predict(&s.tokens, &s.token_points, &[[0.0, 1.5, 0.0]]).unwrap_err().to_string();
+    // A tracker that reads the colour tracks a query of another colour elsewhere; one that
+    // does not, to the bit where it did.
+    let recoloured = t.predict(&s.tokens, &s.token_points, &queries[..1], &[[1.0, 0.0, 0.5]]).unwrap();
+    assert_eq!(recoloured[0] == together[0], !cfg.query_colour, "query colour {}", cfg.query_colour);
+    let e = t.predict(&s.tokens, &s.token_points, &[[0.0, 1.5, 0.0]], &[[0.5; 3]]).unwrap_err().to_string();
     assert!(e.contains("query 0"), "{e}");
-    let e = TrackSample::new(s.tokens.clone(), s.token_points.clone(), Vec::new()).err().unwrap().to_string();
+    let e = t.predict(&s.tokens, &s.token_points, &queries[..2], &s.colours[..1]).unwrap_err().to_string();
+    assert!(e.contains("1 colours for 2 queries"), "{e}");
+    let e = TrackSample::new(s.tokens.clone(), s.token_points.clone(), Vec::new(), Vec::new())
+        .err()
+        .unwrap()
+        .to_string();
     assert!(e.contains("no tracks"), "{e}");
+    let mut colours = s.colours.clone();
+    colours[3] = [0.2, f32::NAN, 0.1];
+    let e = TrackSample::new(s.tokens.clone(), s.token_points.clone(), s.tracks.clone(), colours)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains("query 3"), "{e}");
 }
 
 #[test]

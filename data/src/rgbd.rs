@@ -39,21 +39,44 @@ fn invalid(path: &Path, why: impl std::fmt::Display) -> DataError {
     DataError::Invalid(format!("{}: {why}", path.display()))
 }
 
+/// Colour frame `f` (`fFF.png`) of the video in `dir` seen by `camera`: row-major RGB
+/// `[h, w, 3]` in [0, 1], its size checked against the camera.
+pub fn read_colour_frame(dir: &Path, camera: &Camera, f: usize) -> DataResult<Vec<f32>> {
+    let png = dir.join(format!("f{f:02}.png"));
+    let (colour, cw, ch) = velox_models::files::image::read_png(&png)
+        .map_err(|e| DataError::Io(format!("colour frame {f} of the video: {e}")))?;
+    let (w, h) = (camera.width, camera.height);
+    if (cw, ch) != (w, h) {
+        return Err(invalid(&png, format!("{cw} x {ch} pixels, the camera's image is {w} x {h}")));
+    }
+    Ok(colour)
+}
+
+/// The colour of each point in `rgb` (a colour frame of `camera`, as [`read_colour_frame`]
+/// gives): the pixel it projects into, or the image's pixel nearest to where it projects.
+pub fn colours_at(rgb: &[f32], camera: &Camera, points: &[[f32; 3]]) -> Vec<[f32; 3]> {
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    let pixel = |x: f32, n: usize| if x.is_finite() { (x.max(0.0) as usize).min(n - 1) } else { 0 };
+    points
+        .iter()
+        .map(|&p| {
+            let (u, v, _) = camera.project(p);
+            let i = 3 * (pixel(v, h) * w + pixel(u, w));
+            [rgb[i], rgb[i + 1], rgb[i + 2]]
+        })
+        .collect()
+}
+
 /// Reads the [`FRAMES`] frames of the video in `dir` seen by `camera`, checking each image's
 /// size against the camera and each depth for finite, non-negative values.
 pub fn read_rgbd_video(dir: &Path, camera: Camera) -> DataResult<RgbdVideo> {
     let (w, h) = (camera.width, camera.height);
     let (mut rgb, mut depth) = (Vec::new(), Vec::new());
     for f in 0..FRAMES {
-        let png = dir.join(format!("f{f:02}.png"));
         let exr = dir.join(format!("f{f:02}_depth.exr"));
-        let (colour, cw, ch) = velox_models::files::image::read_png(&png)
-            .map_err(|e| DataError::Io(format!("colour frame {f} of the video: {e}")))?;
+        let colour = read_colour_frame(dir, &camera, f)?;
         let (z, dw, dh) = velox_models::files::image::read_exr_depth(&exr)
             .map_err(|e| DataError::Io(format!("depth frame {f} of the video: {e}")))?;
-        if (cw, ch) != (w, h) {
-            return Err(invalid(&png, format!("{cw} x {ch} pixels, the camera's image is {w} x {h}")));
-        }
         if (dw, dh) != (w, h) {
             return Err(invalid(&exr, format!("{dw} x {dh} pixels, the camera's image is {w} x {h}")));
         }

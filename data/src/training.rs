@@ -301,6 +301,8 @@ impl SampleSource for TokenScenes {
 pub struct HostTrackScene {
     pub tokens: SceneTokens,
     pub tracks: Vec<Track>,
+    /// Each track's colour on the video's first frame (its query's pixel).
+    pub colours: Vec<[f32; 3]>,
     /// Whether the video camera sees each track at each frame (the evaluation's truth; the
     /// training does not use it).
     pub visible: Vec<[bool; velox_models::velox::autoencoder::FRAMES]>,
@@ -361,13 +363,18 @@ impl SampleSource for TrackScenes {
             ))
             .into());
         }
-        Ok(HostTrackScene { tokens, tracks, visible })
+        let dir = &self.0.dirs[index];
+        let camera = crate::rgbd::scene_video_camera(dir)?;
+        let frame = crate::rgbd::read_colour_frame(&dir.join("video"), &camera, 0)?;
+        let queries: Vec<[f32; 3]> = tracks.iter().map(|t| t[0]).collect();
+        let colours = crate::rgbd::colours_at(&frame, &camera, &queries);
+        Ok(HostTrackScene { tokens, tracks, colours, visible })
     }
 
     fn prepare(&self, raw: HostTrackScene) -> velox_engine::Result<TrackSample> {
         let points =
             velox_engine::Tensor::from_slice(&self.0.gpu, &[raw.tokens.k(), 4], &raw.tokens.query_points)?;
-        TrackSample::new(raw.tokens.upload(&self.0.gpu)?, points, raw.tracks)
+        TrackSample::new(raw.tokens.upload(&self.0.gpu)?, points, raw.tracks, raw.colours)
     }
 }
 

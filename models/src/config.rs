@@ -697,6 +697,10 @@ pub struct TrackerConfig {
     /// tokens near it without reading their place out of the 32 numbers.
     #[serde(default)]
     pub token_positions: bool,
+    /// Each query's colour on the first frame (its pixel of the video's frame 0, RGB in [0, 1])
+    /// joins its feature beside its position, so a query can look for the tokens of its colour.
+    #[serde(default)]
+    pub query_colour: bool,
     /// Queries a scene contributes to a step, drawn at random from its tracks.
     pub queries_per_sample: usize,
     /// Scenes per micro-batch.
@@ -726,6 +730,7 @@ impl TrackerConfig {
             head_hidden: 0,
             loss: TrackLoss::L1,
             token_positions: false,
+            query_colour: false,
             queries_per_sample: 2048,
             batch: 1,
             peak_lr: 1e-4,

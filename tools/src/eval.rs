@@ -362,6 +362,7 @@ fn run_tracking(a: &TrackingEvalArgs) -> CliResult<()> {
         let video = velox_data::rgbd::read_scene_video(dir)?;
         let scene = TrackingScene {
             truth: &sample.tracks,
+            colours: &sample.colours,
             visible: &visible,
             camera: &video.camera,
             depth: &video.depth,

@@ -166,7 +166,8 @@ pub fn run(a: &TrackArgs) -> CliResult<()> {
     let (tokens, picked) = ae.encode_with_queries(&cloud::upload(&gpu, &flat)?, a.seed)?;
     let token_points = cloud::query_points(&flat, &picked.read::<u32>()?);
     let token_points = velox_engine::Tensor::from_slice(&gpu, &[k, 4], &token_points)?;
-    let tracks: Vec<Track> = tracker.predict(&tokens, &token_points, &queries)?;
+    let first_colours = velox_data::rgbd::colours_at(&video.rgb[0], &video.camera, &queries);
+    let tracks: Vec<Track> = tracker.predict(&tokens, &token_points, &queries, &first_colours)?;
     let cam = &video.camera;
     let hidden: Vec<[bool; FRAMES]> =
         tracks.iter().map(|t| std::array::from_fn(|f| !cam.sees(t[f], &video.depth[f]))).collect();

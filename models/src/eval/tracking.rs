@@ -153,6 +153,8 @@ impl TrackingMetrics {
 /// camera and its depth frames (camera z, 0 where no surface).
 pub struct TrackingScene<'a> {
     pub truth: &'a [Track],
+    /// Each track's colour on the first frame (what a tracker with `query_colour` reads).
+    pub colours: &'a [[f32; 3]],
     pub visible: &'a [[bool; FRAMES]],
     pub camera: &'a Camera,
     pub depth: &'a [Vec<f32>],
@@ -243,7 +245,7 @@ pub fn evaluate_scene(
     scene: &TrackingScene,
 ) -> Result<(TrackingReport, Vec<Track>)> {
     let queries: Vec<[f32; 3]> = scene.truth.iter().map(|t| t[0]).collect();
-    let predicted = tracker.predict(tokens, token_points, &queries)?;
+    let predicted = tracker.predict(tokens, token_points, &queries, scene.colours)?;
     let still: Vec<Track> = queries.iter().map(|&q| [q; FRAMES]).collect();
     let report = TrackingReport {
         name: name.to_string(),

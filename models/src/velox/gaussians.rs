@@ -71,6 +71,7 @@ impl GaussianDecoder {
             head_hidden: cfg.head_hidden,
             out: cfg.gaussians_per_voxel * RAW,
             head_std: 0.01,
+            query_features: 0,
         }
     }
 

@@ -53,6 +53,9 @@ pub struct PerceiverShape {
     pub out: usize,
     /// Standard deviation of the head's last weights.
     pub head_std: f64,
+    /// Numbers a query brings beside its position (the tracker's query colour), which join
+    /// its feature as they are: the query rows are `[x, y, z, features..]`.
+    pub query_features: usize,
 }
 
 /// The frame groups of a batch of queries and the tokens each attends to: the queries are
@@ -169,9 +172,10 @@ pub struct PerceiverCache {
 }
 
 impl VoxelPerceiver {
-    /// Width of a query's feature: position and its Fourier embedding, tau and its.
+    /// Width of a query's feature: position and its Fourier embedding, tau and its, then the
+    /// query's own features.
     pub fn feature_width(shape: &PerceiverShape) -> usize {
-        (3 + 6 * shape.xyz_freqs) + (1 + 2 * shape.tau_freqs)
+        (3 + 6 * shape.xyz_freqs) + (1 + 2 * shape.tau_freqs) + shape.query_features
     }
 
     /// Declares the parameters under `prefix`: `input`, `block{i}`, `head_norm`, `head`.
@@ -250,8 +254,9 @@ impl VoxelPerceiver {
         WindowGrid::new([-1.0, -1.0, -1.0, 0.0], [1.0, 1.0, 1.0, groups as f32], [w, w, w, 1.0])
     }
 
-    /// `[V, out]` for the queries at `positions` (f32 `[V, 3]`) of the frames `frames` from
-    /// `tokens` (`[k, token_dim]`, every sample's one after another).
+    /// `[V, out]` for the queries `positions` (f32 `[V, 3 + query_features]`: each one's
+    /// position, then its features) of the frames `frames` from `tokens` (`[k, token_dim]`,
+    /// every sample's one after another).
     pub fn forward(
         &self,
         rec: &mut Recorder,
@@ -259,11 +264,14 @@ impl VoxelPerceiver {
         positions: &Tensor,
         frames: &VoxelFrames,
     ) -> Result<(Tensor, PerceiverCache)> {
+        let extra = self.shape.query_features;
         let v = match positions.shape() {
-            &[v, 3] if v > 0 && positions.dtype() == DType::F32 => v,
+            &[v, c] if v > 0 && c == 3 + extra && positions.dtype() == DType::F32 => v,
             _ => {
                 return Err(Error::Shape(format!(
-                    "voxel perceiver: the query centres must be f32 [V > 0, 3], got {positions:?}"
+                    "voxel perceiver: the queries must be f32 [V > 0, {}] (position{}), got {positions:?}",
+                    3 + extra,
+                    if extra > 0 { " and features" } else { "" }
                 )))
             }
         };
@@ -302,12 +310,22 @@ impl VoxelPerceiver {
             let grid = self.grid(frames.groups.len())?;
             vec![WindowLayout::new(rec, &points, &grid)?, WindowLayout::new(rec, &points, &grid.shifted())?]
         };
-        let (fx, _) = self.fourier_xyz.forward(rec, positions)?;
+        let xyz = if extra == 0 {
+            positions.clone()
+        } else {
+            let xyz = Tensor::empty(&gpu, &[v, 3], DType::F32)?;
+            copy_columns(rec, positions, 0, &xyz, 0, 3, 1.0)?;
+            xyz
+        };
+        let (fx, _) = self.fourier_xyz.forward(rec, &xyz)?;
         let (ft, _) = self.fourier_tau.forward(rec, &taus)?;
         let (wx, wt) = (self.fourier_xyz.out_width(), self.fourier_tau.out_width());
-        let features = Tensor::empty(&gpu, &[v, wx + wt], DType::F32)?;
+        let features = Tensor::empty(&gpu, &[v, wx + wt + extra], DType::F32)?;
         copy_columns(rec, &fx, 0, &features, 0, wx, 1.0)?;
         copy_columns(rec, &ft, 0, &features, wx, wt, 1.0)?;
+        if extra > 0 {
+            copy_columns(rec, positions, 3, &features, wx + wt, extra, 1.0)?;
+        }
         let (mut x, input) = self.input.forward(rec, &features)?;
         let cross_segments = frames.segments.clone();
         let mut blocks = Vec::new();

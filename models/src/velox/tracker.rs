@@ -3,7 +3,8 @@
 //! position at every frame.
 //!
 //! The trunk is a [`VoxelPerceiver`] without self-attention: a query's feature is its Fourier
-//! embedded position (and frame time 0, the first frame), `blocks` blocks of cross-attention
+//! embedded position (and frame time 0, the first frame; with `query_colour`, its colour on
+//! the first frame beside them), `blocks` blocks of cross-attention
 //! to the tokens and SwiGLU feed-forward refine it, and the head gives `3 x 24` numbers: the
 //! query's offset at each frame. Queries never see each other, so a prediction is the same
 //! whatever other queries run with it, and any number of them run in chunks. The head starts
@@ -45,12 +46,19 @@ pub struct TrackSample {
     /// `[k, 4]`: each token's query point (x, y, z, tau), as the token file stores it.
     pub token_points: Tensor,
     pub tracks: Vec<Track>,
+    /// Each track's colour on the first frame (RGB in [0, 1]): its pixel of the video's frame 0.
+    pub colours: Vec<[f32; 3]>,
 }
 
 impl TrackSample {
     /// Checks the shapes and values: tokens f32 `[k > 0, d > 0]`, at least one track, every
-    /// position finite.
-    pub fn new(tokens: Tensor, token_points: Tensor, tracks: Vec<Track>) -> Result<TrackSample> {
+    /// position finite, a colour in [0, 1] per track.
+    pub fn new(
+        tokens: Tensor,
+        token_points: Tensor,
+        tracks: Vec<Track>,
+        colours: Vec<[f32; 3]>,
+    ) -> Result<TrackSample> {
         let ok_tokens = matches!(tokens.shape(), [k, d] if *k > 0 && *d > 0)
             && tokens.dtype() == velox_engine::DType::F32;
         if !ok_tokens {
@@ -71,8 +79,23 @@ impl TrackSample {
         if let Some(i) = tracks.iter().position(|t| t.iter().flatten().any(|v| !v.is_finite())) {
             return Err(Error::Invalid(format!("track sample: track {i} has a non-finite position")));
         }
-        Ok(TrackSample { tokens, token_points, tracks })
+        check_colours("track sample", &colours, tracks.len())?;
+        Ok(TrackSample { tokens, token_points, tracks, colours })
     }
+}
+
+/// Checks one colour per query, each channel in [0, 1].
+fn check_colours(what: &str, colours: &[[f32; 3]], queries: usize) -> Result<()> {
+    if colours.len() != queries {
+        return Err(Error::Shape(format!("{what}: {} colours for {queries} queries", colours.len())));
+    }
+    if let Some(i) = colours.iter().position(|c| c.iter().any(|v| !(0.0..=1.0).contains(v))) {
+        return Err(Error::Invalid(format!(
+            "{what}: query {i} has the colour {:?}: channels are in [0, 1]",
+            colours[i]
+        )));
+    }
+    Ok(())
 }
 
 /// The tracking network; see the module docs.
@@ -102,6 +125,7 @@ impl Tracker {
             head_hidden: cfg.head_hidden,
             out: 3 * FRAMES,
             head_std: 1e-3,
+            query_features: if cfg.query_colour { 3 } else { 0 },
         }
     }
 
@@ -202,6 +226,9 @@ impl Tracker {
             for &t in &order[..take] {
                 let track = &s.tracks[t];
                 queries.extend_from_slice(&track[0]);
+                if self.cfg.query_colour {
+                    queries.extend_from_slice(&s.colours[t]);
+                }
                 targets.extend(track.iter().flat_map(|p| (0..3).map(move |a| p[a] - track[0][a])));
             }
             rows.push(take);
@@ -209,7 +236,7 @@ impl Tracker {
         let n: usize = rows.iter().sum();
         let frames =
             VoxelFrames { groups: vec![(0.0, n)], segments: Segments::from_lengths(&gpu, &rows, &counts)? };
-        let positions = Tensor::from_slice(&gpu, &[n, 3], &queries)?;
+        let positions = Tensor::from_slice(&gpu, &[n, self.query_width()], &queries)?;
         let (offsets, cache) = self.trunk.forward(&mut rec, &context, &positions, &frames)?;
         let target = Tensor::from_slice(&gpu, &[n, 3 * FRAMES], &targets)?;
         let (loss, d_offsets) = self
@@ -230,8 +257,14 @@ impl Tracker {
         Ok(Losses { terms: vec![("total", total)] })
     }
 
-    /// Records the tracks `[n, 24, 3]` of the queries `positions` (`[n, 3]`) into `rec`, from
-    /// one scene's `tokens` and their points; unchecked (see [`Tracker::predict`]).
+    /// Numbers per query row: its position, and its colour with `query_colour`.
+    fn query_width(&self) -> usize {
+        3 + self.trunk.shape.query_features
+    }
+
+    /// Records the tracks `[n, 24, 3]` of the queries `positions` (`[n, 3]`, or `[n, 6]` with
+    /// the colours after the positions under `query_colour`) into `rec`, from one scene's
+    /// `tokens` and their points; unchecked (see [`Tracker::predict`]).
     pub fn record_tracks(
         &self,
         rec: &mut Recorder,
@@ -243,17 +276,26 @@ impl Tracker {
         let context = self.context(rec, tokens, token_points)?;
         let frames = VoxelFrames::single(tokens.gpu(), 0.0, n, k)?;
         let (offsets, _) = self.trunk.forward(rec, &context, positions, &frames)?;
-        binary(rec, &offsets.reshape(&[n, FRAMES, 3])?, &positions.reshape(&[n, 1, 3])?, Binary::Add)
+        let start = if self.query_width() == 3 {
+            positions.clone()
+        } else {
+            let xyz = Tensor::empty(tokens.gpu(), &[n, 3], DType::F32)?;
+            copy_columns(rec, positions, 0, &xyz, 0, 3, 1.0)?;
+            xyz
+        };
+        binary(rec, &offsets.reshape(&[n, FRAMES, 3])?, &start.reshape(&[n, 1, 3])?, Binary::Add)
     }
 
-    /// The tracks of `queries` (points on the first frame, in the scene's [-1, 1]^3 box) from
-    /// one scene's `tokens` and their points (`[k, 4]`): each query's position at every
+    /// The tracks of `queries` (points on the first frame, in the scene's [-1, 1]^3 box, with
+    /// their `colours` there, RGB in [0, 1], which only a tracker with `query_colour` reads)
+    /// from one scene's `tokens` and their points (`[k, 4]`): each query's position at every
     /// frame, frame 0 its prediction for the query itself. Runs [`CHUNK`] queries a pass.
     pub fn predict(
         &self,
         tokens: &Tensor,
         token_points: &Tensor,
         queries: &[[f32; 3]],
+        colours: &[[f32; 3]],
     ) -> Result<Vec<Track>> {
         let k = self.check_tokens(tokens)?;
         if token_points.shape() != [k, 4] {
@@ -267,11 +309,17 @@ impl Tracker {
                 queries[i]
             )));
         }
+        check_colours("tracker", colours, queries.len())?;
         let gpu = tokens.gpu().clone();
         let mut out = Vec::with_capacity(queries.len());
-        for chunk in queries.chunks(CHUNK) {
-            let flat: Vec<f32> = chunk.iter().flatten().copied().collect();
-            let positions = Tensor::from_slice(&gpu, &[chunk.len(), 3], &flat)?;
+        for (chunk, colours) in queries.chunks(CHUNK).zip(colours.chunks(CHUNK)) {
+            let flat: Vec<f32> = chunk
+                .iter()
+                .zip(colours)
+                .flat_map(|(q, c)| q.iter().chain(if self.cfg.query_colour { &c[..] } else { &[] }))
+                .copied()
+                .collect();
+            let positions = Tensor::from_slice(&gpu, &[chunk.len(), self.query_width()], &flat)?;
             let mut rec = gpu.recorder()?;
             let moved = self.record_tracks(&mut rec, tokens, token_points, &positions)?;
             rec.submit()?;

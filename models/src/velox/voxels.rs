@@ -273,6 +273,7 @@ impl VoxelDecoder {
             head_hidden: stage.head_hidden,
             out,
             head_std: 0.01,
+            query_features: 0,
         }
     }
 
