@@ -4,9 +4,9 @@
 //!
 //! The trunk is a [`VoxelPerceiver`] without self-attention: a query's feature is its Fourier
 //! embedded position (and frame time 0, the first frame; with `query_colour`, its colour on
-//! the first frame beside them), `blocks` blocks of cross-attention
-//! to the tokens and SwiGLU feed-forward refine it, and the head gives `3 x 24` numbers: the
-//! query's offset at each frame. Queries never see each other, so a prediction is the same
+//! the first frame beside them), `blocks` blocks of cross-attention to the tokens and SwiGLU
+//! feed-forward refine it, and the head gives `3 x 24` numbers: the query's offset at each
+//! frame. Queries never see each other, so a prediction is the same
 //! whatever other queries run with it, and any number of them run in chunks. The head starts
 //! near zero, so an untrained tracker predicts that nothing moves (the static baseline).
 //!
