@@ -267,11 +267,13 @@ impl VoxelPerceiver {
         let extra = self.shape.query_features;
         let v = match positions.shape() {
             &[v, c] if v > 0 && c == 3 + extra && positions.dtype() == DType::F32 => v,
-            _ => return Err(Error::Shape(format!(
-                "voxel perceiver: the query centres must be f32 [V > 0, {}] (position{}), got {positions:?}",
-                3 + extra,
-                if extra > 0 { " and features" } else { "" }
-            ))),
+            _ => {
+                let what = if extra > 0 { "position and features" } else { "position" };
+                let want = 3 + extra;
+                return Err(Error::Shape(format!(
+                    "voxel perceiver: the query centres must be f32 [V > 0, {want}] ({what}), got {positions:?}"
+                )));
+            }
         };
         if tokens.shape().len() != 2 || tokens.shape()[0] == 0 {
             return Err(Error::Shape(format!(
