@@ -408,13 +408,9 @@ pub fn attention_backward(
     seg: &Segments,
     scale: f32,
 ) -> Result<AttentionGrads> {
-    let (nq, nk, h, d) = check(q, k, v, seg)?;
-    let gpu = q.gpu().clone();
-    let grads = AttentionGrads {
-        dq: Tensor::empty(&gpu, &[nq, h, d], DType::F32)?,
-        dk: Tensor::empty(&gpu, &[nk, h, d], DType::F32)?,
-        dv: Tensor::empty(&gpu, &[nk, h, d], DType::F32)?,
-    };
+    // Shaped like q, k and v; `attention_backward_into` checks every shape.
+    let f32_like = |t: &Tensor| Tensor::empty(t.gpu(), t.shape(), DType::F32);
+    let grads = AttentionGrads { dq: f32_like(q)?, dk: f32_like(k)?, dv: f32_like(v)? };
     attention_backward_into(rec, q, k, v, out, d_o, seg, scale, &grads)?;
     Ok(grads)
 }
