@@ -8,15 +8,16 @@
 
 use std::ffi::{c_char, CStr};
 use std::mem::ManuallyDrop;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 
 use ash::vk;
 use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
 
-use crate::caps::Caps;
+use crate::caps::{Caps, Switches};
 use crate::error::{Error, Result, VkCheck};
 use crate::kernels::PipelineCache;
+use crate::validation;
 
 /// A handle to the device; cheap to clone, shared by every tensor and recorder.
 #[derive(Clone)]
@@ -29,9 +30,16 @@ pub(crate) struct GpuInner {
     pub instance: ash::Instance,
     pub device: ash::Device,
     pub queue: Mutex<vk::Queue>,
-    pub command_pool: Mutex<vk::CommandPool>,
+    /// The compute family every recorder's command pool is made for.
+    pub queue_family: u32,
     pub allocator: ManuallyDrop<Mutex<Allocator>>,
+    /// Loaded where the device has VK_KHR_push_descriptor and `caps.push_descriptors` is on.
     pub push_descriptor: ash::khr::push_descriptor::Device,
+    /// Validation asked for by `VELOX_VALIDATE`, its messenger, and the count of errors
+    /// [`Recorder::submit`](crate::Recorder::submit) has already reported.
+    pub validation: validation::Mode,
+    messenger: Option<validation::Messenger>,
+    pub reported_errors: AtomicUsize,
     pub caps: Caps,
     /// Reads and writes go through staging buffers even where memory is mapped
     /// (`VELOX_FORCE_STAGING=1`): the path discrete GPUs take, testable on any device.
@@ -54,31 +62,48 @@ pub struct DeviceSummary {
     pub unusable: Option<String>,
 }
 
-const REQUIRED_EXTENSIONS: &[&CStr] = &[ash::khr::push_descriptor::NAME];
+/// Extensions every device must have (VK_KHR_push_descriptor is used where present, with
+/// descriptor sets in its place elsewhere).
+const REQUIRED_EXTENSIONS: &[&CStr] = &[];
 
 fn load_entry() -> Result<ash::Entry> {
     // SAFETY: loading the system Vulkan loader; its symbols are resolved by ash.
     unsafe { ash::Entry::load() }.map_err(|e| Error::NoLoader(e.to_string()))
 }
 
-fn create_instance(entry: &ash::Entry) -> Result<ash::Instance> {
+/// The instance, with the validation layer, its messenger's extension and its optional checks
+/// when `mode` asks for them.
+fn create_instance(entry: &ash::Entry, mode: validation::Mode) -> Result<ash::Instance> {
     let app = vk::ApplicationInfo::default()
         .application_name(c"velox")
         .engine_name(c"velox-engine")
         .api_version(vk::API_VERSION_1_3);
-    // Optional validation for debugging kernels and barriers: VELOX_VALIDATE=1.
     let mut layers: Vec<*const c_char> = Vec::new();
-    let validation = c"VK_LAYER_KHRONOS_validation";
-    if std::env::var("VELOX_VALIDATE").is_ok_and(|v| v == "1") {
+    let mut extensions: Vec<*const c_char> = Vec::new();
+    if mode != validation::Mode::Off {
         // SAFETY: plain enumeration call.
         let available = unsafe { entry.enumerate_instance_layer_properties() }.unwrap_or_default();
-        if available.iter().any(|l| l.layer_name_as_c_str() == Ok(validation)) {
-            layers.push(validation.as_ptr());
-        } else {
-            eprintln!("velox: VELOX_VALIDATE=1 but the Khronos validation layer is not installed");
+        if !available.iter().any(|l| l.layer_name_as_c_str() == Ok(validation::LAYER)) {
+            return Err(Error::Unsupported(
+                "VELOX_VALIDATE asks for the Khronos validation layer, which the Vulkan loader does not \
+                 find: install it (Debian: apt-get install vulkan-validationlayers) or unset VELOX_VALIDATE"
+                    .into(),
+            ));
         }
+        layers.push(validation::LAYER.as_ptr());
+        extensions.push(ash::ext::debug_utils::NAME.as_ptr());
     }
-    let info = vk::InstanceCreateInfo::default().application_info(&app).enabled_layer_names(&layers);
+    let features = mode.features();
+    let mut checks = vk::ValidationFeaturesEXT::default().enabled_validation_features(features);
+    // Messages from vkCreateInstance itself reach the callback through this one.
+    let mut messenger = validation::messenger_info();
+    let mut info = vk::InstanceCreateInfo::default()
+        .application_info(&app)
+        .enabled_layer_names(&layers)
+        .enabled_extension_names(&extensions);
+    if mode != validation::Mode::Off {
+        info = info.push_next(&mut checks).push_next(&mut messenger);
+    }
     // SAFETY: the create info and everything it points to outlive the call.
     unsafe { entry.create_instance(&info, None) }.map_err(|e| match e {
         vk::Result::ERROR_INCOMPATIBLE_DRIVER => {
@@ -226,7 +251,7 @@ fn choose_for_rank(usable: &[(usize, vk::PhysicalDeviceType)], rank: usize) -> O
 /// Lists the devices the loader sees, without creating any logical device.
 pub fn list_devices() -> Result<Vec<DeviceSummary>> {
     let entry = load_entry()?;
-    let instance = create_instance(&entry)?;
+    let instance = create_instance(&entry, validation::Mode::Off)?;
     let result = summaries(&instance).map(|(_, l)| l);
     // SAFETY: nothing created from the instance is alive.
     unsafe { instance.destroy_instance(None) };
@@ -247,11 +272,13 @@ impl Gpu {
     }
 
     fn create(local_rank: Option<usize>) -> Result<Gpu> {
+        let mode = validation::Mode::from_env()?;
+        let switches = Switches::from_env()?;
         let entry = load_entry()?;
-        let instance = create_instance(&entry)?;
+        let instance = create_instance(&entry, mode)?;
         // `entry` stays alive here: dropping it unloads the loader, whose functions the
         // error path below still calls.
-        match Self::open(entry.clone(), instance.clone(), local_rank) {
+        match Self::open(entry.clone(), instance.clone(), local_rank, mode, &switches) {
             Ok(gpu) => Ok(gpu),
             Err(e) => {
                 // SAFETY: `open` failed before handing the instance to a GpuInner.
@@ -261,13 +288,91 @@ impl Gpu {
         }
     }
 
-    fn open(entry: ash::Entry, instance: ash::Instance, local_rank: Option<usize>) -> Result<Gpu> {
-        let (pds, list) = summaries(&instance)?;
-        let index = choose(&instance, &pds, &list, local_rank)?;
-        let physical = pds[index];
-        let queue_family = compute_queue_family(&instance, physical).expect("checked");
-        let caps = Caps::query(&entry, &instance, physical, index, queue_family)?;
+    fn open(
+        entry: ash::Entry,
+        instance: ash::Instance,
+        local_rank: Option<usize>,
+        mode: validation::Mode,
+        switches: &Switches,
+    ) -> Result<Gpu> {
+        let messenger = if mode == validation::Mode::Off {
+            None
+        } else {
+            Some(validation::Messenger::new(&entry, &instance)?)
+        };
+        let opened =
+            Self::open_device(&entry, &instance, local_rank, switches, mode != validation::Mode::Off);
+        let allocator = opened.and_then(|(device, physical, queue_family, caps)| {
+            let desc = AllocatorCreateDesc {
+                instance: instance.clone(),
+                device: device.clone(),
+                physical_device: physical,
+                debug_settings: Default::default(),
+                buffer_device_address: false,
+                allocation_sizes: Default::default(),
+            };
+            match Allocator::new(&desc) {
+                Ok(a) => Ok((device, queue_family, caps, a)),
+                Err(e) => {
+                    // SAFETY: nothing was created from the device yet.
+                    unsafe { device.destroy_device(None) };
+                    Err(Error::OutOfMemory(format!("creating the allocator: {e}")))
+                }
+            }
+        });
+        let (device, queue_family, caps, allocator) = match allocator {
+            Ok(d) => d,
+            Err(e) => {
+                if let Some(m) = &messenger {
+                    // SAFETY: created above from this instance, destroyed once.
+                    unsafe { m.destroy() };
+                }
+                return Err(e);
+            }
+        };
+        let push_descriptor = ash::khr::push_descriptor::Device::new(&instance, &device);
+        // SAFETY: the queue family and index were requested when the device was created.
+        let queue = unsafe { device.get_device_queue(queue_family, 0) };
+        Ok(Gpu {
+            inner: Arc::new(GpuInner {
+                _entry: entry,
+                instance,
+                device,
+                queue: Mutex::new(queue),
+                queue_family,
+                allocator: ManuallyDrop::new(Mutex::new(allocator)),
+                push_descriptor,
+                validation: mode,
+                messenger,
+                reported_errors: AtomicUsize::new(validation::error_count()),
+                caps,
+                force_staging: std::env::var("VELOX_FORCE_STAGING").is_ok_and(|v| v == "1"),
+                pipelines: PipelineCache::new(),
+                memory_live: AtomicU64::new(0),
+                memory_peak: AtomicU64::new(0),
+            }),
+        })
+    }
 
+    /// Chooses the physical device and creates the logical one with exactly the features the
+    /// (switched) caps say are there.
+    fn open_device(
+        entry: &ash::Entry,
+        instance: &ash::Instance,
+        local_rank: Option<usize>,
+        switches: &Switches,
+        validating: bool,
+    ) -> Result<(ash::Device, vk::PhysicalDevice, u32, Caps)> {
+        let (pds, list) = summaries(instance)?;
+        let index = choose(instance, &pds, &list, local_rank)?;
+        let physical = pds[index];
+        let queue_family = compute_queue_family(instance, physical).expect("checked");
+        let mut caps = Caps::query(entry, instance, physical, index, queue_family)?;
+        switches.apply(&mut caps);
+        if validating {
+            // The layer's synchronization checks do not see buffers bound by push descriptors.
+            caps.push_descriptors = false;
+        }
         // Enable exactly what the caps say is there.
         let mut f11 =
             vk::PhysicalDeviceVulkan11Features::default().storage_buffer16_bit_access(caps.f16_storage);
@@ -278,6 +383,7 @@ impl Gpu {
         let mut f13 = vk::PhysicalDeviceVulkan13Features::default()
             .subgroup_size_control(caps.subgroup_size_control)
             .compute_full_subgroups(caps.compute_full_subgroups)
+            .synchronization2(true)
             .maintenance4(true);
         let mut atomics = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default()
             .shader_buffer_float32_atomics(caps.float_atomic_add)
@@ -287,6 +393,9 @@ impl Gpu {
         let base = vk::PhysicalDeviceFeatures::default().shader_int64(caps.int64);
 
         let mut extensions: Vec<*const c_char> = REQUIRED_EXTENSIONS.iter().map(|e| e.as_ptr()).collect();
+        if caps.push_descriptors {
+            extensions.push(ash::khr::push_descriptor::NAME.as_ptr());
+        }
         let mut features = vk::PhysicalDeviceFeatures2::default()
             .features(base)
             .push_next(&mut f11)
@@ -310,40 +419,7 @@ impl Gpu {
             .push_next(&mut features);
         // SAFETY: the create info and its chain outlive the call.
         let device = unsafe { instance.create_device(physical, &info, None) }.vk("vkCreateDevice")?;
-        // SAFETY: the queue family and index were requested above.
-        let queue = unsafe { device.get_device_queue(queue_family, 0) };
-        let pool_info = vk::CommandPoolCreateInfo::default()
-            .queue_family_index(queue_family)
-            .flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER);
-        // SAFETY: valid device and create info.
-        let command_pool =
-            unsafe { device.create_command_pool(&pool_info, None) }.vk("vkCreateCommandPool")?;
-        let allocator = Allocator::new(&AllocatorCreateDesc {
-            instance: instance.clone(),
-            device: device.clone(),
-            physical_device: physical,
-            debug_settings: Default::default(),
-            buffer_device_address: false,
-            allocation_sizes: Default::default(),
-        })
-        .map_err(|e| Error::OutOfMemory(format!("creating the allocator: {e}")))?;
-        let push_descriptor = ash::khr::push_descriptor::Device::new(&instance, &device);
-        Ok(Gpu {
-            inner: Arc::new(GpuInner {
-                _entry: entry,
-                instance,
-                device,
-                queue: Mutex::new(queue),
-                command_pool: Mutex::new(command_pool),
-                allocator: ManuallyDrop::new(Mutex::new(allocator)),
-                push_descriptor,
-                caps,
-                force_staging: std::env::var("VELOX_FORCE_STAGING").is_ok_and(|v| v == "1"),
-                pipelines: PipelineCache::new(),
-                memory_live: AtomicU64::new(0),
-                memory_peak: AtomicU64::new(0),
-            }),
-        })
+        Ok((device, physical, queue_family, caps))
     }
 
     /// `(live, peak)`: bytes of device memory the engine's buffers hold now, and the most they
@@ -385,9 +461,11 @@ impl Drop for GpuInner {
         unsafe {
             let _ = self.device.device_wait_idle();
             self.pipelines.destroy(&self.device);
-            self.device.destroy_command_pool(*self.command_pool.get_mut().unwrap(), None);
             ManuallyDrop::drop(&mut self.allocator);
             self.device.destroy_device(None);
+            if let Some(m) = &self.messenger {
+                m.destroy();
+            }
             self.instance.destroy_instance(None);
         }
     }

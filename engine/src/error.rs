@@ -29,6 +29,9 @@ pub enum Error {
     /// A multi-process run over MPI failed or cannot start (an MPI call's error, ranks that
     /// disagree, a build without MPI started by mpirun); the message says which.
     Mpi(String),
+    /// The Khronos validation layer (`VELOX_VALIDATE`) reported errors; the message gives the
+    /// first new one with its VUID.
+    Validation(String),
 }
 
 pub type Result<T> = std::result::Result<T, Error>;
@@ -53,6 +56,7 @@ impl fmt::Display for Error {
             Error::Invalid(what) => write!(f, "invalid input: {what}"),
             Error::Io(what) => write!(f, "{what}"),
             Error::Mpi(what) => write!(f, "MPI: {what}"),
+            Error::Validation(what) => write!(f, "Vulkan validation: {what}"),
         }
     }
 }

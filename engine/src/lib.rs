@@ -6,6 +6,7 @@
 //!   ([`kernels`]);
 //! - a [`Recorder`] batches dispatches into one command buffer with the barriers they need
 //!   ([`recorder`]);
+//! - [`validation`] counts the Khronos validation layer's errors under `VELOX_VALIDATE`;
 //! - [`ops`] holds each op's host side next to its f64 CPU reference.
 
 pub mod caps;
@@ -18,8 +19,9 @@ pub mod recorder;
 pub mod rng;
 pub mod stats;
 pub mod tensor;
+pub mod validation;
 
-pub use caps::Caps;
+pub use caps::{Caps, Switches};
 pub use device::{list_devices, DeviceSummary, Gpu};
 pub use error::{Error, Result};
 pub use recorder::{Completion, Finished, NarrowMatmul, Precision, Recorder};

@@ -6,6 +6,14 @@
 //! writes comes from naga's analysis at build time, so the tracking cannot drift from the
 //! shader. Workgroup counts above the per-dimension limit are folded into a second dimension;
 //! kernels recover the linear workgroup index as `wid.x + wid.y * nwg.x`.
+//!
+//! Each recorder owns its command pool, so recorders on several threads never share one (a
+//! pool is externally synchronised in Vulkan). Buffers are bound with push descriptors where
+//! the device has them, else through descriptor sets the recorder allocates from pools of its
+//! own ([`Caps::push_descriptors`](crate::Caps)); the validation layer's synchronization checks
+//! see only the second kind, so validation runs force it (`VELOX_DISABLE=push-descriptors`).
+//! The last command of every recording makes the device's writes visible to the host, which
+//! reads results from mapped memory once the fence has signalled.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -17,6 +25,7 @@ use crate::error::{Error, Result, VkCheck};
 use crate::kernels::KernelId;
 use crate::profile;
 use crate::tensor::{Buffer, Tensor};
+use crate::validation;
 
 const MAX_TIMESTAMPS: u32 = 256;
 /// Queries of a recorder when profiling: two per dispatch or so, for the longest recordings.
@@ -57,7 +66,15 @@ pub enum NarrowMatmul {
 
 pub struct Recorder {
     gpu: Gpu,
+    pool: vk::CommandPool,
     cmd: vk::CommandBuffer,
+    /// Descriptor pools of the descriptor-set path, the last one being filled, and the sets it
+    /// has left.
+    descriptor_pools: Vec<vk::DescriptorPool>,
+    sets_left: u32,
+    /// Whether [`Recorder::dispatch`] inserts the barriers its hazards need (always, except in
+    /// the test that shows a missing barrier is reported).
+    track_hazards: bool,
     fence: vk::Fence,
     queries: Option<vk::QueryPool>,
     timestamps: u32,
@@ -115,20 +132,40 @@ impl Gpu {
     /// A new recording; nothing runs until [`Recorder::submit`].
     pub fn recorder(&self) -> Result<Recorder> {
         let device = self.device();
-        let pool = self.inner.command_pool.lock().unwrap();
+        let pool_info = vk::CommandPoolCreateInfo::default()
+            .queue_family_index(self.inner.queue_family)
+            .flags(vk::CommandPoolCreateFlags::TRANSIENT);
+        // SAFETY: valid device and create info.
+        let pool = unsafe { device.create_command_pool(&pool_info, None) }.vk("vkCreateCommandPool")?;
         let info = vk::CommandBufferAllocateInfo::default()
-            .command_pool(*pool)
+            .command_pool(pool)
             .level(vk::CommandBufferLevel::PRIMARY)
             .command_buffer_count(1);
-        // SAFETY: the pool is externally synchronised by its mutex.
-        let cmd = unsafe { device.allocate_command_buffers(&info) }.vk("vkAllocateCommandBuffers")?[0];
-        drop(pool);
+        // SAFETY: the pool is this recorder's own.
+        let cmd = match unsafe { device.allocate_command_buffers(&info) } {
+            Ok(c) => c[0],
+            Err(e) => {
+                // SAFETY: nothing was allocated from the pool.
+                unsafe { device.destroy_command_pool(pool, None) };
+                return Err(e).vk("vkAllocateCommandBuffers");
+            }
+        };
         // SAFETY: valid device.
-        let fence =
-            unsafe { device.create_fence(&vk::FenceCreateInfo::default(), None) }.vk("vkCreateFence")?;
+        let fence = match unsafe { device.create_fence(&vk::FenceCreateInfo::default(), None) } {
+            Ok(f) => f,
+            Err(e) => {
+                // SAFETY: the pool's one command buffer was never submitted.
+                unsafe { device.destroy_command_pool(pool, None) };
+                return Err(e).vk("vkCreateFence");
+            }
+        };
         let rec = Recorder {
             gpu: self.clone(),
+            pool,
             cmd,
+            descriptor_pools: Vec::new(),
+            sets_left: 0,
+            track_hazards: true,
             fence,
             queries: None,
             timestamps: 0,
@@ -145,11 +182,16 @@ impl Gpu {
             done: Completion::default(),
         };
         let begin = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
-        // SAFETY: a freshly allocated command buffer.
+        // SAFETY: a freshly allocated command buffer (the recorder's drop frees it on error).
         unsafe { device.begin_command_buffer(cmd, &begin) }.vk("vkBeginCommandBuffer")?;
         Ok(rec.with_timestamps_if_possible())
     }
 }
+
+/// Sets per descriptor pool of the descriptor-set path, and storage-buffer descriptors per set
+/// on average (kernels bind 1 to 12).
+const SETS_PER_POOL: u32 = 512;
+const BUFFERS_PER_SET: u32 = 8;
 
 impl Recorder {
     fn with_timestamps_if_possible(mut self) -> Self {
@@ -186,8 +228,19 @@ impl Recorder {
         self.narrow_matmul = choice;
     }
 
+    /// Turns the barriers [`Recorder::dispatch`] inserts on or off. Off, dispatches that depend
+    /// on each other race: this exists for the test that shows the validation layer reports a
+    /// missing barrier, and for nothing else.
+    #[doc(hidden)]
+    pub fn set_hazard_tracking(&mut self, on: bool) {
+        self.track_hazards = on;
+    }
+
     /// Inserts a barrier if the next access of `reads` and `writes` depends on earlier work.
     fn hazard_barrier(&mut self, reads: &[vk::Buffer], writes: &[vk::Buffer]) {
+        if !self.track_hazards {
+            return;
+        }
         let raw_or_waw = reads.iter().chain(writes).any(|b| self.written.contains(b));
         let war = writes.iter().any(|b| self.read.contains(b));
         if raw_or_waw || war {
@@ -288,18 +341,35 @@ impl Recorder {
                 self.profiled.push((q as u32, kernel));
             }
         }
+        let set = if self.gpu.caps().push_descriptors { None } else { Some(self.descriptor_set(&pipeline)?) };
         let device = self.gpu.device();
         // SAFETY: recording state; every bound buffer is kept alive in `self.keep` until the
-        // command buffer has finished.
+        // command buffer has finished; a descriptor set is written before it is bound and never
+        // again.
         unsafe {
             device.cmd_bind_pipeline(self.cmd, vk::PipelineBindPoint::COMPUTE, pipeline.pipeline);
-            self.gpu.inner.push_descriptor.cmd_push_descriptor_set(
-                self.cmd,
-                vk::PipelineBindPoint::COMPUTE,
-                pipeline.layout,
-                0,
-                &writes_desc,
-            );
+            match set {
+                None => self.gpu.inner.push_descriptor.cmd_push_descriptor_set(
+                    self.cmd,
+                    vk::PipelineBindPoint::COMPUTE,
+                    pipeline.layout,
+                    0,
+                    &writes_desc,
+                ),
+                Some(set) => {
+                    let writes: Vec<vk::WriteDescriptorSet> =
+                        writes_desc.into_iter().map(|w| w.dst_set(set)).collect();
+                    device.update_descriptor_sets(&writes, &[]);
+                    device.cmd_bind_descriptor_sets(
+                        self.cmd,
+                        vk::PipelineBindPoint::COMPUTE,
+                        pipeline.layout,
+                        0,
+                        &[set],
+                        &[],
+                    );
+                }
+            }
             if !push_bytes.is_empty() {
                 device.cmd_push_constants(
                     self.cmd,
@@ -315,6 +385,41 @@ impl Recorder {
         self.dispatches += 1;
         profile::count_dispatch();
         Ok(())
+    }
+
+    /// A fresh descriptor set of `pipeline`'s layout, from this recorder's pools (a new pool when
+    /// the last one is full).
+    fn descriptor_set(&mut self, pipeline: &crate::kernels::Pipeline) -> Result<vk::DescriptorSet> {
+        let device = self.gpu.device();
+        for attempt in 0..2 {
+            if self.sets_left == 0 || attempt == 1 {
+                let sizes = [vk::DescriptorPoolSize::default()
+                    .ty(vk::DescriptorType::STORAGE_BUFFER)
+                    .descriptor_count(SETS_PER_POOL * BUFFERS_PER_SET)];
+                let info = vk::DescriptorPoolCreateInfo::default().max_sets(SETS_PER_POOL).pool_sizes(&sizes);
+                // SAFETY: valid device and create info; the pool is destroyed with the recorder.
+                let pool =
+                    unsafe { device.create_descriptor_pool(&info, None) }.vk("vkCreateDescriptorPool")?;
+                self.descriptor_pools.push(pool);
+                self.sets_left = SETS_PER_POOL;
+            }
+            let layouts = [pipeline.set_layout];
+            let pool = *self.descriptor_pools.last().expect("a pool was made above");
+            let info = vk::DescriptorSetAllocateInfo::default().descriptor_pool(pool).set_layouts(&layouts);
+            // SAFETY: the pool and layout are alive; the pool is used by this recorder only.
+            match unsafe { device.allocate_descriptor_sets(&info) } {
+                Ok(sets) => {
+                    self.sets_left -= 1;
+                    return Ok(sets[0]);
+                }
+                // The pool ran out of descriptors before sets (kernels with many bindings):
+                // the next attempt takes a new one.
+                Err(vk::Result::ERROR_OUT_OF_POOL_MEMORY | vk::Result::ERROR_FRAGMENTED_POOL)
+                    if attempt == 0 => {}
+                Err(e) => return Err(e).vk("vkAllocateDescriptorSets"),
+            }
+        }
+        unreachable!("the second attempt returns")
     }
 
     /// Dispatches `total` workgroups of a kernel that linearises `wid.x + wid.y * nwg.x` and
@@ -437,9 +542,18 @@ impl Recorder {
         let device = self.gpu.device().clone();
         // The end of the last profiled dispatch.
         let profile_end = if self.profiled.is_empty() { None } else { self.timestamp() };
+        // The host reads results from mapped memory (tensors on unified memory, staging buffers)
+        // once the fence has signalled; the fence makes the device's writes available, and this
+        // barrier makes them visible to the host's reads.
+        let to_host = [vk::MemoryBarrier2::default()
+            .src_stage_mask(vk::PipelineStageFlags2::COMPUTE_SHADER | vk::PipelineStageFlags2::TRANSFER)
+            .src_access_mask(vk::AccessFlags2::SHADER_WRITE | vk::AccessFlags2::TRANSFER_WRITE)
+            .dst_stage_mask(vk::PipelineStageFlags2::HOST)
+            .dst_access_mask(vk::AccessFlags2::HOST_READ)];
         // SAFETY: recording state; the fence is unsignalled; the queue is externally
         // synchronised by its mutex.
         unsafe {
+            device.cmd_pipeline_barrier2(self.cmd, &vk::DependencyInfo::default().memory_barriers(&to_host));
             device.end_command_buffer(self.cmd).vk("vkEndCommandBuffer")?;
             let cmds = [self.cmd];
             let submit = [vk::SubmitInfo::default().command_buffers(&cmds)];
@@ -451,6 +565,7 @@ impl Recorder {
             device.wait_for_fences(&[self.fence], true, u64::MAX).vk("vkWaitForFences")?;
         }
         self.done.0.store(true, Ordering::Release);
+        self.gpu.check_validation()?;
         let mut timestamps_ns = Vec::new();
         if let (Some(pool), n) = (self.queries, self.timestamps) {
             if n > 0 {
@@ -485,9 +600,10 @@ impl Drop for Recorder {
                 // If waiting failed in `submit`, the GPU may still hold the buffer.
                 let _ = device.wait_for_fences(&[self.fence], true, u64::MAX);
             }
-            let pool = self.gpu.inner.command_pool.lock().unwrap();
-            device.free_command_buffers(*pool, &[self.cmd]);
-            drop(pool);
+            device.destroy_command_pool(self.pool, None);
+            for &p in &self.descriptor_pools {
+                device.destroy_descriptor_pool(p, None);
+            }
             device.destroy_fence(self.fence, None);
             if let Some(q) = self.queries {
                 device.destroy_query_pool(q, None);
@@ -505,4 +621,25 @@ pub fn linear_groups(total: u64, max: [u32; 3]) -> Option<[u32; 3]> {
     let x = total.min(max[0] as u64);
     let y = total.div_ceil(x);
     (y <= max[1] as u64).then_some([x as u32, y as u32, 1])
+}
+
+impl Gpu {
+    /// Fails with [`Error::Validation`] when the validation layer reported errors that no
+    /// earlier call reported; does nothing when validation is off.
+    pub fn check_validation(&self) -> Result<()> {
+        if self.inner.validation == validation::Mode::Off {
+            return Ok(());
+        }
+        let now = validation::error_count();
+        let before = self.inner.reported_errors.swap(now, Ordering::AcqRel);
+        if now > before {
+            return Err(validation::failure(now, before));
+        }
+        Ok(())
+    }
+
+    /// The validation `VELOX_VALIDATE` asked for when the device was opened.
+    pub fn validation(&self) -> validation::Mode {
+        self.inner.validation
+    }
 }

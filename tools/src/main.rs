@@ -31,6 +31,10 @@ enum Command {
         /// Also write the report as JSON to this file.
         #[arg(long)]
         json: Option<std::path::PathBuf>,
+        /// Also run one dispatch that measures the subgroups the device really runs (some
+        /// drivers report another size than they run; the kernels count their lanes).
+        #[arg(long)]
+        probe: bool,
     },
     /// The demo, on whatever device is present: make a scene, train a small autoencoder on it,
     /// decode its points and Gaussians, render and measure them.
@@ -230,6 +234,16 @@ fn main() {
         eprintln!("error: {e}");
         std::process::exit(1);
     }
+    // Under VELOX_VALIDATE, a validation error anywhere fails the command, even one the work
+    // above did not trip over (a message after the last submit).
+    let errors = velox_engine::validation::error_count();
+    if errors > 0 {
+        eprintln!("error: the Vulkan validation layer reported {errors} error(s); the first:");
+        for line in velox_engine::validation::first_errors().iter().take(3) {
+            eprintln!("  {line}");
+        }
+        std::process::exit(1);
+    }
 }
 
 /// A write past the file size limit (`ulimit -f`) raises SIGXFSZ, which ends the process
@@ -245,7 +259,7 @@ fn ignore_file_size_signal() {
 
 fn dispatch(command: Command) -> CliResult<()> {
     match command {
-        Command::Info { json } => info::run(json.as_deref()),
+        Command::Info { json, probe } => info::run(json.as_deref(), probe),
         Command::Demo(args) => demo::run(&args),
         Command::Render(args) => render::run(&args),
         Command::Bench { what } => bench::run(what),

@@ -1,0 +1,123 @@
+//! The validation checks can fail: a barrier left out on purpose is reported by the layer's
+//! synchronization validation, and a kernel that reads past its binding by GPU-assisted
+//! validation; either turns into [`Error::Validation`] at submit. Each case runs in a child
+//! process of this binary (validation is chosen when a device is opened, and the other tests of
+//! the binary share one device), with the engine's descriptor-set binding path, the one the layer
+//! tracks (`engine/src/recorder.rs`).
+//!
+//! These tests need the Khronos validation layer (Debian: `vulkan-validationlayers`) and, for
+//! GPU-assisted validation, the newer build of it in Debian's `chromium-common`; the README's
+//! test command installs both, and each test fails with that instruction where one is missing.
+
+mod common;
+use common::*;
+
+/// The library `tools/vvl/VkLayer_khronos_validation.json` loads.
+const NEWER_LAYER: &str = "/usr/lib/chromium/libVkLayer_khronos_validation.so";
+
+use std::process::Command;
+
+use velox::engine::kernels::CAST_F32_TO_F16;
+use velox::engine::ops::binary::{binary, Binary};
+use velox::engine::ops::fill::fill;
+use velox::engine::validation::{self, Mode};
+use velox::engine::Error;
+
+/// Runs `child` (an ignored test of this binary) in a process of its own with `VELOX_VALIDATE`
+/// set to `mode` and descriptor sets forced; returns its stdout and stderr. GPU-assisted
+/// validation takes the newer layer `tools/vvl/` names (Debian 12's 1.3.239 instruments
+/// buffer accesses but reports none past a binding).
+fn run_child(child: &str, mode: &str) -> String {
+    let mut command = Command::new(std::env::current_exe().unwrap());
+    command
+        .args([child, "--exact", "--ignored", "--nocapture", "--test-threads", "1"])
+        .env("VELOX_VALIDATE", mode)
+        .env("VELOX_DISABLE", "push-descriptors")
+        .env("VK_LAYER_SETTINGS_PATH", concat!(env!("CARGO_MANIFEST_DIR"), "/vk_layer_settings.txt"));
+    if mode == "gpu" {
+        let layer = concat!(env!("CARGO_MANIFEST_DIR"), "/tools/vvl");
+        assert!(
+            std::path::Path::new(NEWER_LAYER).exists(),
+            "GPU-assisted validation needs the validation layer Debian's chromium-common ships \
+             ({NEWER_LAYER}): apt-get install chromium-common"
+        );
+        command.env("VK_LAYER_PATH", layer);
+    }
+    let out = command.output().unwrap();
+    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(
+        !text.contains("does not find"),
+        "these tests need the Khronos validation layer: apt-get install vulkan-validationlayers\n{text}"
+    );
+    assert!(out.status.success(), "{child} under VELOX_VALIDATE={mode} failed:\n{text}");
+    assert!(text.contains("1 passed"), "{child} did not run:\n{text}");
+    text
+}
+
+/// Would catch: a validation setup that cannot see this engine's accesses (the layer's
+/// synchronization checks ignore buffers bound through push descriptors), a messenger that
+/// does not count, or a submit that does not fail on a counted error.
+#[test]
+fn a_missing_barrier_is_reported() {
+    let text = run_child("child_missing_barrier", "1");
+    assert!(text.contains("SYNC-HAZARD-READ-AFTER-WRITE"), "{text}");
+}
+
+/// Would catch: GPU-assisted validation not enabled by `VELOX_VALIDATE=gpu`, or not able to see
+/// a read past a binding of this engine's kernels.
+#[test]
+fn a_read_past_a_binding_is_reported() {
+    let text = run_child("child_read_past_binding", "gpu");
+    assert!(text.contains("VUID-vkCmdDispatch-storageBuffers-06936"), "{text}");
+}
+
+#[test]
+#[ignore = "run by a_missing_barrier_is_reported in a process of its own"]
+fn child_missing_barrier() {
+    // A device of its own, dropped before the process ends (the layers tear down at exit).
+    let gpu = Gpu::new().unwrap();
+    assert_eq!(gpu.validation(), Mode::Sync);
+    assert!(!gpu.caps().push_descriptors);
+    let t = Tensor::empty(&gpu, &[4096], DType::F32).unwrap();
+    // A write and a read of what it wrote: with its barrier, clean. (A write after a write of
+    // one buffer would not do: the layer does not report those between dispatches.)
+    let mut rec = gpu.recorder().unwrap();
+    fill(&mut rec, &t, 1.0).unwrap();
+    let sum = binary(&mut rec, &t, &t, Binary::Add).unwrap();
+    rec.submit().unwrap();
+    assert_eq!(sum.read::<f32>().unwrap()[4095], 2.0);
+    assert_eq!(validation::error_count(), 0);
+    // Without: the read races the write.
+    let mut rec = gpu.recorder().unwrap();
+    rec.set_hazard_tracking(false);
+    fill(&mut rec, &t, 1.0).unwrap();
+    binary(&mut rec, &t, &t, Binary::Add).unwrap();
+    match rec.submit() {
+        Err(Error::Validation(what)) => eprintln!("submit failed as it should: {what}"),
+        other => panic!("a missing barrier went unreported: {:?}", other.map(|_| ())),
+    }
+    assert!(validation::error_count() > 0);
+}
+
+#[test]
+#[ignore = "run by a_read_past_a_binding_is_reported in a process of its own"]
+fn child_read_past_binding() {
+    let gpu = Gpu::new().unwrap();
+    assert_eq!(gpu.validation(), Mode::GpuAssisted);
+    // A view of 64 elements inside a tensor of 1024, so that the stray reads stay in memory the
+    // engine owns; the cast is told 256 elements, and its output holds them.
+    let whole = Tensor::from_slice(&gpu, &[1024], &vec![1.0f32; 1024]).unwrap();
+    let view = whole.view(0, &[64]).unwrap();
+    let out = Tensor::empty(&gpu, &[256], DType::F16).unwrap();
+    #[repr(C)]
+    #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+    struct Params {
+        n: u32,
+    }
+    let mut rec = gpu.recorder().unwrap();
+    rec.dispatch(CAST_F32_TO_F16, [1, 1, 1], &[&view, &out], &Params { n: 256 }).unwrap();
+    match rec.submit() {
+        Err(Error::Validation(what)) => eprintln!("submit failed as it should: {what}"),
+        other => panic!("a read past the binding went unreported: {:?}", other.map(|_| ())),
+    }
+}
