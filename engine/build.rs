@@ -70,7 +70,7 @@ fn main() {
                         .collect();
                     writeln!(
                         table,
-                        "    KernelInfo {{ module: {module_index}, file: {stem:?}, entry: {:?}, workgroup_size: {:?}, bindings: &[{}], push_bytes: {}, shared_bytes: {}, needs: Needs {{ f16: {}, float_atomics: {}, coop_matrix: {}, subgroups: {} }} }},",
+                        "    KernelInfo {{ module: {module_index}, file: {stem:?}, entry: {:?}, workgroup_size: {:?}, bindings: &[{}], push_bytes: {}, shared_bytes: {}, needs: Needs {{ f16: {}, float_atomics: {}, coop_matrix: {}, subgroups: {}, subgroup_size: {:?} }} }},",
                         k.entry,
                         k.workgroup_size,
                         bindings.join(", "),
@@ -80,6 +80,7 @@ fn main() {
                         k.needs_float_atomics,
                         k.needs_coop,
                         k.needs_subgroups,
+                        k.subgroup_size,
                     )
                     .unwrap();
                     kernel_index += 1;
@@ -115,6 +116,7 @@ struct Kernel {
     needs_float_atomics: bool,
     needs_coop: bool,
     needs_subgroups: bool,
+    subgroup_size: Option<u32>,
 }
 
 /// Replaces each line `// @include NAME` with the text of `shaders/include/NAME`, so that
@@ -206,12 +208,28 @@ fn compile(path: &Path, source: &str) -> Result<(Vec<u32>, Vec<Kernel>), String>
     };
     let words = spv::write_vec(&module, &info, &options, None)
         .map_err(|e| format!("{shown}: SPIR-V generation failed: {e}"))?;
+    let words = flatten_access_chains(&words);
+    let words = strip_layouts_outside_buffers(&words).map_err(|e| format!("{shown}: {e}"))?;
 
-    let text = source;
+    // What the code says, comments left out (a comment that mentions subgroups needs none).
+    let text: String =
+        source.lines().map(|l| l.split("//").next().unwrap_or("")).collect::<Vec<_>>().join("\n");
     let needs_f16 = text.contains("enable f16");
     let needs_coop = text.contains("wgpu_cooperative_matrix");
     let needs_float_atomics = text.contains("atomic<f32>");
     let needs_subgroups = text.contains("subgroup");
+    // `// @subgroup_size N`: the kernels of the file are written for subgroups of exactly N.
+    let mut subgroup_size = None;
+    for line in source.lines() {
+        if let Some(v) = line.strip_prefix("// @subgroup_size ") {
+            let n: u32 =
+                v.trim().parse().map_err(|_| format!("{shown}: `// @subgroup_size {v}` is not a number"))?;
+            if !n.is_power_of_two() {
+                return Err(format!("{shown}: @subgroup_size {n} is not a power of two"));
+            }
+            subgroup_size = Some(n);
+        }
+    }
 
     let mut kernels = Vec::new();
     for (i, ep) in module.entry_points.iter().enumerate() {
@@ -264,9 +282,129 @@ fn compile(path: &Path, source: &str) -> Result<(Vec<u32>, Vec<Kernel>), String>
             needs_float_atomics,
             needs_coop,
             needs_subgroups,
+            subgroup_size,
         });
     }
     Ok((words, kernels))
+}
+
+/// Rewrites every access chain whose base is another access chain as one chain from the root,
+/// its indices the base's followed by its own. naga hoists `&buffer.data` into a chain at the top
+/// of a function and indexes that chain later; the Khronos validation layer (1.3.239, Debian 12's)
+/// follows a store's pointer back one chain only, so it took every storage buffer the kernels
+/// write for one they only read, and its synchronization checks missed every hazard on a write.
+/// One chain means the same address; drivers fold chains anyway.
+fn flatten_access_chains(words: &[u32]) -> Vec<u32> {
+    const ACCESS_CHAIN: u32 = 65;
+    const IN_BOUNDS_ACCESS_CHAIN: u32 = 66;
+    let mut out = words[..5].to_vec();
+    // Result id of a chain -> (root base, all indices, in bounds).
+    let mut chains: std::collections::HashMap<u32, (u32, Vec<u32>, bool)> = Default::default();
+    let mut at = 5;
+    while at < words.len() {
+        let count = (words[at] >> 16) as usize;
+        let opcode = words[at] & 0xffff;
+        let inst = &words[at..at + count.max(1)];
+        if (opcode == ACCESS_CHAIN || opcode == IN_BOUNDS_ACCESS_CHAIN) && count >= 4 {
+            let (ty, id, base) = (inst[1], inst[2], inst[3]);
+            let own = &inst[4..];
+            let in_bounds = opcode == IN_BOUNDS_ACCESS_CHAIN;
+            let (root, mut indices, base_in_bounds) = match chains.get(&base) {
+                Some((root, indices, b)) => (*root, indices.clone(), *b),
+                None => (base, Vec::new(), true),
+            };
+            indices.extend_from_slice(own);
+            let in_bounds = in_bounds && base_in_bounds;
+            let op = if in_bounds { IN_BOUNDS_ACCESS_CHAIN } else { ACCESS_CHAIN };
+            out.push(((4 + indices.len() as u32) << 16) | op);
+            out.extend_from_slice(&[ty, id, root]);
+            out.extend_from_slice(&indices);
+            chains.insert(id, (root, indices, in_bounds));
+        } else {
+            out.extend_from_slice(inst);
+        }
+        at += count.max(1);
+    }
+    out
+}
+
+/// Removes the explicit layout decorations (ArrayStride, Offset, MatrixStride) from types that
+/// only workgroup, function or private variables use. naga decorates every array and struct;
+/// Vulkan allows explicit layouts only on types of buffers and push constants, and spirv-val as
+/// newer validation layers run it rejects the rest (VUID-StandaloneSpirv-None-10684: seen on
+/// FPS's workgroup arrays and the kernels' local arrays). A type used by both kinds would need
+/// two copies; no kernel has one, and the build stops if one appears.
+fn strip_layouts_outside_buffers(words: &[u32]) -> Result<Vec<u32>, String> {
+    const OP_DECORATE: u32 = 71;
+    const OP_MEMBER_DECORATE: u32 = 72;
+    const OP_TYPE_ARRAY: u32 = 28;
+    const OP_TYPE_RUNTIME_ARRAY: u32 = 29;
+    const OP_TYPE_STRUCT: u32 = 30;
+    const OP_TYPE_POINTER: u32 = 32;
+    const OP_TYPE_MATRIX: u32 = 24;
+    const ARRAY_STRIDE: u32 = 6;
+    const MATRIX_STRIDE: u32 = 7;
+    const OFFSET: u32 = 35;
+    // Storage classes with explicit layouts: Uniform, PushConstant, StorageBuffer,
+    // PhysicalStorageBuffer (UniformConstant holds no data of these types).
+    const EXPLICIT: [u32; 4] = [2, 9, 12, 5349];
+    let mut children: std::collections::HashMap<u32, Vec<u32>> = Default::default();
+    let mut pointers = Vec::new(); // (storage class, pointee)
+    let mut at = 5;
+    while at < words.len() {
+        let count = ((words[at] >> 16) as usize).max(1);
+        let inst = &words[at..at + count];
+        match inst[0] & 0xffff {
+            OP_TYPE_ARRAY | OP_TYPE_RUNTIME_ARRAY | OP_TYPE_MATRIX if count >= 3 => {
+                children.insert(inst[1], vec![inst[2]]);
+            }
+            OP_TYPE_STRUCT => {
+                children.insert(inst[1], inst[2..].to_vec());
+            }
+            OP_TYPE_POINTER if count == 4 => pointers.push((inst[2], inst[3])),
+            _ => {}
+        }
+        at += count;
+    }
+    let reach = |roots: &mut dyn Iterator<Item = u32>| {
+        let mut seen = std::collections::HashSet::new();
+        let mut stack: Vec<u32> = roots.collect();
+        while let Some(t) = stack.pop() {
+            if seen.insert(t) {
+                stack.extend(children.get(&t).into_iter().flatten());
+            }
+        }
+        seen
+    };
+    let laid_out = reach(&mut pointers.iter().filter(|(c, _)| EXPLICIT.contains(c)).map(|&(_, t)| t));
+    let plain = reach(&mut pointers.iter().filter(|(c, _)| !EXPLICIT.contains(c)).map(|&(_, t)| t));
+    let strip: std::collections::HashSet<u32> = plain.difference(&laid_out).copied().collect();
+    let mut out = words[..5].to_vec();
+    let mut at = 5;
+    while at < words.len() {
+        let count = ((words[at] >> 16) as usize).max(1);
+        let inst = &words[at..at + count];
+        let op = inst[0] & 0xffff;
+        let layout = match op {
+            OP_DECORATE if count >= 3 => {
+                [ARRAY_STRIDE, MATRIX_STRIDE, OFFSET].contains(&inst[2]).then_some(inst[1])
+            }
+            OP_MEMBER_DECORATE if count >= 4 => [MATRIX_STRIDE, OFFSET].contains(&inst[3]).then_some(inst[1]),
+            _ => None,
+        };
+        match layout {
+            Some(t) if strip.contains(&t) => {}
+            Some(t) if plain.contains(&t) && children.contains_key(&t) => {
+                return Err(format!(
+                    "SPIR-V type %{t} is used both in a buffer and in workgroup or function memory; \
+                     explicit layouts cannot be removed from it (give the variable a type of its own)"
+                ));
+            }
+            _ => out.extend_from_slice(inst),
+        }
+        at += count;
+    }
+    Ok(out)
 }
 
 fn bytemuck_words(words: &[u32]) -> Vec<u8> {

@@ -6,6 +6,7 @@
 // 50 KiB at D = 72, over the 48 KiB NVIDIA offers, so D = 72 runs blocks of 32. The kernel and
 // its description: include/attention_coop_body.wgsl.
 
+// @subgroup_size 32
 enable f16;
 enable wgpu_cooperative_matrix;
 

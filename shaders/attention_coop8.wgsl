@@ -6,6 +6,7 @@
 // rows), within lavapipe's 32 KiB. The kernel and its description:
 // include/attention_coop_body.wgsl.
 
+// @subgroup_size 8
 enable f16;
 enable wgpu_cooperative_matrix;
 

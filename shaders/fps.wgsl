@@ -1,10 +1,9 @@
 // @variants WG: 256 1024
 // Farthest point sampling in 4D over m candidates, down to k. Host side: engine/src/ops/fps.rs.
 //
-// `order` (one workgroup) gives every candidate a 32-bit Morton code: 8 bits per axis over the
-// candidates' bounding box, interleaved. The host sorts the candidates by it, so that
-// neighbours in the sorted order are neighbours in space. It also writes 0, 1, ..., m - 1 as
-// the values the sort carries, which become `perm`: the original position of each sorted slot.
+// First `shaders/fps_order.wgsl` gives every candidate a Morton code and the host sorts them by
+// it, so that neighbours in the sorted order are neighbours in space; `perm` holds the original
+// position of each sorted slot.
 //
 // `main` (one workgroup of WG invocations) runs every iteration inside one dispatch, so no
 // global synchronisation is needed. Invocation `lid` owns a run of `per` consecutive sorted
@@ -41,7 +40,6 @@ struct Params {
 }
 
 const WG: u32 = 1024u;
-const WG_ORDER: u32 = 256u;
 // The skip test's allowance for rounding: 1e-5 relative, about 170 ulps of f32.
 const SAFE: f32 = 0.99999;
 // Below this squared distance the relative argument would meet subnormals: never skip.
@@ -49,14 +47,12 @@ const TINY: f32 = 1e-30;
 const BIG: f32 = 3.0e38;
 const NONE: u32 = 0xffffffffu;
 
-// `order` reads the candidates in their original order; `main` in sorted order.
+// The candidates in sorted order.
 @group(0) @binding(0) var<storage, read> cands: array<vec4<f32>>;
 @group(0) @binding(1) var<storage, read> perm: array<u32>;
 @group(0) @binding(2) var<storage, read> cand_index: array<u32>;
 @group(0) @binding(3) var<storage, read_write> min_dist: array<f32>;
 @group(0) @binding(4) var<storage, read_write> chosen: array<u32>;
-@group(0) @binding(5) var<storage, read_write> codes: array<u32>;
-@group(0) @binding(6) var<storage, read_write> iota: array<u32>;
 var<immediate> pc: Params;
 
 // Each subgroup's winner, in two halves of WG entries (enough for subgroups of one).
@@ -64,52 +60,15 @@ var<workgroup> part_dist: array<f32, 2 * WG>;
 var<workgroup> part_pos: array<u32, 2 * WG>;
 var<workgroup> part_slot: array<u32, 2 * WG>;
 var<workgroup> start_slot: u32;
-var<workgroup> box_lo: array<vec4<f32>, WG_ORDER>;
-var<workgroup> box_hi: array<vec4<f32>, WG_ORDER>;
-
-// The 8 low bits of v spread to bits 0, 4, 8, ..., 28.
-fn spread4(v: u32) -> u32 {
-    var x = v & 0xffu;
-    x = (x | (x << 12u)) & 0x000f000fu;
-    x = (x | (x << 6u)) & 0x03030303u;
-    x = (x | (x << 3u)) & 0x11111111u;
-    return x;
-}
-
-@compute @workgroup_size(256)
-fn order(@builtin(local_invocation_index) lid: u32) {
-    var lo = vec4<f32>(BIG);
-    var hi = vec4<f32>(-BIG);
-    for (var j = lid; j < pc.m; j += WG_ORDER) {
-        let p = cands[j];
-        lo = min(lo, p);
-        hi = max(hi, p);
-    }
-    box_lo[lid] = lo;
-    box_hi[lid] = hi;
-    workgroupBarrier();
-    for (var s = WG_ORDER / 2u; s > 0u; s >>= 1u) {
-        if (lid < s) {
-            box_lo[lid] = min(box_lo[lid], box_lo[lid + s]);
-            box_hi[lid] = max(box_hi[lid], box_hi[lid + s]);
-        }
-        workgroupBarrier();
-    }
-    let origin = box_lo[0];
-    let extent = box_hi[0] - origin;
-    // 256 cells over the box on each axis (an axis of zero extent gets cell 0).
-    let scale = select(vec4<f32>(0.0), 256.0 / extent, extent > vec4<f32>(0.0));
-    for (var j = lid; j < pc.m; j += WG_ORDER) {
-        let q = vec4<u32>(clamp((cands[j] - origin) * scale, vec4<f32>(0.0), vec4<f32>(255.0)));
-        codes[j] = spread4(q.x) | (spread4(q.y) << 1u) | (spread4(q.z) << 2u) | (spread4(q.w) << 3u);
-        iota[j] = j;
-    }
-}
 
 @compute @workgroup_size(WG)
 fn main(@builtin(local_invocation_index) lid: u32, @builtin(subgroup_id) sg: u32,
-        @builtin(num_subgroups) nsg: u32, @builtin(subgroup_invocation_id) lane: u32,
-        @builtin(subgroup_size) sg_size: u32) {
+        @builtin(num_subgroups) nsg: u32, @builtin(subgroup_invocation_id) lane: u32) {
+    // The subgroup's lanes, counted rather than read from the `subgroup_size` builtin: lavapipe
+    // (Mesa 25.0) at LP_NATIVE_VECTOR_WIDTH=1024 reports 32 there but runs subgroups of 16,
+    // and a step of 32 below would leave half the subgroups' winners unread
+    // (tests/subgroups.rs measures both).
+    let lanes = subgroupAdd(1u);
     let per = (pc.m + WG - 1u) / WG;
     let first = min(lid * per, pc.m);
     let end = min(first + per, pc.m);
@@ -193,7 +152,7 @@ fn main(@builtin(local_invocation_index) lid: u32, @builtin(subgroup_id) sg: u32
         }
         workgroupBarrier();
         var e = Best(-3.0, NONE, 0u);
-        for (var i = lane; i < nsg; i += sg_size) {
+        for (var i = lane; i < nsg; i += lanes) {
             let o = Best(part_dist[half + i], part_pos[half + i], part_slot[half + i]);
             if (o.d > e.d || (o.d == e.d && o.p < e.p)) {
                 e = o;

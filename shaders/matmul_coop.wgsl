@@ -2,6 +2,7 @@
 // 128x128 output tile, k step 32, 48 KiB of workgroup memory (40 KiB of operand tiles, 8 KiB to
 // stage edge fragments). The kernel and its description: include/matmul_coop_body.wgsl.
 
+// @subgroup_size 32
 enable f16;
 enable wgpu_cooperative_matrix;
 

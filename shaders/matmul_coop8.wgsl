@@ -3,6 +3,7 @@
 // workgroup memory (24 KiB of operand tiles, 8 KiB to stage edge fragments), within lavapipe's
 // 32 KiB. The kernel and its description: include/matmul_coop_body.wgsl.
 
+// @subgroup_size 8
 enable f16;
 enable wgpu_cooperative_matrix;
 

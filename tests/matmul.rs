@@ -571,6 +571,7 @@ fn kernel_choice_follows_the_device() {
     }
     // A device like the H100: 16x16x16 f16 shapes, subgroups of exactly 32, 48 KiB shared.
     let mut h100 = caps.clone();
+    h100.subgroup_size_control = false;
     h100.coop_matrix_f16 = Some([16, 16, 16]);
     h100.min_subgroup_size = 32;
     h100.max_subgroup_size = 32;
@@ -581,9 +582,14 @@ fn kernel_choice_follows_the_device() {
     amd.min_subgroup_size = 64;
     amd.max_subgroup_size = 64;
     assert!(!coop_eligible(&amd));
+    // A range that holds 32 (AMD RDNA: 32..64) qualifies where a pipeline can ask for 32, and
+    // then the pipeline does; without subgroup size control it cannot be relied on.
     let mut variable = h100.clone();
     variable.min_subgroup_size = 8;
     variable.max_subgroup_size = 64;
+    variable.subgroup_size_control = true;
+    assert!(coop_eligible(&variable));
+    variable.subgroup_size_control = false;
     assert!(!coop_eligible(&variable));
     let mut small = h100.clone();
     small.max_shared_memory = 32768;

@@ -4,7 +4,7 @@ use std::ffi::CStr;
 
 use ash::vk;
 
-use crate::error::Result;
+use crate::error::{Error, Result};
 
 /// Everything the kernels and the host side need to know about the device.
 #[derive(Clone, Debug)]
@@ -19,6 +19,8 @@ pub struct Caps {
     pub subgroup_size: u32,
     pub min_subgroup_size: u32,
     pub max_subgroup_size: u32,
+    /// A pipeline can ask for a subgroup size in `min..=max` (`subgroupSizeControl`, with
+    /// compute among `requiredSubgroupSizeStages`).
     pub subgroup_size_control: bool,
     pub compute_full_subgroups: bool,
     /// Subgroup arithmetic (subgroupAdd and friends) in compute shaders.
@@ -27,6 +29,7 @@ pub struct Caps {
     pub subgroup_shuffle: bool,
     pub max_shared_memory: u32,
     pub max_workgroup_invocations: u32,
+    pub max_workgroup_size: [u32; 3],
     pub max_workgroup_count: [u32; 3],
     pub max_storage_buffer_range: u64,
     pub min_storage_buffer_offset_alignment: u64,
@@ -52,6 +55,127 @@ pub struct Caps {
     pub unified_memory: bool,
     /// Total device-local heap size, in bytes.
     pub device_memory: u64,
+    /// Buffers are bound with VK_KHR_push_descriptor; where it is missing (or switched off),
+    /// through ordinary descriptor sets, one per dispatch.
+    pub push_descriptors: bool,
+    /// The fallbacks forced by `VELOX_DISABLE` and `VELOX_MAX_BINDING` (see [`Switches`]), as
+    /// `velox info` shows them; empty on a normal run.
+    pub forced: Vec<String>,
+}
+
+/// What `VELOX_DISABLE` can switch off, so that every fallback a GPU may need runs on any
+/// device: each name, and what the engine does without it.
+pub const DISABLE_NAMES: &[(&str, &str)] = &[
+    ("f16", "f16 arithmetic and 16-bit storage: f32 kernels only; f16 inference and training refused"),
+    ("float-atomics", "f32 atomic add: scatter-add and the raster backward by compare-and-swap loops"),
+    ("coop-matrix", "cooperative matrices: the portable f16 matmul and attention kernels"),
+    ("push-descriptors", "VK_KHR_push_descriptor: buffers bound through descriptor sets"),
+    (
+        "subgroup-size-control",
+        "required subgroup sizes: kernels that need one run only where the size is fixed",
+    ),
+];
+
+/// The device's features and limits as switched by the environment: `VELOX_DISABLE` (a comma
+/// list of [`DISABLE_NAMES`]) and `VELOX_MAX_BINDING` (bytes, with an optional K, M or G suffix
+/// for KiB, MiB, GiB: the storage-binding range to assume, below the device's, so that the
+/// paths that split large tensors across bindings run with small ones).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Switches {
+    pub disabled: Vec<&'static str>,
+    pub max_binding: Option<u64>,
+}
+
+impl Switches {
+    /// The switches the environment sets; a name or size it cannot read is an error that lists
+    /// what it accepts.
+    pub fn from_env() -> Result<Switches> {
+        Switches::parse(
+            std::env::var("VELOX_DISABLE").ok().as_deref(),
+            std::env::var("VELOX_MAX_BINDING").ok().as_deref(),
+        )
+    }
+
+    pub fn parse(disable: Option<&str>, max_binding: Option<&str>) -> Result<Switches> {
+        let mut disabled = Vec::new();
+        for name in disable.unwrap_or("").split([',', ' ']).map(str::trim).filter(|n| !n.is_empty()) {
+            let known = DISABLE_NAMES.iter().find(|(n, _)| *n == name).ok_or_else(|| {
+                let names: Vec<&str> = DISABLE_NAMES.iter().map(|(n, _)| *n).collect();
+                Error::Invalid(format!("VELOX_DISABLE names {name:?}; known: {}", names.join(", ")))
+            })?;
+            if !disabled.contains(&known.0) {
+                disabled.push(known.0);
+            }
+        }
+        let max_binding = match max_binding.map(str::trim).filter(|v| !v.is_empty()) {
+            None => None,
+            Some(v) => {
+                let (digits, unit) = match v.char_indices().find(|(_, c)| !c.is_ascii_digit()) {
+                    Some((i, _)) => v.split_at(i),
+                    None => (v, ""),
+                };
+                let scale: u64 = match unit.trim() {
+                    "" => 1,
+                    "K" | "k" => 1 << 10,
+                    "M" | "m" => 1 << 20,
+                    "G" | "g" => 1 << 30,
+                    _ => 0,
+                };
+                let bytes = digits
+                    .parse::<u64>()
+                    .ok()
+                    .and_then(|d| d.checked_mul(scale))
+                    .filter(|&b| scale > 0 && b > 0);
+                match bytes {
+                    Some(b) if b >= 1 << 16 && b % 256 == 0 => Some(b),
+                    _ => {
+                        return Err(Error::Invalid(format!(
+                            "VELOX_MAX_BINDING={v}: give bytes (a multiple of 256, at least 64K), \
+                             with an optional K, M or G suffix"
+                        )))
+                    }
+                }
+            }
+        };
+        Ok(Switches { disabled, max_binding })
+    }
+
+    pub fn disables(&self, name: &str) -> bool {
+        self.disabled.contains(&name)
+    }
+
+    /// Applies the switches to what the device reports.
+    pub fn apply(&self, caps: &mut Caps) {
+        let mut forced = Vec::new();
+        if self.disables("f16") {
+            caps.f16_arithmetic = false;
+            caps.f16_storage = false;
+            caps.coop_matrix_f16 = None;
+        }
+        if self.disables("float-atomics") {
+            caps.float_atomic_add = false;
+        }
+        if self.disables("coop-matrix") {
+            caps.coop_matrix_f16 = None;
+        }
+        if self.disables("push-descriptors") {
+            caps.push_descriptors = false;
+        }
+        if self.disables("subgroup-size-control") {
+            caps.subgroup_size_control = false;
+            caps.compute_full_subgroups = false;
+        }
+        for name in &self.disabled {
+            forced.push(format!("no {name}"));
+        }
+        if let Some(b) = self.max_binding {
+            if b < caps.max_storage_buffer_range {
+                caps.max_storage_buffer_range = b;
+            }
+            forced.push(format!("storage bindings of at most {b} bytes"));
+        }
+        caps.forced = forced;
+    }
 }
 
 fn cstr(bytes: &[c_char_t]) -> String {
@@ -94,6 +218,7 @@ impl Caps {
             let exts = instance.enumerate_device_extension_properties(pd).unwrap_or_default();
             let has_atomic_ext = has_ext(&exts, ash::ext::shader_atomic_float::NAME);
             let has_coop_ext = has_ext(&exts, ash::khr::cooperative_matrix::NAME);
+            let push_descriptors = has_ext(&exts, ash::khr::push_descriptor::NAME);
 
             let mut p11 = vk::PhysicalDeviceVulkan11Properties::default();
             let mut p12 = vk::PhysicalDeviceVulkan12Properties::default();
@@ -202,7 +327,8 @@ impl Caps {
                 subgroup_size: p11.subgroup_size,
                 min_subgroup_size: p13.min_subgroup_size,
                 max_subgroup_size: p13.max_subgroup_size,
-                subgroup_size_control: f13.subgroup_size_control == vk::TRUE,
+                subgroup_size_control: f13.subgroup_size_control == vk::TRUE
+                    && p13.required_subgroup_size_stages.contains(vk::ShaderStageFlags::COMPUTE),
                 compute_full_subgroups: f13.compute_full_subgroups == vk::TRUE,
                 subgroup_shuffle: p11
                     .subgroup_supported_operations
@@ -214,6 +340,7 @@ impl Caps {
                     && p11.subgroup_supported_stages.contains(vk::ShaderStageFlags::COMPUTE),
                 max_shared_memory: limits.max_compute_shared_memory_size,
                 max_workgroup_invocations: limits.max_compute_work_group_invocations,
+                max_workgroup_size: limits.max_compute_work_group_size,
                 max_workgroup_count: limits.max_compute_work_group_count,
                 max_storage_buffer_range: limits.max_storage_buffer_range as u64,
                 min_storage_buffer_offset_alignment: limits.min_storage_buffer_offset_alignment,
@@ -231,8 +358,18 @@ impl Caps {
                 timestamps,
                 unified_memory,
                 device_memory,
+                push_descriptors,
+                forced: Vec::new(),
             })
         }
+    }
+
+    /// Whether a pipeline can run with subgroups of exactly `size` invocations: the device's
+    /// only size, or one it can be asked for (subgroup size control).
+    pub fn subgroup_size_fits(&self, size: u32) -> bool {
+        (self.min_subgroup_size == size && self.max_subgroup_size == size)
+            || (self.subgroup_size_control
+                && (self.min_subgroup_size..=self.max_subgroup_size).contains(&size))
     }
 
     /// Peak rates for devices whose figures are known: (f16 tensor TFLOP/s, f32 TFLOP/s, GB/s).

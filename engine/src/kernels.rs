@@ -28,6 +28,9 @@ pub struct Needs {
     pub float_atomics: bool,
     pub coop_matrix: bool,
     pub subgroups: bool,
+    /// The exact subgroup size the kernel is written for (`// @subgroup_size N` in its file),
+    /// requested when its pipeline is made; `None` for kernels that work at any width.
+    pub subgroup_size: Option<u32>,
 }
 
 /// One entry point of one shader file.
@@ -44,11 +47,74 @@ pub struct KernelInfo {
     pub needs: Needs,
 }
 
+impl KernelInfo {
+    /// Why a device with `c` cannot run this kernel, naming the feature or the limit and both
+    /// figures; `None` when it can.
+    pub fn unsupported_on(&self, c: &crate::Caps) -> Option<String> {
+        let info = self;
+        let n = info.needs;
+        if n.f16 && !(c.f16_arithmetic && c.f16_storage) {
+            return Some("f16 arithmetic and 16-bit storage".into());
+        }
+        if n.float_atomics && !c.float_atomic_add {
+            return Some("f32 atomic add (VK_EXT_shader_atomic_float)".into());
+        }
+        if n.coop_matrix && c.coop_matrix_f16.is_none() {
+            return Some("f16 cooperative matrices (VK_KHR_cooperative_matrix)".into());
+        }
+        if n.subgroups && !c.subgroup_arithmetic {
+            return Some("subgroup arithmetic and votes in compute shaders".into());
+        }
+        if let Some(size) = n.subgroup_size {
+            if !c.subgroup_size_fits(size) {
+                return Some(format!(
+                    "subgroups of exactly {size} invocations; the device runs {}..={}{}",
+                    c.min_subgroup_size,
+                    c.max_subgroup_size,
+                    if c.subgroup_size_control { "" } else { " and cannot be asked for one size" }
+                ));
+            }
+        }
+        if info.shared_bytes > c.max_shared_memory {
+            return Some(format!(
+                "{} bytes of workgroup memory; the device has {} (maxComputeSharedMemorySize)",
+                info.shared_bytes, c.max_shared_memory
+            ));
+        }
+        let wg = info.workgroup_size;
+        let invocations = wg.iter().map(|&d| d as u64).product::<u64>();
+        if invocations > c.max_workgroup_invocations as u64 {
+            return Some(format!(
+                "workgroups of {invocations} invocations; the device allows {} (maxComputeWorkGroupInvocations)",
+                c.max_workgroup_invocations
+            ));
+        }
+        if wg.iter().zip(c.max_workgroup_size).any(|(&w, m)| w > m) {
+            return Some(format!(
+                "a workgroup of {wg:?}; the device allows {:?} (maxComputeWorkGroupSize)",
+                c.max_workgroup_size
+            ));
+        }
+        if info.push_bytes > c.max_push_constants {
+            return Some(format!(
+                "{} bytes of push constants; the device offers {} (maxPushConstantsSize)",
+                info.push_bytes, c.max_push_constants
+            ));
+        }
+        None
+    }
+}
+
 /// Index of a kernel in [`KERNELS`]; the constants below name every one.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct KernelId(pub usize);
 
 impl KernelId {
+    /// Every kernel of every shader file.
+    pub fn all() -> impl Iterator<Item = KernelId> {
+        (0..KERNELS.len()).map(KernelId)
+    }
+
     pub fn info(self) -> &'static KernelInfo {
         &KERNELS[self.0]
     }
@@ -63,7 +129,7 @@ include!(concat!(env!("OUT_DIR"), "/kernels.rs"));
 pub(crate) struct Pipeline {
     pub pipeline: vk::Pipeline,
     pub layout: vk::PipelineLayout,
-    set_layout: vk::DescriptorSetLayout,
+    pub set_layout: vk::DescriptorSetLayout,
 }
 
 #[derive(Default)]
@@ -102,27 +168,24 @@ impl PipelineCache {
 }
 
 impl Gpu {
-    /// Whether this device can run the kernel (its features are all present).
+    /// Whether this device can run the kernel: its features are all present and its workgroup
+    /// fits the device's limits (see [`Gpu::unsupported_reason`]).
     pub fn supports(&self, kernel: KernelId) -> bool {
-        self.missing_feature(kernel).is_none()
+        self.unsupported_reason(kernel).is_none()
     }
 
-    fn missing_feature(&self, kernel: KernelId) -> Option<&'static str> {
-        let c = self.caps();
-        let n = kernel.info().needs;
-        if n.f16 && !(c.f16_arithmetic && c.f16_storage) {
-            return Some("f16 arithmetic and 16-bit storage");
-        }
-        if n.float_atomics && !c.float_atomic_add {
-            return Some("f32 atomic add (VK_EXT_shader_atomic_float)");
-        }
-        if n.coop_matrix && c.coop_matrix_f16.is_none() {
-            return Some("f16 cooperative matrices (VK_KHR_cooperative_matrix)");
-        }
-        if kernel.info().shared_bytes > c.max_shared_memory {
-            return Some("more workgroup memory than the device has");
-        }
-        None
+    /// Why this device cannot run the kernel, naming the feature or the limit and both figures;
+    /// `None` when it can (see [`KernelInfo::unsupported_on`]). Every pipeline is checked this way
+    /// before it is made, so a kernel over a limit is an error that says so, never a driver's
+    /// undefined behaviour.
+    pub fn unsupported_reason(&self, kernel: KernelId) -> Option<String> {
+        kernel.info().unsupported_on(self.caps())
+    }
+
+    /// Makes the kernel's pipeline now instead of at its first dispatch: the device (and, under
+    /// `VELOX_VALIDATE`, the validation layer) checks its SPIR-V and limits here.
+    pub fn prepare(&self, kernel: KernelId) -> Result<()> {
+        self.pipeline(kernel).map(|_| ())
     }
 
     /// The pipeline for `kernel`, created on first use.
@@ -132,18 +195,10 @@ impl Gpu {
         if let Some(p) = &s.pipelines[kernel.0] {
             return Ok(p.clone());
         }
-        if let Some(missing) = self.missing_feature(kernel) {
+        if let Some(missing) = self.unsupported_reason(kernel) {
             return Err(Error::Unsupported(format!("kernel {} needs {missing}", kernel.name())));
         }
         let info = kernel.info();
-        if info.push_bytes > self.caps().max_push_constants {
-            return Err(Error::Unsupported(format!(
-                "kernel {} needs {} bytes of push constants, the device offers {}",
-                kernel.name(),
-                info.push_bytes,
-                self.caps().max_push_constants
-            )));
-        }
         let module = match s.modules[info.module] {
             Some(m) => m,
             None => {
@@ -168,9 +223,15 @@ impl Gpu {
                     .stage_flags(vk::ShaderStageFlags::COMPUTE)
             })
             .collect();
-        let set_info = vk::DescriptorSetLayoutCreateInfo::default()
-            .flags(vk::DescriptorSetLayoutCreateFlags::PUSH_DESCRIPTOR_KHR)
-            .bindings(&bindings);
+        let set_flags = if self.caps().push_descriptors {
+            vk::DescriptorSetLayoutCreateFlags::PUSH_DESCRIPTOR_KHR
+        } else {
+            vk::DescriptorSetLayoutCreateFlags::empty()
+        };
+        let set_info = vk::DescriptorSetLayoutCreateInfo::default().flags(set_flags).bindings(&bindings);
+        let (required_size, stage_flags) = subgroup_request(self.caps(), info);
+        let mut required = vk::PipelineShaderStageRequiredSubgroupSizeCreateInfo::default()
+            .required_subgroup_size(required_size.unwrap_or(0));
         // SAFETY: valid device and create infos throughout.
         unsafe {
             let set_layout =
@@ -192,10 +253,14 @@ impl Gpu {
                 }
             };
             let entry = std::ffi::CString::new(info.entry).expect("entry names have no NUL");
-            let stage = vk::PipelineShaderStageCreateInfo::default()
+            let mut stage = vk::PipelineShaderStageCreateInfo::default()
                 .stage(vk::ShaderStageFlags::COMPUTE)
+                .flags(stage_flags)
                 .module(module)
                 .name(&entry);
+            if required_size.is_some() {
+                stage = stage.push_next(&mut required);
+            }
             let ci = [vk::ComputePipelineCreateInfo::default().stage(stage).layout(layout)];
             let pipeline = match device.create_compute_pipelines(vk::PipelineCache::null(), &ci, None) {
                 Ok(p) => p[0],
@@ -209,5 +274,35 @@ impl Gpu {
             s.pipelines[kernel.0] = Some(p.clone());
             Ok(p)
         }
+    }
+}
+
+/// What a pipeline asks of the subgroups it runs with:
+/// - a kernel written for one subgroup size (`Needs::subgroup_size`) asks for that size where the
+///   device has subgroup size control (elsewhere [`Gpu::unsupported_reason`] has already checked
+///   that it is the device's only size);
+/// - a kernel that uses subgroup operations asks for full subgroups where the device allows it
+///   and its workgroup's width is a multiple of the largest size it could get, so that
+///   `subgroup_id`, `num_subgroups` and every lane count mean what the kernel assumes on
+///   devices that vary the size between dispatches (Intel runs 8, 16 or 32).
+fn subgroup_request(
+    caps: &crate::Caps,
+    info: &KernelInfo,
+) -> (Option<u32>, vk::PipelineShaderStageCreateFlags) {
+    let width = info.workgroup_size[0];
+    match info.needs.subgroup_size {
+        Some(size) if caps.subgroup_size_control => {
+            let full = caps.compute_full_subgroups && width % size == 0;
+            let flags = if full {
+                vk::PipelineShaderStageCreateFlags::REQUIRE_FULL_SUBGROUPS
+            } else {
+                vk::PipelineShaderStageCreateFlags::empty()
+            };
+            (Some(size), flags)
+        }
+        _ if info.needs.subgroups && caps.compute_full_subgroups && width % caps.max_subgroup_size == 0 => {
+            (None, vk::PipelineShaderStageCreateFlags::REQUIRE_FULL_SUBGROUPS)
+        }
+        _ => (None, vk::PipelineShaderStageCreateFlags::empty()),
     }
 }

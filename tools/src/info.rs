@@ -13,7 +13,7 @@ fn mib(bytes: u64) -> String {
     format!("{:.0} MiB", bytes as f64 / (1024.0 * 1024.0))
 }
 
-pub fn run(json_path: Option<&Path>) -> CliResult<()> {
+pub fn run(json_path: Option<&Path>, probe: bool) -> CliResult<()> {
     let devices = list_devices()?;
     println!("Vulkan devices:");
     for d in &devices {
@@ -22,7 +22,11 @@ pub fn run(json_path: Option<&Path>) -> CliResult<()> {
     }
     let gpu = Gpu::new()?;
     let c = gpu.caps();
-    let report = report(&gpu);
+    let mut report = report(&gpu);
+    if probe {
+        let (reported, counted) = velox_engine::ops::subgroup_probe::sizes(&gpu)?;
+        report["subgroup_probe"] = json!({ "builtin": reported, "lanes": counted });
+    }
     println!();
     println!("Chosen device {}: {} ({})", c.index, c.name, c.kind);
     if let Ok(v) = std::env::var("VELOX_DEVICE") {
@@ -36,11 +40,17 @@ pub fn run(json_path: Option<&Path>) -> CliResult<()> {
         if c.unified_memory { ", host-visible (no staging)" } else { "" }
     );
     println!(
-        "  subgroup size     {} (range {}..{}{})",
+        "  subgroup size     {} (range {}..{}{}){}",
         c.subgroup_size,
         c.min_subgroup_size,
         c.max_subgroup_size,
-        if c.subgroup_size_control { ", controllable" } else { "" }
+        if c.subgroup_size_control { ", controllable" } else { "" },
+        match report["subgroup_probe"]["lanes"].as_u64() {
+            Some(n) if n != c.subgroup_size as u64 =>
+                format!("; {n} measured: the driver misreports (the kernels count their lanes)"),
+            Some(n) => format!("; {n} measured"),
+            None => String::new(),
+        }
     );
     println!("  shared memory     {} KiB per workgroup", c.max_shared_memory / 1024);
     println!(
@@ -56,6 +66,14 @@ pub fn run(json_path: Option<&Path>) -> CliResult<()> {
     println!("  f16               arithmetic {}, storage {}", yes(c.f16_arithmetic), yes(c.f16_storage));
     println!("  f32 atomic add    {}", yes(c.float_atomic_add));
     println!("  timestamps        {} ({} ns per tick)", yes(c.timestamps), c.timestamp_period_ns);
+    println!(
+        "  buffer binding    {}",
+        if c.push_descriptors { "push descriptors" } else { "descriptor sets, one per dispatch" }
+    );
+    println!("  validation        {} (VELOX_VALIDATE)", gpu.validation().name());
+    if !c.forced.is_empty() {
+        println!("  forced fallbacks  {} (VELOX_DISABLE, VELOX_MAX_BINDING)", c.forced.join(", "));
+    }
     if c.coop_matrix_shapes.is_empty() {
         println!("  coop matrices     none");
     } else {
@@ -109,7 +127,8 @@ pub fn report(gpu: &Gpu) -> serde_json::Value {
         "f16_arithmetic": c.f16_arithmetic, "f16_storage": c.f16_storage,
         "float_atomic_add": c.float_atomic_add, "subgroup_arithmetic": c.subgroup_arithmetic,
         "subgroup_shuffle": c.subgroup_shuffle, "coop_matrix_shapes": c.coop_matrix_shapes,
-        "timestamps": c.timestamps,
+        "timestamps": c.timestamps, "push_descriptors": c.push_descriptors,
+        "validation": gpu.validation().name(), "forced_fallbacks": c.forced,
         "variants": {
             "matmul f32": matmul::matmul_variant(gpu, DType::F32),
             "matmul f16": matmul::matmul_variant(gpu, DType::F16),

@@ -279,10 +279,7 @@ pub fn coop_forward_kernel(gpu: &Gpu, d: usize, tall: bool) -> Option<(KernelId,
         _ => return None,
     };
     let sg = f * f / 8;
-    let fits = caps.min_subgroup_size == sg
-        && caps.max_subgroup_size == sg
-        && caps.subgroup_shuffle
-        && caps.subgroup_arithmetic;
+    let fits = caps.subgroup_size_fits(sg) && caps.subgroup_shuffle && caps.subgroup_arithmetic;
     if !fits {
         return None;
     }

@@ -12,7 +12,7 @@
 
 use crate::device::Gpu;
 use crate::error::{Error, Result};
-use crate::kernels::{KernelId, FPS_WG1024_MAIN, FPS_WG1024_ORDER, FPS_WG256_MAIN};
+use crate::kernels::{KernelId, FPS_ORDER_MAIN, FPS_WG1024_MAIN, FPS_WG256_MAIN};
 use crate::ops::gather::gather;
 use crate::ops::sort::sort_pairs;
 use crate::ops::window::point_rows;
@@ -78,14 +78,8 @@ pub fn fps_with_workgroup(
     candidates: &[u32],
     k: usize,
 ) -> Result<Tensor> {
-    let allowed = points.gpu().caps().max_workgroup_invocations;
     let kernel = match wg {
         WG_CPU => FPS_WG256_MAIN,
-        WG_GPU if allowed < WG_GPU => {
-            return Err(Error::Unsupported(format!(
-                "fps: a workgroup of {WG_GPU} invocations; this device allows {allowed}"
-            )))
-        }
         WG_GPU => FPS_WG1024_MAIN,
         _ => {
             return Err(Error::Invalid(format!(
@@ -124,7 +118,7 @@ fn fps_with(
     let params = Params { m: m as u32, k: k as u32 };
     let codes = Tensor::empty(gpu, &[m], DType::U32)?;
     let iota = Tensor::empty(gpu, &[m], DType::U32)?;
-    rec.dispatch(FPS_WG1024_ORDER, [1, 1, 1], &[&cands, &codes, &iota], &params)?;
+    rec.dispatch(FPS_ORDER_MAIN, [1, 1, 1], &[&cands, &codes, &iota], &params)?;
     let (_, perm) = sort_pairs(rec, &codes, &iota, 32)?;
     let sorted = gather(rec, &cands, &perm)?;
     let min_dist = Tensor::empty(gpu, &[m], DType::F32)?;
@@ -140,11 +134,12 @@ fn fps_with(
 /// - on a CPU (lavapipe) every invocation costs time at every iteration, skipping or not:
 ///   8192 of 32768 took 591 ms with 1024 invocations, 202 ms with 256 and 271 ms with 64.
 ///
-/// A device that allows fewer than 1024 invocations per workgroup gets 256 (every Vulkan
-/// device allows 128; the engine's other kernels already need 256).
+/// A device whose limits the 1024-invocation kernel does not fit (fewer invocations per
+/// workgroup, or less workgroup memory than its 24 KiB) gets 256 (every Vulkan device allows
+/// 128 invocations and 16 KiB; the engine's other kernels already need 256).
 pub fn variant(gpu: &Gpu) -> (KernelId, String) {
     let caps = gpu.caps();
-    let wg = if caps.kind == "CPU" || caps.max_workgroup_invocations < WG_GPU { WG_CPU } else { WG_GPU };
+    let wg = if caps.kind == "CPU" || !gpu.supports(FPS_WG1024_MAIN) { WG_CPU } else { WG_GPU };
     let kernel = if wg == WG_GPU { FPS_WG1024_MAIN } else { FPS_WG256_MAIN };
     let slots = |m: u32| m.div_ceil(wg);
     (

@@ -150,7 +150,8 @@ pub fn plan(a: &[usize], b: &[usize], trans_a: bool, trans_b: bool) -> Result<Pl
 /// The cooperative-matrix kernel this device can run, if any. The kernels exist for FxFxF
 /// fragments with F = 16 (`matmul_coop.wgsl`) and F = 8 (`matmul_coop8.wgsl`). Each splits its
 /// 256 invocations into subgroups of exactly F*F/8 (32 or 8), each subgroup owning 4x2
-/// fragments of the 128x128 tile, so it is chosen only where every subgroup has that size.
+/// fragments of the 128x128 tile, so it is chosen only where a pipeline can have that size: the
+/// device's only one, or one it can be asked for (the pipeline then requests it).
 pub fn coop_kernel(caps: &Caps) -> Option<KernelId> {
     let [f, _, _] = caps.coop_matrix_f16?;
     let (kernel, shared) = match f {
@@ -159,8 +160,7 @@ pub fn coop_kernel(caps: &Caps) -> Option<KernelId> {
         _ => return None,
     };
     let sg = f * f / 8;
-    let fits =
-        caps.min_subgroup_size == sg && caps.max_subgroup_size == sg && caps.max_shared_memory >= shared;
+    let fits = caps.subgroup_size_fits(sg) && caps.max_shared_memory >= shared;
     fits.then_some(kernel)
 }
 

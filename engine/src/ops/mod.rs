@@ -27,6 +27,7 @@ pub mod scan;
 pub mod scatter_add;
 pub mod softmax;
 pub mod sort;
+pub mod subgroup_probe;
 pub mod swiglu;
 pub mod unary;
 pub mod voxel_head;

@@ -1,0 +1,103 @@
+//! Every kernel of every shader file against this device: its pipeline is made, or it is
+//! refused before any Vulkan call with a reason that names the feature or the limit. Under
+//! `VELOX_VALIDATE` the layer checks each module's SPIR-V (spirv-val, as the layer runs it) and
+//! each pipeline's limits here, including kernels no other test of the run dispatches.
+//! Would catch: a kernel over the device's workgroup-memory, invocation or push-constant limit
+//! made anyway (undefined behaviour on a GPU), SPIR-V a validator rejects, a pipeline the driver
+//! refuses, or a refusal that does not say why.
+
+mod common;
+use common::*;
+
+use velox::engine::kernels::KernelId;
+
+#[test]
+fn every_kernel_is_made_or_refused_with_a_reason() {
+    let gpu = gpu();
+    let caps = gpu.caps();
+    let (mut made, mut refused) = (Vec::new(), Vec::new());
+    for k in KernelId::all() {
+        let info = k.info();
+        match gpu.unsupported_reason(k) {
+            None => {
+                gpu.prepare(k).unwrap_or_else(|e| panic!("{}: {e}", k.name()));
+                // Made pipelines fit the limits the reason would have named.
+                assert!(info.shared_bytes <= caps.max_shared_memory, "{}", k.name());
+                assert!(info.push_bytes <= caps.max_push_constants, "{}", k.name());
+                let invocations: u32 = info.workgroup_size.iter().product();
+                assert!(invocations <= caps.max_workgroup_invocations, "{}", k.name());
+                made.push(k.name());
+            }
+            Some(why) => {
+                let e = gpu.prepare(k).unwrap_err().to_string();
+                assert!(e.contains(&k.name()) && e.contains(&why), "{}: {e}", k.name());
+                refused.push(format!("{}: {why}", k.name()));
+            }
+        }
+    }
+    gpu.check_validation().unwrap();
+    eprintln!("{} kernels made, {} refused:", made.len(), refused.len());
+    for r in &refused {
+        eprintln!("  {r}");
+    }
+    assert!(!made.is_empty());
+}
+
+/// Would catch: a limit check that compares with the wrong figure or lets a kernel one step over
+/// a limit through (FPS's 1024-invocation kernel once declared 32772 bytes of workgroup memory,
+/// 4 over lavapipe's 32768, and nothing noticed).
+#[test]
+fn kernels_over_a_limit_are_refused_by_name() {
+    let gpu = gpu();
+    let fps = velox::engine::kernels::FPS_WG1024_MAIN.info();
+    let roomy = {
+        let mut c = gpu.caps().clone();
+        c.max_workgroup_invocations = 1024;
+        c.max_workgroup_size = [1024, 1024, 64];
+        c.max_shared_memory = 49152;
+        c.max_push_constants = 128;
+        c.subgroup_arithmetic = true;
+        c
+    };
+    assert_eq!(fps.unsupported_on(&roomy), None);
+    let refused = |edit: &dyn Fn(&mut velox::engine::Caps)| {
+        let mut c = roomy.clone();
+        edit(&mut c);
+        fps.unsupported_on(&c).unwrap_or_default()
+    };
+    let one_short = fps.shared_bytes - 1;
+    assert!(refused(&|c| c.max_shared_memory = one_short).contains("maxComputeSharedMemorySize"));
+    assert!(refused(&|c| c.max_workgroup_invocations = 1023).contains("maxComputeWorkGroupInvocations"));
+    assert!(refused(&|c| c.max_workgroup_size = [512, 1024, 64]).contains("maxComputeWorkGroupSize"));
+    let push = fps.push_bytes - 1;
+    assert!(refused(&|c| c.max_push_constants = push).contains("maxPushConstantsSize"));
+    assert!(refused(&|c| c.subgroup_arithmetic = false).contains("subgroup arithmetic"));
+    // A kernel written for subgroups of 32 on a device of 64, and on one that can be asked for 32.
+    let coop = velox::engine::kernels::MATMUL_COOP_MAIN.info();
+    assert_eq!(coop.needs.subgroup_size, Some(32));
+    let mut amd = roomy.clone();
+    amd.coop_matrix_f16 = Some([16, 16, 16]);
+    amd.f16_arithmetic = true;
+    amd.f16_storage = true;
+    amd.subgroup_shuffle = true;
+    (amd.min_subgroup_size, amd.max_subgroup_size, amd.subgroup_size_control) = (64, 64, false);
+    assert!(coop.unsupported_on(&amd).unwrap_or_default().contains("subgroups of exactly 32"));
+    (amd.min_subgroup_size, amd.subgroup_size_control) = (32, true);
+    assert_eq!(coop.unsupported_on(&amd), None);
+}
+
+/// Would catch: a kernel that declares more workgroup memory than 32 KiB (lavapipe, SwiftShader
+/// and many mobile GPUs) without being a variant chosen by the limit.
+#[test]
+fn workgroup_memory_fits_32_kib_outside_the_48_kib_variants() {
+    for k in KernelId::all() {
+        let info = k.info();
+        assert!(
+            info.shared_bytes <= 32768 || info.needs.coop_matrix,
+            "{} declares {} bytes of workgroup memory: only the cooperative-matrix kernels for 48 KiB \
+             devices may exceed 32 KiB",
+            k.name(),
+            info.shared_bytes
+        );
+    }
+}
