@@ -25,7 +25,22 @@ fn f32_to_f16(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nw
     if (i + 1u < pc.n) {
         hi = src_f32[i + 1u];
     }
-    dst_f16[w] = pack2x16float(vec2<f32>(src_f32[i], hi));
+    dst_f16[w] = pack_halves(vec2<f32>(src_f32[i], hi));
+}
+
+// pack2x16float, with magnitudes that round past the largest half (65504; from 65520 on) made
+// infinities of their sign as IEEE rounding gives: what packing does there is left to the
+// device, and SwiftShader gives NaN.
+fn pack_halves(v: vec2<f32>) -> u32 {
+    var bits = pack2x16float(v);
+    let inf = select(vec2<u32>(0x7c00u), vec2<u32>(0xfc00u), v < vec2<f32>(0.0));
+    if (abs(v.x) >= 65520.0) {
+        bits = (bits & 0xffff0000u) | inf.x;
+    }
+    if (abs(v.y) >= 65520.0) {
+        bits = (bits & 0x0000ffffu) | (inf.y << 16u);
+    }
+    return bits;
 }
 
 @compute @workgroup_size(256)

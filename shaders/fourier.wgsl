@@ -3,12 +3,13 @@
 //   [ x_0 .. x_{c-1} ]                         only when include_input
 //   [ sin(pi w_f x_i) for i in 0..c, f in 0..F ]  index i * F + f
 //   [ cos(pi w_f x_i) for i in 0..c, f in 0..F ]  same order
-// with w_f = freq[f]. The phase is reduced before sin/cos: q = w_f x is rounded once in f32,
-// then taken modulo 2 exactly, so sin and cos only see arguments in [-pi, pi). For octave
-// frequencies (powers of two) q is exact and the features are accurate to ~1e-7; for other
-// frequencies the one rounding of q (relative 6e-8, 2.4e-4 half-turns at q = 4096) is the
-// error. (Splitting w and x into 12-bit halves whose products are exact gave the same
-// results on lavapipe, so the simple form stays.)
+// with w_f = freq[f]. q = w_f x is rounded once in f32 and its sine and cosine in half-turns
+// come from `sincospi` (include/sincos.wgsl: exact reduction, then ~1 ulp on every device; the
+// builtins are held to 2^-11 only, and SwiftShader's miss by 3e-4). For octave frequencies
+// (powers of two) q is exact and the features are accurate to ~1e-7; for other frequencies
+// the one rounding of q (relative 6e-8, 2.4e-4 half-turns at q = 4096) is the error.
+// (Splitting w and x into 12-bit halves whose products are exact gave the same results on
+// lavapipe, so the simple form stays.)
 // `backward`: one invocation per input element,
 //   dx_i = dy_in_i + sum_f pi w_f (cos(pi w_f x_i) dy_sin_if - sin(pi w_f x_i) dy_cos_if).
 
@@ -28,12 +29,7 @@ var<immediate> pc: Params;
 
 const PI: f32 = 3.14159265358979;
 
-// pi * (w x) reduced to [-pi, pi).
-fn phase(w: f32, v: f32) -> f32 {
-    let q = w * v;
-    let m = q - 2.0 * floor(q * 0.5 + 0.5); // q modulo 2, exact
-    return PI * m;
-}
+// @include sincos.wgsl
 
 fn out_width() -> u32 {
     return pc.channels * 2u * pc.freqs + select(0u, pc.channels, pc.include_input != 0u);
@@ -61,8 +57,8 @@ fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
     let kk = k % block;
     let i = kk / pc.freqs;
     let f = kk % pc.freqs;
-    let p = phase(freq[f], x[row * pc.channels + i]);
-    y[o] = select(sin(p), cos(p), is_cos);
+    let sc = sincospi(freq[f] * x[row * pc.channels + i]);
+    y[o] = select(sc.x, sc.y, is_cos);
 }
 
 @compute @workgroup_size(256)
@@ -85,9 +81,9 @@ fn backward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
     let block = pc.channels * pc.freqs;
     for (var f = 0u; f < pc.freqs; f++) {
         let w = freq[f];
-        let p = phase(w, v);
+        let sc = sincospi(w * v);
         let k = base + i * pc.freqs + f;
-        g += PI * w * (cos(p) * dy[k] - sin(p) * dy[k + block]);
+        g += PI * w * (sc.y * dy[k] - sc.x * dy[k + block]);
     }
     dx[e] = g;
 }

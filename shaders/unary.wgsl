@@ -2,6 +2,8 @@
 // Written for stability: tanh never overflows, sigmoid saturates cleanly, and GELU uses an
 // erfc form whose negative tail keeps its relative accuracy.
 
+// @include sincos.wgsl
+
 struct Params {
     n: u32,
     op: u32,
@@ -61,8 +63,8 @@ fn apply(op: u32, v: f32) -> f32 {
         case OP_RELU: { return max(v, 0.0); }
         case OP_SQUARE: { return v * v; }
         case OP_RECIP: { return 1.0 / v; }
-        case OP_SIN: { return sin(v); }
-        case OP_COS: { return cos(v); }
+        case OP_SIN: { return sincos(v).x; }
+        case OP_COS: { return sincos(v).y; }
         default: { return v; }
     }
 }

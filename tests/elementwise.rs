@@ -72,9 +72,11 @@ fn unary_maps_match_reference() {
             let got: Vec<f32> = y.read().unwrap();
             let want = unary::reference::unary(&x, f);
             assert_nmse(&format!("{f:?} n={n}"), &got, &want, 1e-9);
-            // Pointwise relative error bound: no value may be far off even when small.
+            // Pointwise bound: no value may be far off even when small. The lavapipe-measured
+            // bound (4e-6 relative, 1e-6 absolute) widened where Vulkan lets the builtin a
+            // kernel calls be less precise, so that every conforming device passes.
             for i in 0..n {
-                let tol = 4e-6 * want[i].abs() + 1e-6;
+                let tol = 4e-6 * want[i].abs() + 1e-6 + vulkan_allowance(f, x[i] as f64, want[i]);
                 assert!(
                     (got[i] as f64 - want[i]).abs() <= tol,
                     "{f:?}({}) = {} want {}",
@@ -84,6 +86,29 @@ fn unary_maps_match_reference() {
                 );
             }
         }
+    }
+}
+
+/// The error Vulkan's precision rules allow the builtin behind `f` at `x` beyond the bound
+/// lavapipe meets ("Precision and Operation of SPIR-V Instructions": exp within 3 + 2|x| ulp,
+/// log within 3 ulp outside [0.5, 2] and 2^-21 absolute inside, division 2.5 ulp, inverseSqrt
+/// 2 ulp, sqrt as 1 / inverseSqrt, tanh and the sigmoid family as their exp formulas). Sin and
+/// cos are the kernels' own (`shaders/include/sincos.wgsl`), so they keep the tight bound.
+fn vulkan_allowance(f: Unary, x: f64, want: f64) -> f64 {
+    let ulp = |v: f64| v.abs() * f32::EPSILON as f64;
+    let exp_ulps = 3.0 + 2.0 * x.abs();
+    match f {
+        Unary::Exp => exp_ulps * ulp(want),
+        Unary::Log if (0.5..=2.0).contains(&x) => 2f64.powi(-21),
+        Unary::Log => 3.0 * ulp(want),
+        Unary::Recip => 2.5 * ulp(want),
+        Unary::Rsqrt => 2.0 * ulp(want),
+        Unary::Sqrt => 5.0 * ulp(want),
+        // exp(-|x|) off by its ulps, then a division: relative to the result, or to 1 for tanh's
+        // cancellation near 0.
+        Unary::Sigmoid | Unary::Silu | Unary::Gelu | Unary::GeluTanh => (exp_ulps + 3.0) * ulp(want),
+        Unary::Tanh => (exp_ulps.min(33.0) + 3.0) * f32::EPSILON as f64,
+        _ => 0.0,
     }
 }
 
@@ -255,11 +280,18 @@ fn gather_and_scatter_add_match_reference() {
                 scatter_add(&mut rec, &trs, &ti, &out).unwrap();
             }
             rec.submit().unwrap();
+            // The adds land in the order the device runs them, so the rounding differs by
+            // device: r adds of unit-variance rows in any order leave an NMSE of about
+            // r eps^2 / 24 (rounding errors of variance eps^2 / 12 relative to partial sums
+            // of growing size), 5.9e-12 at r = 10^4 rows per output. Bound: 10x that, at
+            // least 1e-11 (SwiftShader measured 1.2e-11 there).
+            let per_output = n_idx as f64 / src_rows as f64;
+            let bound = (10.0 * per_output * (f32::EPSILON as f64).powi(2) / 24.0).max(1e-11);
             assert_nmse(
                 &format!("scatter_add cas={cas} {src_rows}x{width} <- {n_idx}"),
                 &out.read::<f32>().unwrap(),
                 &want,
-                1e-11,
+                bound,
             );
         }
     }
