@@ -42,9 +42,10 @@ fn zero(gpu: &Gpu, g: &Generator) {
 }
 
 /// Every parameter drawn at random, so that the zero-initialised gates, tables and output
-/// projections pass gradients too.
+/// projections pass gradients too. (The flat buffer, padding between parameters included: its
+/// length depends on the device's offset alignment.)
 fn randomise(g: &Generator, seed: u64) {
-    let n = g.store.num_parameters();
+    let n = g.store.flat_params().numel();
     let theta: Vec<f32> = Rng::new(seed).normal_vec(n).iter().map(|v| 0.2 * v).collect();
     g.store.flat_params().write(&theta).unwrap();
 }

@@ -111,7 +111,9 @@ fn a_stack_of_linears_is_the_linears_side_by_side() {
     use velox::models::layers::linear::LinearStack;
     use velox::models::params::{Init, ParamStore};
     let gpu = gpu();
-    let (k, n, din, dout) = (3, 37, 24, 40);
+    // Weights and biases of a multiple of 128 elements, so that they stack (lie one after
+    // another) at every offset alignment a device may have (up to 256 bytes, 128 halves).
+    let (k, n, din, dout) = (3, 37, 24, 128);
     let mut b = ParamStore::builder();
     for i in 0..k {
         b.add(&format!("l{i}.w"), &[din, dout], Init::Xavier).unwrap();
@@ -122,7 +124,7 @@ fn a_stack_of_linears_is_the_linears_side_by_side() {
     let (w, bias) = (names("w"), names("b"));
     let stack = LinearStack::new(
         store.stacked(&w).unwrap().expect("registered one after another"),
-        store.stacked(&bias).unwrap(),
+        Some(store.stacked(&bias).unwrap().expect("registered one after another")),
     )
     .unwrap();
     let linears: Vec<Linear> = (0..k)
@@ -158,9 +160,12 @@ fn a_stack_of_linears_is_the_linears_side_by_side() {
         r2.submit().unwrap();
         let y_one: Vec<f32> = y_one.iter().flat_map(read).collect();
         let what = format!("stack of {k} in {precision:?}");
-        assert_nmse(&format!("y {what}"), &y_stack, &f64s(&y_one), 1e-13);
-        assert_nmse(&format!("grads {what}"), &g_stack, &f64s(&read(store.flat_grads())), 1e-13);
-        assert_nmse(&format!("dx {what}"), &read(&dx_stack), &f64s(&read(&dx_one)), 1e-13);
+        // The same products summed in another order (dx adds k of them inside one kernel):
+        // differences of a few f32 roundings, NMSE about eps^2 = 1.4e-14 (SwiftShader's
+        // kernels reached 1.0e-13 on dx).
+        assert_nmse(&format!("y {what}"), &y_stack, &f64s(&y_one), 1e-12);
+        assert_nmse(&format!("grads {what}"), &g_stack, &f64s(&read(store.flat_grads())), 1e-12);
+        assert_nmse(&format!("dx {what}"), &read(&dx_stack), &f64s(&read(&dx_one)), 1e-12);
     }
     // Parameters with others between them do not stack.
     let mut b = ParamStore::builder();

