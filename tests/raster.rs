@@ -219,6 +219,10 @@ fn stress_a_million_tiny_gaussians() {
     // A million Gaussians of about a pixel, thousands per tile.
     let cam = camera(128, 96);
     let g = scene(1_000_000, 21, (-6.0, -4.5), (-3.0, 0.0));
+    let gpu = gpu();
+    if !binds_or_refused(&gpu, 12 * 1_000_000, || render(&gpu, &g.upload(&gpu)?, &cam, BG)) {
+        return;
+    }
     // With a million depths, a few pairs are a rounding apart, where the f32 and f64 depths
     // order apart and two Gaussians blend in swapped order.
     check_forward_pairs("1M tiny Gaussians", &g, &cam, 1e-8, 100);
@@ -242,6 +246,10 @@ fn blending_follows_the_full_depth_at_1080p() {
         let mean = [rng.range(-0.05, 0.05) as f32, rng.range(-0.05, 0.05) as f32, z];
         let colour = [0; 3].map(|_| rng.uniform() as f32);
         g.push(mean, [-2.3, -2.4, -2.2], [1.0, 0.0, 0.0, 0.0], 0.0, colour);
+    }
+    let gpu = gpu();
+    if !binds_or_refused(&gpu, 1920 * 1080 * 3 * 4, || render(&gpu, &g.upload(&gpu)?, &cam, BG)) {
+        return;
     }
     let f = check_forward("64 Gaussians 1e-5 apart at 1080p", &g, &cam, 1e-12);
     let rgb: Vec<f32> = f.rendered.image.rgb.read().unwrap();

@@ -57,6 +57,12 @@ fn scan_with_more_workgroups_than_one_dimension_allows() {
     // their workgroup index over two dimensions.
     let n = 65_536 * scan::WG + 17;
     let data: Vec<u32> = (0..n as u32).map(|i| i.wrapping_mul(2_654_435_761) >> 24).collect();
+    let gpu = gpu();
+    let input = Tensor::from_slice(&gpu, &[n], &data).unwrap();
+    let output = Tensor::empty(&gpu, &[n], DType::U32).unwrap();
+    if !binds_or_refused(&gpu, 4 * n, || exclusive_scan_items(&mut gpu.recorder()?, &input, &output, 1)) {
+        return;
+    }
     check_scan(&data, 1);
     check_scan(&data, scan::ITEMS);
 }
