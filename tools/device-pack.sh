@@ -1,9 +1,12 @@
 #!/usr/bin/env bash
-# Packs what a GPU machine without a Rust toolchain needs to test and benchmark this tree:
-# the release `velox` binary and the test binaries of the GPU-specific kernels (cooperative
-# matrices, attention, matmul, FPS, the autoencoder), stripped, into target/device/ (ignored by
-# git, so pass it to the machine explicitly, e.g. as a carried path). There, run
-# `tools/device-check.sh OUT [SUITE...]`.
+# Packs what a GPU machine without a Rust toolchain or a network needs to test, benchmark and
+# train with this tree, into ignored folders to pass to it (for example as carried paths):
+#   target/device/   the release `velox` and the engine-level test binaries (every op against its
+#                    reference, the cooperative-matrix kernels among them, the kernel-limit and
+#                    subgroup checks, the autoencoder), stripped: about 45 MiB;
+#   .gl/             the Debian packages of the Vulkan loader and the Khronos validation layer
+#                    (amd64), unpacked there by tools/device-check.sh.
+# There, run `tools/device-check.sh OUT [MINUTES]`.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 cargo build --release
@@ -13,10 +16,21 @@ mkdir -p target/device/tests
 cp target/release/velox target/device/velox
 for b in "${bins[@]}"; do
     name=$(basename "$b")
-    case $name in
-        attention-* | matmul-* | assign-* | autoencoder-* | attention_layer-*) cp "$b" target/device/tests/ ;;
+    case ${name%-*} in
+        assign | attention | attention_layer | autoencoder | elementwise | fill_copy | kernels | layers | \
+            matmul | raster | scan_sort | staging | subgroups | train_primitives)
+            cp "$b" target/device/tests/ ;;
     esac
 done
 strip target/device/velox target/device/tests/*
-du -sh target/device
+
+# The loader and the validation layer, as packages for the machine's dpkg -x.
+if command -v apt-get >/dev/null; then
+    grep -qx '/.gl/' .git/info/exclude 2>/dev/null || echo '/.gl/' >>.git/info/exclude
+    mkdir -p .gl /tmp/amd64/partial
+    o=(-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/amd64)
+    apt-get "${o[@]}" update -qq
+    (cd .gl && apt-get "${o[@]}" download libvulkan1 vulkan-validationlayers >/dev/null)
+fi
+du -sh target/device .gl 2>/dev/null
 ls target/device/tests

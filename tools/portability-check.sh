@@ -1,0 +1,98 @@
+#!/usr/bin/env bash
+# The test suite in every configuration a GPU may present, each imitated on a CPU: Vulkan
+# validation (synchronization checks over the whole suite, GPU-assisted checks over the op-level
+# tests), lavapipe's subgroup widths 4, 16 and 32, poisoned allocations, staging as on a discrete
+# GPU, each fallback a GPU may need (no f16, no f32 atomics, no push descriptors, a small
+# storage-binding limit), and SwiftShader, a second Vulkan implementation with a compiler of its
+# own. Prints a table: configuration, tests passed and failed, validation errors, minutes.
+#
+# Usage: tools/portability-check.sh [--quick] [CONFIG...]
+#   CONFIG   names from the table below (default: all); --list prints them.
+#   --quick  the op-level tests only, in every configuration (about a tenth of the time).
+# Needs: lavapipe (mesa-vulkan-drivers), the validation layer (vulkan-validationlayers) and
+# Debian's chromium-common (SwiftShader and the newer validation layer tools/vvl names);
+# tools/setup.sh --tests installs what is missing. Logs go to target/portability/<config>.log.
+# The full matrix takes about two hours on 2 cores.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+
+# The engine-level binaries: every op against its reference (the GPU-assisted row and --quick).
+OPS="assign attention attention_layer elementwise fill_copy kernels layers matmul mixed_precision raster \
+scan_sort staging subgroups train_primitives validation cloth"
+
+# name | environment | scope (all = the whole suite, ops = the binaries above)
+CONFIGS=(
+  "lavapipe||all"
+  "validation-sync|VELOX_VALIDATE=1|all"
+  "validation-sync-newer|VELOX_VALIDATE=1 VK_LAYER_PATH=tools/vvl|ops"
+  "validation-gpu-assisted|VELOX_VALIDATE=gpu VK_LAYER_PATH=tools/vvl|ops"
+  "subgroup-4|LP_NATIVE_VECTOR_WIDTH=128|all"
+  "subgroup-16|LP_NATIVE_VECTOR_WIDTH=512|all"
+  "subgroup-32|LP_NATIVE_VECTOR_WIDTH=1024|all"
+  "poisoned-memory|LVP_POISON_MEMORY=true|all"
+  "staging|VELOX_FORCE_STAGING=1|all"
+  "no-f16|VELOX_DISABLE=f16|all"
+  "no-float-atomics|VELOX_DISABLE=float-atomics|all"
+  "descriptor-sets|VELOX_DISABLE=push-descriptors|all"
+  "small-bindings|VELOX_MAX_BINDING=4M|all"
+  "swiftshader|VK_DRIVER_FILES=/usr/lib/chromium/vk_swiftshader_icd.json|all"
+)
+
+quick=0
+wanted=()
+for a in "$@"; do
+  case $a in
+    --quick) quick=1 ;;
+    --list) for c in "${CONFIGS[@]}"; do echo "${c%%|*}"; done; exit 0 ;;
+    -h | --help) sed -n '2,16p' "$0"; exit 0 ;;
+    *) wanted+=("$a") ;;
+  esac
+done
+for w in "${wanted[@]}"; do
+  found=0
+  for c in "${CONFIGS[@]}"; do [ "${c%%|*}" = "$w" ] && found=1; done
+  [ $found = 1 ] || { echo "unknown configuration $w (see --list)" >&2; exit 2; }
+done
+
+tools/setup.sh --tests
+cargo build --release --tests -q || exit 1
+mkdir -p target/portability
+export VK_LAYER_SETTINGS_PATH=$PWD/vk_layer_settings.txt
+
+rows=()
+status=0
+for c in "${CONFIGS[@]}"; do
+  IFS='|' read -r name envs scope <<<"$c"
+  if [ ${#wanted[@]} -gt 0 ] && ! printf '%s\n' "${wanted[@]}" | grep -qx "$name"; then
+    continue
+  fi
+  targets=()
+  what="whole suite"
+  if [ "$scope" = ops ] || [ $quick = 1 ]; then
+    for t in $OPS; do targets+=(--test "$t"); done
+    what="op-level tests"
+  fi
+  log=target/portability/$name.log
+  echo "== $name (${envs:-no switches}, $what) -> $log" >&2
+  start=$(date +%s)
+  # shellcheck disable=SC2086
+  env $envs cargo test --release --no-fail-fast "${targets[@]}" >"$log" 2>&1
+  end=$(date +%s)
+  passed=$(grep -E '^test result:' "$log" | awk '{s += $4} END {print s + 0}')
+  failed=$(grep -E '^test result:' "$log" | awk '{s += $6} END {print s + 0}')
+  errors=$(grep -c 'velox: validation error' "$log")
+  # A test binary that died before its summary (a crash, an abort) counts as a failure. The
+  # newer layer's GPU-assisted build aborts in its own teardown at exit when a device is still
+  # open (every test binary keeps one), after the binary has printed its result: that exit
+  # is not counted.
+  crashed=$(grep -cE 'process didn.t exit successfully.*signal' "$log")
+  if [ "$name" = validation-gpu-assisted ]; then crashed=0; fi
+  failed=$((failed + crashed))
+  minutes=$(awk -v s=$((end - start)) 'BEGIN {printf "%.1f", s / 60}')
+  rows+=("$(printf '%-24s %7s %7s %8s %8s' "$name" "$passed" "$failed" "$errors" "$minutes")")
+  if [ "$failed" -gt 0 ] || [ "$errors" -gt 0 ] || [ "$passed" -eq 0 ]; then status=1; fi
+done
+
+printf '\n%-24s %7s %7s %8s %8s\n' configuration passed failed "val.err" minutes
+printf '%s\n' "${rows[@]}"
+exit $status

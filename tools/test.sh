@@ -1,0 +1,28 @@
+#!/usr/bin/env bash
+# The project's test command (the README's, and what CI runs): on a Debian machine with only
+# Rust it first installs what is missing (tools/setup.sh --tests: a Vulkan driver where there is
+# none, the validation layers, Open MPI). Then it runs:
+#   1. the whole suite under the validation layer with synchronization checks
+#      (`VELOX_VALIDATE=1 cargo test --release`): any validation error fails the test that meets it;
+#   2. on lavapipe, the op-level tests at NVIDIA's subgroup width (LP_NATIVE_VECTOR_WIDTH=1024);
+#   3. the two-process test of data-parallel training over MPI.
+# tools/portability-check.sh runs the rest of the matrix (every width, poisoned memory, staging,
+# each fallback, SwiftShader).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+tools/setup.sh --tests
+
+export VK_LAYER_SETTINGS_PATH=$PWD/vk_layer_settings.txt
+
+# 1. Every test, with the validation layer watching every Vulkan call.
+VELOX_VALIDATE=1 cargo test --release
+
+# 2. The op-level tests at NVIDIA's subgroup width, where the device is lavapipe.
+if cargo run --release -q -- info 2>/dev/null | grep -q 'llvmpipe'; then
+  ops=(assign attention attention_layer elementwise fill_copy kernels layers matmul raster scan_sort subgroups)
+  LP_NATIVE_VECTOR_WIDTH=1024 cargo test --release "${ops[@]/#/--test=}"
+fi
+
+# 3. Data-parallel training over MPI (README, "Training on several GPUs").
+cargo test --release --features mpi --test distributed --test distributed_train
