@@ -191,6 +191,24 @@ fn compile(path: &Path, source: &str) -> Result<(Vec<u32>, Vec<Kernel>), String>
     validator.subgroup_stages(ShaderStages::COMPUTE).subgroup_operations(SubgroupOperationSet::all());
     let info = validator.validate(&module).map_err(|e| e.emit_to_string_with_path(source, &shown))?;
 
+    // No array crosses a function boundary: with the layout decorations removed from arrays in
+    // function memory (see `strip_layouts_outside_buffers`), lavapipe (Mesa 25) read stale memory
+    // for an array passed by value: the raster backward's subgroup sums, so that two processes
+    // and one process accumulating two micro-batches trained apart (tools/tests/
+    // distributed_train.rs). Arrays stay in their function; a struct or scalars cross instead.
+    for (_, f) in module.functions.iter() {
+        let by_value = f.arguments.iter().map(|a| a.ty).chain(f.result.as_ref().map(|r| r.ty));
+        for ty in by_value {
+            if matches!(module.types[ty].inner, naga::TypeInner::Array { .. }) {
+                return Err(format!(
+                    "{shown}: function {} takes or returns an array by value; pass its elements, a \
+                     struct or a pointer instead (engine/build.rs says why)",
+                    f.name.as_deref().unwrap_or("?")
+                ));
+            }
+        }
+    }
+
     let options = spv::Options {
         lang_version: (1, 5),
         // A bounded-loop guard on every loop cost a tiled matmul 10x on an H100 (DESIGN.md).

@@ -41,12 +41,9 @@ fn chunk_size(nsg: u32) -> u32 {
     return clamp(PART_FLOATS / (10u * nsg), 1u, MAX_CHUNK);
 }
 
-fn store_grads(sg: u32, nsg: u32, lane: u32, j: u32, gaussian: u32, sums: array<f32, 10>) {
+fn store_grad(sg: u32, nsg: u32, lane: u32, j: u32, gaussian: u32, c: u32, sum: f32) {
     if (lane == 0u) {
-        let base = (j * nsg + sg) * 10u;
-        for (var c = 0u; c < 10u; c = c + 1u) {
-            s_part[base + c] = sums[c];
-        }
+        s_part[(j * nsg + sg) * 10u + c] = sum;
     }
 }
 

@@ -14,13 +14,9 @@ fn chunk_size(nsg: u32) -> u32 {
     return BATCH;
 }
 
-fn store_grads(sg: u32, nsg: u32, lane: u32, j: u32, gaussian: u32, sums: array<f32, 10>) {
-    if (lane == 0u) {
-        for (var c = 0u; c < 10u; c = c + 1u) {
-            if (sums[c] != 0.0) {
-                atomicAdd(&grads[10u * gaussian + c], sums[c]);
-            }
-        }
+fn store_grad(sg: u32, nsg: u32, lane: u32, j: u32, gaussian: u32, c: u32, sum: f32) {
+    if (lane == 0u && sum != 0.0) {
+        atomicAdd(&grads[10u * gaussian + c], sum);
     }
 }
 

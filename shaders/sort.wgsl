@@ -86,13 +86,18 @@ fn field(lo: vec4<u32>, hi: vec4<u32>, digit: u32) -> u32 {
     return (word >> ((digit & 1u) * 16u)) & 0xffffu;
 }
 
-// One-hot packed counter of `digit` (see `field`), as its lo and hi halves.
-fn one_hot(digit: u32) -> array<vec4<u32>, 2> {
+// One-hot packed counter of `digit` (see `field`), as its lo and hi halves (a struct, not an
+// array: arrays do not cross function boundaries in the kernels, see engine/build.rs).
+struct Halves {
+    lo: vec4<u32>,
+    hi: vec4<u32>,
+}
+
+fn one_hot(digit: u32) -> Halves {
     let one = vec4<u32>(1u << ((digit & 1u) * 16u));
     let w = vec4<u32>(digit >> 1u);
     let lanes = vec4<u32>(0u, 1u, 2u, 3u);
-    return array<vec4<u32>, 2>(select(vec4<u32>(0u), one, lanes == w),
-                               select(vec4<u32>(0u), one, lanes + 4u == w));
+    return Halves(select(vec4<u32>(0u), one, lanes == w), select(vec4<u32>(0u), one, lanes + 4u == w));
 }
 
 // The inclusive scan of every invocation's packed counters over the workgroup (Hillis-Steele,
@@ -144,8 +149,8 @@ fn scatter(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
         if (first + j < pc.n) {
             keys[j] = keys_in[first + j];
             let h = one_hot((keys[j] >> pc.shift) & pc.mask);
-            lo = lo + h[0];
-            hi = hi + h[1];
+            lo = lo + h.lo;
+            hi = hi + h.hi;
         }
     }
     // Exclusive counts: the elements of each digit in earlier invocations.
@@ -164,8 +169,8 @@ fn scatter(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
             }
             values_out[dest] = value;
             let h = one_hot(digit);
-            lo = lo + h[0];
-            hi = hi + h[1];
+            lo = lo + h.lo;
+            hi = hi + h.hi;
         }
     }
 }
@@ -223,8 +228,8 @@ fn block(@builtin(local_invocation_index) lid: u32) {
                 keys[j] = block_key(src, first + j);
                 values[j] = block_value(src, first + j);
                 let h = one_hot((keys[j] >> shift) & mask);
-                lo = lo + h[0];
-                hi = hi + h[1];
+                lo = lo + h.lo;
+                hi = hi + h.hi;
             }
         }
         let counts = scan_counters(lid, lo, hi);
@@ -247,8 +252,8 @@ fn block(@builtin(local_invocation_index) lid: u32) {
                 let digit = (keys[j] >> shift) & mask;
                 block_store(dst, base[digit] + field(lo, hi, digit), keys[j], values[j]);
                 let h = one_hot(digit);
-                lo = lo + h[0];
-                hi = hi + h[1];
+                lo = lo + h.lo;
+                hi = hi + h.hi;
             }
         }
         // The pass's writes are the next pass's reads; and the scan rows and bases are

@@ -2,9 +2,10 @@
 // `raster_backward_atomic.wgsl` (native f32 atomic add) and `raster_backward_cas.wgsl`
 // (compare-and-swap), which each define the `grads` binding and four functions:
 // `init_grads(lid)`, called by every invocation first; `chunk_size(nsg)`, the Gaussians between
-// flushes for `nsg` subgroups a workgroup; `store_grads(sg, nsg, lane, j, gaussian, sums)`,
+// flushes for `nsg` subgroups a workgroup; `store_grad(sg, nsg, lane, j, gaussian, c, sum)`,
 // called by every invocation of a subgroup that touched the j-th Gaussian of a chunk, with the
-// subgroup's sums; and `flush_grads(lid, chunk, nsg, entry)`, called by every invocation after
+// subgroup's sum of channel c (one channel a call: an array passed by value reads stale memory
+// on lavapipe, see engine/build.rs); and `flush_grads(lid, chunk, nsg, entry)`, called by every invocation after
 // each chunk (in uniform control flow, so it may hold barriers), where `entry` is the place of
 // the chunk's first Gaussian in the sorted tile list (the j-th is at `entry - j`).
 //
@@ -153,11 +154,9 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
                     }
                 }
                 if (subgroupAny(contributes)) {
-                    var sums: array<f32, 10>;
                     for (var c = 0u; c < 10u; c = c + 1u) {
-                        sums[c] = subgroupAdd(grad[c]);
+                        store_grad(sg, nsg, lane, j, s_id[k], c, subgroupAdd(grad[c]));
                     }
-                    store_grads(sg, nsg, lane, j, s_id[k], sums);
                 }
             }
             flush_grads(lid, chunk, nsg, start + first + count - 1u - c0);
