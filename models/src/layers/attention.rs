@@ -156,7 +156,9 @@ impl MultiHeadAttention {
             Precision::F32 => Ok(t),
             Precision::F16 => cast(rec, &t, DType::F16),
         };
-        let (qkv, kv) = (self.qkv.as_ref().filter(|s| s.fits(x)), self.kv.as_ref().filter(|s| s.fits(c)));
+        let p = rec.precision();
+        let (qkv, kv) =
+            (self.qkv.as_ref().filter(|s| s.fits(x, p)), self.kv.as_ref().filter(|s| s.fits(c, p)));
         let (q, k, v, projections) = match (context, qkv, kv) {
             (None, Some(s), _) => {
                 let (y, cache) = s.forward(rec, x)?;

@@ -82,7 +82,7 @@ impl SwiGlu {
         x: &Tensor,
         residual: Option<&Tensor>,
     ) -> Result<(Tensor, SwiGluCache)> {
-        let (a, b, cx, stacked) = match self.w13.as_ref().filter(|s| s.fits(x)) {
+        let (a, b, cx, stacked) = match self.w13.as_ref().filter(|s| s.fits(x, rec.precision())) {
             Some(s) => {
                 let (ab, cx) = s.forward(rec, x)?;
                 let [a, b]: [Tensor; 2] = s.parts(&ab)?.try_into().expect("two layers");

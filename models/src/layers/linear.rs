@@ -199,15 +199,21 @@ impl LinearStack {
         Ok(LinearStack { weight, bias, k: shape[0], in_features: shape[1], out_features: shape[2] })
     }
 
-    /// Whether the outputs over `x`'s rows split into views of one layer's output each (the
-    /// device's offset alignment divides the bytes of `rows * out` elements, counted as f16,
-    /// the narrower type the parts can have: an f16 training pass splits its f16 gradients
-    /// too); where they do not, use the layers one by one. (Alignments run from 4 bytes to 256:
-    /// SwiftShader's 256 refuses stacks that lavapipe's 16 allows.)
-    pub fn fits(&self, x: &Tensor) -> bool {
+    /// Whether the outputs over `x`'s rows split into views of one layer's output each in a
+    /// recording of `precision`: the device's offset alignment divides the bytes of `rows *
+    /// out` elements, counted as f16 in an f16 recording (whose passes split f16 tensors too,
+    /// the rounded outputs and gradients) and as f32 otherwise. Where they do not, use the
+    /// layers one by one. Forward and backward passes are recorded in one precision, so they
+    /// decide alike. (Alignments run from 4 bytes to 256: SwiftShader's 256 refuses stacks that
+    /// lavapipe's 16 allows.)
+    pub fn fits(&self, x: &Tensor, precision: Precision) -> bool {
         let rows = x.numel() / self.in_features.max(1);
         let align = x.gpu().caps().min_storage_buffer_offset_alignment.max(4) as usize;
-        (rows * self.out_features * DType::F16.size()).is_multiple_of(align)
+        let size = match precision {
+            Precision::F16 => DType::F16.size(),
+            Precision::F32 => DType::F32.size(),
+        };
+        (rows * self.out_features * size).is_multiple_of(align)
     }
 
     /// The layers' parts `[rows, out]` of a stacked `[k, rows, out]` tensor (the forward pass's

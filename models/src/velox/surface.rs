@@ -126,9 +126,9 @@ impl Modulation {
         Ok(Modulation { linears, stack })
     }
 
-    /// The stack, where its output over `e`'s rows splits into views.
-    fn stack_for(&self, e: &Tensor) -> Option<&LinearStack> {
-        self.stack.as_ref().filter(|s| s.fits(e))
+    /// The stack, where its output over `e`'s rows splits into views in `rec`'s precision.
+    fn stack_for(&self, rec: &Recorder, e: &Tensor) -> Option<&LinearStack> {
+        self.stack.as_ref().filter(|s| s.fits(e, rec.precision()))
     }
 
     /// Each linear's output `[rows, width]` for the time embedding `e [rows, time_embed]`;
@@ -139,7 +139,7 @@ impl Modulation {
         e: &Tensor,
         e_cache: &mut Option<LinearCache>,
     ) -> Result<Vec<Tensor>> {
-        let Some(s) = self.stack_for(e) else {
+        let Some(s) = self.stack_for(rec, e) else {
             return self
                 .linears
                 .iter()
@@ -165,7 +165,7 @@ impl Modulation {
         de: &Tensor,
         de_started: &mut bool,
     ) -> Result<()> {
-        match self.stack_for(de) {
+        match self.stack_for(rec, de) {
             Some(s) => {
                 let rows = de.numel() / s.in_features;
                 let all = Tensor::empty(de.gpu(), &[s.k, rows, s.out_features], DType::F32)?;
