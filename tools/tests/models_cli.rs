@@ -667,8 +667,31 @@ fn tracker_trains_evaluates_and_tracks_a_video() {
         arg(&ev),
     ]));
     assert!(said.contains("APD vis") && said.contains("static") && said.contains("truth"), "{said}");
+    // The benchmark's protocol, said: its default scaling, thresholds in 256-pixel units.
+    assert!(said.contains("rescaled by median") && said.contains("256-pixel short side"), "{said}");
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(ev.join("tracking.json")).unwrap()).unwrap();
+    assert_eq!(report["scaling"], "median");
+    assert_eq!(report["threshold_resolution"], 256);
+    let none = work.join("eval-none");
+    let eval = |scaling: &str, out: &Path| {
+        velox(&[
+            "eval",
+            "tracking",
+            "--data",
+            arg(&data),
+            "--checkpoint",
+            arg(&tracker),
+            "--out",
+            arg(out),
+            "--scaling",
+            scaling,
+        ])
+    };
+    let said = ok(&eval("none", &none));
+    assert!(said.contains("rescaled by none"), "{said}");
+    let err = fails(&eval("sideways", &none));
+    assert!(err.contains("sideways") && err.contains("per_trajectory"), "{err}");
     let mean = &report["mean"];
     assert_eq!(mean["truth"]["apd_visible"].as_f64(), Some(1.0), "{mean}");
     for method in ["tracker", "static_baseline"] {
