@@ -13,10 +13,11 @@
 //!   ([`VoxelSource::Surface`]); the first source's figures are the headline ones;
 //! - geometry: `points` surface points sampled from the tokens against `points` of the frame's
 //!   input points (evenly strided, [`subsample`]): symmetric Chamfer distance, squared
-//!   distances in the data's [-1, 1]^3 units. Beside it, the Chamfer distance between the
-//!   ground truth's even and odd points ("GT halves"): a cloud of a few hundred points a frame
-//!   scores about 5e-3 against itself, so only a dense cloud can show a distance near the
-//!   paper's.
+//!   distances in the data's [-1, 1]^3 units ([`chamfer`] says why that form). Beside it, the
+//!   floor ("GT halves", the paper's "Chamfer oracle"): two disjoint `points`-point samples of
+//!   the frame's input points (the even and odd points of `2 points` of them; fewer where the
+//!   frame has fewer than `2 points`), the distance two samplings of the truth at the compared
+//!   density sit apart.
 //!
 //! A scene's figures are the means over its frames (PSNR and SSIM over every frame and view);
 //! the overall figures are the means over scenes. Up to `images` (frame, view) pairs per scene,
@@ -266,7 +267,10 @@ fn evaluate_scene(
         let n = options.sampling.points;
         let truth = subsample(&rows(truth_points), n);
         let cd = chamfer(&subsample(&rows(&samples), n), &truth);
-        let halves: [Vec<[f32; 3]>; 2] = [0, 1].map(|h| truth.iter().skip(h).step_by(2).copied().collect());
+        // The floor at the density the model is compared at: two disjoint samples of n points
+        // of the truth (the even and odd points of 2n), as the paper's "Chamfer oracle".
+        let pool = subsample(&rows(truth_points), 2 * n);
+        let halves: [Vec<[f32; 3]>; 2] = [0, 1].map(|h| pool.iter().skip(h).step_by(2).copied().collect());
         let floor = chamfer(&halves[0], &halves[1]);
         let mut sources = Vec::with_capacity(options.voxels.len());
         let mut first_views = Vec::new();
