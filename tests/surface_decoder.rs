@@ -12,31 +12,14 @@ use velox::engine::ops::binary::{binary, Binary};
 use velox::engine::ops::unary::{unary, Unary};
 use velox::engine::Precision;
 use velox::models::config::{AutoencoderConfig, SurfaceConfig};
-use velox::models::params::ParamStore;
 use velox::models::schedule::noam;
 use velox::models::velox::surface::{
     integrate, points_tensor, FlowNoise, SampleSpec, Sampler, SurfaceDecoder,
 };
 
-fn verbose() -> bool {
-    std::env::var_os("VELOX_TEST_VERBOSE").is_some()
-}
-
 fn tiny() -> (SurfaceConfig, usize) {
     let c = AutoencoderConfig::tiny();
     (c.surface, c.encoder.token_dim)
-}
-
-/// Replaces every parameter with random values of a moderate size, so that every path of the
-/// network (the zero-initialised adaLN maps and output layer included) carries a gradient.
-fn randomize(store: &ParamStore, seed: u64) {
-    let mut rng = Rng::new(seed);
-    for info in store.infos() {
-        let std =
-            if info.shape.len() >= 2 { 0.6 / (info.shape[info.shape.len() - 2] as f32).sqrt() } else { 0.2 };
-        let v: Vec<f32> = rng.normal_vec(info.numel).iter().map(|x| x * std).collect();
-        store.write_param(&info.name, &v).unwrap();
-    }
 }
 
 fn loss_of(dec: &SurfaceDecoder, x: &Tensor, tau: f32, tokens: &Tensor, noise: &FlowNoise) -> f64 {
@@ -56,7 +39,7 @@ fn backward_matches_central_differences() {
     let start = Instant::now();
     let (cfg, token_dim) = tiny();
     let (store, dec) = SurfaceDecoder::standalone(&gpu, &cfg, token_dim, 5).unwrap();
-    randomize(&store, 6);
+    randomize_params(&store, 6, 0.6);
     let mut rng = Rng::new(7);
     let (n, k, tau) = (24usize, 6usize, 0.35f32);
     let x = Tensor::from_slice(&gpu, &[n, 3], &rng.uniform_vec(n * 3, -0.8, 0.8)).unwrap();
@@ -152,7 +135,7 @@ fn points_are_decoded_independently() {
     let gpu = gpu();
     let (cfg, token_dim) = tiny();
     let (store, dec) = SurfaceDecoder::standalone(&gpu, &cfg, token_dim, 11).unwrap();
-    randomize(&store, 12);
+    randomize_params(&store, 12, 0.6);
     let mut rng = Rng::new(13);
     let n = 37;
     let x = rng.uniform_vec(n * 3, -1.0, 1.0);

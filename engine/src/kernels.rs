@@ -292,7 +292,7 @@ fn subgroup_request(
     let width = info.workgroup_size[0];
     match info.needs.subgroup_size {
         Some(size) if caps.subgroup_size_control => {
-            let full = caps.compute_full_subgroups && width % size == 0;
+            let full = caps.compute_full_subgroups && width.is_multiple_of(size);
             let flags = if full {
                 vk::PipelineShaderStageCreateFlags::REQUIRE_FULL_SUBGROUPS
             } else {
@@ -300,7 +300,10 @@ fn subgroup_request(
             };
             (Some(size), flags)
         }
-        _ if info.needs.subgroups && caps.compute_full_subgroups && width % caps.max_subgroup_size == 0 => {
+        _ if info.needs.subgroups
+            && caps.compute_full_subgroups
+            && width.is_multiple_of(caps.max_subgroup_size) =>
+        {
             (None, vk::PipelineShaderStageCreateFlags::REQUIRE_FULL_SUBGROUPS)
         }
         _ => (None, vk::PipelineShaderStageCreateFlags::empty()),

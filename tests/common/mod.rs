@@ -152,3 +152,115 @@ pub fn relative_gaps(full: &[f64], half: &[f64]) -> (f64, f64) {
 pub fn mean_of(losses: &[f64]) -> f64 {
     losses.iter().sum::<f64>() / losses.len() as f64
 }
+
+/// Whether the tests were asked to print their measurements (`VELOX_TEST_VERBOSE=1`).
+pub fn verbose() -> bool {
+    std::env::var_os("VELOX_TEST_VERBOSE").is_some()
+}
+
+/// Replaces every parameter of `store` with normal values of standard deviation
+/// `gain / sqrt(fan_in)` (matrices) or `0.2` (vectors), so that every path of a network (the
+/// zero-initialised adaLN maps and output layers included, and a head whose small start would
+/// shrink every gradient upstream of it) carries a gradient of its own size.
+pub fn randomize_params(store: &velox::models::params::ParamStore, seed: u64, gain: f32) {
+    let mut rng = Rng::new(seed);
+    for info in store.infos() {
+        let s = &info.shape;
+        let std = if s.len() >= 2 { gain / (s[s.len() - 2] as f32).sqrt() } else { 0.2 };
+        let v: Vec<f32> = rng.normal_vec(info.numel).iter().map(|x| x * std).collect();
+        store.write_param(&info.name, &v).unwrap();
+    }
+}
+
+/// A set of parameter tensors a finite-difference check moves together: a name and the flat
+/// ranges (in the store's parameter vector) of its tensors.
+pub struct ParamGroup {
+    pub name: String,
+    pub ranges: Vec<std::ops::Range<usize>>,
+}
+
+impl ParamGroup {
+    /// Every tensor whose name starts with `prefix` ("" for all of them).
+    pub fn under(store: &velox::models::params::ParamStore, prefix: &str) -> ParamGroup {
+        let ranges: Vec<_> = store
+            .infos()
+            .iter()
+            .filter(|i| i.name.starts_with(prefix))
+            .map(|i| i.offset..i.offset + i.numel)
+            .collect();
+        assert!(!ranges.is_empty(), "no parameter under {prefix:?}");
+        let name = if prefix.is_empty() { "every parameter".to_string() } else { format!("{prefix}*") };
+        ParamGroup { name, ranges }
+    }
+
+    /// Each tensor alone.
+    pub fn each(store: &velox::models::params::ParamStore) -> Vec<ParamGroup> {
+        store
+            .infos()
+            .iter()
+            .map(|i| ParamGroup { name: i.name.clone(), ranges: vec![i.offset..i.offset + i.numel] })
+            .collect()
+    }
+}
+
+/// Checks a gradient against finite differences of its loss: for each group, along `trials`
+/// random directions over that group's tensors (zero elsewhere), the derivative `grads . u`
+/// against the median of the slopes `(L(theta + (k+1) h u) - L(theta + k h u)) / h` for
+/// `k = -steps .. steps - 1`, within `rel * |analytic| + abs`. With `steps` 1 that is the
+/// central difference; more steps make it robust to a loss that jumps (a rasteriser's depth
+/// order or alpha threshold: a jump spoils one slope, not the median). `loss_at` writes the
+/// parameters it is given into the model and returns the loss (it must draw the same samples
+/// every time). Returns the worst `|estimate - analytic| / |analytic|`, and prints every
+/// figure under `VELOX_TEST_VERBOSE`. The parameters are left at `theta`.
+#[allow(clippy::too_many_arguments)]
+#[track_caller]
+pub fn check_directional(
+    what: &str,
+    theta: &[f32],
+    grads: &[f32],
+    groups: &[ParamGroup],
+    (trials, steps): (usize, i32),
+    h: f32,
+    (rel, abs): (f64, f64),
+    rng: &mut Rng,
+    loss_at: &mut dyn FnMut(&[f32]) -> f64,
+) -> f64 {
+    assert_eq!(theta.len(), grads.len());
+    assert!(grads.iter().all(|g| g.is_finite()), "{what}: a non-finite gradient");
+    assert!(steps >= 1);
+    let mut worst = 0f64;
+    for group in groups {
+        for trial in 0..trials {
+            let mut u = vec![0f32; theta.len()];
+            for r in &group.ranges {
+                u[r.clone()].copy_from_slice(&rng.normal_vec(r.len()));
+            }
+            let analytic: f64 = grads.iter().zip(&u).map(|(&g, &v)| g as f64 * v as f64).sum();
+            let losses: Vec<f64> = (-steps..=steps)
+                .map(|k| {
+                    let s = k as f32 * h;
+                    loss_at(&theta.iter().zip(&u).map(|(&p, &v)| p + s * v).collect::<Vec<_>>())
+                })
+                .collect();
+            let mut slopes: Vec<f64> = losses.windows(2).map(|w| (w[1] - w[0]) / h as f64).collect();
+            slopes.sort_by(f64::total_cmp);
+            let estimate = (slopes[slopes.len() / 2 - 1] + slopes[slopes.len() / 2]) / 2.0;
+            let err = (estimate - analytic).abs();
+            let r = err / analytic.abs().max(1e-30);
+            worst = worst.max(r);
+            if verbose() {
+                eprintln!(
+                    "{what}, {} #{trial}: analytic {analytic:+.6e} finite difference {estimate:+.6e} relative {r:.2e}",
+                    group.name
+                );
+            }
+            assert!(
+                err <= rel * analytic.abs() + abs,
+                "{what}, {} (direction {trial}): analytic {analytic:e} against finite difference {estimate:e} ({r:.2e})",
+                group.name
+            );
+        }
+    }
+    loss_at(theta);
+    worst
+}
