@@ -1,6 +1,5 @@
-//! The Velox encoder at the tiny config: shapes, determinism, its backward pass against a
-//! directional finite difference over every parameter, and bad clouds.
-
+//! The Velox encoder at the tiny config: shapes, determinism, its backward pass against
+//! finite differences per tensor, and bad clouds.
 mod common;
 use common::*;
 use velox::models::config::{AutoencoderConfig, EncoderConfig};

@@ -1,6 +1,7 @@
 //! The voxel decoder at the tiny config: its grid helpers against plain loops, its backward
-//! pass against a directional finite difference, a batch against its samples alone, that both
-//! stages learn one frame, and the paper config's parameter count.
+//! pass against finite differences per tensor, a batch against its samples alone, that both
+//! stages learn one frame beyond the label prior, that each scene is decoded from its own
+//! tokens, and the paper config's parameter count.
 
 mod common;
 use common::*;
@@ -10,7 +11,7 @@ use velox::models::config::{OccupancyLoss, VoxelConfig};
 use velox::models::params::ParamBuilder;
 use velox::models::velox::gaussians::occupied_voxels;
 use velox::models::velox::voxels::{
-    cell_labels, dilate, occupied_centres, VoxelDecoder, VoxelSample, FRAME_WORDS, GRID,
+    cell_labels, dilate, occupied_centres, voxel_of, VoxelDecoder, VoxelSample, FRAME_WORDS, GRID,
 };
 
 /// The occupancy of procedural scene `seed` (24 frames of 64^3 bits).
@@ -184,10 +185,25 @@ fn a_batch_gives_the_mean_of_its_samples_gradients() {
     assert!((batch.total() - total).abs() <= 1e-6 * total, "batch {} against singles {total}", batch.total());
 }
 
+/// The loss of the best constant logit (the label prior) over labels of which `positives` of
+/// `total` are 1: what a decoder that learned only the occupancy rate scores.
+fn prior_loss(kind: velox::engine::ops::loss::LossKind, positives: usize, total: usize) -> f64 {
+    let at = |c: f64| {
+        let f = |t: f64| velox::engine::ops::loss::reference::pointwise(kind, c, t).0;
+        (positives as f64 * f(1.0) + (total - positives) as f64 * f(0.0)) / total as f64
+    };
+    (-20_000..=20_000).map(|i| at(i as f64 * 1e-3)).fold(f64::INFINITY, f64::min)
+}
+
+const LEARN_STEPS: u64 = 120;
+
+/// One frame of one scene, its coarse cells and its voxels: both losses fall well below the
+/// label prior's (the best constant logit for each stage's labels, computed here), which
+/// already scores about half the starting focal loss. Would catch a stage that learns only
+/// the occupancy rate.
 #[test]
 fn both_stages_learn_one_frame() {
-    // One frame of one scene, its coarse cells and its voxels: both losses fall well below
-    // where they start (focal loss, as sparse occupancy wants; 50 steps of the tiny config).
+    use velox::engine::ops::loss::LossKind;
     use velox::models::train::Trainable;
     let gpu = gpu();
     let (occ, _) = occupancy(&gpu, 3, "learn");
@@ -195,7 +211,7 @@ fn both_stages_learn_one_frame() {
     let mut d = VoxelDecoder::new(&gpu, &cfg, 1).unwrap();
     let s = sample(&gpu, 7, &occ[..FRAME_WORDS]);
     let mut history = Vec::new();
-    for step in 1..=50u64 {
+    for step in 1..=LEARN_STEPS {
         zero(&gpu, &d);
         let l = d.accumulate(&[&s], &mut [Rng::new(step)], 1.0).unwrap();
         history.push((l.terms[1].1, l.terms[2].1));
@@ -204,18 +220,133 @@ fn both_stages_learn_one_frame() {
         d.store.adamw_step(&mut rec, &adamw, lr, Some(1.0)).unwrap();
         rec.submit().unwrap();
     }
+    // The labels each stage trains on: every cell, and the voxels of the dilated cells.
+    let words = &occ[..FRAME_WORDS];
+    let labels = cell_labels(words, cfg.cells);
+    let chosen = dilate(&labels, cfg.cells, cfg.dilate);
+    let per_cell = cfg.cell_side().pow(3);
+    let fine: Vec<bool> = (0..labels.len())
+        .filter(|&c| chosen[c])
+        .flat_map(|c| (0..per_cell).map(move |v| voxel_of(c, v, cfg.cells)))
+        .map(|i| words[i / 64] >> (i % 64) & 1 == 1)
+        .collect();
+    let kind = LossKind::Focal { gamma: 2.0 };
+    let coarse_prior = prior_loss(kind, labels.iter().filter(|&&l| l).count(), labels.len());
+    let fine_prior = prior_loss(kind, fine.iter().filter(|&&l| l).count(), fine.len());
     let mean = |r: &[(f64, f64)], f: fn(&(f64, f64)) -> f64| r.iter().map(f).sum::<f64>() / r.len() as f64;
-    let (first, last) = (&history[..5], &history[45..]);
+    let (first, last) = (&history[..5], &history[history.len() - 5..]);
     let (c0, c1) = (mean(first, |h| h.0), mean(last, |h| h.0));
     let (f0, f1) = (mean(first, |h| h.1), mean(last, |h| h.1));
-    if std::env::var_os("VELOX_TEST_VERBOSE").is_some() {
+    if verbose() {
         eprintln!(
-            "tiny voxel decoder, one frame, 50 steps: coarse {c0:.4} -> {c1:.4}, fine {f0:.4} -> {f1:.4}"
+            "tiny voxel decoder, one frame, {LEARN_STEPS} steps: coarse {c0:.4} -> {c1:.4} (label prior {coarse_prior:.4}), \
+             fine {f0:.4} -> {f1:.4} (label prior {fine_prior:.4})"
         );
     }
-    assert!(c1 < 0.3 * c0, "coarse loss {c0} -> {c1}");
-    assert!(f1 < 0.7 * f0, "fine loss {f0} -> {f1}");
+    // Measured on lavapipe: coarse 0.141 -> 0.0039 (prior 0.054), fine 0.201 -> 0.035 (prior
+    // 0.065); after 50 steps the fine stage was still at 0.82 of its prior.
+    assert!(c1 < 0.2 * coarse_prior, "coarse loss {c0} -> {c1}, the label prior's {coarse_prior}");
+    assert!(f1 < 0.7 * fine_prior, "fine loss {f0} -> {f1}, the label prior's {fine_prior}");
 }
+
+/// The mean binary cross-entropy of `labels` under `logits` (0/1 labels).
+fn cross_entropy(logits: &[f32], labels: impl Iterator<Item = bool>) -> f64 {
+    let kind = velox::engine::ops::loss::LossKind::BceWithLogits;
+    let (mut total, mut n) = (0.0, 0);
+    for (&l, t) in logits.iter().zip(labels) {
+        total += velox::engine::ops::loss::reference::pointwise(kind, l as f64, t as u8 as f64).0;
+        n += 1;
+    }
+    total / n as f64
+}
+
+/// The cross-entropy of a scene's occupancy at `frame` under the decoder's logits from
+/// `tokens`: (coarse cells, fine voxels of `cells`).
+fn surprise(
+    d: &VoxelDecoder,
+    tokens: &Tensor,
+    truth: &VoxelSample,
+    frame: usize,
+    cells: &[usize],
+) -> (f64, f64) {
+    let gpu = tokens.gpu();
+    let tau = frame as f32 / 100.0;
+    let words = &truth.occupancy[frame * FRAME_WORDS..(frame + 1) * FRAME_WORDS];
+    let mut rec = gpu.recorder().unwrap();
+    let coarse = d.coarse_logits(&mut rec, tokens, &[tau]).unwrap();
+    let fine = d.fine_logits(&mut rec, tokens, &[tau], &[cells.to_vec()]).unwrap().unwrap();
+    rec.submit().unwrap();
+    let n = d.cfg.cells;
+    let per_cell = d.cfg.cell_side().pow(3);
+    let coarse = cross_entropy(&coarse.read::<f32>().unwrap(), cell_labels(words, n).into_iter());
+    let voxels = cells.iter().flat_map(|&c| (0..per_cell).map(move |v| voxel_of(c, v, n)));
+    let fine =
+        cross_entropy(&fine.read::<f32>().unwrap(), voxels.map(|i| words[i / 64] >> (i % 64) & 1 == 1));
+    (coarse, fine)
+}
+
+/// Two scenes whose balls move along different paths, with tokens of their own: only the
+/// tokens tell them apart. Trained on both, the decoder's logits from a scene's own tokens
+/// make its own truth far more likely than the other's (cross-entropy per cell, and per voxel
+/// of the cells the truth fills), and the other scene's tokens or zero tokens make it
+/// clearly less likely. Would catch a decoder that does not read its tokens (the
+/// cross-attention's output zeroed, its token path unlearned), in either stage.
+#[test]
+fn each_scene_is_decoded_from_its_own_tokens() {
+    use velox::models::train::Trainable;
+    let gpu = gpu();
+    let balls = [
+        ball(24, [18.0, 22.0, 30.0], [22.0, 26.0, 34.0], 11.0),
+        ball(24, [46.0, 42.0, 34.0], [42.0, 38.0, 30.0], 11.0),
+    ];
+    let scenes = [sample(&gpu, 100, &balls[0]), sample(&gpu, 200, &balls[1])];
+    let cfg = VoxelConfig { frames_per_sample: 1, cells: 8, dilate: 0, ..VoxelConfig::tiny() };
+    let mut d = VoxelDecoder::new(&gpu, &cfg, 1).unwrap();
+    let refs = [&scenes[0], &scenes[1]];
+    for step in 1..=STEPS {
+        zero(&gpu, &d);
+        d.accumulate(&refs, &mut [Rng::new(2 * step), Rng::new(2 * step + 1)], 0.5).unwrap();
+        let (lr, adamw) = (d.optimisation().learning_rate(step), d.adamw);
+        let mut rec = gpu.recorder().unwrap();
+        d.store.adamw_step(&mut rec, &adamw, lr, Some(1.0)).unwrap();
+        rec.submit().unwrap();
+    }
+    let zeros = Tensor::from_slice(&gpu, &[48, 32], &vec![0f32; 48 * 32]).unwrap();
+    let frame = 11;
+    // The cells each ball fills at that frame: the fine stage is judged on a scene's own.
+    let n = cfg.cells;
+    let cells: Vec<Vec<usize>> = scenes
+        .iter()
+        .map(|s| {
+            let labels = cell_labels(&s.occupancy[frame * FRAME_WORDS..(frame + 1) * FRAME_WORDS], n);
+            (0..n.pow(3)).filter(|&c| labels[c]).collect()
+        })
+        .collect();
+    for (i, s) in scenes.iter().enumerate() {
+        let other = &scenes[1 - i];
+        let own = surprise(&d, &s.tokens, s, frame, &cells[i]);
+        let to_other = surprise(&d, &s.tokens, other, frame, &cells[1 - i]);
+        let swapped = surprise(&d, &other.tokens, s, frame, &cells[i]);
+        let zeroed = surprise(&d, &zeros, s, frame, &cells[i]);
+        if verbose() {
+            eprintln!(
+                "scene {i}: cross-entropy (cells, voxels) of its truth {own:.3?}, of the other's {to_other:.3?}; \
+                 from the other's tokens {swapped:.3?}, from zero tokens {zeroed:.3?}"
+            );
+        }
+        for (what, a, b) in [
+            ("cells", own.0, [to_other.0, swapped.0, zeroed.0]),
+            ("voxels", own.1, [to_other.1, swapped.1, zeroed.1]),
+        ] {
+            assert!(
+                b.iter().all(|&b| b > 3.0 * a),
+                "scene {i}, {what}: {a} for its own truth from its tokens, {b:?}"
+            );
+        }
+    }
+}
+
+const STEPS: u64 = 150;
 
 #[test]
 fn the_paper_config_counts_about_65_million_parameters() {

@@ -106,7 +106,7 @@ fn cell_centre(c: usize, cells: usize) -> [f32; 3] {
 }
 
 /// The voxel index (`x + 64 (y + 64 z)`) of voxel `v` (`dx + s (dy + s dz)`) of cell `c`.
-fn voxel_of(c: usize, v: usize, cells: usize) -> usize {
+pub fn voxel_of(c: usize, v: usize, cells: usize) -> usize {
     let s = GRID / cells;
     let (i, j, l) = (c % cells, c / cells % cells, c / (cells * cells));
     let (dx, dy, dz) = (v % s, v / s % s, v / (s * s));
