@@ -59,13 +59,16 @@ fn a_cloth_in_free_fall_falls_as_gravity_says() {
     }
 }
 
-/// A crumpled cloth over the ground, with bending, collision, friction and bounce: the device's
-/// substeps against the f64 reference's.
+/// A crumpled cloth hung by one corner just over the ground, with bending, self-collision,
+/// friction and bounce: the device's substeps against the f64 reference's. The reference run
+/// counts what happened (ground contacts, bounces, particles pushed apart by self-collision),
+/// and runs again without friction, without bounce and without self-collision to show each
+/// changed the result: a device that skipped one would then differ from the reference.
 #[test]
 fn the_device_matches_the_f64_reference() {
     let gpu = gpu();
     let mut rng = Rng::new(3);
-    let (mut pos, tris) = grid(7, 0.03, -0.95, 0.0, 0.0);
+    let (mut pos, tris) = grid(7, 0.03, -0.972, 0.0, 0.0);
     for p in pos.iter_mut() {
         for v in p.iter_mut() {
             *v += rng.range(-0.008, 0.008) as f32;
@@ -73,25 +76,78 @@ fn the_device_matches_the_f64_reference() {
     }
     let mut mesh = ClothMesh::from_triangles(pos, &tris, 1e-6, 1e-3).unwrap();
     mesh.inv_mass[0] = 0.0;
-    let params = ClothParams {
-        substeps: 4,
-        restitution: 0.3,
-        radius: 0.012,
-        exclude: 0.035,
-        ..ClothParams::default()
-    };
-    let mut sim = ClothSim::new(&gpu, &mesh, params).unwrap();
-    let mut state = reference::State::new(&mesh);
-    for _ in 0..5 {
-        sim.step(&gpu, 0.01).unwrap();
-        for _ in 0..4 {
-            reference::substep(&mut state, &mesh, &params, 0.0025);
+    // Particles 0.04 apart collide: diagonal neighbours (0.042 at rest) come within reach.
+    let params =
+        ClothParams { substeps: 4, restitution: 0.3, radius: 0.02, exclude: 0.035, ..ClothParams::default() };
+    let frames = 8;
+    let floor = params.ground as f64 + params.radius as f64;
+    // The reference, counting ground contacts, bounces and self-collision pushes.
+    let run = |q: &ClothParams| {
+        let mut state = reference::State::new(&mesh);
+        let (mut contacts, mut bounces, mut close) = (0, 0, 0);
+        for _ in 0..frames * q.substeps {
+            reference::substep(&mut state, &mesh, q, 0.01 / q.substeps as f64);
+            for (x, v) in state.x.iter().zip(&state.v) {
+                if x[1] == floor {
+                    contacts += 1;
+                    bounces += (v[1] > 0.0) as usize;
+                }
+            }
+            close += pairs_within(&state.x, &mesh.rest_positions, 2.0 * q.radius as f64, q.exclude as f64);
         }
+        (state, contacts, bounces, close)
+    };
+    let (state, contacts, bounces, close) = run(&params);
+    let mut sim = ClothSim::new(&gpu, &mesh, params).unwrap();
+    for _ in 0..frames {
+        sim.step(&gpu, 0.01).unwrap();
     }
     let want: Vec<f64> = state.x.iter().flatten().copied().collect();
-    assert_nmse("positions after 5 frames", &sim.positions().unwrap(), &want, 1e-10);
-    let want: Vec<f64> = state.v.iter().flatten().copied().collect();
-    assert_nmse("velocities after 5 frames", &sim.velocities().unwrap(), &want, 1e-7);
+    let got = sim.positions().unwrap();
+    assert_nmse("positions after 8 frames", &got, &want, 1e-10);
+    let want_v: Vec<f64> = state.v.iter().flatten().copied().collect();
+    // A velocity is a position difference over a substep of 2.5 ms: near y = -0.98 f32 values
+    // lie 6e-8 apart (2.4e-5 in velocity), and friction divides by slides of some 1e-5. On
+    // lavapipe: positions 3.3e-12, velocities 7.8e-6 (at most 3.7e-4 off, of up to 0.3).
+    assert_nmse("velocities after 8 frames", &sim.velocities().unwrap(), &want_v, 3e-5);
+    // What the comparison covered: contacts with the ground, bounces, and pairs within reach
+    // of each other (summed over the substeps).
+    if verbose() {
+        eprintln!("ground contacts {contacts}, bounces {bounces}, pairs within reach {close}");
+    }
+    assert!(
+        contacts >= 100 && bounces >= 10 && close >= 10,
+        "contacts {contacts}, bounces {bounces}, close pairs {close}"
+    );
+    // Each of friction, bounce and self-collision changes the result well beyond the device's
+    // distance from the reference.
+    for (what, q) in [
+        ("friction", ClothParams { friction: 0.0, ..params }),
+        ("bounce", ClothParams { restitution: 0.0, ..params }),
+        ("self-collision", ClothParams { collide: false, ..params }),
+    ] {
+        let without: Vec<f64> = run(&q).0.x.iter().flatten().copied().collect();
+        let e = nmse(&got, &without);
+        if verbose() {
+            eprintln!("without {what}: nmse {e:.2e} from the device's");
+        }
+        assert!(e > 1e-8, "without {what} the result is the same ({e:.2e})");
+    }
+}
+
+/// Pairs of particles closer than `reach` that self-collision does not exclude.
+fn pairs_within(x: &[[f64; 3]], rest: &[[f32; 3]], reach: f64, exclude: f64) -> usize {
+    let d = |a: [f64; 3], b: [f64; 3]| {
+        ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+    };
+    let mut n = 0;
+    for i in 0..x.len() {
+        for j in i + 1..x.len() {
+            let r = d(rest[i].map(|v| v as f64), rest[j].map(|v| v as f64));
+            n += (r >= exclude && d(x[i], x[j]) < reach) as usize;
+        }
+    }
+    n
 }
 
 #[test]

@@ -1,5 +1,6 @@
 //! The Velox encoder at the tiny config: shapes, determinism, its backward pass against
 //! finite differences per tensor, and bad clouds.
+
 mod common;
 use common::*;
 use velox::models::config::{AutoencoderConfig, EncoderConfig};
