@@ -11,6 +11,7 @@ fn staging_round_trips_tensors_views_and_op_results() {
     std::env::set_var("VELOX_FORCE_STAGING", "1");
     let gpu = Gpu::new().unwrap();
     let mut rng = Rng::new(1);
+    let staged = gpu.staged_bytes();
     for &n in &[0usize, 1, 3, 1000, 100_003] {
         let a = rng.normal_vec(n);
         let b = rng.normal_vec(n);
@@ -23,6 +24,10 @@ fn staging_round_trips_tensors_views_and_op_results() {
         let want: Vec<f32> = a.iter().zip(&b).map(|(x, y)| x + y).collect();
         assert_eq!(c.read::<f32>().unwrap(), want, "n = {n}");
     }
+    // Every byte of those uploads and downloads went through staging: two uploads and two
+    // downloads of each size.
+    let moved: u64 = [0u64, 1, 3, 1000, 100_003].iter().map(|n| 4 * 4 * n).sum();
+    assert_eq!(gpu.staged_bytes() - staged, moved, "the transfers did not take the staging path");
     // A view at an offset writes and reads only its own range.
     let al = Tensor::empty(&gpu, &[1], DType::U32).unwrap().view_alignment();
     let len = (3 * al).max(64);

@@ -49,6 +49,8 @@ pub(crate) struct GpuInner {
     /// [`Gpu::reset_peak_memory`] (staging buffers included).
     pub memory_live: AtomicU64,
     pub memory_peak: AtomicU64,
+    /// Bytes uploaded and downloaded through staging buffers since the device was opened.
+    pub staged_bytes: AtomicU64,
 }
 
 /// One line of the device list shown by `velox info`.
@@ -350,6 +352,7 @@ impl Gpu {
                 pipelines: PipelineCache::new(),
                 memory_live: AtomicU64::new(0),
                 memory_peak: AtomicU64::new(0),
+                staged_bytes: AtomicU64::new(0),
             }),
         })
     }
@@ -426,6 +429,13 @@ impl Gpu {
     /// held at once since the last [`Gpu::reset_peak_memory`] (or since the device was opened).
     pub fn memory(&self) -> (u64, u64) {
         (self.inner.memory_live.load(Ordering::Relaxed), self.inner.memory_peak.load(Ordering::Relaxed))
+    }
+
+    /// Bytes the host has written and read through staging buffers since the device was
+    /// opened: zero where every tensor is mapped (unified memory), unless
+    /// `VELOX_FORCE_STAGING=1` sends the transfers through staging as a discrete GPU's do.
+    pub fn staged_bytes(&self) -> u64 {
+        self.inner.staged_bytes.load(Ordering::Relaxed)
     }
 
     /// Starts a new peak from what is held now.

@@ -314,6 +314,7 @@ impl Gpu {
             .ok_or_else(|| Error::Unsupported("staging memory is not host-visible".into()))?;
         // SAFETY: the staging mapping holds at least `bytes.len()` bytes.
         unsafe { std::ptr::copy_nonoverlapping(bytes.as_ptr(), ptr, bytes.len()) };
+        self.inner.staged_bytes.fetch_add(bytes.len() as u64, std::sync::atomic::Ordering::Relaxed);
         self.copy_now(&staging, 0, buf, offset, bytes.len() as u64)
     }
 
@@ -333,6 +334,7 @@ impl Gpu {
             .ok_or_else(|| Error::Unsupported("staging memory is not host-visible".into()))?;
         // SAFETY: the copy has completed; the mapping holds `out.len()` bytes.
         unsafe { std::ptr::copy_nonoverlapping(ptr, out.as_mut_ptr(), out.len()) };
+        self.inner.staged_bytes.fetch_add(out.len() as u64, std::sync::atomic::Ordering::Relaxed);
         Ok(())
     }
 
