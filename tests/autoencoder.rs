@@ -303,7 +303,8 @@ fn bad_scenes_and_checkpoints_get_clear_errors() {
     assert!(err.to_string().contains("size"), "{err}");
     let mut nan = cloud.clone();
     nan[0] = f32::NAN;
-    assert!(TrainScene::new(&gpu, nan, vec![cam], vec![vec![0.0; 192]; 24]).is_err());
+    let err = TrainScene::new(&gpu, nan, vec![cam], vec![vec![0.0; 192]; 24]).err().unwrap().to_string();
+    assert!(err.contains("point 0 has a non-finite value in channel 0"), "{err}");
     let mut late = cloud;
     late[6] = 0.5;
     assert!(TrainScene::new(&gpu, late, vec![cam], vec![vec![0.0; 192]; 24])

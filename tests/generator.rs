@@ -226,8 +226,13 @@ fn f16_training_follows_f32() {
     );
     assert!(worst < 0.02 && mean < 2e-3, "f16 strays from f32: worst {worst:.3e}, mean {mean:.3e}");
     // Measured on lavapipe: at most 7.9e-3, mean 7.8e-4; the flow loss 1.82 -> 1.67 (noisy: each
-    // step draws its own flow times), so the run is checked to learn on the mean of 20 steps.
-    assert!(mean_of(&full[40..]) < mean_of(&full[..20]), "the run must learn: {full:?}");
+    // step draws its own flow times). The untrained network's output is zero (adaLN-Zero), the
+    // trivial model of a regression whose targets have mean zero, so the first steps' loss is
+    // the trivial model's: both runs must end 5 % under it on the means of 20 steps.
+    for (what, run) in [("f32", &full), ("f16", &half)] {
+        let (start, end) = (mean_of(&run[..20]), mean_of(&run[40..]));
+        assert!(end < 0.95 * start, "the {what} run must learn: {start} -> {end}");
+    }
 }
 
 #[test]
