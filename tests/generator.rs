@@ -66,23 +66,46 @@ fn backward_matches_a_directional_finite_difference() {
         assert!(l0.total() > 0.0, "{l0:?}");
         let grad: Vec<f32> = g.store.flat_grads().read().unwrap();
         let theta: Vec<f32> = g.store.flat_params().read().unwrap();
-        let u = Rng::new(5).normal_vec(theta.len());
-        let analytic: f64 = grad.iter().zip(&u).map(|(&g, &v)| g as f64 * v as f64).sum();
-        let eps = 1e-3f32;
-        let mut at = |sign: f32| {
-            let p: Vec<f32> = theta.iter().zip(&u).map(|(&x, &v)| x + sign * eps * v).collect();
-            g.store.flat_params().write(&p).unwrap();
+        // Every parameter together (measured within 9e-4), and in the run that has them all
+        // (the DINOv2 path, a dropped condition) each part alone (a block, the adaLN maps, the
+        // time embedding...): the loss is large with every parameter randomised, and its f32
+        // rounding (about 1e-3 in a derivative at these steps) would swamp a small tensor alone.
+        let mut groups = vec![ParamGroup::under(&g.store, "")];
+        if dino > 0 {
+            let mut parts: Vec<String> = Vec::new();
+            for info in g.store.infos() {
+                let mut it = info.name.split('.');
+                let first = it.next().unwrap();
+                let part = match (first, it.next()) {
+                    ("blocks", Some(i)) => format!("blocks.{i}."),
+                    (_, Some(_)) => format!("{first}."),
+                    (_, None) => first.to_string(),
+                };
+                if !parts.contains(&part) {
+                    parts.push(part);
+                }
+            }
+            groups.extend(parts.iter().map(|p| ParamGroup::under(&g.store, p)));
+        }
+        let what = format!("dropout {dropout}, dino {dino}");
+        let mut at = |p: &[f32]| {
+            g.store.flat_params().write(p).unwrap();
             g.accumulate(&refs, &mut rngs(), 1.0).unwrap().total()
         };
-        let numeric = (at(1.0) - at(-1.0)) / (2.0 * eps as f64);
-        let rel = (numeric - analytic).abs() / analytic.abs();
-        if std::env::var_os("VELOX_TEST_VERBOSE").is_some() {
-            eprintln!("dropout {dropout}, dino {dino}: analytic {analytic} numeric {numeric} ({rel:.2e})");
-        }
-        assert!(
-            rel < 1e-3,
-            "dropout {dropout}: analytic {analytic} against finite difference {numeric} ({rel:.2e})"
+        let worst = check_directional(
+            &what,
+            &theta,
+            &grad,
+            &groups,
+            (1, 1),
+            1e-3,
+            (2e-3, 1e-4),
+            &mut Rng::new(5),
+            &mut at,
         );
+        if verbose() {
+            eprintln!("{what}: worst relative error {worst:.2e}");
+        }
         // Each part of the model has a gradient: the RGB embedding only through kept scenes.
         for name in
             ["rgb.w", "cond.w", "positions", "blocks.1.table.gate_mlp", "adaln.scale_attn.w", "time.fc1.w"]
