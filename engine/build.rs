@@ -2,7 +2,9 @@
 //!
 //! For each shader file we emit one SPIR-V module (all its entry points) and, for every entry
 //! point, a `KernelInfo` with its workgroup size, the storage bindings it reads and writes (from
-//! naga's own use analysis, so the recorder's barriers follow what the kernel really touches),
+//! naga's own use analysis, so the recorder's barriers follow what the kernel really touches,
+//! a binding the module declares `read_write` counting as written, as the validation layer
+//! counts it),
 //! the size of its push constants and the device features it needs. A broken shader stops the
 //! build with naga's message, which names the file, line and column.
 
@@ -264,7 +266,7 @@ fn compile(path: &Path, source: &str) -> Result<(Vec<u32>, Vec<Kernel>), String>
                 naga::AddressSpace::WorkGroup if !usage.is_empty() => {
                     shared_bytes += module.types[var.ty].inner.size(module.to_ctx());
                 }
-                naga::AddressSpace::Storage { .. } => {
+                naga::AddressSpace::Storage { access } => {
                     let b = var
                         .binding
                         .as_ref()
@@ -273,9 +275,15 @@ fn compile(path: &Path, source: &str) -> Result<(Vec<u32>, Vec<Kernel>), String>
                         return Err(format!("{shown}: kernels use @group(0) only"));
                     }
                     // A binding the entry point never touches is still bound (the layout is
-                    // per entry point, positional), but it is neither read nor written.
+                    // per entry point, positional), but it is neither read nor written. One it
+                    // touches counts as written where this entry point writes it or where the
+                    // module declares it `read_write`: SPIR-V marks the variable, not each entry
+                    // point's use, so the validation layer takes a read_write binding that an
+                    // entry point only reads (a norm's statistics, read by its backward passes)
+                    // as written, and its synchronization checks want the barriers for that.
                     if !usage.is_empty() {
-                        bindings.push((b.binding, usage.contains(GlobalUse::WRITE)));
+                        let declared = access.contains(naga::StorageAccess::STORE);
+                        bindings.push((b.binding, usage.contains(GlobalUse::WRITE) || declared));
                     }
                 }
                 naga::AddressSpace::Immediate if !usage.is_empty() => {

@@ -243,6 +243,7 @@ impl Recorder {
         }
         let raw_or_waw = reads.iter().chain(writes).any(|b| self.written.contains(b));
         let war = writes.iter().any(|b| self.read.contains(b));
+
         if raw_or_waw || war {
             self.full_barrier();
         }
@@ -544,12 +545,26 @@ impl Recorder {
         let profile_end = if self.profiled.is_empty() { None } else { self.timestamp() };
         // The host reads results from mapped memory (tensors on unified memory, staging buffers)
         // once the fence has signalled; the fence makes the device's writes available, and this
-        // barrier makes them visible to the host's reads.
+        // barrier makes them visible to the host's reads. It also orders them before the work of
+        // later submissions (its second scope reaches every later command on the queue): waiting
+        // on a fence orders nothing on the device, and a later recording that reads or rewrites
+        // a buffer this one wrote (a gradient, a parameter) would otherwise race with it, as the
+        // validation layer's submit-time checks report.
         let to_host = [vk::MemoryBarrier2::default()
             .src_stage_mask(vk::PipelineStageFlags2::COMPUTE_SHADER | vk::PipelineStageFlags2::TRANSFER)
             .src_access_mask(vk::AccessFlags2::SHADER_WRITE | vk::AccessFlags2::TRANSFER_WRITE)
-            .dst_stage_mask(vk::PipelineStageFlags2::HOST)
-            .dst_access_mask(vk::AccessFlags2::HOST_READ)];
+            .dst_stage_mask(
+                vk::PipelineStageFlags2::HOST
+                    | vk::PipelineStageFlags2::COMPUTE_SHADER
+                    | vk::PipelineStageFlags2::TRANSFER,
+            )
+            .dst_access_mask(
+                vk::AccessFlags2::HOST_READ
+                    | vk::AccessFlags2::SHADER_READ
+                    | vk::AccessFlags2::SHADER_WRITE
+                    | vk::AccessFlags2::TRANSFER_READ
+                    | vk::AccessFlags2::TRANSFER_WRITE,
+            )];
         // SAFETY: recording state; the fence is unsignalled; the queue is externally
         // synchronised by its mutex.
         unsafe {
