@@ -181,15 +181,7 @@ fn each_scene_is_tracked_from_its_own_tokens() {
     let scenes = [scene(&gpu, 6, 100, 200, 1.0), scene(&gpu, 6, 200, 200, -1.0)];
     let queries: Vec<[f32; 3]> = scenes[0].tracks.iter().map(|t| t[0]).collect();
     assert_eq!(queries, scenes[1].tracks.iter().map(|t| t[0]).collect::<Vec<_>>());
-    let refs = [&scenes[0], &scenes[1]];
-    for step in 1..=STEPS {
-        zero(&gpu, &t);
-        t.accumulate(&refs, &mut [Rng::new(2 * step), Rng::new(2 * step + 1)], 0.5).unwrap();
-        let (lr, adamw) = (t.optimisation().learning_rate(step), t.adamw);
-        let mut rec = gpu.recorder().unwrap();
-        t.store.adamw_step(&mut rec, &adamw, lr, Some(1.0)).unwrap();
-        rec.submit().unwrap();
-    }
+    trainer_losses(&mut t, &[&scenes[0], &scenes[1]], STEPS, Precision::F32);
     let error = |pred: &[Track], truth: &TrackSample| -> f64 {
         let n = (pred.len() * 24) as f64;
         pred.iter()

@@ -293,7 +293,6 @@ fn surprise(
 /// cross-attention's output zeroed, its token path unlearned), in either stage.
 #[test]
 fn each_scene_is_decoded_from_its_own_tokens() {
-    use velox::models::train::Trainable;
     let gpu = gpu();
     let balls = [
         ball(24, [18.0, 22.0, 30.0], [22.0, 26.0, 34.0], 11.0),
@@ -302,15 +301,7 @@ fn each_scene_is_decoded_from_its_own_tokens() {
     let scenes = [sample(&gpu, 100, &balls[0]), sample(&gpu, 200, &balls[1])];
     let cfg = VoxelConfig { frames_per_sample: 1, cells: 8, dilate: 0, ..VoxelConfig::tiny() };
     let mut d = VoxelDecoder::new(&gpu, &cfg, 1).unwrap();
-    let refs = [&scenes[0], &scenes[1]];
-    for step in 1..=STEPS {
-        zero(&gpu, &d);
-        d.accumulate(&refs, &mut [Rng::new(2 * step), Rng::new(2 * step + 1)], 0.5).unwrap();
-        let (lr, adamw) = (d.optimisation().learning_rate(step), d.adamw);
-        let mut rec = gpu.recorder().unwrap();
-        d.store.adamw_step(&mut rec, &adamw, lr, Some(1.0)).unwrap();
-        rec.submit().unwrap();
-    }
+    trainer_losses(&mut d, &[&scenes[0], &scenes[1]], STEPS, Precision::F32);
     let zeros = Tensor::from_slice(&gpu, &[48, 32], &vec![0f32; 48 * 32]).unwrap();
     let frame = 11;
     // The cells each ball fills at that frame: the fine stage is judged on a scene's own.
