@@ -143,14 +143,7 @@ fn an_untrained_tracker_stays_put_and_a_trained_one_learns_the_motion() {
     let drift =
         before.iter().zip(&queries).flat_map(|(p, q)| p.iter().map(move |x| dist(x, q))).fold(0.0, f32::max);
     assert!(drift < 0.05, "an untrained tracker moves a query by {drift}");
-    let error = |pred: &[Track]| -> f64 {
-        let n = (pred.len() * 24) as f64;
-        pred.iter()
-            .zip(&s.tracks)
-            .flat_map(|(p, t)| p.iter().zip(t).map(|(a, b)| dist(a, b) as f64))
-            .sum::<f64>()
-            / n
-    };
+    let error = |pred: &[Track]| mean_l2(pred, &s.tracks);
     let static_error = error(&before);
     for step in 1..=80u64 {
         zero(&gpu, &t);
@@ -182,14 +175,7 @@ fn each_scene_is_tracked_from_its_own_tokens() {
     let queries: Vec<[f32; 3]> = scenes[0].tracks.iter().map(|t| t[0]).collect();
     assert_eq!(queries, scenes[1].tracks.iter().map(|t| t[0]).collect::<Vec<_>>());
     trainer_losses(&mut t, &[&scenes[0], &scenes[1]], STEPS, Precision::F32);
-    let error = |pred: &[Track], truth: &TrackSample| -> f64 {
-        let n = (pred.len() * 24) as f64;
-        pred.iter()
-            .zip(&truth.tracks)
-            .flat_map(|(p, t)| p.iter().zip(t).map(|(a, b)| dist(a, b) as f64))
-            .sum::<f64>()
-            / n
-    };
+    let error = |pred: &[Track], truth: &TrackSample| mean_l2(pred, &truth.tracks);
     let fixed: Vec<Track> = queries.iter().map(|&q| [q; 24]).collect();
     let zeros = Tensor::from_slice(&gpu, &[48, 32], &vec![0f32; 48 * 32]).unwrap();
     for (i, s) in scenes.iter().enumerate() {
@@ -217,6 +203,12 @@ fn each_scene_is_tracked_from_its_own_tokens() {
 }
 
 const STEPS: u64 = 150;
+
+/// The mean distance between predicted and true positions over every query and frame.
+fn mean_l2(pred: &[Track], truth: &[Track]) -> f64 {
+    let n = (pred.len() * 24) as f64;
+    pred.iter().zip(truth).flat_map(|(p, t)| p.iter().zip(t).map(|(a, b)| dist(a, b) as f64)).sum::<f64>() / n
+}
 
 fn dist(a: &[f32; 3], b: &[f32; 3]) -> f32 {
     (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f32>().sqrt()

@@ -655,17 +655,15 @@ fn tracker_trains_evaluates_and_tracks_a_video() {
         velox_models::velox::tracker::Tracker::load(&gpu, &tracker).unwrap().store.num_parameters()
     );
 
+    // `velox eval tracking` on the data and tracker above, with `extra` arguments.
+    let eval = |extra: &[&str], out: &Path| {
+        let mut args =
+            vec!["eval", "tracking", "--data", arg(&data), "--checkpoint", arg(&tracker), "--out", arg(out)];
+        args.extend_from_slice(extra);
+        velox(&args)
+    };
     let ev = work.join("eval");
-    let said = ok(&velox(&[
-        "eval",
-        "tracking",
-        "--data",
-        arg(&data),
-        "--checkpoint",
-        arg(&tracker),
-        "--out",
-        arg(&ev),
-    ]));
+    let said = ok(&eval(&[], &ev));
     assert!(said.contains("APD vis") && said.contains("static") && said.contains("truth"), "{said}");
     // The benchmark's protocol, said: its default scaling, thresholds in 256-pixel units.
     assert!(said.contains("rescaled by median") && said.contains("256-pixel short side"), "{said}");
@@ -674,23 +672,9 @@ fn tracker_trains_evaluates_and_tracks_a_video() {
     assert_eq!(report["scaling"], "median");
     assert_eq!(report["threshold_resolution"], 256);
     let none = work.join("eval-none");
-    let eval = |scaling: &str, out: &Path| {
-        velox(&[
-            "eval",
-            "tracking",
-            "--data",
-            arg(&data),
-            "--checkpoint",
-            arg(&tracker),
-            "--out",
-            arg(out),
-            "--scaling",
-            scaling,
-        ])
-    };
-    let said = ok(&eval("none", &none));
+    let said = ok(&eval(&["--scaling", "none"], &none));
     assert!(said.contains("rescaled by none"), "{said}");
-    let err = fails(&eval("sideways", &none));
+    let err = fails(&eval(&["--scaling", "sideways"], &none));
     assert!(err.contains("sideways") && err.contains("per_trajectory"), "{err}");
     let mean = &report["mean"];
     assert_eq!(mean["truth"]["apd_visible"].as_f64(), Some(1.0), "{mean}");
