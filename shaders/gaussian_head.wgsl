@@ -1,4 +1,4 @@
-// The Gaussian decoder's head activations (MODELS.md, Gaussian decoder): each voxel token
+// The Gaussian decoder's head activations (docs/models.md, Gaussian decoder): each voxel token
 // gives G Gaussians of 14 raw numbers (offset 3, scale 3, quaternion 4, opacity 1, rgb 3),
 // mapped to the rasteriser's parameters:
 //   mean      = voxel centre + (2 sigmoid(o) - 1) * offset_range

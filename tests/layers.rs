@@ -416,7 +416,7 @@ fn a_parameter_used_twice_sums_its_gradients() {
 fn fourier_embedding_matches_reference() {
     let mut rng = Rng::new(7);
     let gpu = gpu();
-    // xyz as in MODELS.md (32 frequencies 2^0..2^12, with the input), tau with 8 octaves.
+    // xyz as in docs/models.md (32 frequencies 2^0..2^12, with the input), tau with 8 octaves.
     let layers = [
         Fourier::log_spaced(&gpu, 3, 32, 12.0, true).unwrap(),
         Fourier::octaves(&gpu, 1, 8, false).unwrap(),

@@ -1,4 +1,4 @@
-//! Pinhole cameras and the data's camera rigs (MODELS.md, Data conventions).
+//! Pinhole cameras and the data's camera rigs (docs/models.md, Data conventions).
 //!
 //! Convention: world to camera `x_c = R x_w + t`, camera x right, y down, z forward (depth is
 //! the camera-space z); pixel `u = fx x_c / z + cx`, `v = fy y_c / z + cy`, pixel (i, j) covers
@@ -82,7 +82,7 @@ pub fn supervision_cameras(rng: &mut Rng, res: u32) -> Vec<Camera> {
 
 /// The conditioning video's camera: on +x at distance 1.75 to 5 looking at the origin, fov
 /// 2 atan(1.25 / (r - 0.5)) so the object fills a similar share of the frame at any distance.
-/// (MODELS.md rotates the world so the camera lies on +x; objects here have random
+/// (docs/models.md rotates the world so the camera lies on +x; objects here have random
 /// orientations already, so the camera is put there instead.)
 pub fn video_camera(rng: &mut Rng, res: u32) -> Camera {
     video_camera_at(rng.range(1.75, 5.0) as f32, res)

@@ -1,7 +1,7 @@
 //! velox-data: the training data of Velox, made on the engine.
 //!
 //! Velox learns from dynamic colour point clouds back-projected from multiview RGBD videos of
-//! animated objects, and from images of the same objects (MODELS.md, Data conventions). The
+//! animated objects, and from images of the same objects (docs/models.md, Data conventions). The
 //! paper used Objaverse, which cannot be had here, so this crate makes its own scenes and
 //! imports real animated assets:
 //!

@@ -2,10 +2,10 @@
 //! and video cameras, back-projects the input views to the 4D colour point cloud, voxelises it
 //! to occupancy, and follows surface points as tracks.
 //!
-//! - **Point cloud** (MODELS.md): every input-view pixel that shows the surface, back-projected
-//!   at its centre with its depth, is a candidate (x, y, z, r, g, b, tau = frame / 100); a
-//!   reservoir sample over all frames keeps the requested number, so each candidate is equally
-//!   likely and frames with more visible surface give more points. When fewer candidates exist
+//! - **Point cloud** (docs/models.md): every input-view pixel that shows the surface,
+//!   back-projected at its centre with its depth, is a candidate (x, y, z, r, g, b,
+//!   tau = frame / 100); a reservoir sample over all frames keeps the requested number, so each
+//!   candidate is equally likely and frames with more visible surface give more points. When fewer candidates exist
 //!   than were asked for, random candidates are repeated to reach the size. Points come out
 //!   ordered by frame.
 //! - **Occupancy**: the 64^3 voxels of [-1, 1]^3 that a triangle shown by some input pixel of

@@ -21,7 +21,7 @@ use crate::mesh::{AnimatedMesh, Texture};
 use crate::texture::{procedural, ImageFolder};
 use crate::DataResult;
 
-/// Frames in a clip (MODELS.md: tau = frame / 100, 24 frames).
+/// Frames in a clip (docs/models.md: tau = frame / 100, 24 frames).
 pub const FRAMES: usize = 24;
 
 /// A primitive in its rest pose.

@@ -1,4 +1,4 @@
-//! RGBD videos, the tracking task's input (MODELS.md, 3D tracking network): colour frames
+//! RGBD videos, the tracking task's input (docs/models.md, 3D tracking network): colour frames
 //! (`fFF.png`) and depth frames (`fFF_depth.exr`, one f32 channel `Z` of camera-space z, 0
 //! where no surface) from one pinhole camera, and the 4D colour cloud their back-projection
 //! gives, which the frozen encoder turns into the tracker's tokens.

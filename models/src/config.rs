@@ -1,4 +1,4 @@
-//! Model sizes. Every number of MODELS.md is a field here, never a constant in code; `paper`
+//! Model sizes. Every number of docs/models.md is a field here, never a constant in code; `paper`
 //! holds the paper's sizes, `small` a model that trains in minutes on one scene, `tiny` one
 //! for tests. Configs are JSON (serde), stored in every checkpoint.
 
@@ -126,7 +126,7 @@ fn one() -> usize {
 }
 
 impl AutoencoderConfig {
-    /// The paper's sizes (MODELS.md).
+    /// The paper's sizes (docs/models.md).
     pub fn paper() -> AutoencoderConfig {
         AutoencoderConfig {
             name: "paper".into(),
@@ -715,7 +715,7 @@ pub struct TrackerConfig {
 }
 
 impl TrackerConfig {
-    /// The paper's size: 8 blocks of width 768 (MODELS.md); a feed-forward ratio of 8 brings
+    /// The paper's size: 8 blocks of width 768 (docs/models.md); a feed-forward ratio of 8 brings
     /// it to the paper's 123 M parameters.
     pub fn paper() -> TrackerConfig {
         TrackerConfig {
@@ -823,7 +823,7 @@ impl GenerationTask {
     }
 }
 
-/// The generator (MODELS.md, Generation; paper section 3.4 and supplement): a DiT over the
+/// The generator (docs/models.md, Generation; paper Sec. 3 and supplement): a DiT over the
 /// normalised dynamic tokens (patch size 1, learned zero-initialised positions), conditioned by
 /// cross-attention on tokens of the video's frames (DINOv2 patch features ++ a learned linear
 /// embedding of the RGB patch ++ Fourier(frame time)) and by adaLN on the flow time.

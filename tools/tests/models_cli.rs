@@ -287,7 +287,7 @@ fn encode_stores_tokens_beside_the_scenes_keeps_them_and_refuses_another_checkpo
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// The cases the issue found: a scene whose meta.json says 0 supervision views made eval
+/// The cases found in review: a scene whose meta.json says 0 supervision views made eval
 /// recon index past its images, and a checkpoint with one NaN weight evaluated to a Chamfer
 /// distance of inf. Both are errors that name the file and the problem.
 #[test]

@@ -1,4 +1,4 @@
-//! Nearest-query assignment in 4D for the encoder's localized cross-attention (MODELS.md,
+//! Nearest-query assignment in 4D for the encoder's localized cross-attention (docs/models.md,
 //! Encoder: every input point belongs to the cell of its nearest query). Kernels:
 //! `shaders/assign.wgsl`.
 //!

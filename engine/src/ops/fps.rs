@@ -1,4 +1,4 @@
-//! Farthest point sampling in 4D: how the encoder picks its k queries (MODELS.md, Encoder:
+//! Farthest point sampling in 4D: how the encoder picks its k queries (docs/models.md, Encoder:
 //! 4k points at random, then FPS down to k). Kernel: `shaders/fps.wgsl`.
 //!
 //! Points are f32 `[N, 4]` rows `(x, y, z, tau * time_scale)` (validate host data with
@@ -24,7 +24,7 @@ use crate::tensor::{DType, Tensor};
 /// where: see [`variant`].
 pub const WG_GPU: u32 = 1024;
 pub const WG_CPU: u32 = 256;
-/// Candidates per query that [`sample_queries`] draws (MODELS.md: 4k).
+/// Candidates per query that [`sample_queries`] draws (docs/models.md: 4k).
 pub const OVERSAMPLE: usize = 4;
 
 #[repr(C)]

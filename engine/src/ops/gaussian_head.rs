@@ -10,7 +10,7 @@ use crate::tensor::{DType, Tensor};
 /// Raw numbers per Gaussian: offset 3, scale 3, quaternion 4, opacity 1, rgb 3.
 pub const RAW: usize = 14;
 
-/// The activation's constants (MODELS.md: offset range 0.05, scales 0.001 to 0.01).
+/// The activation's constants (docs/models.md: offset range 0.05, scales 0.001 to 0.01).
 #[derive(Clone, Copy, Debug)]
 pub struct HeadRange {
     pub offset_range: f32,

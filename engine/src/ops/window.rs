@@ -1,4 +1,4 @@
-//! 4D voxel windows for the encoder's localized self-attention (MODELS.md, Encoder), and the
+//! 4D voxel windows for the encoder's localized self-attention (docs/models.md, Encoder), and the
 //! grouping of points into one variable-length segment per occupied window. Kernels:
 //! `shaders/window.wgsl`.
 //!

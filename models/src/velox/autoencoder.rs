@@ -1,5 +1,5 @@
 //! The Velox autoencoder: encoder E, 4D surface decoder V and Gaussian decoder G over one
-//! parameter store, and one training step of L = L_V + L_GS + gamma L_C (MODELS.md).
+//! parameter store, and one training step of L = L_V + L_GS + gamma L_C (docs/models.md).
 //!
 //! A micro-batch of B scenes ([`Autoencoder::accumulate`]), each with its own generator:
 //! 1. E encodes every cloud (or a random `encoder_points` of each) to tokens s, the B clouds

@@ -1,5 +1,5 @@
 //! The 4D colour point cloud every Velox model reads: N rows of (x, y, z, r, g, b, tau),
-//! xyz in [-1, 1]^3, rgb in [0, 1], tau = frame / 100 (MODELS.md, Data conventions).
+//! xyz in [-1, 1]^3, rgb in [0, 1], tau = frame / 100 (docs/models.md, Data conventions).
 
 use velox_engine::{Error, Gpu, Result, Tensor};
 

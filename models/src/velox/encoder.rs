@@ -1,4 +1,4 @@
-//! The Velox encoder E (paper: section 3.1; MODELS.md, Encoder): a 4D colour point cloud to k
+//! The Velox encoder E (docs/models.md, Encoder; paper Sec. 3): a 4D colour point cloud to k
 //! dynamic tokens.
 //!
 //! 1. Every point becomes an input token: Fourier(xyz) ++ rgb ++ Fourier(tau), then a linear
@@ -43,7 +43,7 @@ use crate::velox::blocks::{
 };
 use crate::velox::cloud::CHANNELS;
 
-/// Frames per clip and the frame rate of tau (MODELS.md): tau spans [0, 0.23].
+/// Frames per clip and the frame rate of tau (docs/models.md): tau spans [0, 0.23].
 pub const TAU_END: f32 = 0.24;
 
 /// A Perceiver block: cell cross-attention and its feed-forward, then the window layers.

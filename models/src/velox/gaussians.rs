@@ -1,4 +1,4 @@
-//! The Velox Gaussian decoder G (paper section 3.3; MODELS.md, Gaussian decoder): the dynamic
+//! The Velox Gaussian decoder G (docs/models.md, Gaussian decoder; paper Sec. 3): the dynamic
 //! tokens and a frame time to 3D Gaussians.
 //!
 //! - Queries: the occupied voxels of a `grid`^3 grid over [-1, 1]^3 at frame tau (from the

@@ -1,4 +1,4 @@
-//! The generator (MODELS.md, Generation; paper section 3.4 and supplement): a DiT that turns a
+//! The generator (docs/models.md, Generation; paper Sec. 3 and supplement): a DiT that turns a
 //! video (or one image) into the dynamic tokens of the object it shows, by rectified flow on
 //! the tokens normalised by the dataset's statistics.
 //!

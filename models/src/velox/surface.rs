@@ -1,5 +1,5 @@
-//! The 4D surface decoder V (MODELS.md, "4D surface decoder V"; paper section on the 4D surface
-//! decoder): a rectified-flow velocity network over points, conditioned on the dynamic tokens.
+//! The 4D surface decoder V (docs/models.md, "4D surface decoder V"; paper Sec. 3, "Learning
+//! geometry"): a rectified-flow velocity network over points, conditioned on the dynamic tokens.
 //!
 //! Training (rectified flow): for points `x` of one frame time `tau`, noise `eps ~ N(0, I)` and
 //! flow times `t` uniform in `[t_min, 1 - t_min]`, the network sees `x_t = t x + (1 - t) eps`

@@ -1,6 +1,6 @@
-//! The 3D tracking network (paper: section 3.4, 3D tracking; MODELS.md): from the tokens of an
-//! RGBD video's back-projected cloud and query points on its first frame, each query's
-//! position at every frame.
+//! The 3D tracking network (docs/models.md, 3D tracking network; paper Sec. 3 and 5): from
+//! the tokens of an RGBD video's back-projected cloud and query points on its first frame,
+//! each query's position at every frame.
 //!
 //! The trunk is a [`VoxelPerceiver`] without self-attention: a query's feature is its Fourier
 //! embedded position (and frame time 0, the first frame; with `query_colour`, its colour on

@@ -1,5 +1,5 @@
-//! The voxel decoder (paper: section 3.3; the occupied voxels of a frame predicted from the
-//! dynamic tokens, so Gaussians decode without sampling the surface ODE).
+//! The voxel decoder (docs/models.md, Voxel decoder; the occupied voxels of a frame predicted
+//! from the dynamic tokens, so Gaussians decode without sampling the surface ODE).
 
 use std::time::Instant;
 

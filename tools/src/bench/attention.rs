@@ -50,8 +50,8 @@ fn cases(rng: &mut Rng, small: bool) -> Vec<Case> {
             Case { name: "global cross", q_lens: vec![600], k_lens: Some(vec![512]), heads: 2, d: 64 },
         ]
     } else {
-        // The paper's sizes (MODELS.md): 8192 tokens of width 512 in 16 heads; voxel windows of
-        // about 32 tokens; cells of about 180 of 1.44 M points, one query each; Gaussian
+        // The paper's sizes (docs/models.md): 8192 tokens of width 512 in 16 heads; voxel
+        // windows of about 32 tokens; cells of about 180 of 1.44 M points, one query each; Gaussian
         // decoder queries (10k) over all 8192 tokens in 8 heads of 64.
         // 8192 cells of 176 +- 120 points: about 1.44 M points.
         let cells = lengths(rng, 8192, 176, 120);

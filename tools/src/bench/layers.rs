@@ -173,7 +173,7 @@ fn benches(gpu: &Gpu, rng: &mut Rng, small: bool) -> Result<Vec<Box<dyn Bench>>>
         },
     }));
 
-    // MODELS.md: 32 frequencies 2^0 .. 2^12 for xyz, sin and cos, with the input itself. The
+    // docs/models.md: 32 frequencies 2^0 .. 2^12 for xyz, sin and cos, with the input itself. The
     // reference uses the layer's own f32 frequencies, widened.
     let layer = Fourier::log_spaced(gpu, 3, 32, 12.0, true)?;
     let freqs: Vec<f64> = layer.freqs.iter().map(|&w| w as f64).collect();

@@ -1,6 +1,6 @@
 //! `velox bench models`: the Velox autoencoder's parts at the paper config with random weights
 //! (the small config on CPU devices such as lavapipe, or with `--quick`), timed against the
-//! paper's H100 figures (MODELS.md).
+//! paper's H100 figures (docs/models.md).
 //!
 //! - encoder: a random 4D cloud (points on a sphere whose radius changes over the 24 frames,
 //!   random colours; 1.44 M points at the paper config) to k x 32 tokens, one recording timed
@@ -51,7 +51,7 @@ use velox_models::velox::voxels::{cell_labels, VoxelDecoder, FRAME_WORDS};
 
 use super::{print_header, print_row, time_gpu, Record};
 
-/// The paper's H100 times in ms (MODELS.md): encoder, Gaussian decoder one frame, 4D surface
+/// The paper's H100 times in ms (docs/models.md): encoder, Gaussian decoder one frame, 4D surface
 /// decoder 16384 points (the table does not give its steps).
 const PAPER_H100_MS: [(&str, f64); 6] = [
     ("encoder, 1.44 M points -> 8192 tokens", 387.66),
@@ -462,9 +462,7 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
         );
     }
 
-    println!(
-        "paper, H100 (MODELS.md; the issue's bars on an H100: encoder < 100 ms, Gaussian decoder < 15 ms,"
-    );
+    println!("paper, H100 (docs/models.md; targets on an H100: encoder < 100 ms, Gaussian decoder < 15 ms,");
     println!("surface decoder 16384 points with 100 Heun steps < 2 s):");
     for (what, ms) in PAPER_H100_MS {
         println!("  {what:<40} {ms:>10.2} ms");
