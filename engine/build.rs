@@ -213,7 +213,7 @@ fn compile(path: &Path, source: &str) -> Result<(Vec<u32>, Vec<Kernel>), String>
 
     let options = spv::Options {
         lang_version: (1, 5),
-        // A bounded-loop guard on every loop cost a tiled matmul 10x on an H100 (DESIGN.md).
+        // A bounded-loop guard on every loop cost a tiled matmul 10x on an H100 (docs/decisions/foundations.md).
         force_loop_bounding: false,
         // Kernels check their own bounds.
         bounds_check_policies: naga::proc::BoundsCheckPolicies {
