@@ -56,58 +56,40 @@ fn backward_matches_central_differences() {
     let dtokens = out.dtokens.read::<f32>().unwrap();
     assert!(loss0.is_finite() && grads.iter().all(|g| g.is_finite()));
 
-    // Every parameter together, along random directions (zero on the alignment padding).
+    // Every parameter together along two directions, then each tensor alone, so that a wrong
+    // gradient of a small one cannot hide in the sum (the absolute allowance is the f32
+    // rounding of the loss over the step).
     let p0 = store.flat_params().read::<f32>().unwrap();
-    for trial in 0..2 {
-        let mut dir = vec![0f32; p0.len()];
-        for info in store.infos() {
-            dir[info.offset..info.offset + info.numel].copy_from_slice(&rng.normal_vec(info.numel));
-        }
-        let h = 2e-3f32;
-        let shifted = |s: f32| -> f64 {
-            let p: Vec<f32> = p0.iter().zip(&dir).map(|(&p, &d)| p + s * d).collect();
-            store.flat_params().write(&p).unwrap();
-            loss_of(&dec, &x, tau, &tokens, &noise)
-        };
-        let fd = (shifted(h) - shifted(-h)) / (2.0 * h as f64);
-        store.flat_params().write(&p0).unwrap();
-        let analytic = dot(&grads, &dir);
-        let rel = (fd - analytic).abs() / analytic.abs().max(1e-12);
-        if verbose() {
-            eprintln!(
-                "parameters, direction {trial}: loss {loss0:.5}, analytic {analytic:.6e}, central {fd:.6e}, relative {rel:.2e}"
-            );
-        }
-        assert!(
-            rel < 1e-2,
-            "parameter directional derivative: analytic {analytic}, central {fd} ({rel:.2e})"
-        );
-    }
-
-    // Each parameter tensor alone, so that a wrong gradient of a small one cannot hide in the
-    // sum; the absolute allowance is the f32 rounding of the loss over the step.
-    let h = 1e-2f32;
-    let mut worst = 0f64;
-    for info in store.infos() {
-        let d = rng.normal_vec(info.numel);
-        let shifted = |s: f32| -> f64 {
-            let mut p = p0.clone();
-            p[info.offset..info.offset + info.numel].iter_mut().zip(&d).for_each(|(p, d)| *p += s * d);
-            store.flat_params().write(&p).unwrap();
-            loss_of(&dec, &x, tau, &tokens, &noise)
-        };
-        let fd = (shifted(h) - shifted(-h)) / (2.0 * h as f64);
-        let analytic = dot(&grads[info.offset..info.offset + info.numel], &d);
-        let err = (fd - analytic).abs();
-        worst = worst.max(err / (analytic.abs() + 1e-3));
-        if verbose() {
-            eprintln!("  {:28} analytic {analytic:+.5e} central {fd:+.5e}", info.name);
-        }
-        assert!(err <= 1e-2 * analytic.abs() + 1e-4, "{}: analytic {analytic}, central {fd}", info.name);
-    }
-    store.flat_params().write(&p0).unwrap();
+    let mut at = |p: &[f32]| {
+        store.flat_params().write(p).unwrap();
+        loss_of(&dec, &x, tau, &tokens, &noise)
+    };
+    let all = [ParamGroup::under(&store, "")];
+    let worst = check_directional(
+        "surface decoder",
+        &p0,
+        &grads,
+        &all,
+        (2, 1),
+        2e-3,
+        (1e-2, 1e-9),
+        &mut rng,
+        &mut at,
+    );
+    let each = ParamGroup::each(&store);
+    let worst_each = check_directional(
+        "surface decoder",
+        &p0,
+        &grads,
+        &each,
+        (1, 1),
+        1e-2,
+        (1e-2, 1e-4),
+        &mut rng,
+        &mut at,
+    );
     if verbose() {
-        eprintln!("each parameter tensor: worst |central - analytic| / (|analytic| + 1e-3) = {worst:.2e}");
+        eprintln!("surface decoder (loss {loss0:.5}): worst relative error {worst:.2e}, each tensor {worst_each:.2e}");
     }
 
     // The tokens.
