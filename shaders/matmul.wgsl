@@ -26,7 +26,7 @@
 @group(0) @binding(0) var<storage, read> a: array<u32>;
 @group(0) @binding(1) var<storage, read> b: array<u32>;
 @group(0) @binding(2) var<storage, read_write> out: array<f32>;
-// [n] f32, added to each row when flags bit 2 is set (the bias of a linear layer); otherwise
+// [n] f32, added to each row when MATMUL_FLAG_BIAS is set (the bias of a linear layer); otherwise
 // the host binds any buffer here and nothing reads it.
 @group(0) @binding(3) var<storage, read> bias: array<f32>;
 var<immediate> pc: Params;
@@ -123,7 +123,7 @@ fn write4(c_base: u32, i: u32, j0: u32, v: vec4<f32>) {
         if j < pc.n {
             let o = c_base + i * pc.n + j;
             var x = v[c];
-            if (pc.flags & 4u) != 0u {
+            if (pc.flags & MATMUL_FLAG_BIAS) != 0u {
                 x += bias[j];
             }
             if pc.accumulate != 0u {

@@ -17,7 +17,7 @@
 @group(0) @binding(0) var<storage, read> a: array<f32>;
 @group(0) @binding(1) var<storage, read> b: array<f32>;
 @group(0) @binding(2) var<storage, read_write> out: array<f32>;
-// [n] f32, added to each row when flags bit 2 is set (as in matmul.wgsl).
+// [n] f32, added to each row when MATMUL_FLAG_BIAS is set (as in matmul.wgsl).
 @group(0) @binding(3) var<storage, read> bias: array<f32>;
 var<immediate> pc: Params;
 
@@ -39,9 +39,9 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     for (var j = 0u; j < NC; j++) {
         acc[j] = 0.0;
     }
-    // Flags bit 3: every batch entry's product summed into output 0 (a stack of linear
+    // MATMUL_FLAG_SUMMED: every batch entry's product summed into output 0 (a stack of linear
     // layers' input gradient, sum_i dY_i W_i^T, without a pass to add them up).
-    let summed = (pc.flags & 8u) != 0u;
+    let summed = (pc.flags & MATMUL_FLAG_SUMMED) != 0u;
     let entries = select(1u, pc.batch_base, summed);
     let first = select(z, 0u, summed);
     for (var e = 0u; e < entries; e++) {
@@ -58,8 +58,8 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     let o_at = select(z, 0u, summed) * pc.m * pc.n + row * pc.n + col0;
     for (var j = 0u; j < min(NC, pc.n - col0); j++) {
         var x = acc[j];
-        if (pc.flags & 4u) != 0u {
-            x += bias[select(0u, z * pc.n, (pc.flags & 16u) != 0u) + col0 + j];
+        if (pc.flags & MATMUL_FLAG_BIAS) != 0u {
+            x += bias[select(0u, z * pc.n, (pc.flags & MATMUL_FLAG_BIAS_PER_ENTRY) != 0u) + col0 + j];
         }
         if pc.accumulate != 0u {
             x += out[o_at + j];

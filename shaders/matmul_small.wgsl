@@ -18,7 +18,7 @@
 @group(0) @binding(0) var<storage, read> a: array<f32>;
 @group(0) @binding(1) var<storage, read> b: array<f32>;
 @group(0) @binding(2) var<storage, read_write> out: array<f32>;
-// [n] f32, added to each row when flags bit 2 is set (as in matmul.wgsl).
+// [n] f32, added to each row when MATMUL_FLAG_BIAS is set (as in matmul.wgsl).
 @group(0) @binding(3) var<storage, read> bias: array<f32>;
 var<immediate> pc: Params;
 
@@ -93,7 +93,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid
             if row < pc.m && col < pc.n {
                 let o = c_base + row * pc.n + col;
                 var x = acc[i * R + j];
-                if (pc.flags & 4u) != 0u {
+                if (pc.flags & MATMUL_FLAG_BIAS) != 0u {
                     x += bias[col];
                 }
                 if pc.accumulate != 0u {

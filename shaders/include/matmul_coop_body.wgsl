@@ -159,7 +159,7 @@ fn put_chunks(buf: u32, t: u32, ta: bool, tb: bool, c: Chunks) {
 // row-major. Along-r (A transposed): element (x, y) at base + (kk + y) * RS_R + r + x:
 // column-major.
 fn frag_a(base: u32, r: u32, kk: u32) -> FragA {
-    if (pc.flags & 1u) != 0u {
+    if (pc.flags & MATMUL_FLAG_TRANS_A) != 0u {
         return coopLoad<FragA>(&tiles[base + kk * RS_R + r], RS_R);
     }
     return coopLoadT<FragA>(&tiles[base + r * RS_K + kk], RS_K);
@@ -169,7 +169,7 @@ fn frag_a(base: u32, r: u32, kk: u32) -> FragA {
 // Along-r (B not transposed): element (row x = k, col y = n) at base + (kk + x) * RS_R + c + y:
 // row-major. Along-k (B transposed): at base + (c + y) * RS_K + kk + x: column-major.
 fn frag_b(base: u32, c: u32, kk: u32) -> FragB {
-    if (pc.flags & 2u) != 0u {
+    if (pc.flags & MATMUL_FLAG_TRANS_B) != 0u {
         return coopLoad<FragB>(&tiles[base + c * RS_K + kk], RS_K);
     }
     return coopLoadT<FragB>(&tiles[base + kk * RS_R + c], RS_R);
@@ -220,8 +220,8 @@ fn emit_staged(v: FragC, i0: u32, j0: u32, c_base: u32, sg: u32, lane: u32) {
 @compute @workgroup_size(256)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) t: u32,
         @builtin(subgroup_id) sg: u32, @builtin(subgroup_invocation_id) lane: u32) {
-    let ta = (pc.flags & 1u) != 0u;
-    let tb = (pc.flags & 2u) != 0u;
+    let ta = (pc.flags & MATMUL_FLAG_TRANS_A) != 0u;
+    let tb = (pc.flags & MATMUL_FLAG_TRANS_B) != 0u;
     let z = wid.z + pc.batch_base;
     let row0 = wid.y * TILE;
     let col0 = wid.x * TILE;

@@ -1,6 +1,19 @@
 // The push constants of the matmul kernels (`matmul.wgsl`, `matmul_small.wgsl`,
-// `matmul_coop.wgsl`), mirrored by `Params` in engine/src/ops/matmul.rs. Strides are in
+// `matmul_coop.wgsl`), mirrored by `Params` in engine/src/ops/matmul.rs, and their flag bits. Strides are in
 // elements; a batch stride of 0 broadcasts an operand over the batch.
+
+// A is transposed ([K, M] in memory). The tiled f32 kernels use the strides alone; the
+// cooperative-matrix kernel switches layouts on this and MATMUL_FLAG_TRANS_B.
+const MATMUL_FLAG_TRANS_A: u32 = 1u;
+// B is transposed ([N, K] in memory).
+const MATMUL_FLAG_TRANS_B: u32 = 2u;
+// Tiled and narrow-tile kernels: add bias[j] (binding 3) to every output of column j.
+const MATMUL_FLAG_BIAS: u32 = 4u;
+// matmul_rows.wgsl: sum the products of the batch entries into one [M, N] output,
+// `batch_base` of them, in one dispatch of one z layer.
+const MATMUL_FLAG_SUMMED: u32 = 8u;
+// matmul_rows.wgsl, with MATMUL_FLAG_BIAS: the bias holds a row per batch entry, [batch, N].
+const MATMUL_FLAG_BIAS_PER_ENTRY: u32 = 16u;
 
 struct Params {
     m: u32,
@@ -13,12 +26,7 @@ struct Params {
     b_row: u32,
     b_col: u32,
     b_batch: u32,
-    // Bit 0: A is transposed ([K, M] in memory); bit 1: B is transposed ([N, K]). The tiled f32
-    // kernel uses the strides alone; the cooperative-matrix kernel switches layouts on them.
-    // Bit 2 (tiled and narrow-tile kernels): add bias[j] (binding 3) to every output of column j.
-    // Bit 3 (matmul_rows.wgsl): sum the products of the batch entries into one [M, N] output,
-    // `batch_base` of them, in one dispatch of one z layer.
-    // Bit 4 (matmul_rows.wgsl, with bit 2): the bias holds a row per batch entry, [batch, N].
+    // The MATMUL_FLAG_* bits above (engine/build.rs gives them to the host side by name).
     flags: u32,
     batch_base: u32, // first batch entry of this dispatch (batches beyond the z limit are split)
 }

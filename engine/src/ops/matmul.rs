@@ -14,8 +14,9 @@ use crate::caps::Caps;
 use crate::device::Gpu;
 use crate::error::{Error, Result};
 use crate::kernels::{
-    KernelId, MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN, MATMUL_MAIN, MATMUL_MAIN_F16, MATMUL_ROWS_MAIN,
-    MATMUL_SMALL_TS32_MAIN, MATMUL_SMALL_TS64_MAIN,
+    KernelId, MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN, MATMUL_FLAG_BIAS, MATMUL_FLAG_BIAS_PER_ENTRY,
+    MATMUL_FLAG_SUMMED, MATMUL_FLAG_TRANS_A, MATMUL_FLAG_TRANS_B, MATMUL_MAIN, MATMUL_MAIN_F16,
+    MATMUL_ROWS_MAIN, MATMUL_SMALL_TS32_MAIN, MATMUL_SMALL_TS64_MAIN,
 };
 use crate::ops::binary::{binary_into, Binary};
 use crate::ops::reduce::{reduce_into, Reduce};
@@ -55,7 +56,7 @@ struct Params {
     b_row: u32,
     b_col: u32,
     b_batch: u32,
-    /// Bit 0: a transposed, bit 1: b transposed (the cooperative kernel's layout switch).
+    /// `MATMUL_FLAG_*` bits, named in `shaders/include/matmul_params.wgsl`.
     flags: u32,
     /// First batch entry of this dispatch: batches beyond the z-dimension limit are split.
     batch_base: u32,
@@ -76,7 +77,8 @@ impl Params {
             b_row: if trans_b { 1 } else { p.n as u32 },
             b_col: if trans_b { p.k as u32 } else { 1 },
             b_batch: p.b_batch_stride as u32,
-            flags: trans_a as u32 | (trans_b as u32) << 1,
+            flags: if trans_a { MATMUL_FLAG_TRANS_A } else { 0 }
+                | if trans_b { MATMUL_FLAG_TRANS_B } else { 0 },
             batch_base: 0,
         }
     }
@@ -295,9 +297,9 @@ pub fn matmul_sum_into(
     }
     let groups = grid(a.gpu(), MATMUL_ROWS_MAIN, &p, 1)?;
     let base = Params::of(&p, trans_a, trans_b, accumulate);
-    let params = Params { flags: base.flags | 8, batch_base: p.batch as u32, ..base };
+    let params = Params { flags: base.flags | MATMUL_FLAG_SUMMED, batch_base: p.batch as u32, ..base };
     let g = [groups[0] as u32, groups[1] as u32, 1];
-    // The bias binding is unused (flags bit 2 clear): b stands in.
+    // The bias binding is unused (MATMUL_FLAG_BIAS clear): b stands in.
     rec.dispatch(MATMUL_ROWS_MAIN, g, &[a, b, out, b], &params)
 }
 
@@ -388,8 +390,8 @@ fn product(
     let fused = bias.filter(|_| takes_bias(kernel) && (!per_entry || kernel == MATMUL_ROWS_MAIN));
     let bias_flags = match (fused.is_some(), per_entry) {
         (false, _) => 0,
-        (true, false) => 4,
-        (true, true) => 4 | 16,
+        (true, false) => MATMUL_FLAG_BIAS,
+        (true, true) => MATMUL_FLAG_BIAS | MATMUL_FLAG_BIAS_PER_ENTRY,
     };
     let params = Params { flags: params.flags | bias_flags, ..params };
     let with_bias = [a, b, out, fused.unwrap_or(b)];
