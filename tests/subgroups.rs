@@ -16,7 +16,7 @@ fn subgroup_ids_counts_and_reductions_agree() {
     }
     let lanes = probe(&gpu).unwrap();
     let size = lanes[0].counted_size as usize;
-    assert!(size.is_power_of_two() && WORKGROUP % size == 0, "{size} lanes in a subgroup");
+    assert!(size.is_power_of_two() && WORKGROUP.is_multiple_of(size), "{size} lanes in a subgroup");
     for (lid, l) in lanes.iter().enumerate() {
         let what = format!("invocation {lid}: {l:?}");
         assert_eq!(l.counted_size as usize, size, "{what}");

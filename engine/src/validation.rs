@@ -88,7 +88,7 @@ pub fn first_errors() -> Vec<String> {
 /// `since` of them already reported.
 pub(crate) fn failure(count: usize, since: usize) -> Error {
     let first = first_errors();
-    let shown = first.iter().nth(since.min(first.len())).or(first.last()).cloned().unwrap_or_default();
+    let shown = first.get(since.min(first.len())).or(first.last()).cloned().unwrap_or_default();
     Error::Validation(format!(
         "{} new validation error(s), {count} in all; first new one: {shown}",
         count - since

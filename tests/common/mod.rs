@@ -198,7 +198,10 @@ impl ParamGroup {
         store
             .infos()
             .iter()
-            .map(|i| ParamGroup { name: i.name.clone(), ranges: vec![i.offset..i.offset + i.numel] })
+            .map(|i| ParamGroup {
+                name: i.name.clone(),
+                ranges: std::iter::once(i.offset..i.offset + i.numel).collect(),
+            })
             .collect()
     }
 }

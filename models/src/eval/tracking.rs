@@ -186,7 +186,7 @@ impl TrackingMetrics {
                 pred.occluded.len()
             )));
         }
-        if frames == 0 || n % frames != 0 {
+        if frames == 0 || !n.is_multiple_of(frames) {
             return Err(Error::Invalid(format!(
                 "tracking metrics: {n} points are not whole tracks of {frames} frames"
             )));
