@@ -33,10 +33,9 @@ fn sample(gpu: &Gpu, seed: u64, n: usize) -> TrackSample {
 /// forwards or backwards (`sign`); token points and colours from `seed`.
 fn scene(gpu: &Gpu, seed: u64, token_seed: u64, n: usize, sign: f32) -> TrackSample {
     let mut rng = Rng::new(seed);
-    let mut tokens = Rng::new(token_seed).normal_vec(48 * 32);
-    if token_seed == seed {
-        tokens = rng.normal_vec(48 * 32);
-    }
+    // A sample's own tokens are the first draws of its seed (as before there were two).
+    let tokens =
+        if token_seed == seed { rng.normal_vec(48 * 32) } else { Rng::new(token_seed).normal_vec(48 * 32) };
     let points: Vec<f32> = (0..48)
         .flat_map(|i| {
             [0; 3].map(|_| rng.range(-1.0, 1.0) as f32).into_iter().chain([(i % 24) as f32 / 100.0])
