@@ -167,10 +167,11 @@ fn a_stack_of_linears_is_the_linears_side_by_side() {
         assert_nmse(&format!("grads {what}"), &g_stack, &f64s(&read(store.flat_grads())), 1e-12);
         assert_nmse(&format!("dx {what}"), &read(&dx_stack), &f64s(&read(&dx_one)), 1e-12);
     }
-    // Parameters with others between them do not stack.
+    // Parameters with others between them do not stack. Each is 128 elements, so that three
+    // lie one after another at every offset alignment (up to 256 bytes: 128 halves).
     let mut b = ParamStore::builder();
     for name in ["a", "between", "c"] {
-        b.add(name, &[4, 16], Init::Xavier).unwrap();
+        b.add(name, &[8, 16], Init::Xavier).unwrap();
     }
     let store = b.build(&gpu, 0).unwrap();
     assert!(store.stacked(&["a", "c"]).unwrap().is_none());

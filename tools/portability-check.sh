@@ -22,6 +22,10 @@ OPS="assign attention attention_layer elementwise fill_copy kernels layers matmu
 scan_sort staging subgroups train_primitives validation cloth"
 
 # name | environment | scope (all = the whole suite, ops = the binaries above)
+# small-bindings runs the op-level tests: they size their cases by the device's limit so that
+# every chunked path runs (and a tensor no op can split is refused by name). The model and CLI
+# tests hold single tensors of 5 to 12 MiB (a voxel decoder's [2, 12288, 128] activations), which
+# a 4 MiB limit refuses as it should; Vulkan requires every device to bind at least 128 MiB.
 CONFIGS=(
   "lavapipe||all"
   "validation-sync|VELOX_VALIDATE=1|all"
@@ -35,7 +39,7 @@ CONFIGS=(
   "no-f16|VELOX_DISABLE=f16|all"
   "no-float-atomics|VELOX_DISABLE=float-atomics|all"
   "descriptor-sets|VELOX_DISABLE=push-descriptors|all"
-  "small-bindings|VELOX_MAX_BINDING=4M|all"
+  "small-bindings|VELOX_MAX_BINDING=4M|ops"
   "swiftshader|VK_DRIVER_FILES=/usr/lib/chromium/vk_swiftshader_icd.json|all"
 )
 
