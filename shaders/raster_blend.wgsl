@@ -8,17 +8,7 @@
 // soon as every pixel is done. The backward pass needs the final T and `last`, the number of
 // tile entries up to and including the pixel's last blended Gaussian.
 
-struct Params {
-    background: vec4<f32>,
-    width: u32,
-    height: u32,
-    tiles_x: u32,
-    pad0: u32,
-    alpha_max: f32,
-    min_alpha: f32,
-    t_stop: f32,
-    pad1: f32,
-}
+// @include raster_blend_params.wgsl
 
 @group(0) @binding(0) var<storage, read> ranges: array<u32>;
 @group(0) @binding(1) var<storage, read> ids: array<u32>;

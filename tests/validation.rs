@@ -109,13 +109,9 @@ fn child_read_past_binding() {
     let whole = Tensor::from_slice(&gpu, &[1024], &vec![1.0f32; 1024]).unwrap();
     let view = whole.view(0, &[64]).unwrap();
     let out = Tensor::empty(&gpu, &[256], DType::F16).unwrap();
-    #[repr(C)]
-    #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-    struct Params {
-        n: u32,
-    }
     let mut rec = gpu.recorder().unwrap();
-    rec.dispatch(CAST_F32_TO_F16, [1, 1, 1], &[&view, &out], &Params { n: 256 }).unwrap();
+    let told = velox::engine::kernels::params::CastParams { n: 256 };
+    rec.dispatch(CAST_F32_TO_F16, [1, 1, 1], &[&view, &out], &told).unwrap();
     match rec.submit() {
         Err(Error::Validation(what)) => eprintln!("submit failed as it should: {what}"),
         other => panic!("a read past the binding went unreported: {:?}", other.map(|_| ())),

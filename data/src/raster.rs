@@ -20,16 +20,7 @@ use crate::{DataError, DataResult};
 /// The triangle id of a pixel that shows no surface.
 pub const NO_TRIANGLE: u32 = u32::MAX;
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    n_tris: u32,
-    n_views: u32,
-    width: u32,
-    height: u32,
-    light: [f32; 4],
-    bg: [f32; 4],
-}
+use velox_engine::kernels::params::MeshRasterParams as Params;
 
 /// Lighting and background of the RGB output.
 #[derive(Clone, Copy, Debug)]

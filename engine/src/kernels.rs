@@ -123,6 +123,53 @@ impl KernelId {
     }
 }
 
+/// A kernel with the type of its push constants: the constants below, generated from the
+/// shaders, give each entry point the mirror of its `var<immediate>` struct (in [`params`]), or
+/// `()` where it has none, so that a recorder takes only that struct for it.
+pub struct Kernel<P> {
+    id: KernelId,
+    params: std::marker::PhantomData<fn() -> P>,
+}
+
+impl<P> Clone for Kernel<P> {
+    fn clone(&self) -> Self {
+        *self
+    }
+}
+impl<P> Copy for Kernel<P> {}
+impl<P> PartialEq for Kernel<P> {
+    fn eq(&self, other: &Self) -> bool {
+        self.id == other.id
+    }
+}
+impl<P> Eq for Kernel<P> {}
+impl<P> std::fmt::Debug for Kernel<P> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Kernel({})", self.id.name())
+    }
+}
+
+impl<P> Kernel<P> {
+    const fn new(index: usize) -> Self {
+        Kernel { id: KernelId(index), params: std::marker::PhantomData }
+    }
+    pub const fn id(self) -> KernelId {
+        self.id
+    }
+    pub fn info(self) -> &'static KernelInfo {
+        self.id.info()
+    }
+    pub fn name(self) -> String {
+        self.id.name()
+    }
+}
+
+impl<P> From<Kernel<P>> for KernelId {
+    fn from(k: Kernel<P>) -> KernelId {
+        k.id
+    }
+}
+
 include!(concat!(env!("OUT_DIR"), "/kernels.rs"));
 
 /// A compute pipeline with its layouts.
@@ -170,7 +217,7 @@ impl PipelineCache {
 impl Gpu {
     /// Whether this device can run the kernel: its features are all present and its workgroup
     /// fits the device's limits (see [`Gpu::unsupported_reason`]).
-    pub fn supports(&self, kernel: KernelId) -> bool {
+    pub fn supports(&self, kernel: impl Into<KernelId>) -> bool {
         self.unsupported_reason(kernel).is_none()
     }
 
@@ -178,14 +225,14 @@ impl Gpu {
     /// `None` when it can (see [`KernelInfo::unsupported_on`]). Every pipeline is checked this way
     /// before it is made, so a kernel over a limit is an error that says so, never a driver's
     /// undefined behaviour.
-    pub fn unsupported_reason(&self, kernel: KernelId) -> Option<String> {
-        kernel.info().unsupported_on(self.caps())
+    pub fn unsupported_reason(&self, kernel: impl Into<KernelId>) -> Option<String> {
+        kernel.into().info().unsupported_on(self.caps())
     }
 
     /// Makes the kernel's pipeline now instead of at its first dispatch: the device (and, under
     /// `VELOX_VALIDATE`, the validation layer) checks its SPIR-V and limits here.
-    pub fn prepare(&self, kernel: KernelId) -> Result<()> {
-        self.pipeline(kernel).map(|_| ())
+    pub fn prepare(&self, kernel: impl Into<KernelId>) -> Result<()> {
+        self.pipeline(kernel.into()).map(|_| ())
     }
 
     /// The pipeline for `kernel`, created on first use.

@@ -22,7 +22,7 @@ use ash::vk;
 
 use crate::device::Gpu;
 use crate::error::{Error, Result, VkCheck};
-use crate::kernels::KernelId;
+use crate::kernels::{Kernel, KernelId};
 use crate::profile;
 use crate::tensor::{Buffer, Tensor};
 use crate::validation;
@@ -276,7 +276,7 @@ impl Recorder {
     /// as its push constants.
     pub fn dispatch<P: bytemuck::Pod>(
         &mut self,
-        kernel: KernelId,
+        kernel: Kernel<P>,
         groups: [u32; 3],
         args: &[&Tensor],
         push: &P,
@@ -312,7 +312,7 @@ impl Recorder {
         for t in args {
             t.check_bindable(&kernel.name())?;
         }
-        let pipeline = self.gpu.pipeline(kernel)?;
+        let pipeline = self.gpu.pipeline(kernel.id())?;
 
         let reads: Vec<vk::Buffer> = args.iter().map(|t| t.buf.raw).collect();
         let writes: Vec<vk::Buffer> =
@@ -339,7 +339,7 @@ impl Recorder {
             .collect();
         if profile::enabled() && self.timestamps + 2 < self.capacity {
             if let Some(q) = self.timestamp() {
-                self.profiled.push((q as u32, kernel));
+                self.profiled.push((q as u32, kernel.id()));
             }
         }
         let set = if self.gpu.caps().push_descriptors { None } else { Some(self.descriptor_set(&pipeline)?) };
@@ -427,7 +427,7 @@ impl Recorder {
     /// returns early past `total` (every 1D kernel in shaders/ does).
     pub fn dispatch_linear<P: bytemuck::Pod>(
         &mut self,
-        kernel: KernelId,
+        kernel: Kernel<P>,
         total: u64,
         args: &[&Tensor],
         push: &P,

@@ -22,17 +22,7 @@
 // subgroup with subgroupAdd first: the batch loop is uniform over the workgroup, and pixels
 // that do not touch a Gaussian add zeros. Nothing depends on the subgroup size.
 
-struct Params {
-    background: vec4<f32>,
-    width: u32,
-    height: u32,
-    tiles_x: u32,
-    gaussians: u32, // for `sum_pairs` of the per-pair kernel
-    alpha_max: f32,
-    min_alpha: f32,
-    t_stop: f32,
-    pad1: f32,
-}
+// @include raster_blend_params.wgsl
 
 @group(0) @binding(0) var<storage, read> ranges: array<u32>;
 @group(0) @binding(1) var<storage, read> ids: array<u32>;

@@ -13,14 +13,7 @@ use crate::kernels::{ADALN_BACKWARD, ADALN_GATE, ADALN_MODULATE};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    n: u32,
-    t: u32,
-    d: u32,
-    one: f32,
-}
+use crate::kernels::params::AdalnParams as Params;
 
 /// Checks `x [B, T, D]` against per-sample tensors `[B, D]` and full-size ones.
 fn check(what: &str, x: &Tensor, per_sample: &[&Tensor], full: &[&Tensor]) -> Result<Params> {

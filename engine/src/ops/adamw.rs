@@ -65,25 +65,7 @@ pub struct AdamWTensors<'a> {
     pub norm: Option<&'a Tensor>,
 }
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    n: u32,
-    decay_end: u32,
-    use_norm: u32,
-    step: u32,
-    lr: f32,
-    beta1: f32,
-    one_minus_beta1: f32,
-    beta2: f32,
-    one_minus_beta2: f32,
-    eps: f32,
-    weight_decay: f32,
-    grad_scale: f32,
-    max_norm: f32,
-    bias1: f32,
-    bias2: f32,
-}
+use crate::kernels::params::AdamwParams as Params;
 
 /// Records one AdamW step over the flat buffers in `t`.
 pub fn adamw(rec: &mut Recorder, t: &AdamWTensors, cfg: &AdamWConfig, step: &AdamWStep) -> Result<()> {

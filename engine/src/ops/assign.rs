@@ -29,12 +29,7 @@ use crate::tensor::{DType, Tensor};
 const NEAREST_WG: u64 = 128;
 const NEAREST_PTS: u64 = 4;
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    n: u32,
-    k: u32,
-}
+use crate::kernels::params::AssignParams as Params;
 
 fn query_rows(queries: &Tensor) -> Result<u32> {
     let k = point_rows(queries, "assign_nearest (queries)")?;

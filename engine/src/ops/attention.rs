@@ -9,7 +9,11 @@
 //! cost nothing; a query whose segment has no keys gets zeros.
 
 use crate::error::{Error, Result};
-use crate::kernels::{self, KernelId};
+use crate::kernels::{self, Kernel};
+
+/// The attention kernels (every head size and precision) share one declaration of their
+/// push constants.
+type AttentionKernel = Kernel<Params>;
 use crate::ops::fill::fill_bits;
 use crate::ops::scan::exclusive_scan;
 use crate::recorder::{Completion, Recorder};
@@ -140,38 +144,23 @@ pub struct AttentionGrads {
     pub dv: Tensor,
 }
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    heads: u32,
-    items: u32,
-    scale: f32,
-    nq: u32,
-    nk: u32,
-}
+use crate::kernels::params::AttentionCommonParams as Params;
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct BlockParams {
-    segments: u32,
-    block: u32,
-    rows: u32,
-    capacity: u32,
-}
+use crate::kernels::params::AttentionBlocksParams as BlockParams;
 
 struct Kernels {
-    fwd: KernelId,
+    fwd: AttentionKernel,
     /// The forward pass on f16 q, k, v.
-    fwd_f16: KernelId,
+    fwd_f16: AttentionKernel,
     /// The same on cooperative matrices, 16x16x16 and 8x8x8 fragments, each in blocks of
     /// [`COOP_BLOCKS_16`] and [`COOP_BLOCKS_8`] query rows.
-    fwd_coop16: [KernelId; 2],
-    fwd_coop8: [KernelId; 2],
-    dq: KernelId,
-    dkv: KernelId,
+    fwd_coop16: [AttentionKernel; 2],
+    fwd_coop8: [AttentionKernel; 2],
+    dq: AttentionKernel,
+    dkv: AttentionKernel,
     /// The backward pass on f16 q, k, v (everything else f32).
-    dq_f16: KernelId,
-    dkv_f16: KernelId,
+    dq_f16: AttentionKernel,
+    dkv_f16: AttentionKernel,
 }
 
 fn kernels_for(d: usize) -> Option<Kernels> {
@@ -269,7 +258,7 @@ pub const COOP_BLOCKS_8: [usize; 2] = [32, 64];
 /// subgroups of exactly F*F/8 invocations (each query row belongs to F/8 lanes of one
 /// subgroup), subgroup shuffles and votes, and the kernel's workgroup memory. A tall block that
 /// does not fit in workgroup memory gives way to the short one.
-pub fn coop_forward_kernel(gpu: &Gpu, d: usize, tall: bool) -> Option<(KernelId, usize)> {
+pub fn coop_forward_kernel(gpu: &Gpu, d: usize, tall: bool) -> Option<(AttentionKernel, usize)> {
     let caps = gpu.caps();
     let kern = kernels_for(d)?;
     let [f, _, _] = caps.coop_matrix_f16?;
@@ -297,7 +286,12 @@ pub const COOP_TALL_ROWS_PER_SEGMENT: usize = 64;
 /// The cooperative-matrix forward kernel and its block height that f16 inputs of head width
 /// `d`, `nq` query rows over `segments` segments, run on this device; `None` where they run
 /// the portable kernel.
-pub fn coop_forward_chosen(gpu: &Gpu, d: usize, nq: usize, segments: usize) -> Option<(KernelId, usize)> {
+pub fn coop_forward_chosen(
+    gpu: &Gpu,
+    d: usize,
+    nq: usize,
+    segments: usize,
+) -> Option<(AttentionKernel, usize)> {
     if nq < COOP_MIN_ROWS_PER_SEGMENT * segments {
         return None;
     }

@@ -23,16 +23,7 @@ impl Binary {
     }
 }
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    shape: [u32; 4],
-    a_strides: [u32; 4],
-    b_strides: [u32; 4],
-    n: u32,
-    op: u32,
-    _pad: [u32; 2],
-}
+use crate::kernels::params::BinaryParams as Params;
 
 /// The broadcast output shape of `a` and `b` (right-aligned, size-1 dims stretch).
 pub fn broadcast_shape(a: &[usize], b: &[usize]) -> Result<Vec<usize>> {
@@ -129,7 +120,7 @@ pub fn binary_into(rec: &mut Recorder, a: &Tensor, b: &Tensor, out: &Tensor, op:
     }
     let pad = 4 - dims.len();
     let mut p =
-        Params { shape: [1; 4], a_strides: [0; 4], b_strides: [0; 4], n, op: op.code(), _pad: [0; 2] };
+        Params { shape: [1; 4], a_strides: [0; 4], b_strides: [0; 4], n, op: op.code(), _pad0: [0; 2] };
     for i in 0..dims.len() {
         p.shape[pad + i] = dims[i] as u32;
         p.a_strides[pad + i] = sa[i] as u32;

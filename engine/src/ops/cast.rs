@@ -5,11 +5,7 @@ use crate::kernels::{CAST_F16_TO_F32, CAST_F32_TO_F16};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    n: u32,
-}
+use crate::kernels::params::CastParams as Params;
 
 /// A new tensor of the same shape converted to `dtype` (f32 <-> f16; same dtype copies).
 /// f32 -> f16 rounds to nearest even; values beyond the f16 range become +-Inf, as in IEEE.

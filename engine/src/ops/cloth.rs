@@ -210,24 +210,7 @@ pub fn colour(constraints: &[Constraint], particles: usize) -> (Vec<Constraint>,
     (out, spans)
 }
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    n: u32,
-    start: u32,
-    count: u32,
-    table: u32,
-    dt: f32,
-    gravity: f32,
-    ground: f32,
-    friction: f32,
-    restitution: f32,
-    radius: f32,
-    exclude: f32,
-    cell: f32,
-    damping: f32,
-    _pad: [u32; 3],
-}
+use crate::kernels::params::ClothParams as Params;
 
 /// A cloth on the device; see the module docs.
 pub struct ClothSim {
@@ -320,7 +303,9 @@ impl ClothSim {
             // Cells of 2 r: every particle within reach is in a neighbouring cell.
             cell: 2.0 * q.radius,
             damping: q.damping,
-            _pad: [0; 3],
+            _pad0: 0,
+            _pad1: 0,
+            _pad2: 0,
         }
     }
 

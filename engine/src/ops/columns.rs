@@ -5,17 +5,7 @@ use crate::kernels::COLUMNS_MAIN;
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    rows: u32,
-    count: u32,
-    src_width: u32,
-    src_col: u32,
-    dst_width: u32,
-    dst_col: u32,
-    scale: f32,
-}
+use crate::kernels::params::ColumnsParams as Params;
 
 fn matrix(t: &Tensor, what: &str) -> Result<(usize, usize)> {
     match (t.dtype(), t.shape()) {

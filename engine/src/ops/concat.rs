@@ -9,14 +9,7 @@ use crate::kernels::CONCAT_COPY_ADD;
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    src_start: u32,
-    dst_start: u32,
-    count: u32,
-    add: u32,
-}
+use crate::kernels::params::ConcatParams as Params;
 
 /// `dst[dst_start + i] = src[src_start + i] + add` for `i < count` (u32, wrapping).
 pub fn copy_add(

@@ -5,12 +5,7 @@ use crate::kernels::FILL_MAIN;
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    words: u32,
-    value: u32,
-}
+use crate::kernels::params::FillParams as Params;
 
 /// Sets every element of `t` to `value` (converted to the tensor's dtype).
 pub fn fill(rec: &mut Recorder, t: &Tensor, value: f64) -> Result<()> {

@@ -9,14 +9,7 @@ use crate::kernels::{FOURIER_BACKWARD, FOURIER_FORWARD};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    rows: u32,
-    channels: u32,
-    freqs: u32,
-    include_input: u32,
-}
+use crate::kernels::params::FourierParams as Params;
 
 /// Output width for `channels` inputs and `freqs` frequencies.
 pub fn fourier_width(channels: usize, freqs: usize, include_input: bool) -> usize {

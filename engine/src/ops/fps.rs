@@ -12,7 +12,8 @@
 
 use crate::device::Gpu;
 use crate::error::{Error, Result};
-use crate::kernels::{KernelId, FPS_ORDER_MAIN, FPS_WG1024_MAIN, FPS_WG256_MAIN};
+use crate::kernels::params::FpsOrderParams;
+use crate::kernels::{Kernel, FPS_ORDER_MAIN, FPS_WG1024_MAIN, FPS_WG256_MAIN};
 use crate::ops::gather::gather;
 use crate::ops::sort::sort_pairs;
 use crate::ops::window::point_rows;
@@ -27,12 +28,7 @@ pub const WG_CPU: u32 = 256;
 /// Candidates per query that [`sample_queries`] draws (docs/models.md: 4k).
 pub const OVERSAMPLE: usize = 4;
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    m: u32,
-    k: u32,
-}
+use crate::kernels::params::FpsParams as Params;
 
 /// `min(m, n)` distinct indices in `0..n`, uniformly at random and in random order (a partial
 /// Fisher-Yates shuffle that stores only the swapped entries, so it costs O(m), not O(n)).
@@ -92,7 +88,7 @@ pub fn fps_with_workgroup(
 
 fn fps_with(
     rec: &mut Recorder,
-    kernel: KernelId,
+    kernel: Kernel<Params>,
     points: &Tensor,
     candidates: &[u32],
     k: usize,
@@ -118,7 +114,8 @@ fn fps_with(
     let params = Params { m: m as u32, k: k as u32 };
     let codes = Tensor::empty(gpu, &[m], DType::U32)?;
     let iota = Tensor::empty(gpu, &[m], DType::U32)?;
-    rec.dispatch(FPS_ORDER_MAIN, [1, 1, 1], &[&cands, &codes, &iota], &params)?;
+    let order = FpsOrderParams { m: params.m, k: params.k };
+    rec.dispatch(FPS_ORDER_MAIN, [1, 1, 1], &[&cands, &codes, &iota], &order)?;
     let (_, perm) = sort_pairs(rec, &codes, &iota, 32)?;
     let sorted = gather(rec, &cands, &perm)?;
     let min_dist = Tensor::empty(gpu, &[m], DType::F32)?;
@@ -137,7 +134,7 @@ fn fps_with(
 /// A device whose limits the 1024-invocation kernel does not fit (fewer invocations per
 /// workgroup, or less workgroup memory than its 24 KiB) gets 256 (every Vulkan device allows
 /// 128 invocations and 16 KiB; the engine's other kernels already need 256).
-pub fn variant(gpu: &Gpu) -> (KernelId, String) {
+pub fn variant(gpu: &Gpu) -> (Kernel<Params>, String) {
     let caps = gpu.caps();
     let wg = if caps.kind == "CPU" || !gpu.supports(FPS_WG1024_MAIN) { WG_CPU } else { WG_GPU };
     let kernel = if wg == WG_GPU { FPS_WG1024_MAIN } else { FPS_WG256_MAIN };

@@ -5,14 +5,7 @@ use crate::kernels::{GATHER_INVERT, GATHER_MAIN};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-pub(crate) struct RowParams {
-    pub rows: u32,
-    pub width: u32,
-    pub other_rows: u32,
-    pub add: u32,
-}
+pub(crate) use crate::kernels::params::GatherParams as RowParams;
 
 /// Splits a tensor into (rows, width) with width the product of all but the first axis.
 pub(crate) fn rows_width(t: &Tensor) -> Result<(usize, usize)> {
@@ -50,7 +43,7 @@ fn gather_with(rec: &mut Recorder, src: &Tensor, idx: &Tensor, base: Option<&Ten
     let p = RowParams {
         rows: fit(idx.numel())?,
         width: fit(width)?,
-        other_rows: fit(src_rows)?,
+        src_rows: fit(src_rows)?,
         add: base.is_some() as u32,
     };
     fit(total)?;
@@ -73,7 +66,7 @@ pub fn invert_permutation(rec: &mut Recorder, perm: &Tensor) -> Result<Tensor> {
     let n = perm.numel();
     let fit = u32::try_from(n).map_err(|_| Error::TooLarge(format!("permutation of {n}")))?;
     let inverse = Tensor::empty(perm.gpu(), &[n], DType::U32)?;
-    let p = RowParams { rows: fit, width: 1, other_rows: fit, add: 0 };
+    let p = RowParams { rows: fit, width: 1, src_rows: fit, add: 0 };
     rec.dispatch_linear(GATHER_INVERT, (n as u64).div_ceil(256), &[perm, &inverse], &p)?;
     Ok(inverse)
 }

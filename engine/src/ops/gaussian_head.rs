@@ -18,15 +18,7 @@ pub struct HeadRange {
     pub scale_max: f32,
 }
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    gaussians: u32,
-    per_voxel: u32,
-    offset_range: f32,
-    scale_min: f32,
-    scale_max: f32,
-}
+use crate::kernels::params::GaussianHeadParams as Params;
 
 fn params(raw: &Tensor, centres: &Tensor, r: &HeadRange) -> Result<(usize, Params)> {
     let (m, v) = match (raw.shape(), centres.shape()) {

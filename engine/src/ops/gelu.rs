@@ -6,11 +6,7 @@ use crate::kernels::GELU_BACKWARD;
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    n: u32,
-}
+use crate::kernels::params::GeluParams as Params;
 
 /// `dx = dy * gelu'(x)`.
 pub fn gelu_backward(rec: &mut Recorder, x: &Tensor, dy: &Tensor) -> Result<Tensor> {

@@ -12,18 +12,7 @@ use crate::ops::rmsnorm::{
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    rows: u32,
-    width: u32,
-    eps: f32,
-    rows_per_chunk: u32,
-    affine: u32,
-    lanes: u32,
-    residual: u32,
-    _pad: u32,
-}
+use crate::kernels::params::LayernormParams as Params;
 
 /// What the forward saves for the backward.
 #[derive(Clone, Debug)]

@@ -37,14 +37,7 @@ impl LossKind {
     }
 }
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    n: u32,
-    kind: u32,
-    delta: f32,
-    scale: f32,
-}
+use crate::kernels::params::LossParams as Params;
 
 /// `weight * mean(loss(pred, target))` as a 1-element tensor, and its gradient with respect to
 /// `pred`. An empty input has loss 0.

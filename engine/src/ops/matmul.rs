@@ -14,7 +14,7 @@ use crate::caps::Caps;
 use crate::device::Gpu;
 use crate::error::{Error, Result};
 use crate::kernels::{
-    KernelId, MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN, MATMUL_FLAG_BIAS, MATMUL_FLAG_BIAS_PER_ENTRY,
+    Kernel, MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN, MATMUL_FLAG_BIAS, MATMUL_FLAG_BIAS_PER_ENTRY,
     MATMUL_FLAG_SUMMED, MATMUL_FLAG_TRANS_A, MATMUL_FLAG_TRANS_B, MATMUL_MAIN, MATMUL_MAIN_F16,
     MATMUL_ROWS_MAIN, MATMUL_SMALL_TS32_MAIN, MATMUL_SMALL_TS64_MAIN,
 };
@@ -42,25 +42,11 @@ const COOP_SHARED_BYTES_8: u32 = 32768;
 /// The cooperative-matrix kernel reads its operands 8 halves (16 bytes) at a time.
 const COOP_VECTOR: usize = 8;
 
-/// Push constants of both kernels (`Params` in the shaders); strides are in elements.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    m: u32,
-    n: u32,
-    k: u32,
-    accumulate: u32,
-    a_row: u32,
-    a_col: u32,
-    a_batch: u32,
-    b_row: u32,
-    b_col: u32,
-    b_batch: u32,
-    /// `MATMUL_FLAG_*` bits, named in `shaders/include/matmul_params.wgsl`.
-    flags: u32,
-    /// First batch entry of this dispatch: batches beyond the z-dimension limit are split.
-    batch_base: u32,
-}
+// Push constants of both kernels (`Params` in the shaders); strides are in elements.
+use crate::kernels::params::MatmulParams as Params;
+
+/// Every matmul kernel takes the push constants of `shaders/include/matmul_params.wgsl`.
+type MatmulKernel = Kernel<Params>;
 
 impl Params {
     /// The push constants of a product of plan `p` (strides from the transposes; no bias, the
@@ -154,7 +140,7 @@ pub fn plan(a: &[usize], b: &[usize], trans_a: bool, trans_b: bool) -> Result<Pl
 /// 256 invocations into subgroups of exactly F*F/8 (32 or 8), each subgroup owning 4x2
 /// fragments of the 128x128 tile, so it is chosen only where a pipeline can have that size: the
 /// device's only one, or one it can be asked for (the pipeline then requests it).
-pub fn coop_kernel(caps: &Caps) -> Option<KernelId> {
+pub fn coop_kernel(caps: &Caps) -> Option<MatmulKernel> {
     let [f, _, _] = caps.coop_matrix_f16?;
     let (kernel, shared) = match f {
         16 => (MATMUL_COOP_MAIN, COOP_SHARED_BYTES_16),
@@ -318,12 +304,12 @@ fn check_out(a: &Tensor, b: &Tensor, out: &Tensor, shape: &[usize]) -> Result<()
 
 /// The workgroups of a product of plan `p` on `kernel`, `z` layers deep: columns, rows and
 /// layers, the first two checked against the device's limits.
-fn grid(gpu: &Gpu, kernel: KernelId, p: &Plan, z: usize) -> Result<[usize; 3]> {
+fn grid(gpu: &Gpu, kernel: MatmulKernel, p: &Plan, z: usize) -> Result<[usize; 3]> {
     // Output rows and columns of one workgroup.
     let (tm, tn) = match kernel {
-        MATMUL_SMALL_TS32_MAIN => (32, 32),
-        MATMUL_SMALL_TS64_MAIN => (64, 64),
-        MATMUL_ROWS_MAIN => (ROWS_WG, ROWS_NC),
+        k if k == MATMUL_SMALL_TS32_MAIN => (32, 32),
+        k if k == MATMUL_SMALL_TS64_MAIN => (64, 64),
+        k if k == MATMUL_ROWS_MAIN => (ROWS_WG, ROWS_NC),
         _ => (TILE, TILE),
     };
     let groups = [p.n.div_ceil(tn), p.m.div_ceil(tm), z];
@@ -338,7 +324,7 @@ fn grid(gpu: &Gpu, kernel: KernelId, p: &Plan, z: usize) -> Result<[usize; 3]> {
 }
 
 /// Kernels that take a bias (binding 3, flags bit 2); the others have three bindings.
-fn takes_bias(kernel: KernelId) -> bool {
+fn takes_bias(kernel: MatmulKernel) -> bool {
     [MATMUL_MAIN, MATMUL_MAIN_F16, MATMUL_SMALL_TS32_MAIN, MATMUL_SMALL_TS64_MAIN, MATMUL_ROWS_MAIN]
         .contains(&kernel)
 }
@@ -449,7 +435,7 @@ fn split_k(batch: usize, tiles: usize, k: usize) -> usize {
 #[allow(clippy::too_many_arguments)]
 fn split_k_into(
     rec: &mut Recorder,
-    kernel: KernelId,
+    kernel: MatmulKernel,
     [gx, gy]: [u32; 2],
     [a, b, out]: [&Tensor; 3],
     p: &Plan,
@@ -486,7 +472,7 @@ fn choose_kernel(
     trans_a: bool,
     trans_b: bool,
     narrow_choice: NarrowMatmul,
-) -> KernelId {
+) -> MatmulKernel {
     if dtype == DType::F32 {
         let narrow = p.m.min(p.n);
         let rows = match narrow_choice {

@@ -29,14 +29,7 @@ pub fn max_groups(gpu: &crate::Gpu) -> usize {
     }
 }
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    n: u32,
-    groups: u32,
-    partial_base: u32,
-    count: u32,
-}
+use crate::kernels::params::NormParams as Params;
 
 /// Reusable device buffers of a norm: the partial sums and the `[norm, sum of squares]` result.
 pub struct NormScratch {

@@ -12,15 +12,7 @@ pub enum Reduce {
     Max,
 }
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    outer: u32,
-    len: u32,
-    inner: u32,
-    op: u32,
-    accumulate: u32,
-}
+use crate::kernels::params::ReduceParams as Params;
 
 /// Reduces `x` along `axis`, which is removed from the shape. The sum and mean of an empty
 /// axis are 0; the max of an empty axis is an error.

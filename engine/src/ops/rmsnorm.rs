@@ -9,16 +9,7 @@ use crate::ops::reduce::{reduce_into, Reduce};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    rows: u32,
-    width: u32,
-    eps: f32,
-    rows_per_chunk: u32,
-    lanes: u32,
-    residual: u32,
-}
+use crate::kernels::params::RmsnormParams as Params;
 
 /// Rows of `x` over its last axis, checked against the width of `w` (rows, width).
 pub(crate) fn rows_and_width(what: &str, x: &Tensor, width: usize) -> Result<(u32, u32)> {

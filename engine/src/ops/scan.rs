@@ -22,12 +22,7 @@ pub const ITEMS: u32 = 16;
 /// 32-bit element indices from wrapping).
 pub const MAX_ITEMS: u32 = 64;
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    n: u32,
-    items: u32,
-}
+use crate::kernels::params::ScanParams as Params;
 
 /// Writes `output[i] = input[0] + ... + input[i-1]` (mod 2^32; `output[0] = 0`) and returns a
 /// one-element u32 tensor holding the total of all of `input` (mod 2^32), which is ready when

@@ -2,8 +2,9 @@
 //! `shaders/scatter_add_cas.wgsl` (compare-and-swap fallback), chosen by the device.
 
 use crate::error::{Error, Result};
+use crate::kernels::params::ScatterAddBodyParams as Params;
 use crate::kernels::{SCATTER_ADD_CAS_MAIN, SCATTER_ADD_MAIN};
-use crate::ops::gather::{rows_width, RowParams};
+use crate::ops::gather::rows_width;
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
@@ -37,7 +38,7 @@ pub fn scatter_add(rec: &mut Recorder, src: &Tensor, idx: &Tensor, out: &Tensor)
     let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("scatter_add of {src:?}")));
     fit(src.numel())?;
     fit(out.numel())?;
-    let p = RowParams { rows: fit(rows)?, width: fit(width)?, other_rows: fit(dst_rows)?, add: 0 };
+    let p = Params { rows: fit(rows)?, width: fit(width)?, dst_rows: fit(dst_rows)?, _add: 0 };
     let kernel = if rec_supports(rec, SCATTER_ADD_MAIN) { SCATTER_ADD_MAIN } else { SCATTER_ADD_CAS_MAIN };
     rec.dispatch_linear(kernel, (src.numel() as u64).div_ceil(256), &[src, idx, out], &p)
 }
@@ -47,11 +48,11 @@ pub fn scatter_add_cas(rec: &mut Recorder, src: &Tensor, idx: &Tensor, out: &Ten
     let (rows, width) = rows_width(src)?;
     let (dst_rows, _) = rows_width(out)?;
     let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("scatter_add of {src:?}")));
-    let p = RowParams { rows: fit(rows)?, width: fit(width)?, other_rows: fit(dst_rows)?, add: 0 };
+    let p = Params { rows: fit(rows)?, width: fit(width)?, dst_rows: fit(dst_rows)?, _add: 0 };
     rec.dispatch_linear(SCATTER_ADD_CAS_MAIN, (src.numel() as u64).div_ceil(256), &[src, idx, out], &p)
 }
 
-fn rec_supports(rec: &Recorder, k: crate::kernels::KernelId) -> bool {
+fn rec_supports(rec: &Recorder, k: impl Into<crate::kernels::KernelId>) -> bool {
     rec.gpu().supports(k)
 }
 

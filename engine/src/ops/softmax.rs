@@ -6,13 +6,7 @@ use crate::ops::rmsnorm::{row_groups, row_lanes};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    rows: u32,
-    len: u32,
-    lanes: u32,
-}
+use crate::kernels::params::SoftmaxParams as Params;
 
 /// Softmax of every row (last axis) of `x`, as a new tensor.
 pub fn softmax(rec: &mut Recorder, x: &Tensor) -> Result<Tensor> {

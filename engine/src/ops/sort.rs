@@ -22,16 +22,7 @@ pub const RADIX_BITS: u32 = 4;
 /// Elements per workgroup; must match `BLOCK` in `shaders/sort.wgsl`.
 pub const BLOCK: usize = 4096;
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    n: u32,
-    num_blocks: u32,
-    shift: u32,
-    mask: u32,
-    key_bits: u32,
-    iota: u32,
-}
+use crate::kernels::params::SortParams as Params;
 
 /// Sorts `keys` (u32) with their `values` (u32, i32 or f32, moved as raw bits) by the low
 /// `key_bits` bits of each key (1..=32), stably. Returns new tensors, shaped like the inputs,

@@ -5,11 +5,7 @@ use crate::kernels::{SWIGLU_BACKWARD, SWIGLU_FORWARD, SWIGLU_SILU_BACKWARD};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    n: u32,
-}
+use crate::kernels::params::SwigluParams as Params;
 
 fn check(what: &str, ts: &[&Tensor]) -> Result<Params> {
     let shape = ts[0].shape();

@@ -71,14 +71,7 @@ impl Unary {
     }
 }
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    n: u32,
-    op: u32,
-    alpha: f32,
-    beta: f32,
-}
+use crate::kernels::params::UnaryParams as Params;
 
 /// y = f(x) as a new tensor.
 pub fn unary(rec: &mut Recorder, x: &Tensor, f: Unary) -> Result<Tensor> {

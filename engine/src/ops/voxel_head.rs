@@ -6,14 +6,7 @@ use crate::kernels::{VOXEL_HEAD_BACKWARD, VOXEL_HEAD_FORWARD};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    cells: u32,
-    per: u32,
-    h: u32,
-    directions: u32,
-}
+use crate::kernels::params::VoxelHeadParams as Params;
 
 /// Checks `features [cells, F]` (F = h, or 4 h with `directions`), `embedded [per, h]` and
 /// `offsets [per, 3]`.

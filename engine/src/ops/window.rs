@@ -125,20 +125,11 @@ impl WindowGrid {
     }
 }
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct Params {
-    origin: [f32; 4],
-    inv_cell: [f32; 4],
-    cells: [u32; 4],
-    n: u32,
-    capacity: u32,
-    _pad: [u32; 2],
-}
+use crate::kernels::params::WindowParams as Params;
 
 impl Params {
     fn count(n: u32) -> Params {
-        Params { origin: [0.0; 4], inv_cell: [0.0; 4], cells: [1; 4], n, capacity: 0, _pad: [0; 2] }
+        Params { origin: [0.0; 4], inv_cell: [0.0; 4], cells: [1; 4], n, capacity: 0, _pad1: 0, _pad2: 0 }
     }
 }
 
@@ -186,7 +177,8 @@ pub fn window_ids(rec: &mut Recorder, points: &Tensor, grid: &WindowGrid) -> Res
         cells: grid.cells,
         n,
         capacity: 0,
-        _pad: [0; 2],
+        _pad1: 0,
+        _pad2: 0,
     };
     rec.dispatch_linear(WINDOW_WINDOW_IDS, (n as u64).div_ceil(WG), &[points, &ids], &params)?;
     Ok(ids)

@@ -15,7 +15,7 @@ use super::forward::{BlendParams, ProjectParams};
 use super::{Gaussians, Rendered};
 use crate::error::{Error, Result};
 use crate::kernels::{
-    KernelId, RASTER_BACKWARD_ATOMIC_MAIN, RASTER_BACKWARD_CAS_MAIN, RASTER_BACKWARD_MAIN,
+    Kernel, RASTER_BACKWARD_ATOMIC_MAIN, RASTER_BACKWARD_CAS_MAIN, RASTER_BACKWARD_MAIN,
     RASTER_BACKWARD_SUM_PAIRS, RASTER_PROJECT_PROJECT_BACKWARD,
 };
 use crate::ops::fill::fill_bits;
@@ -35,7 +35,7 @@ pub enum BackwardKernel {
 }
 
 impl BackwardKernel {
-    fn id(self) -> KernelId {
+    fn id(self) -> Kernel<BlendParams> {
         match self {
             BackwardKernel::Ordered => RASTER_BACKWARD_MAIN,
             BackwardKernel::Atomic => RASTER_BACKWARD_ATOMIC_MAIN,
@@ -84,7 +84,7 @@ impl BackwardKernel {
 
 /// The blend-backward kernel [`render_backward`] uses on this device (the deterministic one),
 /// or why the device cannot run it.
-pub fn variant(gpu: &Gpu) -> Result<(KernelId, &'static str)> {
+pub fn variant(gpu: &Gpu) -> Result<(Kernel<BlendParams>, &'static str)> {
     BackwardKernel::Ordered.check(gpu)?;
     Ok((BackwardKernel::Ordered.id(), BackwardKernel::Ordered.describe()))
 }

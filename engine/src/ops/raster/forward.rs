@@ -21,23 +21,7 @@ use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 use crate::Gpu;
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-pub(crate) struct ProjectParams {
-    rot: [[f32; 4]; 3],
-    intr: [f32; 4],
-    width: u32,
-    height: u32,
-    tiles_x: u32,
-    tiles_y: u32,
-    n: u32,
-    near: f32,
-    min_alpha: f32,
-    max_tiles: u32,
-    dilation: f32,
-    min_det: f32,
-    pad: [u32; 2],
-}
+pub(crate) use crate::kernels::params::RasterProjectParams as ProjectParams;
 
 impl ProjectParams {
     pub(crate) fn new(cam: &Camera, n: usize) -> ProjectParams {
@@ -45,7 +29,9 @@ impl ProjectParams {
         let t = cam.translation;
         let (tiles_x, tiles_y) = cam.tiles();
         ProjectParams {
-            rot: [0, 1, 2].map(|i| [r[i][0], r[i][1], r[i][2], t[i]]),
+            rot0: [r[0][0], r[0][1], r[0][2], t[0]],
+            rot1: [r[1][0], r[1][1], r[1][2], t[1]],
+            rot2: [r[2][0], r[2][1], r[2][2], t[2]],
             intr: [cam.fx, cam.fy, cam.cx, cam.cy],
             width: cam.width,
             height: cam.height,
@@ -57,25 +43,13 @@ impl ProjectParams {
             max_tiles: MAX_TILES_PER_GAUSSIAN,
             dilation: DILATION,
             min_det: MIN_DET,
-            pad: [0; 2],
+            pad0: 0,
+            pad1: 0,
         }
     }
 }
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-pub(crate) struct BlendParams {
-    background: [f32; 4],
-    width: u32,
-    height: u32,
-    tiles_x: u32,
-    /// Gaussians (the backward pass's `sum_pairs` reads it; blending does not).
-    gaussians: u32,
-    alpha_max: f32,
-    min_alpha: f32,
-    t_stop: f32,
-    pad1: f32,
-}
+pub(crate) use crate::kernels::params::RasterBlendParams as BlendParams;
 
 impl BlendParams {
     pub(crate) fn with_gaussians(self, gaussians: u32) -> BlendParams {
@@ -92,20 +66,12 @@ impl BlendParams {
             alpha_max: ALPHA_MAX,
             min_alpha: MIN_ALPHA,
             t_stop: T_STOP,
-            pad1: 0.0,
+            _pad: 0.0,
         }
     }
 }
 
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct TileParams {
-    n: u32,
-    tiles_x: u32,
-    /// emit: pairs the buffers hold; ranges: tiles.
-    limit: u32,
-    pad: u32,
-}
+use crate::kernels::params::RasterTilesParams as TileParams;
 
 /// What [`project`] records: per-Gaussian screen-space data, tile counts and rectangles,
 /// their exclusive scan, and the culling counters.
