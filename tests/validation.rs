@@ -111,7 +111,8 @@ fn child_read_past_binding() {
     let out = Tensor::empty(&gpu, &[256], DType::F16).unwrap();
     let mut rec = gpu.recorder().unwrap();
     let told = velox::engine::kernels::params::CastParams { n: 256 };
-    rec.dispatch(CAST_F32_TO_F16, [1, 1, 1], &[&view, &out], &told).unwrap();
+    let args = velox::engine::kernels::args::CastF32ToF16Args { src_f32: &view, dst_f16: &out };
+    rec.dispatch(CAST_F32_TO_F16, [1, 1, 1], args, &told).unwrap();
     match rec.submit() {
         Err(Error::Validation(what)) => eprintln!("submit failed as it should: {what}"),
         other => panic!("a read past the binding went unreported: {:?}", other.map(|_| ())),

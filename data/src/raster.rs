@@ -9,6 +9,7 @@
 //!
 //! [`reference`] holds the CPU version the tests check it against (a ray cast per pixel).
 
+use velox_engine::kernels::args;
 use velox_engine::kernels::{MESH_RASTER_CLEAR, MESH_RASTER_DEPTH, MESH_RASTER_RESOLVE, MESH_RASTER_SHADE};
 use velox_engine::{DType, Gpu, Tensor};
 
@@ -164,30 +165,46 @@ impl MeshRasteriser {
         let tri_items = (cameras.len() as u64 * self.n_tris as u64).div_ceil(wg);
         let pix_items = (n as u64).div_ceil(wg);
         let mut rec = gpu.recorder()?;
-        rec.dispatch_linear(MESH_RASTER_CLEAR, pix_items, &[&depth_bits, &ids], &params)?;
-        rec.dispatch_linear(MESH_RASTER_DEPTH, tri_items, &[verts, &self.tris, &cams, &depth_bits], &params)?;
+        rec.dispatch_linear(
+            MESH_RASTER_CLEAR,
+            pix_items,
+            args::MeshRasterClearArgs { depth_bits: &depth_bits, ids: &ids },
+            &params,
+        )?;
+        rec.dispatch_linear(
+            MESH_RASTER_DEPTH,
+            tri_items,
+            args::MeshRasterDepthArgs { verts, tris: &self.tris, cams: &cams, depth_bits: &depth_bits },
+            &params,
+        )?;
         rec.dispatch_linear(
             MESH_RASTER_RESOLVE,
             tri_items,
-            &[verts, &self.tris, &cams, &depth_bits, &ids],
+            args::MeshRasterResolveArgs {
+                verts,
+                tris: &self.tris,
+                cams: &cams,
+                depth_bits: &depth_bits,
+                ids: &ids,
+            },
             &params,
         )?;
         rec.dispatch_linear(
             MESH_RASTER_SHADE,
             pix_items,
-            &[
+            args::MeshRasterShadeArgs {
                 verts,
-                &self.tris,
-                &cams,
-                &ids,
-                &self.uvs,
-                &self.tri_tex,
-                &self.tex_table,
-                &self.texels,
-                &depth,
-                &bary,
-                &rgb,
-            ],
+                tris: &self.tris,
+                cams: &cams,
+                ids: &ids,
+                uvs: &self.uvs,
+                tri_tex: &self.tri_tex,
+                tex_table: &self.tex_table,
+                texels: &self.texels,
+                out_depth: &depth,
+                out_bary: &bary,
+                out_rgb: &rgb,
+            },
             &params,
         )?;
         rec.submit()?;

@@ -19,6 +19,8 @@ pub struct ModuleSource {
 pub struct BindingInfo {
     pub binding: u32,
     pub writes: bool,
+    /// The variable's name in the shader (and the field's in the kernel's argument struct).
+    pub name: &'static str,
 }
 
 /// Device features a kernel needs.
@@ -123,35 +125,46 @@ impl KernelId {
     }
 }
 
-/// A kernel with the type of its push constants: the constants below, generated from the
-/// shaders, give each entry point the mirror of its `var<immediate>` struct (in [`params`]), or
-/// `()` where it has none, so that a recorder takes only that struct for it.
-pub struct Kernel<P> {
+/// A kernel with the types of its interface: the constants below, generated from the shaders,
+/// give each entry point the mirror of its `var<immediate>` struct (in [`params`]; `()` where
+/// it has none) and the struct of its storage buffers by name (in [`args`]), so that a recorder
+/// takes only those for it.
+pub struct Kernel<P, B> {
     id: KernelId,
-    params: std::marker::PhantomData<fn() -> P>,
+    interface: std::marker::PhantomData<fn() -> (P, B)>,
 }
 
-impl<P> Clone for Kernel<P> {
+/// The argument struct of a kernel, at any lifetime of its tensors.
+pub trait Binds {
+    type Args<'a>: ArgList<'a>;
+}
+
+/// Tensors in binding order.
+pub trait ArgList<'a> {
+    fn tensors(&self) -> Vec<&'a crate::tensor::Tensor>;
+}
+
+impl<P, B> Clone for Kernel<P, B> {
     fn clone(&self) -> Self {
         *self
     }
 }
-impl<P> Copy for Kernel<P> {}
-impl<P> PartialEq for Kernel<P> {
+impl<P, B> Copy for Kernel<P, B> {}
+impl<P, B> PartialEq for Kernel<P, B> {
     fn eq(&self, other: &Self) -> bool {
         self.id == other.id
     }
 }
-impl<P> Eq for Kernel<P> {}
-impl<P> std::fmt::Debug for Kernel<P> {
+impl<P, B> Eq for Kernel<P, B> {}
+impl<P, B> std::fmt::Debug for Kernel<P, B> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(f, "Kernel({})", self.id.name())
     }
 }
 
-impl<P> Kernel<P> {
+impl<P, B> Kernel<P, B> {
     const fn new(index: usize) -> Self {
-        Kernel { id: KernelId(index), params: std::marker::PhantomData }
+        Kernel { id: KernelId(index), interface: std::marker::PhantomData }
     }
     pub const fn id(self) -> KernelId {
         self.id
@@ -164,8 +177,8 @@ impl<P> Kernel<P> {
     }
 }
 
-impl<P> From<Kernel<P>> for KernelId {
-    fn from(k: Kernel<P>) -> KernelId {
+impl<P, B> From<Kernel<P, B>> for KernelId {
+    fn from(k: Kernel<P, B>) -> KernelId {
         k.id
     }
 }

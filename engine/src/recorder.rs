@@ -22,7 +22,7 @@ use ash::vk;
 
 use crate::device::Gpu;
 use crate::error::{Error, Result, VkCheck};
-use crate::kernels::{Kernel, KernelId};
+use crate::kernels::{ArgList, Binds, Kernel, KernelId};
 use crate::profile;
 use crate::tensor::{Buffer, Tensor};
 use crate::validation;
@@ -272,15 +272,17 @@ impl Recorder {
         self.barriers += 1;
     }
 
-    /// Records `kernel` over `groups` workgroups with `args` bound in binding order and `push`
-    /// as its push constants.
-    pub fn dispatch<P: bytemuck::Pod>(
+    /// Records `kernel` over `groups` workgroups with the tensors of `args` bound to the
+    /// shader's bindings of their names and `push` as its push constants.
+    pub fn dispatch<P: bytemuck::Pod, B: Binds>(
         &mut self,
-        kernel: Kernel<P>,
+        kernel: Kernel<P, B>,
         groups: [u32; 3],
-        args: &[&Tensor],
+        args: B::Args<'_>,
         push: &P,
     ) -> Result<()> {
+        let tensors = args.tensors();
+        let args = tensors.as_slice();
         let info = kernel.info();
         if args.len() != info.bindings.len() {
             return Err(Error::Shape(format!(
@@ -425,11 +427,11 @@ impl Recorder {
 
     /// Dispatches `total` workgroups of a kernel that linearises `wid.x + wid.y * nwg.x` and
     /// returns early past `total` (every 1D kernel in shaders/ does).
-    pub fn dispatch_linear<P: bytemuck::Pod>(
+    pub fn dispatch_linear<P: bytemuck::Pod, B: Binds>(
         &mut self,
-        kernel: Kernel<P>,
+        kernel: Kernel<P, B>,
         total: u64,
-        args: &[&Tensor],
+        args: B::Args<'_>,
         push: &P,
     ) -> Result<()> {
         let groups = linear_groups(total, self.gpu.caps().max_workgroup_count)

@@ -9,6 +9,7 @@
 //!   is `gp` itself when T = 1 (a per-point modulation, as the surface decoder trains with).
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::{ADALN_BACKWARD, ADALN_GATE, ADALN_MODULATE};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
@@ -40,7 +41,12 @@ fn groups(p: &Params) -> u64 {
 pub fn modulate(rec: &mut Recorder, x: &Tensor, scale: &Tensor, shift: &Tensor) -> Result<Tensor> {
     let p = check("modulate", x, &[scale, shift], &[])?;
     let y = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
-    rec.dispatch_linear(ADALN_MODULATE, groups(&p), &[x, scale, shift, &y], &p)?;
+    rec.dispatch_linear(
+        ADALN_MODULATE,
+        groups(&p),
+        args::AdalnModulateArgs { a: x, p: scale, q: shift, out: &y },
+        &p,
+    )?;
     Ok(y)
 }
 
@@ -48,7 +54,12 @@ pub fn modulate(rec: &mut Recorder, x: &Tensor, scale: &Tensor, shift: &Tensor) 
 pub fn gate(rec: &mut Recorder, y: &Tensor, gate: &Tensor, res: &Tensor) -> Result<Tensor> {
     let p = check("gated residual", y, &[gate], &[res])?;
     let out = Tensor::empty(y.gpu(), y.shape(), DType::F32)?;
-    rec.dispatch_linear(ADALN_GATE, groups(&p), &[y, gate, res, &out], &p)?;
+    rec.dispatch_linear(
+        ADALN_GATE,
+        groups(&p),
+        args::AdalnGateArgs { a: y, p: gate, q: res, out: &out },
+        &p,
+    )?;
     Ok(out)
 }
 
@@ -63,6 +74,11 @@ pub fn backward(
     let params = Params { one, ..check("adaln backward", a, &[p], &[dy])? };
     let ga = Tensor::empty(a.gpu(), a.shape(), DType::F32)?;
     let gp = Tensor::empty(a.gpu(), a.shape(), DType::F32)?;
-    rec.dispatch_linear(ADALN_BACKWARD, groups(&params), &[a, p, dy, &ga, &gp], &params)?;
+    rec.dispatch_linear(
+        ADALN_BACKWARD,
+        groups(&params),
+        args::AdalnBackwardArgs { a, p, g: dy, ga: &ga, gp: &gp },
+        &params,
+    )?;
     Ok((ga, gp))
 }

@@ -13,6 +13,7 @@
 //! NaN or Inf. Without one, gradients are used as they are (times `grad_scale`).
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::ADAMW_MAIN;
 use crate::ops::norm::{chunk_len, chunks};
 use crate::recorder::Recorder;
@@ -136,7 +137,12 @@ pub fn adamw_chunked(
         let (pv, gv, mv, vv) = (view(&p)?, view(&g)?, view(&m)?, view(&v)?);
         // Without a norm the kernel never reads binding 4; any bound buffer will do.
         let norm = t.norm.unwrap_or(&gv);
-        rec.dispatch_linear(ADAMW_MAIN, (len as u64).div_ceil(256), &[&pv, &gv, &mv, &vv, norm], &params)?;
+        rec.dispatch_linear(
+            ADAMW_MAIN,
+            (len as u64).div_ceil(256),
+            args::AdamwMainArgs { param: &pv, grad: &gv, m: &mv, v: &vv, norm },
+            &params,
+        )?;
     }
     Ok(())
 }

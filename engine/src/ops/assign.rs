@@ -18,6 +18,7 @@
 //! a query whose segment is empty gets zeros.
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::{ASSIGN_CELL_OFFSETS, ASSIGN_NEAREST};
 use crate::ops::sort::{self, sort_indices};
 use crate::ops::window::{key_bits_for, point_rows};
@@ -51,7 +52,12 @@ pub fn assign_nearest(rec: &mut Recorder, points: &Tensor, queries: &Tensor) -> 
     let k = query_rows(queries)?;
     let cells = Tensor::empty(points.gpu(), &[n as usize], DType::U32)?;
     let groups = (n as u64).div_ceil(NEAREST_WG * NEAREST_PTS);
-    rec.dispatch_linear(ASSIGN_NEAREST, groups, &[points, queries, &cells], &Params { n, k })?;
+    rec.dispatch_linear(
+        ASSIGN_NEAREST,
+        groups,
+        args::AssignNearestArgs { points, queries, cells: &cells },
+        &Params { n, k },
+    )?;
     Ok(cells)
 }
 
@@ -93,7 +99,7 @@ pub fn group_by_cell(rec: &mut Recorder, cells: &Tensor, k: usize) -> Result<(Te
     rec.dispatch_linear(
         ASSIGN_CELL_OFFSETS,
         (n as u64 + 1).div_ceil(256),
-        &[&sorted_cells, &offsets],
+        args::AssignCellOffsetsArgs { sorted_cells: &sorted_cells, offsets: &offsets },
         &params,
     )?;
     Ok((order, sorted_cells, offsets))

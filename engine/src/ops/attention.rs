@@ -9,11 +9,7 @@
 //! cost nothing; a query whose segment has no keys gets zeros.
 
 use crate::error::{Error, Result};
-use crate::kernels::{self, Kernel};
-
-/// The attention kernels (every head size and precision) share one declaration of their
-/// push constants.
-type AttentionKernel = Kernel<Params>;
+use crate::kernels::{self, args, Kernel};
 use crate::ops::fill::fill_bits;
 use crate::ops::scan::exclusive_scan;
 use crate::recorder::{Completion, Recorder};
@@ -148,19 +144,25 @@ use crate::kernels::params::AttentionCommonParams as Params;
 
 use crate::kernels::params::AttentionBlocksParams as BlockParams;
 
+// The attention kernels of every head size and precision share one declaration of their push
+// constants and, per pass, one list of buffers.
+type ForwardKernel = Kernel<Params, args::AttentionD16FwdArgs<'static>>;
+type DqKernel = Kernel<Params, args::AttentionD16BwdDqArgs<'static>>;
+type DkvKernel = Kernel<Params, args::AttentionD16BwdDkvArgs<'static>>;
+
 struct Kernels {
-    fwd: AttentionKernel,
+    fwd: ForwardKernel,
     /// The forward pass on f16 q, k, v.
-    fwd_f16: AttentionKernel,
+    fwd_f16: ForwardKernel,
     /// The same on cooperative matrices, 16x16x16 and 8x8x8 fragments, each in blocks of
     /// [`COOP_BLOCKS_16`] and [`COOP_BLOCKS_8`] query rows.
-    fwd_coop16: [AttentionKernel; 2],
-    fwd_coop8: [AttentionKernel; 2],
-    dq: AttentionKernel,
-    dkv: AttentionKernel,
+    fwd_coop16: [ForwardKernel; 2],
+    fwd_coop8: [ForwardKernel; 2],
+    dq: DqKernel,
+    dkv: DkvKernel,
     /// The backward pass on f16 q, k, v (everything else f32).
-    dq_f16: AttentionKernel,
-    dkv_f16: AttentionKernel,
+    dq_f16: DqKernel,
+    dkv_f16: DkvKernel,
 }
 
 fn kernels_for(d: usize) -> Option<Kernels> {
@@ -258,7 +260,7 @@ pub const COOP_BLOCKS_8: [usize; 2] = [32, 64];
 /// subgroups of exactly F*F/8 invocations (each query row belongs to F/8 lanes of one
 /// subgroup), subgroup shuffles and votes, and the kernel's workgroup memory. A tall block that
 /// does not fit in workgroup memory gives way to the short one.
-pub fn coop_forward_kernel(gpu: &Gpu, d: usize, tall: bool) -> Option<(AttentionKernel, usize)> {
+pub fn coop_forward_kernel(gpu: &Gpu, d: usize, tall: bool) -> Option<(ForwardKernel, usize)> {
     let caps = gpu.caps();
     let kern = kernels_for(d)?;
     let [f, _, _] = caps.coop_matrix_f16?;
@@ -291,7 +293,7 @@ pub fn coop_forward_chosen(
     d: usize,
     nq: usize,
     segments: usize,
-) -> Option<(AttentionKernel, usize)> {
+) -> Option<(ForwardKernel, usize)> {
     if nq < COOP_MIN_ROWS_PER_SEGMENT * segments {
         return None;
     }
@@ -331,16 +333,31 @@ fn work_list(rec: &mut Recorder, offsets: &Tensor, rows: usize, block: usize) ->
         capacity: fit(capacity)?,
     };
     if segments <= BUILD_MAX_SEGMENTS {
-        rec.dispatch(kernels::ATTENTION_BLOCKS_BUILD, [1, 1, 1], &[offsets, &list], &p)?;
+        rec.dispatch(
+            kernels::ATTENTION_BLOCKS_BUILD,
+            [1, 1, 1],
+            args::AttentionBlocksBuildArgs { offsets, list: &list },
+            &p,
+        )?;
         return Ok((list, capacity));
     }
     let items = Tensor::empty(&gpu, &[segments], DType::U32)?;
     let first = Tensor::empty(&gpu, &[segments], DType::U32)?;
     let groups = (segments as u64).div_ceil(256);
     fill_bits(rec, &list, u32::MAX)?;
-    rec.dispatch_linear(kernels::ATTENTION_BLOCKS_COUNT, groups, &[offsets, &items], &p)?;
+    rec.dispatch_linear(
+        kernels::ATTENTION_BLOCKS_COUNT,
+        groups,
+        args::AttentionBlocksCountArgs { offsets, items: &items },
+        &p,
+    )?;
     exclusive_scan(rec, &items, &first)?;
-    rec.dispatch_linear(kernels::ATTENTION_BLOCKS_WRITE, groups, &[offsets, &first, &list], &p)?;
+    rec.dispatch_linear(
+        kernels::ATTENTION_BLOCKS_WRITE,
+        groups,
+        args::AttentionBlocksWriteArgs { offsets, first_item: &first, list: &list },
+        &p,
+    )?;
     Ok((list, capacity))
 }
 
@@ -369,8 +386,9 @@ pub fn attention(
     };
     let (list, capacity) = seg.work_list(rec, false, nq, block)?;
     let p = params(h, capacity, scale, nq, nk)?;
-    let args = [q, k, v, &seg.q_offsets, &seg.k_offsets, &list, &o, &lse];
-    rec.dispatch_linear(kernel, (capacity * h) as u64, &args, &p)?;
+    let (q_off, k_off) = (&seg.q_offsets, &seg.k_offsets);
+    let args = args::AttentionD16FwdArgs { q, k, v, q_off, k_off, work: &list, o: &o, lse: &lse };
+    rec.dispatch_linear(kernel, (capacity * h) as u64, args, &p)?;
     Ok(AttentionOut { o, lse })
 }
 
@@ -458,14 +476,18 @@ pub fn attention_backward_into(
     if nq > 0 {
         let (q_list, q_capacity) = seg.work_list(rec, false, nq, BLOCK)?;
         let p = params(h, q_capacity, scale, nq, nk)?;
-        let args = [q, k, v, &seg.q_offsets, &seg.k_offsets, &q_list, o, lse, d_o, &delta, dq];
-        rec.dispatch_linear(dq_kernel, (q_capacity * h) as u64, &args, &p)?;
+        let (q_off, k_off, work) = (&seg.q_offsets, &seg.k_offsets, &q_list);
+        let args =
+            args::AttentionD16BwdDqArgs { q, k, v, q_off, k_off, work, o, lse, d_o, delta: &delta, dq };
+        rec.dispatch_linear(dq_kernel, (q_capacity * h) as u64, args, &p)?;
     }
     if nk > 0 {
         let (k_list, k_capacity) = seg.work_list(rec, true, nk, BLOCK)?;
         let p = params(h, k_capacity, scale, nq, nk)?;
-        let args = [q, k, v, &seg.q_offsets, &seg.k_offsets, &k_list, lse, d_o, &delta, dk, dv];
-        rec.dispatch_linear(dkv_kernel, (k_capacity * h) as u64, &args, &p)?;
+        let (q_off, k_off, work) = (&seg.q_offsets, &seg.k_offsets, &k_list);
+        let args =
+            args::AttentionD16BwdDkvArgs { q, k, v, q_off, k_off, work, lse, d_o, delta: &delta, dk, dv };
+        rec.dispatch_linear(dkv_kernel, (k_capacity * h) as u64, args, &p)?;
     }
     Ok(())
 }

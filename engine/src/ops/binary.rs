@@ -1,6 +1,7 @@
 //! Elementwise binary ops with numpy-style broadcasting. Kernel: `shaders/binary.wgsl`.
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::BINARY_MAIN;
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
@@ -126,7 +127,7 @@ pub fn binary_into(rec: &mut Recorder, a: &Tensor, b: &Tensor, out: &Tensor, op:
         p.a_strides[pad + i] = sa[i] as u32;
         p.b_strides[pad + i] = sb[i] as u32;
     }
-    rec.dispatch_linear(BINARY_MAIN, (n as u64).div_ceil(256), &[a, b, out], &p)
+    rec.dispatch_linear(BINARY_MAIN, (n as u64).div_ceil(256), args::BinaryMainArgs { a, b, out }, &p)
 }
 
 pub mod reference {

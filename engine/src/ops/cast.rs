@@ -1,6 +1,7 @@
 //! f32 <-> f16 conversion. Kernel: `shaders/cast.wgsl` (packed halves, runs everywhere).
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::{CAST_F16_TO_F32, CAST_F32_TO_F16};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
@@ -25,12 +26,18 @@ pub fn cast_into(rec: &mut Recorder, x: &Tensor, out: &Tensor) -> Result<()> {
     let params = Params { n };
     match (x.dtype(), out.dtype()) {
         (a, b) if a == b => rec.copy(x, out),
-        (DType::F32, DType::F16) => {
-            rec.dispatch_linear(CAST_F32_TO_F16, words.div_ceil(256), &[x, out], &params)
-        }
-        (DType::F16, DType::F32) => {
-            rec.dispatch_linear(CAST_F16_TO_F32, words.div_ceil(256), &[x, out], &params)
-        }
+        (DType::F32, DType::F16) => rec.dispatch_linear(
+            CAST_F32_TO_F16,
+            words.div_ceil(256),
+            args::CastF32ToF16Args { src_f32: x, dst_f16: out },
+            &params,
+        ),
+        (DType::F16, DType::F32) => rec.dispatch_linear(
+            CAST_F16_TO_F32,
+            words.div_ceil(256),
+            args::CastF16ToF32Args { src_f16: x, dst_f32: out },
+            &params,
+        ),
         (a, b) => Err(Error::Shape(format!("cast from {} to {} is not supported", a.name(), b.name()))),
     }
 }

@@ -18,6 +18,7 @@
 //! same bits on a device. [`reference`] runs the same substep in f64 on the CPU.
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::{
     CLOTH_APPLY, CLOTH_CELL_BOUNDS, CLOTH_COLLIDE, CLOTH_DISTANCE, CLOTH_GROUND, CLOTH_HASH_KEYS,
     CLOTH_PREDICT,
@@ -313,37 +314,68 @@ impl ClothSim {
     pub fn record_substep(&self, rec: &mut Recorder, h: f32) -> Result<()> {
         let pc = self.push(h);
         let groups = (self.n as u64).div_ceil(256);
-        rec.dispatch_linear(CLOTH_PREDICT, groups, &[&self.x, &self.p, &self.v, &self.w], &pc)?;
+        rec.dispatch_linear(
+            CLOTH_PREDICT,
+            groups,
+            args::ClothPredictArgs { x: &self.x, p: &self.p, v: &self.v, w: &self.w },
+            &pc,
+        )?;
         fill(rec, &self.lambda, 0.0)?;
         for &(start, count) in &self.colours {
             let pc = Params { start: start as u32, count: count as u32, ..pc };
-            let args = [&self.x, &self.w, &self.pairs, &self.rest, &self.compliance, &self.lambda];
-            rec.dispatch_linear(CLOTH_DISTANCE, (count as u64).div_ceil(256), &args, &pc)?;
+            let args = args::ClothDistanceArgs {
+                x: &self.x,
+                w: &self.w,
+                pairs: &self.pairs,
+                rest: &self.rest,
+                compliance: &self.compliance,
+                lambda: &self.lambda,
+            };
+            rec.dispatch_linear(CLOTH_DISTANCE, (count as u64).div_ceil(256), args, &pc)?;
         }
         if self.params.collide {
-            rec.dispatch_linear(CLOTH_HASH_KEYS, groups, &[&self.x, &self.keys, &self.order], &pc)?;
+            rec.dispatch_linear(
+                CLOTH_HASH_KEYS,
+                groups,
+                args::ClothHashKeysArgs { x: &self.x, keys: &self.keys, order: &self.order },
+                &pc,
+            )?;
             let (sorted_keys, sorted_order) = sort_pairs(rec, &self.keys, &self.order, self.table_bits)?;
             fill_bits(rec, &self.cell_start, 0)?;
             fill_bits(rec, &self.cell_end, 0)?;
             rec.dispatch_linear(
                 CLOTH_CELL_BOUNDS,
                 groups,
-                &[&sorted_keys, &self.cell_start, &self.cell_end],
+                args::ClothCellBoundsArgs {
+                    sorted_keys: &sorted_keys,
+                    cell_start: &self.cell_start,
+                    cell_end: &self.cell_end,
+                },
                 &pc,
             )?;
-            let args = [
-                &self.x,
-                &self.w,
-                &sorted_order,
-                &self.cell_start,
-                &self.cell_end,
-                &self.rest_pos,
-                &self.delta,
-            ];
-            rec.dispatch_linear(CLOTH_COLLIDE, groups, &args, &pc)?;
-            rec.dispatch_linear(CLOTH_APPLY, groups, &[&self.x, &self.delta], &pc)?;
+            let args = args::ClothCollideArgs {
+                x: &self.x,
+                w: &self.w,
+                sorted_order: &sorted_order,
+                cell_start: &self.cell_start,
+                cell_end: &self.cell_end,
+                rest_pos: &self.rest_pos,
+                delta: &self.delta,
+            };
+            rec.dispatch_linear(CLOTH_COLLIDE, groups, args, &pc)?;
+            rec.dispatch_linear(
+                CLOTH_APPLY,
+                groups,
+                args::ClothApplyArgs { x: &self.x, delta: &self.delta },
+                &pc,
+            )?;
         }
-        rec.dispatch_linear(CLOTH_GROUND, groups, &[&self.x, &self.p, &self.v, &self.w], &pc)
+        rec.dispatch_linear(
+            CLOTH_GROUND,
+            groups,
+            args::ClothGroundArgs { x: &self.x, p: &self.p, v: &self.v, w: &self.w },
+            &pc,
+        )
     }
 
     /// Advances one frame of `dt` seconds (`substeps` substeps), one submission.

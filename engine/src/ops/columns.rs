@@ -1,6 +1,7 @@
 //! Copies of column blocks between row-major matrices. Kernel: `shaders/columns.wgsl`.
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::COLUMNS_MAIN;
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
@@ -42,7 +43,7 @@ pub fn copy_columns(
         dst_col: dst_col as u32,
         scale,
     };
-    rec.dispatch_linear(COLUMNS_MAIN, (total as u64).div_ceil(256), &[src, dst], &p)
+    rec.dispatch_linear(COLUMNS_MAIN, (total as u64).div_ceil(256), args::ColumnsMainArgs { src, dst }, &p)
 }
 
 /// A new `[rows, count]` matrix of `scale * src[:, col..col + count]`.

@@ -5,6 +5,7 @@
 //! place in the batch's list, adding the sample's first index.
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::CONCAT_COPY_ADD;
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
@@ -37,7 +38,12 @@ pub fn copy_add(
     let p = Params { src_start: fit(src_start)?, dst_start: fit(dst_start)?, count: fit(count)?, add };
     fit(src_start + count)?;
     fit(dst_start + count)?;
-    rec.dispatch_linear(CONCAT_COPY_ADD, (count as u64).div_ceil(256), &[src, dst], &p)
+    rec.dispatch_linear(
+        CONCAT_COPY_ADD,
+        (count as u64).div_ceil(256),
+        args::ConcatCopyAddArgs { src, dst },
+        &p,
+    )
 }
 
 pub mod reference {

@@ -5,6 +5,7 @@
 //! `cos(pi w_f x_i)` at `c * F + i * F + f`: width `c * 2F (+ c)`.
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::{FOURIER_BACKWARD, FOURIER_FORWARD};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
@@ -39,7 +40,12 @@ fn params(x: &Tensor, freq: &Tensor, include_input: bool) -> Result<(Params, usi
 pub fn fourier(rec: &mut Recorder, x: &Tensor, freq: &Tensor, include_input: bool) -> Result<Tensor> {
     let (p, width) = params(x, freq, include_input)?;
     let y = Tensor::empty(x.gpu(), &[x.shape()[0], width], DType::F32)?;
-    rec.dispatch_linear(FOURIER_FORWARD, y.numel().div_ceil(256) as u64, &[x, freq, &y], &p)?;
+    rec.dispatch_linear(
+        FOURIER_FORWARD,
+        y.numel().div_ceil(256) as u64,
+        args::FourierForwardArgs { x, freq, y: &y },
+        &p,
+    )?;
     Ok(y)
 }
 
@@ -59,7 +65,12 @@ pub fn fourier_backward(
         )));
     }
     let dx = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
-    rec.dispatch_linear(FOURIER_BACKWARD, x.numel().div_ceil(256) as u64, &[x, freq, dy, &dx], &p)?;
+    rec.dispatch_linear(
+        FOURIER_BACKWARD,
+        x.numel().div_ceil(256) as u64,
+        args::FourierBackwardArgs { x, freq, dy, dx: &dx },
+        &p,
+    )?;
     Ok(dx)
 }
 

@@ -12,6 +12,7 @@
 
 use crate::device::Gpu;
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::params::FpsOrderParams;
 use crate::kernels::{Kernel, FPS_ORDER_MAIN, FPS_WG1024_MAIN, FPS_WG256_MAIN};
 use crate::ops::gather::gather;
@@ -88,7 +89,7 @@ pub fn fps_with_workgroup(
 
 fn fps_with(
     rec: &mut Recorder,
-    kernel: Kernel<Params>,
+    kernel: Kernel<Params, args::FpsWg256MainArgs<'static>>,
     points: &Tensor,
     candidates: &[u32],
     k: usize,
@@ -115,11 +116,23 @@ fn fps_with(
     let codes = Tensor::empty(gpu, &[m], DType::U32)?;
     let iota = Tensor::empty(gpu, &[m], DType::U32)?;
     let order = FpsOrderParams { m: params.m, k: params.k };
-    rec.dispatch(FPS_ORDER_MAIN, [1, 1, 1], &[&cands, &codes, &iota], &order)?;
+    rec.dispatch(
+        FPS_ORDER_MAIN,
+        [1, 1, 1],
+        args::FpsOrderMainArgs { cands: &cands, codes: &codes, iota: &iota },
+        &order,
+    )?;
     let (_, perm) = sort_pairs(rec, &codes, &iota, 32)?;
     let sorted = gather(rec, &cands, &perm)?;
     let min_dist = Tensor::empty(gpu, &[m], DType::F32)?;
-    rec.dispatch(kernel, [1, 1, 1], &[&sorted, &perm, &index, &min_dist, &out], &params)?;
+    let args = args::FpsWg256MainArgs {
+        cands: &sorted,
+        perm: &perm,
+        cand_index: &index,
+        min_dist: &min_dist,
+        chosen: &out,
+    };
+    rec.dispatch(kernel, [1, 1, 1], args, &params)?;
     Ok(out)
 }
 
@@ -134,7 +147,7 @@ fn fps_with(
 /// A device whose limits the 1024-invocation kernel does not fit (fewer invocations per
 /// workgroup, or less workgroup memory than its 24 KiB) gets 256 (every Vulkan device allows
 /// 128 invocations and 16 KiB; the engine's other kernels already need 256).
-pub fn variant(gpu: &Gpu) -> (Kernel<Params>, String) {
+pub fn variant(gpu: &Gpu) -> (Kernel<Params, args::FpsWg256MainArgs<'static>>, String) {
     let caps = gpu.caps();
     let wg = if caps.kind == "CPU" || !gpu.supports(FPS_WG1024_MAIN) { WG_CPU } else { WG_GPU };
     let kernel = if wg == WG_GPU { FPS_WG1024_MAIN } else { FPS_WG256_MAIN };

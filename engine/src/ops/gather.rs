@@ -1,6 +1,7 @@
 //! Row gather. Kernel: `shaders/gather.wgsl`.
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::{GATHER_INVERT, GATHER_MAIN};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
@@ -51,7 +52,7 @@ fn gather_with(rec: &mut Recorder, src: &Tensor, idx: &Tensor, base: Option<&Ten
     rec.dispatch_linear(
         GATHER_MAIN,
         (total as u64).div_ceil(256),
-        &[src, idx, &out, base.unwrap_or(src)],
+        args::GatherMainArgs { src, idx, out: &out, base: base.unwrap_or(src) },
         &p,
     )?;
     Ok(out)
@@ -67,7 +68,12 @@ pub fn invert_permutation(rec: &mut Recorder, perm: &Tensor) -> Result<Tensor> {
     let fit = u32::try_from(n).map_err(|_| Error::TooLarge(format!("permutation of {n}")))?;
     let inverse = Tensor::empty(perm.gpu(), &[n], DType::U32)?;
     let p = RowParams { rows: fit, width: 1, src_rows: fit, add: 0 };
-    rec.dispatch_linear(GATHER_INVERT, (n as u64).div_ceil(256), &[perm, &inverse], &p)?;
+    rec.dispatch_linear(
+        GATHER_INVERT,
+        (n as u64).div_ceil(256),
+        args::GatherInvertArgs { idx: perm, inverse: &inverse },
+        &p,
+    )?;
     Ok(inverse)
 }
 

@@ -2,6 +2,7 @@
 //! `shaders/gaussian_head.wgsl` (the formulas are in its header).
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::{GAUSSIAN_HEAD_BACKWARD, GAUSSIAN_HEAD_FORWARD};
 use crate::ops::raster::Gaussians;
 use crate::recorder::Recorder;
@@ -54,8 +55,16 @@ pub fn head_forward(
 ) -> Result<Gaussians> {
     let (m, p) = params(raw, centres, range)?;
     let out = Gaussians::empty(raw.gpu(), m)?;
-    let args = [raw, centres, &out.means, &out.log_scales, &out.quats, &out.opacities, &out.colours];
-    rec.dispatch_linear(GAUSSIAN_HEAD_FORWARD, (m as u64).div_ceil(256), &args, &p)?;
+    let args = args::GaussianHeadForwardArgs {
+        raw,
+        centres,
+        means: &out.means,
+        log_scales: &out.log_scales,
+        quats: &out.quats,
+        logits: &out.opacities,
+        colours: &out.colours,
+    };
+    rec.dispatch_linear(GAUSSIAN_HEAD_FORWARD, (m as u64).div_ceil(256), args, &p)?;
     Ok(out)
 }
 
@@ -69,8 +78,16 @@ pub fn head_backward(
 ) -> Result<Tensor> {
     let (m, p) = params(raw, centres, range)?;
     let d_raw = Tensor::empty(raw.gpu(), &[m, RAW], DType::F32)?;
-    let args = [raw, &d.means, &d.log_scales, &d.quats, &d.opacities, &d.colours, &d_raw];
-    rec.dispatch_linear(GAUSSIAN_HEAD_BACKWARD, (m as u64).div_ceil(256), &args, &p)?;
+    let args = args::GaussianHeadBackwardArgs {
+        raw,
+        d_means: &d.means,
+        d_log_scales: &d.log_scales,
+        d_quats: &d.quats,
+        d_logits: &d.opacities,
+        d_colours: &d.colours,
+        d_raw: &d_raw,
+    };
+    rec.dispatch_linear(GAUSSIAN_HEAD_BACKWARD, (m as u64).div_ceil(256), args, &p)?;
     Ok(d_raw)
 }
 

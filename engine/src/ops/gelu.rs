@@ -2,6 +2,7 @@
 //! `shaders/gelu.wgsl`.
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::GELU_BACKWARD;
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
@@ -15,7 +16,12 @@ pub fn gelu_backward(rec: &mut Recorder, x: &Tensor, dy: &Tensor) -> Result<Tens
     }
     let n = u32::try_from(x.numel()).map_err(|_| Error::TooLarge(format!("gelu backward of {x:?}")))?;
     let dx = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
-    rec.dispatch_linear(GELU_BACKWARD, (n as u64).div_ceil(256), &[x, dy, &dx], &Params { n })?;
+    rec.dispatch_linear(
+        GELU_BACKWARD,
+        (n as u64).div_ceil(256),
+        args::GeluBackwardArgs { x, dy, dx: &dx },
+        &Params { n },
+    )?;
     Ok(dx)
 }
 

@@ -5,6 +5,7 @@
 //! for the backward, which gives `dx` and adds `dw`, `db` into gradient tensors.
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::{LAYERNORM_BACKWARD, LAYERNORM_FORWARD, LAYERNORM_PARAM_GRADS};
 use crate::ops::rmsnorm::{
     add_partials, check_residual, check_vector, chunking, row_groups, row_lanes, rows_and_width,
@@ -45,7 +46,12 @@ pub fn layernorm(
     let lanes = row_lanes(w32);
     let affine = affine.is_some() as u32;
     let p = Params { rows, width: w32, eps, rows_per_chunk: 0, affine, lanes, residual: 0, _pad: 0 };
-    rec.dispatch_linear(LAYERNORM_FORWARD, row_groups(rows, lanes), &[x, w, b, &y, &mean, &rstd], &p)?;
+    rec.dispatch_linear(
+        LAYERNORM_FORWARD,
+        row_groups(rows, lanes),
+        args::LayernormForwardArgs { x, w, b, y: &y, mean: &mean, rstd: &rstd },
+        &p,
+    )?;
     Ok(LayerNormOut { y, mean, rstd })
 }
 
@@ -95,7 +101,7 @@ pub fn layernorm_backward(
     rec.dispatch_linear(
         LAYERNORM_BACKWARD,
         groups,
-        &[x, w, mean, rstd, dy, &dx, residual.unwrap_or(dy)],
+        args::LayernormBackwardArgs { x, w, mean, rstd, dy, dx: &dx, res: residual.unwrap_or(dy) },
         &p,
     )?;
     if let Some((_, dw, db)) = affine {
@@ -104,8 +110,8 @@ pub fn layernorm_backward(
         let shape = [chunks as usize, width];
         let dw_part = Tensor::empty(x.gpu(), &shape, DType::F32)?;
         let db_part = Tensor::empty(x.gpu(), &shape, DType::F32)?;
-        let args = [x, mean, rstd, dy, &dw_part, &db_part];
-        rec.dispatch(LAYERNORM_PARAM_GRADS, [w32.div_ceil(64), chunks, 1], &args, &p)?;
+        let args = args::LayernormParamGradsArgs { x, mean, rstd, dy, dw_part: &dw_part, db_part: &db_part };
+        rec.dispatch(LAYERNORM_PARAM_GRADS, [w32.div_ceil(64), chunks, 1], args, &p)?;
         add_partials(rec, &dw_part, dw)?;
         add_partials(rec, &db_part, db)?;
     }

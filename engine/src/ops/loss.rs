@@ -3,6 +3,7 @@
 //! Kernel: `shaders/loss.wgsl` (per-element loss and gradient), then a sum by `reduce.wgsl`.
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::LOSS_MAIN;
 use crate::ops::reduce::{reduce_into, Reduce};
 use crate::recorder::Recorder;
@@ -79,7 +80,12 @@ pub fn loss_into(
     let p = Params { n, kind: code, delta, scale: weight / n.max(1) as f32 };
     let per = Tensor::empty(pred.gpu(), &[n as usize], DType::F32)?;
     let grad = Tensor::empty(pred.gpu(), pred.shape(), DType::F32)?;
-    rec.dispatch_linear(LOSS_MAIN, (n as u64).div_ceil(256), &[pred, target, &per, &grad], &p)?;
+    rec.dispatch_linear(
+        LOSS_MAIN,
+        (n as u64).div_ceil(256),
+        args::LossMainArgs { pred, label: target, loss: &per, grad: &grad },
+        &p,
+    )?;
     reduce_into(rec, &per, 0, Reduce::Sum, total, accumulate)?;
     Ok(grad)
 }

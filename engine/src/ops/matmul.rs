@@ -13,6 +13,7 @@
 use crate::caps::Caps;
 use crate::device::Gpu;
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::{
     Kernel, MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN, MATMUL_FLAG_BIAS, MATMUL_FLAG_BIAS_PER_ENTRY,
     MATMUL_FLAG_SUMMED, MATMUL_FLAG_TRANS_A, MATMUL_FLAG_TRANS_B, MATMUL_MAIN, MATMUL_MAIN_F16,
@@ -45,8 +46,45 @@ const COOP_VECTOR: usize = 8;
 // Push constants of both kernels (`Params` in the shaders); strides are in elements.
 use crate::kernels::params::MatmulParams as Params;
 
-/// Every matmul kernel takes the push constants of `shaders/include/matmul_params.wgsl`.
-type MatmulKernel = Kernel<Params>;
+/// The tiled kernels: operands, output and a bias binding.
+type TiledKernel = Kernel<Params, args::MatmulMainArgs<'static>>;
+/// The cooperative-matrix kernels: operands and output (they take no bias).
+pub type CoopKernel = Kernel<Params, args::MatmulCoopMainArgs<'static>>;
+
+/// A matmul kernel, by interface. Every one takes the push constants of
+/// `shaders/include/matmul_params.wgsl`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum MatmulKernel {
+    Tiled(TiledKernel),
+    Coop(CoopKernel),
+}
+
+impl MatmulKernel {
+    fn is(self, k: TiledKernel) -> bool {
+        self == MatmulKernel::Tiled(k)
+    }
+
+    /// Whether the kernel has a bias binding (read where `MATMUL_FLAG_BIAS` is set).
+    fn takes_bias(self) -> bool {
+        matches!(self, MatmulKernel::Tiled(_))
+    }
+
+    /// Records the kernel; `bias` is bound where the kernel has the binding.
+    fn dispatch(
+        self,
+        rec: &mut Recorder,
+        groups: [u32; 3],
+        [a, b, out, bias]: [&Tensor; 4],
+        params: &Params,
+    ) -> Result<()> {
+        match self {
+            MatmulKernel::Tiled(k) => {
+                rec.dispatch(k, groups, args::MatmulMainArgs { a, b, out, bias }, params)
+            }
+            MatmulKernel::Coop(k) => rec.dispatch(k, groups, args::MatmulCoopMainArgs { a, b, out }, params),
+        }
+    }
+}
 
 impl Params {
     /// The push constants of a product of plan `p` (strides from the transposes; no bias, the
@@ -140,7 +178,7 @@ pub fn plan(a: &[usize], b: &[usize], trans_a: bool, trans_b: bool) -> Result<Pl
 /// 256 invocations into subgroups of exactly F*F/8 (32 or 8), each subgroup owning 4x2
 /// fragments of the 128x128 tile, so it is chosen only where a pipeline can have that size: the
 /// device's only one, or one it can be asked for (the pipeline then requests it).
-pub fn coop_kernel(caps: &Caps) -> Option<MatmulKernel> {
+pub fn coop_kernel(caps: &Caps) -> Option<CoopKernel> {
     let [f, _, _] = caps.coop_matrix_f16?;
     let (kernel, shared) = match f {
         16 => (MATMUL_COOP_MAIN, COOP_SHARED_BYTES_16),
@@ -275,18 +313,18 @@ pub fn matmul_sum_into(
     check_out(a, b, out, &[p.m, p.n])?;
     let kernel = choose_kernel(a.gpu(), a.dtype(), &p, trans_a, trans_b, rec.narrow_matmul());
     let fits = u32::try_from(p.batch).is_ok() && [a, b].iter().all(|t| t.numel() <= u32::MAX as usize);
-    if kernel != MATMUL_ROWS_MAIN || !fits || p.m == 0 || p.n == 0 {
+    if !kernel.is(MATMUL_ROWS_MAIN) || !fits || p.m == 0 || p.n == 0 {
         let parts = Tensor::empty(a.gpu(), &p.out_shape, DType::F32)?;
         product(rec, a, b, trans_a, trans_b, &parts, false, None)?;
         let parts = parts.reshape(&[p.batch, p.m, p.n])?;
         return reduce_into(rec, &parts, 0, Reduce::Sum, out, accumulate);
     }
-    let groups = grid(a.gpu(), MATMUL_ROWS_MAIN, &p, 1)?;
+    let groups = grid(a.gpu(), MatmulKernel::Tiled(MATMUL_ROWS_MAIN), &p, 1)?;
     let base = Params::of(&p, trans_a, trans_b, accumulate);
     let params = Params { flags: base.flags | MATMUL_FLAG_SUMMED, batch_base: p.batch as u32, ..base };
     let g = [groups[0] as u32, groups[1] as u32, 1];
     // The bias binding is unused (MATMUL_FLAG_BIAS clear): b stands in.
-    rec.dispatch(MATMUL_ROWS_MAIN, g, &[a, b, out, b], &params)
+    rec.dispatch(MATMUL_ROWS_MAIN, g, args::MatmulRowsMainArgs { a, b, out, bias: b }, &params)
 }
 
 /// Fails unless `out` is f32 of `shape` and apart from the operands.
@@ -307,9 +345,9 @@ fn check_out(a: &Tensor, b: &Tensor, out: &Tensor, shape: &[usize]) -> Result<()
 fn grid(gpu: &Gpu, kernel: MatmulKernel, p: &Plan, z: usize) -> Result<[usize; 3]> {
     // Output rows and columns of one workgroup.
     let (tm, tn) = match kernel {
-        k if k == MATMUL_SMALL_TS32_MAIN => (32, 32),
-        k if k == MATMUL_SMALL_TS64_MAIN => (64, 64),
-        k if k == MATMUL_ROWS_MAIN => (ROWS_WG, ROWS_NC),
+        k if k.is(MATMUL_SMALL_TS32_MAIN) => (32, 32),
+        k if k.is(MATMUL_SMALL_TS64_MAIN) => (64, 64),
+        k if k.is(MATMUL_ROWS_MAIN) => (ROWS_WG, ROWS_NC),
         _ => (TILE, TILE),
     };
     let groups = [p.n.div_ceil(tn), p.m.div_ceil(tm), z];
@@ -321,12 +359,6 @@ fn grid(gpu: &Gpu, kernel: MatmulKernel, p: &Plan, z: usize) -> Result<[usize; 3
         )));
     }
     Ok(groups)
-}
-
-/// Kernels that take a bias (binding 3, flags bit 2); the others have three bindings.
-fn takes_bias(kernel: MatmulKernel) -> bool {
-    [MATMUL_MAIN, MATMUL_MAIN_F16, MATMUL_SMALL_TS32_MAIN, MATMUL_SMALL_TS64_MAIN, MATMUL_ROWS_MAIN]
-        .contains(&kernel)
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -366,29 +398,28 @@ fn product(
     let params = Params::of(&p, trans_a, trans_b, accumulate);
     let tiles = groups[0] * groups[1];
     let splits = split_k(p.batch, tiles, p.k);
-    if splits > 1 && takes_bias(kernel) {
+    if splits > 1 && kernel.takes_bias() {
         let grid = [groups[0] as u32, groups[1] as u32];
         split_k_into(rec, kernel, grid, [a, b, out], &p, params, splits, accumulate)?;
         return add_bias(rec, out, bias);
     }
     // The bias binding: the bias itself, or any buffer when there is none (nothing reads it).
     // Only the narrow-side kernel reads a bias per batch entry.
-    let fused = bias.filter(|_| takes_bias(kernel) && (!per_entry || kernel == MATMUL_ROWS_MAIN));
+    let fused = bias.filter(|_| kernel.takes_bias() && (!per_entry || kernel.is(MATMUL_ROWS_MAIN)));
     let bias_flags = match (fused.is_some(), per_entry) {
         (false, _) => 0,
         (true, false) => MATMUL_FLAG_BIAS,
         (true, true) => MATMUL_FLAG_BIAS | MATMUL_FLAG_BIAS_PER_ENTRY,
     };
     let params = Params { flags: params.flags | bias_flags, ..params };
-    let with_bias = [a, b, out, fused.unwrap_or(b)];
-    let args: &[&Tensor] = if takes_bias(kernel) { &with_bias } else { &with_bias[..3] };
+    let tensors = [a, b, out, fused.unwrap_or(b)];
     // Batches beyond the device's z limit go in several dispatches.
     let z_max = max[2] as usize;
     let mut base = 0;
     while base < groups[2] {
         let count = (groups[2] - base).min(z_max);
         let chunk = [groups[0] as u32, groups[1] as u32, count as u32];
-        rec.dispatch(kernel, chunk, args, &Params { batch_base: base as u32, ..params })?;
+        kernel.dispatch(rec, chunk, tensors, &Params { batch_base: base as u32, ..params })?;
         base += count;
     }
     if fused.is_none() {
@@ -456,10 +487,10 @@ fn split_k_into(
         ..params
     };
     // The kernels' bias binding is unused here (flags bit 2 clear): b stands in.
-    rec.dispatch(kernel, [gx, gy, splits as u32], &[a, b, &partial, b], &split)?;
+    kernel.dispatch(rec, [gx, gy, splits as u32], [a, b, &partial, b], &split)?;
     if rem > 0 {
         let tail = Params { k: rem as u32, batch_base: splits as u32, ..split };
-        rec.dispatch(kernel, [gx, gy, 1], &[a, b, &partial, b], &tail)?;
+        kernel.dispatch(rec, [gx, gy, 1], [a, b, &partial, b], &tail)?;
     }
     reduce_into(rec, &partial, 0, Reduce::Sum, out, accumulate)
 }
@@ -480,7 +511,7 @@ fn choose_kernel(
             NarrowMatmul::Rows => true,
             NarrowMatmul::Tiles => false,
         };
-        return if narrow <= NARROW && rows {
+        return MatmulKernel::Tiled(if narrow <= NARROW && rows {
             MATMUL_ROWS_MAIN
         } else if narrow <= NARROW_32 {
             MATMUL_SMALL_TS32_MAIN
@@ -488,11 +519,11 @@ fn choose_kernel(
             MATMUL_SMALL_TS64_MAIN
         } else {
             MATMUL_MAIN
-        };
+        });
     }
     match coop_kernel(gpu.caps()) {
-        Some(k) if gpu.supports(k) && coop_layout_ok(p, trans_a, trans_b) => k,
-        _ => MATMUL_MAIN_F16,
+        Some(k) if gpu.supports(k) && coop_layout_ok(p, trans_a, trans_b) => MatmulKernel::Coop(k),
+        _ => MatmulKernel::Tiled(MATMUL_MAIN_F16),
     }
 }
 

@@ -8,6 +8,7 @@
 //! ([`check_finite`]).
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::{NORM_FINISH, NORM_SUMSQ_PARTIAL};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
@@ -129,11 +130,21 @@ pub fn global_norm_chunked(
         let part = flat.view(start, &[len])?;
         let groups = groups_for(len, most);
         let p = Params { n: len as u32, groups: groups as u32, partial_base: base as u32, count: 0 };
-        rec.dispatch_linear(NORM_SUMSQ_PARTIAL, groups as u64, &[&part, &scratch.partials], &p)?;
+        rec.dispatch_linear(
+            NORM_SUMSQ_PARTIAL,
+            groups as u64,
+            args::NormSumsqPartialArgs { x: &part, partials: &scratch.partials },
+            &p,
+        )?;
         base += groups;
     }
     let p = Params { n: 0, groups: 1, partial_base: 0, count: base as u32 };
-    rec.dispatch(NORM_FINISH, [1, 1, 1], &[&scratch.partials, &scratch.out], &p)
+    rec.dispatch(
+        NORM_FINISH,
+        [1, 1, 1],
+        args::NormFinishArgs { partials: &scratch.partials, out: &scratch.out },
+        &p,
+    )
 }
 
 /// Reads a `[norm, sum of squares]` result back and fails with a clear message when the norm

@@ -1,6 +1,7 @@
 //! Sum, mean and max along one axis. Kernel: `shaders/reduce.wgsl`.
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::{REDUCE_ROWS, REDUCE_STRIDED};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
@@ -68,9 +69,14 @@ pub fn reduce_into(
     };
     fit(x.numel())?;
     if inner == 1 {
-        rec.dispatch_linear(REDUCE_ROWS, outer as u64, &[x, out], &p)?;
+        rec.dispatch_linear(REDUCE_ROWS, outer as u64, args::ReduceRowsArgs { x, y: out }, &p)?;
     } else {
-        rec.dispatch_linear(REDUCE_STRIDED, ((outer * inner) as u64).div_ceil(256), &[x, out], &p)?;
+        rec.dispatch_linear(
+            REDUCE_STRIDED,
+            ((outer * inner) as u64).div_ceil(256),
+            args::ReduceStridedArgs { x, y: out },
+            &p,
+        )?;
     }
     Ok(())
 }

@@ -4,6 +4,7 @@
 //! which gives `dx` and adds `dw` into a gradient tensor.
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::{RMSNORM_BACKWARD, RMSNORM_FORWARD, RMSNORM_PARAM_GRADS};
 use crate::ops::reduce::{reduce_into, Reduce};
 use crate::recorder::Recorder;
@@ -73,7 +74,12 @@ pub fn rmsnorm(rec: &mut Recorder, x: &Tensor, w: &Tensor, eps: f32) -> Result<(
     let rstd = Tensor::empty(x.gpu(), &x.shape()[..x.shape().len() - 1], DType::F32)?;
     let lanes = row_lanes(width);
     let p = Params { rows, width, eps, rows_per_chunk: 0, lanes, residual: 0 };
-    rec.dispatch_linear(RMSNORM_FORWARD, row_groups(rows, lanes), &[x, w, &y, &rstd], &p)?;
+    rec.dispatch_linear(
+        RMSNORM_FORWARD,
+        row_groups(rows, lanes),
+        args::RmsnormForwardArgs { x, w, y: &y, rstd: &rstd },
+        &p,
+    )?;
     Ok((y, rstd))
 }
 
@@ -102,14 +108,19 @@ pub fn rmsnorm_backward(
     let mut p =
         Params { rows, width, eps: 0.0, rows_per_chunk: 0, lanes, residual: residual.is_some() as u32 };
     // Without a residual, dy stands in for the binding the kernel then does not read.
-    let args = [x, w, rstd, dy, &dx, residual.unwrap_or(dy)];
-    rec.dispatch_linear(RMSNORM_BACKWARD, row_groups(rows, lanes), &args, &p)?;
+    let args = args::RmsnormBackwardArgs { x, w, rstd, dy, dx: &dx, res: residual.unwrap_or(dy) };
+    rec.dispatch_linear(RMSNORM_BACKWARD, row_groups(rows, lanes), args, &p)?;
     if let Some(dw) = dw {
         check_vector("rmsnorm weight gradient", dw, width as usize)?;
         let (per, chunks) = chunking(rows, x.gpu().caps().max_workgroup_count[1]);
         p.rows_per_chunk = per;
         let partial = Tensor::empty(x.gpu(), &[chunks as usize, width as usize], DType::F32)?;
-        rec.dispatch(RMSNORM_PARAM_GRADS, [width.div_ceil(64), chunks, 1], &[x, rstd, dy, &partial], &p)?;
+        rec.dispatch(
+            RMSNORM_PARAM_GRADS,
+            [width.div_ceil(64), chunks, 1],
+            args::RmsnormParamGradsArgs { x, rstd, dy, dw_part: &partial },
+            &p,
+        )?;
         add_partials(rec, &partial, dw)?;
     }
     Ok(dx)

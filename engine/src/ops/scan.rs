@@ -8,6 +8,7 @@
 //! total of the whole input, so the op hands it back for free.
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::{SCAN_ADD_BLOCK_OFFSETS, SCAN_BLOCK_SCAN};
 use crate::ops::fill::fill_bits;
 use crate::recorder::Recorder;
@@ -73,13 +74,23 @@ fn scan_level(rec: &mut Recorder, input: &Tensor, output: &Tensor, n: u32, items
     let blocks = (n as usize).div_ceil(WG * items as usize);
     let params = Params { n, items };
     let sums = Tensor::empty(input.gpu(), &[blocks], DType::U32)?;
-    rec.dispatch_linear(SCAN_BLOCK_SCAN, blocks as u64, &[input, output, &sums], &params)?;
+    rec.dispatch_linear(
+        SCAN_BLOCK_SCAN,
+        blocks as u64,
+        args::ScanBlockScanArgs { src: input, dst: output, block_sums: &sums },
+        &params,
+    )?;
     if blocks == 1 {
         return Ok(sums);
     }
     let offsets = Tensor::empty(input.gpu(), &[blocks], DType::U32)?;
     let total = scan_level(rec, &sums, &offsets, blocks as u32, items)?;
-    rec.dispatch_linear(SCAN_ADD_BLOCK_OFFSETS, blocks as u64, &[output, &offsets], &params)?;
+    rec.dispatch_linear(
+        SCAN_ADD_BLOCK_OFFSETS,
+        blocks as u64,
+        args::ScanAddBlockOffsetsArgs { dst: output, block_offsets: &offsets },
+        &params,
+    )?;
     Ok(total)
 }
 

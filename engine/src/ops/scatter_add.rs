@@ -2,6 +2,7 @@
 //! `shaders/scatter_add_cas.wgsl` (compare-and-swap fallback), chosen by the device.
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::params::ScatterAddBodyParams as Params;
 use crate::kernels::{SCATTER_ADD_CAS_MAIN, SCATTER_ADD_MAIN};
 use crate::ops::gather::rows_width;
@@ -40,7 +41,12 @@ pub fn scatter_add(rec: &mut Recorder, src: &Tensor, idx: &Tensor, out: &Tensor)
     fit(out.numel())?;
     let p = Params { rows: fit(rows)?, width: fit(width)?, dst_rows: fit(dst_rows)?, _add: 0 };
     let kernel = if rec_supports(rec, SCATTER_ADD_MAIN) { SCATTER_ADD_MAIN } else { SCATTER_ADD_CAS_MAIN };
-    rec.dispatch_linear(kernel, (src.numel() as u64).div_ceil(256), &[src, idx, out], &p)
+    rec.dispatch_linear(
+        kernel,
+        (src.numel() as u64).div_ceil(256),
+        args::ScatterAddMainArgs { src, idx, out },
+        &p,
+    )
 }
 
 /// Forces the compare-and-swap kernel (to test the fallback on devices that have atomics).
@@ -49,7 +55,12 @@ pub fn scatter_add_cas(rec: &mut Recorder, src: &Tensor, idx: &Tensor, out: &Ten
     let (dst_rows, _) = rows_width(out)?;
     let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("scatter_add of {src:?}")));
     let p = Params { rows: fit(rows)?, width: fit(width)?, dst_rows: fit(dst_rows)?, _add: 0 };
-    rec.dispatch_linear(SCATTER_ADD_CAS_MAIN, (src.numel() as u64).div_ceil(256), &[src, idx, out], &p)
+    rec.dispatch_linear(
+        SCATTER_ADD_CAS_MAIN,
+        (src.numel() as u64).div_ceil(256),
+        args::ScatterAddCasMainArgs { src, idx, out },
+        &p,
+    )
 }
 
 fn rec_supports(rec: &Recorder, k: impl Into<crate::kernels::KernelId>) -> bool {

@@ -1,6 +1,7 @@
 //! Softmax over the last axis. Kernel: `shaders/softmax.wgsl`.
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::SOFTMAX_MAIN;
 use crate::ops::rmsnorm::{row_groups, row_lanes};
 use crate::recorder::Recorder;
@@ -20,7 +21,12 @@ pub fn softmax(rec: &mut Recorder, x: &Tensor) -> Result<Tensor> {
     fit(x.numel())?;
     let (rows, len) = (fit(rows)?, fit(len)?);
     let lanes = row_lanes(len);
-    rec.dispatch_linear(SOFTMAX_MAIN, row_groups(rows, lanes), &[x, &out], &Params { rows, len, lanes })?;
+    rec.dispatch_linear(
+        SOFTMAX_MAIN,
+        row_groups(rows, lanes),
+        args::SoftmaxMainArgs { x, y: &out },
+        &Params { rows, len, lanes },
+    )?;
     Ok(out)
 }
 

@@ -12,6 +12,7 @@
 //! back with its key, and one that wants masked keys can mask them.
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::{SORT_BLOCK, SORT_HISTOGRAM, SORT_SCATTER};
 use crate::ops::scan::exclusive_scan;
 use crate::recorder::Recorder;
@@ -83,8 +84,15 @@ fn sort_with(
         // Every pass in one workgroup, one dispatch (`block` in the shader).
         let tmp = if passes(key_bits) > 1 { new_pair()? } else { out.clone() };
         let params = Params { n, num_blocks: 1, shift: 0, mask: 0, key_bits, iota };
-        let args = [keys, values, &out.0, &out.1, &tmp.0, &tmp.1];
-        rec.dispatch(SORT_BLOCK, [1, 1, 1], &args, &params)?;
+        let args = args::SortBlockArgs {
+            keys_in: keys,
+            values_in: values,
+            keys_out: &out.0,
+            values_out: &out.1,
+            keys_tmp: &tmp.0,
+            values_tmp: &tmp.1,
+        };
+        rec.dispatch(SORT_BLOCK, [1, 1, 1], args, &params)?;
         return Ok(out);
     }
     let counts = Tensor::empty(gpu, &[16 * num_blocks], DType::U32)?;
@@ -96,12 +104,23 @@ fn sort_with(
         let bits = RADIX_BITS.min(key_bits - shift);
         let params =
             Params { n, num_blocks: num_blocks as u32, shift, mask: (1u32 << bits) - 1, key_bits, iota };
-        rec.dispatch_linear(SORT_HISTOGRAM, num_blocks as u64, &[&src.0, &counts], &params)?;
+        rec.dispatch_linear(
+            SORT_HISTOGRAM,
+            num_blocks as u64,
+            args::SortHistogramArgs { keys_in: &src.0, counts: &counts },
+            &params,
+        )?;
         exclusive_scan(rec, &counts, &offsets)?;
         rec.dispatch_linear(
             SORT_SCATTER,
             num_blocks as u64,
-            &[&src.0, &src.1, &offsets, &out.0, &out.1],
+            args::SortScatterArgs {
+                keys_in: &src.0,
+                values_in: &src.1,
+                offsets: &offsets,
+                keys_out: &out.0,
+                values_out: &out.1,
+            },
             &params,
         )?;
         shift += bits;

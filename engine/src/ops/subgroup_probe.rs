@@ -10,6 +10,7 @@
 
 use crate::device::Gpu;
 use crate::error::Result;
+use crate::kernels::args;
 use crate::kernels::SUBGROUP_PROBE_MAIN;
 use crate::tensor::{DType, Tensor};
 
@@ -35,7 +36,7 @@ pub struct Lane {
 pub fn probe(gpu: &Gpu) -> Result<Vec<Lane>> {
     let rows = Tensor::empty(gpu, &[WORKGROUP * ROW], DType::U32)?;
     let mut rec = gpu.recorder()?;
-    rec.dispatch(SUBGROUP_PROBE_MAIN, [1, 1, 1], &[&rows], &())?;
+    rec.dispatch(SUBGROUP_PROBE_MAIN, [1, 1, 1], args::SubgroupProbeMainArgs { rows: &rows }, &())?;
     rec.submit()?;
     let raw = rows.read::<u32>()?;
     Ok(raw

@@ -1,6 +1,7 @@
 //! The SwiGLU gate `h = silu(a) * b` and its backward, fused. Kernel: `shaders/swiglu.wgsl`.
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::{SWIGLU_BACKWARD, SWIGLU_FORWARD, SWIGLU_SILU_BACKWARD};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
@@ -20,7 +21,12 @@ fn check(what: &str, ts: &[&Tensor]) -> Result<Params> {
 pub fn swiglu(rec: &mut Recorder, a: &Tensor, b: &Tensor) -> Result<Tensor> {
     let p = check("swiglu", &[a, b])?;
     let h = Tensor::empty(a.gpu(), a.shape(), DType::F32)?;
-    rec.dispatch_linear(SWIGLU_FORWARD, (p.n as u64).div_ceil(256), &[a, b, &h], &p)?;
+    rec.dispatch_linear(
+        SWIGLU_FORWARD,
+        (p.n as u64).div_ceil(256),
+        args::SwigluForwardArgs { a, b, h: &h },
+        &p,
+    )?;
     Ok(h)
 }
 
@@ -43,14 +49,24 @@ pub fn swiglu_backward_into(
     db: &Tensor,
 ) -> Result<()> {
     let p = check("swiglu backward", &[a, b, dh, da, db])?;
-    rec.dispatch_linear(SWIGLU_BACKWARD, (p.n as u64).div_ceil(256), &[a, b, dh, da, db], &p)
+    rec.dispatch_linear(
+        SWIGLU_BACKWARD,
+        (p.n as u64).div_ceil(256),
+        args::SwigluBackwardArgs { a, b, dh, da, db },
+        &p,
+    )
 }
 
 /// `silu'(a) * dy`, the backward of `silu(a) = a sigmoid(a)` (the gate's `da` with `b = 1`).
 pub fn silu_backward(rec: &mut Recorder, a: &Tensor, dy: &Tensor) -> Result<Tensor> {
     let p = check("silu backward", &[a, dy])?;
     let da = Tensor::empty(a.gpu(), a.shape(), DType::F32)?;
-    rec.dispatch_linear(SWIGLU_SILU_BACKWARD, (p.n as u64).div_ceil(256), &[a, dy, &da], &p)?;
+    rec.dispatch_linear(
+        SWIGLU_SILU_BACKWARD,
+        (p.n as u64).div_ceil(256),
+        args::SwigluSiluBackwardArgs { a, dh: dy, dsilu: &da },
+        &p,
+    )?;
     Ok(da)
 }
 

@@ -1,6 +1,7 @@
 //! Elementwise maps over f32. Kernel: `shaders/unary.wgsl`.
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::UNARY_MAIN;
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
@@ -87,7 +88,12 @@ pub fn unary_into(rec: &mut Recorder, x: &Tensor, y: &Tensor, f: Unary) -> Resul
     }
     let n = u32::try_from(x.numel()).map_err(|_| Error::TooLarge(format!("unary on {x:?}")))?;
     let (op, alpha, beta) = f.code();
-    rec.dispatch_linear(UNARY_MAIN, (n as u64).div_ceil(256), &[x, y], &Params { n, op, alpha, beta })
+    rec.dispatch_linear(
+        UNARY_MAIN,
+        (n as u64).div_ceil(256),
+        args::UnaryMainArgs { x, y },
+        &Params { n, op, alpha, beta },
+    )
 }
 
 pub mod reference {

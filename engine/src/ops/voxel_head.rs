@@ -2,6 +2,7 @@
 //! `shaders/voxel_head.wgsl` (the formulas are in its header).
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::{VOXEL_HEAD_BACKWARD, VOXEL_HEAD_FORWARD};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
@@ -51,7 +52,12 @@ pub fn forward(
     let pre = Tensor::empty(features.gpu(), &shape, DType::F32)?;
     let act = Tensor::empty(features.gpu(), &shape, DType::F32)?;
     let n = (p.cells * p.per * p.h) as u64;
-    rec.dispatch_linear(VOXEL_HEAD_FORWARD, n.div_ceil(256), &[features, embedded, offsets, &pre, &act], &p)?;
+    rec.dispatch_linear(
+        VOXEL_HEAD_FORWARD,
+        n.div_ceil(256),
+        args::VoxelHeadForwardArgs { features, embedded, offsets, pre: &pre, act: &act },
+        &p,
+    )?;
     Ok((pre, act))
 }
 
@@ -69,7 +75,12 @@ pub fn backward(
         return Err(Error::Shape(format!("voxel head backward: dpre {dpre:?} must be f32 [cells, per, h]")));
     }
     let d = Tensor::empty(features.gpu(), features.shape(), DType::F32)?;
-    rec.dispatch_linear(VOXEL_HEAD_BACKWARD, (d.numel() as u64).div_ceil(256), &[offsets, dpre, &d], &p)?;
+    rec.dispatch_linear(
+        VOXEL_HEAD_BACKWARD,
+        (d.numel() as u64).div_ceil(256),
+        args::VoxelHeadBackwardArgs { offsets, dpre, dfeatures: &d },
+        &p,
+    )?;
     Ok(d)
 }
 

@@ -32,6 +32,7 @@
 //! segment bounds `offsets[..=S]`. Empty windows cost nothing.
 
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::{WINDOW_HEADS, WINDOW_SEGMENTS, WINDOW_WINDOW_IDS};
 use crate::ops::fill::fill_bits;
 use crate::ops::scan::{self, exclusive_scan};
@@ -180,7 +181,12 @@ pub fn window_ids(rec: &mut Recorder, points: &Tensor, grid: &WindowGrid) -> Res
         _pad1: 0,
         _pad2: 0,
     };
-    rec.dispatch_linear(WINDOW_WINDOW_IDS, (n as u64).div_ceil(WG), &[points, &ids], &params)?;
+    rec.dispatch_linear(
+        WINDOW_WINDOW_IDS,
+        (n as u64).div_ceil(WG),
+        args::WindowWindowIdsArgs { points, ids: &ids },
+        &params,
+    )?;
     Ok(ids)
 }
 
@@ -233,13 +239,24 @@ pub fn group_by_window(rec: &mut Recorder, ids: &Tensor, num_windows: u64) -> Re
     let flags = Tensor::empty(&gpu, &[n as usize], DType::U32)?;
     let positions = Tensor::empty(&gpu, &[n as usize], DType::U32)?;
     let groups = (n as u64).div_ceil(WG);
-    rec.dispatch_linear(WINDOW_HEADS, groups, &[&sorted_ids, &flags], &Params::count(n))?;
+    rec.dispatch_linear(
+        WINDOW_HEADS,
+        groups,
+        args::WindowHeadsArgs { sorted_ids: &sorted_ids, flags: &flags },
+        &Params::count(n),
+    )?;
     let count = exclusive_scan(rec, &flags, &positions)?;
     let fit = u32::try_from(capacity).expect("at most n");
     rec.dispatch_linear(
         WINDOW_SEGMENTS,
         groups,
-        &[&sorted_ids, &flags, &positions, &offsets, &segment_ids],
+        args::WindowSegmentsArgs {
+            sorted_ids: &sorted_ids,
+            flags: &flags,
+            positions: &positions,
+            offsets: &offsets,
+            segment_ids: &segment_ids,
+        },
         &Params { capacity: fit, ..Params::count(n) },
     )?;
     Ok(WindowGroups { order, sorted_ids, offsets, segment_ids, count })

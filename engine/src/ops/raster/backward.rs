@@ -14,8 +14,9 @@
 use super::forward::{BlendParams, ProjectParams};
 use super::{Gaussians, Rendered};
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::{
-    Kernel, RASTER_BACKWARD_ATOMIC_MAIN, RASTER_BACKWARD_CAS_MAIN, RASTER_BACKWARD_MAIN,
+    KernelId, RASTER_BACKWARD_ATOMIC_MAIN, RASTER_BACKWARD_CAS_MAIN, RASTER_BACKWARD_MAIN,
     RASTER_BACKWARD_SUM_PAIRS, RASTER_PROJECT_PROJECT_BACKWARD,
 };
 use crate::ops::fill::fill_bits;
@@ -35,11 +36,11 @@ pub enum BackwardKernel {
 }
 
 impl BackwardKernel {
-    fn id(self) -> Kernel<BlendParams> {
+    fn id(self) -> KernelId {
         match self {
-            BackwardKernel::Ordered => RASTER_BACKWARD_MAIN,
-            BackwardKernel::Atomic => RASTER_BACKWARD_ATOMIC_MAIN,
-            BackwardKernel::CompareAndSwap => RASTER_BACKWARD_CAS_MAIN,
+            BackwardKernel::Ordered => RASTER_BACKWARD_MAIN.id(),
+            BackwardKernel::Atomic => RASTER_BACKWARD_ATOMIC_MAIN.id(),
+            BackwardKernel::CompareAndSwap => RASTER_BACKWARD_CAS_MAIN.id(),
         }
     }
 
@@ -84,7 +85,7 @@ impl BackwardKernel {
 
 /// The blend-backward kernel [`render_backward`] uses on this device (the deterministic one),
 /// or why the device cannot run it.
-pub fn variant(gpu: &Gpu) -> Result<(Kernel<BlendParams>, &'static str)> {
+pub fn variant(gpu: &Gpu) -> Result<(KernelId, &'static str)> {
     BackwardKernel::Ordered.check(gpu)?;
     Ok((BackwardKernel::Ordered.id(), BackwardKernel::Ordered.describe()))
 }
@@ -147,7 +148,7 @@ pub fn render_backward_with(
     let grad2d = Tensor::empty(&gpu, &[n, 10], DType::F32)?;
     let (tiles_x, tiles_y) = cam.tiles();
     let params = BlendParams::new(cam, img.background).with_gaussians(n as u32);
-    let blend_args = [&img.ranges, &img.ids, &p.proj, &img.final_t, &img.last, d_rgb, d_alpha, d_depth];
+    let (ranges, ids, proj, final_t, last_in) = (&img.ranges, &img.ids, &p.proj, &img.final_t, &img.last);
     if kernel == BackwardKernel::Ordered {
         let pairs = img.intersections;
         let pair_grads = Tensor::empty(&gpu, &[pairs, 10], DType::F32).map_err(|e| match e {
@@ -158,40 +159,69 @@ pub fn render_backward_with(
             other => other,
         })?;
         fill_bits(rec, &pair_grads, 0)?;
-        rec.dispatch(
-            kernel.id(),
-            [tiles_x, tiles_y, 1],
-            &[&blend_args[..], &[&pair_grads, &img.slots]].concat(),
-            &params,
-        )?;
+        let slots = &img.slots;
+        let args = args::RasterBackwardMainArgs {
+            ranges,
+            ids,
+            proj,
+            final_t,
+            last_in,
+            d_rgb,
+            d_alpha,
+            d_depth,
+            pair_grads: &pair_grads,
+            slots,
+        };
+        rec.dispatch(RASTER_BACKWARD_MAIN, [tiles_x, tiles_y, 1], args, &params)?;
         rec.dispatch_linear(
             RASTER_BACKWARD_SUM_PAIRS,
             (n as u64).div_ceil(256),
-            &[&pair_grads, &p.counts, p.offsets(), &grad2d],
+            args::RasterBackwardSumPairsArgs {
+                pair_grads: &pair_grads,
+                counts: &p.counts,
+                offsets: p.offsets(),
+                grad2d: &grad2d,
+            },
             &params,
         )?;
     } else {
         fill_bits(rec, &grad2d, 0)?;
-        rec.dispatch(kernel.id(), [tiles_x, tiles_y, 1], &[&blend_args[..], &[&grad2d]].concat(), &params)?;
+        let args = args::RasterBackwardAtomicMainArgs {
+            ranges,
+            ids,
+            proj,
+            final_t,
+            last_in,
+            d_rgb,
+            d_alpha,
+            d_depth,
+            grads: &grad2d,
+        };
+        let adds = if kernel == BackwardKernel::Atomic {
+            RASTER_BACKWARD_ATOMIC_MAIN
+        } else {
+            RASTER_BACKWARD_CAS_MAIN
+        };
+        rec.dispatch(adds, [tiles_x, tiles_y, 1], args, &params)?;
     }
     let grads = Gaussians::empty(&gpu, n)?;
     rec.dispatch_linear(
         RASTER_PROJECT_PROJECT_BACKWARD,
         (n as u64).div_ceil(256),
-        &[
-            &g.means,
-            &g.log_scales,
-            &g.quats,
-            &g.opacities,
-            &g.colours,
-            &p.counts,
-            &grad2d,
-            &grads.means,
-            &grads.log_scales,
-            &grads.quats,
-            &grads.opacities,
-            &grads.colours,
-        ],
+        args::RasterProjectProjectBackwardArgs {
+            means: &g.means,
+            log_scales: &g.log_scales,
+            quats: &g.quats,
+            opacities: &g.opacities,
+            colours: &g.colours,
+            counts: &p.counts,
+            grad2d: &grad2d,
+            d_means: &grads.means,
+            d_log_scales: &grads.log_scales,
+            d_quats: &grads.quats,
+            d_opacities: &grads.opacities,
+            d_colours: &grads.colours,
+        },
         &ProjectParams::new(cam, n),
     )?;
     Ok(grads)

@@ -10,6 +10,7 @@ use super::{
     Camera, Gaussians, ALPHA_MAX, DILATION, MAX_TILES_PER_GAUSSIAN, MIN_ALPHA, MIN_DET, NEAR, T_STOP,
 };
 use crate::error::{Error, Result};
+use crate::kernels::args;
 use crate::kernels::{
     RASTER_BLEND_BLEND, RASTER_PROJECT_PROJECT, RASTER_TILES_EMIT, RASTER_TILES_RANGES_OF_TILES,
     RASTER_TILES_TILES_IN_DEPTH_ORDER,
@@ -148,7 +149,17 @@ pub fn project(rec: &mut Recorder, g: &Gaussians, cam: &Camera) -> Result<Projec
     rec.dispatch_linear(
         RASTER_PROJECT_PROJECT,
         (n as u64).div_ceil(256),
-        &[&g.means, &g.log_scales, &g.quats, &g.opacities, &g.colours, &proj, &counts, &rects, &stats],
+        args::RasterProjectProjectArgs {
+            means: &g.means,
+            log_scales: &g.log_scales,
+            quats: &g.quats,
+            opacities: &g.opacities,
+            colours: &g.colours,
+            proj: &proj,
+            counts: &counts,
+            rects: &rects,
+            stats: &stats,
+        },
         &p,
     )?;
     let total = exclusive_scan(rec, &counts, &offsets)?;
@@ -218,16 +229,16 @@ pub fn rasterize(rec: &mut Recorder, p: &Projected, background: [f32; 3]) -> Res
     rec.dispatch(
         RASTER_BLEND_BLEND,
         [tiles_x, tiles_y, 1],
-        &[
-            &image.ranges,
-            &image.ids,
-            &p.proj,
-            &image.rgb,
-            &image.alpha,
-            &image.depth,
-            &image.final_t,
-            &image.last,
-        ],
+        args::RasterBlendBlendArgs {
+            ranges: &image.ranges,
+            ids: &image.ids,
+            proj: &p.proj,
+            rgb: &image.rgb,
+            alpha_out: &image.alpha,
+            depth_out: &image.depth,
+            final_t: &image.final_t,
+            last_out: &image.last,
+        },
         &BlendParams::new(cam, background),
     )?;
     Ok(image)
@@ -246,7 +257,16 @@ fn tile_lists(rec: &mut Recorder, p: &Projected, pairs: usize, ranges: &Tensor) 
     rec.dispatch_linear(
         RASTER_TILES_EMIT,
         (p.n as u64).div_ceil(256),
-        &[&p.counts, &p.offsets, &p.rects, &p.proj, &depth_keys, &slot_tiles, &slot_gaussians, &slot_ids],
+        args::RasterTilesEmitArgs {
+            counts: &p.counts,
+            offsets: &p.offsets,
+            rects: &p.rects,
+            proj: &p.proj,
+            depth_keys: &depth_keys,
+            slot_tiles: &slot_tiles,
+            slot_gaussians: &slot_gaussians,
+            slot_ids: &slot_ids,
+        },
         &tp,
     )?;
     let (_, depth_sorted_slots) = sort_pairs(rec, &depth_keys, &slot_ids, 32)?;
@@ -256,7 +276,11 @@ fn tile_lists(rec: &mut Recorder, p: &Projected, pairs: usize, ranges: &Tensor) 
     rec.dispatch_linear(
         RASTER_TILES_TILES_IN_DEPTH_ORDER,
         groups,
-        &[&slot_tiles, &depth_sorted_slots, &tile_keys],
+        args::RasterTilesTilesInDepthOrderArgs {
+            slot_tiles: &slot_tiles,
+            depth_sorted_slots: &depth_sorted_slots,
+            tile_keys: &tile_keys,
+        },
         &tp,
     )?;
     let (sorted_tiles, slots) = sort_pairs(rec, &tile_keys, &depth_sorted_slots, p.camera.tile_bits())?;
@@ -264,7 +288,13 @@ fn tile_lists(rec: &mut Recorder, p: &Projected, pairs: usize, ranges: &Tensor) 
     rec.dispatch_linear(
         RASTER_TILES_RANGES_OF_TILES,
         groups,
-        &[&slot_gaussians, &sorted_tiles, &slots, ranges, &ids],
+        args::RasterTilesRangesOfTilesArgs {
+            slot_gaussians: &slot_gaussians,
+            sorted_tiles: &sorted_tiles,
+            sorted_slots: &slots,
+            ranges,
+            ids: &ids,
+        },
         &tp,
     )?;
     Ok((ids, slots))
