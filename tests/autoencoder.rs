@@ -7,7 +7,6 @@
 mod common;
 use common::*;
 use velox::data::format::write_scene;
-use velox::data::training::train_scene;
 use velox::data::{procedural, read_scene, SynthOptions};
 use velox::engine::ops::cast::reference::to_f16;
 use velox::engine::Precision;
@@ -15,6 +14,7 @@ use velox::models::config::AutoencoderConfig;
 use velox::models::run::RunSettings;
 use velox::models::train::trainer::{run_settings, save_checkpoint};
 use velox::models::velox::autoencoder::{tau_of, Autoencoder, StepLosses, TrainScene};
+use velox::tasks::training::train_scene;
 
 fn scene(gpu: &Gpu, name: &str) -> TrainScene {
     scene_of(gpu, name, 3)

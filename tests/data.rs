@@ -17,7 +17,9 @@ use velox::data::math::{sub, V3};
 use velox::data::pipeline::{back_project, render_scene, FPS};
 use velox::data::procedural::{scene, FRAMES};
 use velox::data::raster::{reference, MeshRasteriser, NO_TRIANGLE};
-use velox::data::{order, AnimatedMesh, Loader, LoaderOptions, SynthOptions};
+use velox::data::{AnimatedMesh, SynthOptions};
+use velox::models::train::order;
+use velox::tasks::{Loader, LoaderOptions};
 
 fn small_opts() -> SynthOptions {
     SynthOptions { res: 32, points: 3000, supersample: 1, tracks: 48 }
@@ -1012,7 +1014,7 @@ fn textures_crop_a_folder_of_images() {
 #[test]
 fn tracking_video_is_rgbd_and_its_queries_lie_on_its_first_frame() {
     use velox::data::rgbd::{colours_at, read_rgbd_video, rgbd_cloud};
-    use velox::models::files::image::write_exr_depth;
+    use velox::io::image::write_exr_depth;
     let root = temp_dir("tracking-video");
     let opts = SynthOptions { res: 48, points: 500, supersample: 1, tracks: 40 };
     let (_, mesh) = scene(3, None).unwrap();

@@ -3,9 +3,9 @@
 
 mod common;
 use common::*;
+use velox::io::cloud;
 use velox::models::config::{AutoencoderConfig, EncoderConfig};
 use velox::models::params::ParamStore;
-use velox::models::velox::cloud;
 use velox::models::velox::encoder::Encoder;
 
 /// A random cloud of `n` points over 24 frames.

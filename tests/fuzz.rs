@@ -21,9 +21,9 @@ use velox::data::gltf_import::import;
 use velox::data::procedural::scene;
 use velox::data::SynthOptions;
 use velox::engine::ops::raster::GaussianData;
+use velox::io::ply;
 use velox::models::checkpoint;
 use velox::models::config::AutoencoderConfig;
-use velox::models::files::ply;
 use velox::models::params::{Init, ParamStore};
 use velox::models::velox::autoencoder::Autoencoder;
 use velox::models::velox::tokens::{
@@ -349,7 +349,7 @@ fn fuzz_gaussian_ply() {
         &good,
         [0, 23].iter().flat_map(|p| (0..17).map(move |c| body + 68 * p + 4 * c)),
     ));
-    let mut fuzz = Fuzz::new("Gaussian PLY (velox_models::files::ply::read, from_bytes)");
+    let mut fuzz = Fuzz::new("Gaussian PLY (velox_io::ply::read, from_bytes)");
     for (what, bytes) in cases {
         std::fs::write(&path, &bytes).unwrap();
         fuzz.case(&what, || {

@@ -9,7 +9,6 @@ use common::*;
 use std::path::{Path, PathBuf};
 
 use velox::data::format::write_scene;
-use velox::data::training::HostScene;
 use velox::data::{procedural, read_scene, SynthOptions};
 use velox::engine::ops::adamw::AdamWConfig;
 use velox::engine::{Precision, Result};
@@ -23,6 +22,7 @@ use velox::models::train::source::SampleSource;
 use velox::models::train::trainer::{train, Begin, Quiet, TrainOptions, Trainer};
 use velox::models::train::{Losses, Optimisation, Trainable};
 use velox::models::velox::autoencoder::{Autoencoder, TrainScene};
+use velox::tasks::training::HostScene;
 
 fn temp_dir(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("velox-mixed-{name}-{}", std::process::id()));

@@ -556,7 +556,7 @@ fn bad_shapes_and_cameras_are_errors() {
 
 mod files {
     use super::*;
-    use velox::models::files::{image, ply};
+    use velox::io::{image, ply};
 
     fn temp(name: &str) -> std::path::PathBuf {
         let dir = std::env::temp_dir().join(format!("velox-raster-test-{}", std::process::id()));

@@ -1,4 +1,4 @@
-//! The token store end to end: `velox_data::encode::encode_dataset` over a dataset of two tiny
+//! The token store end to end: `velox_tasks::encode::encode_dataset` over a dataset of two tiny
 //! scenes with a tiny autoencoder stores the encoder's tokens bit for bit with their query
 //! points and the dataset's statistics; a re-run keeps what is stored, refuses tokens of
 //! another origin without `force`; a changed checkpoint is refused; and `TokenScenes` gives
@@ -10,18 +10,19 @@ use common::*;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
-use velox::data::encode::{encode_dataset, EncodeOptions, EncodeReport};
 use velox::data::format::{read_ply, write_scene};
-use velox::data::{procedural, read_scene, SynthOptions, TokenScenes};
+use velox::data::{procedural, read_scene, SynthOptions};
 use velox::engine::Precision;
+use velox::io::cloud;
 use velox::models::config::AutoencoderConfig;
 use velox::models::train::source::SampleSource;
 use velox::models::velox::autoencoder::Autoencoder;
-use velox::models::velox::cloud;
 use velox::models::velox::tokens::{
     check_checkpoint, checkpoint_hash, read_scene_file, scene_file, CheckpointCheck, CloudSource,
     TokenFolder, TokenManifest, TokenStats, MANIFEST,
 };
+use velox::tasks::encode::{encode_dataset, EncodeOptions, EncodeReport};
+use velox::tasks::TokenScenes;
 
 const SCENES: [&str; 2] = ["scene_00000", "scene_00001"];
 

@@ -10,7 +10,6 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Barrier, Mutex};
 
 use velox::data::format::write_scene;
-use velox::data::training::HostScene;
 use velox::data::{procedural, read_scene, SynthOptions};
 use velox::engine::Result;
 use velox::models::config::AutoencoderConfig;
@@ -19,6 +18,7 @@ use velox::models::train::collective::{Collective, SingleProcess};
 use velox::models::train::source::SampleSource;
 use velox::models::train::trainer::{train, Begin, Outcome, Quiet, Stop, TrainOptions};
 use velox::models::velox::autoencoder::{Autoencoder, TrainScene};
+use velox::tasks::training::HostScene;
 
 /// What the threads of a [`Threads`] group exchange.
 struct Shared {

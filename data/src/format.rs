@@ -39,7 +39,7 @@ use crate::pipeline::{
 };
 use crate::procedural::FRAMES;
 use crate::{DataError, DataResult};
-use velox_models::files::ply;
+use velox_io::ply;
 
 pub const FORMAT: &str = "velox-data 1";
 /// Most supervision views a scene may have (the writer makes 25).
@@ -221,7 +221,7 @@ fn engine_message(e: velox_engine::Error) -> String {
 /// [-1, 1]^3 and rgb in [0, 1] (the model's cloud check), tau = frame / 100 for a frame of the
 /// clip.
 pub fn check_points(points: &[[f32; 7]]) -> Result<(), String> {
-    velox_models::velox::cloud::validate(bytemuck::cast_slice(points)).map_err(engine_message)?;
+    velox_io::cloud::validate(bytemuck::cast_slice(points)).map_err(engine_message)?;
     for (i, p) in points.iter().enumerate() {
         let f = p[6] * FPS;
         if f.round() >= FRAMES as f32 || (f - f.round()).abs() > 1e-3 {
@@ -515,7 +515,7 @@ pub fn list_scenes(root: &Path) -> DataResult<Vec<PathBuf>> {
 }
 
 /// [`list_scenes`], where none is an error that says how to make some.
-pub(crate) fn list_some_scenes(root: &Path) -> DataResult<Vec<PathBuf>> {
+pub fn list_some_scenes(root: &Path) -> DataResult<Vec<PathBuf>> {
     let dirs = list_scenes(root)?;
     if dirs.is_empty() {
         return Err(DataError::Invalid(format!(

@@ -16,42 +16,33 @@
 //! - [`pipeline`] turns the renders into point clouds, occupancy and tracks;
 //! - [`cloth`]: garments folded and dropped by the engine's cloth solver, as animated meshes;
 //! - [`rgbd`] reads RGBD videos and back-projects them (the tracking task's input);
-//! - [`condition`] reads a video's frames as the generators' condition;
-//! - [`format`] writes and reads the dataset, [`loader`] reads it in the background in the
-//!   order of [`order`];
-//! - [`encode`] stores a trained encoder's tokens of every scene once, and [`training`] gives
-//!   scenes to the trainer: as the autoencoder trains on them, or as stored tokens and
-//!   occupancy for the models downstream of the frozen encoder.
+//! - [`format`] writes and reads the dataset.
 //!
-//! It is its own crate because it brings dependencies the runtime and the models do not need:
+//! It names no model: what feeds a dataset to a model (the trainer's scene sources, the
+//! background loader, the token store's encoding pass, the generators' condition frames) is
+//! in `velox-tasks`, above both. It is its own crate because it brings dependencies the
+//! runtime and the models do not need:
 //! `gltf` (the glTF 2.0 document and its accessor readers, for skins, animations and
 //! morph targets), and `image` (PNG and JPEG for textures and the supervision views).
 
 pub mod camera;
 pub mod cloth;
-pub mod condition;
-pub mod encode;
 pub mod format;
 pub mod gltf_import;
 pub mod gltf_load;
 pub mod gltf_validate;
-pub mod loader;
 pub mod math;
 pub mod mesh;
-pub mod order;
 pub mod pipeline;
 pub mod procedural;
 pub mod raster;
 pub mod rgbd;
 pub mod texture;
-pub mod training;
 
 pub use camera::Camera;
 pub use format::{read_scene, Scene, SceneMeta};
-pub use loader::{Loader, LoaderOptions};
 pub use mesh::{AnimatedMesh, Texture};
 pub use pipeline::{render_scene, SceneArrays, SynthOptions};
-pub use training::{train_scene, GenScenes, SceneFolders, TokenScenes, TrackScenes};
 
 use std::fmt;
 

@@ -306,7 +306,7 @@ pub fn render_scene(
             let img = rast.render_rgb_supersampled(verts, std::slice::from_ref(&video), opts.supersample)?;
             save_png(&dir.join(format!("video/f{f:02}.png")), opts.res, &img[0])?;
             let depth = dir.join(format!("video/f{f:02}_depth.exr"));
-            velox_models::files::image::write_exr_depth(&depth, &seen_by_video.depth, opts.res, opts.res)
+            velox_io::image::write_exr_depth(&depth, &seen_by_video.depth, opts.res, opts.res)
                 .map_err(|e| DataError::Io(format!("{}: {e}", depth.display())))?;
         }
         progress(f);
@@ -361,5 +361,5 @@ fn visibility(mesh: &AnimatedMesh, f: usize, tri: u32, p: V3, frame: &Frame, cam
 /// Encodes in memory, then writes with one checked write (an encoder writing to the file
 /// itself drops its buffer's last flush, and with it a full disk's error).
 pub(crate) fn save_png(path: &Path, res: u32, rgb: &[u8]) -> DataResult<()> {
-    crate::format::write_file(path, &velox_models::files::image::png_bytes(rgb, res, res)?)
+    crate::format::write_file(path, &velox_io::image::png_bytes(rgb, res, res)?)
 }

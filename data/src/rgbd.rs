@@ -43,7 +43,7 @@ fn invalid(path: &Path, why: impl std::fmt::Display) -> DataError {
 /// `[h, w, 3]` in [0, 1], its size checked against the camera.
 pub fn read_colour_frame(dir: &Path, camera: &Camera, f: usize) -> DataResult<Vec<f32>> {
     let png = dir.join(format!("f{f:02}.png"));
-    let (colour, cw, ch) = velox_models::files::image::read_png(&png)
+    let (colour, cw, ch) = velox_io::image::read_png(&png)
         .map_err(|e| DataError::Io(format!("colour frame {f} of the video: {e}")))?;
     let (w, h) = (camera.width, camera.height);
     if (cw, ch) != (w, h) {
@@ -75,7 +75,7 @@ pub fn read_rgbd_video(dir: &Path, camera: Camera) -> DataResult<RgbdVideo> {
     for f in 0..FRAMES {
         let exr = dir.join(format!("f{f:02}_depth.exr"));
         let colour = read_colour_frame(dir, &camera, f)?;
-        let (z, dw, dh) = velox_models::files::image::read_exr_depth(&exr)
+        let (z, dw, dh) = velox_io::image::read_exr_depth(&exr)
             .map_err(|e| DataError::Io(format!("depth frame {f} of the video: {e}")))?;
         if (dw, dh) != (w, h) {
             return Err(invalid(&exr, format!("{dw} x {dh} pixels, the camera's image is {w} x {h}")));

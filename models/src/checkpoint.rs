@@ -6,7 +6,7 @@
 //! (`velox-checkpoint`), `version` (`1`), `step` (AdamW steps taken) and `config` (a JSON
 //! object chosen by the caller: the config name, hyperparameters and so on).
 //!
-//! Writes are atomic ([`crate::files::write_atomically`]): the file is written in full to
+//! Writes are atomic ([`velox_io::write_atomically`]): the file is written in full to
 //! `.<file name>.tmp` in the same folder, flushed to disk, renamed over the target, and the
 //! folder is flushed, so a crash leaves either the old checkpoint or the new one, never half of
 //! one. Loads check every tensor's name, dtype, shape and values (all finite) against the store
@@ -19,9 +19,9 @@ use std::path::Path;
 use safetensors::tensor::{Dtype, SafeTensors, View};
 use velox_engine::{Error, Precision, Result};
 
-pub use crate::files::temp_path;
-use crate::files::write_bytes;
 use crate::params::{LossScale, ParamStore};
+pub use velox_io::temp_path;
+use velox_io::write_bytes;
 
 pub const FORMAT: &str = "velox-checkpoint";
 pub const VERSION: &str = "1";

@@ -5,7 +5,6 @@ pub use velox_engine as engine;
 pub mod checkpoint;
 pub mod config;
 pub mod eval;
-pub mod files;
 pub mod layers;
 pub mod metrics;
 pub mod params;

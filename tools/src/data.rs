@@ -246,7 +246,7 @@ fn make_scene(gpu: &Gpu, job: Job, opts: &SynthOptions, out: &Path, bar: &Progre
     })
     .map_err(|e| format!("{}: {e}", job.source))?;
     for (file, bytes) in &made.extra {
-        velox_models::files::write_bytes(&dir.join(file), bytes)?;
+        velox_io::write_bytes(&dir.join(file), bytes)?;
     }
     if meta.tracks < opts.tracks {
         bar.suspend(|| {

@@ -6,7 +6,7 @@
 //!   and writes `points_fFF.ply`: binary little-endian PLY, one `vertex` element with the float
 //!   properties `x y z tau` (tau = frame / 100, the same for every point of a file).
 //! - `decode gaussians` decodes the Gaussians of each frame and writes `gaussians_fFF.ply` in
-//!   the 3D Gaussian splatting layout (`velox_models::files::ply`; `velox render` reads it).
+//!   the 3D Gaussian splatting layout (`velox_io::ply`; `velox render` reads it).
 //!   The Gaussian decoder's queries are the occupied voxels of the frame: by default those of
 //!   surface points sampled from the tokens (`--voxels surface`), or those of the input cloud's
 //!   points of that frame (`--voxels cloud`, as in training).
@@ -21,9 +21,9 @@ use std::time::Instant;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 use velox_engine::{Gpu, Precision};
-use velox_models::files::{ply, write_bytes};
+use velox_io::cloud::CHANNELS;
+use velox_io::{ply, write_bytes};
 use velox_models::velox::autoencoder::{tau_of, Autoencoder, FRAMES};
-use velox_models::velox::cloud::CHANNELS;
 use velox_models::velox::decode::{frame_points, points_ply, Decoding, Sampling, VoxelSource};
 use velox_models::velox::surface::Sampler;
 use velox_models::velox::voxels::VoxelDecoder;

@@ -11,7 +11,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use velox_data::format::write_scene;
 use velox_data::{procedural, SynthOptions};
 use velox_engine::Gpu;
-use velox_models::files::write_bytes;
+use velox_io::write_bytes;
 
 use crate::interrupt::Interrupt;
 use crate::train::{train_autoencoder, AutoencoderArgs, RunArgs};

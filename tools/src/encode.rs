@@ -1,15 +1,15 @@
 //! `velox encode`: a trained autoencoder's encoder over every scene of a dataset, once, the
 //! tokens stored beside the scenes for the models that train on them with the encoder frozen.
-//! `velox_data::encode` does the work (its docs say what a re-run keeps and what it refuses),
+//! `velox_tasks::encode` does the work (its docs say what a re-run keeps and what it refuses),
 //! `velox_models::velox::tokens` gives the folder's layout; this parses, shows progress and
 //! prints the summary.
 
 use std::path::PathBuf;
 
 use indicatif::ProgressBar;
-use velox_data::encode::{encode_dataset, EncodeObserver, EncodeOptions};
 use velox_engine::Gpu;
 use velox_models::velox::tokens::CloudSource;
+use velox_tasks::encode::{encode_dataset, EncodeObserver, EncodeOptions};
 
 use crate::decode::{progress, PrecisionArg};
 use crate::CliResult;

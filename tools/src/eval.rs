@@ -8,17 +8,17 @@ use std::path::PathBuf;
 
 use indicatif::ProgressBar;
 use serde::Serialize;
-use velox_data::{SceneFolders, TokenScenes, TrackScenes};
 use velox_engine::Gpu;
+use velox_io::image::write_png;
+use velox_io::write_bytes;
 use velox_models::eval::recon::{evaluate, frames, ReconObserver, ReconOptions, ReconReport};
 use velox_models::eval::voxels::{evaluate_scene, projections, VoxelMetrics};
-use velox_models::files::image::write_png;
-use velox_models::files::write_bytes;
 use velox_models::train::source::SampleSource;
 use velox_models::velox::autoencoder::Autoencoder;
 use velox_models::velox::decode::{Sampling, VoxelSource};
 use velox_models::velox::tracker::Tracker;
 use velox_models::velox::voxels::{VoxelDecoder, FRAME_WORDS};
+use velox_tasks::{SceneFolders, TokenScenes, TrackScenes};
 
 use crate::decode::{progress, voxel_decoder, PrecisionArg, SamplerArg, VoxelArg};
 use crate::CliResult;
@@ -94,7 +94,7 @@ impl GeneratorEval {
     fn token_pair(&self, gpu: &Gpu, i: usize) -> CliResult<(velox_engine::Tensor, velox_engine::Tensor)> {
         let cfg = &self.models.generator.cfg;
         let video = self.scenes.dirs()[i].join("video");
-        let pixels = velox_data::condition::read_condition_video(&video, cfg.task.frames(), cfg.image_size)?;
+        let pixels = velox_tasks::condition::read_condition_video(&video, cfg.task.frames(), cfg.image_size)?;
         let made = self.models.generate(gpu, &pixels, &self.spec, false)?;
         Ok((made, self.scenes.read(i)?.tokens.upload(gpu)?))
     }

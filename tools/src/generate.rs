@@ -14,24 +14,24 @@
 //!
 //! The input view is the scene's video camera (`--video SCENE`), a folder's `camera.json`, or
 //! the data's conditioning camera at distance 3 on +x (the generator's frame puts the camera
-//! there: `velox_data::condition`).
+//! there: `velox_tasks::condition`).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use serde::Serialize;
 use velox_data::camera::{ring_cameras, video_camera_at, Camera};
-use velox_data::condition::{read_condition_video, read_frame};
-use velox_data::GenScenes;
 use velox_engine::{Gpu, Tensor};
+use velox_io::image::write_png;
+use velox_io::{ply, write_bytes};
 use velox_models::config::GenerationTask;
 use velox_models::eval::generation::rendered;
-use velox_models::files::image::write_png;
-use velox_models::files::{ply, write_bytes};
 use velox_models::velox::autoencoder::Autoencoder;
 use velox_models::velox::decode::{Decoding, Sampling, VoxelSource};
 use velox_models::velox::dinov2::Dinov2;
 use velox_models::velox::generator::{GenerateSpec, Generator};
+use velox_tasks::condition::{read_condition_video, read_frame};
+use velox_tasks::GenScenes;
 
 use crate::decode::{
     name, parse_frames, progress, voxel_decoder, Frames, PrecisionArg, SamplerArg, VoxelArg,
@@ -197,7 +197,7 @@ pub fn read_input(
             } else if dir.join("camera.json").is_file() {
                 velox_data::rgbd::read_camera(&dir.join("camera.json"))?
             } else {
-                let first = velox_data::condition::frame_files(dir)?;
+                let first = velox_tasks::condition::frame_files(dir)?;
                 let res = image_size(&first[0])?;
                 video_camera_at(3.0, res)
             };

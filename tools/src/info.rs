@@ -87,7 +87,7 @@ pub fn run(json_path: Option<&Path>, probe: bool) -> CliResult<()> {
         println!("  {k:<width$}{}", v.as_str().unwrap_or(""));
     }
     if let Some(path) = json_path {
-        velox_models::files::write_bytes(path, serde_json::to_string_pretty(&report)?.as_bytes())?;
+        velox_io::write_bytes(path, serde_json::to_string_pretty(&report)?.as_bytes())?;
         println!("\nwrote {}", path.display());
     }
     Ok(())

@@ -248,7 +248,7 @@ fn main() {
 
 /// A write past the file size limit (`ulimit -f`) raises SIGXFSZ, which ends the process
 /// without a word and leaves the temporary file behind. Ignored, the write fails with EFBIG
-/// instead, and the error names the file (see `velox_models::files::write_atomically`).
+/// instead, and the error names the file (see `velox_io::write_atomically`).
 fn ignore_file_size_signal() {
     #[cfg(unix)]
     // SAFETY: SIG_IGN installs no handler code; nothing else in the program handles SIGXFSZ.

@@ -7,7 +7,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 use velox_engine::ops::raster::{render, Camera};
 use velox_engine::Gpu;
-use velox_models::files::{image, ply, write_bytes};
+use velox_io::{image, ply, write_bytes};
 
 use crate::CliResult;
 

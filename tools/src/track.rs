@@ -14,10 +14,10 @@ use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 use velox_engine::Gpu;
-use velox_models::files::image::write_png;
-use velox_models::files::write_bytes;
+use velox_io::cloud;
+use velox_io::image::write_png;
+use velox_io::write_bytes;
 use velox_models::velox::autoencoder::{Autoencoder, FRAMES};
-use velox_models::velox::cloud;
 use velox_models::velox::tracker::{Track, Tracker};
 
 use crate::overlay::{colours, draw_tracks};

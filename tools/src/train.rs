@@ -7,7 +7,6 @@ use std::path::{Path, PathBuf};
 
 use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
-use velox_data::{GenScenes, SceneFolders, TokenScenes, TrackScenes};
 use velox_engine::{Gpu, Precision};
 use velox_models::config::{AutoencoderConfig, GenerationTask, GeneratorConfig, TrackerConfig, VoxelConfig};
 use velox_models::run::{RunRequest, RunSettings};
@@ -24,6 +23,7 @@ use velox_models::velox::generator::Generator;
 use velox_models::velox::tokens::TokenManifest;
 use velox_models::velox::tracker::Tracker;
 use velox_models::velox::voxels::VoxelDecoder;
+use velox_tasks::{GenScenes, SceneFolders, TokenScenes, TrackScenes};
 
 use crate::decode::PrecisionArg;
 use crate::interrupt::{signal_name, Interrupt, Interrupted};

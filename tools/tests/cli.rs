@@ -211,7 +211,7 @@ fn a_write_past_the_file_size_limit_stops_with_the_file_named() {
 #[test]
 fn a_render_onto_a_full_disk_stops_with_the_file_named() {
     use velox_engine::ops::raster::GaussianData;
-    use velox_models::files::{ply, temp_path};
+    use velox_io::{ply, temp_path};
 
     let dir = std::env::temp_dir().join(format!("velox-full-disk-{}", std::process::id()));
     let out = dir.join("frames");

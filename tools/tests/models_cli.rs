@@ -7,13 +7,13 @@ use std::process::{Command, Output};
 use std::sync::OnceLock;
 
 use velox_data::format::write_scene;
-use velox_data::training::train_scene;
 use velox_data::{procedural, read_scene, SynthOptions};
 use velox_engine::rng::Rng;
 use velox_engine::Gpu;
+use velox_io::ply;
 use velox_models::config::AutoencoderConfig;
-use velox_models::files::ply;
 use velox_models::velox::autoencoder::Autoencoder;
+use velox_tasks::training::train_scene;
 
 fn velox(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_velox")).args(args).output().unwrap()
@@ -177,7 +177,7 @@ fn eval_recon_reports_psnr_ssim_and_chamfer_per_scene_and_mean() {
     assert_eq!(frames[0]["views"].as_array().unwrap().len(), 2);
     let images = scenes[0]["images"].as_array().unwrap();
     assert_eq!(images.len(), 4);
-    let (rgb, w, h) = velox_models::files::image::read_png(&out.join(images[0].as_str().unwrap())).unwrap();
+    let (rgb, w, h) = velox_io::image::read_png(&out.join(images[0].as_str().unwrap())).unwrap();
     assert_eq!((w, h, rgb.len()), (64, 32, 64 * 32 * 3), "ground truth | ours, side by side");
 }
 

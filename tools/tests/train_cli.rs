@@ -202,7 +202,7 @@ fn train(out: &Path, extra: &[&str]) -> String {
 
 #[test]
 fn a_run_stopped_and_resumed_repeats_the_uninterrupted_run() {
-    use velox_data::order::scene_of_step;
+    use velox_models::train::order::scene_of_step;
 
     let dir = temp_dir("resume");
     // 20 steps, 8 per scene, over 2 scenes: passes of 16 steps, each in its own order; the

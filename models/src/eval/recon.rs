@@ -33,9 +33,9 @@ use velox_engine::{Error, Result};
 use crate::metrics::{chamfer, psnr, ssim, subsample};
 use crate::train::source::{prefetch, SampleSource};
 use crate::velox::autoencoder::{tau_of, Autoencoder, TrainScene, FRAMES};
-use crate::velox::cloud::CHANNELS;
 use crate::velox::decode::{sampler_name, Decoding, Sampling, VoxelSource};
 use crate::velox::voxels::VoxelDecoder;
+use velox_io::cloud::CHANNELS;
 
 /// How to evaluate.
 #[derive(Clone, Debug)]

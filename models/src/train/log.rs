@@ -26,7 +26,7 @@ use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use velox_engine::{Error, Result};
 
 use super::trainer::TimeSplit;
-use crate::files::write_bytes;
+use velox_io::write_bytes;
 
 /// Named values kept in their order (a JSON object whose keys are written in that order).
 #[derive(Clone, Debug, Default, PartialEq)]

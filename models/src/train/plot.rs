@@ -10,8 +10,8 @@ use image::{Rgb, RgbImage};
 use velox_engine::Result;
 
 use super::log::Terms;
-use crate::files::image::png_bytes;
-use crate::files::write_bytes;
+use velox_io::image::png_bytes;
+use velox_io::write_bytes;
 
 const W: u32 = 900;
 const H: u32 = 480;

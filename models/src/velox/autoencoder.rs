@@ -32,10 +32,10 @@ use crate::config::AutoencoderConfig;
 use crate::layers::Loss;
 use crate::params::ParamStore;
 use crate::train::{Losses, PassSeconds, Trainable};
-use crate::velox::cloud::{self, CHANNELS};
 use crate::velox::encoder::Encoder;
 use crate::velox::gaussians::{occupied_voxels, GaussianDecoder, VoxelFrames};
 use crate::velox::surface::{FlowNoise, PointFrames, SampleSpec, Sampler, SurfaceDecoder};
+use velox_io::cloud::{self, CHANNELS};
 
 /// The `model` a checkpoint of the autoencoder names.
 pub const MODEL_KIND: &str = "velox autoencoder";

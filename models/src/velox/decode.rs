@@ -22,9 +22,9 @@ use velox_engine::ops::raster::Gaussians;
 use velox_engine::{Error, Precision, Result, Tensor};
 
 use crate::velox::autoencoder::{tau_of, Autoencoder, FRAMES};
-use crate::velox::cloud::{self, CHANNELS};
 use crate::velox::surface::{SampleSpec, Sampler};
 use crate::velox::voxels::{occupied_centres, VoxelDecoder};
+use velox_io::cloud::{self, CHANNELS};
 
 /// Where the Gaussian decoder's occupied voxels come from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]

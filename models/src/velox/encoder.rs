@@ -41,7 +41,7 @@ use crate::velox::blocks::{
     attention, attention_params, ff, ff_params, linear, linear_params, norm, window_layer_params,
     FeedForward, FeedForwardCache, WindowLayer, WindowLayerCache, WindowLayout,
 };
-use crate::velox::cloud::CHANNELS;
+use velox_io::cloud::CHANNELS;
 
 /// Frames per clip and the frame rate of tau (docs/models.md): tau spans [0, 0.23].
 pub const TAU_END: f32 = 0.24;

@@ -18,9 +18,9 @@ use velox_engine::{Gpu, Recorder, Result, Tensor};
 
 use crate::config::GaussianConfig;
 use crate::params::{ParamBuilder, ParamStore};
-use crate::velox::cloud::CHANNELS;
 pub use crate::velox::perceiver::VoxelFrames;
 use crate::velox::perceiver::{PerceiverCache, PerceiverShape, VoxelPerceiver};
+use velox_io::cloud::CHANNELS;
 
 pub struct GaussianDecoder {
     pub cfg: GaussianConfig,

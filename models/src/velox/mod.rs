@@ -2,7 +2,6 @@
 
 pub mod autoencoder;
 pub mod blocks;
-pub mod cloud;
 pub mod count;
 pub mod decode;
 pub mod dinov2;

@@ -38,7 +38,7 @@
 //!   the figures do not depend on which scenes a run encoded and which it found stored. The
 //!   generators normalise the tokens by them.
 //!
-//! Files are written atomically ([`crate::files::write_bytes`]), safetensors headers with
+//! Files are written atomically ([`velox_io::write_bytes`]), safetensors headers with
 //! their keys sorted, so the same tokens give the same bytes. Every reader checks everything
 //! before returning (shapes, dtypes, finite values and ranges, the scene names, the hash's
 //! form, the config) and names the file and the problem.
@@ -53,8 +53,8 @@ use velox_engine::{Error, Gpu, Precision, Result, Tensor};
 
 use crate::checkpoint::{canonical_header, F32View};
 use crate::config::AutoencoderConfig;
-use crate::files::write_bytes;
-use crate::velox::cloud::SLACK;
+use velox_io::cloud::SLACK;
+use velox_io::write_bytes;
 
 pub const FORMAT: &str = "velox-tokens";
 pub const VERSION: u32 = 1;

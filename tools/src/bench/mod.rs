@@ -199,7 +199,7 @@ impl Record {
 }
 
 pub fn write_json(path: &std::path::Path, records: &[Record]) -> CliResult<()> {
-    velox_models::files::write_bytes(path, serde_json::to_string_pretty(records)?.as_bytes())?;
+    velox_io::write_bytes(path, serde_json::to_string_pretty(records)?.as_bytes())?;
     println!("wrote {}", path.display());
     Ok(())
 }

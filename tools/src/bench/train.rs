@@ -21,16 +21,16 @@
 
 use std::collections::BTreeMap;
 use velox_data::format::write_scene;
-use velox_data::training::train_scene;
 use velox_data::{procedural, read_scene, SynthOptions};
+use velox_tasks::training::train_scene;
 
 use velox_engine::{profile, Error, Gpu, Precision, Result};
+use velox_io::cloud::CHANNELS;
 use velox_models::config::AutoencoderConfig;
 use velox_models::run::{RunRequest, RunSettings};
 use velox_models::train::collective::SingleProcess;
 use velox_models::train::trainer::Trainer;
 use velox_models::velox::autoencoder::{Autoencoder, TrainScene};
-use velox_models::velox::cloud::CHANNELS;
 
 use super::Record;
 
@@ -203,8 +203,8 @@ pub fn run_token_model(
     use crate::train::{
         train_generator, train_tracker, train_voxels, GeneratorArgs, RunArgs, TaskArg, TokenModelArgs,
     };
-    use velox_data::encode::{encode_dataset, EncodeOptions};
     use velox_models::velox::tokens::CloudSource;
+    use velox_tasks::encode::{encode_dataset, EncodeOptions};
 
     let small = quick || gpu.caps().kind == "CPU";
     let dir = std::env::temp_dir().join(format!("velox-bench-train-tokens-{}", std::process::id()));

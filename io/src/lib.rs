@@ -1,6 +1,9 @@
+//! velox-io: the files Velox reads and writes, below the models and the data that use them.
+//!
 //! File formats users see: Gaussians as PLY in the 3D Gaussian splatting layout ([`ply`]),
-//! images as PNG and depth as EXR ([`image`]). Every reader names what is wrong with a bad
-//! file.
+//! images as PNG and depth as EXR ([`image`]), and the colour point cloud every model and
+//! dataset passes around ([`cloud`]: its layout and validation). Every reader names what is
+//! wrong with a bad file.
 //!
 //! Every file the program writes goes through [`write_atomically`] (or [`write_bytes`]): the
 //! content is written in full to `.<file name>.tmp` in the same folder, flushed and synced to
@@ -8,6 +11,7 @@
 //! size limit leaves either the old file or the new one, never half of one, and the error names
 //! the file and what went wrong.
 
+pub mod cloud;
 pub mod image;
 pub mod ply;
 

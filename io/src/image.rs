@@ -6,7 +6,7 @@ use std::path::Path;
 
 use velox_engine::{Error, Result};
 
-use super::{io_error, write_atomically, write_bytes};
+use crate::{io_error, write_atomically, write_bytes};
 
 fn check_len(what: &str, len: usize, width: u32, height: u32, channels: usize) -> Result<()> {
     if len != width as usize * height as usize * channels || width == 0 || height == 0 {
@@ -18,7 +18,7 @@ fn check_len(what: &str, len: usize, width: u32, height: u32, channels: usize) -
 }
 
 /// Writes row-major RGB `[H, W, 3]` in [0, 1] as an 8-bit PNG (atomically, see
-/// [`super::write_atomically`]).
+/// [`crate::write_atomically`]).
 pub fn write_png(path: &Path, rgb: &[f32], width: u32, height: u32) -> Result<()> {
     check_len("write_png", rgb.len(), width, height, 3)?;
     let bytes: Vec<u8> =

@@ -5,7 +5,7 @@
 //! ([`crate::training::TokenScenes`]).
 //!
 //! Scene by scene, in name order: the cloud (`points.ply`, checked; or with
-//! [`CloudSource::Video`] the scene's RGBD video back-projected, `crate::rgbd`) is encoded with the
+//! [`CloudSource::Video`] the scene's RGBD video back-projected, `velox_data::rgbd`) is encoded with the
 //! queries drawn from the seed (`Autoencoder::encode_with_queries`, the encoder of `velox
 //! decode` and `velox eval`); the tokens, bit for bit, and the cloud's rows at the query
 //! indices (x, y, z, tau) go to `SCENE.safetensors`. The manifest, written last, lists every
@@ -27,15 +27,15 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use velox_engine::{Gpu, Precision};
+use velox_io::cloud::{self, CHANNELS};
 use velox_models::velox::autoencoder::Autoencoder;
-use velox_models::velox::cloud::{self, CHANNELS};
 use velox_models::velox::tokens::{
     check_scene_name, checkpoint_hash, read_scene_file, scene_file, write_scene_file, CloudSource,
     SceneTokens, TokenManifest, TokenOrigin, TokenStats, MANIFEST,
 };
 
-use crate::format::{list_some_scenes, read_ply};
-use crate::{DataError, DataResult};
+use velox_data::format::{list_some_scenes, read_ply};
+use velox_data::{DataError, DataResult};
 
 /// What to encode, with what, and where to.
 #[derive(Clone, Debug)]
@@ -180,8 +180,8 @@ pub fn encode_dataset(
         let (cloud, what) = match options.source {
             CloudSource::Points => (read_ply(&dir.join("points.ply"))?, dir.join("points.ply")),
             CloudSource::Video => {
-                let video = crate::rgbd::read_scene_video(dir)?;
-                (crate::rgbd::rgbd_cloud(&video, options.video_points, options.seed)?, dir.join("video"))
+                let video = velox_data::rgbd::read_scene_video(dir)?;
+                (velox_data::rgbd::rgbd_cloud(&video, options.video_points, options.seed)?, dir.join("video"))
             }
         };
         let cloud: Vec<f32> = cloud.into_iter().flatten().collect();

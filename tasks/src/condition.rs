@@ -18,7 +18,7 @@ use std::path::{Path, PathBuf};
 use image::imageops::FilterType;
 use velox_models::velox::dinov2::{IMAGENET_MEAN, IMAGENET_STD};
 
-use crate::{DataError, DataResult};
+use velox_data::{DataError, DataResult};
 
 /// The PNG frames of a folder, in name order.
 pub fn frame_files(dir: &Path) -> DataResult<Vec<PathBuf>> {

@@ -14,7 +14,7 @@ use std::path::Path;
 use velox_engine::ops::raster::GaussianData;
 use velox_engine::{Error, Result};
 
-use super::{io_error, write_bytes};
+use crate::{io_error, write_bytes};
 
 /// The degree-0 spherical harmonic, 1 / (2 sqrt(pi)).
 pub const SH_C0: f64 = 0.28209479177387814;

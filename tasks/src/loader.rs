@@ -1,6 +1,6 @@
 //! Reads scenes in a background thread while training runs.
 //!
-//! A [`Loader`] owns one thread that reads scenes in the order of [`crate::order`] (each pass
+//! A [`Loader`] owns one thread that reads scenes in the order of [`velox_models::train::order`] (each pass
 //! shuffled from the seed and the pass's number, or in name order), from any position of that
 //! sequence, into a bounded queue of `prefetch` scenes, so reading
 //! and PNG decoding overlap the caller's GPU work and memory stays bounded. A scene that fails
@@ -11,9 +11,9 @@ use std::path::{Path, PathBuf};
 use std::sync::mpsc::{sync_channel, Receiver};
 use std::thread::JoinHandle;
 
-use crate::format::{list_scenes, read_scene, Scene};
-use crate::order::epoch_order;
-use crate::DataResult;
+use velox_data::format::{list_scenes, read_scene, Scene};
+use velox_data::DataResult;
+use velox_models::train::order::epoch_order;
 
 #[derive(Clone, Debug)]
 pub struct LoaderOptions {
@@ -22,7 +22,7 @@ pub struct LoaderOptions {
     /// Shuffle each epoch with this seed and the epoch's number; `None` keeps name order.
     pub shuffle: Option<u64>,
     /// The position in the sequence of epochs to start from (0: the first scene of the first
-    /// epoch; see [`crate::order`]): a resumed run starts where it stopped.
+    /// epoch; see [`velox_models::train::order`]): a resumed run starts where it stopped.
     pub start: u64,
     /// Scenes read ahead.
     pub prefetch: usize,
@@ -41,7 +41,7 @@ pub struct Loader {
     thread: Option<JoinHandle<()>>,
     /// Scenes in the dataset.
     pub len: usize,
-    /// The dataset's scene folders, in name order (the indices of [`crate::order`]).
+    /// The dataset's scene folders, in name order (the indices of [`velox_models::train::order`]).
     pub scenes: Vec<PathBuf>,
 }
 
@@ -69,7 +69,7 @@ impl Loader {
                     }
                 }
             })
-            .map_err(|e| crate::DataError::Io(format!("starting the loader thread: {e}")))?;
+            .map_err(|e| velox_data::DataError::Io(format!("starting the loader thread: {e}")))?;
         Ok(Loader { rx: Some(rx), thread: Some(thread), len, scenes })
     }
 }

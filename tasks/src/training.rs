@@ -22,8 +22,8 @@ use velox_models::velox::voxels::VoxelSample;
 
 use crate::condition::read_condition_video;
 use crate::encode::dataset_scenes;
-use crate::format::{list_some_scenes, read_occupancy, read_scene, read_video_tracks, Scene};
-use crate::{DataError, DataResult};
+use velox_data::format::{list_some_scenes, read_occupancy, read_scene, read_video_tracks, Scene};
+use velox_data::{DataError, DataResult};
 
 /// A scene read into host memory, ready to upload: what the trainer's background thread
 /// hands over.
@@ -364,10 +364,10 @@ impl SampleSource for TrackScenes {
             .into());
         }
         let dir = &self.0.dirs[index];
-        let camera = crate::rgbd::scene_video_camera(dir)?;
-        let frame = crate::rgbd::read_colour_frame(&dir.join("video"), &camera, 0)?;
+        let camera = velox_data::rgbd::scene_video_camera(dir)?;
+        let frame = velox_data::rgbd::read_colour_frame(&dir.join("video"), &camera, 0)?;
         let queries: Vec<[f32; 3]> = tracks.iter().map(|t| t[0]).collect();
-        let colours = crate::rgbd::colours_at(&frame, &camera, &queries);
+        let colours = velox_data::rgbd::colours_at(&frame, &camera, &queries);
         Ok(HostTrackScene { tokens, tracks, colours, visible })
     }
 

@@ -1,0 +1,19 @@
+//! velox-tasks: what joins a dataset to a model, above the data and the models crates (neither
+//! of which names the other).
+//!
+//! - [`training`] gives scenes to the trainer: as the autoencoder trains on them
+//!   ([`train_scene`], [`SceneFolders`]), or as stored tokens and occupancy for the models
+//!   downstream of the frozen encoder ([`TokenScenes`], [`TrackScenes`], [`GenScenes`]);
+//! - [`loader`] reads a dataset's scenes in the background, in the trainer's order
+//!   (`velox_models::train::order`);
+//! - [`encode`] stores a trained encoder's tokens of every scene once (the token store);
+//! - [`condition`] reads a video's frames as the generators' condition, normalised as DINOv2
+//!   expects.
+
+pub mod condition;
+pub mod encode;
+pub mod loader;
+pub mod training;
+
+pub use loader::{Loader, LoaderOptions};
+pub use training::{train_scene, GenScenes, SceneFolders, TokenScenes, TrackScenes};
