@@ -8,10 +8,15 @@
 //!   (`velox_models::train::order`);
 //! - [`encode`] stores a trained encoder's tokens of every scene once (the token store);
 //! - [`condition`] reads a video's frames as the generators' condition, normalised as DINOv2
-//!   expects.
+//!   expects, and [`generate`] loads a generator with the models it was trained against and
+//!   makes tokens from them;
+//! - [`evaluate`] runs the evaluations of the models downstream of the encoder scene by scene
+//!   (the voxel decoder, the tracker, the generator as images and as falling cloth).
 
 pub mod condition;
 pub mod encode;
+pub mod evaluate;
+pub mod generate;
 pub mod loader;
 pub mod training;
 

@@ -12,12 +12,13 @@ use velox_engine::Gpu;
 use velox_io::image::write_png;
 use velox_io::write_bytes;
 use velox_models::eval::recon::{evaluate, frames, ReconObserver, ReconOptions, ReconReport};
-use velox_models::eval::voxels::{evaluate_scene, projections, VoxelMetrics};
+use velox_models::eval::voxels::{projections, VoxelMetrics};
 use velox_models::train::source::SampleSource;
 use velox_models::velox::autoencoder::Autoencoder;
 use velox_models::velox::decode::{Sampling, VoxelSource};
 use velox_models::velox::tracker::Tracker;
 use velox_models::velox::voxels::{VoxelDecoder, FRAME_WORDS};
+use velox_tasks::generate::GeneratorModels;
 use velox_tasks::{SceneFolders, TokenScenes, TrackScenes};
 
 use crate::decode::{progress, voxel_decoder, PrecisionArg, SamplerArg, VoxelArg};
@@ -82,28 +83,15 @@ pub struct GeneratorEvalArgs {
 /// A generator's evaluation, ready: its models, the scenes, how many are evaluated, and the
 /// generation.
 struct GeneratorEval {
-    models: crate::generate::Models,
+    models: GeneratorModels,
     scenes: TokenScenes,
     count: usize,
     spec: velox_models::velox::generator::GenerateSpec,
 }
 
-impl GeneratorEval {
-    /// Scene `i`'s generated tokens (from its conditioning video, as the generator reads it)
-    /// and the encoder's stored tokens of it, both on the device.
-    fn token_pair(&self, gpu: &Gpu, i: usize) -> CliResult<(velox_engine::Tensor, velox_engine::Tensor)> {
-        let cfg = &self.models.generator.cfg;
-        let video = self.scenes.dirs()[i].join("video");
-        let pixels = velox_tasks::condition::read_condition_video(&video, cfg.task.frames(), cfg.image_size)?;
-        let made = self.models.generate(gpu, &pixels, &self.spec, false)?;
-        Ok((made, self.scenes.read(i)?.tokens.upload(gpu)?))
-    }
-}
-
 impl GeneratorEvalArgs {
     fn open(&self, gpu: &Gpu, out: &std::path::Path) -> CliResult<GeneratorEval> {
-        let models =
-            crate::generate::Models::load(gpu, &self.checkpoint, &self.autoencoder, self.dinov2.as_deref())?;
+        let models = GeneratorModels::load(gpu, &self.checkpoint, &self.autoencoder, self.dinov2.as_deref())?;
         let scenes = TokenScenes::open(gpu, &self.data, self.tokens.as_deref(), Some(&self.autoencoder))?;
         let cfg = &models.generator.cfg;
         scenes.check_model("generator", cfg.encoder_hash.as_deref(), cfg.token_dim)?;
@@ -342,9 +330,7 @@ pub fn run(cmd: EvalCommand) -> CliResult<()> {
 }
 
 fn run_tracking(a: &TrackingEvalArgs) -> CliResult<()> {
-    use velox_models::eval::tracking::{
-        evaluate_scene, TrackingMetrics, TrackingReport, TrackingScene, METRIC_RESOLUTION,
-    };
+    use velox_models::eval::tracking::{TrackingMetrics, METRIC_RESOLUTION};
     let c = &a.common;
     let gpu = Gpu::new()?;
     let scenes = TrackScenes::open(&gpu, &c.data, c.tokens.as_deref(), c.autoencoder.as_deref())?;
@@ -365,38 +351,12 @@ fn run_tracking(a: &TrackingEvalArgs) -> CliResult<()> {
         gpu.caps().name,
         a.scaling.name()
     );
-    let bar = progress(count, "scenes");
-    let (mut reports, mut images, mut unseen) = (Vec::with_capacity(count), Vec::new(), Vec::new());
-    for i in 0..count {
-        let name = scenes.name(i);
-        bar.set_message(name.clone());
-        let dir = &scenes.0.dirs()[i];
-        let (sample, visible) = scenes.load_with_visibility(i)?;
-        let video = velox_data::rgbd::read_scene_video(dir)?;
-        let scene = TrackingScene {
-            truth: &sample.tracks,
-            colours: &sample.colours,
-            visible: &visible,
-            camera: &video.camera,
-            depth: &video.depth,
-        };
-        if !scene.shows_any() {
-            // The benchmark's metrics are 0 / 0 here (its mean turns NaN): left out, and said.
-            unseen.push(name);
-            bar.inc(1);
-            continue;
-        }
-        let (report, predicted) =
-            evaluate_scene(&tracker, &name, &sample.tokens, &sample.token_points, &scene, a.scaling)?;
-        if i < a.images {
-            let path = a.out.join(format!("{name}.png"));
-            write_overlays(&path, &video, &scene, &predicted)?;
-            images.push(path.display().to_string());
-        }
-        reports.push(report);
-        bar.inc(1);
-    }
-    bar.finish_and_clear();
+    let mut overlays =
+        Overlays { out: &a.out, first: a.images, bar: progress(count, "scenes"), images: Vec::new() };
+    let evaluation = velox_tasks::evaluate::tracking(&tracker, &scenes, count, a.scaling, &mut overlays)?;
+    overlays.bar.finish_and_clear();
+    let (images, unseen, reports, mean) =
+        (overlays.images, evaluation.left_out, evaluation.scenes, evaluation.mean);
     if !unseen.is_empty() {
         eprintln!(
             "note: {} scene(s) whose video shows none of their tracks are left out of the means: {}",
@@ -404,10 +364,6 @@ fn run_tracking(a: &TrackingEvalArgs) -> CliResult<()> {
             unseen.join(", ")
         );
     }
-    if reports.is_empty() {
-        return Err("no scene's video shows any of its tracks: nothing to measure".into());
-    }
-    let mean = TrackingReport::mean(&reports);
     println!(
         "{:<24} {:<16} {:>7} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}",
         "scene", "method", "queries", "L2 all", "L2 vis", "APD all", "APD vis", "AJ", "OA"
@@ -448,6 +404,40 @@ fn run_tracking(a: &TrackingEvalArgs) -> CliResult<()> {
     Ok(())
 }
 
+/// The progress bar over scenes, and the overlays of the first scenes written under `--out`.
+struct Overlays<'a> {
+    out: &'a std::path::Path,
+    first: usize,
+    bar: ProgressBar,
+    images: Vec<String>,
+}
+
+impl velox_tasks::evaluate::TrackingObserver for Overlays<'_> {
+    fn scene(&mut self, name: &str) {
+        self.bar.set_message(name.to_string());
+    }
+
+    fn measured(
+        &mut self,
+        index: usize,
+        name: &str,
+        video: &velox_data::rgbd::RgbdVideo,
+        scene: &velox_models::eval::tracking::TrackingScene,
+        predicted: &[velox_models::velox::tracker::Track],
+    ) -> velox_engine::Result<()> {
+        if index < self.first {
+            let path = self.out.join(format!("{name}.png"));
+            write_overlays(&path, video, scene, predicted)?;
+            self.images.push(path.display().to_string());
+        }
+        Ok(())
+    }
+
+    fn done(&mut self) {
+        self.bar.inc(1);
+    }
+}
+
 /// Frames 0, 8, 16 and 23 of the video with the predicted tracks over them (top row) and the
 /// true ones (bottom row), occluded stretches faded; enlarged (each pixel a k x k block) to at
 /// least 128 px a frame.
@@ -456,7 +446,7 @@ fn write_overlays(
     video: &velox_data::rgbd::RgbdVideo,
     scene: &velox_models::eval::tracking::TrackingScene,
     predicted: &[velox_models::velox::tracker::Track],
-) -> CliResult<()> {
+) -> velox_engine::Result<()> {
     use crate::overlay::{colours, draw_tracks, side_by_side};
     let cam = &video.camera;
     let (w, h) = (cam.width as usize, cam.height as usize);
@@ -485,6 +475,40 @@ fn write_overlays(
     Ok(())
 }
 
+/// The progress bar over scenes, and the projections of each scene's first frames.
+struct Projections<'a> {
+    out: &'a std::path::Path,
+    per_scene: usize,
+    bar: ProgressBar,
+    images: Vec<String>,
+}
+
+impl velox_tasks::evaluate::VoxelObserver for Projections<'_> {
+    fn scene(&mut self, name: &str) {
+        self.bar.set_message(name.to_string());
+    }
+
+    fn measured(
+        &mut self,
+        r: &velox_models::eval::voxels::SceneVoxels,
+        occupancy: &[u64],
+    ) -> velox_engine::Result<()> {
+        let n = r.frames.len();
+        for k in 0..self.per_scene.min(n) {
+            let f = &r.frames[k * n / self.per_scene.min(n)];
+            let truth = &occupancy[f.frame * FRAME_WORDS..(f.frame + 1) * FRAME_WORDS];
+            let dir = self.out.join(&r.name);
+            std::fs::create_dir_all(&dir)
+                .map_err(|e| velox_engine::Error::Io(format!("creating {}: {e}", dir.display())))?;
+            let path = dir.join(format!("f{:02}_xyz.png", f.frame));
+            write_png(&path, &projections(&f.predicted, truth), 192, 64)?;
+            self.images.push(path.display().to_string());
+        }
+        self.bar.inc(1);
+        Ok(())
+    }
+}
+
 fn run_voxels(a: &VoxelEvalArgs) -> CliResult<()> {
     let c = &a.common;
     let gpu = Gpu::new()?;
@@ -508,29 +532,12 @@ fn run_voxels(a: &VoxelEvalArgs) -> CliResult<()> {
         c.data.display(),
         gpu.caps().name
     );
-    let bar = progress(count, "scenes");
-    let mut reports = Vec::with_capacity(count);
-    let mut images = Vec::new();
-    for i in 0..count {
-        let name = scenes.name(i);
-        bar.set_message(name.clone());
-        let sample = scenes.load(i)?;
-        let r = evaluate_scene(&decoder, &name, &sample.tokens, &sample.occupancy, a.frame_step as usize)?;
-        let n = r.frames.len();
-        for k in 0..a.images.min(n) {
-            let f = &r.frames[k * n / a.images.min(n)];
-            let truth = &sample.occupancy[f.frame * FRAME_WORDS..(f.frame + 1) * FRAME_WORDS];
-            let dir = a.out.join(&name);
-            std::fs::create_dir_all(&dir).map_err(|e| format!("creating {}: {e}", dir.display()))?;
-            let path = dir.join(format!("f{:02}_xyz.png", f.frame));
-            write_png(&path, &projections(&f.predicted, truth), 192, 64)?;
-            images.push(path.display().to_string());
-        }
-        reports.push(r);
-        bar.inc(1);
-    }
-    bar.finish_and_clear();
-    let mean = VoxelMetrics::mean(&reports.iter().map(|r| r.mean).collect::<Vec<_>>());
+    let mut drawn =
+        Projections { out: &a.out, per_scene: a.images, bar: progress(count, "scenes"), images: Vec::new() };
+    let evaluation =
+        velox_tasks::evaluate::voxels(&decoder, &scenes, count, a.frame_step as usize, &mut drawn)?;
+    drawn.bar.finish_and_clear();
+    let (images, reports, mean) = (drawn.images, evaluation.scenes, evaluation.mean);
     println!(
         "{:<24} {:>7} {:>9} {:>9} {:>7} {:>7} {:>9} {:>9} {:>8} {:>11}",
         "scene",
@@ -687,9 +694,61 @@ fn print_table(r: &ReconReport) {
     );
 }
 
+/// The progress bar over scenes, and a sheet per scene: per kept frame a column; rows truth,
+/// generated, encoded for the input view and the first novel view.
+struct Sheets<'a> {
+    out: &'a std::path::Path,
+    bar: ProgressBar,
+    columns: Vec<Vec<Vec<f32>>>,
+}
+
+impl velox_tasks::evaluate::GenerationObserver for Sheets<'_> {
+    fn scene(&mut self, name: &str) {
+        self.bar.set_message(name.to_string());
+        self.columns.clear();
+    }
+
+    fn renders(
+        &mut self,
+        _name: &str,
+        _views: &velox_models::eval::generation::GenerationViews,
+        frame: velox_models::eval::generation::FrameRenders,
+    ) -> velox_engine::Result<()> {
+        self.columns.push(frame.views.into_iter().take(2).flatten().collect());
+        Ok(())
+    }
+
+    fn done(
+        &mut self,
+        name: &str,
+        views: &velox_models::eval::generation::GenerationViews,
+    ) -> velox_engine::Result<()> {
+        let columns = std::mem::take(&mut self.columns);
+        let (w, h) = (views.input.width as usize, views.input.height as usize);
+        let same_size = views.novel.iter().all(|c| (c.width as usize, c.height as usize) == (w, h));
+        if same_size && !columns.is_empty() {
+            let rows = columns[0].len();
+            let images: Vec<Vec<f32>> =
+                (0..rows).flat_map(|r| columns.iter().map(move |c| c[r].clone())).collect();
+            let cols = columns.len();
+            let k = (128 / w.max(1)).clamp(1, 4);
+            let sheet =
+                crate::overlay::enlarged(&crate::generate::grid(&images, cols, w, h), cols * w, rows * h, k);
+            write_png(
+                &self.out.join(format!("{name}.png")),
+                &sheet,
+                (cols * w * k) as u32,
+                (rows * h * k) as u32,
+            )?;
+        }
+        self.bar.inc(1);
+        Ok(())
+    }
+}
+
 fn run_generation(a: &GenerationEvalArgs) -> CliResult<()> {
-    use velox_models::eval::generation::{evaluate_scene, GenerationMean, GenerationScene, GenerationViews};
-    use velox_models::velox::decode::Decoding;
+    use velox_models::eval::generation::{GenerationMean, GenerationScene};
+    use velox_tasks::evaluate::GenerationOptions;
 
     let c = &a.common;
     let gpu = Gpu::new()?;
@@ -718,75 +777,18 @@ fn run_generation(a: &GenerationEvalArgs) -> CliResult<()> {
         c.sampler,
         c.guidance
     );
-    let bar = progress(count, "scenes");
-    let mut results: Vec<GenerationScene> = Vec::new();
-    for i in 0..count {
-        let dir = &scenes.dirs()[i];
-        let name = scenes.name(i);
-        bar.set_message(name.clone());
-        let scene = velox_data::read_scene(dir, true)?;
-        let input =
-            scene.cameras.video.ok_or_else(|| format!("{}: the scene has no video camera", dir.display()))?;
-        let to_f32 = |img: &Vec<u8>| img.iter().map(|&b| b as f32 / 255.0).collect::<Vec<f32>>();
-        let sup = &scene.cameras.supervision;
-        let views = (a.views as usize).min(sup.len());
-        let per_frame = sup.len();
-        let views = GenerationViews {
-            input,
-            input_truth: scene.video.iter().map(to_f32).collect(),
-            novel: sup[..views].to_vec(),
-            novel_truth: (0..velox_models::velox::autoencoder::FRAMES)
-                .map(|f| (0..views).map(|v| to_f32(&scene.supervision[f * per_frame + v])).collect())
-                .collect(),
-        };
-        let (made, stored) = eval.token_pair(&gpu, i)?;
-        let cloud: Vec<f32> = scene.points.iter().flatten().copied().collect();
-        let cloud = (source == VoxelSource::Input).then_some(cloud.as_slice());
-        let mut generated = Decoding::from_tokens(&m.ae, made, cloud, c.seed)?;
-        let mut encoded = Decoding::from_tokens(&m.ae, stored, cloud, c.seed)?;
-        if let Some(d) = &decoder {
-            generated = generated.with_voxel_decoder(d)?;
-            encoded = encoded.with_voxel_decoder(d)?;
-        }
-        // The sheet: per kept frame a column; rows truth, generated, encoded for the input
-        // view and the first novel view.
-        let mut columns: Vec<Vec<Vec<f32>>> = Vec::new();
-        let keep = |f: usize| sheet_at.contains(&f);
-        let r = evaluate_scene(
-            &name,
-            &generated,
-            &encoded,
-            source,
-            &sampling,
-            &frames,
-            &views,
-            &keep,
-            &mut |fr| {
-                columns.push(fr.views.into_iter().take(2).flatten().collect());
-                Ok(())
-            },
-        )?;
-        let (w, h) = (views.input.width as usize, views.input.height as usize);
-        let same_size = views.novel.iter().all(|c| (c.width as usize, c.height as usize) == (w, h));
-        if same_size && !columns.is_empty() {
-            let rows = columns[0].len();
-            let images: Vec<Vec<f32>> =
-                (0..rows).flat_map(|r| columns.iter().map(move |c| c[r].clone())).collect();
-            let cols = columns.len();
-            let k = (128 / w.max(1)).clamp(1, 4);
-            let sheet =
-                crate::overlay::enlarged(&crate::generate::grid(&images, cols, w, h), cols * w, rows * h, k);
-            write_png(
-                &a.out.join(format!("{name}.png")),
-                &sheet,
-                (cols * w * k) as u32,
-                (rows * h * k) as u32,
-            )?;
-        }
-        results.push(r);
-        bar.inc(1);
-    }
-    bar.finish_and_clear();
+    let options = GenerationOptions {
+        spec: eval.spec.clone(),
+        source,
+        voxel_decoder: decoder.as_ref(),
+        sampling,
+        frames: frames.clone(),
+        views: a.views as usize,
+        kept: sheet_at,
+    };
+    let mut sheets = Sheets { out: &a.out, bar: progress(count, "scenes"), columns: Vec::new() };
+    let results = velox_tasks::evaluate::generation(&gpu, m, scenes, count, &options, &mut sheets)?;
+    sheets.bar.finish_and_clear();
     let mean = GenerationMean::of(&results);
     println!(
         "{:<20} {:>22} {:>24} {:>11}",
@@ -841,10 +843,21 @@ fn run_generation(a: &GenerationEvalArgs) -> CliResult<()> {
     Ok(())
 }
 
+/// The progress bar over decoded frames.
+struct Frames(ProgressBar);
+
+impl velox_tasks::evaluate::ClothObserver for Frames {
+    fn scene(&mut self, name: &str) {
+        self.0.set_message(name.to_string());
+    }
+
+    fn frame(&mut self) {
+        self.0.inc(1);
+    }
+}
+
 fn run_cloth(a: &ClothEvalArgs) -> CliResult<()> {
-    use velox_data::cloth::ClothRecord;
-    use velox_models::eval::cloth::{centre_of_mass, heights, ClothScene};
-    use velox_models::velox::decode::Decoding;
+    use velox_models::eval::cloth::ClothScene;
 
     let c = &a.common;
     let gpu = Gpu::new()?;
@@ -865,50 +878,15 @@ fn run_cloth(a: &ClothEvalArgs) -> CliResult<()> {
         a.points
     );
     let frames = velox_models::velox::autoencoder::FRAMES;
-    let bar = progress(count * 2 * frames, "frames decoded (generated, then encoded)");
-    let mut results: Vec<ClothScene> = Vec::new();
+    let mut bar = Frames(progress(count * 2 * frames, "frames decoded (generated, then encoded)"));
+    let evaluated = velox_tasks::evaluate::cloth(&gpu, m, scenes, count, &eval.spec, &sampling, &mut bar)?;
+    let bar = bar.0;
+    let mut results: Vec<ClothScene> = Vec::with_capacity(evaluated.len());
     let mut dt = 0.01;
-    for i in 0..count {
-        let dir = &scenes.dirs()[i];
-        let name = scenes.name(i);
-        bar.set_message(name.clone());
-        let path = dir.join("cloth.json");
-        let text = std::fs::read_to_string(&path).map_err(|e| {
-            format!("{}: {e} (not a cloth scene? `velox data cloth` writes it)", path.display())
-        })?;
-        let record: ClothRecord =
-            serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
-        let good = record.centre_of_mass.len() == frames
-            && record.centre_of_mass.iter().flatten().chain(&record.up).all(|v| v.is_finite())
-            && record.frame_seconds.is_finite()
-            && record.frame_seconds > 0.0;
-        if !good {
-            return Err(format!(
-                "{}: needs {frames} finite centres of mass, a finite up vector and a positive frame time",
-                path.display()
-            )
-            .into());
-        }
-        dt = record.frame_seconds as f64;
-        let up = record.up.map(|v| v as f64);
-        let simulated =
-            heights(&record.centre_of_mass.iter().map(|c| c.map(|v| v as f64)).collect::<Vec<_>>(), up)?;
-        let (made, stored) = eval.token_pair(&gpu, i)?;
-        let mut decoded = Vec::new();
-        for tokens in [made, stored] {
-            let d = Decoding::from_tokens(&m.ae, tokens, None, c.seed)?;
-            let mut centres = Vec::with_capacity(frames);
-            for f in 0..frames {
-                centres.push(centre_of_mass(&d.surface_points(f, &sampling)?)?);
-                bar.inc(1);
-            }
-            decoded.push(heights(&centres, up)?);
-        }
-        let encoded = decoded.pop().expect("two decodings");
-        let generated = decoded.pop().expect("two decodings");
-        let scene = ClothScene::new(&name, generated, encoded, simulated)?;
-        scene.plot(&a.out.join(&name), dt)?;
-        results.push(scene);
+    for r in evaluated {
+        dt = r.frame_seconds;
+        r.scene.plot(&a.out.join(&r.scene.scene), dt)?;
+        results.push(r.scene);
     }
     bar.finish_and_clear();
     println!("{:<20} {:>28} {:>26}", "", "RMSE along gravity, generated", "encoded (the ceiling)");

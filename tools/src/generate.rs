@@ -21,17 +21,15 @@ use std::time::Instant;
 
 use serde::Serialize;
 use velox_data::camera::{ring_cameras, video_camera_at, Camera};
-use velox_engine::{Gpu, Tensor};
+use velox_engine::Gpu;
 use velox_io::image::write_png;
 use velox_io::{ply, write_bytes};
 use velox_models::config::GenerationTask;
 use velox_models::eval::generation::rendered;
-use velox_models::velox::autoencoder::Autoencoder;
 use velox_models::velox::decode::{Decoding, Sampling, VoxelSource};
-use velox_models::velox::dinov2::Dinov2;
-use velox_models::velox::generator::{GenerateSpec, Generator};
+use velox_models::velox::generator::GenerateSpec;
 use velox_tasks::condition::{read_condition_video, read_frame};
-use velox_tasks::GenScenes;
+use velox_tasks::generate::GeneratorModels;
 
 use crate::decode::{
     name, parse_frames, progress, voxel_decoder, Frames, PrecisionArg, SamplerArg, VoxelArg,
@@ -121,64 +119,6 @@ struct FrameReport {
     voxels: usize,
 }
 
-/// The generator, the autoencoder and DINOv2 (when the generator reads it), checked against
-/// each other.
-pub struct Models {
-    pub generator: Generator,
-    pub ae: Autoencoder,
-    pub dino: Option<Dinov2>,
-}
-
-impl Models {
-    pub fn load(gpu: &Gpu, generator: &Path, autoencoder: &Path, dinov2: Option<&Path>) -> CliResult<Models> {
-        let g = Generator::load(gpu, generator)?;
-        g.check_encoder(autoencoder)?;
-        let ae = Autoencoder::load(gpu, autoencoder)?;
-        let dino = match (&g.cfg.dino_hash, dinov2) {
-            (None, None) => None,
-            (None, Some(_)) => {
-                return Err("the generator was trained without DINOv2: leave out --dinov2".into())
-            }
-            (Some(_), None) => {
-                return Err(
-                    "the generator was trained on DINOv2 features: give its weights with --dinov2".into()
-                )
-            }
-            (Some(want), Some(path)) => {
-                let d = Dinov2::load(gpu, path)?;
-                let got = d.file_hash.as_deref().unwrap_or_default();
-                if got != want {
-                    return Err(format!(
-                        "the generator was trained on DINOv2 weights of hash {want}; {} has hash {got}",
-                        path.display()
-                    )
-                    .into());
-                }
-                Some(d)
-            }
-        };
-        Ok(Models { generator: g, ae, dino })
-    }
-
-    /// The generator's tokens for condition frames `pixels`, in the autoencoder's space, with a
-    /// progress bar over the sampler's steps.
-    pub fn generate(&self, gpu: &Gpu, pixels: &[f32], spec: &GenerateSpec, bar: bool) -> CliResult<Tensor> {
-        let g = &self.generator;
-        let condition = GenScenes::condition(gpu, &g.cfg, self.dino.as_ref(), pixels)?;
-        let progress = bar.then(|| progress(spec.steps, "sampler steps"));
-        let made = g.generate_with_progress(&condition, spec, &mut |i| {
-            if let Some(p) = &progress {
-                p.set_position(i as u64);
-            }
-        })?;
-        if let Some(p) = progress {
-            p.finish_and_clear();
-        }
-        let tokens = g.cfg.denormalise(&made.read::<f32>()?);
-        Ok(Tensor::from_slice(gpu, made.shape(), &tokens)?)
-    }
-}
-
 /// The condition frames of `--video` or `--image` for a generator of `task` and frame `size`,
 /// and the input camera (at `resolution`, else its own).
 pub fn read_input(
@@ -259,7 +199,7 @@ fn write_tokens(path: &Path, tokens: &[f32], shape: &[usize]) -> CliResult<()> {
 
 pub fn run(a: &GenerateArgs) -> CliResult<()> {
     let gpu = Gpu::new()?;
-    let mut m = Models::load(&gpu, &a.checkpoint, &a.autoencoder, a.dinov2.as_deref())?;
+    let mut m = GeneratorModels::load(&gpu, &a.checkpoint, &a.autoencoder, a.dinov2.as_deref())?;
     m.ae.set_precision(a.precision.into())?;
     let cfg = m.generator.cfg.clone();
     let (pixels, input_cam, scene) =
@@ -299,7 +239,9 @@ pub fn run(a: &GenerateArgs) -> CliResult<()> {
         seed: a.seed,
         precision: a.precision.into(),
     };
-    let tokens = m.generate(&gpu, &pixels, &spec, true)?;
+    let bar = progress(spec.steps, "sampler steps");
+    let tokens = m.generate(&gpu, &pixels, &spec, &mut |i| bar.set_position(i as u64))?;
+    bar.finish_and_clear();
     let generate_seconds = start.elapsed().as_secs_f64();
     write_tokens(&a.out.join("tokens.safetensors"), &tokens.read::<f32>()?, tokens.shape())?;
     let mut decoding = Decoding::from_tokens(&m.ae, tokens, cloud.as_deref(), a.seed)?;
