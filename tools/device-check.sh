@@ -51,7 +51,10 @@ for b in target/device/tests/*; do
         echo "SKIPPED $name (time)"
         continue
     fi
-    if VELOX_VALIDATE=$validate timeout "$budget" "$b" -q >"$out/tests/$name.txt" 2>&1; then
+    # Of the model tests, the autoencoder's (the others read fixtures from the source tree).
+    filter=()
+    [ "$name" = models ] && filter=(autoencoder::)
+    if VELOX_VALIDATE=$validate timeout "$budget" "$b" -q "${filter[@]}" >"$out/tests/$name.txt" 2>&1; then
         echo "ok      $name $(grep -o 'test result.*' "$out/tests/$name.txt" | tail -1)"
     else
         echo "FAILED  $name (see tests/$name.txt)"

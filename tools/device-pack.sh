@@ -17,9 +17,7 @@ cp target/release/velox target/device/velox
 for b in "${bins[@]}"; do
     name=$(basename "$b")
     case ${name%-*} in
-        assign | attention | attention_layer | autoencoder | elementwise | fill_copy | kernels | layers | \
-            matmul | raster | scan_sort | staging | subgroups | train_primitives)
-            cp "$b" target/device/tests/ ;;
+        ops | staging | models) cp "$b" target/device/tests/ ;;
     esac
 done
 strip target/device/velox target/device/tests/*

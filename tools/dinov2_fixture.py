@@ -5,7 +5,7 @@ outputs, computed in float64.
     python tools/dinov2_fixture.py tests/fixtures/dinov2
 
 Needs `torch`, `transformers` and `safetensors` (any CPU install; nothing is downloaded: the
-model is built from a config). The tests in `tests/dinov2.rs` run the engine's DINOv2 on the
+model is built from a config). The tests in `tests/models/dinov2.rs` run the engine's DINOv2 on the
 same weights and images and compare `last_hidden_state`, with positions both at the trained
 grid (no interpolation) and interpolated to a larger, non-square grid.
 """

@@ -18,8 +18,7 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 
 # The engine-level binaries: every op against its reference (the GPU-assisted row and --quick).
-OPS="assign attention attention_layer elementwise fill_copy kernels layers matmul mixed_precision raster \
-scan_sort staging subgroups train_primitives validation cloth"
+OPS="ops staging validation"
 
 # name | environment | scope (all = the whole suite, ops = the binaries above)
 # small-bindings runs the op-level tests: they size their cases by the device's limit so that

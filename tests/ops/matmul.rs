@@ -1,7 +1,7 @@
 //! Batched matmul (`engine/src/ops/matmul.rs`, `shaders/matmul*.wgsl`) against its f64
 //! reference, on shapes that miss every tile multiple; f32 products with a narrow side on
 //! both of their kernels.
-mod common;
+use crate::common;
 use common::*;
 use half::f16;
 use velox::engine::kernels::{MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN};

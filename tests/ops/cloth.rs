@@ -4,7 +4,7 @@
 //! layers that do not pass through each other, the same bits every run, and bad meshes
 //! refused by name.
 
-mod common;
+use crate::common;
 use common::*;
 use velox::engine::ops::cloth::{reference, ClothMesh, ClothParams, ClothSim, Constraint};
 

@@ -1,7 +1,7 @@
 //! Point-to-window and point-to-cell assignment (the encoder's localized attention) and 4D
 //! farthest point sampling, against their CPU references.
 
-mod common;
+use crate::common;
 use common::*;
 use velox::engine::ops::assign::{self, assign_grouped, assign_nearest};
 use velox::engine::ops::fps::{self, fps, random_candidates, sample_queries};

@@ -6,7 +6,7 @@
 //! made anyway (undefined behaviour on a GPU), SPIR-V a validator rejects, a pipeline the driver
 //! refuses, or a refusal that does not say why.
 
-mod common;
+use crate::common;
 use common::*;
 
 use velox::engine::kernels::KernelId;

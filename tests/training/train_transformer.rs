@@ -5,7 +5,7 @@
 //! own features, on a fresh batch every step. With attention the loss must fall far below
 //! what a token alone can know; without it (the control) it must not.
 
-mod common;
+use crate::common;
 use common::*;
 use velox::engine::ops::adamw::AdamWConfig;
 use velox::engine::ops::attention::Segments;

@@ -2,7 +2,7 @@
 //! with empty and single-token ones, long rows, every compiled head width, huge scores; the
 //! reference backward against finite differences; the forward pass on f16 inputs.
 
-mod common;
+use crate::common;
 use common::*;
 use velox::engine::ops::attention::{self, attention, attention_backward, reference, Segments};
 use velox::engine::ops::cast::{cast, reference::to_f16};

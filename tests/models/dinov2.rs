@@ -4,7 +4,7 @@
 //! grid whose positions are interpolated; the f16 path; the names `transformers` 5 writes;
 //! bicubic resampling against a direct evaluation; bad files refused by name.
 
-mod common;
+use crate::common;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 

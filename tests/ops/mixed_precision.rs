@@ -3,7 +3,7 @@
 //! training; a step whose gradients overflow f16 is skipped and run again at half the scale;
 //! an f16 run stopped and resumed repeats the uninterrupted run bit for bit.
 
-mod common;
+use crate::common;
 use common::*;
 
 use std::path::{Path, PathBuf};

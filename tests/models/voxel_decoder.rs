@@ -3,7 +3,7 @@
 //! stages learn one frame beyond the label prior, that each scene is decoded from its own
 //! tokens, and the paper config's parameter count.
 
-mod common;
+use crate::common;
 use common::*;
 use velox::data::format::write_scene;
 use velox::data::{procedural, read_scene, SynthOptions};

@@ -4,7 +4,7 @@
 //! their start), two runs with one seed and a resumed run write the same checkpoint bytes as
 //! an uninterrupted one, the f16 path follows the f32 path, and bad scenes get clear errors.
 
-mod common;
+use crate::common;
 use common::*;
 use velox::data::format::write_scene;
 use velox::data::{procedural, read_scene, SynthOptions};

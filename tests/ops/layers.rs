@@ -2,7 +2,7 @@
 //! reference on awkward sizes, every reference backward against central finite differences
 //! of the reference forward, and stability at large and tiny magnitudes.
 
-mod common;
+use crate::common;
 use common::*;
 use velox::engine::ops::loss::LossKind;
 use velox::engine::Recorder;

@@ -5,7 +5,7 @@
 //! (through the trainer, with its loss scale) follows f32, and the paper config's parameter
 //! count.
 
-mod common;
+use crate::common;
 use common::*;
 use velox::models::config::GeneratorConfig;
 use velox::models::train::Trainable;

@@ -1,7 +1,7 @@
 //! Cast, unary and binary maps, reductions, softmax, gather and scatter-add against their f64
 //! references on lavapipe, on awkward sizes.
 
-mod common;
+use crate::common;
 use common::*;
 use velox::engine::ops::binary::{self, binary, Binary};
 use velox::engine::ops::cast::{self, cast};

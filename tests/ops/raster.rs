@@ -8,7 +8,7 @@
 //! differences <= 2.0e-17 (in f64). The forward is also checked against closed forms that
 //! share no code with the reference: one Gaussian, a turned one, two blended by depth.
 
-mod common;
+use crate::common;
 use common::*;
 use velox::engine::ops::raster::{
     self, reference, render, render_backward_with, BackwardKernel, Camera, GaussianData, Gaussians, Rendered,

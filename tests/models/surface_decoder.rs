@@ -3,7 +3,7 @@
 //! rectified flow and sampling it back, the samplers on a field they integrate exactly, and
 //! the errors bad input gets.
 
-mod common;
+use crate::common;
 use std::time::Instant;
 
 use common::*;

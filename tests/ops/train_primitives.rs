@@ -2,7 +2,7 @@
 //! references, NaN detection, the noam schedule, the parameter store, safetensors checkpoints
 //! (round trip, corrupt files, interrupted writes), and a small quadratic minimised end to end.
 
-mod common;
+use crate::common;
 use common::*;
 use velox::engine::ops::adamw::{self, adamw, adamw_chunked, AdamWConfig, AdamWStep, AdamWTensors};
 use velox::engine::ops::binary::{binary_into, Binary};

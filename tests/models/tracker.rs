@@ -3,7 +3,7 @@
 //! static baseline, that each scene is tracked from its own tokens, that queries are tracked
 //! independently of each other, the occlusion test, and the paper config's parameter count.
 
-mod common;
+use crate::common;
 use common::*;
 use velox::models::config::{TrackLoss, TrackerConfig};
 use velox::models::params::ParamBuilder;

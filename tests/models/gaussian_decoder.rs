@@ -2,7 +2,7 @@
 //! backward pass against directional finite differences (parameters and tokens), occupied
 //! voxels, bad inputs.
 
-mod common;
+use crate::common;
 use common::*;
 use velox::engine::ops::gaussian_head::{head_forward, reference, HeadRange, RAW};
 use velox::engine::ops::raster::{Gaussians, GAUSSIAN_WIDTHS};

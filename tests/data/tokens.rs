@@ -4,7 +4,7 @@
 //! another origin without `force`; a changed checkpoint is refused; and `TokenScenes` gives
 //! each scene its tokens and occupancy.
 
-mod common;
+use crate::common;
 use common::*;
 
 use std::path::{Path, PathBuf};

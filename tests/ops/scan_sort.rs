@@ -1,4 +1,4 @@
-mod common;
+use crate::common;
 use common::*;
 use velox::engine::ops::scan::{self, exclusive_scan, exclusive_scan_items};
 use velox::engine::ops::sort::{self, sort_pairs};

@@ -4,7 +4,7 @@
 //! `num_subgroups`, the lane index and `subgroupAdd`/`subgroupMax` disagree, which would make
 //! every subgroup reduction in the kernels (FPS's argmax, the raster backward's sums) wrong.
 
-mod common;
+use crate::common;
 use common::*;
 use velox::engine::ops::subgroup_probe::{probe, WORKGROUP};
 

@@ -1,7 +1,7 @@
 //! The multi-head attention layer (projections around the fused kernel), self and cross,
 //! forward and backward against an f64 composition of the references.
 
-mod common;
+use crate::common;
 use common::*;
 use velox::engine::ops::attention::{reference, Segments};
 use velox::models::layers::{attention::MultiHeadAttention, Linear, Param};

@@ -3,7 +3,7 @@
 //! processes of one micro-batch each train as one process accumulating two; and a stop asked
 //! for in one process stops them all at the same step.
 
-mod common;
+use crate::common;
 use common::*;
 
 use std::path::{Path, PathBuf};

@@ -8,7 +8,7 @@
 //! panic: every call runs under catch_unwind and a failing case is printed with what was done
 //! to the file. `--nocapture` shows the cases per reader and the time.
 
-mod common;
+use crate::common;
 use common::*;
 
 use std::panic::{catch_unwind, AssertUnwindSafe};

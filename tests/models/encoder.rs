@@ -1,7 +1,7 @@
 //! The Velox encoder at the tiny config: shapes, determinism, its backward pass against
 //! finite differences per tensor, and bad clouds.
 
-mod common;
+use crate::common;
 use common::*;
 use velox::io::cloud;
 use velox::models::config::{AutoencoderConfig, EncoderConfig};

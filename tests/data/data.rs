@@ -1,7 +1,7 @@
 //! Training data on lavapipe: the mesh rasteriser against a CPU ray cast, back-projection,
 //! tracks, determinism, glTF import (real exports in ../shared/assets/gltf, whose credits are
 //! in the README there, and files written here), corrupt files, the dataset on disk.
-mod common;
+use crate::common;
 use common::*;
 
 use std::path::{Path, PathBuf};
