@@ -32,7 +32,7 @@
 // rounded operations, and rounding is monotonic, so every slot's computed distance is at least
 // the computed box distance up to a few ulps; SAFE covers those, and an invocation skips only
 // when the box distance exceeds `bd` by more than that. The choices equal the unskipped
-// algorithm's bit for bit (tests/ops/assign.rs compares them with the reference).
+// algorithm's bit for bit (engine/tests/ops/assign.rs compares them with the reference).
 
 struct Params {
     m: u32, // candidates
@@ -67,7 +67,7 @@ fn main(@builtin(local_invocation_index) lid: u32, @builtin(subgroup_id) sg: u32
     // The subgroup's lanes, counted rather than read from the `subgroup_size` builtin: lavapipe
     // (Mesa 25.0) at LP_NATIVE_VECTOR_WIDTH=1024 reports 32 there but runs subgroups of 16,
     // and a step of 32 below would leave half the subgroups' winners unread
-    // (tests/ops/subgroups.rs measures both).
+    // (engine/tests/ops/subgroups.rs measures both).
     let lanes = subgroupAdd(1u);
     let per = (pc.m + WG - 1u) / WG;
     let first = min(lid * per, pc.m);

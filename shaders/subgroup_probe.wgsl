@@ -1,4 +1,4 @@
-// What one workgroup's subgroups really are, for `velox info` and tests/ops/subgroups.rs (host side
+// What one workgroup's subgroups really are, for `velox info` and engine/tests/ops/subgroups.rs (host side
 // engine/src/ops/subgroups.rs). Every invocation writes one row: its subgroup id, the number of
 // subgroups, its lane, the `subgroup_size` builtin, its subgroup's lanes counted with
 // subgroupAdd, and the largest local index in its subgroup (subgroupMax). The engine's kernels

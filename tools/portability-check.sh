@@ -17,8 +17,9 @@
 set -uo pipefail
 cd "$(dirname "$0")/.."
 
-# The engine-level binaries: every op against its reference (the GPU-assisted row and --quick).
-OPS="ops staging validation"
+# The op-level tests: the engine's and the file formats' crates (every op against its reference,
+# staging, validation), for the GPU-assisted row and --quick.
+OPS="-p velox-engine -p velox-io"
 
 # name | environment | scope (all = the whole suite, ops = the binaries above)
 # small-bindings runs the op-level tests: they size their cases by the device's limit so that
@@ -73,7 +74,7 @@ for c in "${CONFIGS[@]}"; do
   targets=()
   what="whole suite"
   if [ "$scope" = ops ] || [ $quick = 1 ]; then
-    for t in $OPS; do targets+=(--test "$t"); done
+    read -ra targets <<<"$OPS"
     what="op-level tests"
   fi
   log=target/portability/$name.log

@@ -22,9 +22,12 @@ VELOX_VALIDATE=1 cargo test --release
 # all of the output: with -q it could stop early, and pipefail would count the writer's broken
 # pipe as a failure, skipping this step.)
 if cargo run --release -q -- info 2>/dev/null | grep 'llvmpipe' >/dev/null; then
-  # The kernel families of the `ops` test binary (each module's tests are named `<module>::`).
-  families=(assign attention attention_layer elementwise fill_copy kernels layers matmul raster scan_sort subgroups)
-  LP_NATIVE_VECTOR_WIDTH=1024 cargo test --release --test ops -- "${families[@]/%/::}"
+  # The engine's op tests and the layers built on them (a module's tests are named `<module>::`).
+  export LP_NATIVE_VECTOR_WIDTH=1024
+  families=(assign attention elementwise fill_copy kernels matmul raster scan_sort subgroups)
+  cargo test --release -p velox-engine --test ops -- "${families[@]/%/::}"
+  cargo test --release --test models -- attention_layer:: layers::
+  unset LP_NATIVE_VECTOR_WIDTH
 fi
 
 # 3. Data-parallel training over MPI (README, "Training on several GPUs").

@@ -1,6 +1,6 @@
 //! What a workgroup's subgroups really are on this device: one dispatch of
 //! `shaders/subgroup_probe.wgsl`, read back. `velox info` shows it beside the size the driver
-//! reports, and `tests/ops/subgroups.rs` checks that the ids, counts and reductions the kernels rely
+//! reports, and `engine/tests/ops/subgroups.rs` checks that the ids, counts and reductions the kernels rely
 //! on agree with each other.
 //!
 //! The kernels never read the `subgroup_size` builtin: they count their subgroup's lanes with

@@ -6,7 +6,7 @@
 
 use crate::common;
 use common::*;
-use velox::engine::ops::subgroup_probe::{probe, WORKGROUP};
+use velox_engine::ops::subgroup_probe::{probe, WORKGROUP};
 
 #[test]
 fn subgroup_ids_counts_and_reductions_agree() {

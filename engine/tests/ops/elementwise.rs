@@ -3,13 +3,13 @@
 
 use crate::common;
 use common::*;
-use velox::engine::ops::binary::{self, binary, Binary};
-use velox::engine::ops::cast::{self, cast};
-use velox::engine::ops::gather::{self, gather};
-use velox::engine::ops::reduce::{self, reduce, Reduce};
-use velox::engine::ops::scatter_add::{self, scatter_add, scatter_add_cas};
-use velox::engine::ops::softmax::{self, softmax};
-use velox::engine::ops::unary::{self, unary, Unary};
+use velox_engine::ops::binary::{self, binary, Binary};
+use velox_engine::ops::cast::{self, cast};
+use velox_engine::ops::gather::{self, gather};
+use velox_engine::ops::reduce::{self, reduce, Reduce};
+use velox_engine::ops::scatter_add::{self, scatter_add, scatter_add_cas};
+use velox_engine::ops::softmax::{self, softmax};
+use velox_engine::ops::unary::{self, unary, Unary};
 
 const SIZES: [usize; 7] = [0, 1, 2, 255, 256, 257, 10_007];
 /// More than 65535 workgroups of 256: the dispatch must fold into two dimensions.
@@ -305,8 +305,8 @@ fn gather_and_scatter_add_match_reference() {
 
 #[test]
 fn column_copies_and_permutation_inverse() {
-    use velox::engine::ops::columns::{self, columns, copy_columns};
-    use velox::engine::ops::gather::invert_permutation;
+    use velox_engine::ops::columns::{self, columns, copy_columns};
+    use velox_engine::ops::gather::invert_permutation;
     let gpu = gpu();
     let mut rng = Rng::new(8);
     for &rows in &[0usize, 1, 257, 70_001] {
@@ -340,7 +340,7 @@ fn column_copies_and_permutation_inverse() {
         rec.submit().unwrap();
         assert_eq!(
             inv.read::<u32>().unwrap(),
-            velox::engine::ops::gather::reference::invert_permutation(&perm)
+            velox_engine::ops::gather::reference::invert_permutation(&perm)
         );
     }
     let t = Tensor::empty(&gpu, &[3, 7], DType::F32).unwrap();
@@ -352,7 +352,7 @@ fn column_copies_and_permutation_inverse() {
 
 #[test]
 fn the_voxel_head_pre_activation_and_its_gradient_match_reference() {
-    use velox::engine::ops::voxel_head;
+    use velox_engine::ops::voxel_head;
     let gpu = gpu();
     let mut rng = Rng::new(44);
     for (cells, per, h, directions) in [(3, 8, 5, false), (7, 27, 16, true), (1, 1, 1, true)] {
@@ -371,7 +371,7 @@ fn the_voxel_head_pre_activation_and_its_gradient_match_reference() {
         assert_nmse(&format!("pre {what}"), &pre.read::<f32>().unwrap(), &want, 1e-13);
         let gelu: Vec<f64> = want
             .iter()
-            .map(|&x| 0.5 * x * (1.0 + velox::engine::ops::unary::reference::erf(x / 2f64.sqrt())))
+            .map(|&x| 0.5 * x * (1.0 + velox_engine::ops::unary::reference::erf(x / 2f64.sqrt())))
             .collect();
         assert_nmse(&format!("gelu {what}"), &act.read::<f32>().unwrap(), &gelu, 1e-12);
         // d features[c, k h + j] = sum_v dpre[c, v, j] (k = 0) or dpre[c, v, j] o[v, k - 1].

@@ -3,10 +3,10 @@
 
 use crate::common;
 use common::*;
-use velox::engine::ops::assign::{self, assign_grouped, assign_nearest};
-use velox::engine::ops::fps::{self, fps, random_candidates, sample_queries};
-use velox::engine::ops::window::{self, group_by_window, validate_points, window_ids, WindowGrid};
-use velox::engine::Error;
+use velox_engine::ops::assign::{self, assign_grouped, assign_nearest};
+use velox_engine::ops::fps::{self, fps, random_candidates, sample_queries};
+use velox_engine::ops::window::{self, group_by_window, validate_points, window_ids, WindowGrid};
+use velox_engine::Error;
 
 /// `n` rows of (x, y, z, t): xyz uniform in [lo, hi), t uniform in [tlo, thi).
 fn random_points(rng: &mut Rng, n: usize, (lo, hi): (f64, f64), (tlo, thi): (f64, f64)) -> Vec<f32> {
@@ -414,7 +414,7 @@ fn queries_are_sampled_from_random_candidates() {
     assert_eq!(every, (0..2000).collect::<Vec<u32>>());
 }
 
-fn invalid_message(r: velox::engine::Result<impl Sized>) -> String {
+fn invalid_message(r: velox_engine::Result<impl Sized>) -> String {
     match r {
         Err(e @ (Error::Invalid(_) | Error::Shape(_))) => e.to_string(),
         Err(e) => panic!("expected an invalid-input or shape error, got {e}"),

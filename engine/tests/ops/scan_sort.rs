@@ -1,7 +1,7 @@
 use crate::common;
 use common::*;
-use velox::engine::ops::scan::{self, exclusive_scan, exclusive_scan_items};
-use velox::engine::ops::sort::{self, sort_pairs};
+use velox_engine::ops::scan::{self, exclusive_scan, exclusive_scan_items};
+use velox_engine::ops::sort::{self, sort_pairs};
 
 const SIZES: [usize; 9] = [0, 1, 2, 255, 256, 257, 4095, 4097, 100_003];
 

@@ -4,12 +4,12 @@
 use crate::common;
 use common::*;
 use half::f16;
-use velox::engine::kernels::{MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN};
-use velox::engine::ops::matmul::{
+use velox_engine::kernels::{MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN};
+use velox_engine::ops::matmul::{
     coop_eligible, coop_kernel, coop_layout_ok, matmul, matmul_bias, matmul_into, matmul_sum_into,
     matmul_variant, plan, reference,
 };
-use velox::engine::{Error, Gpu, NarrowMatmul, Recorder};
+use velox_engine::{Error, Gpu, NarrowMatmul, Recorder};
 
 /// Every f32 test runs on both kernels of narrow products (a side of 64 or less), whatever the
 /// device: the narrow-tile kernels, GPUs' choice, and the row kernel, CPU devices' choice.
@@ -462,7 +462,7 @@ fn f16_operands_accumulate_in_f32() {
     );
 }
 
-fn shape_err(r: velox::engine::Result<Tensor>) -> String {
+fn shape_err(r: velox_engine::Result<Tensor>) -> String {
     match r {
         Err(e @ Error::Shape(_)) => e.to_string(),
         other => panic!("expected a shape error, got {other:?}"),
@@ -494,7 +494,7 @@ fn bad_shapes_and_dtypes_are_refused() {
     assert!(e.contains("f32 or f16"), "{e}");
 
     let (a, b) = (t(&[3, 4], f), t(&[4, 2], f));
-    let into = |rec: &mut velox::engine::Recorder, out: &Tensor| {
+    let into = |rec: &mut velox_engine::Recorder, out: &Tensor| {
         matmul_into(rec, &a, &b, false, false, out, false).map(|_| out.clone())
     };
     let e = shape_err(into(&mut rec, &t(&[2, 3], f)));

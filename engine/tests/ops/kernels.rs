@@ -9,7 +9,7 @@
 use crate::common;
 use common::*;
 
-use velox::engine::kernels::KernelId;
+use velox_engine::kernels::KernelId;
 
 #[test]
 fn every_kernel_is_made_or_refused_with_a_reason() {
@@ -49,7 +49,7 @@ fn every_kernel_is_made_or_refused_with_a_reason() {
 #[test]
 fn kernels_over_a_limit_are_refused_by_name() {
     let gpu = gpu();
-    let fps = velox::engine::kernels::FPS_WG1024_MAIN.info();
+    let fps = velox_engine::kernels::FPS_WG1024_MAIN.info();
     let roomy = {
         let mut c = gpu.caps().clone();
         c.max_workgroup_invocations = 1024;
@@ -60,7 +60,7 @@ fn kernels_over_a_limit_are_refused_by_name() {
         c
     };
     assert_eq!(fps.unsupported_on(&roomy), None);
-    let refused = |edit: &dyn Fn(&mut velox::engine::Caps)| {
+    let refused = |edit: &dyn Fn(&mut velox_engine::Caps)| {
         let mut c = roomy.clone();
         edit(&mut c);
         fps.unsupported_on(&c).unwrap_or_default()
@@ -73,7 +73,7 @@ fn kernels_over_a_limit_are_refused_by_name() {
     assert!(refused(&|c| c.max_push_constants = push).contains("maxPushConstantsSize"));
     assert!(refused(&|c| c.subgroup_arithmetic = false).contains("subgroup arithmetic"));
     // A kernel written for subgroups of 32 on a device of 64, and on one that can be asked for 32.
-    let coop = velox::engine::kernels::MATMUL_COOP_MAIN.info();
+    let coop = velox_engine::kernels::MATMUL_COOP_MAIN.info();
     assert_eq!(coop.needs.subgroup_size, Some(32));
     let mut amd = roomy.clone();
     amd.coop_matrix_f16 = Some([16, 16, 16]);

@@ -1,6 +1,6 @@
 use crate::common;
 use common::*;
-use velox::engine::ops::fill::fill;
+use velox_engine::ops::fill::fill;
 
 #[test]
 fn fill_every_dtype_and_awkward_sizes() {
@@ -97,7 +97,7 @@ fn views_share_storage_and_bind_their_own_range() {
 
 #[test]
 fn row_copies_and_index_concatenation() {
-    use velox::engine::ops::concat::{copy_add, reference};
+    use velox_engine::ops::concat::{copy_add, reference};
     let gpu = gpu();
     // Rows of 3 f32 at unaligned row offsets, both ways of a 7-row and a 5-row tensor.
     let a: Vec<f32> = (0..21).map(|i| i as f32).collect();

@@ -17,11 +17,11 @@ const NEWER_LAYER: &str = "/usr/lib/chromium/libVkLayer_khronos_validation.so";
 
 use std::process::Command;
 
-use velox::engine::kernels::CAST_F32_TO_F16;
-use velox::engine::ops::binary::{binary, Binary};
-use velox::engine::ops::fill::fill;
-use velox::engine::validation::{self, Mode};
-use velox::engine::Error;
+use velox_engine::kernels::CAST_F32_TO_F16;
+use velox_engine::ops::binary::{binary, Binary};
+use velox_engine::ops::fill::fill;
+use velox_engine::validation::{self, Mode};
+use velox_engine::Error;
 
 /// Runs `child` (an ignored test of this binary) in a process of its own with `VELOX_VALIDATE`
 /// set to `mode` and descriptor sets forced; returns its stdout and stderr. GPU-assisted
@@ -33,9 +33,9 @@ fn run_child(child: &str, mode: &str) -> String {
         .args([child, "--exact", "--ignored", "--nocapture", "--test-threads", "1"])
         .env("VELOX_VALIDATE", mode)
         .env("VELOX_DISABLE", "push-descriptors")
-        .env("VK_LAYER_SETTINGS_PATH", concat!(env!("CARGO_MANIFEST_DIR"), "/vk_layer_settings.txt"));
+        .env("VK_LAYER_SETTINGS_PATH", concat!(env!("CARGO_MANIFEST_DIR"), "/../vk_layer_settings.txt"));
     if mode == "gpu" {
-        let layer = concat!(env!("CARGO_MANIFEST_DIR"), "/tools/vvl");
+        let layer = concat!(env!("CARGO_MANIFEST_DIR"), "/../tools/vvl");
         assert!(
             std::path::Path::new(NEWER_LAYER).exists(),
             "GPU-assisted validation needs the validation layer Debian's chromium-common ships \
@@ -110,8 +110,8 @@ fn child_read_past_binding() {
     let view = whole.view(0, &[64]).unwrap();
     let out = Tensor::empty(&gpu, &[256], DType::F16).unwrap();
     let mut rec = gpu.recorder().unwrap();
-    let told = velox::engine::kernels::params::CastParams { n: 256 };
-    let args = velox::engine::kernels::args::CastF32ToF16Args { src_f32: &view, dst_f16: &out };
+    let told = velox_engine::kernels::params::CastParams { n: 256 };
+    let args = velox_engine::kernels::args::CastF32ToF16Args { src_f32: &view, dst_f16: &out };
     rec.dispatch(CAST_F32_TO_F16, [1, 1, 1], args, &told).unwrap();
     match rec.submit() {
         Err(Error::Validation(what)) => eprintln!("submit failed as it should: {what}"),

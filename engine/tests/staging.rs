@@ -4,7 +4,7 @@
 
 mod common;
 use common::*;
-use velox::engine::ops::binary::{binary, Binary};
+use velox_engine::ops::binary::{binary, Binary};
 
 #[test]
 fn staging_round_trips_tensors_views_and_op_results() {

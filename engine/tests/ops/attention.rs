@@ -4,8 +4,8 @@
 
 use crate::common;
 use common::*;
-use velox::engine::ops::attention::{self, attention, attention_backward, reference, Segments};
-use velox::engine::ops::cast::{cast, reference::to_f16};
+use velox_engine::ops::attention::{self, attention, attention_backward, reference, Segments};
+use velox_engine::ops::cast::{cast, reference::to_f16};
 
 struct Case {
     q_lens: Vec<usize>,
@@ -173,7 +173,7 @@ fn check_f16(case: &Case, q: &[f32], k: &[f32], v: &[f32], bwd_bound: Option<f64
     let scale = 1.0 / (d as f32).sqrt();
     let seg = Segments::from_lengths(&gpu, &case.q_lens, &case.k_lens).unwrap();
     let mut rec = gpu.recorder().unwrap();
-    let half = |rec: &mut velox::engine::Recorder, x: &[f32], n: usize| {
+    let half = |rec: &mut velox_engine::Recorder, x: &[f32], n: usize| {
         cast(rec, &Tensor::from_slice(&gpu, &[n, h, d], x).unwrap(), DType::F16).unwrap()
     };
     let (tq, tk, tv) = (half(&mut rec, q, nq), half(&mut rec, k, nk), half(&mut rec, v, nk));
@@ -286,7 +286,7 @@ fn segments_build_their_work_lists_once_for_every_later_attention() {
         d,
         0.25,
     );
-    let run = |rec: &mut velox::engine::Recorder| {
+    let run = |rec: &mut velox_engine::Recorder| {
         let before = rec.dispatch_count();
         let out = attention(rec, &x, &x, &x, &seg, 0.25).unwrap();
         (out, rec.dispatch_count() - before)

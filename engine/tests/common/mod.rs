@@ -1,0 +1,76 @@
+//! Shared by the test binaries of the engine (and, through the root tests' `common`, by every
+//! other): one device for all tests of a binary, and the checks of a result against its f64
+//! reference.
+#![allow(dead_code, unused_imports)]
+
+pub use velox_engine::rng::Rng;
+pub use velox_engine::stats::{max_abs_err, nmse};
+pub use velox_engine::{DType, Gpu, Precision, Tensor};
+
+/// The device every test of this binary shares (lavapipe in CI). It is closed when the
+/// process exits, before the Vulkan layers' own teardown: the validation layer's GPU-assisted
+/// build aborts at exit when a device is still open.
+pub fn gpu() -> Gpu {
+    let mut shared = SHARED.lock().unwrap_or_else(|e| e.into_inner());
+    if shared.is_none() {
+        *shared = Some(Gpu::new().unwrap_or_else(|e| panic!("tests need a Vulkan device: {e}")));
+        // SAFETY: `close_shared` is a plain function that neither unwinds nor returns a value.
+        unsafe { atexit(close_shared) };
+    }
+    shared.clone().expect("opened above")
+}
+
+static SHARED: std::sync::Mutex<Option<Gpu>> = std::sync::Mutex::new(None);
+
+extern "C" {
+    fn atexit(f: extern "C" fn()) -> std::ffi::c_int;
+}
+
+/// Drops the shared device (the last handle, once every test is done with it).
+extern "C" fn close_shared() {
+    let gpu = SHARED.lock().map(|mut g| g.take()).unwrap_or(None);
+    drop(gpu);
+}
+
+/// Whether `bytes` bind as one storage buffer on this device. Where they do not (a binding
+/// limit forced below them with `VELOX_MAX_BINDING`: real devices bind at least 128 MiB),
+/// `attempt`, the op on such a tensor, must be refused with the engine's error that names the
+/// limit; the caller then skips the case.
+pub fn binds_or_refused<T>(
+    gpu: &Gpu,
+    bytes: usize,
+    attempt: impl FnOnce() -> velox_engine::Result<T>,
+) -> bool {
+    if bytes as u64 <= gpu.caps().max_storage_buffer_range {
+        return true;
+    }
+    match attempt() {
+        Err(velox_engine::Error::TooLarge(why)) => {
+            assert!(why.contains("binds as one storage buffer"), "{why}")
+        }
+        Err(e) => panic!("a tensor of {bytes} bytes past the binding limit: {e}"),
+        Ok(_) => panic!("a tensor of {bytes} bytes past the binding limit was not refused"),
+    }
+    false
+}
+
+/// f32 data to f64 for the references.
+pub fn f64s(x: &[f32]) -> Vec<f64> {
+    x.iter().map(|&v| v as f64).collect()
+}
+
+/// Whether the tests were asked to print their measurements (`VELOX_TEST_VERBOSE=1`).
+pub fn verbose() -> bool {
+    std::env::var_os("VELOX_TEST_VERBOSE").is_some()
+}
+
+/// Asserts an NMSE bound with a message that shows the figures.
+#[track_caller]
+pub fn assert_nmse(what: &str, got: &[f32], reference: &[f64], bound: f64) {
+    let e = nmse(got, reference);
+    let m = max_abs_err(got, reference);
+    if verbose() {
+        eprintln!("{what}: nmse {e:.2e} max abs {m:.2e} (bound {bound:.0e})");
+    }
+    assert!(e <= bound, "{what}: nmse {e:.3e} > bound {bound:.1e} (max abs err {m:.3e})");
+}
