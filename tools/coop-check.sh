@@ -30,11 +30,6 @@ mkdir -p "$chroot_dir$repo" "$chroot_dir/proc" "$chroot_dir/dev"
 mountpoint -q "$chroot_dir$repo" || mount --bind "$repo" "$chroot_dir$repo"
 mountpoint -q "$chroot_dir/proc" || mount -t proc proc "$chroot_dir/proc"
 mountpoint -q "$chroot_dir/dev" || mount --bind /dev "$chroot_dir/dev"
-# The suite reads ../shared/assets beside the repository.
-if [ -d "$repo/../shared" ]; then
-    mkdir -p "$chroot_dir$repo/../shared"
-    mountpoint -q "$chroot_dir$repo/../shared" || mount --bind "$repo/../shared" "$chroot_dir$repo/../shared"
-fi
 
 cd "$repo"
 mapfile -t bins < <(cargo test --release --no-run 2>&1 | grep -o 'target/release/deps/[A-Za-z0-9_-]*' | sort -u)

@@ -1,5 +1,5 @@
 //! Training data on lavapipe: the mesh rasteriser against a CPU ray cast, back-projection,
-//! tracks, determinism, glTF import (real exports in ../shared/assets/gltf, whose credits are
+//! tracks, determinism, glTF import (real exports in tests/fixtures/gltf, whose credits are
 //! in the README there, and files written here), corrupt files, the dataset on disk.
 use crate::common;
 use common::*;
@@ -256,7 +256,7 @@ fn many_seeds_make_valid_varied_scenes() {
 }
 
 fn shared_gltf(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/assets/gltf").join(name)
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/gltf").join(name)
 }
 
 #[test]

@@ -1,5 +1,5 @@
 //! Hostile input for every reader of files: seeded mutations of real files (the glTF exports in
-//! ../shared/assets/gltf, a GLB made from one of them) and of files the project writes (a scene
+//! tests/fixtures/gltf, a GLB made from one of them) and of files the project writes (a scene
 //! from the data pipeline, Gaussians as PLY, a checkpoint, a config, a scene's stored tokens
 //! and a token folder's manifest): truncation at many
 //! lengths, byte flips, extreme words, huge or negative counts in PLY headers and JSON, NaN and
@@ -399,7 +399,7 @@ fn to_glb(gltf: &str) -> Vec<u8> {
 }
 
 fn shared_gltf(name: &str) -> String {
-    std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/assets/gltf").join(name))
+    std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/gltf").join(name))
         .unwrap()
 }
 
