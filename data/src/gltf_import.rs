@@ -38,6 +38,9 @@ pub struct Imported {
     pub animation: Option<(usize, Option<String>)>,
     /// `asset.copyright` and `asset.generator`, for the scene's credits.
     pub credits: Option<String>,
+    /// What the file does that the specification does not allow but cannot make the import
+    /// wrong, and the required extensions imported without (see `gltf_validate::EXTENSIONS`).
+    pub warnings: Vec<String>,
 }
 
 /// Imports `path`, sampling animation `animation` (the first when `None`).
@@ -65,7 +68,7 @@ fn import_checked(path: &Path, animation: Option<usize>) -> DataResult<Imported>
     let bad = |m: String| DataError::Invalid(format!("{}: {m}", path.display()));
     let bytes = std::fs::read(path).map_err(|e| DataError::Io(format!("{}: {e}", path.display())))?;
     let (root, bin) = gltf_load::parse(&bytes).map_err(bad)?;
-    gltf_validate::document(&root).map_err(bad)?;
+    let warnings = gltf_validate::document(&root).map_err(bad)?;
     let dir = match path.parent() {
         Some(p) if !p.as_os_str().is_empty() => p,
         _ => Path::new("."),
@@ -164,10 +167,17 @@ fn import_checked(path: &Path, animation: Option<usize>) -> DataResult<Imported>
         }
     }
 
-    // World matrices per frame, from the scene's roots down.
+    // World matrices per frame of every node, from the roots of the node forest down (a node
+    // has one parent and the graph no cycle: checked).
+    let mut parent_of: Vec<Option<usize>> = vec![None; n_nodes];
+    for node in doc.nodes() {
+        for c in node.children() {
+            parent_of[c.index()] = Some(node.index());
+        }
+    }
     let mut world: Vec<Vec<M4>> = vec![Vec::new(); n_nodes];
-    let mut stack: Vec<(gltf::Node, Option<usize>)> = scene.nodes().map(|n| (n, None)).collect();
-    let mut order = Vec::new();
+    let mut stack: Vec<(gltf::Node, Option<usize>)> =
+        doc.nodes().filter(|n| parent_of[n.index()].is_none()).map(|n| (n, None)).collect();
     while let Some((node, parent)) = stack.pop() {
         let i = node.index();
         if !world[i].is_empty() {
@@ -183,8 +193,31 @@ fn import_checked(path: &Path, animation: Option<usize>) -> DataResult<Imported>
                 }
             })
             .collect();
-        order.push(node.clone());
         stack.extend(node.children().map(|c| (c, Some(i))));
+    }
+    // The nodes drawn: the subtrees of the scene's roots, each node once. A child the scene
+    // also lists as a root (which the specification does not allow, and some exporters write)
+    // is drawn under its parent when an ancestor is listed too, and at its place in the
+    // hierarchy otherwise.
+    let listed: Vec<usize> = scene.nodes().map(|n| n.index()).collect();
+    let listed_above = |mut i: usize| {
+        while let Some(p) = parent_of[i] {
+            if listed.contains(&p) {
+                return true;
+            }
+            i = p;
+        }
+        false
+    };
+    let mut order = Vec::new();
+    let mut stack: Vec<gltf::Node> = scene.nodes().filter(|n| !listed_above(n.index())).collect();
+    let mut drawn = vec![false; n_nodes];
+    while let Some(node) = stack.pop() {
+        if std::mem::replace(&mut drawn[node.index()], true) {
+            continue; // listed twice
+        }
+        stack.extend(node.children());
+        order.push(node);
     }
 
     // Per skin, per joint, per frame: the joint's world matrix times its inverse bind matrix
@@ -221,10 +254,10 @@ fn import_checked(path: &Path, animation: Option<usize>) -> DataResult<Imported>
                 continue;
             }
             let reader = prim.reader(buffer);
-            let Some(positions) = reader.read_positions() else {
+            let Some(positions) = prim.get(&gltf::Semantic::Positions).and_then(|a| floats::<3>(a, buffer))
+            else {
                 return Err(bad(format!("mesh {} has a primitive without positions", gmesh.index())));
             };
-            let positions: Vec<V3> = positions.collect();
             let n = positions.len();
             if mesh.uvs.len() + n > MAX_VERTICES {
                 return Err(bad(format!(
@@ -243,12 +276,26 @@ fn import_checked(path: &Path, animation: Option<usize>) -> DataResult<Imported>
             if tris.is_empty() {
                 continue;
             }
-            let pbr = prim.material().pbr_metallic_roughness();
-            let tex_info = pbr.base_color_texture();
-            let uvs: Vec<[f32; 2]> = tex_info
-                .as_ref()
-                .and_then(|info| reader.read_tex_coords(info.tex_coord()))
-                .map(|it| it.into_f32().collect())
+            // The base colour: the metallic-roughness model's, or the diffuse colour of a
+            // specular-glossiness material (KHR_materials_pbrSpecularGlossiness).
+            let material = prim.material();
+            let (factor, tex_info) = match material.pbr_specular_glossiness() {
+                Some(sg) => (sg.diffuse_factor(), sg.diffuse_texture()),
+                None => {
+                    let pbr = material.pbr_metallic_roughness();
+                    (pbr.base_color_factor(), pbr.base_color_texture())
+                }
+            };
+            let transform = tex_info.as_ref().and_then(|info| info.texture_transform());
+            let set =
+                transform.as_ref().and_then(|t| t.tex_coord()).or(tex_info.as_ref().map(|i| i.tex_coord()));
+            let uvs: Vec<[f32; 2]> = set
+                .and_then(|set| prim.get(&gltf::Semantic::TexCoords(set)))
+                .and_then(|a| floats::<2>(a, buffer))
+                .map(|uvs| match &transform {
+                    Some(t) => uvs.iter().map(|&uv| texture_transform(t, uv)).collect(),
+                    None => uvs,
+                })
                 .unwrap_or_else(|| vec![[0.0; 2]; n]);
             if uvs.len() != n {
                 return Err(bad(format!(
@@ -261,7 +308,6 @@ fn import_checked(path: &Path, animation: Option<usize>) -> DataResult<Imported>
             let tex = match material_texture.get(&key) {
                 Some(&t) => t,
                 None => {
-                    let factor = pbr.base_color_factor();
                     let texture = match &tex_info {
                         Some(info) => {
                             let index = info.texture().source().index();
@@ -276,9 +322,11 @@ fn import_checked(path: &Path, animation: Option<usize>) -> DataResult<Imported>
                     t
                 }
             };
-            let targets: Vec<Vec<V3>> = reader
-                .read_morph_targets()
-                .map(|(p, _, _)| p.map(|it| it.collect()).unwrap_or_else(|| vec![[0.0; 3]; n]))
+            let targets: Vec<Vec<V3>> = prim
+                .morph_targets()
+                .map(|t| {
+                    t.positions().and_then(|a| floats::<3>(a, buffer)).unwrap_or_else(|| vec![[0.0; 3]; n])
+                })
                 .collect();
             if targets.iter().any(|t| t.len() != n) {
                 return Err(bad(format!(
@@ -345,7 +393,82 @@ fn import_checked(path: &Path, animation: Option<usize>) -> DataResult<Imported>
     mesh.validate().map_err(|e| bad(e.to_string()))?;
     mesh.normalise();
     mesh.validate().map_err(|e| bad(e.to_string()))?;
-    Ok(Imported { mesh, animation: anim.map(|a| (a.index(), a.name().map(str::to_string))), credits })
+    Ok(Imported {
+        mesh,
+        animation: anim.map(|a| (a.index(), a.name().map(str::to_string))),
+        credits,
+        warnings,
+    })
+}
+
+/// The elements of a vector accessor as floats: float components as they are, 8- and 16-bit
+/// integers (texture coordinates in core glTF, and positions, texture coordinates and morph
+/// targets under KHR_mesh_quantization) as their values, or mapped to [0, 1] (unsigned) and
+/// [-1, 1] (signed) where the accessor is normalised (glTF 2.0, 3.11). `None` for an accessor
+/// with no data (nor sparse values).
+fn floats<'a, const N: usize>(
+    accessor: gltf::Accessor<'a>,
+    buffer: impl Clone + Fn(gltf::Buffer<'a>) -> Option<&'a [u8]>,
+) -> Option<Vec<[f32; N]>>
+where
+    [f32; N]: gltf::accessor::Item,
+    [i8; N]: gltf::accessor::Item,
+    [u8; N]: gltf::accessor::Item,
+    [i16; N]: gltf::accessor::Item,
+    [u16; N]: gltf::accessor::Item,
+{
+    use gltf::accessor::{DataType, Iter};
+    let norm = accessor.normalized();
+    fn map<T: Copy, const N: usize>(it: impl Iterator<Item = [T; N]>, f: impl Fn(T) -> f32) -> Vec<[f32; N]> {
+        it.map(|v| v.map(&f)).collect()
+    }
+    Some(match accessor.data_type() {
+        DataType::F32 => Iter::<[f32; N]>::new(accessor, buffer)?.collect(),
+        DataType::I8 => map(Iter::<[i8; N]>::new(accessor, buffer)?, |c| {
+            if norm {
+                (c as f32 / 127.0).max(-1.0)
+            } else {
+                c as f32
+            }
+        }),
+        DataType::U8 => {
+            map(Iter::<[u8; N]>::new(accessor, buffer)?, |c| if norm { c as f32 / 255.0 } else { c as f32 })
+        }
+        DataType::I16 => map(Iter::<[i16; N]>::new(accessor, buffer)?, |c| {
+            if norm {
+                (c as f32 / 32767.0).max(-1.0)
+            } else {
+                c as f32
+            }
+        }),
+        DataType::U16 => {
+            map(
+                Iter::<[u16; N]>::new(accessor, buffer)?,
+                |c| {
+                    if norm {
+                        c as f32 / 65535.0
+                    } else {
+                        c as f32
+                    }
+                },
+            )
+        }
+        // Not an attribute type the validator lets through.
+        DataType::U32 => return None,
+    })
+}
+
+/// A texture coordinate under KHR_texture_transform: scaled, then rotated, then offset
+/// (`T * R * S * uv`), with `R = [[cos, sin], [-sin, cos]]` (rows): the rotation of the
+/// extension's example, where offset (0, 1), rotation pi/2 and scale 1/2 keep every coordinate
+/// in the image's lower-left quadrant (the matrix its GLSL sketch spells, transposed, would not;
+/// Khronos' sample viewer rotates this way).
+fn texture_transform(t: &gltf::texture::TextureTransform, uv: [f32; 2]) -> [f32; 2] {
+    let [sx, sy] = t.scale();
+    let (s, c) = t.rotation().sin_cos();
+    let [ox, oy] = t.offset();
+    let (x, y) = (uv[0] * sx, uv[1] * sy);
+    [c * x + s * y + ox, -s * x + c * y + oy]
 }
 
 /// `asset.copyright` and `asset.generator`, for the scene's credits.

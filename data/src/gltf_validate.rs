@@ -21,6 +21,79 @@ use gltf::json::{self, Index, Root};
 
 type Check = Result<(), String>;
 
+/// What the importer does with an extension a file requires (`extensionsRequired`). An
+/// extension a file only uses (`extensionsUsed`) never stops an import: the file must work
+/// without it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Extension {
+    /// Read: it changes the points and renders, and the importer applies it.
+    Read,
+    /// Imported without it, with a warning: it cannot change the geometry, the animation or
+    /// the base colour the importer samples (the reason).
+    Ignored(&'static str),
+    /// Refused by name (the reason).
+    Refused(&'static str),
+}
+
+/// Every extension the importer has decided on (the README's table); any other required one
+/// is refused by name.
+pub const EXTENSIONS: &[(&str, Extension)] = &[
+    ("KHR_mesh_quantization", Extension::Read),
+    ("KHR_texture_transform", Extension::Read),
+    ("KHR_materials_pbrSpecularGlossiness", Extension::Read),
+    ("KHR_materials_unlit", Extension::Ignored("the base colour is the colour either way")),
+    ("KHR_materials_emissive_strength", Extension::Ignored("emission is not sampled")),
+    ("KHR_materials_ior", Extension::Ignored("shading is not sampled, the base colour is")),
+    ("KHR_materials_specular", Extension::Ignored("shading is not sampled, the base colour is")),
+    ("KHR_materials_transmission", Extension::Ignored("shading is not sampled, the base colour is")),
+    ("KHR_materials_volume", Extension::Ignored("shading is not sampled, the base colour is")),
+    ("KHR_materials_clearcoat", Extension::Ignored("shading is not sampled, the base colour is")),
+    ("KHR_materials_sheen", Extension::Ignored("shading is not sampled, the base colour is")),
+    ("KHR_materials_iridescence", Extension::Ignored("shading is not sampled, the base colour is")),
+    ("KHR_materials_anisotropy", Extension::Ignored("shading is not sampled, the base colour is")),
+    ("KHR_materials_dispersion", Extension::Ignored("shading is not sampled, the base colour is")),
+    ("KHR_materials_variants", Extension::Ignored("the default material of each primitive is used")),
+    ("KHR_lights_punctual", Extension::Ignored("lights play no part in points or supervision renders")),
+    ("EXT_lights_image_based", Extension::Ignored("lights play no part in points or supervision renders")),
+    ("KHR_xmp_json_ld", Extension::Ignored("metadata")),
+    (
+        "KHR_texture_basisu",
+        Extension::Refused(
+            "KTX2/Basis textures need a Basis Universal transcoder, and the crates that offer one wrap \
+         its C++ library; re-export the textures as PNG or JPEG",
+        ),
+    ),
+    (
+        "EXT_meshopt_compression",
+        Extension::Refused(
+            "meshoptimizer-compressed buffers need its decoder, and the crates that offer one wrap its \
+         C++ library; re-export without compression (gltfpack -noq, or Blender)",
+        ),
+    ),
+    (
+        "KHR_draco_mesh_compression",
+        Extension::Refused(
+            "Draco-compressed meshes need a Draco decoder, and no maintained Rust crate decodes them \
+         without Google's C++ library; re-export without compression",
+        ),
+    ),
+    ("EXT_mesh_gpu_instancing", Extension::Refused("instances would change the geometry, and are not read")),
+    (
+        "KHR_animation_pointer",
+        Extension::Refused("animated properties would change the clip, and are not read"),
+    ),
+];
+
+/// The decision on extension `name` ([`EXTENSIONS`]; `None` for one not decided on).
+pub fn extension(name: &str) -> Option<Extension> {
+    EXTENSIONS.iter().find(|(n, _)| *n == name).map(|&(_, e)| e)
+}
+
+/// Whether the file declares `name` (used or required).
+pub fn uses(root: &Root, name: &str) -> bool {
+    root.extensions_used.iter().chain(&root.extensions_required).any(|e| e == name)
+}
+
 /// Most nodes a document may have: each costs the importer a matrix per frame.
 pub const MAX_NODES: usize = 1 << 16;
 
@@ -165,22 +238,39 @@ impl Use<'_> {
     }
 }
 
-/// Checks the document's JSON (see the module docs).
-pub fn document(root: &Root) -> Check {
+/// Checks the document's JSON (see the module docs). Returns the warnings: the harmless
+/// deviations the import tolerates and the required extensions it imports without.
+pub fn document(root: &Root) -> Result<Vec<String>, String> {
     if !root.asset.version.starts_with("2.") {
         return Err(format!("asset.version is {:?}: only glTF 2.0 is read", root.asset.version));
     }
-    if let Some(ext) = root.extensions_required.first() {
-        return Err(format!("extensionsRequired names {ext}, which this importer does not read"));
+    let mut warnings = Vec::new();
+    for ext in &root.extensions_required {
+        match extension(ext) {
+            Some(Extension::Read) => {}
+            Some(Extension::Ignored(why)) => {
+                warnings.push(format!("extensionsRequired names {ext}, imported without it: {why}"))
+            }
+            Some(Extension::Refused(why)) => {
+                return Err(format!("extensionsRequired names {ext}, which this importer refuses: {why}"))
+            }
+            None => {
+                return Err(format!(
+                    "extensionsRequired names {ext}, which this importer does not read (the README lists \
+                     the extensions it reads, ignores and refuses)"
+                ))
+            }
+        }
     }
     buffers_and_views(root)?;
     accessors(root)?;
     meshes(root)?;
     let parents = nodes(root)?;
-    scenes(root, &parents)?;
+    warnings.extend(scenes(root, &parents)?);
     skins(root)?;
     animations(root)?;
-    materials_textures_images(root)
+    materials_textures_images(root)?;
+    Ok(warnings)
 }
 
 fn buffers_and_views(root: &Root) -> Check {
@@ -304,12 +394,21 @@ fn targets_of(root: &Root, m: usize) -> usize {
     root.meshes[m].primitives.first().and_then(|p| p.targets.as_ref()).map_or(0, Vec::len)
 }
 
+/// Every component type but UNSIGNED_INT.
+const FLOAT_AND_8_16: &[ComponentType] =
+    &[ComponentType::F32, ComponentType::I8, ComponentType::U8, ComponentType::I16, ComponentType::U16];
+const SIGNED_8_16: &[ComponentType] = &[ComponentType::I8, ComponentType::I16];
+const FLOAT_AND_SIGNED_8_16: &[ComponentType] = &[ComponentType::F32, ComponentType::I8, ComponentType::I16];
+
 fn meshes(root: &Root) -> Check {
+    // KHR_mesh_quantization lets positions, normals, texture coordinates and morph targets
+    // be 8- and 16-bit integers, plain or normalised.
+    let quantized = uses(root, "KHR_mesh_quantization");
     let position = Use {
         what: "POSITION".into(),
         types: &[Type::Vec3],
-        plain: FLOAT,
-        normalized: &[],
+        plain: if quantized { FLOAT_AND_8_16 } else { FLOAT },
+        normalized: if quantized { ANY_8_16 } else { &[] },
         needs_data: true,
     };
     for (m, mesh) in root.meshes.iter().enumerate() {
@@ -340,10 +439,14 @@ fn meshes(root: &Root) -> Check {
                     Checked::Valid(Semantic::Positions) => {
                         Use { what, ..position }.check(root, index, &at)?
                     }
-                    Checked::Valid(Semantic::Normals) => {
-                        Use { what, types: &[Type::Vec3], plain: FLOAT, normalized: &[], needs_data: false }
-                            .check(root, index, &at)?
+                    Checked::Valid(Semantic::Normals) => Use {
+                        what,
+                        types: &[Type::Vec3],
+                        plain: FLOAT,
+                        normalized: if quantized { SIGNED_8_16 } else { &[] },
+                        needs_data: false,
                     }
+                    .check(root, index, &at)?,
                     Checked::Valid(Semantic::Tangents) => {
                         Use { what, types: &[Type::Vec4], plain: FLOAT, normalized: &[], needs_data: false }
                             .check(root, index, &at)?
@@ -351,8 +454,8 @@ fn meshes(root: &Root) -> Check {
                     Checked::Valid(Semantic::TexCoords(_)) => Use {
                         what,
                         types: &[Type::Vec2],
-                        plain: FLOAT,
-                        normalized: UNSIGNED_8_16,
+                        plain: if quantized { FLOAT_AND_8_16 } else { FLOAT },
+                        normalized: if quantized { ANY_8_16 } else { UNSIGNED_8_16 },
                         needs_data: true,
                     }
                     .check(root, index, &at)?,
@@ -420,8 +523,13 @@ fn meshes(root: &Root) -> Check {
                 for (name, index) in parts {
                     let Some(index) = index else { continue };
                     let what = format!("{name} of morph target {k} of {at}");
-                    let target_use =
-                        Use { what, types: &[Type::Vec3], plain: FLOAT, normalized: &[], needs_data: false };
+                    let target_use = Use {
+                        what,
+                        types: &[Type::Vec3],
+                        plain: if quantized { FLOAT_AND_SIGNED_8_16 } else { FLOAT },
+                        normalized: if quantized { SIGNED_8_16 } else { &[] },
+                        needs_data: false,
+                    };
                     let count = target_use.check(root, index, &at)?;
                     if let Some((n, first)) = &vertices {
                         if count != *n {
@@ -499,22 +607,25 @@ fn nodes(root: &Root) -> Result<Vec<Option<usize>>, String> {
     Ok(parent)
 }
 
-fn scenes(root: &Root, parent: &[Option<usize>]) -> Check {
+/// Checks the scenes' node lists; a child listed as a root is a warning (the import draws each
+/// node once, under its parent: see `gltf_import`).
+fn scenes(root: &Root, parent: &[Option<usize>]) -> Result<Vec<String>, String> {
     if let Some(scene) = root.scene {
         get(&root.scenes, scene, "scene", "scenes")?;
     }
+    let mut warnings = Vec::new();
     for (s, scene) in root.scenes.iter().enumerate() {
         for &node in &scene.nodes {
             get(&root.nodes, node, &format!("scenes[{s}].nodes"), "nodes")?;
             if let Some(p) = parent[node.value()] {
-                return Err(format!(
-                    "scenes[{s}] lists nodes[{}], a child of nodes[{p}], as a root",
+                warnings.push(format!(
+                    "scenes[{s}] lists nodes[{}], a child of nodes[{p}], as a root: drawn once, under its parent",
                     node.value()
                 ));
             }
         }
     }
-    Ok(())
+    Ok(warnings)
 }
 
 fn skins(root: &Root) -> Check {
@@ -618,6 +729,21 @@ fn materials_textures_images(root: &Root) -> Check {
         ];
         for t in textures.into_iter().flatten() {
             get(&root.textures, t, &at, "textures")?;
+        }
+        // KHR_materials_pbrSpecularGlossiness: its diffuse colour is the base colour.
+        if let Some(sg) = material.extensions.as_ref().and_then(|e| e.pbr_specular_glossiness.as_ref()) {
+            let at = format!("{at}.extensions.KHR_materials_pbrSpecularGlossiness");
+            finite(&sg.diffuse_factor.0, &format!("{at}.diffuseFactor"))?;
+            if let Some(t) = &sg.diffuse_texture {
+                get(&root.textures, t.index, &at, "textures")?;
+            }
+        }
+        // KHR_texture_transform of the base colour: finite offset, rotation and scale.
+        let base = pbr.base_color_texture.as_ref();
+        if let Some(tt) = base.and_then(|t| t.extensions.as_ref()).and_then(|e| e.texture_transform.as_ref())
+        {
+            let at = format!("{at}.pbrMetallicRoughness.baseColorTexture.extensions.KHR_texture_transform");
+            finite(&[tt.offset.0[0], tt.offset.0[1], tt.rotation.0, tt.scale.0[0], tt.scale.0[1]], &at)?;
         }
     }
     for (t, texture) in root.textures.iter().enumerate() {

@@ -755,6 +755,173 @@ fn gltf_textures_read_png_and_jpeg_from_uris_and_buffer_views() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// The quad (no texture) imported from the JSON and binary given.
+fn import_quad(dir: &Path, name: &str, v: &Value, bin: &[u8]) -> velox::data::gltf_import::Imported {
+    import_file(dir, name, &glb(&v.to_string(), bin)).unwrap_or_else(|e| panic!("{name}: {e}"))
+}
+
+#[test]
+fn a_child_listed_as_a_scene_root_is_drawn_once_with_a_warning() {
+    let dir = temp_dir("child-root");
+    let (v, bin) = quad_parts();
+    let plain = import_quad(&dir, "plain.glb", &v, &bin);
+    assert!(plain.warnings.is_empty(), "{:?}", plain.warnings);
+    // The child listed beside its parent (some exporters write this): drawn once, under its
+    // parent, so the import is the plain one.
+    let mut both = v.clone();
+    both["scenes"][0]["nodes"] = json!([0, 1]);
+    let got = import_quad(&dir, "both.glb", &both, &bin);
+    assert_eq!(got.mesh, plain.mesh);
+    assert_eq!(got.warnings.len(), 1, "{:?}", got.warnings);
+    assert!(got.warnings[0].contains("nodes[1], a child of nodes[0], as a root"), "{:?}", got.warnings);
+    // Listed alone: drawn where the hierarchy puts it (its parent's animated translation too).
+    let mut alone = v.clone();
+    alone["scenes"][0]["nodes"] = json!([1]);
+    let got = import_quad(&dir, "alone.glb", &alone, &bin);
+    assert_eq!(got.mesh, plain.mesh);
+    assert_eq!(got.warnings.len(), 1);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn quantized_positions_and_morph_targets_read_as_their_values() {
+    // KHR_mesh_quantization: the quad's positions as normalised shorts and as plain unsigned
+    // bytes (4-byte strides), its morph target as normalised shorts: the import of the floats.
+    let dir = temp_dir("quantized");
+    let (v, bin) = quad_parts();
+    let plain = import_quad(&dir, "plain.glb", &v, &bin);
+    let positions = [[0i16, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]];
+    let shorts = |m: i16| -> Vec<u8> {
+        positions.iter().flat_map(|p| p.iter().chain(&[0]).flat_map(|c| (c * m).to_le_bytes())).collect()
+    };
+    let target: Vec<u8> = [[0i16, 0, 0], [0, 0, 0], [0, 0, 32767], [0, 0, 0]]
+        .iter()
+        .flat_map(|p| p.iter().chain(&[0]).flat_map(|c| c.to_le_bytes()))
+        .collect();
+    let bytes: Vec<u8> = positions.iter().flat_map(|p| [p[0] as u8, p[1] as u8, p[2] as u8, 0]).collect();
+    type Case = (&'static str, Vec<u8>, u32, bool);
+    let cases: [Case; 2] = [("shorts", shorts(32767), 5122, true), ("bytes", bytes, 5121, false)];
+    for (name, data, component, normalized) in cases {
+        let (mut q, mut b) = (v.clone(), bin.clone());
+        let view = add_view(&mut q, &mut b, &data);
+        q["bufferViews"][view]["byteStride"] = json!(if component == 5122 { 8 } else { 4 });
+        let tview = add_view(&mut q, &mut b, &target);
+        q["bufferViews"][tview]["byteStride"] = json!(8);
+        let accessors = q["accessors"].as_array_mut().unwrap();
+        accessors.push(json!({"bufferView": view, "componentType": component, "normalized": normalized,
+            "count": 4, "type": "VEC3", "min": [0, 0, 0], "max": [1, 1, 0]}));
+        accessors.push(json!({"bufferView": tview, "componentType": 5122, "normalized": true,
+            "count": 4, "type": "VEC3"}));
+        let n = accessors.len();
+        q["meshes"][0]["primitives"][0]["attributes"]["POSITION"] = json!(n - 2);
+        q["meshes"][0]["primitives"][0]["targets"][0]["POSITION"] = json!(n - 1);
+        // Without the extension declared, integer positions break the specification.
+        let e = import_file(&dir, &format!("{name}_undeclared.glb"), &glb(&q.to_string(), &b)).unwrap_err();
+        assert!(e.contains("POSITION") && e.contains("expected VEC3 of FLOAT"), "{name}: {e}");
+        q["extensionsUsed"] = json!(["KHR_mesh_quantization"]);
+        q["extensionsRequired"] = json!(["KHR_mesh_quantization"]);
+        let got = import_quad(&dir, &format!("{name}.glb"), &q, &b);
+        assert_eq!(got.mesh, plain.mesh, "{name}");
+        assert!(got.warnings.is_empty(), "{name}: {:?}", got.warnings);
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_texture_transform_moves_the_sampled_coordinates() {
+    // KHR_texture_transform on the base colour: scale, then rotation, then offset, as the
+    // extension's example says (offset (0, 1), rotation pi/2, scale 1/2: the lower-left quadrant).
+    let dir = temp_dir("texture-transform");
+    let png = {
+        let img = image::RgbImage::from_fn(4, 4, |x, y| image::Rgb([60 * x as u8, 60 * y as u8, 0]));
+        let mut bytes = std::io::Cursor::new(Vec::new());
+        img.write_to(&mut bytes, image::ImageFormat::Png).unwrap();
+        bytes.into_inner()
+    };
+    let uvs = [[0f32, 0.], [1., 0.], [1., 1.], [0., 1.]];
+    let cases: [(&str, Value, [[f32; 2]; 4]); 3] = [
+        ("none", json!({}), uvs),
+        (
+            "offset_scale",
+            json!({"offset": [0.5, 0.25], "scale": [0.5, 2.0]}),
+            [[0.5, 0.25], [1.0, 0.25], [1.0, 2.25], [0.5, 2.25]],
+        ),
+        (
+            "example",
+            json!({"offset": [0, 1], "rotation": std::f32::consts::FRAC_PI_2, "scale": [0.5, 0.5]}),
+            [[0.0, 1.0], [0.0, 0.5], [0.5, 0.5], [0.5, 1.0]],
+        ),
+    ];
+    for (name, transform, want) in cases {
+        let (mut v, mut bin) = quad_parts();
+        let view = add_view(&mut v, &mut bin, &png);
+        textured_quad(&mut v, &mut bin, json!({"bufferView": view, "mimeType": "image/png"}));
+        if transform != json!({}) {
+            v["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"]["extensions"] =
+                json!({"KHR_texture_transform": transform});
+            v["extensionsUsed"] = json!(["KHR_texture_transform"]);
+        }
+        let got = import_quad(&dir, &format!("{name}.glb"), &v, &bin);
+        for (have, want) in got.mesh.uvs.iter().zip(want) {
+            assert!(
+                (have[0] - want[0]).abs() < 1e-6 && (have[1] - want[1]).abs() < 1e-6,
+                "{name}: {have:?} vs {want:?}"
+            );
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn required_extensions_are_read_ignored_with_a_warning_or_refused_by_name() {
+    let dir = temp_dir("extensions");
+    let (v, bin) = quad_parts();
+    let plain = import_quad(&dir, "plain.glb", &v, &bin);
+    let with = |used: Value, required: Value| {
+        let mut q = v.clone();
+        q["extensionsUsed"] = used;
+        q["extensionsRequired"] = required;
+        q
+    };
+    // Lights: no part in points or renders; imported with a note.
+    let got = import_quad(
+        &dir,
+        "lights.glb",
+        &with(json!(["KHR_lights_punctual"]), json!(["KHR_lights_punctual"])),
+        &bin,
+    );
+    assert_eq!(got.mesh, plain.mesh);
+    assert!(got.warnings.len() == 1 && got.warnings[0].contains("KHR_lights_punctual"), "{:?}", got.warnings);
+    // An extension only used never stops an import, known or not.
+    let got = import_quad(
+        &dir,
+        "used.glb",
+        &with(json!(["EXT_meshopt_compression", "EXT_made_up"]), json!([])),
+        &bin,
+    );
+    assert_eq!(got.mesh, plain.mesh);
+    assert!(got.warnings.is_empty(), "{:?}", got.warnings);
+    // Required and refused, or unknown: errors that name it.
+    for (ext, says) in [
+        ("EXT_meshopt_compression", "refuses"),
+        ("KHR_draco_mesh_compression", "refuses"),
+        ("KHR_texture_basisu", "refuses"),
+        ("EXT_made_up", "does not read"),
+    ] {
+        let q = with(json!([ext]), json!([ext]));
+        let e = import_file(&dir, &format!("{ext}.glb"), &glb(&q.to_string(), &bin)).unwrap_err();
+        assert!(e.contains(ext) && e.contains(says) && e.contains(&format!("{ext}.glb")), "{e}");
+    }
+    // A specular-glossiness material: its diffuse colour is the base colour.
+    let mut q =
+        with(json!(["KHR_materials_pbrSpecularGlossiness"]), json!(["KHR_materials_pbrSpecularGlossiness"]));
+    q["meshes"][0]["primitives"][0]["material"] = json!(0);
+    q["materials"] = json!([{"extensions": {"KHR_materials_pbrSpecularGlossiness": {"diffuseFactor": [0.2, 0.4, 0.6, 1.0]}}}]);
+    let got = import_quad(&dir, "specgloss.glb", &q, &bin);
+    assert_eq!(got.mesh.textures, vec![velox::data::Texture::solid([0.2, 0.4, 0.6])]);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn dataset_on_disk_reads_back_in_the_background() {
     let root = temp_dir("dataset");

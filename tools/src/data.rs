@@ -118,6 +118,8 @@ struct Made {
     mesh: AnimatedMesh,
     detail: Option<String>,
     extra: Vec<(&'static str, Vec<u8>)>,
+    /// What the source did that the import tolerated, said as the scene is written.
+    warnings: Vec<String>,
 }
 
 /// How a job gets its mesh (on the device, for the simulated ones).
@@ -146,7 +148,12 @@ pub fn run(cmd: DataCommand) -> CliResult<()> {
                         seed: s,
                         make: Box::new(move |_| {
                             let (recipe, mesh) = procedural::scene(s, folder.as_deref())?;
-                            Ok(Made { mesh, detail: Some(recipe.objects.join(", ")), extra: Vec::new() })
+                            Ok(Made {
+                                mesh,
+                                detail: Some(recipe.objects.join(", ")),
+                                extra: Vec::new(),
+                                warnings: Vec::new(),
+                            })
                         }),
                     }
                 })
@@ -172,7 +179,12 @@ pub fn run(cmd: DataCommand) -> CliResult<()> {
                             )
                             .to_lowercase();
                             let json = serde_json::to_string_pretty(&record)?.into_bytes();
-                            Ok(Made { mesh, detail: Some(detail), extra: vec![("cloth.json", json)] })
+                            Ok(Made {
+                                mesh,
+                                detail: Some(detail),
+                                extra: vec![("cloth.json", json)],
+                                warnings: Vec::new(),
+                            })
                         }),
                     }
                 })
@@ -191,7 +203,12 @@ pub fn run(cmd: DataCommand) -> CliResult<()> {
                         seed: seed + i as u64,
                         make: Box::new(move |_| {
                             let imported = gltf_import::import(&file, animation)?;
-                            Ok(Made { mesh: imported.mesh, detail: imported.credits, extra: Vec::new() })
+                            Ok(Made {
+                                mesh: imported.mesh,
+                                detail: imported.credits,
+                                extra: Vec::new(),
+                                warnings: imported.warnings,
+                            })
                         }),
                     }
                 })
@@ -240,6 +257,9 @@ pub fn run(cmd: DataCommand) -> CliResult<()> {
 fn make_scene(gpu: &Gpu, job: Job, opts: &SynthOptions, out: &Path, bar: &ProgressBar) -> CliResult<()> {
     let start_pos = bar.position();
     let made = (job.make)(gpu).map_err(|e| format!("{}: {e}", job.source))?;
+    for w in &made.warnings {
+        bar.suspend(|| eprintln!("warning: {}: {w}", job.source));
+    }
     let dir = out.join(&job.name);
     let meta = write_scene(gpu, &made.mesh, &job.source, made.detail, job.seed, opts, &dir, &mut |f| {
         bar.set_position(start_pos + f as u64 + 1)
