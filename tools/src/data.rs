@@ -14,7 +14,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use velox_data::format::write_scene;
 use velox_data::pipeline::{MAX_POINTS, MAX_TRACKS};
 use velox_data::procedural::FRAMES;
-use velox_data::{gltf_import, procedural, AnimatedMesh, SynthOptions};
+use velox_data::{procedural, AnimatedMesh, SynthOptions};
 use velox_engine::Gpu;
 
 use crate::CliResult;
@@ -55,11 +55,21 @@ pub enum DataCommand {
         #[arg(long)]
         textures: Option<PathBuf>,
     },
-    /// Scenes from glTF 2.0 files (.gltf or .glb), one per file.
+    /// Scenes from glTF 2.0 files (.gltf or .glb), one per file: files, folders (searched
+    /// recursively, in name order) and lists of files. Files are imported on every core while
+    /// the scenes render; a file that fails is reported and the others are still made; a
+    /// re-run keeps the scenes already written. `OUT/report.json` lists every file: its
+    /// scene, whether it was written, kept or failed (and why), and its warnings.
     Gltf {
-        /// The files to import.
-        #[arg(required = true)]
+        /// Files and folders to import.
         files: Vec<PathBuf>,
+        /// A text file listing files or folders to import, one per line (relative to the
+        /// list's folder; blank lines and lines starting with # are skipped).
+        #[arg(long)]
+        list: Option<PathBuf>,
+        /// Files imported at once [default: the machine's cores]. The scenes do not depend on it.
+        #[arg(long, value_parser = RangedU64ValueParser::<usize>::new().range(1..=1024))]
+        jobs: Option<usize>,
         #[command(flatten)]
         common: CommonArgs,
         /// Which animation to sample (default: the first).
@@ -191,18 +201,42 @@ pub fn run(cmd: DataCommand) -> CliResult<()> {
                 .collect();
             (common, jobs)
         }
-        DataCommand::Gltf { files, common, animation, seed } => {
-            let jobs = files
-                .into_iter()
+        DataCommand::Gltf { files, list, jobs, common, animation, seed } => {
+            let files = crate::batch::gltf_files(&files, list.as_deref())?;
+            let workers = jobs.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+            let names: Vec<String> = files
+                .iter()
                 .enumerate()
                 .map(|(i, file)| {
                     let stem = file.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+                    format!("{stem}_{i:03}")
+                })
+                .collect();
+            // A re-run keeps what an earlier one wrote: a scene is renamed into place only
+            // when complete, so a folder with its meta.json is whole.
+            let todo: Vec<usize> = (0..files.len())
+                .filter(|&i| !common.out.join(&names[i]).join("meta.json").is_file())
+                .collect();
+            let kept: Vec<(String, String)> = (0..files.len())
+                .filter(|i| !todo.contains(i))
+                .map(|i| (names[i].clone(), files[i].display().to_string()))
+                .collect();
+            let imports = crate::batch::Imports::start(
+                todo.iter().map(|&i| files[i].clone()).collect(),
+                animation,
+                workers,
+            );
+            let jobs = todo
+                .iter()
+                .enumerate()
+                .map(|(k, &i)| {
+                    let imports = imports.clone();
                     Job {
-                        name: format!("{stem}_{i:03}"),
-                        source: file.display().to_string(),
+                        name: names[i].clone(),
+                        source: files[i].display().to_string(),
                         seed: seed + i as u64,
                         make: Box::new(move |_| {
-                            let imported = gltf_import::import(&file, animation)?;
+                            let imported = imports.take(k)?;
                             Ok(Made {
                                 mesh: imported.mesh,
                                 detail: imported.credits,
@@ -213,10 +247,29 @@ pub fn run(cmd: DataCommand) -> CliResult<()> {
                     }
                 })
                 .collect();
-            (common, jobs)
+            return run_jobs(common, jobs, kept, Some(names));
         }
     };
+    run_jobs(common, jobs, Vec::new(), None)
+}
+
+/// Makes the scenes of `jobs` under `common.out`; `kept` (scene, source) were written by an
+/// earlier run. For a batch (every scene's name, in the order of its files), writes
+/// `OUT/report.json`.
+fn run_jobs(
+    common: CommonArgs,
+    jobs: Vec<Job>,
+    kept: Vec<(String, String)>,
+    batch: Option<Vec<String>>,
+) -> CliResult<()> {
     std::fs::create_dir_all(&common.out).map_err(|e| format!("{}: {e}", common.out.display()))?;
+    if !kept.is_empty() {
+        println!(
+            "keeping {} scene(s) already in {} (delete a scene's folder to make it again)",
+            kept.len(),
+            common.out.display()
+        );
+    }
     let gpu = Gpu::new()?;
     let opts = SynthOptions {
         res: common.res,
@@ -232,31 +285,69 @@ pub fn run(cmd: DataCommand) -> CliResult<()> {
     let start = Instant::now();
     let mut failed = Vec::new();
     let mut written = 0;
+    let mut report: Vec<crate::batch::Entry> = kept
+        .into_iter()
+        .map(|(scene, file)| crate::batch::Entry {
+            file,
+            scene,
+            status: "kept",
+            reason: None,
+            warnings: Vec::new(),
+        })
+        .collect();
     for job in jobs {
         bar.set_message(job.name.clone());
+        let (scene, file) = (job.name.clone(), job.source.clone());
         match make_scene(&gpu, job, &opts, &common.out, &bar) {
-            Ok(()) => written += 1,
+            Ok(warnings) => {
+                written += 1;
+                report.push(crate::batch::Entry { file, scene, status: "written", reason: None, warnings });
+            }
             Err(e) => {
                 bar.suspend(|| eprintln!("error: {e}"));
+                let reason = Some(e.to_string());
+                report.push(crate::batch::Entry {
+                    file,
+                    scene,
+                    status: "failed",
+                    reason,
+                    warnings: Vec::new(),
+                });
                 failed.push(e);
             }
         }
     }
     bar.finish_with_message("done");
-    println!(
-        "wrote {written} scene(s) to {} in {:.1} s",
-        common.out.display(),
-        start.elapsed().as_secs_f64()
-    );
+    let seconds = start.elapsed().as_secs_f64();
+    println!("wrote {written} scene(s) to {} in {seconds:.1} s", common.out.display());
+    if let Some(order) = batch {
+        let files = order.len();
+        let path = crate::batch::write_report(&common.out, report, &order, seconds)?;
+        println!(
+            "{files} file(s): {written} written, {} kept, {} failed ({:.1} files a minute); report: {}",
+            files - written - failed.len(),
+            failed.len(),
+            written as f64 / seconds.max(1e-9) * 60.0,
+            path.display()
+        );
+    }
     if !failed.is_empty() {
         return Err(format!("{} scene(s) failed; see the errors above", failed.len()).into());
     }
     Ok(())
 }
 
-fn make_scene(gpu: &Gpu, job: Job, opts: &SynthOptions, out: &Path, bar: &ProgressBar) -> CliResult<()> {
+/// Makes one scene; returns the warnings of its source.
+fn make_scene(
+    gpu: &Gpu,
+    job: Job,
+    opts: &SynthOptions,
+    out: &Path,
+    bar: &ProgressBar,
+) -> CliResult<Vec<String>> {
     let start_pos = bar.position();
-    let made = (job.make)(gpu).map_err(|e| format!("{}: {e}", job.source))?;
+    let named = |e: String| if e.contains(&job.source) { e } else { format!("{}: {e}", job.source) };
+    let made = (job.make)(gpu).map_err(|e| named(e.to_string()))?;
     for w in &made.warnings {
         bar.suspend(|| eprintln!("warning: {}: {w}", job.source));
     }
@@ -276,5 +367,5 @@ fn make_scene(gpu: &Gpu, job: Job, opts: &SynthOptions, out: &Path, bar: &Progre
             )
         });
     }
-    Ok(())
+    Ok(made.warnings)
 }

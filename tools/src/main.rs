@@ -1,5 +1,6 @@
 //! The `velox` command.
 
+mod batch;
 mod bench;
 mod data;
 mod decode;

@@ -323,3 +323,106 @@ fn data_cloth_writes_scenes_with_their_centre_of_mass_and_refuses_bad_requests()
     assert!(height(23) < height(0) - 0.05, "the cloth did not fall: {} -> {}", height(0), height(23));
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Every file under `dir` (relative path, bytes), in name order.
+fn tree(dir: &std::path::Path) -> Vec<(String, Vec<u8>)> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                out.push((p.strip_prefix(dir).unwrap().display().to_string(), std::fs::read(&p).unwrap()));
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+#[test]
+fn gltf_batches_import_folders_and_lists_report_failures_and_resume() {
+    let dir = std::env::temp_dir().join(format!("velox-batch-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let input = dir.join("in");
+    std::fs::create_dir_all(input.join("sub")).unwrap();
+    std::fs::create_dir_all(input.join("bad")).unwrap();
+    let fixtures = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/fixtures/gltf");
+    std::fs::copy(fixtures.join("SimpleSkin.gltf"), input.join("a.gltf")).unwrap();
+    std::fs::copy(fixtures.join("SimpleSkin.gltf"), input.join("sub/b.GLTF")).unwrap();
+    std::fs::copy(fixtures.join("MorphStressTest.gltf"), input.join("sub/c.gltf")).unwrap();
+    std::fs::write(input.join("bad/broken.glb"), b"glTF not really").unwrap();
+    std::fs::write(input.join("notes.txt"), b"not a glTF file").unwrap();
+    let small = ["--res", "8", "--points", "200", "--tracks", "0"];
+    let run = |args: &[&str], out: &str| {
+        velox()
+            .args(["data", "gltf"])
+            .args(args)
+            .arg("--out")
+            .arg(dir.join(out))
+            .args(small)
+            .output()
+            .unwrap()
+    };
+    let report = |out: &str| -> serde_json::Value {
+        serde_json::from_slice(&std::fs::read(dir.join(out).join("report.json")).unwrap()).unwrap()
+    };
+    let input_arg = input.to_str().unwrap();
+
+    // A folder, searched at any depth in name order: the broken file is reported, the others
+    // are written, and the command says it failed.
+    let first = run(&[input_arg, "--jobs", "2"], "o1");
+    let err = String::from_utf8_lossy(&first.stderr);
+    assert!(!first.status.success(), "a failed file must fail the command");
+    assert!(err.contains("broken.glb"), "{err}");
+    let r = report("o1");
+    assert_eq!(
+        (r["files"].as_u64(), r["written"].as_u64(), r["failed"].as_u64()),
+        (Some(4), Some(3), Some(1))
+    );
+    let scenes: Vec<&str> =
+        r["entries"].as_array().unwrap().iter().map(|e| e["scene"].as_str().unwrap()).collect();
+    assert_eq!(scenes, ["a_000", "broken_001", "b_002", "c_003"]);
+    let broken = &r["entries"][1];
+    assert_eq!(broken["status"], "failed");
+    assert!(broken["reason"].as_str().unwrap().contains("broken.glb"), "{broken}");
+    assert!(!dir.join("o1/broken_001").exists());
+
+    // A re-run keeps what was written and redoes only what failed.
+    let before = tree(&dir.join("o1/c_003"));
+    let again = run(&[input_arg], "o1");
+    let out = String::from_utf8_lossy(&again.stdout);
+    assert!(out.contains("keeping 3 scene(s)"), "{out}");
+    let r = report("o1");
+    assert_eq!(
+        (r["kept"].as_u64(), r["written"].as_u64(), r["failed"].as_u64()),
+        (Some(3), Some(0), Some(1))
+    );
+    assert_eq!(tree(&dir.join("o1/c_003")), before);
+
+    // The same scenes from one import thread: the number of threads changes nothing.
+    let _ = run(&[input_arg, "--jobs", "1"], "o2");
+    let scenes = |out: &str| -> Vec<(String, Vec<u8>)> {
+        tree(&dir.join(out)).into_iter().filter(|(p, _)| p != "report.json").collect()
+    };
+    assert_eq!(scenes("o1"), scenes("o2"));
+
+    // A list of files, relative to the list's folder, with comments and blank lines.
+    std::fs::write(dir.join("files.txt"), "# two of them\nin/a.gltf\n\nin/sub/c.gltf\n").unwrap();
+    let listed = run(&["--list", dir.join("files.txt").to_str().unwrap()], "o3");
+    assert!(listed.status.success(), "{}", String::from_utf8_lossy(&listed.stderr));
+    let r = report("o3");
+    let scenes: Vec<&str> =
+        r["entries"].as_array().unwrap().iter().map(|e| e["scene"].as_str().unwrap()).collect();
+    assert_eq!(scenes, ["a_000", "c_001"]);
+
+    // Nothing to import, or a path that is not there: errors that say so.
+    std::fs::create_dir_all(dir.join("empty")).unwrap();
+    let e = run(&[dir.join("empty").to_str().unwrap()], "o4");
+    assert!(String::from_utf8_lossy(&e.stderr).contains("no .gltf or .glb file"));
+    let e = run(&[dir.join("nowhere").to_str().unwrap()], "o4");
+    assert!(String::from_utf8_lossy(&e.stderr).contains("no such file or folder"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
