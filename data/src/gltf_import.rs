@@ -78,7 +78,8 @@ fn import_checked(path: &Path, animation: Option<usize>) -> DataResult<Imported>
     let credits = credits(&root);
     let doc = gltf::Document::from_json_without_validation(root);
     let buffer = |b: gltf::Buffer| Some(buffers[b.index()].as_slice());
-    let scene = doc.default_scene().or_else(|| doc.scenes().next()).ok_or_else(|| bad("no scene".into()))?;
+    let mut warnings = warnings;
+    let scene = doc.default_scene().or_else(|| doc.scenes().next());
 
     let n_nodes = doc.nodes().len();
     let anim = match animation {
@@ -199,7 +200,19 @@ fn import_checked(path: &Path, animation: Option<usize>) -> DataResult<Imported>
     // also lists as a root (which the specification does not allow, and some exporters write)
     // is drawn under its parent when an ancestor is listed too, and at its place in the
     // hierarchy otherwise.
-    let listed: Vec<usize> = scene.nodes().map(|n| n.index()).collect();
+    // A file without scenes (the specification lets a client choose what to show) gives every
+    // root node, as tolerant loaders do.
+    let roots: Vec<gltf::Node> = match &scene {
+        Some(scene) => scene.nodes().collect(),
+        None => {
+            if n_nodes == 0 {
+                return Err(bad("no scene and no node: nothing to draw".into()));
+            }
+            warnings.push("the file has no scene: every root node is drawn".into());
+            doc.nodes().filter(|n| parent_of[n.index()].is_none()).collect()
+        }
+    };
+    let listed: Vec<usize> = roots.iter().map(|n| n.index()).collect();
     let listed_above = |mut i: usize| {
         while let Some(p) = parent_of[i] {
             if listed.contains(&p) {
@@ -210,7 +223,7 @@ fn import_checked(path: &Path, animation: Option<usize>) -> DataResult<Imported>
         false
     };
     let mut order = Vec::new();
-    let mut stack: Vec<gltf::Node> = scene.nodes().filter(|n| !listed_above(n.index())).collect();
+    let mut stack: Vec<gltf::Node> = roots.into_iter().filter(|n| !listed_above(n.index())).collect();
     let mut drawn = vec![false; n_nodes];
     while let Some(node) = stack.pop() {
         if std::mem::replace(&mut drawn[node.index()], true) {

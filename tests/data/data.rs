@@ -780,6 +780,13 @@ fn a_child_listed_as_a_scene_root_is_drawn_once_with_a_warning() {
     let got = import_quad(&dir, "alone.glb", &alone, &bin);
     assert_eq!(got.mesh, plain.mesh);
     assert_eq!(got.warnings.len(), 1);
+    // No scene at all: every root node is drawn, and a warning says so.
+    let mut none = v.clone();
+    none.as_object_mut().unwrap().remove("scenes");
+    none.as_object_mut().unwrap().remove("scene");
+    let got = import_quad(&dir, "no_scene.glb", &none, &bin);
+    assert_eq!(got.mesh, plain.mesh);
+    assert!(got.warnings.len() == 1 && got.warnings[0].contains("no scene"), "{:?}", got.warnings);
     let _ = std::fs::remove_dir_all(&dir);
 }
 
