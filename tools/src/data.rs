@@ -285,6 +285,13 @@ fn run_jobs(
     let start = Instant::now();
     let mut failed = Vec::new();
     let mut written = 0;
+    // A batch stops after the scene under way on Ctrl-C, and writes its report.
+    let interrupt = match batch {
+        Some(_) => crate::interrupt::Interrupt::catch_saying(
+            b"\nstopping after this scene to write the report (signal again to quit at once)\n",
+        )?,
+        None => crate::interrupt::Interrupt::never(),
+    };
     let mut report: Vec<crate::batch::Entry> = kept
         .into_iter()
         .map(|(scene, file)| crate::batch::Entry {
@@ -296,6 +303,9 @@ fn run_jobs(
         })
         .collect();
     for job in jobs {
+        if interrupt.requested().is_some() {
+            break;
+        }
         bar.set_message(job.name.clone());
         let (scene, file) = (job.name.clone(), job.source.clone());
         match make_scene(&gpu, job, &opts, &common.out, &bar) {
@@ -322,14 +332,23 @@ fn run_jobs(
     println!("wrote {written} scene(s) to {} in {seconds:.1} s", common.out.display());
     if let Some(order) = batch {
         let files = order.len();
+        let kept = report.iter().filter(|e| e.status == "kept").count();
+        let left = files - written - kept - failed.len();
         let path = crate::batch::write_report(&common.out, report, &order, seconds)?;
         println!(
-            "{files} file(s): {written} written, {} kept, {} failed ({:.1} files a minute); report: {}",
-            files - written - failed.len(),
+            "{files} file(s): {written} written, {kept} kept, {} failed{} ({:.1} files a minute); report: {}",
             failed.len(),
+            if left > 0 { format!(", {left} not started") } else { String::new() },
             written as f64 / seconds.max(1e-9) * 60.0,
             path.display()
         );
+    }
+    if let Some(signal) = interrupt.requested() {
+        let message = format!(
+            "stopped by {}: the scenes written are whole; run the same command again to make the rest",
+            crate::interrupt::signal_name(signal)
+        );
+        return Err(crate::interrupt::Interrupted { signal, message }.into());
     }
     if !failed.is_empty() {
         return Err(format!("{} scene(s) failed; see the errors above", failed.len()).into());

@@ -42,9 +42,17 @@ impl std::fmt::Display for Interrupted {
 impl std::error::Error for Interrupted {}
 
 impl Interrupt {
-    /// Catches SIGINT and SIGTERM for the rest of the process.
-    #[cfg(unix)]
+    /// Catches SIGINT and SIGTERM for the rest of the process (a training run: the first
+    /// signal stops it after its step, with its checkpoint).
     pub fn catch() -> CliResult<Interrupt> {
+        Interrupt::catch_saying(
+            b"\nstopping after this step to write the checkpoint (signal again to quit at once, without it)\n",
+        )
+    }
+
+    /// As [`Interrupt::catch`], printing `said` when the first signal comes.
+    #[cfg(unix)]
+    pub fn catch_saying(said: &'static [u8]) -> CliResult<Interrupt> {
         use signal_hook::consts::{SIGINT, SIGTERM};
         use signal_hook::flag;
         use std::sync::atomic::AtomicBool;
@@ -58,10 +66,8 @@ impl Interrupt {
             flag::register_conditional_default(sig, Arc::clone(&caught)).map_err(failed)?;
             // SAFETY: the action calls write(2) on a static buffer, which is async-signal-safe.
             unsafe {
-                signal_hook::low_level::register(sig, || {
-                    const SAID: &[u8] = b"\nstopping after this step to write the checkpoint \
-                        (signal again to quit at once, without it)\n";
-                    libc::write(2, SAID.as_ptr().cast(), SAID.len());
+                signal_hook::low_level::register(sig, move || {
+                    libc::write(2, said.as_ptr().cast(), said.len());
                 })
             }
             .map_err(failed)?;
@@ -72,7 +78,7 @@ impl Interrupt {
     }
 
     #[cfg(not(unix))]
-    pub fn catch() -> CliResult<Interrupt> {
+    pub fn catch_saying(_said: &'static [u8]) -> CliResult<Interrupt> {
         Ok(Interrupt::never())
     }
 
