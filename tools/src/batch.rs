@@ -76,10 +76,13 @@ pub fn gltf_files(inputs: &[PathBuf], list: Option<&Path>) -> CliResult<Vec<Path
     Ok(files)
 }
 
+/// Where file `i`'s import arrives (taken once).
+type Slot = Mutex<Option<mpsc::Receiver<Result<Imported, String>>>>;
+
 /// Imports running on worker threads, at most `2 * workers` files ahead of the one taken.
 #[derive(Clone)]
 pub struct Imports {
-    results: Arc<Vec<Mutex<Option<mpsc::Receiver<Result<Imported, String>>>>>>,
+    results: Arc<Vec<Slot>>,
     taken: Arc<(Mutex<usize>, Condvar)>,
 }
 

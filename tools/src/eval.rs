@@ -778,7 +778,7 @@ fn run_generation(a: &GenerationEvalArgs) -> CliResult<()> {
         c.guidance
     );
     let options = GenerationOptions {
-        spec: eval.spec.clone(),
+        spec: eval.spec,
         source,
         voxel_decoder: decoder.as_ref(),
         sampling,
