@@ -2,25 +2,12 @@
 //! layout and the others readers meet), PNG images and EXR depth; malformed files are errors
 //! that name the problem.
 
-use velox_engine::ops::raster::GaussianData;
+#[path = "../../engine/tests/common/mod.rs"]
+mod common;
+
+use common::random_gaussians;
 use velox_engine::rng::Rng;
 use velox_io::{image, ply};
-
-/// `n` random Gaussians in front of the camera (log-scales and opacity logits in the ranges).
-fn scene(n: usize, seed: u64, log_scale: (f64, f64), logit: (f64, f64)) -> GaussianData {
-    let mut rng = Rng::new(seed);
-    let mut g = GaussianData::default();
-    for _ in 0..n {
-        let z = rng.range(2.0, 5.0);
-        let mean = [rng.range(-0.6, 0.6) * z, rng.range(-0.45, 0.45) * z, z].map(|v| v as f32);
-        let ls = [0; 3].map(|_| rng.range(log_scale.0, log_scale.1) as f32);
-        let q = [0; 4].map(|_| rng.normal() as f32);
-        let o = rng.range(logit.0, logit.1) as f32;
-        let c = [0; 3].map(|_| rng.uniform() as f32);
-        g.push(mean, ls, q, o, c);
-    }
-    g
-}
 
 fn temp(name: &str) -> std::path::PathBuf {
     let dir = std::env::temp_dir().join(format!("velox-raster-test-{}", std::process::id()));
@@ -30,7 +17,7 @@ fn temp(name: &str) -> std::path::PathBuf {
 
 #[test]
 fn ply_round_trip_and_layout() {
-    let g = scene(57, 81, (-3.0, -1.0), (-2.0, 2.0));
+    let g = random_gaussians(57, 81, (-3.0, -1.0), (-2.0, 2.0));
     let path = temp("round.ply");
     ply::write(&path, &g).unwrap();
     let back = ply::read(&path).unwrap();
@@ -80,7 +67,7 @@ fn ply_reads_other_layouts() {
 
 #[test]
 fn malformed_ply_files_are_clear_errors() {
-    let good = ply::to_bytes(&scene(3, 91, (-3.0, -1.0), (0.0, 1.0))).unwrap();
+    let good = ply::to_bytes(&random_gaussians(3, 91, (-3.0, -1.0), (0.0, 1.0))).unwrap();
     let expect = |bytes: &[u8], needle: &str| {
         let e = ply::from_bytes(bytes).unwrap_err().to_string();
         assert!(e.contains(needle), "error `{e}` should mention `{needle}`");
@@ -101,7 +88,7 @@ fn malformed_ply_files_are_clear_errors() {
 /// errors, and every value read is finite.
 #[test]
 fn ply_body_must_match_its_header_and_hold_finite_values() {
-    let good = ply::to_bytes(&scene(3, 92, (-3.0, -1.0), (0.0, 1.0))).unwrap();
+    let good = ply::to_bytes(&random_gaussians(3, 92, (-3.0, -1.0), (0.0, 1.0))).unwrap();
     let text = String::from_utf8_lossy(&good[..good.len() - 3 * 17 * 4]).into_owned();
     let body = &good[text.len()..];
     let expect = |bytes: &[u8], needles: &[&str]| {

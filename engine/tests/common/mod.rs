@@ -74,3 +74,25 @@ pub fn assert_nmse(what: &str, got: &[f32], reference: &[f64], bound: f64) {
     }
     assert!(e <= bound, "{what}: nmse {e:.3e} > bound {bound:.1e} (max abs err {m:.3e})");
 }
+
+/// `n` random Gaussians in front of the identity camera, spread over its view (log-scales and
+/// opacity logits drawn from the ranges given).
+pub fn random_gaussians(
+    n: usize,
+    seed: u64,
+    log_scale: (f64, f64),
+    logit: (f64, f64),
+) -> velox_engine::ops::raster::GaussianData {
+    let mut rng = Rng::new(seed);
+    let mut g = velox_engine::ops::raster::GaussianData::default();
+    for _ in 0..n {
+        let z = rng.range(2.0, 5.0);
+        let mean = [rng.range(-0.6, 0.6) * z, rng.range(-0.45, 0.45) * z, z].map(|v| v as f32);
+        let ls = [0; 3].map(|_| rng.range(log_scale.0, log_scale.1) as f32);
+        let q = [0; 4].map(|_| rng.normal() as f32);
+        let o = rng.range(logit.0, logit.1) as f32;
+        let c = [0; 3].map(|_| rng.uniform() as f32);
+        g.push(mean, ls, q, o, c);
+    }
+    g
+}

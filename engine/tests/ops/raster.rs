@@ -16,22 +16,6 @@ use velox_engine::ops::raster::{
 
 const BG: [f32; 3] = [0.1, 0.2, 0.3];
 
-/// `n` Gaussians in front of the identity camera, spread over its view.
-fn scene(n: usize, seed: u64, log_scale: (f64, f64), logit: (f64, f64)) -> GaussianData {
-    let mut rng = Rng::new(seed);
-    let mut g = GaussianData::default();
-    for _ in 0..n {
-        let z = rng.range(2.0, 5.0);
-        let mean = [rng.range(-0.6, 0.6) * z, rng.range(-0.45, 0.45) * z, z].map(|v| v as f32);
-        let ls = [0; 3].map(|_| rng.range(log_scale.0, log_scale.1) as f32);
-        let q = [0; 4].map(|_| rng.normal() as f32);
-        let o = rng.range(logit.0, logit.1) as f32;
-        let c = [0; 3].map(|_| rng.uniform() as f32);
-        g.push(mean, ls, q, o, c);
-    }
-    g
-}
-
 fn camera(w: u32, h: u32) -> Camera {
     Camera::identity(60.0, w, h)
 }
@@ -154,13 +138,13 @@ fn check_backward(what: &str, g: &GaussianData, cam: &Camera, f: &Forward, seed:
 #[test]
 fn forward_and_backward_match_the_reference_on_small_scenes() {
     let cam = camera(64, 48);
-    let g = scene(300, 1, (-3.5, -1.5), (-2.0, 2.0));
+    let g = random_gaussians(300, 1, (-3.5, -1.5), (-2.0, 2.0));
     let f = check_forward("300 Gaussians 64x48", &g, &cam, 1e-11);
     check_backward("300 Gaussians 64x48", &g, &cam, &f, 2, 1e-10);
 
     // Sizes that are not multiples of the tile, a camera that is not the identity.
     let cam = Camera::look_at([0.5, -0.3, -0.5], [0.0, 0.0, 3.0], [0.0, -1.0, 0.0], 50.0, 37, 29);
-    let g = scene(120, 3, (-3.0, -1.0), (-1.0, 3.0));
+    let g = random_gaussians(120, 3, (-3.0, -1.0), (-1.0, 3.0));
     let f = check_forward("120 Gaussians 37x29 look-at", &g, &cam, 1e-11);
     check_backward("120 Gaussians 37x29 look-at", &g, &cam, &f, 4, 1e-10);
 }
@@ -180,7 +164,7 @@ const REFERENCE_FD_BOUND: f64 = 2e-15;
 #[test]
 fn reference_backward_matches_finite_differences() {
     let cam = Camera::look_at([0.2, 0.1, -0.3], [0.0, 0.0, 3.0], [0.0, -1.0, 0.0], 55.0, 32, 32);
-    let data = scene(4, 11, (-2.5, -1.8), (-1.0, 1.0));
+    let data = random_gaussians(4, 11, (-2.5, -1.8), (-1.0, 1.0));
     let base = reference::Scene::from_data(&data);
     let (dr, da, dd) = image_grads(&cam, 12);
     let (dr, da, dd) = (f64s(&dr), f64s(&da), f64s(&dd));
@@ -229,7 +213,7 @@ fn reference_backward_matches_finite_differences() {
 fn stress_a_million_tiny_gaussians() {
     // A million Gaussians of about a pixel, thousands per tile.
     let cam = camera(128, 96);
-    let g = scene(1_000_000, 21, (-6.0, -4.5), (-3.0, 0.0));
+    let g = random_gaussians(1_000_000, 21, (-6.0, -4.5), (-3.0, 0.0));
     let gpu = gpu();
     if !binds_or_refused(&gpu, 12 * 1_000_000, || render(&gpu, &g.upload(&gpu)?, &cam, BG)) {
         return;
@@ -281,7 +265,7 @@ fn negative_colours_clamp_to_zero() {
     // As 3D Gaussian splatting clamps its spherical-harmonic colour: a channel below zero draws
     // as zero and passes no gradient.
     let cam = camera(48, 40);
-    let mut g = scene(60, 91, (-2.5, -1.5), (-1.0, 2.0));
+    let mut g = random_gaussians(60, 91, (-2.5, -1.5), (-1.0, 2.0));
     for c in g.colours.iter_mut().step_by(2) {
         *c = -1.5 * *c - 0.01;
     }
@@ -324,7 +308,7 @@ fn stress_thousands_stacked_in_one_tile() {
 fn stress_all_saturated() {
     // Opacity sigmoid(12): every alpha is clamped at ALPHA_MAX and pixels saturate at once.
     let cam = camera(64, 48);
-    let g = scene(400, 51, (-2.5, -1.0), (12.0, 12.0));
+    let g = random_gaussians(400, 51, (-2.5, -1.0), (12.0, 12.0));
     let f = check_forward("all saturated", &g, &cam, 1e-11);
     let alpha: Vec<f32> = f.rendered.image.alpha.read().unwrap();
     assert!(alpha.iter().any(|&a| a > 0.999), "some pixels saturate");
@@ -337,7 +321,7 @@ fn stress_all_saturated() {
 #[test]
 fn poison_inputs_are_dropped_and_counted() {
     let cam = camera(64, 48);
-    let clean = scene(50, 61, (-3.0, -1.5), (-1.0, 2.0));
+    let clean = random_gaussians(50, 61, (-3.0, -1.5), (-1.0, 2.0));
     let mut g = clean.clone();
     let ok = ([0.0, 0.0, 3.0], [-2.0; 3], [1.0, 0.0, 0.0, 0.0], 1.0, [0.5; 3]);
     let mut push = |m: [f32; 3], s: [f32; 3], q: [f32; 4], o: f32, c: [f32; 3]| g.push(m, s, q, o, c);
@@ -538,7 +522,7 @@ fn two_gaussians_blend_front_to_back_by_depth() {
 #[test]
 fn bad_shapes_and_cameras_are_errors() {
     let gpu = gpu();
-    let g = scene(3, 71, (-2.0, -1.0), (0.0, 1.0));
+    let g = random_gaussians(3, 71, (-2.0, -1.0), (0.0, 1.0));
     let mut bad = g.clone();
     bad.quats.pop();
     let e = bad.upload(&gpu).err().unwrap().to_string();
