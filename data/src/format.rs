@@ -75,11 +75,11 @@ pub struct CameraSet {
 }
 
 fn io(path: &Path, e: impl std::fmt::Display) -> DataError {
-    DataError::Io(format!("{}: {e}", path.display()))
+    DataError::Engine(velox_engine::Error::file(path, velox_engine::FileOp::Read, e))
 }
 
 fn write_error(path: &Path, e: impl std::fmt::Display) -> DataError {
-    DataError::Io(format!("cannot write {}: {e}", path.display()))
+    DataError::Engine(velox_engine::Error::file(path, velox_engine::FileOp::Write, e))
 }
 
 /// Writes a file of a scene being made. These are not written atomically: they go into the
@@ -141,7 +141,7 @@ pub fn partial_dir(dir: &Path) -> PathBuf {
 
 /// Writes the arrays and metadata of a scene into `dir` (images are already there).
 pub fn write_arrays(dir: &Path, meta: &SceneMeta, a: &SceneArrays) -> DataResult<()> {
-    std::fs::create_dir_all(dir).map_err(|e| io(dir, e))?;
+    std::fs::create_dir_all(dir).map_err(|e| write_error(dir, e))?;
     write_file(&dir.join("meta.json"), json(meta).as_bytes())?;
     let cams = CameraSet {
         input: a.input_cameras.clone(),
@@ -263,7 +263,8 @@ impl Scene {
 
 pub(crate) fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> DataResult<T> {
     let text = std::fs::read_to_string(path).map_err(|e| io(path, e))?;
-    serde_json::from_str(&text).map_err(|e| DataError::Invalid(format!("{}: {e}", path.display())))
+    serde_json::from_str(&text)
+        .map_err(|e| DataError::Engine(velox_engine::Error::file(path, velox_engine::FileOp::Content, e)))
 }
 
 /// Reads `count` little-endian words of `T` from `path`, whose size must be exactly that

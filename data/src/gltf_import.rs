@@ -66,7 +66,8 @@ fn guard<T>(path: &Path, f: impl FnOnce() -> DataResult<T>) -> DataResult<T> {
 
 fn import_checked(path: &Path, animation: Option<usize>) -> DataResult<Imported> {
     let bad = |m: String| DataError::Invalid(format!("{}: {m}", path.display()));
-    let bytes = std::fs::read(path).map_err(|e| DataError::Io(format!("{}: {e}", path.display())))?;
+    let bytes =
+        std::fs::read(path).map_err(|e| velox_engine::Error::file(path, velox_engine::FileOp::Read, e))?;
     let (root, bin) = gltf_load::parse(&bytes).map_err(bad)?;
     let warnings = gltf_validate::document(&root).map_err(bad)?;
     let dir = match path.parent() {

@@ -26,6 +26,9 @@ pub enum Error {
     /// A file could not be written (a full disk, a file size limit, a missing folder); the
     /// message names the file.
     Io(String),
+    /// A file that cannot be read, written or understood: its path, what was done with it and
+    /// why it failed.
+    File { path: std::path::PathBuf, op: FileOp, reason: String },
     /// A multi-process run over MPI failed or cannot start (an MPI call's error, ranks that
     /// disagree, a build without MPI started by mpirun); the message says which.
     Mpi(String),
@@ -35,6 +38,24 @@ pub enum Error {
 }
 
 pub type Result<T> = std::result::Result<T, Error>;
+
+/// What was done with a file that failed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FileOp {
+    /// Opening or reading its bytes.
+    Read,
+    /// Writing it (atomically: the old file, if any, is left whole).
+    Write,
+    /// Reading what it says: its bytes are not what its format allows.
+    Content,
+}
+
+impl Error {
+    /// A file error: `path`, what was done with it and why it failed.
+    pub fn file(path: &std::path::Path, op: FileOp, reason: impl fmt::Display) -> Error {
+        Error::File { path: path.to_path_buf(), op, reason: reason.to_string() }
+    }
+}
 
 /// What a machine without Vulkan needs, named once for every message that says so.
 pub const INSTALL_HINT: &str = "install a Vulkan driver and loader: on Debian or Ubuntu \
@@ -55,6 +76,13 @@ impl fmt::Display for Error {
             Error::Unsupported(what) => write!(f, "unsupported on this device: {what}"),
             Error::Invalid(what) => write!(f, "invalid input: {what}"),
             Error::Io(what) => write!(f, "{what}"),
+            Error::File { path, op: FileOp::Read, reason } => {
+                write!(f, "cannot read {}: {reason}", path.display())
+            }
+            Error::File { path, op: FileOp::Write, reason } => {
+                write!(f, "cannot write {}: {reason}", path.display())
+            }
+            Error::File { path, op: FileOp::Content, reason } => write!(f, "{}: {reason}", path.display()),
             Error::Mpi(what) => write!(f, "MPI: {what}"),
             Error::Validation(what) => write!(f, "Vulkan validation: {what}"),
         }

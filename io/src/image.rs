@@ -6,7 +6,7 @@ use std::path::Path;
 
 use velox_engine::{Error, Result};
 
-use crate::{io_error, write_atomically, write_bytes};
+use crate::{io_error, read_error, write_atomically, write_bytes};
 
 fn check_len(what: &str, len: usize, width: u32, height: u32, channels: usize) -> Result<()> {
     if len != width as usize * height as usize * channels || width == 0 || height == 0 {
@@ -46,7 +46,7 @@ pub fn png_bytes(rgb8: &[u8], width: u32, height: u32) -> Result<Vec<u8>> {
 /// Reads a PNG as row-major RGB in [0, 1], with its width and height.
 pub fn read_png(path: &Path) -> Result<(Vec<f32>, u32, u32)> {
     let img = image::ImageReader::open(path)
-        .map_err(|e| io_error(path, e))?
+        .map_err(|e| read_error(path, e))?
         .with_guessed_format()
         .map_err(|e| io_error(path, e))?
         .decode()

@@ -19,7 +19,7 @@ use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
-use velox_engine::{Error, Result};
+use velox_engine::{Error, FileOp, Result};
 
 /// The temporary file a write of `path` goes through before it is renamed over `path`.
 pub fn temp_path(path: &Path) -> PathBuf {
@@ -36,7 +36,7 @@ pub fn write_atomically(
     path: &Path,
     write: impl FnOnce(&mut BufWriter<File>) -> std::io::Result<()>,
 ) -> Result<()> {
-    let failed = |e: std::io::Error| Error::Io(format!("cannot write {}: {e}", path.display()));
+    let failed = |e: std::io::Error| Error::file(path, FileOp::Write, e);
     if path.file_name().is_none() {
         return Err(failed(std::io::Error::new(std::io::ErrorKind::InvalidInput, "the path names no file")));
     }
@@ -75,8 +75,14 @@ fn sync_dir(_dir: &Path) -> std::io::Result<()> {
     Ok(())
 }
 
+/// A file that could not be opened or read, or whose bytes its reader refused.
 pub(crate) fn io_error(path: &Path, e: impl std::fmt::Display) -> Error {
-    Error::Invalid(format!("{}: {e}", path.display()))
+    Error::file(path, FileOp::Content, e)
+}
+
+/// A file that could not be opened or read.
+pub(crate) fn read_error(path: &Path, e: std::io::Error) -> Error {
+    Error::file(path, FileOp::Read, e)
 }
 
 #[cfg(test)]

@@ -14,7 +14,7 @@ use std::path::Path;
 use velox_engine::ops::raster::GaussianData;
 use velox_engine::{Error, Result};
 
-use crate::{io_error, write_bytes};
+use crate::{io_error, read_error, write_bytes};
 
 /// The degree-0 spherical harmonic, 1 / (2 sqrt(pi)).
 pub const SH_C0: f64 = 0.28209479177387814;
@@ -69,9 +69,9 @@ pub fn write(path: &Path, g: &GaussianData) -> Result<()> {
 
 /// Reads Gaussians from `path`.
 pub fn read(path: &Path) -> Result<GaussianData> {
-    let bytes = std::fs::read(path).map_err(|e| io_error(path, e))?;
+    let bytes = std::fs::read(path).map_err(|e| read_error(path, e))?;
     from_bytes(&bytes).map_err(|e| match e {
-        Error::Invalid(why) => Error::Invalid(format!("{}: {why}", path.display())),
+        Error::Invalid(why) => io_error(path, why),
         other => other,
     })
 }

@@ -84,6 +84,32 @@ fn malformed_ply_files_are_clear_errors() {
     assert!(ply::read(&temp("missing.ply")).unwrap_err().to_string().contains("missing.ply"));
 }
 
+/// A file that fails is an error that holds its path and what was done with it: reading it,
+/// understanding it, or writing it.
+#[test]
+fn file_errors_name_the_file_and_what_failed() {
+    use velox_engine::{Error, FileOp};
+    let op_of = |e: Error, want: &std::path::Path| match e {
+        Error::File { path, op, reason } => {
+            assert_eq!(path, want);
+            assert!(!reason.is_empty());
+            op
+        }
+        other => panic!("not a file error: {other:?}"),
+    };
+    let missing = temp("absent.ply");
+    assert_eq!(op_of(ply::read(&missing).unwrap_err(), &missing), FileOp::Read);
+    let garbage = temp("garbage.ply");
+    std::fs::write(&garbage, b"hello").unwrap();
+    assert_eq!(op_of(ply::read(&garbage).unwrap_err(), &garbage), FileOp::Content);
+    let png = temp("garbage.png");
+    std::fs::write(&png, b"not a png").unwrap();
+    assert_eq!(op_of(image::read_png(&png).unwrap_err(), &png), FileOp::Content);
+    let nowhere = temp("no-such-folder").join("out.ply");
+    let g = random_gaussians(2, 5, (-3.0, -1.0), (0.0, 1.0));
+    assert_eq!(op_of(ply::write(&nowhere, &g).unwrap_err(), &nowhere), FileOp::Write);
+}
+
 /// The body holds exactly what the header declares, counts that overflow any file are
 /// errors, and every value read is finite.
 #[test]

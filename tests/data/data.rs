@@ -930,6 +930,23 @@ fn required_extensions_are_read_ignored_with_a_warning_or_refused_by_name() {
 }
 
 #[test]
+fn a_scene_file_that_fails_is_a_file_error_with_its_path() {
+    use velox::data::DataError;
+    use velox::engine::{Error, FileOp};
+    let dir = temp_dir("file-errors");
+    let file_error = |e: DataError| match e {
+        DataError::Engine(Error::File { path, op, .. }) => (path, op),
+        other => panic!("not a file error: {other}"),
+    };
+    let (path, op) = file_error(read_scene(&dir, false).unwrap_err());
+    assert_eq!((path, op), (dir.join("meta.json"), FileOp::Read));
+    std::fs::write(dir.join("meta.json"), b"{ not json").unwrap();
+    let (path, op) = file_error(read_scene(&dir, false).unwrap_err());
+    assert_eq!((path, op), (dir.join("meta.json"), FileOp::Content));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
 fn dataset_on_disk_reads_back_in_the_background() {
     let root = temp_dir("dataset");
     let opts = SynthOptions { res: 16, points: 500, supersample: 2, tracks: 8 };
