@@ -139,9 +139,10 @@ pub trait Binds {
     type Args<'a>: ArgList<'a>;
 }
 
-/// Tensors in binding order.
+/// Tensors in binding order (an array: a dispatch allocates nothing for them).
 pub trait ArgList<'a> {
-    fn tensors(&self) -> Vec<&'a crate::tensor::Tensor>;
+    type List: AsRef<[&'a crate::tensor::Tensor]>;
+    fn tensors(&self) -> Self::List;
 }
 
 impl<P, B> Clone for Kernel<P, B> {

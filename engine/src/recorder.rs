@@ -282,7 +282,7 @@ impl Recorder {
         push: &P,
     ) -> Result<()> {
         let tensors = args.tensors();
-        let args = tensors.as_slice();
+        let args = tensors.as_ref();
         let info = kernel.info();
         if args.len() != info.bindings.len() {
             return Err(Error::Shape(format!(

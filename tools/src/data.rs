@@ -214,13 +214,10 @@ pub fn run(cmd: DataCommand) -> CliResult<()> {
                 .collect();
             // A re-run keeps what an earlier one wrote: a scene is renamed into place only
             // when complete, so a folder with its meta.json is whole.
-            let todo: Vec<usize> = (0..files.len())
-                .filter(|&i| !common.out.join(&names[i]).join("meta.json").is_file())
-                .collect();
-            let kept: Vec<(String, String)> = (0..files.len())
-                .filter(|i| !todo.contains(i))
-                .map(|i| (names[i].clone(), files[i].display().to_string()))
-                .collect();
+            let (kept, todo): (Vec<usize>, Vec<usize>) =
+                (0..files.len()).partition(|&i| common.out.join(&names[i]).join("meta.json").is_file());
+            let kept: Vec<(String, String)> =
+                kept.into_iter().map(|i| (names[i].clone(), files[i].display().to_string())).collect();
             let imports = crate::batch::Imports::start(
                 todo.iter().map(|&i| files[i].clone()).collect(),
                 animation,
