@@ -6,7 +6,7 @@ use std::path::Path;
 
 use velox_engine::{Error, Result};
 
-use crate::{io_error, read_error, write_atomically, write_bytes};
+use crate::{content_error, read_error, write_atomically, write_bytes};
 
 fn check_len(what: &str, len: usize, width: u32, height: u32, channels: usize) -> Result<()> {
     if len != width as usize * height as usize * channels || width == 0 || height == 0 {
@@ -48,9 +48,9 @@ pub fn read_png(path: &Path) -> Result<(Vec<f32>, u32, u32)> {
     let img = image::ImageReader::open(path)
         .map_err(|e| read_error(path, e))?
         .with_guessed_format()
-        .map_err(|e| io_error(path, e))?
+        .map_err(|e| content_error(path, e))?
         .decode()
-        .map_err(|e| io_error(path, e))?
+        .map_err(|e| content_error(path, e))?
         .to_rgb8();
     let (w, h) = img.dimensions();
     Ok((img.into_raw().into_iter().map(|b| b as f32 / 255.0).collect(), w, h))
@@ -70,7 +70,7 @@ pub fn write_exr_depth(path: &Path, depth: &[f32], width: u32, height: u32) -> R
 
 /// Reads the `Z` channel (or the only channel) of an EXR as f32, with its width and height.
 pub fn read_exr_depth(path: &Path) -> Result<(Vec<f32>, u32, u32)> {
-    let img = exr::prelude::read_first_flat_layer_from_file(path).map_err(|e| io_error(path, e))?;
+    let img = exr::prelude::read_first_flat_layer_from_file(path).map_err(|e| content_error(path, e))?;
     let size = img.layer_data.size;
     let list = &img.layer_data.channel_data.list;
     let ch = list

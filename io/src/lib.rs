@@ -75,8 +75,8 @@ fn sync_dir(_dir: &Path) -> std::io::Result<()> {
     Ok(())
 }
 
-/// A file that could not be opened or read, or whose bytes its reader refused.
-pub(crate) fn io_error(path: &Path, e: impl std::fmt::Display) -> Error {
+/// A file whose bytes its reader refused (see [`read_error`] for one that could not be read).
+pub(crate) fn content_error(path: &Path, e: impl std::fmt::Display) -> Error {
     Error::file(path, FileOp::Content, e)
 }
 

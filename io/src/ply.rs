@@ -14,7 +14,7 @@ use std::path::Path;
 use velox_engine::ops::raster::GaussianData;
 use velox_engine::{Error, Result};
 
-use crate::{io_error, read_error, write_bytes};
+use crate::{content_error, read_error, write_bytes};
 
 /// The degree-0 spherical harmonic, 1 / (2 sqrt(pi)).
 pub const SH_C0: f64 = 0.28209479177387814;
@@ -71,7 +71,7 @@ pub fn write(path: &Path, g: &GaussianData) -> Result<()> {
 pub fn read(path: &Path) -> Result<GaussianData> {
     let bytes = std::fs::read(path).map_err(|e| read_error(path, e))?;
     from_bytes(&bytes).map_err(|e| match e {
-        Error::Invalid(why) => io_error(path, why),
+        Error::Invalid(why) => content_error(path, why),
         other => other,
     })
 }
