@@ -29,8 +29,9 @@ OPS="-p velox-engine -p velox-io"
 CONFIGS=(
   "lavapipe||all"
   "validation-sync|VELOX_VALIDATE=1|all"
-  "validation-sync-newer|VELOX_VALIDATE=1 VK_LAYER_PATH=tools/vvl|ops"
-  "validation-gpu-assisted|VELOX_VALIDATE=gpu VK_LAYER_PATH=tools/vvl|ops"
+  # An absolute path: cargo runs each crate's tests in that crate's folder.
+  "validation-sync-newer|VELOX_VALIDATE=1 VK_LAYER_PATH=$PWD/tools/vvl|ops"
+  "validation-gpu-assisted|VELOX_VALIDATE=gpu VK_LAYER_PATH=$PWD/tools/vvl|ops"
   "subgroup-4|LP_NATIVE_VECTOR_WIDTH=128|all"
   "subgroup-16|LP_NATIVE_VECTOR_WIDTH=512|all"
   "subgroup-32|LP_NATIVE_VECTOR_WIDTH=1024|all"
