@@ -22,9 +22,9 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 use velox_engine::{Gpu, Precision};
 use velox_io::cloud::CHANNELS;
-use velox_io::{ply, write_bytes};
-use velox_models::velox::autoencoder::{tau_of, Autoencoder, FRAMES};
-use velox_models::velox::decode::{frame_points, points_ply, Decoding, Sampling, VoxelSource};
+use velox_io::write_bytes;
+use velox_models::velox::autoencoder::{Autoencoder, FRAMES};
+use velox_models::velox::decode::{frame_points, Decoding, FrameOutput, Sampling, VoxelSource};
 use velox_models::velox::surface::Sampler;
 use velox_models::velox::voxels::VoxelDecoder;
 
@@ -292,35 +292,27 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
     }
     let encode_seconds = start.elapsed().as_secs_f64();
     let bar = progress(common.frames.0.len(), "frames");
-    let mut files = Vec::new();
-    for &f in &common.frames.0 {
+    let output = match voxels {
+        None => FrameOutput::Points,
+        Some(source) => FrameOutput::Gaussians(source),
+    };
+    let mut on_frame = |f: usize| {
+        bar.set_position(common.frames.0.iter().position(|&g| g == f).unwrap_or(0) as u64);
         bar.set_message(format!("frame {f}"));
-        let t0 = Instant::now();
-        let (path, count, voxel_count) = match voxels {
-            None => {
-                let xyz = decoding.surface_points(f, &sampling.sampling())?;
-                let path = common.out.join(format!("points_f{f:02}.ply"));
-                write_bytes(&path, &points_ply(&xyz, tau_of(f)))?;
-                (path, xyz.len() / 3, None)
-            }
-            Some(source) => {
-                let centres = decoding.voxels(f, source, &sampling.sampling())?;
-                let g = decoding.gaussians(f, &centres)?.download()?;
-                let path = common.out.join(format!("gaussians_f{f:02}.ply"));
-                ply::write(&path, &g)?;
-                (path, g.len(), Some(centres.len() / 3))
-            }
-        };
-        files.push(FrameFile {
-            frame: f,
-            tau: tau_of(f),
-            file: name(&path),
-            count,
-            voxels: voxel_count,
-            seconds: t0.elapsed().as_secs_f64(),
-        });
-        bar.inc(1);
-    }
+    };
+    let written =
+        decoding.write_frames(&common.frames.0, output, &sampling.sampling(), &common.out, &mut on_frame)?;
+    let files = written
+        .iter()
+        .map(|w| FrameFile {
+            frame: w.frame,
+            tau: w.tau,
+            file: name(&w.path),
+            count: w.count,
+            voxels: w.voxels,
+            seconds: w.seconds,
+        })
+        .collect();
     bar.finish_and_clear();
     let report = Report {
         command: if voxels.is_some() { "decode gaussians" } else { "decode points" },

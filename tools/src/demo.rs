@@ -13,10 +13,17 @@ use velox_data::{procedural, SynthOptions};
 use velox_engine::Gpu;
 use velox_io::write_bytes;
 
+use velox_models::eval::recon::ReconOptions;
+use velox_models::train::collective::SingleProcess;
+use velox_models::velox::autoencoder::Autoencoder;
+use velox_models::velox::decode::{Decoding, FrameOutput, Sampling, VoxelSource};
+use velox_tasks::SceneFolders;
+
+use crate::decode::{progress, read_cloud};
+use crate::eval::recon;
 use crate::interrupt::Interrupt;
 use crate::train::{train_autoencoder, AutoencoderArgs, RunArgs};
-use crate::{run_command, CliResult};
-use velox_models::train::collective::SingleProcess;
+use crate::CliResult;
 
 #[derive(Args)]
 pub struct DemoArgs {
@@ -114,33 +121,49 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
         },
     };
     let summary = train_autoencoder(&gpu, &train, &Interrupt::never(), &SingleProcess)?;
-    let ckpt = summary.checkpoint.display().to_string();
     let (first_loss, last_loss) = (summary.first.losses.total(), summary.last.losses.total());
 
     // 3. Decoding: surface points and Gaussians of three frames.
     println!("3/4 decoding frames 0, 12 and 23");
-    let decoded = out.join("decoded").display().to_string();
-    let scene = scene_dir.display().to_string();
-    let frames = "0,12,23";
+    let decoded = out.join("decoded");
+    std::fs::create_dir_all(&decoded).map_err(|e| format!("creating {}: {e}", decoded.display()))?;
+    let ae = Autoencoder::load(&gpu, &summary.checkpoint)?;
+    let decoding = Decoding::encode(&ae, &read_cloud(&scene_dir)?, 0)?;
+    let frames = [0, 12, 23];
     // Sampling costs points x steps: the decoded and measured sets grow with the scene.
-    let decoded_points = (points / 4).clamp(256, 4000).to_string();
-    let chamfer_points = (points / 8).clamp(256, 2000).to_string();
-    let source = ["--checkpoint", &ckpt, "--cloud", &scene, "--out", &decoded, "--frames", frames];
-    run_command(&[&["decode", "points"][..], &source, &["--points", &decoded_points]].concat())?;
-    run_command(&[&["decode", "gaussians"][..], &source, &["--voxels", "cloud"]].concat())?;
+    let decoded_points = Sampling::heun((points / 4).clamp(256, 4000));
+    let chamfer_points = Sampling::heun((points / 8).clamp(256, 2000));
+    let bar = progress(2 * frames.len(), "frames");
+    let mut on_frame = |_| bar.inc(1);
+    decoding.write_frames(&frames, FrameOutput::Points, &decoded_points, &decoded, &mut on_frame)?;
+    let gaussians = FrameOutput::Gaussians(VoxelSource::Input);
+    decoding.write_frames(&frames, gaussians, &decoded_points, &decoded, &mut on_frame)?;
+    bar.finish_and_clear();
 
     // 4. Renders beside the ground truth, and the metrics.
     println!("4/4 rendering and measuring");
-    let eval = out.join("eval").display().to_string();
-    let data = out.join("data").display().to_string();
-    let what = ["--data", &data, "--checkpoint", &ckpt, "--out", &eval];
-    let sizes = ["--frame-step", "6", "--views", "4", "--points", &chamfer_points, "--images", "6"];
-    run_command(&[&["eval", "recon"][..], &what, &sizes].concat())?;
-
-    let metrics: serde_json::Value = std::fs::read_to_string(out.join("eval").join("eval.json"))
-        .ok()
-        .and_then(|t| serde_json::from_str(&t).ok())
-        .unwrap_or_default();
+    let eval = out.join("eval");
+    std::fs::create_dir_all(&eval).map_err(|e| format!("creating {}: {e}", eval.display()))?;
+    let scenes = SceneFolders::open(&gpu, &out.join("data"))?;
+    let options = ReconOptions {
+        views: Some(4),
+        frame_step: 6,
+        sampling: chamfer_points,
+        voxels: vec![VoxelSource::Input],
+        images: 6,
+        seed: 0,
+    };
+    let report = recon(
+        &ae,
+        None,
+        &scenes,
+        &options,
+        &eval,
+        &eval.join("eval.json"),
+        &summary.checkpoint,
+        &out.join("data"),
+    )?;
+    let metrics = serde_json::to_value(&report)?;
     let summary_json = serde_json::json!({
         "device": gpu.caps().name,
         "config": config,

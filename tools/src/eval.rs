@@ -4,7 +4,7 @@
 //! protocol). The command reads the scenes, writes `eval.json` (every number) and the chosen
 //! side-by-side PNGs (ground truth | ours) per scene, and prints a table.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use indicatif::ProgressBar;
 use serde::Serialize;
@@ -621,23 +621,41 @@ fn run_recon(a: &ReconArgs) -> CliResult<()> {
         images: a.images,
         seed: a.seed,
     };
-    let bar = progress(count * frames(options.frame_step).len(), "frames");
-    let mut images = Images { out: &a.out, bar };
-    let report = evaluate(&ae, decoder.as_ref(), &scenes, &options, &mut images)?;
+    recon(&ae, decoder.as_ref(), &scenes, &options, &a.out, &json, &a.checkpoint, &a.data)?;
+    Ok(())
+}
+
+/// Evaluates `ae` on `scenes` with a progress bar, writes the side-by-side images under `out`
+/// and the report to `json` (with the checkpoint and data paths it names), and prints the
+/// table: `velox eval recon` after its arguments are read, and the demo's last step.
+#[allow(clippy::too_many_arguments)]
+pub fn recon(
+    ae: &Autoencoder,
+    decoder: Option<&VoxelDecoder>,
+    scenes: &SceneFolders,
+    options: &ReconOptions,
+    out: &Path,
+    json: &Path,
+    checkpoint: &Path,
+    data: &Path,
+) -> CliResult<ReconReport> {
+    let bar = progress(scenes.dirs().len() * frames(options.frame_step).len(), "frames");
+    let mut images = Images { out, bar };
+    let report = evaluate(ae, decoder, scenes, options, &mut images)?;
     images.bar.finish_and_clear();
     print_table(&report);
     let file = EvalJson {
-        checkpoint: a.checkpoint.display().to_string(),
-        data: a.data.display().to_string(),
+        checkpoint: checkpoint.display().to_string(),
+        data: data.display().to_string(),
         report: &report,
     };
-    write_bytes(&json, serde_json::to_string_pretty(&file)?.as_bytes())?;
+    write_bytes(json, serde_json::to_string_pretty(&file)?.as_bytes())?;
     println!(
         "wrote {} and the side-by-side images (ground truth | ours) under {}",
         json.display(),
-        a.out.display()
+        out.display()
     );
-    Ok(())
+    Ok(report)
 }
 
 fn print_table(r: &ReconReport) {

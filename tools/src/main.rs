@@ -275,12 +275,5 @@ fn dispatch(command: Command) -> CliResult<()> {
     }
 }
 
-/// Runs `velox ARGS...` in this process, exactly as a user would type it (the demo chains
-/// commands this way).
-pub fn run_command(args: &[&str]) -> CliResult<()> {
-    let cli = Cli::try_parse_from(std::iter::once("velox").chain(args.iter().copied()))?;
-    dispatch(cli.command)
-}
-
 /// Errors of the command: engine errors and I/O, each with what was being done.
 pub type CliResult<T> = Result<T, Box<dyn std::error::Error>>;

@@ -17,6 +17,9 @@
 //! of the 64^3 grid are taken to the Gaussian decoder's grid (a voxel there is occupied where
 //! one of its 64^3 voxels is).
 
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
 use serde::Serialize;
 use velox_engine::ops::raster::Gaussians;
 use velox_engine::{Error, Precision, Result, Tensor};
@@ -25,6 +28,7 @@ use crate::velox::autoencoder::{tau_of, Autoencoder, FRAMES};
 use crate::velox::surface::{SampleSpec, Sampler};
 use crate::velox::voxels::{occupied_centres, VoxelDecoder};
 use velox_io::cloud::{self, CHANNELS};
+use velox_io::{ply, write_bytes};
 
 /// Where the Gaussian decoder's occupied voxels come from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -212,6 +216,65 @@ impl<'a> Decoding<'a> {
     pub fn gaussians(&self, frame: usize, centres: &[f32]) -> Result<Gaussians> {
         self.ae.decode_gaussians(&self.tokens, centres, tau_of(frame))
     }
+
+    /// Decodes `frames` in order and writes one file per frame into the folder `out` (which
+    /// must exist): `points_fFF.ply` ([`points_ply`]) or `gaussians_fFF.ply` (the 3D Gaussian
+    /// splatting layout of `velox_io::ply`). `on_frame(f)` is called before frame `f` is
+    /// decoded. What `velox decode` and the demo write.
+    pub fn write_frames(
+        &self,
+        frames: &[usize],
+        output: FrameOutput,
+        sampling: &Sampling,
+        out: &Path,
+        on_frame: &mut dyn FnMut(usize),
+    ) -> Result<Vec<WrittenFrame>> {
+        let mut written = Vec::with_capacity(frames.len());
+        for &frame in frames {
+            on_frame(frame);
+            let start = Instant::now();
+            let (path, count, voxels) = match output {
+                FrameOutput::Points => {
+                    let xyz = self.surface_points(frame, sampling)?;
+                    let path = out.join(format!("points_f{frame:02}.ply"));
+                    write_bytes(&path, &points_ply(&xyz, tau_of(frame)))?;
+                    (path, xyz.len() / 3, None)
+                }
+                FrameOutput::Gaussians(source) => {
+                    let centres = self.voxels(frame, source, sampling)?;
+                    let g = self.gaussians(frame, &centres)?.download()?;
+                    let path = out.join(format!("gaussians_f{frame:02}.ply"));
+                    ply::write(&path, &g)?;
+                    (path, g.len(), Some(centres.len() / 3))
+                }
+            };
+            let seconds = start.elapsed().as_secs_f64();
+            written.push(WrittenFrame { frame, tau: tau_of(frame), path, count, voxels, seconds });
+        }
+        Ok(written)
+    }
+}
+
+/// What [`Decoding::write_frames`] writes for each frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FrameOutput {
+    /// Surface points sampled from the tokens.
+    Points,
+    /// Gaussians over the voxels of a source.
+    Gaussians(VoxelSource),
+}
+
+/// One file [`Decoding::write_frames`] wrote.
+#[derive(Clone, Debug)]
+pub struct WrittenFrame {
+    pub frame: usize,
+    pub tau: f32,
+    pub path: PathBuf,
+    /// Points or Gaussians in the file.
+    pub count: usize,
+    /// Occupied voxels the Gaussians were decoded from (for Gaussians).
+    pub voxels: Option<usize>,
+    pub seconds: f64,
 }
 
 /// Surface points at frame time `tau` as a binary little-endian PLY: one `vertex` element with
