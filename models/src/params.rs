@@ -8,11 +8,19 @@
 //! that get weight decay come first in the buffer and those that do not (norm gains, biases)
 //! after them, so the AdamW kernel needs only the length of the decayed prefix.
 //!
+//! A model declares its parameters once, in its constructor, which takes them from a
+//! [`Params`]: [`build`] runs the constructor twice, first declaring (each [`Params::param`]
+//! registers a name, shape and initialisation and returns a stand-in of that shape; the model
+//! made of stand-ins is dropped unused), then, once the store is built, binding (each call
+//! returns the store's views, checked against the declared shape). So the names, shapes and
+//! order are written in one place, and a model cannot ask for a parameter it did not declare.
+//!
 //! ```ignore
-//! let mut b = ParamStore::builder();
-//! b.add("enc.w", &[64, 32], Init::Xavier)?; // two or more dims: decayed
-//! b.add("enc.b", &[32], Init::Zeros)?;      // one dim: not decayed
-//! let mut store = b.build(&gpu, seed)?;
+//! let (layer, store) = build(&gpu, seed, |p| {
+//!     let w = p.param("enc.w", &[64, 32], Init::Xavier)?; // two or more dims: decayed
+//!     let b = p.param("enc.b", &[32], Init::Zeros)?;      // one dim: not decayed
+//!     Linear::new(w, Some(b))
+//! })?;
 //! ```
 
 use std::collections::HashMap;
@@ -23,6 +31,8 @@ use velox_engine::ops::fill::fill;
 use velox_engine::ops::norm::{check_finite, chunk_len, global_norm_into, NormScratch};
 use velox_engine::rng::Rng;
 use velox_engine::{DType, Error, Gpu, Precision, Recorder, Result, Tensor};
+
+use crate::layers::Param;
 
 /// How a parameter starts. Random rules draw from [`Rng`] seeded by the store's seed and the
 /// parameter's name, so a parameter's initial values do not depend on which others exist.
@@ -145,6 +155,11 @@ impl ParamBuilder {
         Ok(())
     }
 
+    /// The parameters registered so far, in order (offsets are set by [`ParamBuilder::build`]).
+    pub fn infos(&self) -> &[ParamInfo] {
+        &self.specs
+    }
+
     /// Values of every parameter registered so far (nothing is allocated).
     pub fn num_parameters(&self) -> usize {
         self.specs.iter().map(|p| p.numel).sum()
@@ -219,6 +234,119 @@ impl ParamBuilder {
         rec.submit()?;
         Ok(store)
     }
+}
+
+/// Where a model's constructor takes its parameters from: a pass that declares them or one that
+/// binds a built store's (see the module docs and [`build`]).
+pub struct Params<'a> {
+    mode: Mode<'a>,
+}
+
+enum Mode<'a> {
+    Declare { builder: ParamBuilder, gpu: Gpu, scratch: Option<(Tensor, Tensor)> },
+    Bind(&'a ParamStore),
+}
+
+impl Params<'static> {
+    /// A declaring pass: parameters are registered, and stand-ins handed out. A stand-in is a
+    /// view of one scratch buffer as large as the largest parameter so far (f32, and f16 for
+    /// the half copy); the model built of them is only for dropping.
+    pub fn declaring(gpu: &Gpu) -> Params<'static> {
+        Params { mode: Mode::Declare { builder: ParamBuilder::default(), gpu: gpu.clone(), scratch: None } }
+    }
+}
+
+impl<'a> Params<'a> {
+    /// A binding pass over a built store.
+    pub fn binding(store: &'a ParamStore) -> Params<'a> {
+        Params { mode: Mode::Bind(store) }
+    }
+
+    /// The device the model lives on.
+    pub fn gpu(&self) -> &Gpu {
+        match &self.mode {
+            Mode::Declare { gpu, .. } => gpu,
+            Mode::Bind(store) => store.params.gpu(),
+        }
+    }
+
+    /// The parameter `name` of `shape`, initialised by `init`; decayed when it has two or more
+    /// dimensions (see [`ParamBuilder::add`]).
+    pub fn param(&mut self, name: &str, shape: &[usize], init: Init) -> Result<Param> {
+        self.param_with_decay(name, shape, init, shape.len() >= 2)
+    }
+
+    /// [`Params::param`] with an explicit weight decay choice.
+    pub fn param_with_decay(
+        &mut self,
+        name: &str,
+        shape: &[usize],
+        init: Init,
+        decay: bool,
+    ) -> Result<Param> {
+        match &mut self.mode {
+            Mode::Declare { builder, gpu, scratch } => {
+                builder.add_with_decay(name, shape, init, decay)?;
+                let numel = builder.specs.last().map_or(0, |s| s.numel);
+                if scratch.as_ref().is_none_or(|(v, _)| v.numel() < numel) {
+                    let n = numel.max(1);
+                    *scratch =
+                        Some((Tensor::empty(gpu, &[n], DType::F32)?, Tensor::empty(gpu, &[n], DType::F16)?));
+                }
+                let (value, half) = scratch.as_ref().expect("the scratch was just made");
+                let p = Param::from_tensors(value.view(0, shape)?, value.view(0, shape)?)?;
+                Ok(Param { half: Some(half.view(0, shape)?), ..p })
+            }
+            Mode::Bind(store) => {
+                let info = &store.specs[store.find(name)?];
+                if info.shape != shape || info.decay != decay {
+                    return Err(Error::Shape(format!(
+                        "parameter {name:?} is bound as {shape:?} (decay {decay}) but was declared as {:?} \
+                         (decay {})",
+                        info.shape, info.decay
+                    )));
+                }
+                Param::from_store(store, name)
+            }
+        }
+    }
+
+    /// The parameters `names`, all of one shape, as one stacked parameter where they lie one
+    /// after another in the store ([`ParamStore::stacked`]); `None` while declaring.
+    pub fn stacked<S: AsRef<str>>(&self, names: &[S]) -> Result<Option<Param>> {
+        match &self.mode {
+            Mode::Declare { .. } => Ok(None),
+            Mode::Bind(store) => store.stacked(names),
+        }
+    }
+
+    /// The declarations of a declaring pass.
+    pub fn into_builder(self) -> Result<ParamBuilder> {
+        match self.mode {
+            Mode::Declare { builder, .. } => Ok(builder),
+            Mode::Bind(_) => Err(Error::Invalid("a binding pass declares nothing".into())),
+        }
+    }
+}
+
+/// The parameters `make` declares (by running it over a declaring [`Params`]), without
+/// allocating them: for counts and layouts.
+pub fn declare<T>(gpu: &Gpu, make: impl FnOnce(&mut Params) -> Result<T>) -> Result<ParamBuilder> {
+    let mut p = Params::declaring(gpu);
+    drop(make(&mut p)?);
+    p.into_builder()
+}
+
+/// A model and its store: `make` declares the parameters, the store is built and initialised
+/// with `seed`, and `make` runs again over the store to bind them.
+pub fn build<T>(
+    gpu: &Gpu,
+    seed: u64,
+    mut make: impl FnMut(&mut Params) -> Result<T>,
+) -> Result<(T, ParamStore)> {
+    let store = declare(gpu, &mut make)?.build(gpu, seed)?;
+    let model = make(&mut Params::binding(&store))?;
+    Ok((model, store))
 }
 
 /// Every parameter of a model in one buffer, with gradients and AdamW moments alongside.

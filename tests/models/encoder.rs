@@ -5,7 +5,7 @@ use crate::common;
 use common::*;
 use velox::io::cloud;
 use velox::models::config::{AutoencoderConfig, EncoderConfig};
-use velox::models::params::ParamStore;
+use velox::models::params::{build, ParamStore};
 use velox::models::velox::encoder::Encoder;
 
 /// A random cloud of `n` points over 24 frames.
@@ -28,10 +28,7 @@ fn setup(gpu: &Gpu) -> (ParamStore, Encoder) {
 }
 
 fn setup_with(gpu: &Gpu, cfg: EncoderConfig) -> (ParamStore, Encoder) {
-    let mut b = ParamStore::builder();
-    Encoder::register(&mut b, "enc", &cfg).unwrap();
-    let store = b.build(gpu, 5).unwrap();
-    let enc = Encoder::new(gpu, &store, "enc", &cfg).unwrap();
+    let (enc, store) = build(gpu, 5, |p| Encoder::new(p, "enc", &cfg)).unwrap();
     (store, enc)
 }
 

@@ -7,20 +7,18 @@ use common::*;
 use velox::engine::ops::gaussian_head::{head_forward, reference, HeadRange, RAW};
 use velox::engine::ops::raster::{Gaussians, GAUSSIAN_WIDTHS};
 use velox::models::config::AutoencoderConfig;
-use velox::models::params::ParamStore;
+use velox::models::params::{build, ParamStore};
 use velox::models::velox::gaussians::{occupied_voxels, GaussianDecoder};
 
 fn setup(gpu: &Gpu) -> (ParamStore, GaussianDecoder, usize) {
     let c = AutoencoderConfig::tiny();
-    let mut b = ParamStore::builder();
-    GaussianDecoder::register(&mut b, "gs", &c.gaussians, c.encoder.token_dim).unwrap();
-    let store = b.build(gpu, 7).unwrap();
+    let (dec, store) =
+        build(gpu, 7, |p| GaussianDecoder::new(p, "gs", &c.gaussians, c.encoder.token_dim)).unwrap();
     // Larger weights in the head's last layer than the default init, so the finite difference
     // sees every output (the tiny config's head is an MLP, as the paper config's).
     let head = store.param("gs.head.fc2.w").unwrap();
     let n = head.numel();
     head.write(&Rng::new(70).normal_vec(n).iter().map(|v| v * 0.3).collect::<Vec<f32>>()).unwrap();
-    let dec = GaussianDecoder::new(gpu, &store, "gs", &c.gaussians).unwrap();
     (store, dec, c.encoder.token_dim)
 }
 
@@ -190,12 +188,11 @@ fn bad_inputs_get_clear_errors() {
 #[test]
 fn the_paper_config_counts_the_papers_parameters() {
     use velox::models::config::AutoencoderConfig;
-    use velox::models::params::ParamBuilder;
+    use velox::models::params::declare;
     // The paper's Gaussian decoder has 75.8 M parameters; its head "expanded by an MLP" and a
     // two-layer input reach that, a single linear head and input 73.1 M.
     let count = |cfg: &velox::models::config::GaussianConfig| {
-        let mut b = ParamBuilder::default();
-        GaussianDecoder::register(&mut b, "g", cfg, 32).unwrap();
+        let b = declare(&gpu(), |p| GaussianDecoder::new(p, "g", cfg, 32)).unwrap();
         b.num_parameters() as f64 / 1e6
     };
     let paper = AutoencoderConfig::paper().gaussians;

@@ -260,7 +260,7 @@ fn f16_training_follows_f32() {
 
 #[test]
 fn the_paper_config_has_the_papers_size() {
-    let n = Generator::num_parameters(&GeneratorConfig::paper()).unwrap();
+    let n = Generator::declare(&gpu(), &GeneratorConfig::paper()).unwrap().num_parameters();
     eprintln!("generator paper config: {n} parameters (paper: 623 M)");
     assert!((n as f64 - 623e6).abs() < 0.05 * 623e6, "{n}");
 }

@@ -6,7 +6,6 @@
 use crate::common;
 use common::*;
 use velox::models::config::{TrackLoss, TrackerConfig};
-use velox::models::params::ParamBuilder;
 use velox::models::train::Trainable;
 use velox::models::velox::tracker::{Track, TrackSample, Tracker};
 
@@ -276,9 +275,7 @@ fn occlusion_is_the_depth_test_of_the_data() {
 
 #[test]
 fn the_paper_config_counts_about_123_million_parameters() {
-    let mut b = ParamBuilder::default();
-    Tracker::register(&mut b, &TrackerConfig::paper()).unwrap();
-    let m = b.num_parameters() as f64 / 1e6;
+    let m = Tracker::declare(&gpu(), &TrackerConfig::paper()).unwrap().num_parameters() as f64 / 1e6;
     assert!((m - 123.0).abs() < 0.05 * 123.0, "{m:.2} M");
 }
 

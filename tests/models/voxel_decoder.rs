@@ -8,7 +8,6 @@ use common::*;
 use velox::data::format::write_scene;
 use velox::data::{procedural, read_scene, SynthOptions};
 use velox::models::config::{OccupancyLoss, VoxelConfig};
-use velox::models::params::ParamBuilder;
 use velox::models::velox::gaussians::occupied_voxels;
 use velox::models::velox::voxels::{
     cell_labels, dilate, occupied_centres, voxel_of, VoxelDecoder, VoxelSample, FRAME_WORDS, GRID,
@@ -341,9 +340,7 @@ const STEPS: u64 = 150;
 
 #[test]
 fn the_paper_config_counts_about_65_million_parameters() {
-    let mut b = ParamBuilder::default();
-    VoxelDecoder::register(&mut b, &VoxelConfig::paper()).unwrap();
-    let m = b.num_parameters() as f64 / 1e6;
+    let m = VoxelDecoder::declare(&gpu(), &VoxelConfig::paper()).unwrap().num_parameters() as f64 / 1e6;
     assert!((m - 65.0).abs() < 0.05 * 65.0, "{m:.2} M");
 }
 

@@ -130,7 +130,7 @@ fn print_config(name: &str, model: ConfigModel, params: bool) -> CliResult<()> {
                 false => velox_models::config::AutoencoderConfig::named(name)?,
             };
             if params {
-                let c = count::parameter_counts(&cfg)?;
+                let c = count::parameter_counts(&velox_engine::Gpu::new()?, &cfg)?;
                 format!(
                     "parameters of the {} autoencoder:\n{}{}{}{}",
                     cfg.name,
@@ -149,7 +149,7 @@ fn print_config(name: &str, model: ConfigModel, params: bool) -> CliResult<()> {
                 false => velox_models::config::VoxelConfig::named(name)?,
             };
             if params {
-                let c = count::voxel_parameter_counts(&cfg)?;
+                let c = count::voxel_parameter_counts(&velox_engine::Gpu::new()?, &cfg)?;
                 format!(
                     "parameters of the {} voxel decoder:\n{}{}{}",
                     cfg.name,
@@ -167,8 +167,7 @@ fn print_config(name: &str, model: ConfigModel, params: bool) -> CliResult<()> {
                 false => velox_models::config::TrackerConfig::named(name)?,
             };
             if params {
-                let mut b = velox_models::params::ParamStore::builder();
-                Tracker::register(&mut b, &cfg)?;
+                let b = Tracker::declare(&velox_engine::Gpu::new()?, &cfg)?;
                 format!("parameters of the {} tracker:\n{}", cfg.name, row("total", b.num_parameters()))
             } else {
                 serde_json::to_string_pretty(&cfg)? + "\n"
@@ -181,8 +180,7 @@ fn print_config(name: &str, model: ConfigModel, params: bool) -> CliResult<()> {
                 false => velox_models::config::GeneratorConfig::named(name)?,
             };
             if params {
-                let mut b = velox_models::params::ParamStore::builder();
-                Generator::register(&mut b, &cfg)?;
+                let b = Generator::declare(&velox_engine::Gpu::new()?, &cfg)?;
                 let total = b.num_parameters();
                 let blocks = b.num_parameters_under("blocks.");
                 let condition = b.num_parameters_under("rgb.") + b.num_parameters_under("cond.");

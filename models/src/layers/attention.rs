@@ -20,7 +20,7 @@ use velox_engine::ops::cast::cast;
 use velox_engine::{DType, Error, Precision, Recorder, Result, Tensor};
 
 use super::linear::{Linear, LinearCache, LinearStack};
-use crate::params::ParamStore;
+use crate::params::Params;
 
 pub struct MultiHeadAttention {
     /// `[width, heads * head_dim]`
@@ -34,7 +34,7 @@ pub struct MultiHeadAttention {
     pub head_dim: usize,
     /// The q, k and v projections as one stack (self-attention: one product for all three)
     /// and the k and v ones (cross-attention), where their parameters lie one after another
-    /// in the store ([`MultiHeadAttention::with_store_stacks`]).
+    /// in the store ([`MultiHeadAttention::with_stacks`]).
     qkv: Option<LinearStack>,
     kv: Option<LinearStack>,
 }
@@ -86,20 +86,20 @@ impl MultiHeadAttention {
     }
 
     /// Stacks the projections whose weights (`names`: q, k and v, without biases) lie one
-    /// after another in `store`: q, k, v for self-attention, k, v for cross-attention. Each
+    /// after another in the store: q, k, v for self-attention, k, v for cross-attention. Each
     /// stack saves the products and dispatches of the projections it joins.
-    pub fn with_store_stacks<S: AsRef<str>>(
+    pub fn with_stacks<S: AsRef<str>>(
         mut self,
-        store: &ParamStore,
+        params: &Params,
         names: [S; 3],
     ) -> Result<MultiHeadAttention> {
         if [&self.q, &self.k, &self.v].iter().any(|l| l.bias.is_some()) {
             return Ok(self);
         }
         if self.q.in_features == self.k.in_features {
-            self.qkv = store.stacked(&names)?.map(|w| LinearStack::new(w, None)).transpose()?;
+            self.qkv = params.stacked(&names)?.map(|w| LinearStack::new(w, None)).transpose()?;
         }
-        self.kv = store.stacked(&names[1..])?.map(|w| LinearStack::new(w, None)).transpose()?;
+        self.kv = params.stacked(&names[1..])?.map(|w| LinearStack::new(w, None)).transpose()?;
         Ok(self)
     }
 

@@ -11,7 +11,7 @@ use velox_engine::{Error, Recorder, Result, Tensor};
 
 use super::linear::{Linear, LinearCache, LinearStack};
 use super::Param;
-use crate::params::ParamStore;
+use crate::params::Params;
 
 pub struct SwiGlu {
     /// `[d, hidden]`, the gated branch.
@@ -21,7 +21,7 @@ pub struct SwiGlu {
     /// `[hidden, d_out]`
     pub w2: Linear,
     /// W1 and W3 as one stack, where a store holds them one after another
-    /// ([`SwiGlu::with_store_stack`]): one product for both branches.
+    /// ([`SwiGlu::with_stack`]): one product for both branches.
     w13: Option<LinearStack>,
 }
 
@@ -55,10 +55,10 @@ impl SwiGlu {
         Ok(SwiGlu { w1, w3, w2, w13: None })
     }
 
-    /// Stacks W1 and W3 (the weights called `names` in `store`) when the store holds them one
-    /// after another.
-    pub fn with_store_stack(mut self, store: &ParamStore, names: [&str; 2]) -> Result<SwiGlu> {
-        self.w13 = store.stacked(&names)?.map(|w| LinearStack::new(w, None)).transpose()?;
+    /// Stacks W1 and W3 (the parameters called `names`) when the store holds them one after
+    /// another.
+    pub fn with_stack(mut self, params: &Params, names: [&str; 2]) -> Result<SwiGlu> {
+        self.w13 = params.stacked(&names)?.map(|w| LinearStack::new(w, None)).transpose()?;
         Ok(self)
     }
 
@@ -144,7 +144,14 @@ pub struct GeluMlpCache {
 
 impl GeluMlp {
     pub fn new(w1: Param, b1: Param, w2: Param, b2: Param) -> Result<GeluMlp> {
-        let (fc1, fc2) = (Linear::new(w1, Some(b1))?, Linear::new(w2, Some(b2))?);
+        GeluMlp::from_linears(Linear::new(w1, Some(b1))?, Linear::new(w2, Some(b2))?)
+    }
+
+    /// The MLP of two linear layers with biases, `fc2` reading `fc1`'s output.
+    pub fn from_linears(fc1: Linear, fc2: Linear) -> Result<GeluMlp> {
+        if fc1.bias.is_none() || fc2.bias.is_none() {
+            return Err(Error::Shape("gelu mlp: both linear layers need a bias".into()));
+        }
         if fc2.in_features != fc1.out_features {
             return Err(Error::Shape(format!(
                 "gelu mlp: W1 [{}, {}] and W2 [{}, {}] do not chain",

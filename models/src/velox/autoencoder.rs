@@ -30,7 +30,7 @@ use velox_engine::{DType, Error, Gpu, Precision, Result, Tensor};
 
 use crate::config::AutoencoderConfig;
 use crate::layers::Loss;
-use crate::params::ParamStore;
+use crate::params::{build, declare, ParamBuilder, ParamStore, Params};
 use crate::train::{Losses, PassSeconds, Trainable};
 use crate::velox::encoder::Encoder;
 use crate::velox::gaussians::{occupied_voxels, GaussianDecoder, VoxelFrames};
@@ -139,17 +139,24 @@ pub struct Autoencoder {
 }
 
 impl Autoencoder {
+    /// The three networks: `encoder.*`, `surface.*`, `gaussians.*`.
+    fn parts(p: &mut Params, cfg: &AutoencoderConfig) -> Result<(Encoder, SurfaceDecoder, GaussianDecoder)> {
+        let d = cfg.encoder.token_dim;
+        let encoder = Encoder::new(p, "encoder", &cfg.encoder)?;
+        let surface = SurfaceDecoder::new(p, "surface", &cfg.surface, d)?;
+        Ok((encoder, surface, GaussianDecoder::new(p, "gaussians", &cfg.gaussians, d)?))
+    }
+
+    /// The parameters a config declares, without allocating them.
+    pub fn declare(gpu: &Gpu, cfg: &AutoencoderConfig) -> Result<ParamBuilder> {
+        cfg.validate()?;
+        declare(gpu, |p| Self::parts(p, cfg))
+    }
+
     /// A freshly initialised autoencoder (parameters from `seed`).
     pub fn new(gpu: &Gpu, cfg: &AutoencoderConfig, seed: u64) -> Result<Autoencoder> {
         cfg.validate()?;
-        let mut b = ParamStore::builder();
-        Encoder::register(&mut b, "encoder", &cfg.encoder)?;
-        SurfaceDecoder::register(&mut b, "surface", &cfg.surface, cfg.encoder.token_dim)?;
-        GaussianDecoder::register(&mut b, "gaussians", &cfg.gaussians, cfg.encoder.token_dim)?;
-        let store = b.build(gpu, seed)?;
-        let encoder = Encoder::new(gpu, &store, "encoder", &cfg.encoder)?;
-        let surface = SurfaceDecoder::new(&store, "surface", &cfg.surface, cfg.encoder.token_dim)?;
-        let gaussians = GaussianDecoder::new(gpu, &store, "gaussians", &cfg.gaussians)?;
+        let ((encoder, surface, gaussians), store) = build(gpu, seed, |p| Self::parts(p, cfg))?;
         Ok(Autoencoder {
             cfg: cfg.clone(),
             store,

@@ -15,8 +15,8 @@ use crate::layers::feedforward::SwiGluCache;
 use crate::layers::linear::LinearCache;
 use crate::layers::norm::RmsNormCache;
 use crate::layers::Fourier;
-use crate::layers::{Linear, Param, RmsNorm, SwiGlu};
-use crate::params::{Init, ParamBuilder, ParamStore};
+use crate::layers::{GeluMlp, Linear, RmsNorm, SwiGlu};
+use crate::params::{Init, Params};
 
 pub const NORM_EPS: f32 = 1e-6;
 
@@ -46,50 +46,49 @@ pub struct WindowLayerCache {
     ff: FeedForwardCache,
 }
 
-pub fn linear_params(b: &mut ParamBuilder, name: &str, i: usize, o: usize, bias: bool) -> Result<()> {
-    b.add(&format!("{name}.w"), &[i, o], Init::Xavier)?;
-    if bias {
-        b.add(&format!("{name}.b"), &[o], Init::Zeros)?;
-    }
-    Ok(())
+/// A linear layer `name.w [i, o]` (Xavier), with a bias `name.b [o]` (zeros) when `bias`.
+pub fn linear(p: &mut Params, name: &str, i: usize, o: usize, bias: bool) -> Result<Linear> {
+    let w = p.param(&format!("{name}.w"), &[i, o], Init::Xavier)?;
+    let b = if bias { Some(p.param(&format!("{name}.b"), &[o], Init::Zeros)?) } else { None };
+    Linear::new(w, b)
 }
 
-pub fn linear(store: &ParamStore, name: &str, bias: bool) -> Result<Linear> {
-    let b = if bias { Some(Param::from_store(store, &format!("{name}.b"))?) } else { None };
-    Linear::new(Param::from_store(store, &format!("{name}.w"))?, b)
+/// An RMS norm of `width` features, its gain `name` starting at one.
+pub fn norm(p: &mut Params, name: &str, width: usize) -> Result<RmsNorm> {
+    RmsNorm::new(p.param(name, &[width], Init::Ones)?, NORM_EPS)
 }
 
-pub fn norm(store: &ParamStore, name: &str) -> Result<RmsNorm> {
-    RmsNorm::new(Param::from_store(store, name)?, NORM_EPS)
+/// Multi-head attention of `width` features attending to `context`-wide keys and values
+/// (`name.q`, `.k`, `.v`, `.o`, no biases), with its projections stacked where they can be.
+pub fn attention(
+    p: &mut Params,
+    name: &str,
+    width: usize,
+    context: usize,
+    heads: usize,
+) -> Result<MultiHeadAttention> {
+    let mut l = |m: &str, i: usize| linear(p, &format!("{name}.{m}"), i, width, false);
+    let (q, k, v, o) = (l("q", width)?, l("k", context)?, l("v", context)?, l("o", width)?);
+    MultiHeadAttention::new(q, k, v, o, heads)?
+        .with_stacks(p, ["q", "k", "v"].map(|m| format!("{name}.{m}.w")))
 }
 
-pub fn attention_params(b: &mut ParamBuilder, name: &str, width: usize) -> Result<()> {
-    for p in ["q", "k", "v", "o"] {
-        linear_params(b, &format!("{name}.{p}"), width, width, false)?;
-    }
-    Ok(())
+/// A GELU MLP `i -> hidden -> o` (`name.fc1`, `name.fc2`, each with a bias).
+pub fn mlp(p: &mut Params, name: &str, i: usize, hidden: usize, o: usize) -> Result<GeluMlp> {
+    let fc1 = linear(p, &format!("{name}.fc1"), i, hidden, true)?;
+    let fc2 = linear(p, &format!("{name}.fc2"), hidden, o, true)?;
+    GeluMlp::from_linears(fc1, fc2)
 }
 
-pub fn attention(store: &ParamStore, name: &str, heads: usize) -> Result<MultiHeadAttention> {
-    let l = |p: &str| linear(store, &format!("{name}.{p}"), false);
-    MultiHeadAttention::new(l("q")?, l("k")?, l("v")?, l("o")?, heads)?
-        .with_store_stacks(store, ["q", "k", "v"].map(|p| format!("{name}.{p}.w")))
-}
-
-pub fn ff_params(b: &mut ParamBuilder, name: &str, width: usize, ratio: usize) -> Result<()> {
-    b.add(&format!("{name}.norm"), &[width], Init::Ones)?;
-    linear_params(b, &format!("{name}.w1"), width, ratio * width, false)?;
-    linear_params(b, &format!("{name}.w3"), width, ratio * width, false)?;
-    linear_params(b, &format!("{name}.w2"), ratio * width, width, false)
-}
-
-pub fn ff(store: &ParamStore, name: &str) -> Result<FeedForward> {
-    let p = |s: &str| Param::from_store(store, &format!("{name}.{s}.w"));
-    Ok(FeedForward {
-        norm: norm(store, &format!("{name}.norm"))?,
-        ffn: SwiGlu::new(p("w1")?, p("w3")?, p("w2")?)?
-            .with_store_stack(store, [&format!("{name}.w1.w"), &format!("{name}.w3.w")])?,
-    })
+/// The pre-norm residual feed-forward of `width` features through `ratio * width` (`name.norm`,
+/// `.w1`, `.w3`, `.w2`), its two input products stacked where they can be.
+pub fn ff(p: &mut Params, name: &str, width: usize, ratio: usize) -> Result<FeedForward> {
+    let norm = norm(p, &format!("{name}.norm"), width)?;
+    let hidden = ratio * width;
+    let mut w = |m: &str, i: usize, o: usize| p.param(&format!("{name}.{m}.w"), &[i, o], Init::Xavier);
+    let (w1, w3, w2) = (w("w1", width, hidden)?, w("w3", width, hidden)?, w("w2", hidden, width)?);
+    let ffn = SwiGlu::new(w1, w3, w2)?.with_stack(p, [&format!("{name}.w1.w"), &format!("{name}.w3.w")])?;
+    Ok(FeedForward { norm, ffn })
 }
 
 impl FeedForward {
@@ -132,19 +131,20 @@ impl WindowLayout {
     }
 }
 
-/// Declares a window layer's parameters under `name`.
-pub fn window_layer_params(b: &mut ParamBuilder, name: &str, width: usize, ratio: usize) -> Result<()> {
-    b.add(&format!("{name}.norm"), &[width], Init::Ones)?;
-    attention_params(b, &format!("{name}.attn"), width)?;
-    ff_params(b, &format!("{name}.ff"), width, ratio)
-}
-
 impl WindowLayer {
-    pub fn new(store: &ParamStore, name: &str, heads: usize, shifted: bool) -> Result<WindowLayer> {
+    /// The layer under `name` (`.norm`, `.attn`, `.ff`), on the `shifted` window layout or not.
+    pub fn new(
+        p: &mut Params,
+        name: &str,
+        width: usize,
+        ratio: usize,
+        heads: usize,
+        shifted: bool,
+    ) -> Result<WindowLayer> {
         Ok(WindowLayer {
-            norm: norm(store, &format!("{name}.norm"))?,
-            attn: attention(store, &format!("{name}.attn"), heads)?,
-            ff: ff(store, &format!("{name}.ff"))?,
+            norm: norm(p, &format!("{name}.norm"), width)?,
+            attn: attention(p, &format!("{name}.attn"), width, width, heads)?,
+            ff: ff(p, &format!("{name}.ff"), width, ratio)?,
             shifted,
         })
     }

@@ -1,14 +1,12 @@
-//! Parameter counts of the models' parts, from the parameter declarations alone (no device
-//! memory): what `velox config NAME --params` prints, to compare configs.
+//! Parameter counts of the models' parts, from their declarations (the constructors run over
+//! stand-ins, see `crate::params`: a device is needed, but no parameter memory): what `velox
+//! config NAME --params` prints, to compare configs.
 
 use serde::Serialize;
-use velox_engine::Result;
+use velox_engine::{Gpu, Result};
 
 use crate::config::{AutoencoderConfig, VoxelConfig};
-use crate::params::ParamStore;
-use crate::velox::encoder::Encoder;
-use crate::velox::gaussians::GaussianDecoder;
-use crate::velox::surface::SurfaceDecoder;
+use crate::velox::autoencoder::Autoencoder;
 use crate::velox::voxels::VoxelDecoder;
 
 /// Scalar parameters of each part and of the whole model.
@@ -20,15 +18,16 @@ pub struct ParameterCounts {
     pub total: usize,
 }
 
-/// The parameter counts of an autoencoder of config `cfg` (checked first).
-pub fn parameter_counts(cfg: &AutoencoderConfig) -> Result<ParameterCounts> {
-    cfg.validate()?;
-    let (mut e, mut s, mut g) = (ParamStore::builder(), ParamStore::builder(), ParamStore::builder());
-    Encoder::register(&mut e, "encoder", &cfg.encoder)?;
-    SurfaceDecoder::register(&mut s, "surface", &cfg.surface, cfg.encoder.token_dim)?;
-    GaussianDecoder::register(&mut g, "gaussians", &cfg.gaussians, cfg.encoder.token_dim)?;
-    let (encoder, surface, gaussians) = (e.num_parameters(), s.num_parameters(), g.num_parameters());
-    Ok(ParameterCounts { encoder, surface, gaussians, total: encoder + surface + gaussians })
+/// The parameter counts of an autoencoder of config `cfg` (checked first), declared on `gpu`
+/// (nothing as large as a parameter is allocated).
+pub fn parameter_counts(gpu: &Gpu, cfg: &AutoencoderConfig) -> Result<ParameterCounts> {
+    let b = Autoencoder::declare(gpu, cfg)?;
+    let (encoder, surface, gaussians) = (
+        b.num_parameters_under("encoder."),
+        b.num_parameters_under("surface."),
+        b.num_parameters_under("gaussians."),
+    );
+    Ok(ParameterCounts { encoder, surface, gaussians, total: b.num_parameters() })
 }
 
 /// Scalar parameters of the voxel decoder's stages (the fine one with its voxel head) and in
@@ -40,11 +39,9 @@ pub struct VoxelParameterCounts {
     pub total: usize,
 }
 
-/// The parameter counts of a voxel decoder of config `cfg` (checked first).
-pub fn voxel_parameter_counts(cfg: &VoxelConfig) -> Result<VoxelParameterCounts> {
-    cfg.validate()?;
-    let mut b = ParamStore::builder();
-    VoxelDecoder::register(&mut b, cfg)?;
+/// The parameter counts of a voxel decoder of config `cfg` (checked first), declared on `gpu`.
+pub fn voxel_parameter_counts(gpu: &Gpu, cfg: &VoxelConfig) -> Result<VoxelParameterCounts> {
+    let b = VoxelDecoder::declare(gpu, cfg)?;
     let total = b.num_parameters();
     let coarse = b.num_parameters_under("coarse.");
     Ok(VoxelParameterCounts { coarse, fine: total - coarse, total })

@@ -28,7 +28,7 @@ use velox_engine::ops::gather::{gather, invert_permutation};
 use velox_engine::ops::scatter_add::scatter_add;
 use velox_engine::ops::window::{window_ids, WindowGrid};
 use velox_engine::rng::Rng;
-use velox_engine::{DType, Error, Gpu, Recorder, Result, Tensor};
+use velox_engine::{DType, Error, Recorder, Result, Tensor};
 
 use crate::config::EncoderConfig;
 use crate::layers::attention::{MultiHeadAttention, MultiHeadAttentionCache};
@@ -36,10 +36,9 @@ use crate::layers::fourier::FourierCache;
 use crate::layers::linear::LinearCache;
 use crate::layers::norm::RmsNormCache;
 use crate::layers::{Fourier, Linear, RmsNorm};
-use crate::params::{Init, ParamBuilder, ParamStore};
+use crate::params::Params;
 use crate::velox::blocks::{
-    attention, attention_params, ff, ff_params, linear, linear_params, norm, window_layer_params,
-    FeedForward, FeedForwardCache, WindowLayer, WindowLayerCache, WindowLayout,
+    attention, ff, linear, norm, FeedForward, FeedForwardCache, WindowLayer, WindowLayerCache, WindowLayout,
 };
 use velox_io::cloud::CHANNELS;
 
@@ -106,55 +105,35 @@ impl Encoder {
         (3 + 6 * cfg.xyz_freqs) + 3 + (1 + 2 * cfg.tau_freqs)
     }
 
-    /// Declares the encoder's parameters under `prefix`.
-    pub fn register(b: &mut ParamBuilder, prefix: &str, cfg: &EncoderConfig) -> Result<()> {
+    /// The encoder, its parameters under `prefix` (`.input`, `.block{i}`, `.out_norm`, `.out`).
+    pub fn new(p: &mut Params, prefix: &str, cfg: &EncoderConfig) -> Result<Encoder> {
         let w = cfg.width;
-        linear_params(b, &format!("{prefix}.input"), Self::feature_width(cfg), w, true)?;
-        for i in 0..cfg.perceiver_blocks {
-            let blk = format!("{prefix}.block{i}");
-            b.add(&format!("{blk}.norm_q"), &[w], Init::Ones)?;
-            b.add(&format!("{blk}.norm_kv"), &[w], Init::Ones)?;
-            attention_params(b, &format!("{blk}.cross"), w)?;
-            ff_params(b, &format!("{blk}.cross_ff"), w, cfg.ffn_ratio)?;
-            for l in 0..cfg.self_layers {
-                window_layer_params(b, &format!("{blk}.self{l}"), w, cfg.ffn_ratio)?;
-            }
-        }
-        b.add(&format!("{prefix}.out_norm"), &[w], Init::Ones)?;
-        linear_params(b, &format!("{prefix}.out"), w, cfg.token_dim, true)
-    }
-
-    /// The encoder over the parameters `register` declared.
-    pub fn new(gpu: &Gpu, store: &ParamStore, prefix: &str, cfg: &EncoderConfig) -> Result<Encoder> {
+        let gpu = p.gpu().clone();
+        let input = linear(p, &format!("{prefix}.input"), Self::feature_width(cfg), w, true)?;
         let mut blocks = Vec::new();
         for i in 0..cfg.perceiver_blocks {
             let blk = format!("{prefix}.block{i}");
-            let layers = (0..cfg.self_layers)
-                .map(|l| {
-                    WindowLayer::new(
-                        store,
-                        &format!("{blk}.self{l}"),
-                        cfg.heads,
-                        cfg.shift_windows && l % 2 == 1,
-                    )
-                })
-                .collect::<Result<Vec<_>>>()?;
             blocks.push(Block {
-                norm_q: norm(store, &format!("{blk}.norm_q"))?,
-                norm_kv: norm(store, &format!("{blk}.norm_kv"))?,
-                cross: attention(store, &format!("{blk}.cross"), cfg.heads)?,
-                cross_ff: ff(store, &format!("{blk}.cross_ff"))?,
-                layers,
+                norm_q: norm(p, &format!("{blk}.norm_q"), w)?,
+                norm_kv: norm(p, &format!("{blk}.norm_kv"), w)?,
+                cross: attention(p, &format!("{blk}.cross"), w, w, cfg.heads)?,
+                cross_ff: ff(p, &format!("{blk}.cross_ff"), w, cfg.ffn_ratio)?,
+                layers: (0..cfg.self_layers)
+                    .map(|l| {
+                        let shifted = cfg.shift_windows && l % 2 == 1;
+                        WindowLayer::new(p, &format!("{blk}.self{l}"), w, cfg.ffn_ratio, cfg.heads, shifted)
+                    })
+                    .collect::<Result<Vec<_>>>()?,
             });
         }
         Ok(Encoder {
             cfg: cfg.clone(),
-            fourier_xyz: Fourier::log_spaced(gpu, 3, cfg.xyz_freqs, cfg.xyz_max_octave, true)?,
-            fourier_tau: Fourier::log_spaced(gpu, 1, cfg.tau_freqs, cfg.tau_max_octave, true)?,
-            input: linear(store, &format!("{prefix}.input"), true)?,
+            fourier_xyz: Fourier::log_spaced(&gpu, 3, cfg.xyz_freqs, cfg.xyz_max_octave, true)?,
+            fourier_tau: Fourier::log_spaced(&gpu, 1, cfg.tau_freqs, cfg.tau_max_octave, true)?,
+            input,
             blocks,
-            out_norm: norm(store, &format!("{prefix}.out_norm"))?,
-            out: linear(store, &format!("{prefix}.out"), true)?,
+            out_norm: norm(p, &format!("{prefix}.out_norm"), w)?,
+            out: linear(p, &format!("{prefix}.out"), w, cfg.token_dim, true)?,
         })
     }
 

@@ -14,10 +14,10 @@
 
 use velox_engine::ops::gaussian_head::{head_backward, head_forward, HeadRange, RAW};
 use velox_engine::ops::raster::Gaussians;
-use velox_engine::{Gpu, Recorder, Result, Tensor};
+use velox_engine::{Recorder, Result, Tensor};
 
 use crate::config::GaussianConfig;
-use crate::params::{ParamBuilder, ParamStore};
+use crate::params::Params;
 pub use crate::velox::perceiver::VoxelFrames;
 use crate::velox::perceiver::{PerceiverCache, PerceiverShape, VoxelPerceiver};
 use velox_io::cloud::CHANNELS;
@@ -75,19 +75,16 @@ impl GaussianDecoder {
         }
     }
 
-    pub fn register(
-        b: &mut ParamBuilder,
+    /// The decoder, its parameters under `prefix`, reading `token_dim`-wide tokens.
+    pub fn new(
+        p: &mut Params,
         prefix: &str,
         cfg: &GaussianConfig,
         token_dim: usize,
-    ) -> Result<()> {
-        VoxelPerceiver::register(b, prefix, &Self::shape(cfg), token_dim)
-    }
-
-    pub fn new(gpu: &Gpu, store: &ParamStore, prefix: &str, cfg: &GaussianConfig) -> Result<GaussianDecoder> {
+    ) -> Result<GaussianDecoder> {
         Ok(GaussianDecoder {
             cfg: cfg.clone(),
-            trunk: VoxelPerceiver::new(gpu, store, prefix, &Self::shape(cfg))?,
+            trunk: VoxelPerceiver::new(p, prefix, &Self::shape(cfg), token_dim)?,
         })
     }
 

@@ -52,9 +52,9 @@ use crate::layers::norm::RmsNormCache;
 use crate::layers::{
     Fourier, GatedResidual, GeluMlp, Linear, Loss, Modulate, MultiHeadAttention, Param, RmsNorm,
 };
-use crate::params::{Init, ParamBuilder, ParamStore};
+use crate::params::{build, declare, Init, ParamBuilder, ParamStore, Params};
 use crate::train::{Losses, PassSeconds};
-use crate::velox::blocks::{TimeEmbedding, TimeEmbeddingCache};
+use crate::velox::blocks::{mlp, norm, TimeEmbedding, TimeEmbeddingCache};
 use crate::velox::dinov2::{PATCH, PATCH_VALUES};
 use crate::velox::surface::{integrate, Sampler};
 
@@ -65,7 +65,6 @@ pub const MODEL_KIND: &str = "velox generator";
 const BLOCK_ROLES: [&str; 6] =
     ["shift_attn", "scale_attn", "gate_attn", "shift_mlp", "scale_mlp", "gate_mlp"];
 const FINAL_ROLES: [&str; 2] = ["shift", "scale"];
-const NORM_EPS: f32 = 1e-6;
 
 /// A scene's condition: the RGB patches of its frames and, with DINOv2, their features.
 pub struct Condition {
@@ -154,6 +153,13 @@ pub struct GenerateSpec {
 pub struct Generator {
     pub cfg: GeneratorConfig,
     pub store: ParamStore,
+    net: Net,
+    pub adamw: AdamWConfig,
+    pass_seconds: PassSeconds,
+}
+
+/// The generator's layers, over its store's parameters.
+struct Net {
     input: Linear,
     positions: Param,
     time: TimeEmbedding,
@@ -167,92 +173,60 @@ pub struct Generator {
     /// `[frames * patches, 1 + 2 frame_freqs]`: Fourier(frame time) of every condition row of
     /// a scene.
     frame_embed: Tensor,
-    pub adamw: AdamWConfig,
-    pass_seconds: PassSeconds,
 }
 
-impl Generator {
-    /// Declares the parameters.
-    pub fn register(b: &mut ParamBuilder, cfg: &GeneratorConfig) -> Result<()> {
-        cfg.validate()?;
+impl Net {
+    fn new(p: &mut Params, cfg: &GeneratorConfig) -> Result<Net> {
+        let gpu = p.gpu().clone();
+        let gpu = &gpu;
         let (w, d) = (cfg.width, cfg.token_dim);
-        let hidden = cfg.mlp_ratio * w;
         let time = 1 + 2 * cfg.time_freqs;
-        let lin = |b: &mut ParamBuilder, name: &str, i: usize, o: usize, init: Init| -> Result<()> {
-            b.add(&format!("{name}.w"), &[i, o], init)?;
-            b.add(&format!("{name}.b"), &[o], Init::Zeros)
+        let lin = |p: &mut Params, name: &str, i: usize, o: usize, init: Init| -> Result<Linear> {
+            let w = p.param(&format!("{name}.w"), &[i, o], init)?;
+            Linear::new(w, Some(p.param(&format!("{name}.b"), &[o], Init::Zeros)?))
         };
-        lin(b, "input", d, w, Init::Xavier)?;
-        b.add("positions", &[cfg.tokens, w], Init::Zeros)?;
-        lin(b, "time.fc1", time, w, Init::Xavier)?;
-        lin(b, "time.fc2", w, w, Init::Xavier)?;
-        for r in BLOCK_ROLES {
-            lin(b, &format!("adaln.{r}"), w, w, Init::Zeros)?;
-        }
-        for r in FINAL_ROLES {
-            lin(b, &format!("final.adaln.{r}"), w, w, Init::Zeros)?;
-        }
-        lin(b, "rgb", PATCH_VALUES, cfg.rgb_width, Init::Xavier)?;
-        lin(b, "cond", cfg.cond_width(), w, Init::Xavier)?;
-        for i in 0..cfg.blocks {
-            let p = |s: &str| format!("blocks.{i}.{s}");
-            for n in ["norm1", "norm2", "norm3"] {
-                b.add(&p(n), &[w], Init::Ones)?;
-            }
-            for a in ["attn", "cross"] {
-                for m in ["q", "k", "v"] {
-                    b.add(&p(&format!("{a}.{m}.w")), &[w, w], Init::Xavier)?;
-                }
-                let o = if a == "cross" { Init::Zeros } else { Init::Xavier };
-                b.add(&p(&format!("{a}.o.w")), &[w, w], o)?;
-            }
-            lin(b, &p("mlp.fc1"), w, hidden, Init::Xavier)?;
-            lin(b, &p("mlp.fc2"), hidden, w, Init::Xavier)?;
-            for r in BLOCK_ROLES {
-                b.add(&p(&format!("table.{r}")), &[w], Init::Zeros)?;
-            }
-        }
-        b.add("final.norm", &[w], Init::Ones)?;
-        lin(b, "out", w, d, Init::Zeros)
-    }
-
-    /// A freshly initialised generator (parameters from `seed`).
-    pub fn new(gpu: &Gpu, cfg: &GeneratorConfig, seed: u64) -> Result<Generator> {
-        let mut b = ParamStore::builder();
-        Generator::register(&mut b, cfg)?;
-        let store = b.build(gpu, seed)?;
-        Generator::from_store(gpu, cfg, store)
-    }
-
-    fn from_store(gpu: &Gpu, cfg: &GeneratorConfig, store: ParamStore) -> Result<Generator> {
-        let p = |n: &str| Param::from_store(&store, n);
-        let lin = |n: &str, bias: bool| -> Result<Linear> {
-            Linear::new(p(&format!("{n}.w"))?, if bias { Some(p(&format!("{n}.b"))?) } else { None })
+        let input = lin(p, "input", d, w, Init::Xavier)?;
+        let positions = p.param("positions", &[cfg.tokens, w], Init::Zeros)?;
+        let time = TimeEmbedding {
+            fourier: Fourier::log_spaced(gpu, 1, cfg.time_freqs, cfg.time_max_octave, true)?,
+            fc1: lin(p, "time.fc1", time, w, Init::Xavier)?,
+            fc2: lin(p, "time.fc2", w, w, Init::Xavier)?,
         };
-        let norm = |n: &str| RmsNorm::new(p(n)?, NORM_EPS);
-        let attention = |n: &str| -> Result<MultiHeadAttention> {
-            let l = |m: &str| lin(&format!("{n}.{m}"), false);
-            MultiHeadAttention::new(l("q")?, l("k")?, l("v")?, l("o")?, cfg.heads)?
-                .with_store_stacks(&store, ["q", "k", "v"].map(|m| format!("{n}.{m}.w")))
+        let adaln = BLOCK_ROLES
+            .iter()
+            .map(|r| lin(p, &format!("adaln.{r}"), w, w, Init::Zeros))
+            .collect::<Result<_>>()?;
+        let final_adaln = FINAL_ROLES
+            .iter()
+            .map(|r| lin(p, &format!("final.adaln.{r}"), w, w, Init::Zeros))
+            .collect::<Result<_>>()?;
+        let rgb = lin(p, "rgb", PATCH_VALUES, cfg.rgb_width, Init::Xavier)?;
+        let cond_embed = lin(p, "cond", cfg.cond_width(), w, Init::Xavier)?;
+        // The cross-attention's output starts at zero: a block starts out ignoring the condition.
+        let attention = |p: &mut Params, name: &str, o: Init| -> Result<MultiHeadAttention> {
+            let mut l =
+                |m: &str, init: Init| Linear::new(p.param(&format!("{name}.{m}.w"), &[w, w], init)?, None);
+            let (q, k, v, o) =
+                (l("q", Init::Xavier)?, l("k", Init::Xavier)?, l("v", Init::Xavier)?, l("o", o)?);
+            MultiHeadAttention::new(q, k, v, o, cfg.heads)?
+                .with_stacks(p, ["q", "k", "v"].map(|m| format!("{name}.{m}.w")))
         };
         let mut blocks = Vec::with_capacity(cfg.blocks);
         for i in 0..cfg.blocks {
             let n = |s: &str| format!("blocks.{i}.{s}");
-            blocks.push(Block {
-                norm1: norm(&n("norm1"))?,
-                attn: attention(&n("attn"))?,
-                norm2: norm(&n("norm2"))?,
-                cross: attention(&n("cross"))?,
-                norm3: norm(&n("norm3"))?,
-                mlp: GeluMlp::new(
-                    p(&n("mlp.fc1.w"))?,
-                    p(&n("mlp.fc1.b"))?,
-                    p(&n("mlp.fc2.w"))?,
-                    p(&n("mlp.fc2.b"))?,
-                )?,
-                table: BLOCK_ROLES.iter().map(|r| p(&n(&format!("table.{r}")))).collect::<Result<_>>()?,
-            });
+            let [norm1, norm2, norm3] = [n("norm1"), n("norm2"), n("norm3")];
+            let (norm1, norm2, norm3) = (norm(p, &norm1, w)?, norm(p, &norm2, w)?, norm(p, &norm3, w)?);
+            let attn = attention(p, &n("attn"), Init::Xavier)?;
+            let cross = attention(p, &n("cross"), Init::Zeros)?;
+            let mlp = mlp(p, &n("mlp"), w, cfg.mlp_ratio * w, w)?;
+            let table = BLOCK_ROLES
+                .iter()
+                .map(|r| p.param(&n(&format!("table.{r}")), &[w], Init::Zeros))
+                .collect::<Result<_>>()?;
+            blocks.push(Block { norm1, attn, norm2, cross, norm3, mlp, table });
         }
+        let final_norm = norm(p, "final.norm", w)?;
+        let out = lin(p, "out", w, d, Init::Zeros)?;
         // Fourier(frame time) of every condition row: frame f of F at f / (F - 1).
         let side = cfg.image_size / PATCH;
         let frames = cfg.task.frames();
@@ -264,37 +238,40 @@ impl Generator {
         let (frame_embed, _) =
             frame_fourier.forward(&mut rec, &Tensor::from_slice(gpu, &[times.len(), 1], &times)?)?;
         rec.submit()?;
-        Ok(Generator {
-            input: lin("input", true)?,
-            positions: p("positions")?,
-            time: TimeEmbedding {
-                fourier: Fourier::log_spaced(gpu, 1, cfg.time_freqs, cfg.time_max_octave, true)?,
-                fc1: lin("time.fc1", true)?,
-                fc2: lin("time.fc2", true)?,
-            },
-            adaln: BLOCK_ROLES.iter().map(|r| lin(&format!("adaln.{r}"), true)).collect::<Result<_>>()?,
-            final_adaln: FINAL_ROLES
-                .iter()
-                .map(|r| lin(&format!("final.adaln.{r}"), true))
-                .collect::<Result<_>>()?,
+        Ok(Net {
+            input,
+            positions,
+            time,
+            adaln,
+            final_adaln,
             blocks,
-            final_norm: norm("final.norm")?,
-            out: lin("out", true)?,
-            rgb: lin("rgb", true)?,
-            cond_embed: lin("cond", true)?,
+            final_norm,
+            out,
+            rgb,
+            cond_embed,
             frame_embed,
+        })
+    }
+}
+
+impl Generator {
+    /// A freshly initialised generator (parameters from `seed`).
+    pub fn new(gpu: &Gpu, cfg: &GeneratorConfig, seed: u64) -> Result<Generator> {
+        cfg.validate()?;
+        let (net, store) = build(gpu, seed, |p| Net::new(p, cfg))?;
+        Ok(Generator {
             cfg: cfg.clone(),
             store,
+            net,
             adamw: AdamWConfig::default(),
             pass_seconds: PassSeconds::default(),
         })
     }
 
-    /// Parameters of a config, without building it.
-    pub fn num_parameters(cfg: &GeneratorConfig) -> Result<usize> {
-        let mut b = ParamStore::builder();
-        Generator::register(&mut b, cfg)?;
-        Ok(b.num_parameters())
+    /// The parameters a config declares, without allocating them.
+    pub fn declare(gpu: &Gpu, cfg: &GeneratorConfig) -> Result<ParamBuilder> {
+        cfg.validate()?;
+        declare(gpu, |p| Net::new(p, cfg))
     }
 
     /// Condition rows of one scene.
@@ -342,7 +319,7 @@ impl Generator {
         let gpu = rec.gpu().clone();
         let (rows, b) = (self.cond_rows(), conditions.len());
         let n = rows * b;
-        let (dw, rw, fw) = (self.cfg.dino_width, self.cfg.rgb_width, self.frame_embed.shape()[1]);
+        let (dw, rw, fw) = (self.cfg.dino_width, self.cfg.rgb_width, self.net.frame_embed.shape()[1]);
         let stack = |rec: &mut Recorder, parts: &[&Tensor], width: usize| -> Result<Tensor> {
             let all = Tensor::empty(&gpu, &[n, width], DType::F32)?;
             for (s, t) in parts.iter().enumerate() {
@@ -351,7 +328,7 @@ impl Generator {
             Ok(all)
         };
         let patches = stack(rec, &conditions.iter().map(|c| &c.patches).collect::<Vec<_>>(), PATCH_VALUES)?;
-        let (rgb, rgb_cache) = self.rgb.forward(rec, &patches)?;
+        let (rgb, rgb_cache) = self.net.rgb.forward(rec, &patches)?;
         let big = Tensor::empty(&gpu, &[n, self.cfg.cond_width()], DType::F32)?;
         if dw > 0 {
             let dino: Vec<&Tensor> = conditions.iter().map(|c| c.dino.as_ref().expect("checked")).collect();
@@ -359,14 +336,14 @@ impl Generator {
             copy_columns(rec, &dino, 0, &big, 0, dw, 1.0)?;
         }
         copy_columns(rec, &rgb, 0, &big, dw, rw, 1.0)?;
-        let frames = stack(rec, &vec![&self.frame_embed; b], fw)?;
+        let frames = stack(rec, &vec![&self.net.frame_embed; b], fw)?;
         copy_columns(rec, &frames, 0, &big, dw + rw, fw, 1.0)?;
         let mask: Vec<f32> = keep.iter().flat_map(|&k| std::iter::repeat_n(k as u8 as f32, rows)).collect();
         let mask_t = Tensor::from_slice(&gpu, &[n, 1], &mask)?;
         if keep.contains(&false) {
             binary_into(rec, &big, &mask_t, &big, Binary::Mul)?;
         }
-        let (c, embed) = self.cond_embed.forward(rec, &big)?;
+        let (c, embed) = self.net.cond_embed.forward(rec, &big)?;
         Ok((c, CondCache { rgb: rgb_cache, embed, keep: mask_t }))
     }
 
@@ -403,22 +380,23 @@ impl Generator {
         let self_seg = Segments::from_lengths(&gpu, &vec![k; b], &vec![k; b])?;
         let cross_seg = Segments::from_lengths(&gpu, &vec![k; b], cond_lens)?;
 
-        let (e, time) = self.time.forward(rec, t)?;
+        let (e, time) = self.net.time.forward(rec, t)?;
         let mut e_cache = None;
         let mut modulation = |rec: &mut Recorder, l: &Linear| -> Result<Tensor> {
             let (m, c) = l.forward(rec, &e)?;
             e_cache.get_or_insert(c);
             Ok(m)
         };
-        let shared: Vec<Tensor> = self.adaln.iter().map(|l| modulation(rec, l)).collect::<Result<_>>()?;
-        let fin: Vec<Tensor> = self.final_adaln.iter().map(|l| modulation(rec, l)).collect::<Result<_>>()?;
+        let shared: Vec<Tensor> = self.net.adaln.iter().map(|l| modulation(rec, l)).collect::<Result<_>>()?;
+        let fin: Vec<Tensor> =
+            self.net.final_adaln.iter().map(|l| modulation(rec, l)).collect::<Result<_>>()?;
 
-        let (h, input) = self.input.forward(rec, x_t)?;
+        let (h, input) = self.net.input.forward(rec, x_t)?;
         let mut h = h.reshape(&[b, k, w])?;
-        binary_into(rec, &h, &self.positions.value, &h, Binary::Add)?;
+        binary_into(rec, &h, &self.net.positions.value, &h, Binary::Add)?;
 
-        let mut blocks = Vec::with_capacity(self.blocks.len());
-        for (i, blk) in self.blocks.iter().enumerate() {
+        let mut blocks = Vec::with_capacity(self.net.blocks.len());
+        for (i, blk) in self.net.blocks.iter().enumerate() {
             let m: Vec<Tensor> = shared
                 .iter()
                 .zip(&blk.table)
@@ -458,9 +436,9 @@ impl Generator {
             });
             h = h3;
         }
-        let (nf, final_norm) = self.final_norm.forward(rec, &h)?;
+        let (nf, final_norm) = self.net.final_norm.forward(rec, &h)?;
         let (mf, mod_final) = Modulate.forward(rec, &nf, &fin[0], &fin[1])?;
-        let (v, out) = self.out.forward(rec, &mf.reshape(&[b * k, w])?)?;
+        let (v, out) = self.net.out.forward(rec, &mf.reshape(&[b * k, w])?)?;
         let cache = GenCache {
             b,
             self_seg,
@@ -502,10 +480,10 @@ impl Generator {
         };
         let mut dctx_started = false;
 
-        let dmf = self.out.backward(rec, &cache.out, dv)?;
+        let dmf = self.net.out.backward(rec, &cache.out, dv)?;
         let gf = Modulate.backward(rec, &cache.mod_final, &dmf.reshape(&[b, k, w])?)?;
-        let mut dh = self.final_norm.backward(rec, &cache.final_norm, &gf.dx)?;
-        for (blk, c) in self.blocks.iter().zip(&cache.blocks).rev() {
+        let mut dh = self.net.final_norm.backward(rec, &cache.final_norm, &gf.dx)?;
+        for (blk, c) in self.net.blocks.iter().zip(&cache.blocks).rev() {
             // MLP branch.
             let r3 = GatedResidual.backward(rec, &c.res3, &dh)?;
             add_role(rec, blk, 5, &r3.dgate)?;
@@ -542,24 +520,28 @@ impl Generator {
         }
         // Positions and input.
         let dpos = reduce(rec, &dh, 0, Reduce::Sum)?;
-        binary_into(rec, &self.positions.grad, &dpos, &self.positions.grad, Binary::Add)?;
-        self.input.param_grads(rec, &cache.input, &dh.reshape(&[b * k, w])?)?;
+        binary_into(rec, &self.net.positions.grad, &dpos, &self.net.positions.grad, Binary::Add)?;
+        self.net.input.param_grads(rec, &cache.input, &dh.reshape(&[b * k, w])?)?;
         // The modulations and the time embedding they read.
         let de = Tensor::empty(&gpu, &[b, w], DType::F32)?;
         let mut de_started = false;
-        let roles =
-            self.adaln.iter().zip(&dshared).chain(self.final_adaln.iter().zip([&gf.dshift, &gf.dscale]));
+        let roles = self
+            .net
+            .adaln
+            .iter()
+            .zip(&dshared)
+            .chain(self.net.final_adaln.iter().zip([&gf.dshift, &gf.dscale]));
         for (l, dm) in roles {
             l.grads_into(rec, &cache.e, dm, &de, de_started)?;
             de_started = true;
         }
-        self.time.backward(rec, &cache.time, &de)?;
+        self.net.time.backward(rec, &cache.time, &de)?;
         // The condition: its projection, the null rows masked, the RGB embedding's columns.
         if let (Some(cc), Some(dctx)) = (&cache.cond, &dctx) {
-            let dbig = self.cond_embed.backward(rec, &cc.embed, dctx)?;
+            let dbig = self.net.cond_embed.backward(rec, &cc.embed, dctx)?;
             binary_into(rec, &dbig, &cc.keep, &dbig, Binary::Mul)?;
             let drgb = columns(rec, &dbig, self.cfg.dino_width, self.cfg.rgb_width, 1.0)?;
-            self.rgb.param_grads(rec, &cc.rgb, &drgb)?;
+            self.net.rgb.param_grads(rec, &cc.rgb, &drgb)?;
         }
         Ok(())
     }
@@ -686,7 +668,7 @@ impl Generator {
         let (ctx, lens) = if guided {
             let zero =
                 Tensor::from_slice(&gpu, &[1, self.cfg.cond_width()], &vec![0.0f32; self.cfg.cond_width()])?;
-            let (null, _) = self.cond_embed.forward(&mut rec, &zero)?;
+            let (null, _) = self.net.cond_embed.forward(&mut rec, &zero)?;
             let both = Tensor::empty(&gpu, &[rows + 1, self.cfg.width], DType::F32)?;
             rec.copy_rows(&ctx, 0, &both, 0, rows)?;
             rec.copy_rows(&null, 0, &both, rows, 1)?;
@@ -695,7 +677,7 @@ impl Generator {
             (ctx, vec![rows])
         };
         let kv: Vec<(Tensor, Tensor)> =
-            self.blocks.iter().map(|b| b.cross.context_kv(&mut rec, &ctx)).collect::<Result<_>>()?;
+            self.net.blocks.iter().map(|b| b.cross.context_kv(&mut rec, &ctx)).collect::<Result<_>>()?;
         rec.submit()?;
         let batch = lens.len();
         let x0 = Tensor::from_slice(&gpu, &[k, d], &Rng::new(spec.seed).normal_vec(k * d))?;

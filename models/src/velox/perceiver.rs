@@ -26,11 +26,10 @@ use crate::layers::attention::{MultiHeadAttention, MultiHeadAttentionCache};
 use crate::layers::feedforward::{GeluMlp, GeluMlpCache};
 use crate::layers::linear::LinearCache;
 use crate::layers::norm::RmsNormCache;
-use crate::layers::{Fourier, Linear, Param, RmsNorm};
-use crate::params::{Init, ParamBuilder, ParamStore};
+use crate::layers::{Fourier, Linear, RmsNorm};
+use crate::params::{Init, Params};
 use crate::velox::blocks::{
-    ff, ff_params, linear, linear_params, norm, window_layer_params, FeedForward, FeedForwardCache,
-    WindowLayer, WindowLayerCache, WindowLayout,
+    attention, ff, linear, norm, FeedForward, FeedForwardCache, WindowLayer, WindowLayerCache, WindowLayout,
 };
 
 /// The sizes of a [`VoxelPerceiver`].
@@ -88,12 +87,19 @@ enum DenseCache {
 }
 
 impl Dense {
-    fn new(store: &ParamStore, name: &str, hidden: usize) -> Result<Dense> {
+    /// `name` as a linear layer `i -> o` (no hidden width) or a GELU MLP `i -> hidden -> o`
+    /// (`.fc1`, `.fc2`), each with a bias; the last layer's weights start from `last`, the
+    /// others' from Xavier, the biases at zero.
+    fn new(p: &mut Params, name: &str, i: usize, hidden: usize, o: usize, last: Init) -> Result<Dense> {
+        let out = |p: &mut Params, name: &str, i: usize| {
+            let w = p.param(&format!("{name}.w"), &[i, o], last)?;
+            Linear::new(w, Some(p.param(&format!("{name}.b"), &[o], Init::Zeros)?))
+        };
         Ok(match hidden {
-            0 => Dense::Linear(linear(store, name, true)?),
-            _ => {
-                let p = |l: &str, x: &str| Param::from_store(store, &format!("{name}.{l}.{x}"));
-                Dense::Mlp(GeluMlp::new(p("fc1", "w")?, p("fc1", "b")?, p("fc2", "w")?, p("fc2", "b")?)?)
+            0 => Dense::Linear(out(p, name, i)?),
+            h => {
+                let fc1 = linear(p, &format!("{name}.fc1"), i, h, true)?;
+                Dense::Mlp(GeluMlp::from_linears(fc1, out(p, &format!("{name}.fc2"), h)?)?)
             }
         })
     }
@@ -126,13 +132,6 @@ impl Dense {
             _ => Err(Error::Invalid("gaussian decoder: a cache of another layer".into())),
         }
     }
-}
-
-fn attention_params(b: &mut ParamBuilder, name: &str, width: usize, context: usize) -> Result<()> {
-    linear_params(b, &format!("{name}.q"), width, width, false)?;
-    linear_params(b, &format!("{name}.k"), context, width, false)?;
-    linear_params(b, &format!("{name}.v"), context, width, false)?;
-    linear_params(b, &format!("{name}.o"), width, width, false)
 }
 
 struct Block {
@@ -178,72 +177,56 @@ impl VoxelPerceiver {
         (3 + 6 * shape.xyz_freqs) + (1 + 2 * shape.tau_freqs) + shape.query_features
     }
 
-    /// Declares the parameters under `prefix`: `input`, `block{i}`, `head_norm`, `head`.
-    pub fn register(
-        b: &mut ParamBuilder,
+    /// The perceiver, its parameters under `prefix` (`.input`, `.block{i}`, `.head_norm`,
+    /// `.head`), attending to `token_dim`-wide tokens.
+    pub fn new(
+        p: &mut Params,
         prefix: &str,
         shape: &PerceiverShape,
         token_dim: usize,
-    ) -> Result<()> {
-        let w = shape.width;
-        let input = format!("{prefix}.input");
-        match shape.input_hidden {
-            0 => linear_params(b, &input, Self::feature_width(shape), w, true)?,
-            h => {
-                linear_params(b, &format!("{input}.fc1"), Self::feature_width(shape), h, true)?;
-                linear_params(b, &format!("{input}.fc2"), h, w, true)?;
-            }
-        }
-        for i in 0..shape.blocks {
-            let blk = format!("{prefix}.block{i}");
-            b.add(&format!("{blk}.norm_q"), &[w], Init::Ones)?;
-            attention_params(b, &format!("{blk}.cross"), w, token_dim)?;
-            ff_params(b, &format!("{blk}.cross_ff"), w, shape.ffn_ratio)?;
-            for l in 0..shape.self_layers {
-                window_layer_params(b, &format!("{blk}.self{l}"), w, shape.ffn_ratio)?;
-            }
-        }
-        b.add(&format!("{prefix}.head_norm"), &[w], Init::Ones)?;
-        let head = format!("{prefix}.head");
-        let last = match shape.head_hidden {
-            0 => head,
-            h => {
-                linear_params(b, &format!("{head}.fc1"), w, h, true)?;
-                format!("{head}.fc2")
-            }
-        };
-        let fan_in = if shape.head_hidden == 0 { w } else { shape.head_hidden };
-        b.add(&format!("{last}.w"), &[fan_in, shape.out], Init::Normal { std: shape.head_std })?;
-        b.add(&format!("{last}.b"), &[shape.out], Init::Zeros)
-    }
-
-    /// The perceiver over the parameters `register` declared.
-    pub fn new(
-        gpu: &Gpu,
-        store: &ParamStore,
-        prefix: &str,
-        shape: &PerceiverShape,
     ) -> Result<VoxelPerceiver> {
+        let w = shape.width;
+        let gpu = p.gpu().clone();
+        let input = Dense::new(
+            p,
+            &format!("{prefix}.input"),
+            Self::feature_width(shape),
+            shape.input_hidden,
+            w,
+            Init::Xavier,
+        )?;
         let mut blocks = Vec::new();
         for i in 0..shape.blocks {
             let blk = format!("{prefix}.block{i}");
             blocks.push(Block {
-                norm_q: norm(store, &format!("{blk}.norm_q"))?,
-                cross: crate::velox::blocks::attention(store, &format!("{blk}.cross"), shape.heads)?,
-                cross_ff: ff(store, &format!("{blk}.cross_ff"))?,
+                norm_q: norm(p, &format!("{blk}.norm_q"), w)?,
+                cross: attention(p, &format!("{blk}.cross"), w, token_dim, shape.heads)?,
+                cross_ff: ff(p, &format!("{blk}.cross_ff"), w, shape.ffn_ratio)?,
                 layers: (0..shape.self_layers)
-                    .map(|s| WindowLayer::new(store, &format!("{blk}.self{s}"), shape.heads, s % 2 == 1))
+                    .map(|s| {
+                        WindowLayer::new(
+                            p,
+                            &format!("{blk}.self{s}"),
+                            w,
+                            shape.ffn_ratio,
+                            shape.heads,
+                            s % 2 == 1,
+                        )
+                    })
                     .collect::<Result<Vec<_>>>()?,
             });
         }
+        let head_norm = norm(p, &format!("{prefix}.head_norm"), w)?;
+        let head_init = Init::Normal { std: shape.head_std };
+        let head = Dense::new(p, &format!("{prefix}.head"), w, shape.head_hidden, shape.out, head_init)?;
         Ok(VoxelPerceiver {
             shape: *shape,
-            fourier_xyz: Fourier::octaves(gpu, 3, shape.xyz_freqs, true)?,
-            fourier_tau: Fourier::octaves(gpu, 1, shape.tau_freqs, true)?,
-            input: Dense::new(store, &format!("{prefix}.input"), shape.input_hidden)?,
+            fourier_xyz: Fourier::octaves(&gpu, 3, shape.xyz_freqs, true)?,
+            fourier_tau: Fourier::octaves(&gpu, 1, shape.tau_freqs, true)?,
+            input,
             blocks,
-            head_norm: norm(store, &format!("{prefix}.head_norm"))?,
-            head: Dense::new(store, &format!("{prefix}.head"), shape.head_hidden)?,
+            head_norm,
+            head,
         })
     }
 

@@ -40,11 +40,9 @@ use crate::layers::attention::MultiHeadAttentionCache;
 use crate::layers::feedforward::GeluMlpCache;
 use crate::layers::linear::{LinearCache, LinearStack};
 use crate::layers::norm::LayerNormCache;
-use crate::layers::{
-    Fourier, GatedResidual, GeluMlp, LayerNorm, Linear, Loss, Modulate, MultiHeadAttention, Param,
-};
-use crate::params::{Init, ParamBuilder, ParamStore};
-use crate::velox::blocks::{TimeEmbedding, TimeEmbeddingCache};
+use crate::layers::{Fourier, GatedResidual, GeluMlp, LayerNorm, Linear, Loss, Modulate, MultiHeadAttention};
+use crate::params::{build, Init, ParamStore, Params};
+use crate::velox::blocks::{attention, linear, mlp, TimeEmbedding, TimeEmbeddingCache};
 
 /// LayerNorm epsilon under adaLN (DiT's value).
 const LN_EPS: f32 = 1e-6;
@@ -111,15 +109,17 @@ struct Modulation {
 }
 
 impl Modulation {
-    fn new(store: &ParamStore, bases: &[String]) -> Result<Modulation> {
-        let names = |suffix: &str| bases.iter().map(|b| format!("{b}.{suffix}")).collect::<Vec<_>>();
-        let (w, b) = (names("w"), names("b"));
-        let linears = w
+    /// The linears `bases[i]` (`.w [input, width]`, `.b [width]`), all starting at zero.
+    fn new(p: &mut Params, bases: &[String], input: usize, width: usize) -> Result<Modulation> {
+        let linears = bases
             .iter()
-            .zip(&b)
-            .map(|(w, b)| Linear::new(Param::from_store(store, w)?, Some(Param::from_store(store, b)?)))
+            .map(|base| {
+                let w = p.param(&format!("{base}.w"), &[input, width], Init::Zeros)?;
+                Linear::new(w, Some(p.param(&format!("{base}.b"), &[width], Init::Zeros)?))
+            })
             .collect::<Result<Vec<_>>>()?;
-        let stack = match (store.stacked(&w)?, store.stacked(&b)?) {
+        let names = |suffix: &str| bases.iter().map(|b| format!("{b}.{suffix}")).collect::<Vec<_>>();
+        let stack = match (p.stacked(&names("w"))?, p.stacked(&names("b"))?) {
             (Some(w), Some(b)) => Some(LinearStack::new(w, Some(b))?),
             _ => None,
         };
@@ -377,106 +377,59 @@ fn check_velocity(x: &Tensor, v: &Tensor) -> Result<()> {
 }
 
 impl SurfaceDecoder {
-    /// Declares the decoder's parameters under `prefix` (names `prefix.input.w`, ...).
-    pub fn register(b: &mut ParamBuilder, prefix: &str, cfg: &SurfaceConfig, token_dim: usize) -> Result<()> {
-        check_config(cfg, token_dim)?;
-        let (xyz, tau, time) = feature_widths(cfg);
-        let w = cfg.width;
-        let te = cfg.time_embed;
-        let hidden = cfg.mlp_ratio * w;
-        let name = |s: &str| format!("{prefix}.{s}");
-        // Glorot over the whole input linear, whose rows are split into two parameters.
-        let a = (6.0 / (xyz + tau + w) as f64).sqrt();
-        b.add(&name("input.w"), &[xyz, w], Init::Uniform { lo: -a, hi: a })?;
-        b.add(&name("input.b"), &[w], Init::Zeros)?;
-        if tau > 0 {
-            b.add(&name("input_tau.w"), &[tau, w], Init::Uniform { lo: -a, hi: a })?;
-        }
-        b.add(&name("time.fc1.w"), &[time, te], Init::Xavier)?;
-        b.add(&name("time.fc1.b"), &[te], Init::Zeros)?;
-        b.add(&name("time.fc2.w"), &[te, te], Init::Xavier)?;
-        b.add(&name("time.fc2.b"), &[te], Init::Zeros)?;
-        let adaln = |b: &mut ParamBuilder, p: &str| -> Result<()> {
-            b.add(&format!("{p}.w"), &[te, w], Init::Zeros)?;
-            b.add(&format!("{p}.b"), &[w], Init::Zeros)
-        };
-        for i in 0..cfg.blocks {
-            let blk = |s: &str| name(&format!("blocks.{i}.{s}"));
-            b.add(&blk("attn.q.w"), &[w, w], Init::Xavier)?;
-            b.add(&blk("attn.k.w"), &[token_dim, w], Init::Xavier)?;
-            b.add(&blk("attn.v.w"), &[token_dim, w], Init::Xavier)?;
-            b.add(&blk("attn.o.w"), &[w, w], Init::Xavier)?;
-            b.add(&blk("mlp.fc1.w"), &[w, hidden], Init::Xavier)?;
-            b.add(&blk("mlp.fc1.b"), &[hidden], Init::Zeros)?;
-            b.add(&blk("mlp.fc2.w"), &[hidden, w], Init::Xavier)?;
-            b.add(&blk("mlp.fc2.b"), &[w], Init::Zeros)?;
-            for role in BLOCK_ROLES {
-                adaln(b, &blk(&format!("adaln.{role}")))?;
-            }
-        }
-        for role in FINAL_ROLES {
-            adaln(b, &name(&format!("final.adaln.{role}")))?;
-        }
-        b.add(&name("out.w"), &[w, 3], Init::Zeros)?;
-        b.add(&name("out.b"), &[3], Init::Zeros)
-    }
-
-    /// Builds the decoder from the parameters [`SurfaceDecoder::register`] declared.
+    /// The decoder, its parameters under `prefix` (`.input`, `.time`, `.blocks.{i}`, `.final`,
+    /// `.out`), reading `token_dim`-wide tokens.
     pub fn new(
-        store: &ParamStore,
+        p: &mut Params,
         prefix: &str,
         cfg: &SurfaceConfig,
         token_dim: usize,
     ) -> Result<SurfaceDecoder> {
         check_config(cfg, token_dim)?;
-        let gpu = store.flat_params().gpu().clone();
-        let p = |s: &str| Param::from_store(store, &format!("{prefix}.{s}"));
-        let lin = |w: &str, b: Option<&str>| -> Result<Linear> { Linear::new(p(w)?, b.map(p).transpose()?) };
-        let adaln = |bases: Vec<String>| {
-            Modulation::new(store, &bases.iter().map(|b| format!("{prefix}.{b}")).collect::<Vec<_>>())
+        let gpu = p.gpu().clone();
+        let (xyz, tau, time) = feature_widths(cfg);
+        let (w, te) = (cfg.width, cfg.time_embed);
+        let name = |s: &str| format!("{prefix}.{s}");
+        // Glorot over the whole input linear, whose rows are split into two parameters.
+        let a = (6.0 / (xyz + tau + w) as f64).sqrt();
+        let glorot = Init::Uniform { lo: -a, hi: a };
+        let input_w = p.param(&name("input.w"), &[xyz, w], glorot)?;
+        let input = Linear::new(input_w, Some(p.param(&name("input.b"), &[w], Init::Zeros)?))?;
+        let input_tau = (tau > 0)
+            .then(|| Linear::new(p.param(&name("input_tau.w"), &[tau, w], glorot)?, None))
+            .transpose()?;
+        let time = TimeEmbedding {
+            fourier: Fourier::log_spaced(&gpu, 1, cfg.time_freqs, cfg.time_max_octave, true)?,
+            fc1: linear(p, &name("time.fc1"), time, te, true)?,
+            fc2: linear(p, &name("time.fc2"), te, te, true)?,
         };
+        let roles =
+            |base: String, roles: &[&str]| roles.iter().map(|r| format!("{base}.{r}")).collect::<Vec<_>>();
         let mut blocks = Vec::with_capacity(cfg.blocks);
         for i in 0..cfg.blocks {
-            let blk = |s: &str| format!("blocks.{i}.{s}");
-            let attn = MultiHeadAttention::new(
-                lin(&blk("attn.q.w"), None)?,
-                lin(&blk("attn.k.w"), None)?,
-                lin(&blk("attn.v.w"), None)?,
-                lin(&blk("attn.o.w"), None)?,
-                cfg.heads,
-            )?
-            .with_store_stacks(
-                store,
-                ["q", "k", "v"].map(|r| format!("{prefix}.{}", blk(&format!("attn.{r}.w")))),
-            )?;
-            let mlp = GeluMlp::new(
-                p(&blk("mlp.fc1.w"))?,
-                p(&blk("mlp.fc1.b"))?,
-                p(&blk("mlp.fc2.w"))?,
-                p(&blk("mlp.fc2.b"))?,
-            )?;
-            let adaln = adaln(BLOCK_ROLES.iter().map(|r| blk(&format!("adaln.{r}"))).collect())?;
-            blocks.push(Block { attn, mlp, adaln });
+            let blk = |s: &str| name(&format!("blocks.{i}.{s}"));
+            blocks.push(Block {
+                attn: attention(p, &blk("attn"), w, token_dim, cfg.heads)?,
+                mlp: mlp(p, &blk("mlp"), w, cfg.mlp_ratio * w, w)?,
+                adaln: Modulation::new(p, &roles(blk("adaln"), &BLOCK_ROLES), te, w)?,
+            });
         }
-        let tau_fourier = (cfg.tau_freqs > 0)
-            .then(|| Fourier::log_spaced(&gpu, 1, cfg.tau_freqs, cfg.tau_max_octave, false))
-            .transpose()?;
-        let input_tau = (cfg.tau_freqs > 0).then(|| lin("input_tau.w", None)).transpose()?;
+        let final_adaln = Modulation::new(p, &roles(name("final.adaln"), &FINAL_ROLES), te, w)?;
+        let out_w = p.param(&name("out.w"), &[w, 3], Init::Zeros)?;
+        let out = Linear::new(out_w, Some(p.param(&name("out.b"), &[3], Init::Zeros)?))?;
         Ok(SurfaceDecoder {
             cfg: cfg.clone(),
             token_dim,
             xyz_fourier: Fourier::log_spaced(&gpu, 3, cfg.xyz_freqs, cfg.xyz_max_octave, true)?,
-            tau_fourier,
-            input: lin("input.w", Some("input.b"))?,
+            tau_fourier: (cfg.tau_freqs > 0)
+                .then(|| Fourier::log_spaced(&gpu, 1, cfg.tau_freqs, cfg.tau_max_octave, false))
+                .transpose()?,
+            input,
             input_tau,
-            time: TimeEmbedding {
-                fourier: Fourier::log_spaced(&gpu, 1, cfg.time_freqs, cfg.time_max_octave, true)?,
-                fc1: lin("time.fc1.w", Some("time.fc1.b"))?,
-                fc2: lin("time.fc2.w", Some("time.fc2.b"))?,
-            },
+            time,
             blocks,
-            final_adaln: adaln(FINAL_ROLES.iter().map(|r| format!("final.adaln.{r}")).collect())?,
-            out: lin("out.w", Some("out.b"))?,
+            final_adaln,
+            out,
             norm: LayerNorm::new(cfg.width, None, LN_EPS)?,
         })
     }
@@ -488,10 +441,7 @@ impl SurfaceDecoder {
         token_dim: usize,
         seed: u64,
     ) -> Result<(ParamStore, SurfaceDecoder)> {
-        let mut b = ParamStore::builder();
-        SurfaceDecoder::register(&mut b, "surface", cfg, token_dim)?;
-        let store = b.build(gpu, seed)?;
-        let dec = SurfaceDecoder::new(&store, "surface", cfg, token_dim)?;
+        let (dec, store) = build(gpu, seed, |p| SurfaceDecoder::new(p, "surface", cfg, token_dim))?;
         Ok((store, dec))
     }
 

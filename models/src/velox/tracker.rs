@@ -24,7 +24,7 @@ use velox_engine::{DType, Error, Gpu, Recorder, Result, Tensor};
 
 use crate::config::{TrackLoss, TrackerConfig};
 use crate::layers::{Fourier, Loss};
-use crate::params::{ParamBuilder, ParamStore};
+use crate::params::{build, declare, ParamBuilder, ParamStore, Params};
 use crate::train::{Losses, PassSeconds};
 use crate::velox::autoencoder::FRAMES;
 use crate::velox::perceiver::{PerceiverShape, VoxelFrames, VoxelPerceiver};
@@ -135,9 +135,15 @@ impl Tracker {
         cfg.token_dim + if cfg.token_positions { fourier_width(4, cfg.xyz_freqs, true) } else { 0 }
     }
 
-    /// Declares the parameters (`trunk.*`).
-    pub fn register(b: &mut ParamBuilder, cfg: &TrackerConfig) -> Result<()> {
-        VoxelPerceiver::register(b, "trunk", &Self::shape(cfg), Self::context_width(cfg))
+    /// The trunk (`trunk.*`, the tracker's only parameters).
+    fn trunk(p: &mut Params, cfg: &TrackerConfig) -> Result<VoxelPerceiver> {
+        VoxelPerceiver::new(p, "trunk", &Self::shape(cfg), Self::context_width(cfg))
+    }
+
+    /// The parameters a config declares, without allocating them.
+    pub fn declare(gpu: &Gpu, cfg: &TrackerConfig) -> Result<ParamBuilder> {
+        cfg.validate()?;
+        declare(gpu, |p| Self::trunk(p, cfg))
     }
 
     /// The cross-attention's context `[k, context]` of one scene (or a batch's, one after
@@ -157,10 +163,7 @@ impl Tracker {
     /// A freshly initialised tracker (parameters from `seed`).
     pub fn new(gpu: &Gpu, cfg: &TrackerConfig, seed: u64) -> Result<Tracker> {
         cfg.validate()?;
-        let mut b = ParamStore::builder();
-        Self::register(&mut b, cfg)?;
-        let store = b.build(gpu, seed)?;
-        let trunk = VoxelPerceiver::new(gpu, &store, "trunk", &Self::shape(cfg))?;
+        let (trunk, store) = build(gpu, seed, |p| Self::trunk(p, cfg))?;
         let token_fourier =
             if cfg.token_positions { Some(Fourier::octaves(gpu, 4, cfg.xyz_freqs, true)?) } else { None };
         Ok(Tracker {

@@ -15,10 +15,10 @@ use velox_engine::{DType, Error, Gpu, Result, Tensor};
 use crate::config::{OccupancyLoss, VoxelConfig, VoxelStageConfig};
 use crate::layers::linear::LinearCache;
 use crate::layers::{Fourier, Linear, Loss};
-use crate::params::{ParamBuilder, ParamStore};
+use crate::params::{build, declare, ParamBuilder, ParamStore, Params};
 use crate::train::{Losses, PassSeconds};
 use crate::velox::autoencoder::tau_of;
-use crate::velox::blocks::{linear, linear_params};
+use crate::velox::blocks::linear;
 use crate::velox::perceiver::{PerceiverShape, VoxelFrames, VoxelPerceiver};
 
 /// Side of the occupancy grid over [-1, 1]^3 the data stores and the decoder predicts.
@@ -202,13 +202,12 @@ fn fine_out(cfg: &VoxelConfig) -> usize {
 }
 
 impl VoxelHead {
-    fn register(b: &mut ParamBuilder, prefix: &str, cfg: &VoxelConfig) -> Result<()> {
-        let f = 3 + 6 * cfg.offset_freqs;
-        linear_params(b, &format!("{prefix}.embed"), f, cfg.voxel_hidden, true)?;
-        linear_params(b, &format!("{prefix}.out"), cfg.voxel_hidden, 1, true)
-    }
-
-    fn new(gpu: &Gpu, store: &ParamStore, prefix: &str, cfg: &VoxelConfig) -> Result<VoxelHead> {
+    /// The head, its parameters under `prefix` (`.embed`, `.out`).
+    fn new(p: &mut Params, prefix: &str, cfg: &VoxelConfig) -> Result<VoxelHead> {
+        let gpu = p.gpu().clone();
+        let gpu = &gpu;
+        let embed = linear(p, &format!("{prefix}.embed"), 3 + 6 * cfg.offset_freqs, cfg.voxel_hidden, true)?;
+        let out = linear(p, &format!("{prefix}.out"), cfg.voxel_hidden, 1, true)?;
         // Each voxel's offset from its cell's centre, in half-cells: in (-1, 1) on each axis.
         let s = cfg.cell_side();
         let offset = |d: usize| (2 * d + 1) as f32 / s as f32 - 1.0;
@@ -222,8 +221,8 @@ impl VoxelHead {
             offsets,
             xyz: Tensor::from_slice(gpu, &[s * s * s, 3], &xyz)?,
             directions: cfg.cell_directions,
-            embed: linear(store, &format!("{prefix}.embed"), true)?,
-            out: linear(store, &format!("{prefix}.out"), true)?,
+            embed,
+            out,
         })
     }
 
@@ -277,22 +276,25 @@ impl VoxelDecoder {
         }
     }
 
-    /// Declares both stages' parameters (`coarse.*`, `fine.*`, `voxel_head.*`).
-    pub fn register(b: &mut ParamBuilder, cfg: &VoxelConfig) -> Result<()> {
-        VoxelPerceiver::register(b, "coarse", &Self::shape(cfg, &cfg.coarse, 1), cfg.token_dim)?;
-        VoxelPerceiver::register(b, "fine", &Self::shape(cfg, &cfg.fine, fine_out(cfg)), cfg.token_dim)?;
-        VoxelHead::register(b, "voxel_head", cfg)
+    /// The two stages and the voxel head.
+    fn parts(p: &mut Params, cfg: &VoxelConfig) -> Result<(VoxelPerceiver, VoxelPerceiver, VoxelHead)> {
+        let coarse = VoxelPerceiver::new(p, "coarse", &Self::shape(cfg, &cfg.coarse, 1), cfg.token_dim)?;
+        let fine =
+            VoxelPerceiver::new(p, "fine", &Self::shape(cfg, &cfg.fine, fine_out(cfg)), cfg.token_dim)?;
+        Ok((coarse, fine, VoxelHead::new(p, "voxel_head", cfg)?))
     }
 
-    /// A freshly initialised decoder (parameters from `seed`).
+    /// The parameters a config declares, without allocating them.
+    pub fn declare(gpu: &Gpu, cfg: &VoxelConfig) -> Result<ParamBuilder> {
+        cfg.validate()?;
+        declare(gpu, |p| Self::parts(p, cfg))
+    }
+
+    /// A freshly initialised decoder (parameters from `seed`): `coarse.*`, `fine.*`,
+    /// `voxel_head.*`.
     pub fn new(gpu: &Gpu, cfg: &VoxelConfig, seed: u64) -> Result<VoxelDecoder> {
         cfg.validate()?;
-        let mut b = ParamStore::builder();
-        Self::register(&mut b, cfg)?;
-        let store = b.build(gpu, seed)?;
-        let coarse = VoxelPerceiver::new(gpu, &store, "coarse", &Self::shape(cfg, &cfg.coarse, 1))?;
-        let fine = VoxelPerceiver::new(gpu, &store, "fine", &Self::shape(cfg, &cfg.fine, fine_out(cfg)))?;
-        let head = VoxelHead::new(gpu, &store, "voxel_head", cfg)?;
+        let ((coarse, fine, head), store) = build(gpu, seed, |p| Self::parts(p, cfg))?;
         Ok(VoxelDecoder {
             cfg: cfg.clone(),
             store,

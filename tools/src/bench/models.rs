@@ -39,7 +39,7 @@ use velox_engine::stats::{max_abs_err, nmse};
 use velox_engine::{Gpu, Precision, Result, Tensor};
 use velox_io::cloud;
 use velox_models::config::{AutoencoderConfig, GeneratorConfig, TrackerConfig, VoxelConfig};
-use velox_models::params::ParamStore;
+use velox_models::params::{build, ParamStore};
 use velox_models::velox::autoencoder::{tau_of, FRAMES};
 use velox_models::velox::dinov2::{Dinov2, Dinov2Config, PATCH, PATCH_VALUES};
 use velox_models::velox::encoder::Encoder;
@@ -223,11 +223,8 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
 
     // Encoder.
     {
-        let mut b = ParamStore::builder();
-        Encoder::register(&mut b, "encoder", &cfg.encoder)?;
-        let store = b.build(gpu, 1)?;
+        let (encoder, store) = build(gpu, 1, |p| Encoder::new(p, "encoder", &cfg.encoder))?;
         liven(&store, &mut rng)?;
-        let encoder = Encoder::new(gpu, &store, "encoder", &cfg.encoder)?;
         let cloud = cloud::upload(gpu, &sphere_cloud(s.points, &mut rng))?;
         let encode = |rec: &mut velox_engine::Recorder, p: Precision| {
             rec.set_precision(p);
@@ -243,11 +240,9 @@ pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
     // Gaussian decoder, one frame.
     {
         let g = &cfg.gaussians;
-        let mut b = ParamStore::builder();
-        GaussianDecoder::register(&mut b, "gaussians", g, cfg.encoder.token_dim)?;
-        let store = b.build(gpu, 2)?;
+        let (decoder, store) =
+            build(gpu, 2, |p| GaussianDecoder::new(p, "gaussians", g, cfg.encoder.token_dim))?;
         liven(&store, &mut rng)?;
-        let decoder = GaussianDecoder::new(gpu, &store, "gaussians", g)?;
         let k = cfg.encoder.tokens;
         let tokens =
             Tensor::from_slice(gpu, &[k, cfg.encoder.token_dim], &rng.normal_vec(k * cfg.encoder.token_dim))?;
