@@ -15,7 +15,7 @@ use ash::vk;
 use gpu_allocator::vulkan::{Allocator, AllocatorCreateDesc};
 
 use crate::caps::{Caps, Switches};
-use crate::error::{Error, Result, VkCheck};
+use crate::error::{Error, Feature, Result, VkCheck};
 use crate::kernels::PipelineCache;
 use crate::validation;
 
@@ -86,10 +86,10 @@ fn create_instance(entry: &ash::Entry, mode: validation::Mode) -> Result<ash::In
         // SAFETY: plain enumeration call.
         let available = unsafe { entry.enumerate_instance_layer_properties() }.unwrap_or_default();
         if !available.iter().any(|l| l.layer_name_as_c_str() == Ok(validation::LAYER)) {
-            return Err(Error::Unsupported(
+            return Err(Error::unsupported(
+                Feature::ValidationLayer,
                 "VELOX_VALIDATE asks for the Khronos validation layer, which the Vulkan loader does not \
-                 find: install it (Debian: apt-get install vulkan-validationlayers) or unset VELOX_VALIDATE"
-                    .into(),
+                 find: install it (Debian: apt-get install vulkan-validationlayers) or unset VELOX_VALIDATE",
             ));
         }
         layers.push(validation::LAYER.as_ptr());

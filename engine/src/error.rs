@@ -15,12 +15,17 @@ pub enum Error {
     Vulkan { call: &'static str, result: vk::Result },
     /// Device memory could not be allocated.
     OutOfMemory(String),
-    /// A tensor or dispatch exceeds what the device allows.
-    TooLarge(String),
-    /// Shapes, dtypes or arguments that do not fit the op.
+    /// A tensor or dispatch exceeds a limit of the device or of a kernel: which `limit`, and
+    /// `what` went past it (with the sizes).
+    TooLarge { limit: Limit, what: String },
+    /// Shapes or arguments that do not fit the op (a tensor's shape and dtype checked together
+    /// count here).
     Shape(String),
-    /// The device lacks something the request needs and there is no fallback.
-    Unsupported(String),
+    /// A tensor of a dtype the op does not take, or operands whose dtypes differ.
+    DType(String),
+    /// The device lacks a `feature` the request needs and there is no fallback; `what` says
+    /// what asked for it.
+    Unsupported { feature: Feature, what: String },
     /// Bad input from outside (a file, an argument).
     Invalid(String),
     /// A file could not be written (a full disk, a file size limit, a missing folder); the
@@ -39,6 +44,49 @@ pub enum Error {
 
 pub type Result<T> = std::result::Result<T, Error>;
 
+/// The limit a [`Error::TooLarge`] request went past.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Limit {
+    /// The largest buffer the device makes (`maxBufferSize`).
+    Buffer,
+    /// The largest storage buffer one binding reaches (`maxStorageBufferRange`).
+    Binding,
+    /// The workgroups of one dispatch (`maxComputeWorkGroupCount`).
+    Workgroups,
+    /// A count a kernel indexes with 32 bits (elements, words, items, ids), or a kernel's own
+    /// bound below that.
+    Index,
+    /// A size past what host memory can address.
+    Memory,
+}
+
+/// What a device lacks for an [`Error::Unsupported`] request.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Feature {
+    /// f16 arithmetic and 16-bit storage in shaders.
+    F16,
+    /// f32 atomic add (`VK_EXT_shader_atomic_float`).
+    FloatAtomics,
+    /// f16 cooperative matrices (`VK_KHR_cooperative_matrix`).
+    CooperativeMatrix,
+    /// Subgroup arithmetic and vote operations in compute shaders.
+    Subgroups,
+    /// Subgroups of one required size.
+    SubgroupSize,
+    /// Enough workgroup memory (`maxComputeSharedMemorySize`).
+    WorkgroupMemory,
+    /// Workgroups as large as a kernel's (`maxComputeWorkGroupInvocations`, `maxComputeWorkGroupSize`).
+    WorkgroupSize,
+    /// Room for a kernel's push constants (`maxPushConstantsSize`).
+    PushConstants,
+    /// Host-visible memory to stage transfers through.
+    HostVisibleMemory,
+    /// The Khronos validation layer (`VELOX_VALIDATE`).
+    ValidationLayer,
+    /// A kernel compiled for the request's sizes (attention's head widths).
+    KernelVariant,
+}
+
 /// What was done with a file that failed.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FileOp {
@@ -51,6 +99,16 @@ pub enum FileOp {
 }
 
 impl Error {
+    /// A [`Error::TooLarge`] of `limit`.
+    pub fn too_large(limit: Limit, what: impl fmt::Display) -> Error {
+        Error::TooLarge { limit, what: what.to_string() }
+    }
+
+    /// An [`Error::Unsupported`] for the lack of `feature`.
+    pub fn unsupported(feature: Feature, what: impl fmt::Display) -> Error {
+        Error::Unsupported { feature, what: what.to_string() }
+    }
+
     /// A file error: `path`, what was done with it and why it failed.
     pub fn file(path: &std::path::Path, op: FileOp, reason: impl fmt::Display) -> Error {
         Error::File { path: path.to_path_buf(), op, reason: reason.to_string() }
@@ -71,9 +129,10 @@ impl fmt::Display for Error {
             Error::NoDevice(why) => write!(f, "no usable Vulkan device: {why}; {INSTALL_HINT}"),
             Error::Vulkan { call, result } => write!(f, "Vulkan call {call} failed: {result}"),
             Error::OutOfMemory(what) => write!(f, "out of device memory: {what}"),
-            Error::TooLarge(what) => write!(f, "too large for this device: {what}"),
+            Error::TooLarge { what, .. } => write!(f, "too large for this device: {what}"),
             Error::Shape(what) => write!(f, "shape error: {what}"),
-            Error::Unsupported(what) => write!(f, "unsupported on this device: {what}"),
+            Error::DType(what) => write!(f, "dtype error: {what}"),
+            Error::Unsupported { what, .. } => write!(f, "unsupported on this device: {what}"),
             Error::Invalid(what) => write!(f, "invalid input: {what}"),
             Error::Io(what) => write!(f, "{what}"),
             Error::File { path, op: FileOp::Read, reason } => {
@@ -90,6 +149,16 @@ impl fmt::Display for Error {
 }
 
 impl std::error::Error for Error {}
+
+/// `value` as a 32-bit count or index for a kernel, or a [`Limit::Index`] error naming `what`.
+pub fn fit_u32<T: TryInto<u32> + Copy + fmt::Display>(
+    value: T,
+    what: impl FnOnce() -> String,
+) -> Result<u32> {
+    value.try_into().map_err(|_| {
+        Error::too_large(Limit::Index, format!("{}: {value} is more than a 32-bit index holds", what()))
+    })
+}
 
 /// Attaches the name of the Vulkan call to its result code.
 pub(crate) trait VkCheck<T> {

@@ -6,7 +6,7 @@ use std::sync::{Arc, Mutex};
 use ash::vk;
 
 use crate::device::Gpu;
-use crate::error::{Error, Result, VkCheck};
+use crate::error::{Error, Feature, Result, VkCheck};
 
 /// One SPIR-V module (one shader file).
 pub struct ModuleSource {
@@ -50,57 +50,72 @@ pub struct KernelInfo {
 }
 
 impl KernelInfo {
-    /// Why a device with `c` cannot run this kernel, naming the feature or the limit and both
-    /// figures; `None` when it can.
-    pub fn unsupported_on(&self, c: &crate::Caps) -> Option<String> {
+    /// What a device with `c` lacks to run this kernel and why, naming the feature or the limit
+    /// and both figures; `None` when it can run it.
+    pub fn unsupported_on(&self, c: &crate::Caps) -> Option<(Feature, String)> {
         let info = self;
         let n = info.needs;
         if n.f16 && !(c.f16_arithmetic && c.f16_storage) {
-            return Some("f16 arithmetic and 16-bit storage".into());
+            return Some((Feature::F16, "f16 arithmetic and 16-bit storage".into()));
         }
         if n.float_atomics && !c.float_atomic_add {
-            return Some("f32 atomic add (VK_EXT_shader_atomic_float)".into());
+            return Some((Feature::FloatAtomics, "f32 atomic add (VK_EXT_shader_atomic_float)".into()));
         }
         if n.coop_matrix && c.coop_matrix_f16.is_none() {
-            return Some("f16 cooperative matrices (VK_KHR_cooperative_matrix)".into());
+            return Some((
+                Feature::CooperativeMatrix,
+                "f16 cooperative matrices (VK_KHR_cooperative_matrix)".into(),
+            ));
         }
         if n.subgroups && !c.subgroup_arithmetic {
-            return Some("subgroup arithmetic and votes in compute shaders".into());
+            return Some((Feature::Subgroups, "subgroup arithmetic and votes in compute shaders".into()));
         }
         if let Some(size) = n.subgroup_size {
             if !c.subgroup_size_fits(size) {
-                return Some(format!(
-                    "subgroups of exactly {size} invocations; the device runs {}..={}{}",
-                    c.min_subgroup_size,
-                    c.max_subgroup_size,
-                    if c.subgroup_size_control { "" } else { " and cannot be asked for one size" }
+                return Some((
+                    Feature::SubgroupSize,
+                    format!(
+                        "subgroups of exactly {size} invocations; the device runs {}..={}{}",
+                        c.min_subgroup_size,
+                        c.max_subgroup_size,
+                        if c.subgroup_size_control { "" } else { " and cannot be asked for one size" }
+                    ),
                 ));
             }
         }
         if info.shared_bytes > c.max_shared_memory {
-            return Some(format!(
-                "{} bytes of workgroup memory; the device has {} (maxComputeSharedMemorySize)",
-                info.shared_bytes, c.max_shared_memory
+            return Some((
+                Feature::WorkgroupMemory,
+                format!(
+                    "{} bytes of workgroup memory; the device has {} (maxComputeSharedMemorySize)",
+                    info.shared_bytes, c.max_shared_memory
+                ),
             ));
         }
         let wg = info.workgroup_size;
         let invocations = wg.iter().map(|&d| d as u64).product::<u64>();
         if invocations > c.max_workgroup_invocations as u64 {
-            return Some(format!(
+            return Some((Feature::WorkgroupSize, format!(
                 "workgroups of {invocations} invocations; the device allows {} (maxComputeWorkGroupInvocations)",
                 c.max_workgroup_invocations
-            ));
+            )));
         }
         if wg.iter().zip(c.max_workgroup_size).any(|(&w, m)| w > m) {
-            return Some(format!(
-                "a workgroup of {wg:?}; the device allows {:?} (maxComputeWorkGroupSize)",
-                c.max_workgroup_size
+            return Some((
+                Feature::WorkgroupSize,
+                format!(
+                    "a workgroup of {wg:?}; the device allows {:?} (maxComputeWorkGroupSize)",
+                    c.max_workgroup_size
+                ),
             ));
         }
         if info.push_bytes > c.max_push_constants {
-            return Some(format!(
-                "{} bytes of push constants; the device offers {} (maxPushConstantsSize)",
-                info.push_bytes, c.max_push_constants
+            return Some((
+                Feature::PushConstants,
+                format!(
+                    "{} bytes of push constants; the device offers {} (maxPushConstantsSize)",
+                    info.push_bytes, c.max_push_constants
+                ),
             ));
         }
         None
@@ -239,8 +254,20 @@ impl Gpu {
     /// `None` when it can (see [`KernelInfo::unsupported_on`]). Every pipeline is checked this way
     /// before it is made, so a kernel over a limit is an error that says so, never a driver's
     /// undefined behaviour.
-    pub fn unsupported_reason(&self, kernel: impl Into<KernelId>) -> Option<String> {
+    pub fn unsupported_reason(&self, kernel: impl Into<KernelId>) -> Option<(Feature, String)> {
         kernel.into().info().unsupported_on(self.caps())
+    }
+
+    /// Fails with [`Error::Unsupported`] (the feature, and why) when this device cannot run the
+    /// kernel.
+    pub fn check_supported(&self, kernel: impl Into<KernelId>) -> Result<()> {
+        let kernel = kernel.into();
+        match self.unsupported_reason(kernel) {
+            Some((feature, why)) => {
+                Err(Error::unsupported(feature, format!("kernel {} needs {why}", kernel.name())))
+            }
+            None => Ok(()),
+        }
     }
 
     /// Makes the kernel's pipeline now instead of at its first dispatch: the device (and, under
@@ -256,9 +283,7 @@ impl Gpu {
         if let Some(p) = &s.pipelines[kernel.0] {
             return Ok(p.clone());
         }
-        if let Some(missing) = self.unsupported_reason(kernel) {
-            return Err(Error::Unsupported(format!("kernel {} needs {missing}", kernel.name())));
-        }
+        self.check_supported(kernel)?;
         let info = kernel.info();
         let module = match s.modules[info.module] {
             Some(m) => m,

@@ -26,6 +26,7 @@ use crate::kernels::{ArgList, Binds, Kernel, KernelId};
 use crate::profile;
 use crate::tensor::{Buffer, Tensor};
 use crate::validation;
+use crate::Limit;
 
 const MAX_TIMESTAMPS: u32 = 256;
 /// Queries of a recorder when profiling: two per dispatch or so, for the longest recordings.
@@ -303,10 +304,10 @@ impl Recorder {
         }
         let max = self.gpu.caps().max_workgroup_count;
         if groups.iter().zip(max).any(|(g, m)| *g > m) {
-            return Err(Error::TooLarge(format!(
-                "kernel {}: {groups:?} workgroups, the device allows {max:?}",
-                kernel.name()
-            )));
+            return Err(Error::too_large(
+                Limit::Workgroups,
+                format!("kernel {}: {groups:?} workgroups, the device allows {max:?}", kernel.name()),
+            ));
         }
         if groups.contains(&0) {
             return Ok(());
@@ -434,8 +435,9 @@ impl Recorder {
         args: B::Args<'_>,
         push: &P,
     ) -> Result<()> {
-        let groups = linear_groups(total, self.gpu.caps().max_workgroup_count)
-            .ok_or_else(|| Error::TooLarge(format!("kernel {}: {total} workgroups", kernel.name())))?;
+        let groups = linear_groups(total, self.gpu.caps().max_workgroup_count).ok_or_else(|| {
+            Error::too_large(Limit::Workgroups, format!("kernel {}: {total} workgroups", kernel.name()))
+        })?;
         self.dispatch(kernel, groups, args, push)
     }
 

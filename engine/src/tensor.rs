@@ -13,7 +13,7 @@ use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
 use gpu_allocator::MemoryLocation;
 
 use crate::device::Gpu;
-use crate::error::{Error, Result, VkCheck};
+use crate::error::{Error, Feature, Limit, Result, VkCheck};
 
 /// Element type of a tensor.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -56,10 +56,13 @@ impl Buffer {
         // Vulkan forbids empty buffers; 16 bytes also keeps f16 tails in whole words.
         let size = size.max(16).next_multiple_of(4);
         if size > caps.max_buffer_size {
-            return Err(Error::TooLarge(format!(
-                "{name}: a buffer of {size} bytes exceeds the device's maximum buffer size of {} bytes",
-                caps.max_buffer_size
-            )));
+            return Err(Error::too_large(
+                Limit::Buffer,
+                format!(
+                    "{name}: a buffer of {size} bytes exceeds the device's maximum buffer size of {} bytes",
+                    caps.max_buffer_size
+                ),
+            ));
         }
         let device = gpu.device();
         let info = vk::BufferCreateInfo::default()
@@ -152,10 +155,9 @@ impl Element for half::f16 {
 }
 
 pub(crate) fn numel_of(shape: &[usize]) -> Result<usize> {
-    shape
-        .iter()
-        .try_fold(1usize, |acc, &d| acc.checked_mul(d))
-        .ok_or_else(|| Error::TooLarge(format!("shape {shape:?} has more elements than fit in memory")))
+    shape.iter().try_fold(1usize, |acc, &d| acc.checked_mul(d)).ok_or_else(|| {
+        Error::too_large(Limit::Memory, format!("shape {shape:?} has more elements than fit in memory"))
+    })
 }
 
 impl Tensor {
@@ -164,7 +166,7 @@ impl Tensor {
         let n = numel_of(shape)?;
         let bytes = (n as u64)
             .checked_mul(dtype.size() as u64)
-            .ok_or_else(|| Error::TooLarge(format!("shape {shape:?}")))?;
+            .ok_or_else(|| Error::too_large(Limit::Memory, format!("shape {shape:?}")))?;
         let location =
             if gpu.caps().unified_memory { MemoryLocation::CpuToGpu } else { MemoryLocation::GpuOnly };
         let buf = Buffer::new(gpu, bytes, location, "tensor")?;
@@ -201,7 +203,7 @@ impl Tensor {
 
     fn check_host_type<T: Element>(&self, len: usize) -> Result<()> {
         if T::DTYPE != self.dtype {
-            return Err(Error::Shape(format!(
+            return Err(Error::DType(format!(
                 "tensor is {} but the host data is {}",
                 self.dtype.name(),
                 T::DTYPE.name()
@@ -284,7 +286,7 @@ impl Tensor {
     pub(crate) fn check_bindable(&self, what: &str) -> Result<()> {
         let max = self.gpu().caps().max_storage_buffer_range;
         if self.bytes() > max {
-            return Err(Error::TooLarge(format!(
+            return Err(Error::too_large(Limit::Binding, format!(
                 "{what}: tensor {:?} {} is {} bytes, more than the {} bytes this device binds as one storage buffer",
                 self.shape,
                 self.dtype.name(),
@@ -309,9 +311,9 @@ impl Gpu {
             return Ok(());
         }
         let staging = Buffer::new(self, bytes.len() as u64, MemoryLocation::CpuToGpu, "upload staging")?;
-        let ptr = staging
-            .mapped()
-            .ok_or_else(|| Error::Unsupported("staging memory is not host-visible".into()))?;
+        let ptr = staging.mapped().ok_or_else(|| {
+            Error::unsupported(Feature::HostVisibleMemory, "staging memory is not host-visible")
+        })?;
         // SAFETY: the staging mapping holds at least `bytes.len()` bytes.
         unsafe { std::ptr::copy_nonoverlapping(bytes.as_ptr(), ptr, bytes.len()) };
         self.inner.staged_bytes.fetch_add(bytes.len() as u64, std::sync::atomic::Ordering::Relaxed);
@@ -329,9 +331,9 @@ impl Gpu {
         }
         let staging = Buffer::new(self, out.len() as u64, MemoryLocation::GpuToCpu, "download staging")?;
         self.copy_now(buf, offset, &staging, 0, out.len() as u64)?;
-        let ptr = staging
-            .mapped()
-            .ok_or_else(|| Error::Unsupported("staging memory is not host-visible".into()))?;
+        let ptr = staging.mapped().ok_or_else(|| {
+            Error::unsupported(Feature::HostVisibleMemory, "staging memory is not host-visible")
+        })?;
         // SAFETY: the copy has completed; the mapping holds `out.len()` bytes.
         unsafe { std::ptr::copy_nonoverlapping(ptr, out.as_mut_ptr(), out.len()) };
         self.inner.staged_bytes.fetch_add(out.len() as u64, std::sync::atomic::Ordering::Relaxed);

@@ -17,7 +17,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
 
 use safetensors::tensor::{Dtype, SafeTensors, View};
-use velox_engine::{Error, Precision, Result};
+use velox_engine::{Error, FileOp, Precision, Result};
 
 use crate::params::{LossScale, ParamStore};
 pub use velox_io::temp_path;
@@ -121,68 +121,63 @@ pub(crate) fn canonical_header(bytes: &mut [u8]) {
 /// The step and config a checkpoint holds, without loading its tensors (to build the model the
 /// checkpoint fits before [`load`]).
 pub fn peek(path: &Path) -> Result<CheckpointInfo> {
-    let bytes = std::fs::read(path)
-        .map_err(|e| Error::Invalid(format!("cannot read checkpoint {}: {e}", path.display())))?;
+    let bytes = std::fs::read(path).map_err(|e| Error::file(path, FileOp::Read, e))?;
     read_info(&bytes, path)
 }
 
 fn read_info(bytes: &[u8], path: &Path) -> Result<CheckpointInfo> {
-    let shown = path.display();
     let (_, header) = SafeTensors::read_metadata(bytes)
-        .map_err(|e| Error::Invalid(format!("checkpoint {shown} is corrupt: {e}")))?;
+        .map_err(|e| content(path, format!("the checkpoint is corrupt: {e}")))?;
     let meta = header.metadata().clone().unwrap_or_default();
-    let field = |k: &str| {
-        meta.get(k).ok_or_else(|| Error::Invalid(format!("checkpoint {shown}: metadata lacks {k:?}")))
-    };
+    let field =
+        |k: &str| meta.get(k).ok_or_else(|| content(path, format!("the checkpoint's metadata lacks {k:?}")));
     if field("format")? != FORMAT {
-        return Err(Error::Invalid(format!(
-            "{shown} is not a velox checkpoint (format {:?}, expected {FORMAT:?})",
-            field("format")?
-        )));
+        return Err(content(
+            path,
+            format!("not a velox checkpoint (format {:?}, expected {FORMAT:?})", field("format")?),
+        ));
     }
     if field("version")? != VERSION {
-        return Err(Error::Invalid(format!(
-            "checkpoint {shown} has version {}, this build reads version {VERSION}",
-            field("version")?
-        )));
+        return Err(content(
+            path,
+            format!("checkpoint version {}, this build reads version {VERSION}", field("version")?),
+        ));
     }
-    let step: u64 = field("step")?.parse().map_err(|_| {
-        Error::Invalid(format!("checkpoint {shown}: step {:?} is not a number", meta["step"]))
-    })?;
+    let step: u64 = field("step")?
+        .parse()
+        .map_err(|_| content(path, format!("the checkpoint's step {:?} is not a number", meta["step"])))?;
     let config = field("config")?.clone();
     let loss_scale = match meta.get("loss_scale") {
         None => None,
-        Some(s) => {
-            Some(serde_json::from_str::<LossScale>(s).ok().filter(LossScale::valid).ok_or_else(|| {
-                Error::Invalid(format!("checkpoint {shown}: loss scale {s:?} is unreadable"))
-            })?)
-        }
+        Some(s) => Some(
+            serde_json::from_str::<LossScale>(s)
+                .ok()
+                .filter(LossScale::valid)
+                .ok_or_else(|| content(path, format!("the checkpoint's loss scale {s:?} is unreadable")))?,
+        ),
     };
     Ok(CheckpointInfo { step, config, loss_scale })
 }
 
 fn read_file(path: &Path) -> Result<Vec<u8>> {
-    std::fs::read(path).map_err(|e| Error::Invalid(format!("cannot read checkpoint {}: {e}", path.display())))
+    std::fs::read(path).map_err(|e| Error::file(path, FileOp::Read, e))
+}
+
+/// A checkpoint whose bytes are not what a checkpoint of the model holds.
+fn content(path: &Path, why: impl std::fmt::Display) -> Error {
+    Error::file(path, FileOp::Content, why)
 }
 
 fn deserialize<'a>(bytes: &'a [u8], path: &Path) -> Result<SafeTensors<'a>> {
     SafeTensors::deserialize(bytes).map_err(|e| {
-        Error::Invalid(format!(
-            "checkpoint {} is corrupt or truncated ({} bytes): {e}",
-            path.display(),
-            bytes.len()
-        ))
+        content(path, format!("the checkpoint is corrupt or truncated ({} bytes): {e}", bytes.len()))
     })
 }
 
 /// A tensor's values, which must be f32.
 fn f32_values(path: &Path, name: &str, t: &safetensors::tensor::TensorView<'_>) -> Result<Vec<f32>> {
     if t.dtype() != Dtype::F32 {
-        return Err(Error::Invalid(format!(
-            "checkpoint {}: tensor {name:?} is {:?}, expected F32",
-            path.display(),
-            t.dtype()
-        )));
+        return Err(content(path, format!("tensor {name:?} is {:?}, expected F32", t.dtype())));
     }
     Ok(t.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect())
 }
@@ -191,12 +186,14 @@ fn f32_values(path: &Path, name: &str, t: &safetensors::tensor::TensorView<'_>) 
 fn check_finite(path: &Path, step: u64, name: &str, values: &[f32]) -> Result<()> {
     let bad = values.iter().filter(|v| !v.is_finite()).count();
     if bad > 0 {
-        return Err(Error::Invalid(format!(
-            "checkpoint {} (step {step}): tensor {name:?} holds {bad} NaN or Inf value(s) of {} (a diverged \
-             run or a damaged file)",
-            path.display(),
-            values.len()
-        )));
+        return Err(content(
+            path,
+            format!(
+                "(step {step}) tensor {name:?} holds {bad} NaN or Inf value(s) of {} (a diverged run or a \
+                 damaged file)",
+                values.len()
+            ),
+        ));
     }
     Ok(())
 }
@@ -228,7 +225,6 @@ pub fn verify_finite(path: &Path) -> Result<CheckpointInfo> {
 /// dtype, NaN or Inf, or a tensor the store does not have (of those parts, or of any name when
 /// `parts` is all of them), each an error naming it.
 fn read_parts(path: &Path, store: &ParamStore, parts: &[&str]) -> Result<(CheckpointInfo, Vec<Vec<f32>>)> {
-    let shown = path.display();
     let bytes = read_file(path)?;
     let file = deserialize(&bytes, path)?;
     let info = read_info(&bytes, path)?;
@@ -239,14 +235,13 @@ fn read_parts(path: &Path, store: &ParamStore, parts: &[&str]) -> Result<(Checkp
         for p in store.infos() {
             let name = format!("{prefix}{}", p.name);
             let t = file.tensor(&name).map_err(|_| {
-                Error::Invalid(format!("checkpoint {shown} lacks tensor {name:?} (shape {:?})", p.shape))
+                content(path, format!("the checkpoint lacks tensor {name:?} (shape {:?})", p.shape))
             })?;
             if t.shape() != p.shape.as_slice() {
-                return Err(Error::Invalid(format!(
-                    "checkpoint {shown}: tensor {name:?} has shape {:?}, the model expects {:?}",
-                    t.shape(),
-                    p.shape
-                )));
+                return Err(content(
+                    path,
+                    format!("tensor {name:?} has shape {:?}, the model expects {:?}", t.shape(), p.shape),
+                ));
             }
             let values = f32_values(path, &name, &t)?;
             check_finite(path, info.step, &name, &values)?;
@@ -256,9 +251,12 @@ fn read_parts(path: &Path, store: &ParamStore, parts: &[&str]) -> Result<(Checkp
     }
     let ours = |n: &str| parts.len() == PARTS.len() || parts.iter().any(|prefix| n.starts_with(prefix));
     if let Some(extra) = file.names().into_iter().find(|n| ours(n) && !expected.contains(*n)) {
-        return Err(Error::Invalid(format!(
-            "checkpoint {shown} holds tensor {extra:?}, which the model does not have (a different config?)"
-        )));
+        return Err(content(
+            path,
+            format!(
+                "the checkpoint holds tensor {extra:?}, which the model does not have (a different config?)"
+            ),
+        ));
     }
     Ok((info, host))
 }

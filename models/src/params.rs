@@ -33,6 +33,7 @@ use velox_engine::rng::Rng;
 use velox_engine::{DType, Error, Gpu, Precision, Recorder, Result, Tensor};
 
 use crate::layers::Param;
+use velox_engine::Limit;
 
 /// How a parameter starts. Random rules draw from [`Rng`] seeded by the store's seed and the
 /// parameter's name, so a parameter's initial values do not depend on which others exist.
@@ -139,10 +140,9 @@ impl ParamBuilder {
             return Err(Error::Invalid(format!("parameter {name:?} is registered twice")));
         }
         init.check(name)?;
-        let numel = shape
-            .iter()
-            .try_fold(1usize, |a, &d| a.checked_mul(d))
-            .ok_or_else(|| Error::TooLarge(format!("parameter {name:?} of shape {shape:?}")))?;
+        let numel = shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d)).ok_or_else(|| {
+            Error::too_large(Limit::Memory, format!("parameter {name:?} of shape {shape:?}"))
+        })?;
         self.index.insert(name.to_string(), self.specs.len());
         self.specs.push(ParamInfo {
             name: name.to_string(),
@@ -183,9 +183,9 @@ impl ParamBuilder {
         for &i in &order {
             let start = end.next_multiple_of(align);
             specs[i].offset = start;
-            end = start
-                .checked_add(specs[i].numel)
-                .ok_or_else(|| Error::TooLarge(format!("parameters past {start} elements")))?;
+            end = start.checked_add(specs[i].numel).ok_or_else(|| {
+                Error::too_large(Limit::Memory, format!("parameters past {start} elements"))
+            })?;
             if specs[i].decay {
                 decay_len = end;
             }

@@ -200,3 +200,17 @@ pub fn check_directional(
     loss_at(theta);
     worst
 }
+
+/// The reason of a file error about `path` of kind `op` (the test fails on any other outcome):
+/// tests match the variant, the path and the operation, and the reason where it must name
+/// something (a tensor, a point).
+pub fn file_error<T: std::fmt::Debug>(
+    r: velox::engine::Result<T>,
+    path: &std::path::Path,
+    op: velox::engine::FileOp,
+) -> String {
+    match r {
+        Err(velox::engine::Error::File { path: p, op: o, reason }) if p == path && o == op => reason,
+        other => panic!("expected a {op:?} error of {}, got {other:?}", path.display()),
+    }
+}

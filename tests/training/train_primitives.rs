@@ -8,6 +8,7 @@ use velox::engine::ops::adamw::{self, adamw, adamw_chunked, AdamWConfig, AdamWSt
 use velox::engine::ops::binary::{binary_into, Binary};
 use velox::engine::ops::norm::{self, check_finite, global_norm, global_norm_chunked, NormScratch};
 use velox::engine::ops::unary::{unary_into, Unary};
+use velox::engine::FileOp;
 use velox::models::checkpoint::{self, temp_path};
 use velox::models::params::{Init, ParamStore};
 use velox::models::schedule::{noam, Noam};
@@ -444,10 +445,10 @@ fn verify_finite_passes_a_good_checkpoint_and_names_the_tensor_with_a_nan() {
     bad[w2.offset + 10] = f32::INFINITY;
     store.flat_params().write(&bad).unwrap();
     checkpoint::save(&path, &store, "{}").unwrap();
-    let e = checkpoint::verify_finite(&path).unwrap_err().to_string();
-    assert!(e.contains("ckpt.safetensors") && e.contains("\"param/enc.w2\" holds 2 NaN or Inf"), "{e}");
-    let e = checkpoint::verify_finite(&dir.join("missing.safetensors")).unwrap_err().to_string();
-    assert!(e.contains("cannot read checkpoint"), "{e}");
+    let e = file_error(checkpoint::verify_finite(&path), &path, FileOp::Content);
+    assert!(e.contains("\"param/enc.w2\" holds 2 NaN or Inf"), "{e}");
+    let missing = dir.join("missing.safetensors");
+    file_error(checkpoint::verify_finite(&missing), &missing, FileOp::Read);
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -460,33 +461,31 @@ fn bad_checkpoints_give_clear_errors_and_change_nothing() {
     let bytes = std::fs::read(&path).unwrap();
     let mut store = small_store(&gpu, 8, &[13, 7], false);
     let before = flat_state(&store);
-    let load_err = |file: &std::path::Path, store: &mut ParamStore| {
-        checkpoint::load(file, store).unwrap_err().to_string()
+    let load_err = |file: &std::path::Path, store: &mut ParamStore, op: FileOp| {
+        file_error(checkpoint::load(file, store), file, op)
     };
 
     let truncated = dir.join("truncated.safetensors");
     std::fs::write(&truncated, &bytes[..bytes.len() - 100]).unwrap();
-    let e = load_err(&truncated, &mut store);
-    assert!(e.contains("corrupt or truncated"), "{e}");
+    load_err(&truncated, &mut store, FileOp::Content);
 
     let garbage = dir.join("garbage.safetensors");
     std::fs::write(&garbage, b"\xff\xff\xff\xff not a checkpoint at all").unwrap();
-    let e = load_err(&garbage, &mut store);
-    assert!(e.contains("corrupt or truncated"), "{e}");
+    load_err(&garbage, &mut store, FileOp::Content);
 
-    let e = load_err(&dir.join("missing.safetensors"), &mut store);
-    assert!(e.contains("cannot read checkpoint"), "{e}");
+    load_err(&dir.join("missing.safetensors"), &mut store, FileOp::Read);
 
+    // Each mismatch names the tensor.
     let mut wrong_shape = small_store(&gpu, 8, &[7, 13], false);
-    let e = load_err(&path, &mut wrong_shape);
-    assert!(e.contains("\"param/enc.w1\"") && e.contains("[13, 7]") && e.contains("[7, 13]"), "{e}");
+    let e = load_err(&path, &mut wrong_shape, FileOp::Content);
+    assert!(e.contains("\"param/enc.w1\""), "{e}");
 
     let mut more = small_store(&gpu, 8, &[13, 7], true);
-    let e = load_err(&path, &mut more);
-    assert!(e.contains("lacks tensor \"param/head.w\""), "{e}");
+    let e = load_err(&path, &mut more, FileOp::Content);
+    assert!(e.contains("\"param/head.w\""), "{e}");
     checkpoint::save(&path, &more, "{}").unwrap();
-    let e = load_err(&path, &mut store);
-    assert!(e.contains("head.w") && e.contains("does not have"), "{e}");
+    let e = load_err(&path, &mut store, FileOp::Content);
+    assert!(e.contains("head.w"), "{e}");
 
     assert_eq!(flat_state(&store), before, "a failed load changed the store");
     let _ = std::fs::remove_dir_all(&dir);
@@ -509,15 +508,15 @@ fn load_params_takes_the_parameters_alone_and_names_what_differs() {
 
     let mut wrong_shape = small_store(&gpu, 10, &[7, 13], false);
     let before = flat_state(&wrong_shape);
-    let e = checkpoint::load_params(&path, &mut wrong_shape).unwrap_err().to_string();
-    assert!(e.contains("\"param/enc.w1\" has shape [13, 7], the model expects [7, 13]"), "{e}");
+    let e = file_error(checkpoint::load_params(&path, &mut wrong_shape), &path, FileOp::Content);
+    assert!(e.contains("\"param/enc.w1\""), "{e}");
     let mut more = small_store(&gpu, 10, &[13, 7], true);
-    let e = checkpoint::load_params(&path, &mut more).unwrap_err().to_string();
-    assert!(e.contains("lacks tensor \"param/head.w\""), "{e}");
+    let e = file_error(checkpoint::load_params(&path, &mut more), &path, FileOp::Content);
+    assert!(e.contains("\"param/head.w\""), "{e}");
     checkpoint::save(&path, &more, "{}").unwrap();
     let loaded = flat_state(&fresh);
-    let e = checkpoint::load_params(&path, &mut fresh).unwrap_err().to_string();
-    assert!(e.contains("\"param/head.w\"") && e.contains("does not have"), "{e}");
+    let e = file_error(checkpoint::load_params(&path, &mut fresh), &path, FileOp::Content);
+    assert!(e.contains("\"param/head.w\""), "{e}");
     assert_eq!(flat_state(&fresh), loaded, "a refused load changed the store");
     assert_eq!(flat_state(&wrong_shape), before, "a refused load changed the store");
     let _ = std::fs::remove_dir_all(&dir);
@@ -536,13 +535,8 @@ fn checkpoints_with_nan_or_inf_are_refused_naming_the_tensor() {
     w[40] = f32::NAN;
     poisoned.param("enc.w1").unwrap().write(&w).unwrap();
     checkpoint::save(&nan, &poisoned, "{}").unwrap();
-    let e = checkpoint::load(&nan, &mut store).unwrap_err().to_string();
-    assert!(
-        e.contains("nan.safetensors")
-            && e.contains("\"param/enc.w1\"")
-            && e.contains("holds 1 NaN or Inf value(s)"),
-        "{e}"
-    );
+    let e = file_error(checkpoint::load(&nan, &mut store), &nan, FileOp::Content);
+    assert!(e.contains("\"param/enc.w1\" holds 1 NaN or Inf"), "{e}");
     // Two infinite second moments.
     let inf = dir.join("inf.safetensors");
     let poisoned = trained_store(&gpu, 14);
@@ -553,13 +547,8 @@ fn checkpoints_with_nan_or_inf_are_refused_naming_the_tensor() {
     host[at + 1] = f32::NEG_INFINITY;
     v.write(&host).unwrap();
     checkpoint::save(&inf, &poisoned, "{}").unwrap();
-    let e = checkpoint::load(&inf, &mut store).unwrap_err().to_string();
-    assert!(
-        e.contains("inf.safetensors")
-            && e.contains("\"adamw_v/embed\"")
-            && e.contains("holds 2 NaN or Inf value(s)"),
-        "{e}"
-    );
+    let e = file_error(checkpoint::load(&inf, &mut store), &inf, FileOp::Content);
+    assert!(e.contains("\"adamw_v/embed\" holds 2 NaN or Inf"), "{e}");
     assert_eq!(flat_state(&store), before, "a refused load changed the store");
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -584,8 +573,7 @@ fn interrupted_writes_leave_the_previous_checkpoint_intact() {
     // a message and the old checkpoint is untouched.
     std::fs::remove_file(temp_path(&path)).unwrap();
     std::fs::create_dir(temp_path(&path)).unwrap();
-    let e = checkpoint::save(&path, &new, "{}").unwrap_err().to_string();
-    assert!(e.contains("cannot write") && e.contains("ckpt.safetensors"), "{e}");
+    file_error(checkpoint::save(&path, &new, "{}"), &path, FileOp::Write);
     checkpoint::load(&path, &mut probe).unwrap();
     assert_eq!(flat_state(&probe), flat_state(&old));
     std::fs::remove_dir(temp_path(&path)).unwrap();

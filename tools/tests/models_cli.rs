@@ -205,7 +205,7 @@ fn bad_checkpoints_clouds_and_frames_get_clear_errors() {
         ])
     };
     let err = fails(&decode(&dir.join("missing.safetensors"), &scene, "0"));
-    assert!(err.contains("cannot read checkpoint") && err.contains("missing.safetensors"), "{err}");
+    assert!(err.contains("cannot read") && err.contains("missing.safetensors"), "{err}");
     let corrupt = dir.join("corrupt.safetensors");
     std::fs::write(&corrupt, b"not a checkpoint").unwrap();
     let err = fails(&decode(&corrupt, &scene, "0"));

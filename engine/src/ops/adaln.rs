@@ -14,6 +14,7 @@ use crate::kernels::{ADALN_BACKWARD, ADALN_GATE, ADALN_MODULATE};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
+use crate::fit_u32;
 use crate::kernels::params::AdalnParams as Params;
 
 /// Checks `x [B, T, D]` against per-sample tensors `[B, D]` and full-size ones.
@@ -29,7 +30,7 @@ fn check(what: &str, x: &Tensor, per_sample: &[&Tensor], full: &[&Tensor]) -> Re
              per sample {per_sample:?}, full {full:?}"
         )));
     }
-    let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("{what} of {x:?}")));
+    let fit = |v: usize| fit_u32(v, || format!("{what} of {x:?}"));
     Ok(Params { n: fit(x.numel())?, t: fit(xs[1])?, d: fit(xs[2])?, one: 0.0 })
 }
 

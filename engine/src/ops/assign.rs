@@ -18,6 +18,7 @@
 //! a query whose segment is empty gets zeros.
 
 use crate::error::{Error, Result};
+use crate::fit_u32;
 use crate::kernels::args;
 use crate::kernels::{ASSIGN_CELL_OFFSETS, ASSIGN_NEAREST};
 use crate::ops::sort::{self, sort_indices};
@@ -90,8 +91,7 @@ pub fn group_by_cell(rec: &mut Recorder, cells: &Tensor, k: usize) -> Result<(Te
     if k == 0 || k >= 1 << 31 {
         return Err(Error::Shape(format!("group_by_cell: {k} cells, must be in 1..2^31")));
     }
-    let n = u32::try_from(cells.numel())
-        .map_err(|_| Error::TooLarge(format!("group_by_cell: {cells:?} has 2^32 elements or more")))?;
+    let n = fit_u32(cells.numel(), || format!("group_by_cell: {cells:?} has 2^32 elements or more"))?;
     let gpu = cells.gpu().clone();
     let (sorted_cells, order) = sort_indices(rec, cells, key_bits_for(k as u64))?;
     let offsets = Tensor::empty(&gpu, &[k + 1], DType::U32)?;

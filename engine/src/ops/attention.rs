@@ -15,6 +15,7 @@ use crate::ops::scan::exclusive_scan;
 use crate::recorder::{Completion, Recorder};
 use crate::tensor::{DType, Tensor};
 use crate::Gpu;
+use crate::{fit_u32, Feature, Limit};
 use std::sync::{Arc, Mutex};
 
 /// Rows per work item and per staged tile of the portable kernels (`B` in the shader).
@@ -82,7 +83,7 @@ impl Segments {
             let mut out = vec![0u32];
             for &l in lens {
                 acc += l;
-                out.push(u32::try_from(acc).map_err(|_| Error::TooLarge("segment offsets".into()))?);
+                out.push(fit_u32(acc, || "segment offsets".into())?);
             }
             Ok(out)
         };
@@ -223,14 +224,15 @@ fn check(q: &Tensor, k: &Tensor, v: &Tensor, seg: &Segments) -> Result<(usize, u
         )));
     }
     if [k, v].iter().any(|t| t.dtype() != q.dtype()) || !matches!(q.dtype(), DType::F32 | DType::F16) {
-        return Err(Error::Shape(format!(
+        return Err(Error::DType(format!(
             "attention needs q, k, v all f32 or all f16, got {q:?}, {k:?}, {v:?}"
         )));
     }
     if kernels_for(d).is_none() {
-        return Err(Error::Unsupported(format!(
-            "attention head width {d}: compiled widths are {HEAD_DIMS:?}"
-        )));
+        return Err(Error::unsupported(
+            Feature::KernelVariant,
+            format!("attention head width {d}: compiled widths are {HEAD_DIMS:?}"),
+        ));
     }
     let (qo, ko) = (&seg.q_offsets, &seg.k_offsets);
     if qo.dtype() != DType::U32 || ko.dtype() != DType::U32 || qo.shape() != ko.shape() || qo.numel() < 2 {
@@ -240,7 +242,7 @@ fn check(q: &Tensor, k: &Tensor, v: &Tensor, seg: &Segments) -> Result<(usize, u
     }
     for t in [q, k] {
         if u32::try_from(t.numel()).is_err() {
-            return Err(Error::TooLarge(format!("attention on {t:?}")));
+            return Err(Error::too_large(Limit::Index, format!("attention on {t:?}")));
         }
     }
     Ok((nq, nk, h, d))
@@ -325,7 +327,7 @@ fn work_list(rec: &mut Recorder, offsets: &Tensor, rows: usize, block: usize) ->
     let segments = offsets.numel() - 1;
     let capacity = segments + rows.div_ceil(block);
     let list = Tensor::empty(&gpu, &[capacity, 2], DType::U32)?;
-    let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("{v} attention work items")));
+    let fit = |v: usize| fit_u32(v, || format!("{v} attention work items"));
     let p = BlockParams {
         segments: fit(segments)?,
         block: block as u32,
@@ -393,10 +395,9 @@ pub fn attention(
 }
 
 fn params(h: usize, capacity: usize, scale: f32, nq: usize, nk: usize) -> Result<Params> {
-    let items = capacity
-        .checked_mul(h)
-        .and_then(|v| u32::try_from(v).ok())
-        .ok_or_else(|| Error::TooLarge(format!("{capacity} attention work items x {h} heads")))?;
+    let items = capacity.checked_mul(h).and_then(|v| u32::try_from(v).ok()).ok_or_else(|| {
+        Error::too_large(Limit::Index, format!("{capacity} attention work items x {h} heads"))
+    })?;
     if !scale.is_finite() {
         return Err(Error::Invalid(format!("attention scale {scale} is not finite")));
     }

@@ -1,6 +1,7 @@
 //! Elementwise binary ops with numpy-style broadcasting. Kernel: `shaders/binary.wgsl`.
 
 use crate::error::{Error, Result};
+use crate::fit_u32;
 use crate::kernels::args;
 use crate::kernels::BINARY_MAIN;
 use crate::recorder::Recorder;
@@ -105,7 +106,7 @@ pub fn binary_into(rec: &mut Recorder, a: &Tensor, b: &Tensor, out: &Tensor, op:
     if shape != out.shape() {
         return Err(Error::Shape(format!("{op:?}: {a:?} and {b:?} broadcast to {shape:?}, not {out:?}")));
     }
-    let n = u32::try_from(out.numel()).map_err(|_| Error::TooLarge(format!("{op:?} on {out:?}")))?;
+    let n = fit_u32(out.numel(), || format!("{op:?} on {out:?}"))?;
     if n == 0 {
         return Ok(());
     }

@@ -6,6 +6,7 @@ use crate::kernels::{CAST_F16_TO_F32, CAST_F32_TO_F16};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
+use crate::fit_u32;
 use crate::kernels::params::CastParams as Params;
 
 /// A new tensor of the same shape converted to `dtype` (f32 <-> f16; same dtype copies).
@@ -21,7 +22,7 @@ pub fn cast_into(rec: &mut Recorder, x: &Tensor, out: &Tensor) -> Result<()> {
     if x.shape() != out.shape() {
         return Err(Error::Shape(format!("cast {x:?} into {out:?}: shapes differ")));
     }
-    let n = u32::try_from(x.numel()).map_err(|_| Error::TooLarge(format!("cast of {x:?}")))?;
+    let n = fit_u32(x.numel(), || format!("cast of {x:?}"))?;
     let words = (n as u64).div_ceil(2);
     let params = Params { n };
     match (x.dtype(), out.dtype()) {

@@ -18,6 +18,7 @@
 //! same bits on a device. [`reference`] runs the same substep in f64 on the CPU.
 
 use crate::error::{Error, Result};
+use crate::fit_u32;
 use crate::kernels::args;
 use crate::kernels::{
     CLOTH_APPLY, CLOTH_CELL_BOUNDS, CLOTH_COLLIDE, CLOTH_DISTANCE, CLOTH_GROUND, CLOTH_HASH_KEYS,
@@ -242,7 +243,7 @@ impl ClothSim {
         mesh.check()?;
         params.check()?;
         let n = mesh.positions.len();
-        u32::try_from(3 * n).map_err(|_| Error::TooLarge(format!("cloth of {n} particles")))?;
+        fit_u32(3 * n, || format!("cloth of {n} particles"))?;
         let (ordered, colours) = colour(&mesh.constraints, n);
         let m = ordered.len().max(1);
         let flat = |v: &[[f32; 3]]| v.iter().flatten().copied().collect::<Vec<f32>>();

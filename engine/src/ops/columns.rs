@@ -6,6 +6,7 @@ use crate::kernels::COLUMNS_MAIN;
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
+use crate::fit_u32;
 use crate::kernels::params::ColumnsParams as Params;
 
 fn matrix(t: &Tensor, what: &str) -> Result<(usize, usize)> {
@@ -32,8 +33,7 @@ pub fn copy_columns(
             "copy_columns: {count} columns from {src_col} of {src:?} to {dst_col} of {dst:?} do not fit"
         )));
     }
-    let total =
-        u32::try_from(rows * count).map_err(|_| Error::TooLarge(format!("copy_columns of {src:?}")))?;
+    let total = fit_u32(rows * count, || format!("copy_columns of {src:?}"))?;
     let p = Params {
         rows: rows as u32,
         count: count as u32,

@@ -10,6 +10,7 @@ use crate::kernels::CONCAT_COPY_ADD;
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
+use crate::fit_u32;
 use crate::kernels::params::ConcatParams as Params;
 
 /// `dst[dst_start + i] = src[src_start + i] + add` for `i < count` (u32, wrapping).
@@ -34,7 +35,7 @@ pub fn copy_add(
     if count == 0 {
         return Ok(());
     }
-    let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("copy_add of {count} at {v}")));
+    let fit = |v: usize| fit_u32(v, || format!("copy_add of {count} at {v}"));
     let p = Params { src_start: fit(src_start)?, dst_start: fit(dst_start)?, count: fit(count)?, add };
     fit(src_start + count)?;
     fit(dst_start + count)?;

@@ -30,5 +30,5 @@ pub fn fill_bits(rec: &mut Recorder, t: &Tensor, bits: u32) -> Result<()> {
 }
 
 fn too_many(t: &Tensor) -> crate::Error {
-    crate::Error::TooLarge(format!("{t:?} has more than 2^32 words"))
+    crate::Error::too_large(crate::Limit::Index, format!("{t:?} has more than 2^32 words"))
 }

@@ -11,6 +11,7 @@ use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
 use crate::kernels::params::FourierParams as Params;
+use crate::{fit_u32, Limit};
 
 /// Output width for `channels` inputs and `freqs` frequencies.
 pub fn fourier_width(channels: usize, freqs: usize, include_input: bool) -> usize {
@@ -25,8 +26,10 @@ fn params(x: &Tensor, freq: &Tensor, include_input: bool) -> Result<(Params, usi
     }
     let (rows, c) = (x.shape()[0], x.shape()[1]);
     let width = fourier_width(c, freq.numel(), include_input);
-    let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("fourier of {x:?}")));
-    fit(rows.checked_mul(width).ok_or_else(|| Error::TooLarge(format!("fourier of {x:?}")))?)?;
+    let fit = |v: usize| fit_u32(v, || format!("fourier of {x:?}"));
+    fit(rows
+        .checked_mul(width)
+        .ok_or_else(|| Error::too_large(Limit::Index, format!("fourier of {x:?}")))?)?;
     let p = Params {
         rows: fit(rows)?,
         channels: fit(c)?,

@@ -21,6 +21,7 @@ use crate::ops::window::point_rows;
 use crate::recorder::Recorder;
 use crate::rng::Rng;
 use crate::tensor::{DType, Tensor};
+use crate::{fit_u32, Limit};
 
 /// The two sizes of the one workgroup (`@variants WG` in `shaders/fps.wgsl`), and which runs
 /// where: see [`variant`].
@@ -34,7 +35,7 @@ use crate::kernels::params::FpsParams as Params;
 /// `min(m, n)` distinct indices in `0..n`, uniformly at random and in random order (a partial
 /// Fisher-Yates shuffle that stores only the swapped entries, so it costs O(m), not O(n)).
 pub fn random_candidates(n: usize, m: usize, rng: &mut Rng) -> Result<Vec<u32>> {
-    let n32 = u32::try_from(n).map_err(|_| Error::TooLarge(format!("random_candidates: {n} points")))?;
+    let n32 = fit_u32(n, || format!("random_candidates: {n} points"))?;
     let m = m.min(n);
     let mut swapped = std::collections::HashMap::with_capacity(2 * m);
     let mut out = Vec::with_capacity(m);
@@ -100,7 +101,7 @@ fn fps_with(
         return Err(Error::Invalid(format!("fps: cannot choose k = {k} from {m} candidates")));
     }
     if m >= 1 << 30 {
-        return Err(Error::TooLarge(format!("fps: {m} candidates, at most 2^30 - 1")));
+        return Err(Error::too_large(Limit::Index, format!("fps: {m} candidates, at most 2^30 - 1")));
     }
     if let Some((pos, &c)) = candidates.iter().enumerate().find(|(_, &c)| c >= n) {
         return Err(Error::Invalid(format!("fps: candidate {pos} is point {c}, but there are {n} points")));

@@ -1,6 +1,7 @@
 //! Row gather. Kernel: `shaders/gather.wgsl`.
 
 use crate::error::{Error, Result};
+use crate::fit_u32;
 use crate::kernels::args;
 use crate::kernels::{GATHER_INVERT, GATHER_MAIN};
 use crate::recorder::Recorder;
@@ -40,7 +41,7 @@ fn gather_with(rec: &mut Recorder, src: &Tensor, idx: &Tensor, base: Option<&Ten
     }
     let out = Tensor::empty(src.gpu(), &shape, DType::F32)?;
     let total = out.numel();
-    let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("gather into {shape:?}")));
+    let fit = |v: usize| fit_u32(v, || format!("gather into {shape:?}"));
     let p = RowParams {
         rows: fit(idx.numel())?,
         width: fit(width)?,
@@ -65,7 +66,7 @@ pub fn invert_permutation(rec: &mut Recorder, perm: &Tensor) -> Result<Tensor> {
         return Err(Error::Shape(format!("invert_permutation needs u32 [n], got {perm:?}")));
     }
     let n = perm.numel();
-    let fit = u32::try_from(n).map_err(|_| Error::TooLarge(format!("permutation of {n}")))?;
+    let fit = fit_u32(n, || format!("permutation of {n}"))?;
     let inverse = Tensor::empty(perm.gpu(), &[n], DType::U32)?;
     let p = RowParams { rows: fit, width: 1, src_rows: fit, add: 0 };
     rec.dispatch_linear(

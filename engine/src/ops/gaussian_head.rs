@@ -2,6 +2,7 @@
 //! `shaders/gaussian_head.wgsl` (the formulas are in its header).
 
 use crate::error::{Error, Result};
+use crate::fit_u32;
 use crate::kernels::args;
 use crate::kernels::{GAUSSIAN_HEAD_BACKWARD, GAUSSIAN_HEAD_FORWARD};
 use crate::ops::raster::Gaussians;
@@ -33,7 +34,7 @@ fn params(raw: &Tensor, centres: &Tensor, r: &HeadRange) -> Result<(usize, Param
     if !(r.scale_min > 0.0 && r.scale_max > r.scale_min && r.offset_range >= 0.0) {
         return Err(Error::Invalid(format!("gaussian head: bad ranges {r:?}")));
     }
-    let fit = u32::try_from(m).map_err(|_| Error::TooLarge(format!("{m} Gaussians")))?;
+    let fit = fit_u32(m, || format!("{m} Gaussians"))?;
     Ok((
         m,
         Params {

@@ -7,6 +7,7 @@ use crate::kernels::GELU_BACKWARD;
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
+use crate::fit_u32;
 use crate::kernels::params::GeluParams as Params;
 
 /// `dx = dy * gelu'(x)`.
@@ -14,7 +15,7 @@ pub fn gelu_backward(rec: &mut Recorder, x: &Tensor, dy: &Tensor) -> Result<Tens
     if x.dtype() != DType::F32 || dy.dtype() != DType::F32 || x.shape() != dy.shape() {
         return Err(Error::Shape(format!("gelu backward: x {x:?} and dy {dy:?} must be f32 of one shape")));
     }
-    let n = u32::try_from(x.numel()).map_err(|_| Error::TooLarge(format!("gelu backward of {x:?}")))?;
+    let n = fit_u32(x.numel(), || format!("gelu backward of {x:?}"))?;
     let dx = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
     rec.dispatch_linear(
         GELU_BACKWARD,

@@ -3,6 +3,7 @@
 //! Kernel: `shaders/loss.wgsl` (per-element loss and gradient), then a sum by `reduce.wgsl`.
 
 use crate::error::{Error, Result};
+use crate::fit_u32;
 use crate::kernels::args;
 use crate::kernels::LOSS_MAIN;
 use crate::ops::reduce::{reduce_into, Reduce};
@@ -75,7 +76,7 @@ pub fn loss_into(
             return Err(Error::Invalid(format!("focal loss: gamma {gamma} must be in [1, 16]")));
         }
     }
-    let n = u32::try_from(pred.numel()).map_err(|_| Error::TooLarge(format!("{kind:?} loss of {pred:?}")))?;
+    let n = fit_u32(pred.numel(), || format!("{kind:?} loss of {pred:?}"))?;
     let (code, delta) = kind.code();
     let p = Params { n, kind: code, delta, scale: weight / n.max(1) as f32 };
     let per = Tensor::empty(pred.gpu(), &[n as usize], DType::F32)?;

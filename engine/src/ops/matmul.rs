@@ -23,6 +23,7 @@ use crate::ops::binary::{binary_into, Binary};
 use crate::ops::reduce::{reduce_into, Reduce};
 use crate::recorder::{NarrowMatmul, Recorder};
 use crate::tensor::{DType, Tensor};
+use crate::Limit;
 
 /// Output tile of one workgroup: the tiled and cooperative-matrix kernels.
 const TILE: usize = 128;
@@ -329,7 +330,10 @@ pub fn matmul_sum_into(
 
 /// Fails unless `out` is f32 of `shape` and apart from the operands.
 fn check_out(a: &Tensor, b: &Tensor, out: &Tensor, shape: &[usize]) -> Result<()> {
-    if out.dtype() != DType::F32 || out.shape() != shape {
+    if out.dtype() != DType::F32 {
+        return Err(Error::DType(format!("matmul: out must be f32 {shape:?}, got {out:?}")));
+    }
+    if out.shape() != shape {
         return Err(Error::Shape(format!("matmul: out must be f32 {shape:?}, got {out:?}")));
     }
     if out.same_storage(a) || out.same_storage(b) {
@@ -353,10 +357,13 @@ fn grid(gpu: &Gpu, kernel: MatmulKernel, p: &Plan, z: usize) -> Result<[usize; 3
     let groups = [p.n.div_ceil(tn), p.m.div_ceil(tm), z];
     let max = gpu.caps().max_workgroup_count;
     if groups[..2].iter().zip(max).any(|(&g, lim)| g > lim as usize) {
-        return Err(Error::TooLarge(format!(
-            "matmul: [{}, {}] outputs need {groups:?} workgroups of {tm}x{tn}, the device allows {max:?}",
-            p.m, p.n
-        )));
+        return Err(Error::too_large(
+            Limit::Workgroups,
+            format!(
+                "matmul: [{}, {}] outputs need {groups:?} workgroups of {tm}x{tn}, the device allows {max:?}",
+                p.m, p.n
+            ),
+        ));
     }
     Ok(groups)
 }
@@ -392,7 +399,7 @@ fn product(
     // below 2^32 bytes; check the element counts anyway so an index can never wrap.
     for t in [a, b, out] {
         if t.numel() > u32::MAX as usize {
-            return Err(Error::TooLarge(format!("matmul: {t:?} has more than 2^32 elements")));
+            return Err(Error::too_large(Limit::Index, format!("matmul: {t:?} has more than 2^32 elements")));
         }
     }
     let params = Params::of(&p, trans_a, trans_b, accumulate);
@@ -531,9 +538,9 @@ fn check_dtypes(a: &Tensor, b: &Tensor) -> Result<()> {
     match (a.dtype(), b.dtype()) {
         (DType::F32, DType::F32) | (DType::F16, DType::F16) => Ok(()),
         (x, y) if x == y => {
-            Err(Error::Shape(format!("matmul: operands must be f32 or f16, got {}", x.name())))
+            Err(Error::DType(format!("matmul: operands must be f32 or f16, got {}", x.name())))
         }
-        (x, y) => Err(Error::Shape(format!(
+        (x, y) => Err(Error::DType(format!(
             "matmul: operand dtypes differ (a is {}, b is {}); convert one first",
             x.name(),
             y.name()

@@ -1,6 +1,7 @@
 //! Sum, mean and max along one axis. Kernel: `shaders/reduce.wgsl`.
 
 use crate::error::{Error, Result};
+use crate::fit_u32;
 use crate::kernels::args;
 use crate::kernels::{REDUCE_ROWS, REDUCE_STRIDED};
 use crate::recorder::Recorder;
@@ -59,7 +60,7 @@ pub fn reduce_into(
     if out.same_storage(x) {
         return Err(Error::Shape(format!("reduce {op:?}: out shares storage with the input")));
     }
-    let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("reduce of {x:?}")));
+    let fit = |v: usize| fit_u32(v, || format!("reduce of {x:?}"));
     let p = Params {
         outer: fit(outer)?,
         len: fit(len)?,

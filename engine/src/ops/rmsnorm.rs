@@ -10,6 +10,7 @@ use crate::ops::reduce::{reduce_into, Reduce};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
+use crate::fit_u32;
 use crate::kernels::params::RmsnormParams as Params;
 
 /// Rows of `x` over its last axis, checked against the width of `w` (rows, width).
@@ -18,7 +19,7 @@ pub(crate) fn rows_and_width(what: &str, x: &Tensor, width: usize) -> Result<(u3
         return Err(Error::Shape(format!("{what}: x must be f32 with last axis {width}, got {x:?}")));
     }
     let rows = x.numel().checked_div(width).unwrap_or(0);
-    let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("{what} of {x:?}")));
+    let fit = |v: usize| fit_u32(v, || format!("{what} of {x:?}"));
     fit(x.numel())?;
     Ok((fit(rows)?, fit(width)?))
 }

@@ -8,6 +8,7 @@
 //! total of the whole input, so the op hands it back for free.
 
 use crate::error::{Error, Result};
+use crate::fit_u32;
 use crate::kernels::args;
 use crate::kernels::{SCAN_ADD_BLOCK_OFFSETS, SCAN_BLOCK_SCAN};
 use crate::ops::fill::fill_bits;
@@ -59,8 +60,7 @@ pub fn exclusive_scan_items(
     if input.same_storage(output) {
         return Err(Error::Shape("exclusive_scan: input and output must be different tensors".into()));
     }
-    let n = u32::try_from(input.numel())
-        .map_err(|_| Error::TooLarge(format!("exclusive_scan: {input:?} has 2^32 elements or more")))?;
+    let n = fit_u32(input.numel(), || format!("exclusive_scan: {input:?} has 2^32 elements or more"))?;
     if n == 0 {
         let total = Tensor::empty(input.gpu(), &[1], DType::U32)?;
         fill_bits(rec, &total, 0)?;

@@ -2,6 +2,7 @@
 //! `shaders/scatter_add_cas.wgsl` (compare-and-swap fallback), chosen by the device.
 
 use crate::error::{Error, Result};
+use crate::fit_u32;
 use crate::kernels::args;
 use crate::kernels::params::ScatterAddBodyParams as Params;
 use crate::kernels::{SCATTER_ADD_CAS_MAIN, SCATTER_ADD_MAIN};
@@ -36,7 +37,7 @@ pub fn scatter_add(rec: &mut Recorder, src: &Tensor, idx: &Tensor, out: &Tensor)
             idx.numel()
         )));
     }
-    let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("scatter_add of {src:?}")));
+    let fit = |v: usize| fit_u32(v, || format!("scatter_add of {src:?}"));
     fit(src.numel())?;
     fit(out.numel())?;
     let p = Params { rows: fit(rows)?, width: fit(width)?, dst_rows: fit(dst_rows)?, _add: 0 };
@@ -53,7 +54,7 @@ pub fn scatter_add(rec: &mut Recorder, src: &Tensor, idx: &Tensor, out: &Tensor)
 pub fn scatter_add_cas(rec: &mut Recorder, src: &Tensor, idx: &Tensor, out: &Tensor) -> Result<()> {
     let (rows, width) = rows_width(src)?;
     let (dst_rows, _) = rows_width(out)?;
-    let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("scatter_add of {src:?}")));
+    let fit = |v: usize| fit_u32(v, || format!("scatter_add of {src:?}"));
     let p = Params { rows: fit(rows)?, width: fit(width)?, dst_rows: fit(dst_rows)?, _add: 0 };
     rec.dispatch_linear(
         SCATTER_ADD_CAS_MAIN,

@@ -7,6 +7,7 @@ use crate::ops::rmsnorm::{row_groups, row_lanes};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
+use crate::fit_u32;
 use crate::kernels::params::SoftmaxParams as Params;
 
 /// Softmax of every row (last axis) of `x`, as a new tensor.
@@ -17,7 +18,7 @@ pub fn softmax(rec: &mut Recorder, x: &Tensor) -> Result<Tensor> {
     let len = *x.shape().last().unwrap();
     let rows = x.numel().checked_div(len).unwrap_or(0);
     let out = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
-    let fit = |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("softmax of {x:?}")));
+    let fit = |v: usize| fit_u32(v, || format!("softmax of {x:?}"));
     fit(x.numel())?;
     let (rows, len) = (fit(rows)?, fit(len)?);
     let lanes = row_lanes(len);

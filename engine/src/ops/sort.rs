@@ -12,6 +12,7 @@
 //! back with its key, and one that wants masked keys can mask them.
 
 use crate::error::{Error, Result};
+use crate::fit_u32;
 use crate::kernels::args;
 use crate::kernels::{SORT_BLOCK, SORT_HISTOGRAM, SORT_SCATTER};
 use crate::ops::scan::exclusive_scan;
@@ -54,7 +55,7 @@ fn sort_with(
     // Without values the keys stand in for the bindings the kernels then do not read.
     let values = values.unwrap_or(keys);
     if keys.dtype() != DType::U32 {
-        return Err(Error::Shape(format!("sort_pairs: keys {keys:?} must be u32")));
+        return Err(Error::DType(format!("sort_pairs: keys {keys:?} must be u32")));
     }
     if values.dtype().size() != 4 {
         return Err(Error::Shape(format!("sort_pairs: values {values:?} must be a 32-bit type")));
@@ -67,8 +68,7 @@ fn sort_with(
     if !(1..=32).contains(&key_bits) {
         return Err(Error::Shape(format!("sort_pairs: key_bits is {key_bits}, it must be in 1..=32")));
     }
-    let n = u32::try_from(keys.numel())
-        .map_err(|_| Error::TooLarge(format!("sort_pairs: {keys:?} has 2^32 elements or more")))?;
+    let n = fit_u32(keys.numel(), || format!("sort_pairs: {keys:?} has 2^32 elements or more"))?;
     let gpu = keys.gpu();
     let value_type = if iota == 1 { DType::U32 } else { values.dtype() };
     let new_pair = || -> Result<(Tensor, Tensor)> {

@@ -6,6 +6,7 @@ use crate::kernels::{SWIGLU_BACKWARD, SWIGLU_FORWARD, SWIGLU_SILU_BACKWARD};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
+use crate::fit_u32;
 use crate::kernels::params::SwigluParams as Params;
 
 fn check(what: &str, ts: &[&Tensor]) -> Result<Params> {
@@ -13,7 +14,7 @@ fn check(what: &str, ts: &[&Tensor]) -> Result<Params> {
     if ts.iter().any(|t| t.dtype() != DType::F32 || t.shape() != shape) {
         return Err(Error::Shape(format!("{what}: needs f32 tensors of one shape, got {ts:?}")));
     }
-    let n = u32::try_from(ts[0].numel()).map_err(|_| Error::TooLarge(format!("{what} of {:?}", ts[0])))?;
+    let n = fit_u32(ts[0].numel(), || format!("{what} of {:?}", ts[0]))?;
     Ok(Params { n })
 }
 

@@ -1,6 +1,7 @@
 //! Elementwise maps over f32. Kernel: `shaders/unary.wgsl`.
 
 use crate::error::{Error, Result};
+use crate::fit_u32;
 use crate::kernels::args;
 use crate::kernels::UNARY_MAIN;
 use crate::recorder::Recorder;
@@ -86,7 +87,7 @@ pub fn unary_into(rec: &mut Recorder, x: &Tensor, y: &Tensor, f: Unary) -> Resul
     if x.dtype() != DType::F32 || y.dtype() != DType::F32 || x.numel() != y.numel() {
         return Err(Error::Shape(format!("unary {f:?}: {x:?} -> {y:?} needs f32 tensors of equal size")));
     }
-    let n = u32::try_from(x.numel()).map_err(|_| Error::TooLarge(format!("unary on {x:?}")))?;
+    let n = fit_u32(x.numel(), || format!("unary on {x:?}"))?;
     let (op, alpha, beta) = f.code();
     rec.dispatch_linear(
         UNARY_MAIN,

@@ -7,6 +7,7 @@ use crate::kernels::{VOXEL_HEAD_BACKWARD, VOXEL_HEAD_FORWARD};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
+use crate::fit_u32;
 use crate::kernels::params::VoxelHeadParams as Params;
 
 /// Checks `features [cells, F]` (F = h, or 4 h with `directions`), `embedded [per, h]` and
@@ -33,8 +34,7 @@ fn params(features: &Tensor, embedded: &Tensor, offsets: &Tensor, directions: bo
     if offsets.shape() != [per, 3] || !ok(offsets) {
         return Err(Error::Shape(format!("voxel head: offsets must be f32 [{per}, 3], got {offsets:?}")));
     }
-    let fit =
-        |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("voxel head of {cells} cells")));
+    let fit = |v: usize| fit_u32(v, || format!("voxel head of {cells} cells"));
     fit(cells * per * h)?;
     Ok(Params { cells: fit(cells)?, per: fit(per)?, h: fit(h)?, directions: directions as u32 })
 }

@@ -39,6 +39,7 @@ use crate::ops::scan::{self, exclusive_scan};
 use crate::ops::sort::{self, sort_indices};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
+use crate::{fit_u32, Limit};
 
 /// Invocations per workgroup of every kernel in `shaders/window.wgsl`.
 const WG: u64 = 256;
@@ -72,7 +73,7 @@ impl WindowGrid {
             let ratio = (h - l) / w;
             let count = (ratio - 1e-6).ceil().max(1.0);
             if count > u32::MAX as f64 {
-                return Err(Error::TooLarge(format!("window grid axis {a}: {ratio} cells")));
+                return Err(Error::too_large(Limit::Index, format!("window grid axis {a}: {ratio} cells")));
             }
             cells[a] = count as u32;
         }
@@ -116,11 +117,14 @@ impl WindowGrid {
             )));
         }
         if self.num_windows() > 1u64 << 32 {
-            return Err(Error::TooLarge(format!(
-                "window grid {:?} has {} windows; ids are u32, so at most 2^32",
-                self.cells,
-                self.num_windows()
-            )));
+            return Err(Error::too_large(
+                Limit::Index,
+                format!(
+                    "window grid {:?} has {} windows; ids are u32, so at most 2^32",
+                    self.cells,
+                    self.num_windows()
+                ),
+            ));
         }
         Ok(self)
     }
@@ -160,7 +164,7 @@ pub(crate) fn point_rows(points: &Tensor, op: &str) -> Result<u32> {
     }
     let n = points.shape()[0];
     if n >= 1 << 30 {
-        return Err(Error::TooLarge(format!("{op}: {n} points, at most 2^30 - 1")));
+        return Err(Error::too_large(Limit::Index, format!("{op}: {n} points, at most 2^30 - 1")));
     }
     Ok(n as u32)
 }
@@ -225,8 +229,7 @@ pub fn group_by_window(rec: &mut Recorder, ids: &Tensor, num_windows: u64) -> Re
     if num_windows == 0 || num_windows > 1u64 << 32 {
         return Err(Error::Shape(format!("group_by_window: {num_windows} windows, must be in 1..=2^32")));
     }
-    let n = u32::try_from(ids.numel())
-        .map_err(|_| Error::TooLarge(format!("group_by_window: {ids:?} has 2^32 elements or more")))?;
+    let n = fit_u32(ids.numel(), || format!("group_by_window: {ids:?} has 2^32 elements or more"))?;
     let gpu = ids.gpu().clone();
     let capacity = num_windows.min(n as u64) as usize;
     let offsets = Tensor::empty(&gpu, &[capacity + 1], DType::U32)?;

@@ -6,6 +6,7 @@ use crate::common;
 use common::*;
 use velox_engine::ops::attention::{self, attention, attention_backward, reference, Segments};
 use velox_engine::ops::cast::{cast, reference::to_f16};
+use velox_engine::{Error, Feature};
 
 struct Case {
     q_lens: Vec<usize>,
@@ -406,11 +407,11 @@ fn bad_shapes_widths_and_offsets_are_handled() {
     assert!(attention(&mut rec, &t(&[4, 2, 16]), &t(&[4, 2, 32]), &t(&[4, 2, 32]), &seg, 0.25).is_err());
     assert!(attention(&mut rec, &t(&[4, 2, 16]), &t(&[4, 2, 16]), &t(&[5, 2, 16]), &seg, 0.25).is_err());
     let err = attention(&mut rec, &t(&[4, 1, 24]), &t(&[4, 1, 24]), &t(&[4, 1, 24]), &seg, 0.25).unwrap_err();
-    assert!(err.to_string().contains("head width 24"), "{err}");
+    assert!(matches!(err, Error::Unsupported { feature: Feature::KernelVariant, .. }), "{err}");
     assert!(Segments::from_lengths(&gpu, &[1, 2], &[3]).is_err());
     let half = Tensor::empty(&gpu, &[4, 2, 16], DType::F16).unwrap();
     let err = attention(&mut rec, &half, &t(&[4, 2, 16]), &t(&[4, 2, 16]), &seg, 0.25).unwrap_err();
-    assert!(err.to_string().contains("all f32 or all f16"), "{err}");
+    assert!(matches!(err, Error::DType(_)), "{err}");
     drop(rec);
 
     // Offsets that decrease or run past the rows (as a buggy producer might write) are

@@ -173,7 +173,8 @@ fn binary_rejects_bad_shapes_and_too_many_dims() {
     let a = Tensor::empty(&gpu, &[2, 3], DType::F32).unwrap();
     let b = Tensor::empty(&gpu, &[4], DType::F32).unwrap();
     let mut rec = gpu.recorder().unwrap();
-    assert!(binary(&mut rec, &a, &b, Binary::Add).unwrap_err().to_string().contains("broadcast"));
+    let err = binary(&mut rec, &a, &b, Binary::Add).unwrap_err();
+    assert!(matches!(err, velox_engine::Error::Shape(_)), "{err}");
     // Alternating broadcasts over five dims cannot merge to four.
     let a = Tensor::empty(&gpu, &[2, 1, 2, 1, 2], DType::F32).unwrap();
     let b = Tensor::empty(&gpu, &[1, 2, 1, 2, 1], DType::F32).unwrap();

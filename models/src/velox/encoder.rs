@@ -40,6 +40,7 @@ use crate::params::Params;
 use crate::velox::blocks::{
     attention, ff, linear, norm, FeedForward, FeedForwardCache, WindowLayer, WindowLayerCache, WindowLayout,
 };
+use velox_engine::{fit_u32, Limit};
 use velox_io::cloud::CHANNELS;
 
 /// Frames per clip and the frame rate of tau (docs/models.md): tau spans [0, 0.23].
@@ -181,8 +182,7 @@ impl Encoder {
         let total: usize = sizes.iter().sum();
         let starts: Vec<usize> =
             sizes.iter().scan(0, |at, &n| Some(std::mem::replace(at, *at + n))).collect();
-        let index =
-            |v: usize| u32::try_from(v).map_err(|_| Error::TooLarge(format!("a batch of {total} points")));
+        let index = |v: usize| fit_u32(v, || format!("a batch of {total} points"));
         index(total)?;
         let rows_of = |rec: &mut Recorder, src: &Tensor, start: usize, rows: usize| -> Result<Tensor> {
             if start == 0 && rows == src.shape()[0] {
@@ -232,7 +232,10 @@ impl Encoder {
             copy_add(rec, &cells.offsets, 1, &cell_offsets, b * k + 1, k, index(at)?)?;
             for (grid, ids) in grids.iter().zip(&window_ids_all) {
                 let shift = u32::try_from(b as u64 * grid.num_windows()).map_err(|_| {
-                    Error::TooLarge(format!("{batch} clouds of {} windows", grid.num_windows()))
+                    Error::too_large(
+                        Limit::Index,
+                        format!("{batch} clouds of {} windows", grid.num_windows()),
+                    )
                 })?;
                 let local = window_ids(rec, &qp, grid)?;
                 copy_add(rec, &local, 0, ids, b * k, k, shift)?;

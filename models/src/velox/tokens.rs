@@ -140,8 +140,7 @@ fn check_hash(s: &str) -> std::result::Result<(), String> {
 /// The 64-bit FNV-1a hash of a file's bytes, as [`hash_hex`] writes it (read in pieces, so a
 /// checkpoint of any size takes little memory).
 pub fn checkpoint_hash(path: &Path) -> Result<String> {
-    let failed =
-        |e: std::io::Error| Error::Invalid(format!("cannot read checkpoint {}: {e}", path.display()));
+    let failed = |e: std::io::Error| Error::file(path, velox_engine::FileOp::Read, e);
     let mut file = std::fs::File::open(path).map_err(failed)?;
     let mut hash = Fnv1a::new();
     let mut buf = vec![0u8; 1 << 20];
@@ -735,6 +734,7 @@ impl TokenFolder {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use velox_engine::FileOp;
 
     fn temp_dir(name: &str) -> PathBuf {
         let dir = std::env::temp_dir().join(format!("velox-tokens-{name}-{}", std::process::id()));
@@ -780,8 +780,8 @@ mod tests {
         let dir = temp_dir("fnv");
         std::fs::write(dir.join("f"), b"foobar").unwrap();
         assert_eq!(checkpoint_hash(&dir.join("f")).unwrap(), "85944171f73967e8");
-        let e = checkpoint_hash(&dir.join("none")).unwrap_err().to_string();
-        assert!(e.contains("cannot read checkpoint") && e.contains("none"), "{e}");
+        let e = checkpoint_hash(&dir.join("none")).unwrap_err();
+        assert!(matches!(&e, Error::File { path, op: FileOp::Read, .. } if path.ends_with("none")), "{e}");
         assert!(check_hash("85944171F73967E8").is_err() && check_hash("8594417").is_err());
         let _ = std::fs::remove_dir_all(&dir);
     }
@@ -908,8 +908,8 @@ mod tests {
         assert!(check.note().is_some_and(|n| n.contains("is gone")), "{check:?}");
         std::fs::write(&copy, b"other weights").unwrap();
         assert!(check_checkpoint(&dir, &m, Some(&copy)).is_err());
-        let e = check_checkpoint(&dir, &m, Some(&ckpt)).unwrap_err().to_string();
-        assert!(e.contains("cannot read checkpoint"), "{e}");
+        let e = check_checkpoint(&dir, &m, Some(&ckpt)).unwrap_err();
+        assert!(matches!(e, Error::File { op: FileOp::Read, .. }), "{e}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

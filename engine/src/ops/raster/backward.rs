@@ -13,7 +13,7 @@
 
 use super::forward::{BlendParams, ProjectParams};
 use super::{Gaussians, Rendered};
-use crate::error::{Error, Result};
+use crate::error::{Error, Feature, Result};
 use crate::kernels::args;
 use crate::kernels::{
     KernelId, RASTER_BACKWARD_ATOMIC_MAIN, RASTER_BACKWARD_CAS_MAIN, RASTER_BACKWARD_MAIN,
@@ -58,18 +58,12 @@ impl BackwardKernel {
     /// Fails with the reason when `gpu` cannot run this kernel.
     pub fn check(self, gpu: &Gpu) -> Result<()> {
         if !gpu.caps().subgroup_arithmetic {
-            return Err(Error::Unsupported(
-                "the rasteriser's backward pass needs subgroup arithmetic and vote operations in compute shaders"
-                    .into(),
+            return Err(Error::unsupported(
+                Feature::Subgroups,
+                "the rasteriser's backward pass needs subgroup arithmetic and vote operations in compute shaders",
             ));
         }
-        if !gpu.supports(self.id()) {
-            return Err(Error::Unsupported(format!(
-                "this device cannot run the rasteriser's backward kernel {:?}",
-                self.id().name()
-            )));
-        }
-        Ok(())
+        gpu.check_supported(self.id())
     }
 
     /// The fast kernel of a device that has no need for reproducible bits (benchmarks): f32
@@ -152,7 +146,7 @@ pub fn render_backward_with(
     if kernel == BackwardKernel::Ordered {
         let pairs = img.intersections;
         let pair_grads = Tensor::empty(&gpu, &[pairs, 10], DType::F32).map_err(|e| match e {
-            Error::TooLarge(why) => Error::TooLarge(format!(
+            Error::TooLarge { limit, what: why } => Error::too_large(limit, format!(
                 "the deterministic rasteriser backward keeps 10 floats for each of {pairs} (tile, Gaussian) pairs: \
                  {why}; render at a lower resolution or with fewer or smaller Gaussians"
             )),

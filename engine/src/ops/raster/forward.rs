@@ -21,6 +21,7 @@ use crate::ops::sort::sort_pairs;
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 use crate::Gpu;
+use crate::Limit;
 
 pub(crate) use crate::kernels::params::RasterProjectParams as ProjectParams;
 
@@ -199,10 +200,13 @@ pub fn rasterize(rec: &mut Recorder, p: &Projected, background: [f32; 3]) -> Res
     let cam = &p.camera;
     let max_pairs = gpu.caps().max_storage_buffer_range / 4;
     if intersections as u64 > max_pairs.min(u32::MAX as u64) {
-        return Err(Error::TooLarge(format!(
+        return Err(Error::too_large(
+            Limit::Binding,
+            format!(
             "{intersections} (tile, Gaussian) pairs: this device sorts at most {max_pairs} in one buffer; \
              render at a lower resolution or with fewer or smaller Gaussians"
-        )));
+        ),
+        ));
     }
     let (tiles_x, tiles_y) = cam.tiles();
     let tiles = (tiles_x * tiles_y) as usize;

@@ -35,6 +35,7 @@ pub use backward::{render_backward, render_backward_cas, render_backward_with, B
 pub use forward::{project, rasterize, render, Image, Projected, RenderStats, Rendered};
 
 use crate::error::{Error, Result};
+use crate::fit_u32;
 use crate::rng::Rng;
 use crate::tensor::{DType, Tensor};
 use crate::Gpu;
@@ -386,7 +387,7 @@ impl Gaussians {
                 )));
             }
         }
-        u32::try_from(n).map_err(|_| Error::TooLarge(format!("{n} Gaussians")))?;
+        fit_u32(n, || format!("{n} Gaussians"))?;
         Ok(n)
     }
 }
