@@ -24,7 +24,7 @@ VELOX_VALIDATE=1 cargo test --release
 if cargo run --release -q -- info 2>/dev/null | grep 'llvmpipe' >/dev/null; then
   # The engine's op tests and the layers built on them (a module's tests are named `<module>::`).
   export LP_NATIVE_VECTOR_WIDTH=1024
-  families=(assign attention elementwise fill_copy kernels matmul raster scan_sort subgroups)
+  families=(assign attention cases elementwise fill_copy kernels matmul raster scan_sort subgroups)
   cargo test --release -p velox-engine --test ops -- "${families[@]/%/::}"
   cargo test --release --test models -- attention_layer:: layers::
   unset LP_NATIVE_VECTOR_WIDTH
