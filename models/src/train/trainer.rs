@@ -510,6 +510,7 @@ pub fn init_parameters<M: Trainable>(model: &mut M, path: &Path) -> Result<()> {
     }
     checkpoint::load_params(path, model.store_mut()).map(|_| ()).map_err(|e| match e {
         Error::Invalid(why) => Error::Invalid(format!("--init: {why}")),
+        Error::File { path, op, reason } => Error::File { path, op, reason: format!("--init: {reason}") },
         other => other,
     })
 }
