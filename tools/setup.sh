@@ -3,9 +3,10 @@
 #   - a Vulkan driver when the loader finds none: Mesa lavapipe from bookworm-backports (about
 #     3x faster than bookworm's; it runs everything on the CPU) and the loader, libvulkan1;
 #   - with --tests, what the test command needs besides: the Khronos validation layer
-#     (vulkan-validationlayers), Debian's chromium-common (SwiftShader, and the newer build of
-#     the layer whose GPU-assisted checks one test uses), Open MPI and libclang for the
-#     two-process training test.
+#     (vulkan-validationlayers), Debian's chromium (headless, for the viewer's browser test;
+#     its chromium-common brings SwiftShader and the newer build of the layer whose
+#     GPU-assisted checks one test uses), Open MPI and libclang for the two-process training
+#     test.
 # Does nothing where everything is there. Usage: tools/setup.sh [--tests]
 set -euo pipefail
 
@@ -47,7 +48,7 @@ fi
 
 if [ "${1:-}" = --tests ]; then
   needed=()
-  for p in vulkan-validationlayers chromium-common openmpi-bin libopenmpi-dev libclang-dev; do
+  for p in vulkan-validationlayers chromium chromium-common openmpi-bin libopenmpi-dev libclang-dev; do
     installed "$p" || needed+=("$p")
   done
   if [ ${#needed[@]} -gt 0 ]; then

@@ -1,6 +1,7 @@
 //! Images as PNG (8 bits per channel, values in [0, 1] clamped and rounded, no gamma curve
-//! applied: the rasteriser's colours are written as they are) and depth maps as single-channel
-//! f32 OpenEXR (channel `Z`).
+//! applied: the rasteriser's colours are written as they are), sequences as animated GIF (the
+//! same 8-bit values, each frame quantised to its own palette of 256 colours, looping), and
+//! depth maps as single-channel f32 OpenEXR (channel `Z`).
 
 use std::path::Path;
 
@@ -17,13 +18,69 @@ fn check_len(what: &str, len: usize, width: u32, height: u32, channels: usize) -
     Ok(())
 }
 
+/// 8-bit values of RGB in [0, 1] (NaN as 0).
+fn to_rgb8(rgb: &[f32]) -> Vec<u8> {
+    rgb.iter().map(|&v| if v.is_nan() { 0 } else { (v.clamp(0.0, 1.0) * 255.0).round() as u8 }).collect()
+}
+
+/// Writes frames of row-major RGB `[H, W, 3]` in [0, 1] as an animated GIF that loops, each
+/// frame shown for `delay_ms` milliseconds (GIF counts in hundredths of a second, so the delay
+/// is rounded to 10 ms), atomically.
+pub fn write_gif(path: &Path, frames: &[Vec<f32>], width: u32, height: u32, delay_ms: u32) -> Result<()> {
+    if frames.is_empty() {
+        return Err(Error::Shape("write_gif: no frames".into()));
+    }
+    let mut encoded = Vec::with_capacity(frames.len());
+    for (i, f) in frames.iter().enumerate() {
+        check_len(&format!("write_gif frame {i}"), f.len(), width, height, 3)?;
+        let rgba: Vec<u8> = to_rgb8(f).chunks(3).flat_map(|p| [p[0], p[1], p[2], 255]).collect();
+        let buffer = image::RgbaImage::from_raw(width, height, rgba).expect("the length was checked");
+        let delay = image::Delay::from_numer_denom_ms(delay_ms.div_ceil(10) * 10, 1);
+        encoded.push(image::Frame::from_parts(buffer, 0, 0, delay));
+    }
+    let mut out = Vec::new();
+    {
+        let mut encoder = image::codecs::gif::GifEncoder::new_with_speed(&mut out, 10);
+        let failed = |e: image::ImageError| Error::Invalid(format!("encoding a {width}x{height} GIF: {e}"));
+        encoder.set_repeat(image::codecs::gif::Repeat::Infinite).map_err(failed)?;
+        encoder.encode_frames(encoded).map_err(failed)?;
+    }
+    write_bytes(path, &out)
+}
+
+/// An animated GIF as read back: frames of row-major RGB in [0, 1] (composited as shown).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Gif {
+    pub frames: Vec<Vec<f32>>,
+    pub width: u32,
+    pub height: u32,
+    /// Each frame's delay, in milliseconds.
+    pub delays_ms: Vec<u32>,
+}
+
+/// Reads an animated GIF (for tests, and to check what was written).
+pub fn read_gif(path: &Path) -> Result<Gif> {
+    use image::AnimationDecoder;
+    let file = std::fs::File::open(path).map_err(|e| read_error(path, e))?;
+    let decoder = image::codecs::gif::GifDecoder::new(std::io::BufReader::new(file))
+        .map_err(|e| content_error(path, e))?;
+    let frames = decoder.into_frames().collect_frames().map_err(|e| content_error(path, e))?;
+    let (mut images, mut delays, mut size) = (Vec::new(), Vec::new(), (0, 0));
+    for f in frames {
+        let (n, d) = f.delay().numer_denom_ms();
+        delays.push(n / d.max(1));
+        let buffer = f.into_buffer();
+        size = buffer.dimensions();
+        images.push(buffer.pixels().flat_map(|p| [p[0], p[1], p[2]]).map(|b| b as f32 / 255.0).collect());
+    }
+    Ok(Gif { frames: images, width: size.0, height: size.1, delays_ms: delays })
+}
+
 /// Writes row-major RGB `[H, W, 3]` in [0, 1] as an 8-bit PNG (atomically, see
 /// [`crate::write_atomically`]).
 pub fn write_png(path: &Path, rgb: &[f32], width: u32, height: u32) -> Result<()> {
     check_len("write_png", rgb.len(), width, height, 3)?;
-    let bytes: Vec<u8> =
-        rgb.iter().map(|&v| if v.is_nan() { 0 } else { (v.clamp(0.0, 1.0) * 255.0).round() as u8 }).collect();
-    write_bytes(path, &png_bytes(&bytes, width, height)?)
+    write_bytes(path, &png_bytes(&to_rgb8(rgb), width, height)?)
 }
 
 /// The PNG file of 8-bit RGB rows `[H, W, 3]`, encoded in memory so that writing it is one

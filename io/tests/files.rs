@@ -172,3 +172,22 @@ fn png_and_exr_round_trip() {
     assert!(image::write_png(&path, &rgb[1..], w, h).is_err(), "wrong length");
     assert!(image::read_exr_depth(&temp("img.png")).is_err());
 }
+
+#[test]
+fn gif_frames_round_trip_within_their_palette() {
+    let (w, h) = (17u32, 9u32);
+    let n = (w * h * 3) as usize;
+    // A few flat colours (exact in any palette) and a smooth ramp (quantised).
+    let flat: Vec<f32> = (0..n).map(|i| [0.0, 1.0, 0.2][(i / 3 / w as usize) % 3]).collect();
+    let ramp: Vec<f32> = (0..n).map(|i| (i % (3 * w as usize)) as f32 / (3 * w) as f32).collect();
+    let path = temp("seq.gif");
+    image::write_gif(&path, &[flat.clone(), ramp.clone(), flat.clone()], w, h, 95).unwrap();
+    let image::Gif { frames, width: bw, height: bh, delays_ms: delays } = image::read_gif(&path).unwrap();
+    assert_eq!((frames.len(), bw, bh), (3, w, h));
+    assert_eq!(delays, vec![100; 3], "95 ms rounds up to GIF's 10 ms steps");
+    let worst = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
+    assert!(worst(&frames[0], &flat) <= 0.5 / 255.0 + 1e-6);
+    assert!(worst(&frames[1], &ramp) <= 8.0 / 255.0, "{}", worst(&frames[1], &ramp));
+    assert!(image::write_gif(&path, &[], w, h, 100).is_err(), "no frames");
+    assert!(image::write_gif(&path, &[flat[1..].to_vec()], w, h, 100).is_err(), "wrong length");
+}

@@ -20,9 +20,10 @@ use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
+use velox_engine::ops::raster::{render, Gaussians};
 use velox_engine::{Gpu, Precision};
 use velox_io::cloud::CHANNELS;
-use velox_io::write_bytes;
+use velox_io::{image, ply, write_bytes};
 use velox_models::velox::autoencoder::{Autoencoder, FRAMES};
 use velox_models::velox::decode::{frame_points, Decoding, FrameOutput, Sampling, VoxelSource};
 use velox_models::velox::surface::Sampler;
@@ -118,6 +119,10 @@ pub struct GaussiansArgs {
     /// Sampling of the surface points whose voxels are the queries (`--voxels surface`).
     #[command(flatten)]
     sampling: SamplingArgs,
+    /// Also write the decoded frames as an animated GIF (`clip.gif`) beside the truth: the
+    /// scene's first supervision view (needs --cloud to be a dataset scene).
+    #[arg(long)]
+    gif: bool,
 }
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq, Serialize)]
@@ -210,6 +215,30 @@ pub fn read_cloud(path: &Path) -> CliResult<Vec<f32>> {
     Ok(points.iter().flatten().copied().collect())
 }
 
+/// The frames `frames` of a clip as an animated GIF at `gif`: the first supervision view of the
+/// dataset scene `scene` beside `gaussians(f)` rendered from that view's camera (on black, as
+/// the data's images).
+pub fn clip_gif(
+    gpu: &Gpu,
+    scene: &Path,
+    frames: &[usize],
+    mut gaussians: impl FnMut(usize) -> CliResult<Gaussians>,
+    gif: &Path,
+) -> CliResult<()> {
+    let scene = velox_data::format::read_scene(scene, true)?;
+    let camera = scene.cameras.supervision[0];
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    let views = scene.meta.supervision_views;
+    let mut images = Vec::with_capacity(frames.len());
+    for &f in frames {
+        let ours: Vec<f32> = render(gpu, &gaussians(f)?, &camera, [0.0; 3])?.image.rgb.read()?;
+        let truth: Vec<f32> = scene.supervision[f * views].iter().map(|&b| b as f32 / 255.0).collect();
+        images.push(crate::overlay::side_by_side(&[truth, ours], w, h));
+    }
+    image::write_gif(gif, &images, 2 * w as u32, h as u32, 80)?;
+    Ok(())
+}
+
 /// A progress bar over `len` items of `what`.
 pub fn progress(len: usize, what: &str) -> ProgressBar {
     let bar = ProgressBar::new(len as u64);
@@ -258,6 +287,14 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
         DecodeCommand::Gaussians(a) => a.voxel_decoder.clone(),
         DecodeCommand::Points(_) => None,
     };
+    let gif = matches!(&cmd, DecodeCommand::Gaussians(a) if a.gif);
+    if gif && !common.cloud.join("cameras.json").is_file() {
+        return Err(format!(
+            "--gif shows the decoded frames beside the truth: --cloud must be a dataset scene folder, {} is not",
+            common.cloud.display()
+        )
+        .into());
+    }
     let cloud_host = read_cloud(&common.cloud)?;
     if voxels == Some(VoxelSource::Input) {
         let per_frame = frame_points(&cloud_host);
@@ -330,6 +367,12 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
     };
     let json = common.out.join("decode.json");
     write_bytes(&json, serde_json::to_string_pretty(&report)?.as_bytes())?;
+    if gif {
+        let read =
+            |f: usize| Ok(ply::read(&common.out.join(format!("gaussians_f{f:02}.ply")))?.upload(&gpu)?);
+        clip_gif(&gpu, &common.cloud, &common.frames.0, read, &common.out.join("clip.gif"))?;
+        println!("wrote {} (ground truth | decoded)", common.out.join("clip.gif").display());
+    }
     println!(
         "wrote {} files to {} in {:.1} s (decode.json lists them)",
         report.frames.len(),

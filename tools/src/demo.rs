@@ -10,8 +10,10 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use velox_data::format::write_scene;
 use velox_data::{procedural, SynthOptions};
+use velox_engine::ops::raster::Gaussians;
 use velox_engine::Gpu;
 use velox_io::write_bytes;
+use velox_models::velox::autoencoder::FRAMES;
 
 use velox_models::eval::recon::ReconOptions;
 use velox_models::train::collective::SingleProcess;
@@ -19,7 +21,7 @@ use velox_models::velox::autoencoder::Autoencoder;
 use velox_models::velox::decode::{Decoding, FrameOutput, Sampling, VoxelSource};
 use velox_tasks::SceneFolders;
 
-use crate::decode::{progress, read_cloud};
+use crate::decode::{clip_gif, progress, read_cloud};
 use crate::eval::recon;
 use crate::interrupt::Interrupt;
 use crate::train::{train_autoencoder, AutoencoderArgs, RunArgs};
@@ -139,6 +141,12 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
     let gaussians = FrameOutput::Gaussians(VoxelSource::Input);
     decoding.write_frames(&frames, gaussians, &decoded_points, &decoded, &mut on_frame)?;
     bar.finish_and_clear();
+    // Every other frame of the clip, the Gaussians over the input cloud's voxels.
+    let every_other: Vec<usize> = (0..FRAMES).step_by(2).collect();
+    let gaussians = |f: usize| -> CliResult<Gaussians> {
+        Ok(decoding.gaussians(f, &decoding.voxels(f, VoxelSource::Input, &Sampling::heun(1))?)?)
+    };
+    clip_gif(&gpu, &scene_dir, &every_other, gaussians, &out.join("decoded.gif"))?;
 
     // 4. Renders beside the ground truth, and the metrics.
     println!("4/4 rendering and measuring");
@@ -196,6 +204,9 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
     println!("  train/loss.png           the loss plot (log.jsonl holds every step, checkpoint.safetensors the model)");
     println!("  decoded/points_fFF.ply   decoded surface points of frames 0, 12, 23");
     println!("  decoded/gaussians_fFF.ply  decoded 3D Gaussians (3D Gaussian splatting layout)");
+    println!(
+        "  decoded.gif              the clip: ground truth | decoded Gaussians, from a supervision view"
+    );
     println!("  eval/*.png               renders: ground truth | ours");
     println!("  eval/eval.json           PSNR, SSIM and Chamfer per frame and view; {MARKER}: this summary");
     Ok(())

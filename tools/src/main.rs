@@ -14,6 +14,7 @@ mod overlay;
 mod render;
 mod track;
 mod train;
+mod view;
 
 use clap::{Parser, Subcommand};
 
@@ -68,6 +69,10 @@ enum Command {
     /// Render Gaussians (a 3D Gaussian splatting PLY) from a camera orbit to PNG frames and
     /// depth EXRs.
     Render(render::RenderArgs),
+    /// Watch a 4D result in a browser: serves a WebGL2 viewer of per-frame Gaussians (decode,
+    /// generate), decoded points or a dataset scene on 127.0.0.1, with a time slider, orbit
+    /// controls and the scene's cameras; or writes it as one HTML file (--html).
+    View(view::ViewArgs),
     /// Encode every scene of a dataset once with a trained autoencoder's encoder and store the
     /// tokens beside it (k x token_dim per scene, with their query points, the checkpoint's
     /// hash and the dataset's token statistics), for the models that train on them.
@@ -261,6 +266,7 @@ fn dispatch(command: Command) -> CliResult<()> {
         Command::Info { json, probe } => info::run(json.as_deref(), probe),
         Command::Demo(args) => demo::run(&args),
         Command::Render(args) => render::run(&args),
+        Command::View(args) => view::run(&args),
         Command::Bench { what } => bench::run(what),
         Command::Data { what } => data::run(what),
         Command::Config { name, model, params } => print_config(&name, model, params),

@@ -46,6 +46,18 @@ pub struct RenderArgs {
     /// Skip the depth EXRs.
     #[arg(long)]
     no_depth: bool,
+    /// Also write the frames as an animated GIF (`orbit.gif`: a turntable with the default
+    /// orbit), each frame shown this many milliseconds.
+    #[arg(long, value_name = "MS", num_args = 0..=1, default_missing_value = "80")]
+    gif: Option<u32>,
+    /// Render one frame from a camera of this dataset scene (its cameras.json) instead of the
+    /// orbit, at that camera's resolution and intrinsics (--view picks it).
+    #[arg(long)]
+    scene: Option<PathBuf>,
+    /// With --scene: the camera, counting the scene's input views first, then its supervision
+    /// views (the order `velox view` lists them in).
+    #[arg(long, default_value_t = 0, requires = "scene")]
+    view: usize,
 }
 
 fn parse_vec3(s: &str) -> Result<[f32; 3], String> {
@@ -62,6 +74,7 @@ struct Frame {
     png: String,
     depth_exr: Option<String>,
     eye: [f32; 3],
+    camera: Camera,
     drawn: u32,
     invalid: u32,
     behind_near_plane: u32,
@@ -98,6 +111,10 @@ pub fn run(a: &RenderArgs) -> CliResult<()> {
         )
         .into());
     }
+    let cameras: Vec<Camera> = match &a.scene {
+        Some(scene) => vec![scene_camera(scene, a.view)?],
+        None => (0..a.frames).map(|i| orbit_camera(a, i)).collect::<CliResult<_>>()?,
+    };
     let data = ply::read(&a.ply)?;
     std::fs::create_dir_all(&a.out).map_err(|e| format!("creating {}: {e}", a.out.display()))?;
     let gpu = Gpu::new()?;
@@ -106,24 +123,27 @@ pub fn run(a: &RenderArgs) -> CliResult<()> {
         "rendering {} Gaussians from {} to {} frames of {}x{} on {}",
         data.len(),
         a.ply.display(),
-        a.frames,
-        a.width,
-        a.height,
+        cameras.len(),
+        cameras[0].width,
+        cameras[0].height,
         gpu.caps().name
     );
-    let bar = ProgressBar::new(a.frames as u64);
+    let bar = ProgressBar::new(cameras.len() as u64);
     bar.set_style(
         ProgressStyle::with_template("{bar:40} {pos}/{len} frames, {elapsed} elapsed, {eta} left")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     let mut frames = Vec::new();
-    for i in 0..a.frames {
-        let cam = orbit_camera(a, i)?;
+    let mut images = Vec::new();
+    for (i, &cam) in (0u32..).zip(&cameras) {
         let r = render(&gpu, &gaussians, &cam, a.background)?;
         let stats = r.stats()?;
         let rgb: Vec<f32> = r.image.rgb.read()?;
         let png = a.out.join(format!("frame_{i:04}.png"));
-        image::write_png(&png, &rgb, a.width, a.height)?;
+        image::write_png(&png, &rgb, cam.width, cam.height)?;
+        if a.gif.is_some() {
+            images.push(rgb);
+        }
         let depth_exr = if a.no_depth {
             None
         } else {
@@ -133,7 +153,7 @@ pub fn run(a: &RenderArgs) -> CliResult<()> {
             let z: Vec<f32> =
                 depth.iter().zip(&alpha).map(|(&d, &a)| if a > 1.0 / 255.0 { d / a } else { 0.0 }).collect();
             let path = a.out.join(format!("depth_{i:04}.exr"));
-            image::write_exr_depth(&path, &z, a.width, a.height)?;
+            image::write_exr_depth(&path, &z, cam.width, cam.height)?;
             Some(name(&path))
         };
         let eye = camera_position(&cam);
@@ -142,6 +162,7 @@ pub fn run(a: &RenderArgs) -> CliResult<()> {
             png: name(&png),
             depth_exr,
             eye,
+            camera: cam,
             drawn: stats.drawn,
             invalid: stats.invalid,
             behind_near_plane: stats.behind_near_plane,
@@ -155,12 +176,37 @@ pub fn run(a: &RenderArgs) -> CliResult<()> {
     bar.finish();
     let json = a.out.join("render.json");
     write_bytes(&json, serde_json::to_string_pretty(&frames)?.as_bytes())?;
+    if let Some(delay) = a.gif {
+        let (w, h) = (cameras[0].width, cameras[0].height);
+        image::write_gif(&a.out.join("orbit.gif"), &images, w, h, delay)?;
+    }
     let dropped = frames.first().map(|f| f.invalid).unwrap_or(0);
     if dropped > 0 {
         println!("{dropped} Gaussians have NaN, Inf or degenerate parameters and were not drawn");
     }
-    println!("wrote {} frames to {} (render.json lists them)", a.frames, a.out.display());
+    println!("wrote {} frames to {} (render.json lists them)", frames.len(), a.out.display());
     Ok(())
+}
+
+/// Camera `view` of a scene's cameras.json: its input views, then its supervision views.
+fn scene_camera(scene: &Path, view: usize) -> CliResult<Camera> {
+    let path = scene.join("cameras.json");
+    let text = std::fs::read_to_string(&path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    let json: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| format!("{}: not JSON: {e}", path.display()))?;
+    let mut cameras = Vec::new();
+    for group in ["input", "supervision"] {
+        if let Some(list) = json.get(group) {
+            let list: Vec<Camera> = serde_json::from_value(list.clone())
+                .map_err(|e| format!("{}: the {group} cameras are unreadable: {e}", path.display()))?;
+            cameras.extend(list);
+        }
+    }
+    let count = cameras.len();
+    cameras.get(view).copied().ok_or_else(|| {
+        format!("--view {view}: {} has {count} cameras (input, then supervision views)", path.display())
+            .into()
+    })
 }
 
 fn name(p: &Path) -> String {
@@ -213,6 +259,7 @@ mod tests {
             "1,1,1",
             "--up",
             "-y",
+            "--gif",
         ];
         let cli = Cli::try_parse_from(argv).unwrap();
         run(&cli.args).unwrap();
@@ -224,6 +271,15 @@ mod tests {
         let frames: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(out.join("render.json")).unwrap()).unwrap();
         assert_eq!(frames.as_array().unwrap().len(), 2);
+        let gif = image::read_gif(&out.join("orbit.gif")).unwrap();
+        assert_eq!((gif.frames.len(), gif.width, gif.height, gif.delays_ms), (2, 40, 24, vec![80, 80]));
+        // render.json records the camera of every frame.
+        let cam: Camera = serde_json::from_value(frames[1]["camera"].clone()).unwrap();
+        assert_eq!((cam.width, cam.height), (40, 24));
         assert!(Cli::try_parse_from(["velox-render", "x.ply", "--background", "1,2"]).is_err());
+        assert!(
+            Cli::try_parse_from(["velox-render", "x.ply", "--view", "2"]).is_err(),
+            "--view needs --scene"
+        );
     }
 }

@@ -160,12 +160,17 @@ fn demo_runs_end_to_end_and_says_where_its_outputs_are() {
         "decoded/gaussians_f23.ply",
         "eval/eval.json",
         "demo.json",
+        "decoded.gif",
     ] {
         assert!(dir.join(f).exists(), "the demo did not write {f}");
     }
     let summary: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(dir.join("demo.json")).unwrap()).unwrap();
     assert!(summary["metrics"]["psnr"].as_f64().unwrap().is_finite());
+    // The clip, every other frame: the truth beside the decoded Gaussians.
+    let gif = velox_io::image::read_gif(&dir.join("decoded.gif")).unwrap();
+    assert_eq!((gif.frames.len(), gif.width, gif.height), (12, 64, 32));
+    assert!(gif.frames[0] != gif.frames[6], "the clip moves");
     // A second run replaces the first demo's outputs; a folder that is not a demo's is refused.
     let again = velox()
         .args(["demo", "--steps", "1", "--res", "16", "--points", "500", "--config", "tiny", "--out"])

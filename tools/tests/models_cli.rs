@@ -128,6 +128,19 @@ fn decode_gaussians_writes_splat_files_from_surface_or_cloud_voxels() {
         assert_eq!(report["frames"][0]["voxels"].as_u64().unwrap() * 4, g.len() as u64);
         assert_eq!(report["precision"], precision);
     }
+    // Two frames as a clip beside the truth; a cloud without a scene's cameras is refused.
+    let out = dir.join("gaussians_clip");
+    let args =
+        ["decode", "gaussians", "--checkpoint", arg(&ckpt), "--cloud", arg(&scene), "--out", arg(&out)];
+    ok(&velox(&[&args[..], &["--frames", "3,9", "--voxels", "cloud", "--gif"][..]].concat()));
+    let gif = velox_io::image::read_gif(&out.join("clip.gif")).unwrap();
+    assert_eq!((gif.frames.len(), gif.width), (2, 2 * gif.height));
+    let cloud = dir.join("cloud.ply");
+    std::fs::copy(scene.join("points.ply"), &cloud).unwrap();
+    let args =
+        ["decode", "gaussians", "--checkpoint", arg(&ckpt), "--cloud", arg(&cloud), "--out", arg(&out)];
+    let err = fails(&velox(&[&args[..], &["--gif"][..]].concat()));
+    assert!(err.contains("--gif") && err.contains("dataset scene"), "{err}");
 }
 
 #[test]

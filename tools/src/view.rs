@@ -1,0 +1,596 @@
+//! `velox view PATH`: watch a 4D result in a browser. PATH is a folder of per-frame Gaussian
+//! PLYs (`decode gaussians`, `generate`: `gaussians_fFF.ply`), of per-frame surface points
+//! (`decode points`: `points_fFF.ply`), a dataset scene (its 4D point cloud, split by frame) or
+//! one Gaussian PLY. The command checks every frame's header first (a folder without frames,
+//! a file of another layout, a port in use: an error before anything is served), then serves
+//! on 127.0.0.1 (unless `--host` says otherwise) a page written in this project
+//! (`tools/src/view/`: a WebGL2 renderer of 3D Gaussians with the engine's projection,
+//! covariance, colour and front-to-back blending) and the frames, each converted when the page
+//! asks for it. `--html FILE` writes the page with the manifest and every frame inside it, one
+//! file that opens offline.
+//!
+//! What the page reads (relative URLs):
+//! - `manifest.json`: the title, the kind (`gaussians` or `points`), the frames (frame index,
+//!   tau, URL, count), the scene's cameras (the rasteriser's [`Camera`] with a name) and the
+//!   background;
+//! - `frames/K.bin`: frame K of the manifest as the bytes `VXG1`, a u32 count N, then N records
+//!   of 13 little-endian f32: mean (3), the world covariance's upper triangle xx xy xz yy yz zz,
+//!   opacity in [0, 1], colour (negative channels clamped to 0, as the rasteriser does). Points
+//!   are drawn as small round opaque Gaussians ([`POINT_SIGMA`]). A frame that cannot be read
+//!   answers 500 with the reason, which the page shows.
+//!
+//! Nothing but those routes is served: no path of the request reaches the file system.
+
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::{IpAddr, Ipv4Addr, SocketAddr, TcpListener, TcpStream};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use serde::Serialize;
+use velox_engine::ops::raster::{Camera, GaussianData};
+use velox_io::ply::{self, Header};
+use velox_io::write_bytes;
+use velox_models::velox::autoencoder::FRAMES;
+
+use crate::CliResult;
+
+#[derive(clap::Args)]
+pub struct ViewArgs {
+    /// A folder of per-frame Gaussian PLYs (gaussians_fFF.ply) or surface points
+    /// (points_fFF.ply), a dataset scene folder, or one Gaussian PLY.
+    path: PathBuf,
+    /// Port to serve on (default: a free one, printed).
+    #[arg(long)]
+    port: Option<u16>,
+    /// Address to bind: 127.0.0.1 keeps the page on this machine; 0.0.0.0 shares it with the
+    /// network.
+    #[arg(long, default_value_t = IpAddr::V4(Ipv4Addr::LOCALHOST))]
+    host: IpAddr,
+    /// The scene whose cameras the page offers (default: the scene a decode output names in
+    /// its decode.json, or PATH itself when it is a scene).
+    #[arg(long)]
+    scene: Option<PathBuf>,
+    /// Write the viewer with every frame inside it to this HTML file (opens offline, from
+    /// disk) instead of serving.
+    #[arg(long)]
+    html: Option<PathBuf>,
+}
+
+/// Standard deviation of the Gaussian a point is drawn as, in scene units (the scenes span
+/// [-1, 1]: a point covers a few pixels at the data's resolutions).
+pub const POINT_SIGMA: f32 = 0.006;
+/// Colour of points that carry none (decoded surface points): a light grey.
+const POINT_GREY: [f32; 3] = [0.8, 0.8, 0.8];
+/// Floats per Gaussian in a frame's body.
+const RECORD: usize = 13;
+
+/// Where a frame's Gaussians come from.
+enum FrameData {
+    /// A 3D Gaussian splatting PLY.
+    Gaussians(PathBuf),
+    /// A PLY of points (x y z, maybe r g b or red green blue).
+    Points(PathBuf),
+    /// Frame `frame` of a scene's 4D cloud (rows x y z r g b tau).
+    ScenePoints { cloud: Arc<Vec<[f32; 7]>>, frame: usize },
+}
+
+struct Frame {
+    frame: usize,
+    count: usize,
+    data: FrameData,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+enum Kind {
+    Gaussians,
+    Points,
+}
+
+#[derive(Serialize)]
+struct NamedCamera {
+    name: String,
+    #[serde(flatten)]
+    camera: Camera,
+}
+
+/// What PATH holds, checked.
+struct Source {
+    title: String,
+    kind: Kind,
+    frames: Vec<Frame>,
+    cameras: Vec<NamedCamera>,
+}
+
+#[derive(Serialize)]
+struct ManifestFrame {
+    frame: usize,
+    tau: f32,
+    url: String,
+    count: usize,
+}
+
+#[derive(Serialize)]
+struct Manifest<'a> {
+    version: u32,
+    title: &'a str,
+    kind: Kind,
+    frames: Vec<ManifestFrame>,
+    cameras: &'a [NamedCamera],
+    background: [f32; 3],
+}
+
+/// tau of frame `f` (the clips' 100 frames per second).
+fn tau(f: usize) -> f32 {
+    f as f32 / 100.0
+}
+
+/// The frame a cloud row's tau belongs to.
+fn frame_index(tau: f32) -> usize {
+    ((tau * 100.0).round() as usize).min(FRAMES - 1)
+}
+
+/// The frame index in a name `PREFIX_fFF.ply`, if it is one.
+fn frame_of(name: &str, prefix: &str) -> Option<usize> {
+    name.strip_prefix(prefix)?.strip_prefix("_f")?.strip_suffix(".ply")?.parse().ok()
+}
+
+/// The header of a PLY file and its vertex count, reading only the start of the file; the
+/// file's length is checked against the header.
+fn ply_header(path: &Path) -> CliResult<(Header, usize)> {
+    let mut file = std::fs::File::open(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    let mut start = vec![0u8; 64 * 1024];
+    let mut got = 0;
+    while got < start.len() {
+        match file.read(&mut start[got..]) {
+            Ok(0) => break,
+            Ok(n) => got += n,
+            Err(e) => return Err(format!("cannot read {}: {e}", path.display()).into()),
+        }
+    }
+    start.truncate(got);
+    let header = Header::parse(&start).map_err(|e| format!("{}: {e}", path.display()))?;
+    let (_, vertex) =
+        header.find("vertex").ok_or_else(|| format!("{}: the PLY has no vertex element", path.display()))?;
+    let count = vertex.count;
+    let need: u128 = header.elements.iter().map(|e| e.count as u128 * e.stride() as u128).sum();
+    let have = file.metadata().map(|m| m.len()).unwrap_or(0) as u128 - header.body_start as u128;
+    if need != have {
+        return Err(format!(
+            "{}: the header declares {need} bytes after it, the file has {have} (truncated or not what it says)",
+            path.display()
+        )
+        .into());
+    }
+    Ok((header, count))
+}
+
+/// Whether a PLY header has every property of the Gaussian layout.
+fn is_gaussian(header: &Header) -> bool {
+    let Some((_, vertex)) = header.find("vertex") else { return false };
+    let names: Vec<&str> = vertex.properties.iter().map(|p| p.0.as_str()).collect();
+    ["x", "f_dc_0", "opacity", "scale_0", "rot_0"].iter().all(|p| names.contains(p))
+}
+
+/// A scene folder's cameras (its input views, then its supervision views), if it has them.
+fn scene_cameras(scene: &Path) -> CliResult<Vec<NamedCamera>> {
+    let path = scene.join("cameras.json");
+    let text = std::fs::read_to_string(&path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    let json: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| format!("{}: not JSON: {e}", path.display()))?;
+    let mut cameras = Vec::new();
+    for group in ["input", "supervision"] {
+        let Some(list) = json.get(group) else { continue };
+        let list: Vec<Camera> = serde_json::from_value(list.clone())
+            .map_err(|e| format!("{}: the {group} cameras are unreadable: {e}", path.display()))?;
+        cameras.extend(
+            list.into_iter()
+                .enumerate()
+                .map(|(i, camera)| NamedCamera { name: format!("{group} {i}"), camera }),
+        );
+    }
+    Ok(cameras)
+}
+
+/// The scene a decode or generate output was made from (decode.json's `cloud`), when it is a
+/// scene folder.
+fn named_scene(dir: &Path) -> Option<PathBuf> {
+    let text = std::fs::read_to_string(dir.join("decode.json")).ok()?;
+    let json: serde_json::Value = serde_json::from_str(&text).ok()?;
+    let cloud = PathBuf::from(json["cloud"].as_str()?);
+    cloud.join("cameras.json").is_file().then_some(cloud)
+}
+
+/// Reads and checks what PATH holds.
+fn discover(path: &Path, scene: Option<&Path>) -> CliResult<Source> {
+    if !path.exists() {
+        return Err(format!("{} does not exist", path.display()).into());
+    }
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let (kind, frames, own_scene) = if path.is_file() {
+        let (header, count) = ply_header(path)?;
+        if !is_gaussian(&header) {
+            return Err(format!(
+                "{} is not a Gaussian PLY (x, f_dc_*, opacity, scale_*, rot_*)",
+                path.display()
+            )
+            .into());
+        }
+        (
+            Kind::Gaussians,
+            vec![Frame { frame: 0, count, data: FrameData::Gaussians(path.to_path_buf()) }],
+            None,
+        )
+    } else if path.join("points.ply").is_file() && path.join("cameras.json").is_file() {
+        let cloud = velox_data::format::read_ply(&path.join("points.ply"))?;
+        let mut counts = [0usize; FRAMES];
+        for p in &cloud {
+            counts[frame_index(p[6])] += 1;
+        }
+        let cloud = Arc::new(cloud);
+        let frames = (0..counts.len())
+            .filter(|&f| counts[f] > 0)
+            .map(|f| Frame {
+                frame: f,
+                count: counts[f],
+                data: FrameData::ScenePoints { cloud: cloud.clone(), frame: f },
+            })
+            .collect();
+        (Kind::Points, frames, Some(path.to_path_buf()))
+    } else {
+        let entries = std::fs::read_dir(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+        let mut files: Vec<(String, PathBuf)> = entries
+            .filter_map(|e| e.ok())
+            .map(|e| (e.file_name().to_string_lossy().into_owned(), e.path()))
+            .collect();
+        files.sort();
+        let of = |prefix: &str| -> Vec<(usize, PathBuf)> {
+            files.iter().filter_map(|(n, p)| frame_of(n, prefix).map(|f| (f, p.clone()))).collect()
+        };
+        let (gaussians, points) = (of("gaussians"), of("points"));
+        let (kind, list) = match (gaussians.is_empty(), points.is_empty()) {
+            (false, _) => (Kind::Gaussians, gaussians),
+            (true, false) => (Kind::Points, points),
+            (true, true) => {
+                return Err(format!(
+                "{} holds no frames: expected gaussians_fFF.ply (velox decode gaussians, velox generate), \
+                     points_fFF.ply (velox decode points), or a dataset scene (points.ply and cameras.json)",
+                path.display()
+            )
+                .into())
+            }
+        };
+        let mut frames = Vec::new();
+        for (f, file) in list {
+            let (header, count) = ply_header(&file)?;
+            let data = match kind {
+                Kind::Gaussians if is_gaussian(&header) => FrameData::Gaussians(file),
+                Kind::Points if !is_gaussian(&header) => FrameData::Points(file),
+                _ => {
+                    return Err(format!(
+                        "{}: frames of different formats: it is {} a Gaussian PLY, unlike the folder's other frames",
+                        file.display(),
+                        if is_gaussian(&header) { "" } else { "not" }
+                    )
+                    .into())
+                }
+            };
+            frames.push(Frame { frame: f, count, data });
+        }
+        (kind, frames, named_scene(path))
+    };
+    let scene = scene.map(Path::to_path_buf).or(own_scene);
+    let cameras = match &scene {
+        Some(s) => scene_cameras(s)?,
+        None => Vec::new(),
+    };
+    let what = match kind {
+        Kind::Gaussians => "Gaussians",
+        Kind::Points => "points",
+    };
+    let title = format!("{what} of {name}: {} frame(s)", frames.len());
+    Ok(Source { title, kind, frames, cameras })
+}
+
+/// The upper triangle of `R(q) diag(exp(log_scale))^2 R(q)^T` (q = (w, x, y, z), normalised).
+fn covariance(log_scale: &[f32], q: &[f32]) -> [f32; 6] {
+    let n = q.iter().map(|v| (*v as f64) * (*v as f64)).sum::<f64>().sqrt().max(1e-30);
+    let [w, x, y, z] = [q[0], q[1], q[2], q[3]].map(|v| v as f64 / n);
+    let r = [
+        [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
+        [2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)],
+        [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)],
+    ];
+    let s2 = [0, 1, 2].map(|k| (2.0 * log_scale[k] as f64).exp());
+    let c = |i: usize, j: usize| (0..3).map(|k| r[i][k] * s2[k] * r[j][k]).sum::<f64>() as f32;
+    [c(0, 0), c(0, 1), c(0, 2), c(1, 1), c(1, 2), c(2, 2)]
+}
+
+/// The frame's body for the page (see the module docs).
+fn gaussian_body(g: &GaussianData) -> Vec<u8> {
+    let n = g.means.len() / 3;
+    let mut out = Vec::with_capacity(8 + n * RECORD * 4);
+    out.extend_from_slice(b"VXG1");
+    out.extend_from_slice(&(n as u32).to_le_bytes());
+    for i in 0..n {
+        let cov = covariance(&g.log_scales[3 * i..3 * i + 3], &g.quats[4 * i..4 * i + 4]);
+        let opacity = 1.0 / (1.0 + (-g.opacities[i] as f64).exp()) as f32;
+        let colour = [0, 1, 2].map(|k| g.colours[3 * i + k].max(0.0));
+        for v in g.means[3 * i..3 * i + 3].iter().chain(&cov).chain([&opacity]).chain(&colour) {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    out
+}
+
+/// Points (xyz and colour) as small round opaque Gaussians.
+fn points_body(points: &[([f32; 3], [f32; 3])]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(8 + points.len() * RECORD * 4);
+    out.extend_from_slice(b"VXG1");
+    out.extend_from_slice(&(points.len() as u32).to_le_bytes());
+    let v = POINT_SIGMA * POINT_SIGMA;
+    for (xyz, rgb) in points {
+        for x in xyz.iter().chain(&[v, 0.0, 0.0, v, 0.0, v]).chain(&[1.0]).chain(rgb) {
+            out.extend_from_slice(&x.to_le_bytes());
+        }
+    }
+    out
+}
+
+/// The points of a points PLY (x y z and, if present, r g b or red green blue in [0, 1] or
+/// 0..255 for integer channels).
+fn read_points(path: &Path) -> CliResult<Vec<([f32; 3], [f32; 3])>> {
+    let bytes = std::fs::read(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    let header = Header::parse(&bytes).map_err(|e| format!("{}: {e}", path.display()))?;
+    header.check_length(&bytes).map_err(|e| format!("{}: {e}", path.display()))?;
+    let (start, vertex) =
+        header.find("vertex").ok_or_else(|| format!("{}: no vertex element", path.display()))?;
+    let mut offsets = Vec::new();
+    let mut at = 0;
+    for (name, scalar) in &vertex.properties {
+        offsets.push((name.as_str(), at, *scalar));
+        at += scalar.size();
+    }
+    let field = |names: &[&str]| offsets.iter().find(|(n, _, _)| names.contains(n)).copied();
+    let xyz = [field(&["x"]), field(&["y"]), field(&["z"])];
+    if xyz.iter().any(Option::is_none) {
+        return Err(format!("{}: points need x, y and z", path.display()).into());
+    }
+    let rgb = [field(&["r", "red"]), field(&["g", "green"]), field(&["b", "blue"])];
+    let stride = vertex.stride();
+    let mut points = Vec::with_capacity(vertex.count);
+    for i in 0..vertex.count {
+        let item = &bytes[start + i * stride..start + (i + 1) * stride];
+        let read = |(_, at, s): (&str, usize, ply::Scalar)| s.read(&item[at..]);
+        let p = xyz.map(|f| read(f.expect("checked above")) as f32);
+        if p.iter().any(|v| !v.is_finite()) {
+            return Err(format!("{}: point {i} is not finite", path.display()).into());
+        }
+        let c = match rgb {
+            [Some(r), Some(g), Some(b)] => [r, g, b].map(|f| {
+                let v = read(f);
+                (if matches!(f.2, ply::Scalar::F32 | ply::Scalar::F64) { v } else { v / 255.0 }) as f32
+            }),
+            _ => POINT_GREY,
+        };
+        points.push((p, c));
+    }
+    Ok(points)
+}
+
+impl Frame {
+    /// The frame's body for the page, read and converted now.
+    fn body(&self) -> CliResult<Vec<u8>> {
+        Ok(match &self.data {
+            FrameData::Gaussians(path) => gaussian_body(&ply::read(path)?),
+            FrameData::Points(path) => points_body(&read_points(path)?),
+            FrameData::ScenePoints { cloud, frame } => {
+                let of_frame = cloud
+                    .iter()
+                    .filter(|p| frame_index(p[6]) == *frame)
+                    .map(|p| ([p[0], p[1], p[2]], [p[3], p[4], p[5]]))
+                    .collect::<Vec<_>>();
+                points_body(&of_frame)
+            }
+        })
+    }
+}
+
+impl Source {
+    fn manifest(&self, embedded: bool) -> String {
+        let frames = self
+            .frames
+            .iter()
+            .enumerate()
+            .map(|(k, f)| ManifestFrame {
+                frame: f.frame,
+                tau: tau(f.frame),
+                url: if embedded { format!("#frame-{k}") } else { format!("frames/{k}.bin") },
+                count: f.count,
+            })
+            .collect();
+        let m = Manifest {
+            version: 1,
+            title: &self.title,
+            kind: self.kind,
+            frames,
+            cameras: &self.cameras,
+            background: [0.0; 3],
+        };
+        serde_json::to_string(&m).expect("the manifest serialises")
+    }
+}
+
+const INDEX: &str = include_str!("view/index.html");
+const VIEWER: &str = include_str!("view/viewer.js");
+/// Where `--html` puts the manifest and the frames in the page.
+const EMBED_MARKER: &str = "<!--velox-embedded-->";
+
+/// Standard base64 with padding.
+fn base64(bytes: &[u8]) -> String {
+    const ABC: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    let mut out = String::with_capacity(bytes.len().div_ceil(3) * 4);
+    for chunk in bytes.chunks(3) {
+        let b = [chunk[0], *chunk.get(1).unwrap_or(&0), *chunk.get(2).unwrap_or(&0)];
+        let n = (b[0] as u32) << 16 | (b[1] as u32) << 8 | b[2] as u32;
+        for k in 0..4 {
+            if k <= chunk.len() {
+                out.push(ABC[(n >> (18 - 6 * k) & 63) as usize] as char);
+            } else {
+                out.push('=');
+            }
+        }
+    }
+    out
+}
+
+/// The page with the manifest and every frame inside it, and the viewer's script inline.
+fn embedded_page(source: &Source) -> CliResult<String> {
+    if !INDEX.contains(EMBED_MARKER) {
+        return Err("the viewer page has no place for embedded frames".into());
+    }
+    // `</` cannot close a script element inside JSON or base64 once escaped.
+    let mut inserts = format!(
+        "<script id=\"velox-manifest\" type=\"application/json\">{}</script>\n",
+        source.manifest(true).replace("</", "<\\/")
+    );
+    for (k, f) in source.frames.iter().enumerate() {
+        inserts.push_str(&format!(
+            "<script id=\"frame-{k}\" type=\"application/octet-stream\">{}</script>\n",
+            base64(&f.body()?)
+        ));
+    }
+    let script = format!("<script>\n{}\n</script>", VIEWER.replace("</script", "<\\/script"));
+    Ok(INDEX.replacen(EMBED_MARKER, &inserts, 1).replacen("<script src=\"viewer.js\"></script>", &script, 1))
+}
+
+/// One HTTP response.
+fn respond(stream: &mut TcpStream, status: &str, kind: &str, body: &[u8]) -> std::io::Result<()> {
+    let head = format!(
+        "HTTP/1.1 {status}\r\nContent-Type: {kind}\r\nContent-Length: {}\r\nCache-Control: no-store\r\nConnection: close\r\n\r\n",
+        body.len()
+    );
+    stream.write_all(head.as_bytes())?;
+    stream.write_all(body)?;
+    stream.flush()
+}
+
+/// Answers one request: the page, its script, the manifest or a frame; anything else is 404.
+fn handle(mut stream: TcpStream, source: &Source, manifest: &str) -> std::io::Result<()> {
+    let mut reader = BufReader::new(stream.try_clone()?);
+    let mut line = String::new();
+    reader.by_ref().take(8192).read_line(&mut line)?;
+    // The headers are read and ignored (to the blank line), so the client sees its request taken.
+    let mut header = String::new();
+    while reader.by_ref().take(8192).read_line(&mut header)? > 2 {
+        header.clear();
+    }
+    let mut parts = line.split_whitespace();
+    let (method, target) = (parts.next().unwrap_or(""), parts.next().unwrap_or(""));
+    if method != "GET" {
+        return respond(&mut stream, "405 Method Not Allowed", "text/plain", b"only GET is served");
+    }
+    let route = target.split(['?', '#']).next().unwrap_or("");
+    match route {
+        "/" | "/index.html" => respond(&mut stream, "200 OK", "text/html; charset=utf-8", INDEX.as_bytes()),
+        "/viewer.js" => respond(&mut stream, "200 OK", "text/javascript; charset=utf-8", VIEWER.as_bytes()),
+        "/manifest.json" => respond(&mut stream, "200 OK", "application/json", manifest.as_bytes()),
+        _ => {
+            let frame = route
+                .strip_prefix("/frames/")
+                .and_then(|r| r.strip_suffix(".bin"))
+                .and_then(|k| k.parse::<usize>().ok())
+                .and_then(|k| source.frames.get(k).map(|f| (k, f)));
+            match frame {
+                Some((k, f)) => match f.body() {
+                    Ok(body) => respond(&mut stream, "200 OK", "application/octet-stream", &body),
+                    Err(e) => {
+                        let why = format!("frame {k} (frame {} of the clip): {e}", f.frame);
+                        respond(
+                            &mut stream,
+                            "500 Internal Server Error",
+                            "text/plain; charset=utf-8",
+                            why.as_bytes(),
+                        )
+                    }
+                },
+                None => respond(&mut stream, "404 Not Found", "text/plain", b"not found"),
+            }
+        }
+    }
+}
+
+pub fn run(a: &ViewArgs) -> CliResult<()> {
+    let source = discover(&a.path, a.scene.as_deref())?;
+    if let Some(html) = &a.html {
+        let page = embedded_page(&source)?;
+        write_bytes(html, page.as_bytes())?;
+        println!(
+            "wrote {} ({}, {:.1} MB): open it in a browser",
+            html.display(),
+            source.title,
+            page.len() as f64 / 1e6
+        );
+        return Ok(());
+    }
+    let address = SocketAddr::new(a.host, a.port.unwrap_or(0));
+    let listener = TcpListener::bind(address).map_err(|e| match e.kind() {
+        std::io::ErrorKind::AddrInUse => {
+            format!(
+                "port {} on {} is in use: choose another with --port (or leave it out for a free one)",
+                address.port(),
+                a.host
+            )
+        }
+        _ => format!("cannot listen on {address}: {e}"),
+    })?;
+    let bound = listener.local_addr()?;
+    println!("velox view: {} at http://{bound}/ (Ctrl-C stops)", source.title);
+    std::io::stdout().flush()?;
+    let manifest = Arc::new(source.manifest(false));
+    let source = Arc::new(source);
+    for stream in listener.incoming() {
+        let Ok(stream) = stream else { continue };
+        let (source, manifest) = (source.clone(), manifest.clone());
+        std::thread::spawn(move || {
+            // A client that goes away mid-answer is no error of ours.
+            let _ = handle(stream, &source, &manifest);
+        });
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn base64_matches_the_standard_alphabet_and_padding() {
+        assert_eq!(base64(b""), "");
+        assert_eq!(base64(b"f"), "Zg==");
+        assert_eq!(base64(b"fo"), "Zm8=");
+        assert_eq!(base64(b"foo"), "Zm9v");
+        assert_eq!(base64(b"foobar"), "Zm9vYmFy");
+        assert_eq!(base64(&[0xff, 0xfe, 0x00]), "//4A");
+    }
+
+    #[test]
+    fn a_covariance_is_the_rotated_squared_scales() {
+        // No rotation: the squared scales on the diagonal.
+        let c = covariance(&[0.0, 2f32.ln(), 0.5f32.ln()], &[1.0, 0.0, 0.0, 0.0]);
+        let want = [1.0, 0.0, 0.0, 4.0, 0.0, 0.25];
+        assert!(c.iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-6), "{c:?}");
+        // A quarter turn about z (any quaternion length) swaps x and y.
+        let h = std::f32::consts::FRAC_PI_4;
+        let c = covariance(&[0.0, 2f32.ln(), 0.0], &[3.0 * h.cos(), 0.0, 0.0, 3.0 * h.sin()]);
+        let want = [4.0, 0.0, 0.0, 1.0, 0.0, 1.0];
+        assert!(c.iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-5), "{c:?}");
+    }
+
+    #[test]
+    fn frame_names_parse() {
+        assert_eq!(frame_of("gaussians_f07.ply", "gaussians"), Some(7));
+        assert_eq!(frame_of("points_f23.ply", "gaussians"), None);
+        assert_eq!(frame_of("gaussians_fxx.ply", "gaussians"), None);
+    }
+}

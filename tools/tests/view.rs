@@ -1,0 +1,293 @@
+//! `velox view` as a user meets it: what it refuses before serving, what it serves and what it
+//! does not, the one-file page, and the page itself in a real browser (headless Chromium with
+//! software WebGL2) against `velox render` of the same frame from the same camera.
+
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::TcpStream;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+
+use velox_engine::ops::raster::GaussianData;
+use velox_engine::rng::Rng;
+use velox_io::image::read_png;
+use velox_io::ply;
+
+fn velox() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_velox"))
+}
+
+fn temp_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("velox-view-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// `n` Gaussians around the origin (where the scenes' cameras look), of varied size, opacity
+/// and colour, drawn from `seed`.
+fn gaussians(n: usize, seed: u64) -> GaussianData {
+    let mut rng = Rng::new(seed);
+    let mut g = GaussianData::default();
+    for _ in 0..n {
+        let mean = [0; 3].map(|_| rng.range(-0.7, 0.7) as f32);
+        let ls = [0; 3].map(|_| rng.range(-3.6, -2.2) as f32);
+        let q = [0; 4].map(|_| rng.normal() as f32);
+        let c = [0; 3].map(|_| rng.uniform() as f32);
+        g.push(mean, ls, q, rng.range(-1.0, 3.0) as f32, c);
+    }
+    g
+}
+
+/// A dataset scene (for its cameras) and a decode-like folder of two Gaussian frames that names
+/// it in its decode.json.
+fn fixture(name: &str, res: u32) -> (PathBuf, PathBuf) {
+    let dir = temp_dir(name);
+    let data = dir.join("data");
+    let out = velox()
+        .args(["data", "synth", "--scenes", "1", "--points", "2000", "--tracks", "0", "--res"])
+        .arg(res.to_string())
+        .arg("--out")
+        .arg(&data)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let scene = data.join("scene_00000");
+    let decoded = dir.join("decoded");
+    std::fs::create_dir_all(&decoded).unwrap();
+    for f in [0, 12] {
+        ply::write(&decoded.join(format!("gaussians_f{f:02}.ply")), &gaussians(400, 3 + f as u64)).unwrap();
+    }
+    let json = serde_json::json!({ "command": "decode gaussians", "cloud": scene.display().to_string() });
+    std::fs::write(decoded.join("decode.json"), json.to_string()).unwrap();
+    (scene, decoded)
+}
+
+/// A running `velox view` and its address; killed when dropped.
+struct Server {
+    child: Child,
+    address: String,
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn serve(path: &Path) -> Server {
+    let mut child =
+        velox().arg("view").arg(path).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    let address = line
+        .split_whitespace()
+        .find_map(|w| w.strip_prefix("http://"))
+        .unwrap_or_else(|| panic!("no address in {line:?}"))
+        .trim_end_matches('/')
+        .to_string();
+    assert!(address.starts_with("127.0.0.1:"), "{address}");
+    Server { child, address }
+}
+
+/// (status code, body) of a raw request.
+fn request(address: &str, request_line: &str) -> (u32, Vec<u8>) {
+    let mut s = TcpStream::connect(address).unwrap();
+    write!(s, "{request_line}\r\nHost: {address}\r\n\r\n").unwrap();
+    let mut reply = Vec::new();
+    s.read_to_end(&mut reply).unwrap();
+    let split = reply.windows(4).position(|w| w == b"\r\n\r\n").expect("a header");
+    let head = String::from_utf8_lossy(&reply[..split]).to_string();
+    let status = head.split_whitespace().nth(1).unwrap().parse().unwrap();
+    (status, reply[split + 4..].to_vec())
+}
+
+fn get(address: &str, path: &str) -> (u32, Vec<u8>) {
+    request(address, &format!("GET {path} HTTP/1.1"))
+}
+
+fn fails(cmd: &mut Command) -> String {
+    let out = cmd.output().unwrap();
+    assert!(!out.status.success(), "succeeded: {}", String::from_utf8_lossy(&out.stdout));
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    assert!(!err.contains("panicked"), "{err}");
+    err
+}
+
+#[test]
+fn bad_input_is_refused_before_anything_is_served() {
+    let dir = temp_dir("bad");
+    let empty = dir.join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    let err = fails(velox().arg("view").arg(&empty));
+    assert!(err.contains("holds no frames"), "{err}");
+    let err = fails(velox().arg("view").arg(dir.join("missing")));
+    assert!(err.contains("does not exist"), "{err}");
+
+    // A points PLY among Gaussian frames.
+    let mixed = dir.join("mixed");
+    std::fs::create_dir_all(&mixed).unwrap();
+    ply::write(&mixed.join("gaussians_f00.ply"), &gaussians(10, 1)).unwrap();
+    let points =
+        "ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nproperty float y\n\
+                  property float z\nend_header\n";
+    let mut bytes = points.as_bytes().to_vec();
+    bytes.extend_from_slice(&[0u8; 12]);
+    std::fs::write(mixed.join("gaussians_f01.ply"), &bytes).unwrap();
+    let err = fails(velox().arg("view").arg(&mixed));
+    assert!(err.contains("gaussians_f01.ply") && err.contains("different formats"), "{err}");
+
+    // A truncated frame.
+    let cut = dir.join("cut");
+    std::fs::create_dir_all(&cut).unwrap();
+    let whole = ply::to_bytes(&gaussians(10, 2)).unwrap();
+    std::fs::write(cut.join("gaussians_f00.ply"), &whole[..whole.len() - 7]).unwrap();
+    let err = fails(velox().arg("view").arg(&cut));
+    assert!(err.contains("gaussians_f00.ply") && err.contains("truncated"), "{err}");
+
+    // A port in use.
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = taken.local_addr().unwrap().port().to_string();
+    let err = fails(velox().arg("view").arg(mixed.join("gaussians_f00.ply")).args(["--port", &port]));
+    assert!(err.contains(&format!("port {port}")) && err.contains("in use"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn the_server_answers_its_routes_and_nothing_outside_them() {
+    let (_, decoded) = fixture("serve", 32);
+    let server = serve(&decoded);
+    let a = &server.address;
+    let (status, page) = get(a, "/");
+    assert_eq!(status, 200);
+    assert!(String::from_utf8_lossy(&page).contains("viewer.js"));
+    assert_eq!(get(a, "/viewer.js").0, 200);
+    let (status, manifest) = get(a, "/manifest.json");
+    assert_eq!(status, 200);
+    let m: serde_json::Value = serde_json::from_slice(&manifest).unwrap();
+    assert_eq!(m["kind"], "gaussians");
+    let frames = m["frames"].as_array().unwrap();
+    assert_eq!((frames.len(), &frames[1]["frame"], &frames[1]["count"]), (2, &12.into(), &400.into()));
+    assert!(m["cameras"].as_array().unwrap().len() > 1, "the scene's cameras");
+    let (status, body) = get(a, "/frames/1.bin?cache=no");
+    assert_eq!(status, 200);
+    assert_eq!((&body[..4], body.len()), (&b"VXG1"[..], 8 + 400 * 13 * 4));
+    assert_eq!(u32::from_le_bytes(body[4..8].try_into().unwrap()), 400);
+    // Nothing but the routes: no path leads into the folder or out of it.
+    for path in [
+        "/frames/2.bin",
+        "/gaussians_f00.ply",
+        "/../Cargo.toml",
+        "/%2e%2e/%2e%2e/etc/passwd",
+        "/frames/../decode.json",
+    ] {
+        assert_eq!(get(a, path).0, 404, "{path}");
+    }
+    assert_eq!(request(a, "POST /manifest.json HTTP/1.1").0, 405);
+    // A frame that breaks while the server runs is an error the page can show.
+    std::fs::write(decoded.join("gaussians_f12.ply"), b"ply\nformat ascii 1.0\nend_header\n").unwrap();
+    let (status, why) = get(a, "/frames/1.bin");
+    let why = String::from_utf8_lossy(&why);
+    assert!(status == 500 && why.contains("gaussians_f12.ply"), "{status} {why}");
+}
+
+#[test]
+fn html_writes_one_page_that_holds_every_frame() {
+    let (_, decoded) = fixture("html", 32);
+    let page = decoded.join("view.html");
+    let out = velox().arg("view").arg(&decoded).arg("--html").arg(&page).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let text = std::fs::read_to_string(&page).unwrap();
+    assert!(text.contains("id=\"velox-manifest\"") && text.contains("id=\"frame-1\""));
+    assert!(!text.contains("src=\"viewer.js\""), "the script is inline");
+    assert!(!text.contains("http://") && !text.contains("https://"), "nothing fetched from outside");
+}
+
+/// Headless Chromium with software WebGL2 (SwiftShader), at device scale 1.
+fn chromium(window: (u32, u32), dir: &Path) -> Command {
+    let mut c = Command::new("chromium");
+    c.args([
+        "--headless=new",
+        "--no-sandbox",
+        "--use-angle=swiftshader",
+        "--enable-unsafe-swiftshader",
+        "--force-device-scale-factor=1",
+        "--hide-scrollbars",
+        "--virtual-time-budget=20000",
+    ])
+    .arg(format!("--window-size={},{}", window.0, window.1))
+    .arg(format!("--user-data-dir={}", dir.join("profile").display()));
+    c
+}
+
+fn screenshot(url: &str, window: (u32, u32), dir: &Path, name: &str) -> Vec<f32> {
+    let png = dir.join(name);
+    let out = chromium(window, dir).arg(format!("--screenshot={}", png.display())).arg(url).output();
+    let out =
+        out.expect("the browser test needs Chromium: apt-get install chromium (tools/setup.sh --tests does)");
+    assert!(png.exists(), "no screenshot: {}", String::from_utf8_lossy(&out.stderr));
+    let (rgb, w, h) = read_png(&png).unwrap();
+    assert_eq!((w, h), window);
+    rgb
+}
+
+fn dom(url: &str, dir: &Path) -> String {
+    let out = chromium((256, 256), dir).arg("--dump-dom").arg(url).output().expect("Chromium");
+    String::from_utf8_lossy(&out.stdout).to_string()
+}
+
+fn psnr(a: &[f32], b: &[f32]) -> f64 {
+    let mse = a.iter().zip(b).map(|(x, y)| (*x as f64 - *y as f64).powi(2)).sum::<f64>() / a.len() as f64;
+    10.0 * (1.0 / mse.max(1e-12)).log10()
+}
+
+/// The `data-NAME` attribute of the page's body in a DOM dump.
+fn body_attribute(dump: &str, name: &str) -> Option<String> {
+    let body = &dump[dump.find("<body")?..];
+    let body = &body[..body.find('>')?];
+    let at = body.find(&format!("data-{name}=\""))? + name.len() + 7;
+    Some(body[at..at + body[at..].find('"')?].to_string())
+}
+
+#[test]
+fn the_page_draws_a_frame_as_velox_render_does_and_plays() {
+    let (scene, decoded) = fixture("browser", 64);
+    let dir = decoded.parent().unwrap().to_path_buf();
+    let server = serve(&decoded);
+    let url = |hash: &str| format!("http://{}/index.html#{hash}", server.address);
+    let window = (64, 64);
+
+    // Frame 1 (clip frame 12) from scene camera 0, through the page's own controls.
+    let page = screenshot(&url("camera=0&frame=1&ui=0"), window, &dir, "page.png");
+    let render = dir.join("render");
+    let out = velox()
+        .arg("render")
+        .arg(decoded.join("gaussians_f12.ply"))
+        .arg("--scene")
+        .arg(&scene)
+        .args(["--view", "0", "--no-depth", "--out"])
+        .arg(&render)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let (want, w, h) = read_png(&render.join("frame_0000.png")).unwrap();
+    assert_eq!((w, h), window);
+    let p = psnr(&page, &want);
+    eprintln!("page against velox render: PSNR {p:.1} dB");
+    assert!(p >= 30.0, "PSNR {p:.1} dB");
+
+    // The slider changes the picture.
+    let other = screenshot(&url("camera=0&frame=0&ui=0"), window, &dir, "other.png");
+    assert!(psnr(&page, &other) < 25.0, "frames 0 and 12 look alike");
+
+    // Playing advances the frames; a frame that fails shows its error on the page.
+    let played = dom(&url("camera=0&play=1"), &dir);
+    let drawn: usize = body_attribute(&played, "drawn").and_then(|d| d.parse().ok()).unwrap_or(0);
+    assert!(drawn >= 2, "frames drawn while playing: {drawn}");
+    std::fs::write(decoded.join("gaussians_f12.ply"), b"not a ply").unwrap();
+    let broken = dom(&url("frame=1"), &dir);
+    let error = body_attribute(&broken, "error").unwrap_or_default();
+    assert!(error.contains("gaussians_f12.ply"), "the page shows: {error:?}");
+    drop(server);
+    let _ = std::fs::remove_dir_all(&dir);
+}
