@@ -8,6 +8,7 @@
 //! - `gaussians_fFF.ply` per frame (3D Gaussian splatting layout, `velox render` reads it);
 //! - `input/fFF.png` (the input view) and `novel/vV_fFF.png` (views 1..N on a ring about the
 //!   object, 20 degrees up, at the input camera's distance);
+//! - `clip.gif`: every frame, the condition beside the input view and the first novel view;
 //! - `sheet.png`: one row per view (the input video's frame first when it has one), frames
 //!   0, 6, 12, 18, 23 across (the frames asked for, at most 6);
 //! - `generate.json`: what was run and written.
@@ -22,7 +23,7 @@ use std::time::Instant;
 use serde::Serialize;
 use velox_data::camera::{ring_cameras, video_camera_at, Camera};
 use velox_engine::Gpu;
-use velox_io::image::write_png;
+use velox_io::image::{write_gif, write_png};
 use velox_io::{ply, write_bytes};
 use velox_models::config::GenerationTask;
 use velox_models::eval::generation::rendered;
@@ -109,6 +110,8 @@ struct Report {
     frames: Vec<FrameReport>,
     views: usize,
     sheet: String,
+    /// The frames as an animated GIF: the condition, the input view, the first novel view.
+    clip: String,
 }
 
 #[derive(Serialize)]
@@ -175,6 +178,11 @@ pub fn resized(cam: &Camera, res: u32) -> Camera {
 /// Images of one size in a grid, `rows` of `cols`, row-major: one `[rows h, cols w, 3]` image.
 pub fn grid(images: &[Vec<f32>], cols: usize, w: usize, h: usize) -> Vec<f32> {
     images.chunks(cols).flat_map(|row| crate::overlay::side_by_side(row, w, h)).collect()
+}
+
+/// Images side by side in a frame of `clip.gif`: the condition and up to two views.
+fn clip_row_panes(views: usize) -> usize {
+    1 + views.min(2)
 }
 
 /// Up to 6 of `frames`, spread evenly, for the contact sheet.
@@ -259,6 +267,7 @@ pub fn run(a: &GenerateArgs) -> CliResult<()> {
     let mut sheet: Vec<Vec<Vec<f32>>> = vec![Vec::new(); cams.len() + 1];
     let bar = progress(a.frames.0.len(), "frames decoded and rendered");
     let mut frames = Vec::new();
+    let mut clip = Vec::new();
     for &f in &a.frames.0 {
         let centres = decoding.voxels(f, source, &sampling)?;
         let g = decoding.gaussians(f, &centres)?;
@@ -271,8 +280,13 @@ pub fn run(a: &GenerateArgs) -> CliResult<()> {
             count: host.len(),
             voxels: centres.len() / 3,
         });
+        // The clip's frame: the condition beside the input view and the first novel view.
+        let mut clip_row = vec![condition_frame(&pixels, cfg.task, cfg.image_size, f, w, h)];
         for (v, cam) in cams.iter().enumerate() {
             let rgb = rendered(&gpu, &g, cam)?;
+            if v < 2 {
+                clip_row.push(rgb.clone());
+            }
             let file = match v {
                 0 => a.out.join(format!("input/f{f:02}.png")),
                 v => a.out.join(format!("novel/v{v}_f{f:02}.png")),
@@ -283,8 +297,9 @@ pub fn run(a: &GenerateArgs) -> CliResult<()> {
             }
         }
         if sheet_at.contains(&f) {
-            sheet[0].push(condition_frame(&pixels, cfg.task, cfg.image_size, f, w, h));
+            sheet[0].push(clip_row[0].clone());
         }
+        clip.push(crate::overlay::side_by_side(&clip_row, w, h));
         bar.inc(1);
     }
     bar.finish_and_clear();
@@ -294,6 +309,9 @@ pub fn run(a: &GenerateArgs) -> CliResult<()> {
     let big = crate::overlay::enlarged(&grid(&images, cols, w, h), cols * w, images.len() / cols * h, k);
     let sheet_path = a.out.join("sheet.png");
     write_png(&sheet_path, &big, (cols * w * k) as u32, ((images.len() / cols) * h * k) as u32)?;
+    let clip_path = a.out.join("clip.gif");
+    let panes = clip_row_panes(cams.len());
+    write_gif(&clip_path, &clip, (panes * w) as u32, h as u32, 100)?;
     let report = Report {
         command: "generate",
         generator: a.checkpoint.display().to_string(),
@@ -310,6 +328,7 @@ pub fn run(a: &GenerateArgs) -> CliResult<()> {
         frames,
         views: a.views as usize,
         sheet: name(&sheet_path),
+        clip: name(&clip_path),
     };
     write_bytes(&a.out.join("generate.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
     println!(

@@ -8,14 +8,14 @@
 //! - `tracks_fFF.ply`: per frame, every query's point (float x y z, uchar red green blue in
 //!   the query's colour, uchar visible);
 //! - `overlay/fFF.png`: the video's frames with each track's path drawn so far, faded where
-//!   the point is hidden.
+//!   the point is hidden, and the same as the animated `overlay.gif`.
 
 use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 use velox_engine::Gpu;
 use velox_io::cloud;
-use velox_io::image::write_png;
+use velox_io::image::{write_gif, write_png};
 use velox_io::write_bytes;
 use velox_models::velox::autoencoder::{Autoencoder, FRAMES};
 use velox_models::velox::tracker::{Track, Tracker};
@@ -175,6 +175,7 @@ pub fn run(a: &TrackArgs) -> CliResult<()> {
     let overlay = a.out.join("overlay");
     std::fs::create_dir_all(&overlay).map_err(|e| format!("creating {}: {e}", overlay.display()))?;
     let colour = colours(&tracks, cam);
+    let mut clip = Vec::with_capacity(FRAMES);
     for f in 0..FRAMES {
         let positions: Vec<[f32; 3]> = tracks.iter().map(|t| t[f]).collect();
         let visible: Vec<bool> = hidden.iter().map(|h| !h[f]).collect();
@@ -182,7 +183,9 @@ pub fn run(a: &TrackArgs) -> CliResult<()> {
         let mut rgb = video.rgb[f].clone();
         draw_tracks(&mut rgb, cam, &tracks, &hidden, &colour, f);
         write_png(&overlay.join(format!("f{f:02}.png")), &rgb, cam.width, cam.height)?;
+        clip.push(rgb);
     }
+    write_gif(&a.out.join("overlay.gif"), &clip, cam.width, cam.height, 100)?;
     let json = TrackJson {
         video: a.video.display().to_string(),
         autoencoder: a.autoencoder.display().to_string(),
@@ -203,7 +206,7 @@ pub fn run(a: &TrackArgs) -> CliResult<()> {
     let shown = hidden.iter().map(|h| h.iter().filter(|&&x| !x).count()).sum::<usize>();
     println!(
         "wrote {} (tracks of {} queries, visible at {:.0} % of their frames), {FRAMES} PLY files and the \
-         overlay frames under {}",
+         overlay frames under {} (and as overlay.gif)",
         a.out.join("tracks.json").display(),
         queries.len(),
         100.0 * shown as f64 / (queries.len() * FRAMES) as f64,

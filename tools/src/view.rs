@@ -9,6 +9,10 @@
 //! asks for it. `--html FILE` writes the page with the manifest and every frame inside it, one
 //! file that opens offline.
 //!
+//! Beside PATH the page shows a second result of the same clip in step with it (`--compare`;
+//! by default the ground truth's points of the scene a decode output was made from), and over
+//! it 3D tracks: those `velox track` wrote (`tracks.json`), or the scene's ground-truth tracks.
+//!
 //! What the page reads (relative URLs):
 //! - `manifest.json`: the title, the kind (`gaussians` or `points`), the frames (frame index,
 //!   tau, URL, count), the scene's cameras (the rasteriser's [`Camera`] with a name) and the
@@ -17,7 +21,10 @@
 //!   of 13 little-endian f32: mean (3), the world covariance's upper triangle xx xy xz yy yz zz,
 //!   opacity in [0, 1], colour (negative channels clamped to 0, as the rasteriser does). Points
 //!   are drawn as small round opaque Gaussians ([`POINT_SIGMA`]). A frame that cannot be read
-//!   answers 500 with the reason, which the page shows.
+//!   answers 500 with the reason, which the page shows. `compare/K.bin`: the second result's
+//!   frames, alike;
+//! - `tracks.bin`: `VXT1`, u32 tracks T, u32 clip frames F, T F 3 f32 positions (track-major),
+//!   T F visibility bytes, zero-padded to 4 bytes.
 //!
 //! Nothing but those routes is served: no path of the request reaches the file system.
 
@@ -50,6 +57,13 @@ pub struct ViewArgs {
     /// its decode.json, or PATH itself when it is a scene).
     #[arg(long)]
     scene: Option<PathBuf>,
+    /// A second result to show beside PATH, in step with it (anything PATH may be; default: the
+    /// ground truth's points of the scene a decode output names).
+    #[arg(long)]
+    compare: Option<PathBuf>,
+    /// Show PATH alone, without the default comparison.
+    #[arg(long, conflicts_with = "compare")]
+    no_compare: bool,
     /// Write the viewer with every frame inside it to this HTML file (opens offline, from
     /// disk) instead of serving.
     #[arg(long)]
@@ -100,6 +114,73 @@ struct Source {
     kind: Kind,
     frames: Vec<Frame>,
     cameras: Vec<NamedCamera>,
+    /// Another result of the same clip, shown beside this one.
+    compare: Option<Box<Source>>,
+    tracks: Option<Tracks>,
+    /// The dataset scene the result belongs to, if known.
+    scene: Option<PathBuf>,
+}
+
+/// 3D tracks through the clip: `positions[(t * frames + f) * 3..][..3]` is track t at clip
+/// frame f, `visible[t * frames + f]` whether it is seen there.
+struct Tracks {
+    count: usize,
+    frames: usize,
+    positions: Vec<f32>,
+    visible: Vec<u8>,
+}
+
+impl Tracks {
+    /// The page's `tracks.bin`: `VXT1`, u32 count, u32 frames, the positions as f32, the
+    /// visibility as bytes, zero-padded to a multiple of 4 bytes.
+    fn body(&self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(12 + 4 * self.positions.len() + self.visible.len() + 3);
+        out.extend_from_slice(b"VXT1");
+        out.extend_from_slice(&(self.count as u32).to_le_bytes());
+        out.extend_from_slice(&(self.frames as u32).to_le_bytes());
+        for v in &self.positions {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        out.extend_from_slice(&self.visible);
+        out.resize(out.len().next_multiple_of(4), 0);
+        out
+    }
+}
+
+/// The tracks `velox track` wrote (`tracks.json`).
+fn read_track_json(path: &Path) -> CliResult<Tracks> {
+    let text = std::fs::read_to_string(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    let json: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| format!("{}: not JSON: {e}", path.display()))?;
+    let bad = |why: &str| format!("{}: {why}", path.display());
+    let queries = json["queries"].as_array().ok_or_else(|| bad("no queries"))?;
+    let (mut positions, mut visible) = (Vec::new(), Vec::new());
+    for (t, q) in queries.iter().enumerate() {
+        let p: Vec<[f32; 3]> = serde_json::from_value(q["positions"].clone())
+            .map_err(|e| bad(&format!("query {t}: positions: {e}")))?;
+        let v: Vec<bool> = serde_json::from_value(q["visible"].clone())
+            .map_err(|e| bad(&format!("query {t}: visible: {e}")))?;
+        if p.len() != FRAMES || v.len() != FRAMES || p.iter().flatten().any(|x| !x.is_finite()) {
+            return Err(
+                bad(&format!("query {t}: expected {FRAMES} finite positions and visibilities")).into()
+            );
+        }
+        positions.extend(p.iter().flatten());
+        visible.extend(v.iter().map(|&b| b as u8));
+    }
+    Ok(Tracks { count: queries.len(), frames: FRAMES, positions, visible })
+}
+
+/// A dataset scene's ground-truth surface tracks, seen where any input camera sees them;
+/// none when the scene was made without tracks.
+fn scene_tracks(scene: &Path) -> CliResult<Option<Tracks>> {
+    let s = velox_data::format::read_scene(scene, false)?;
+    if s.tracks.is_empty() {
+        return Ok(None);
+    }
+    let positions = s.tracks.iter().flatten().flatten().copied().collect();
+    let visible = s.visibility.iter().flatten().map(|&bits| (bits != 0) as u8).collect();
+    Ok(Some(Tracks { count: s.tracks.len(), frames: FRAMES, positions, visible }))
 }
 
 #[derive(Serialize)]
@@ -118,6 +199,21 @@ struct Manifest<'a> {
     frames: Vec<ManifestFrame>,
     cameras: &'a [NamedCamera],
     background: [f32; 3],
+    compare: Option<ManifestCompare<'a>>,
+    tracks: Option<ManifestTracks>,
+}
+
+#[derive(Serialize)]
+struct ManifestCompare<'a> {
+    title: &'a str,
+    frames: Vec<ManifestFrame>,
+}
+
+#[derive(Serialize)]
+struct ManifestTracks {
+    url: String,
+    count: usize,
+    frames: usize,
 }
 
 /// tau of frame `f` (the clips' 100 frames per second).
@@ -201,6 +297,14 @@ fn named_scene(dir: &Path) -> Option<PathBuf> {
     cloud.join("cameras.json").is_file().then_some(cloud)
 }
 
+/// The scene a track output was made from (tracks.json's `video`), when it is a scene folder.
+fn tracked_scene(dir: &Path) -> Option<PathBuf> {
+    let text = std::fs::read_to_string(dir.join("tracks.json")).ok()?;
+    let json: serde_json::Value = serde_json::from_str(&text).ok()?;
+    let video = PathBuf::from(json["video"].as_str()?);
+    video.join("cameras.json").is_file().then_some(video)
+}
+
 /// Reads and checks what PATH holds.
 fn discover(path: &Path, scene: Option<&Path>) -> CliResult<Source> {
     if !path.exists() {
@@ -247,18 +351,22 @@ fn discover(path: &Path, scene: Option<&Path>) -> CliResult<Source> {
         let of = |prefix: &str| -> Vec<(usize, PathBuf)> {
             files.iter().filter_map(|(n, p)| frame_of(n, prefix).map(|f| (f, p.clone()))).collect()
         };
-        let (gaussians, points) = (of("gaussians"), of("points"));
-        let (kind, list) = match (gaussians.is_empty(), points.is_empty()) {
-            (false, _) => (Kind::Gaussians, gaussians),
-            (true, false) => (Kind::Points, points),
-            (true, true) => {
-                return Err(format!(
+        // Gaussians first; else decoded points; else a track output's points.
+        let (gaussians, points, tracked) = (of("gaussians"), of("points"), of("tracks"));
+        let (kind, list) = if !gaussians.is_empty() {
+            (Kind::Gaussians, gaussians)
+        } else if !points.is_empty() {
+            (Kind::Points, points)
+        } else if !tracked.is_empty() {
+            (Kind::Points, tracked)
+        } else {
+            return Err(format!(
                 "{} holds no frames: expected gaussians_fFF.ply (velox decode gaussians, velox generate), \
-                     points_fFF.ply (velox decode points), or a dataset scene (points.ply and cameras.json)",
+                 points_fFF.ply (velox decode points), tracks_fFF.ply (velox track), or a dataset scene \
+                 (points.ply and cameras.json)",
                 path.display()
             )
-                .into())
-            }
+            .into());
         };
         let mut frames = Vec::new();
         for (f, file) in list {
@@ -277,7 +385,7 @@ fn discover(path: &Path, scene: Option<&Path>) -> CliResult<Source> {
             };
             frames.push(Frame { frame: f, count, data });
         }
-        (kind, frames, named_scene(path))
+        (kind, frames, named_scene(path).or_else(|| tracked_scene(path)))
     };
     let scene = scene.map(Path::to_path_buf).or(own_scene);
     let cameras = match &scene {
@@ -289,7 +397,38 @@ fn discover(path: &Path, scene: Option<&Path>) -> CliResult<Source> {
         Kind::Points => "points",
     };
     let title = format!("{what} of {name}: {} frame(s)", frames.len());
-    Ok(Source { title, kind, frames, cameras })
+    let track_json = path.join("tracks.json");
+    let tracks = match (&scene, track_json.is_file()) {
+        (_, true) => Some(read_track_json(&track_json)?),
+        (Some(s), false) => scene_tracks(s)?,
+        (None, false) => None,
+    };
+    Ok(Source { title, kind, frames, cameras, compare: None, tracks, scene })
+}
+
+/// PATH with what goes beside it: `compare` when given; else, unless `none`, the ground
+/// truth's points of the scene PATH was decoded from (when PATH is not that scene itself).
+fn discover_with_compare(a: &ViewArgs) -> CliResult<Source> {
+    let mut source = discover(&a.path, a.scene.as_deref())?;
+    let compare = match (&a.compare, &source.scene) {
+        _ if a.no_compare => None,
+        (Some(other), _) => Some(discover(other, source.scene.as_deref())?),
+        (None, Some(scene)) if !same_folder(scene, &a.path) => {
+            let mut truth = discover(scene, None)?;
+            truth.title = format!("ground truth: {}", truth.title);
+            Some(truth)
+        }
+        (None, _) => None,
+    };
+    source.compare = compare.map(|c| Box::new(Source { compare: None, tracks: None, ..c }));
+    Ok(source)
+}
+
+fn same_folder(a: &Path, b: &Path) -> bool {
+    match (a.canonicalize(), b.canonicalize()) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => a == b,
+    }
 }
 
 /// The upper triangle of `R(q) diag(exp(log_scale))^2 R(q)^T` (q = (w, x, y, z), normalised).
@@ -397,25 +536,35 @@ impl Frame {
 }
 
 impl Source {
+    /// The manifest's list of `frames`, at URLs `{route}/K.bin` (or `#{route}-K` embedded).
+    fn manifest_frames(frames: &[Frame], route: &str, embedded: bool) -> Vec<ManifestFrame> {
+        let url = |k: usize| if embedded { format!("#{route}-{k}") } else { format!("{route}/{k}.bin") };
+        let frame = |(k, f): (usize, &Frame)| ManifestFrame {
+            frame: f.frame,
+            tau: tau(f.frame),
+            url: url(k),
+            count: f.count,
+        };
+        frames.iter().enumerate().map(frame).collect()
+    }
+
     fn manifest(&self, embedded: bool) -> String {
-        let frames = self
-            .frames
-            .iter()
-            .enumerate()
-            .map(|(k, f)| ManifestFrame {
-                frame: f.frame,
-                tau: tau(f.frame),
-                url: if embedded { format!("#frame-{k}") } else { format!("frames/{k}.bin") },
-                count: f.count,
-            })
-            .collect();
         let m = Manifest {
             version: 1,
             title: &self.title,
             kind: self.kind,
-            frames,
+            frames: Source::manifest_frames(&self.frames, "frames", embedded),
             cameras: &self.cameras,
             background: [0.0; 3],
+            compare: self.compare.as_ref().map(|c| ManifestCompare {
+                title: &c.title,
+                frames: Source::manifest_frames(&c.frames, "compare", embedded),
+            }),
+            tracks: self.tracks.as_ref().map(|t| ManifestTracks {
+                url: if embedded { "#tracks".into() } else { "tracks.bin".into() },
+                count: t.count,
+                frames: t.frames,
+            }),
         };
         serde_json::to_string(&m).expect("the manifest serialises")
     }
@@ -454,11 +603,17 @@ fn embedded_page(source: &Source) -> CliResult<String> {
         "<script id=\"velox-manifest\" type=\"application/json\">{}</script>\n",
         source.manifest(true).replace("</", "<\\/")
     );
+    let data = |id: &str, bytes: &[u8]| {
+        format!("<script id=\"{id}\" type=\"application/octet-stream\">{}</script>\n", base64(bytes))
+    };
     for (k, f) in source.frames.iter().enumerate() {
-        inserts.push_str(&format!(
-            "<script id=\"frame-{k}\" type=\"application/octet-stream\">{}</script>\n",
-            base64(&f.body()?)
-        ));
+        inserts.push_str(&data(&format!("frame-{k}"), &f.body()?));
+    }
+    for (k, f) in source.compare.iter().flat_map(|c| c.frames.iter().enumerate()) {
+        inserts.push_str(&data(&format!("compare-{k}"), &f.body()?));
+    }
+    if let Some(t) = &source.tracks {
+        inserts.push_str(&data("tracks", &t.body()));
     }
     let script = format!("<script>\n{}\n</script>", VIEWER.replace("</script", "<\\/script"));
     Ok(INDEX.replacen(EMBED_MARKER, &inserts, 1).replacen("<script src=\"viewer.js\"></script>", &script, 1))
@@ -495,12 +650,22 @@ fn handle(mut stream: TcpStream, source: &Source, manifest: &str) -> std::io::Re
         "/" | "/index.html" => respond(&mut stream, "200 OK", "text/html; charset=utf-8", INDEX.as_bytes()),
         "/viewer.js" => respond(&mut stream, "200 OK", "text/javascript; charset=utf-8", VIEWER.as_bytes()),
         "/manifest.json" => respond(&mut stream, "200 OK", "application/json", manifest.as_bytes()),
+        "/tracks.bin" => match &source.tracks {
+            Some(t) => respond(&mut stream, "200 OK", "application/octet-stream", &t.body()),
+            None => respond(&mut stream, "404 Not Found", "text/plain", b"not found"),
+        },
         _ => {
-            let frame = route
-                .strip_prefix("/frames/")
-                .and_then(|r| r.strip_suffix(".bin"))
-                .and_then(|k| k.parse::<usize>().ok())
-                .and_then(|k| source.frames.get(k).map(|f| (k, f)));
+            let numbered = |prefix: &str| {
+                route
+                    .strip_prefix(prefix)
+                    .and_then(|r| r.strip_suffix(".bin"))
+                    .and_then(|k| k.parse::<usize>().ok())
+            };
+            let frame = match (numbered("/frames/"), numbered("/compare/"), &source.compare) {
+                (Some(k), _, _) => source.frames.get(k).map(|f| (k, f)),
+                (_, Some(k), Some(c)) => c.frames.get(k).map(|f| (k, f)),
+                _ => None,
+            };
             match frame {
                 Some((k, f)) => match f.body() {
                     Ok(body) => respond(&mut stream, "200 OK", "application/octet-stream", &body),
@@ -521,7 +686,7 @@ fn handle(mut stream: TcpStream, source: &Source, manifest: &str) -> std::io::Re
 }
 
 pub fn run(a: &ViewArgs) -> CliResult<()> {
-    let source = discover(&a.path, a.scene.as_deref())?;
+    let source = discover_with_compare(a)?;
     if let Some(html) = &a.html {
         let page = embedded_page(&source)?;
         write_bytes(html, page.as_bytes())?;
@@ -545,7 +710,15 @@ pub fn run(a: &ViewArgs) -> CliResult<()> {
         _ => format!("cannot listen on {address}: {e}"),
     })?;
     let bound = listener.local_addr()?;
-    println!("velox view: {} at http://{bound}/ (Ctrl-C stops)", source.title);
+    let mut extra = Vec::new();
+    if let Some(c) = &source.compare {
+        extra.push(format!("beside it {}", c.title));
+    }
+    if let Some(t) = &source.tracks {
+        extra.push(format!("{} tracks", t.count));
+    }
+    let extra = if extra.is_empty() { String::new() } else { format!(" ({})", extra.join("; ")) };
+    println!("velox view: {}{extra} at http://{bound}/ (Ctrl-C stops)", source.title);
     std::io::stdout().flush()?;
     let manifest = Arc::new(source.manifest(false));
     let source = Arc::new(source);

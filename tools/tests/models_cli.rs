@@ -715,6 +715,13 @@ fn tracker_trains_evaluates_and_tracks_a_video() {
     let (_, vertices, _) = ply_vertices(&out.join("tracks_f23.ply"));
     assert_eq!(vertices, queries.len());
     assert!(out.join("overlay/f00.png").is_file() && out.join("overlay/f23.png").is_file());
+    assert_eq!(velox_io::image::read_gif(&out.join("overlay.gif")).unwrap().frames.len(), 24);
+    // The viewer takes the output: its points frame by frame, and the tracks over them.
+    let page = out.join("view.html");
+    let said = ok(&velox(&["view", arg(&out), "--html", arg(&page)]));
+    assert!(said.contains("24 frame(s)"), "{said}");
+    let html = std::fs::read_to_string(&page).unwrap();
+    assert!(html.contains("id=\"tracks\"") && html.contains("\"kind\":\"points\""));
     // A query outside the scene's box is named.
     let file = work.join("queries.json");
     std::fs::write(&file, "[[0.1, 0.2, 0.3], [0.0, 2.5, 0.0]]").unwrap();
@@ -785,6 +792,9 @@ fn generator_trains_generates_and_evaluates() {
     let (sw, sh) = image::image_dimensions(out.join("sheet.png")).unwrap();
     // Rows: the video, the input view and 2 novel views; columns: frames 0 and 23.
     assert_eq!(sh * 2, sw * 4, "{sw} x {sh}");
+    // The clip: frames 0 and 23, each the video's frame, the input view and a novel view.
+    let clip = velox_io::image::read_gif(&out.join("clip.gif")).unwrap();
+    assert_eq!((clip.frames.len(), clip.width), (2, 3 * clip.height));
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("generate.json")).unwrap()).unwrap();
     assert_eq!(report["frames"].as_array().unwrap().len(), 2);

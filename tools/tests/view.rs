@@ -40,11 +40,13 @@ fn gaussians(n: usize, seed: u64) -> GaussianData {
 
 /// A dataset scene (for its cameras) and a decode-like folder of two Gaussian frames that names
 /// it in its decode.json.
-fn fixture(name: &str, res: u32) -> (PathBuf, PathBuf) {
+fn fixture(name: &str, res: u32, tracks: u32) -> (PathBuf, PathBuf) {
     let dir = temp_dir(name);
     let data = dir.join("data");
     let out = velox()
-        .args(["data", "synth", "--scenes", "1", "--points", "2000", "--tracks", "0", "--res"])
+        .args(["data", "synth", "--scenes", "1", "--points", "2000", "--tracks"])
+        .arg(tracks.to_string())
+        .arg("--res")
         .arg(res.to_string())
         .arg("--out")
         .arg(&data)
@@ -145,6 +147,12 @@ fn bad_input_is_refused_before_anything_is_served() {
     let err = fails(velox().arg("view").arg(&cut));
     assert!(err.contains("gaussians_f00.ply") && err.contains("truncated"), "{err}");
 
+    // A comparison that is not there.
+    let err = fails(
+        velox().arg("view").arg(mixed.join("gaussians_f00.ply")).arg("--compare").arg(dir.join("nope")),
+    );
+    assert!(err.contains("nope") && err.contains("does not exist"), "{err}");
+
     // A port in use.
     let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let port = taken.local_addr().unwrap().port().to_string();
@@ -155,7 +163,7 @@ fn bad_input_is_refused_before_anything_is_served() {
 
 #[test]
 fn the_server_answers_its_routes_and_nothing_outside_them() {
-    let (_, decoded) = fixture("serve", 32);
+    let (scene, decoded) = fixture("serve", 32, 8);
     let server = serve(&decoded);
     let a = &server.address;
     let (status, page) = get(a, "/");
@@ -173,6 +181,19 @@ fn the_server_answers_its_routes_and_nothing_outside_them() {
     assert_eq!(status, 200);
     assert_eq!((&body[..4], body.len()), (&b"VXG1"[..], 8 + 400 * 13 * 4));
     assert_eq!(u32::from_le_bytes(body[4..8].try_into().unwrap()), 400);
+    // Beside it the scene's ground-truth points, frame by frame, and its tracks.
+    let truth = &m["compare"]["frames"];
+    assert_eq!(truth.as_array().unwrap().len(), 24);
+    let (status, body) = get(a, "/compare/12.bin");
+    let points = truth[12]["count"].as_u64().unwrap() as usize;
+    assert_eq!((status, &body[..4], body.len()), (200, &b"VXG1"[..], 8 + points * 13 * 4));
+    assert_eq!((m["tracks"]["count"].as_u64(), m["tracks"]["frames"].as_u64()), (Some(8), Some(24)));
+    let (status, body) = get(a, "/tracks.bin");
+    assert_eq!((status, &body[..4], body.len()), (200, &b"VXT1"[..], 12 + 8 * 24 * 12 + 8 * 24));
+    let first = f32::from_le_bytes(body[12..16].try_into().unwrap());
+    let truth_tracks = velox_data::format::read_scene(&scene, false).unwrap().tracks;
+    assert_eq!(first, truth_tracks[0][0][0], "track 0 at frame 0");
+    assert_eq!(get(a, "/compare/24.bin").0, 404);
     // Nothing but the routes: no path leads into the folder or out of it.
     for path in [
         "/frames/2.bin",
@@ -193,12 +214,13 @@ fn the_server_answers_its_routes_and_nothing_outside_them() {
 
 #[test]
 fn html_writes_one_page_that_holds_every_frame() {
-    let (_, decoded) = fixture("html", 32);
+    let (_, decoded) = fixture("html", 32, 8);
     let page = decoded.join("view.html");
     let out = velox().arg("view").arg(&decoded).arg("--html").arg(&page).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let text = std::fs::read_to_string(&page).unwrap();
     assert!(text.contains("id=\"velox-manifest\"") && text.contains("id=\"frame-1\""));
+    assert!(text.contains("id=\"compare-23\"") && text.contains("id=\"tracks\""));
     assert!(!text.contains("src=\"viewer.js\""), "the script is inline");
     assert!(!text.contains("http://") && !text.contains("https://"), "nothing fetched from outside");
 }
@@ -251,7 +273,7 @@ fn body_attribute(dump: &str, name: &str) -> Option<String> {
 
 #[test]
 fn the_page_draws_a_frame_as_velox_render_does_and_plays() {
-    let (scene, decoded) = fixture("browser", 64);
+    let (scene, decoded) = fixture("browser", 64, 0);
     let dir = decoded.parent().unwrap().to_path_buf();
     let server = serve(&decoded);
     let url = |hash: &str| format!("http://{}/index.html#{hash}", server.address);
