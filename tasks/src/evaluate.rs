@@ -263,8 +263,18 @@ pub struct ClothResult {
 pub trait ClothObserver {
     /// Scene `name` starts.
     fn scene(&mut self, _name: &str) {}
-    /// One more frame decoded (each scene decodes its frames twice: generated, then encoded).
-    fn frame(&mut self) {}
+    /// Frame `frame` of the surface decoded from the `tokens` (each scene decodes its frames
+    /// twice: generated, then encoded), as xyz rows.
+    fn frame(&mut self, _tokens: ClothTokens, _frame: usize, _points: &[f32]) {}
+}
+
+/// Which tokens a cloth scene's surface was decoded from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ClothTokens {
+    /// The generator's, from the scene's condition.
+    Generated,
+    /// The encoder's, from the scene's cloud (what the generator learned to make).
+    Encoded,
 }
 
 /// The height of the centre of mass along gravity, frame by frame, of the surface decoded from
@@ -305,12 +315,13 @@ pub fn cloth(
             heights(&record.centre_of_mass.iter().map(|c| c.map(|v| v as f64)).collect::<Vec<_>>(), up)?;
         let (made, stored) = token_pair(gpu, models, scenes, i, spec)?;
         let mut decoded = Vec::new();
-        for tokens in [made, stored] {
+        for (tokens, which) in [(made, ClothTokens::Generated), (stored, ClothTokens::Encoded)] {
             let d = Decoding::from_tokens(&models.ae, tokens, None, spec.seed)?;
             let mut centres = Vec::with_capacity(FRAMES);
             for f in 0..FRAMES {
-                centres.push(centre_of_mass(&d.surface_points(f, sampling)?)?);
-                observer.frame();
+                let points = d.surface_points(f, sampling)?;
+                centres.push(centre_of_mass(&points)?);
+                observer.frame(which, f, &points);
             }
             decoded.push(heights(&centres, up)?);
         }

@@ -18,6 +18,7 @@ use velox_models::velox::autoencoder::Autoencoder;
 use velox_models::velox::decode::{Sampling, VoxelSource};
 use velox_models::velox::tracker::Tracker;
 use velox_models::velox::voxels::{VoxelDecoder, FRAME_WORDS};
+use velox_tasks::evaluate::ClothTokens;
 use velox_tasks::generate::GeneratorModels;
 use velox_tasks::{SceneFolders, TokenScenes, TrackScenes};
 
@@ -861,17 +862,49 @@ fn run_generation(a: &GenerationEvalArgs) -> CliResult<()> {
     Ok(())
 }
 
-/// The progress bar over decoded frames.
-struct Frames(ProgressBar);
+/// The progress bar over decoded frames, and each scene's decoded surfaces (generated, then
+/// encoded; a list of frames each) for its clip.
+struct Frames {
+    bar: ProgressBar,
+    surfaces: Vec<(String, [Vec<Vec<f32>>; 2])>,
+}
 
 impl velox_tasks::evaluate::ClothObserver for Frames {
     fn scene(&mut self, name: &str) {
-        self.0.set_message(name.to_string());
+        self.bar.set_message(name.to_string());
+        self.surfaces.push((name.to_string(), Default::default()));
     }
 
-    fn frame(&mut self) {
-        self.0.inc(1);
+    fn frame(&mut self, tokens: ClothTokens, _frame: usize, points: &[f32]) {
+        if let Some((_, s)) = self.surfaces.last_mut() {
+            s[(tokens == ClothTokens::Encoded) as usize].push(points.to_vec());
+        }
+        self.bar.inc(1);
     }
+}
+
+/// A cloth scene's clip as an animated GIF: its first supervision view beside the surface
+/// decoded from the generated and from the encoded tokens, drawn as small Gaussians from that
+/// view's camera.
+fn cloth_gif(
+    gpu: &Gpu,
+    scene: &std::path::Path,
+    surfaces: &[Vec<Vec<f32>>; 2],
+    gif: &std::path::Path,
+) -> CliResult<()> {
+    let data = velox_data::format::read_scene(scene, true)?;
+    let camera = data.cameras.supervision[0];
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    let views = data.meta.supervision_views;
+    let mut clip = Vec::with_capacity(surfaces[0].len());
+    for (f, (generated, encoded)) in surfaces[0].iter().zip(&surfaces[1]).enumerate() {
+        let truth: Vec<f32> = data.supervision[f * views].iter().map(|&b| b as f32 / 255.0).collect();
+        let drawn = [generated, encoded].map(|p| crate::overlay::splat_points(gpu, p, &camera));
+        let [generated, encoded] = drawn;
+        clip.push(crate::overlay::side_by_side(&[truth, generated?, encoded?], w, h));
+    }
+    velox_io::image::write_gif(gif, &clip, 3 * w as u32, h as u32, 100)?;
+    Ok(())
 }
 
 fn run_cloth(a: &ClothEvalArgs) -> CliResult<()> {
@@ -896,17 +929,22 @@ fn run_cloth(a: &ClothEvalArgs) -> CliResult<()> {
         a.points
     );
     let frames = velox_models::velox::autoencoder::FRAMES;
-    let mut bar = Frames(progress(count * 2 * frames, "frames decoded (generated, then encoded)"));
-    let evaluated = velox_tasks::evaluate::cloth(&gpu, m, scenes, count, &eval.spec, &sampling, &mut bar)?;
-    let bar = bar.0;
+    let bar = progress(count * 2 * frames, "frames decoded (generated, then encoded)");
+    let mut observer = Frames { bar, surfaces: Vec::new() };
+    let evaluated =
+        velox_tasks::evaluate::cloth(&gpu, m, scenes, count, &eval.spec, &sampling, &mut observer)?;
+    observer.bar.finish_and_clear();
     let mut results: Vec<ClothScene> = Vec::with_capacity(evaluated.len());
     let mut dt = 0.01;
-    for r in evaluated {
+    for (i, r) in evaluated.into_iter().enumerate() {
         dt = r.frame_seconds;
-        r.scene.plot(&a.out.join(&r.scene.scene), dt)?;
+        let name = &r.scene.scene;
+        r.scene.plot(&a.out.join(name), dt)?;
+        if let Some((_, surfaces)) = observer.surfaces.iter().find(|(n, _)| n == name) {
+            cloth_gif(&gpu, &scenes.dirs()[i], surfaces, &a.out.join(format!("{name}.gif")))?;
+        }
         results.push(r.scene);
     }
-    bar.finish_and_clear();
     println!("{:<20} {:>28} {:>26}", "", "RMSE along gravity, generated", "encoded (the ceiling)");
     for r in &results {
         println!("{:<20} {:>28.4} {:>26.4}", r.scene, r.rmse_generated, r.rmse_encoded);
@@ -951,7 +989,8 @@ fn run_cloth(a: &ClothEvalArgs) -> CliResult<()> {
     };
     write_bytes(&a.out.join("cloth.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
     println!(
-        "wrote {} and SCENE_height.png, _velocity.png, _acceleration.png per scene (simulated, generated, encoded)",
+        "wrote {} and SCENE_height.png, _velocity.png, _acceleration.png per scene (simulated, generated, encoded), \
+         and SCENE.gif (the scene | generated | encoded)",
         a.out.join("cloth.json").display()
     );
     Ok(())

@@ -115,6 +115,28 @@ pub fn enlarged(rgb: &[f32], w: usize, h: usize, k: usize) -> Vec<f32> {
     out
 }
 
+/// Standard deviation of the Gaussian a decoded surface point is drawn as, in scene units (the
+/// scenes span [-1, 1]).
+pub const POINT_SIGMA: f32 = 0.012;
+
+/// Points (xyz rows) drawn as small, nearly opaque light-grey Gaussians from `camera` on black:
+/// `[h, w, 3]`.
+pub fn splat_points(
+    gpu: &velox_engine::Gpu,
+    points: &[f32],
+    camera: &velox_engine::ops::raster::Camera,
+) -> crate::CliResult<Vec<f32>> {
+    let mut g = velox_engine::ops::raster::GaussianData::default();
+    for p in points.chunks_exact(3) {
+        g.push([p[0], p[1], p[2]], [POINT_SIGMA.ln(); 3], [1.0, 0.0, 0.0, 0.0], 3.0, [0.8, 0.8, 0.8]);
+    }
+    if g.is_empty() {
+        return Ok(vec![0.0; 3 * camera.width as usize * camera.height as usize]);
+    }
+    let image = velox_engine::ops::raster::render(gpu, &g.upload(gpu)?, camera, [0.0; 3])?;
+    Ok(image.image.rgb.read()?)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

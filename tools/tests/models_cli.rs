@@ -909,6 +909,9 @@ fn eval_cloth_reports_the_centre_of_mass_along_gravity_with_plots() {
     for plot in ["height", "velocity", "acceleration"] {
         assert!(out.join(format!("cloth_00000_{plot}.png")).is_file(), "{plot}");
     }
+    // The clip: the scene beside the generated and the encoded surface, every frame.
+    let clip = velox_io::image::read_gif(&out.join("cloth_00000.gif")).unwrap();
+    assert_eq!((clip.frames.len(), clip.width), (24, 3 * clip.height));
     // A scene without cloth.json is not a cloth scene.
     std::fs::remove_file(data.join("cloth_00000/cloth.json")).unwrap();
     let err = fails(&velox(&[&args[..], &more[..], &["--out", arg(&out)]].concat()));
