@@ -57,7 +57,8 @@ enum Command {
         #[arg(long, value_enum, default_value_t = ConfigModel::Autoencoder)]
         model: ConfigModel,
         /// Print the parameter count of each part of the model and the total instead (counted
-        /// from the parameter declarations: no device needed).
+        /// from the parameter declarations, on any device: nothing as large as a parameter is
+        /// allocated).
         #[arg(long)]
         params: bool,
     },
