@@ -8,20 +8,25 @@
  *   2. Camera maths: the manifest's pinhole camera (x_c = R x_w + t, y down, z forward) and
  *      the user's orbit, pan and zoom around a target point.
  *   3. Loading: the manifest (manifest.json, or embedded in the page as
- *      <script id="velox-manifest" type="application/json">) and the frames (binary
- *      "VXG1" + u32 count + count x 13 float32, fetched by relative URL, or base64 in
- *      <script id="frame-K" type="application/octet-stream"> when the url is "#frame-K"),
- *      cached once decoded.
+ *      <script id="velox-manifest" type="application/json">), the frames (binary
+ *      "VXG1" + u32 count + count x 13 float32) of the main pane and of the optional
+ *      compare pane, cached once decoded, and the optional tracks ("VXT1", see parseTracks).
+ *      Each is fetched by relative URL, or, when its url is "#ID", read as base64 from the
+ *      page's <script id="ID" type="application/octet-stream"> element.
  *   4. Depth sort: a stable radix sort of camera-space depths on the CPU (nearest first,
  *      ties by index, as the engine orders its tiles).
  *   5. WebGL2 renderer: per-Gaussian data in a float texture, the blending order in an
  *      integer texture, one quad (two triangles) per Gaussian over its footprint, the EWA
  *      projection in the vertex shader, alpha from the conic in the fragment shader,
  *      front-to-back blending into a float target, and a last pass that adds the
- *      background where light is left.
- *   6. The page: controls (#frame, #play, #speed, #cameras, #reset), status and errors,
- *      mouse handling, playback, the URL hash (camera=I, frame=K, play=1, ui=0, bench=1)
- *      and the data-* attributes tests read (data-frame, data-drawn, data-error).
+ *      background where light is left. Then the overlay: tracks as lines and dots.
+ *   6. The page: one or two panes (the main one, and the compare one beside it when the
+ *      manifest has `compare`; both show the same view and clip frame, each with its own
+ *      canvas, WebGL2 context and renderer), the tracks over the main pane, controls
+ *      (#frame, #play, #speed, #cameras, #reset, #show-compare, #show-tracks), status and
+ *      errors, mouse handling, playback, the URL hash (camera=I, frame=K, play=1, ui=0,
+ *      pane=compare, tracks=0|1, bench=1) and the data-* attributes tests read
+ *      (data-frame, data-drawn, data-error, data-compare-frame, data-tracks).
  *
  * Plain ES2020 and WebGL2, no libraries, no requests but the page's own relative URLs.
  * This file must not contain the character sequence that closes a script element, so that
@@ -48,8 +53,17 @@
   const RECORD_BYTES = 4 * FLOATS_PER_GAUSSIAN;
   const OPACITY = 9; // offset of the opacity in a record
 
-  /** Smallest on-screen side a render is enlarged towards (by whole factors), in CSS pixels. */
+  /** Smallest on-screen side a render is enlarged towards (by whole factors), in CSS pixels;
+   * smaller when two panes share the screen. */
   const DISPLAY_SIDE = 512;
+  const DISPLAY_SIDE_TWO_PANES = 384;
+
+  /** Tracks: "VXT1", u32 tracks, u32 frames, then positions (float32 xyz), visibility (u8). */
+  const TRACKS_MAGIC = 'VXT1';
+  const TRACKS_HEADER_BYTES = 12;
+  const HIDDEN_TRACK_ALPHA = 0.35; // opacity of a track where it is hidden
+  const TRACK_DOT_PIXELS = 5; // diameter of the dot at the current frame on a 256-pixel render
+  const TRACK_DOT_MIN_PIXELS = 2; // ... and the least on a small one
 
   /** Playback: frames per second at 1x, and how many frames ahead are fetched. */
   const FRAMES_PER_SECOND = 10;
@@ -239,7 +253,31 @@
     });
     const cameras = (m.cameras || []).map((c, i) => checkCamera(c, `${source}: cameras[${i}]`));
     const bg = Array.isArray(m.background) && m.background.length === 3 ? m.background.map(Number) : [0, 0, 0];
-    return { title: String(m.title || 'velox view'), frames: m.frames, cameras, background: bg };
+    return {
+      title: String(m.title || 'velox view'),
+      frames: m.frames,
+      cameras,
+      background: bg,
+      compare: checkCompare(m.compare, source),
+      tracks: checkTracks(m.tracks, source),
+    };
+  }
+
+  /** The optional `compare`: null, or {title, frames} with frames listed as the main ones. */
+  function checkCompare(c, source) {
+    if (c === null || c === undefined) return null;
+    if (typeof c !== 'object' || !Array.isArray(c.frames)) throw new Error(`${source}: compare lists no frames`);
+    c.frames.forEach((f, k) => {
+      if (!f || typeof f.url !== 'string') throw new Error(`${source}: compare.frames[${k}] has no url`);
+    });
+    return { title: String(c.title || 'compare'), frames: c.frames };
+  }
+
+  /** The optional `tracks`: null, or {url, count, frames} (the numbers may be absent). */
+  function checkTracks(t, source) {
+    if (t === null || t === undefined) return null;
+    if (typeof t !== 'object' || typeof t.url !== 'string') throw new Error(`${source}: tracks has no url`);
+    return { url: t.url, count: t.count, frames: t.frames };
   }
 
   function checkCamera(c, label) {
@@ -289,11 +327,14 @@
     return out.slice(0, n);
   }
 
-  /** The bytes of one frame: from the page's #frame-K element, or fetched by relative URL. */
-  async function frameBytes(url) {
+  /**
+   * The bytes at `url`: fetched by relative URL or, for "#ID", the base64 text of the page's
+   * element with id ID (a self-contained page). `what` names the data in an error.
+   */
+  async function urlBytes(url, what) {
     if (!url.startsWith('#')) return (await fetchOk(url)).arrayBuffer();
     const element = document.getElementById(url.slice(1));
-    if (!element) throw new Error(`the page has no element ${url} with this frame's data`);
+    if (!element) throw new Error(`the page has no element ${url} with ${what}`);
     return decodeBase64(element.textContent).buffer;
   }
 
@@ -318,9 +359,14 @@
     return records;
   }
 
+  /** The clip frame number of a manifest frame entry (its position when it has none). */
+  function frameNumber(entry, index) {
+    return entry.frame ?? index;
+  }
+
   /** What the status line and errors call a frame. */
   function frameLabel(entry, index) {
-    return `frame ${entry.frame ?? index}`;
+    return `frame ${frameNumber(entry, index)}`;
   }
 
   /** Loads frames on demand; each is decoded once and kept (index -> Float32Array). */
@@ -336,7 +382,7 @@
       if (this.cache.has(index)) return Promise.resolve(this.cache.get(index));
       if (!this.pending.has(index)) {
         const entry = this.frames[index];
-        const load = frameBytes(entry.url)
+        const load = urlBytes(entry.url, "this frame's data")
           .then(parseFrame)
           .then(
             (records) => {
@@ -358,6 +404,55 @@
     prefetch(index) {
       if (index >= 0 && index < this.frames.length) this.get(index).catch(() => {});
     }
+  }
+
+  /**
+   * Tracks as their body holds them: "VXT1", u32 T (tracks), u32 F (clip frames), T x F x 3
+   * float32 world positions (track t at clip frame f at (t F + f) 3), T x F bytes of
+   * visibility (1 seen, 0 hidden), zero padding to a multiple of 4 bytes. Returns
+   * {count, frames, positions, visible}, or throws saying what is wrong.
+   */
+  function parseTracks(buffer) {
+    if (buffer.byteLength < TRACKS_HEADER_BYTES) {
+      throw new Error(`${buffer.byteLength} bytes, shorter than the ${TRACKS_HEADER_BYTES}-byte header`);
+    }
+    const magic = String.fromCharCode(...new Uint8Array(buffer, 0, 4));
+    if (magic !== TRACKS_MAGIC) throw new Error(`starts with ${JSON.stringify(magic)}, not ${TRACKS_MAGIC}`);
+    const view = new DataView(buffer);
+    const count = view.getUint32(4, true);
+    const frames = view.getUint32(8, true);
+    const points = count * frames;
+    const unpadded = TRACKS_HEADER_BYTES + 13 * points;
+    const expected = unpadded + ((4 - (unpadded % 4)) % 4);
+    if (buffer.byteLength !== expected) {
+      throw new Error(
+        `${buffer.byteLength} bytes, but ${count} tracks over ${frames} frames take ${expected} ` +
+          `(12 + 12 x ${points} + ${points}, padded to a multiple of 4): truncated or corrupt`,
+      );
+    }
+    const visibleAt = TRACKS_HEADER_BYTES + 12 * points;
+    let positions;
+    if (LITTLE_ENDIAN_HOST) positions = new Float32Array(buffer, TRACKS_HEADER_BYTES, 3 * points);
+    else {
+      positions = new Float32Array(3 * points);
+      for (let i = 0; i < positions.length; i++) {
+        positions[i] = view.getFloat32(TRACKS_HEADER_BYTES + 4 * i, true);
+      }
+    }
+    return { count, frames, positions, visible: new Uint8Array(buffer, visibleAt, points) };
+  }
+
+  /** The tracks the manifest's `tracks` names, checked against its counts when it gives them. */
+  async function loadTracks(spec) {
+    const tracks = parseTracks(await urlBytes(spec.url, 'the tracks'));
+    const agrees = (said, found) => said === undefined || said === null || said === found;
+    if (!agrees(spec.count, tracks.count) || !agrees(spec.frames, tracks.frames)) {
+      throw new Error(
+        `holds ${tracks.count} tracks over ${tracks.frames} frames, but the manifest says ` +
+          `${spec.count} over ${spec.frames}`,
+      );
+    }
+    return tracks;
   }
 
   /** The centre of a frame's means and the largest distance of a mean from it. */
@@ -724,8 +819,10 @@ void main() {
       }
       // On screen a small render is shown enlarged by a whole factor (its pixels kept sharp),
       // so a 48-pixel scene is not a thumbnail; with ui=0 it is shown at its own size.
+      // Two panes side by side are enlarged less, so that both fit next to the controls.
       const bare = document.body.classList.contains('bare');
-      const scale = bare ? 1 : Math.max(1, Math.floor(DISPLAY_SIDE / Math.max(width, height)));
+      const side = document.body.classList.contains('two-panes') ? DISPLAY_SIDE_TWO_PANES : DISPLAY_SIDE;
+      const scale = bare ? 1 : Math.max(1, Math.floor(side / Math.max(width, height)));
       canvas.style.width = `${width * scale}px`;
       canvas.style.height = `${height * scale}px`;
       canvas.style.imageRendering = scale > 1 ? 'pixelated' : 'auto';
@@ -826,39 +923,146 @@ void main() {
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
   }
 
+  /**
+   * Overlay shaders: lines and round dots given in pixels (v down) with a straight (not
+   * premultiplied) colour, blended over the picture. The pixel to clip space mapping is the
+   * splat shader's, so a point drawn at a Gaussian's (u, v) lands on its centre.
+   */
+  const OVERLAY_VS = `#version 300 es
+layout(location = 0) in vec2 a_pixel;
+layout(location = 1) in vec4 a_colour;
+uniform vec2 u_size;        // width, height in pixels
+uniform float u_pointSize;  // dot diameter in pixels
+out vec4 v_colour;
+void main() {
+  gl_Position = vec4(2.0 * a_pixel.x / u_size.x - 1.0, 1.0 - 2.0 * a_pixel.y / u_size.y, 0.0, 1.0);
+  gl_PointSize = u_pointSize;
+  v_colour = a_colour;
+}
+`;
+
+  const OVERLAY_FS = `#version 300 es
+precision highp float;
+uniform bool u_round;  // dots: only the disc inside the point's square
+in vec4 v_colour;
+out vec4 o_colour;
+void main() {
+  if (u_round && length(gl_PointCoord - 0.5) > 0.5) discard;
+  o_colour = v_colour;
+}
+`;
+
+  /** Vertices of the overlay: u, v (pixels), r, g, b, a. */
+  const OVERLAY_FLOATS = 6;
+
+  /** Draws lines and dots over what a SplatRenderer drew, in the same WebGL2 context. */
+  class OverlayRenderer {
+    constructor(gl) {
+      this.gl = gl;
+      this.program = makeProgram(gl, OVERLAY_VS, OVERLAY_FS);
+      this.buffer = gl.createBuffer();
+      this.vao = gl.createVertexArray();
+      gl.bindVertexArray(this.vao);
+      gl.bindBuffer(gl.ARRAY_BUFFER, this.buffer);
+      const stride = 4 * OVERLAY_FLOATS;
+      gl.enableVertexAttribArray(0);
+      gl.vertexAttribPointer(0, 2, gl.FLOAT, false, stride, 0);
+      gl.enableVertexAttribArray(1);
+      gl.vertexAttribPointer(1, 4, gl.FLOAT, false, stride, 8);
+      gl.bindVertexArray(null);
+    }
+
+    /** Draws `lines` (vertex pairs) and then `dots` on the canvas of width x height pixels. */
+    draw(lines, dots, width, height) {
+      const gl = this.gl;
+      const u = this.program.uniforms;
+      gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+      gl.viewport(0, 0, width, height);
+      gl.useProgram(this.program.program);
+      gl.uniform2f(u.u_size, width, height);
+      // The dot keeps its share of the picture: smaller on a small render.
+      const side = Math.min(width, height);
+      gl.uniform1f(u.u_pointSize, Math.max(TRACK_DOT_MIN_PIXELS, Math.round((TRACK_DOT_PIXELS * side) / 256)));
+      gl.bindVertexArray(this.vao);
+      gl.bindBuffer(gl.ARRAY_BUFFER, this.buffer);
+      gl.enable(gl.BLEND);
+      gl.blendFunc(gl.SRC_ALPHA, gl.ONE_MINUS_SRC_ALPHA);
+      this.drawVertices(gl.LINES, lines, false);
+      this.drawVertices(gl.POINTS, dots, true);
+      gl.disable(gl.BLEND);
+      gl.bindVertexArray(null);
+    }
+
+    drawVertices(mode, vertices, round) {
+      if (vertices.length === 0) return;
+      const gl = this.gl;
+      gl.uniform1i(this.program.uniforms.u_round, round ? 1 : 0);
+      gl.bufferData(gl.ARRAY_BUFFER, vertices, gl.STREAM_DRAW);
+      gl.drawArrays(mode, 0, vertices.length / OVERLAY_FLOATS);
+    }
+  }
+
   // ---------------------------------------------------------------------------------------
   // 6. The page
   // ---------------------------------------------------------------------------------------
 
+  /**
+   * A pane: a canvas, its own WebGL2 context and renderer, and the frame it shows. The main
+   * pane shows the manifest's frames; the compare pane shows the compare frame with the
+   * same clip frame number. Both are drawn from the one camera of the page.
+   */
+  function makePane(canvas, label) {
+    return {
+      canvas,
+      label, // the title above the canvas (shown when there are two panes)
+      renderer: new SplatRenderer(canvas), // throws without WebGL2
+      sorter: new DepthSorter(),
+      title: '',
+      frames: [], // manifest-form frame entries
+      store: null, // FrameStore of `frames`
+      byNumber: new Map(), // clip frame number -> index in `frames` (the compare pane's)
+      visible: true, // whether it is drawn (the compare pane can be switched off)
+      wanted: 0, // the manifest frame index asked for last
+      shown: null, // {index, records} on the GPU; index -1 is "no such frame" (background)
+      sortedFor: '', // the frame and view the GPU's order was sorted for
+      lastDrawn: '', // the frame, view and overlay of the picture on the canvas
+    };
+  }
+
+  /** An empty frame: what the compare pane draws (the background) for a missing frame. */
+  const NO_RECORDS = new Float32Array(0);
+
   /** Everything the page knows; changed only through the functions below. */
   const state = {
     ui: null, // the DOM controls
+    bare: false, // ui=0: a pane alone, no controls
     manifest: null,
-    store: null, // FrameStore
-    renderer: null, // SplatRenderer
-    sorter: new DepthSorter(),
+    main: null, // the main pane
+    compare: null, // the compare pane, when the manifest has `compare`
+    tracks: null, // the decoded tracks, once loaded
+    overlay: null, // OverlayRenderer drawing them over the main pane
     home: { centre: [0, 0, 0], radius: 1 }, // the first frame's bounding sphere
     camera: null, // the current view, a manifest-form camera
     cameraIndex: -1, // the scene camera the view is, or -1 for a user-made view
     target: [0, 0, 0], // the orbit's pivot
     up: [0, 1, 0], // the orbit's yaw axis
     viewVersion: 0, // bumped on every camera change
-    wanted: 0, // the frame index asked for last
-    shown: null, // {index, records} on the GPU
-    sortedFor: '', // the frame and view the GPU's order was sorted for
-    drawn: 0, // pictures drawn so far
+    drawn: 0, // pictures the main pane has drawn so far
     drawPending: false,
-    lastDrawn: '', // the frame and view of the picture on the canvas
     playing: false,
     speed: 1,
     timer: 0,
-    errorKind: null, // 'fatal', 'frame' or 'hash' while an error is shown
+    errors: new Map(), // the errors shown: slot (see errorSlot) -> {kind, message}
   };
 
   function findControls() {
     const byId = (id) => document.getElementById(id);
     return {
       canvas: byId('canvas'),
+      canvasCompare: byId('canvas-compare'),
+      paneCompare: byId('pane-compare'),
+      labelMain: byId('label-main'),
+      labelCompare: byId('label-compare'),
       title: byId('title'),
       frame: byId('frame'),
       play: byId('play'),
@@ -866,31 +1070,57 @@ void main() {
       status: byId('status'),
       cameras: byId('cameras'),
       reset: byId('reset'),
+      showCompare: byId('show-compare'),
+      showTracks: byId('show-tracks'),
       error: byId('error'),
     };
   }
 
   /**
-   * Shows an error. Frame, manifest and WebGL failures clear the canvas; a bad hash
-   * parameter ('hash') leaves the picture alone.
+   * Where an error of `kind` shows: the page's own kinds ('fatal', 'frame', 'hash') share
+   * one slot, the newest replacing the one shown; a compare frame's and the tracks' errors
+   * have a slot each, shown after it.
+   */
+  function errorSlot(kind) {
+    return kind === 'compare' || kind === 'tracks' ? kind : 'main';
+  }
+
+  /** Whether an error of `kind` is shown. */
+  function hasError(kind) {
+    const shown = state.errors.get(errorSlot(kind));
+    return shown !== undefined && shown.kind === kind;
+  }
+
+  /**
+   * Shows an error. Frame, manifest and WebGL failures clear the main canvas, a compare
+   * frame's failure the compare canvas; tracks and bad hash parameters leave the pictures
+   * alone.
    */
   function showError(message, kind) {
-    const { error } = state.ui;
-    state.errorKind = kind;
-    error.textContent = message;
-    error.hidden = false;
-    document.body.dataset.error = message;
-    if (kind !== 'hash' && state.renderer) state.renderer.clear();
+    const slot = errorSlot(kind);
+    state.errors.delete(slot);
+    state.errors.set(slot, { kind, message });
+    showErrors();
+    const pane = kind === 'compare' ? state.compare : kind === 'fatal' || kind === 'frame' ? state.main : null;
+    if (pane) pane.renderer.clear();
     console.error(`velox view: ${message}`);
   }
 
   /** Hides the error if it is of `kind` (a frame error goes once a frame draws). */
   function clearError(kind) {
-    if (state.errorKind !== kind) return;
-    state.errorKind = null;
-    state.ui.error.hidden = true;
-    state.ui.error.textContent = '';
-    delete document.body.dataset.error;
+    if (!hasError(kind)) return;
+    state.errors.delete(errorSlot(kind));
+    showErrors();
+  }
+
+  /** The error box and data-error: the messages shown, one per slot. */
+  function showErrors() {
+    const { error } = state.ui;
+    const text = [...state.errors.values()].map((e) => e.message).join('\n\n');
+    error.textContent = text;
+    error.hidden = state.errors.size === 0;
+    if (state.errors.size > 0) document.body.dataset.error = text;
+    else delete document.body.dataset.error;
   }
 
   function formatNumber(x) {
@@ -903,81 +1133,313 @@ void main() {
     state.ui.status.textContent = `${frameLabel(entry, index)} (tau ${formatNumber(entry.tau ?? 0)}) · ${what}`;
   }
 
+  /** The clip frame number of manifest frame `index`. */
+  function clipFrame(index) {
+    return frameNumber(state.manifest.frames[index], index);
+  }
+
   // Drawing -------------------------------------------------------------------------------
 
-  /** The frame and view a picture shows. */
-  function pictureKey() {
-    return `${state.shown ? state.shown.index : '-'}/${state.viewVersion}`;
+  /** The panes there are and are switched on. */
+  function visiblePanes() {
+    return [state.main, state.compare].filter((pane) => pane && pane.visible);
+  }
+
+  /** The frame and view a pane's depth order is for. */
+  function orderKey(pane) {
+    return `${pane.shown ? pane.shown.index : '-'}/${state.viewVersion}`;
+  }
+
+  /** The frame, view and overlay a pane's picture shows. */
+  function pictureKey(pane) {
+    return pane === state.main ? `${orderKey(pane)}/${tracksShown() ? 'tracks' : ''}` : orderKey(pane);
   }
 
   /**
-   * Draws soon, once for any number of requests in a row (camera moves), and not at all if
-   * the canvas already shows this frame from this view.
+   * Draws soon, once for any number of requests in a row (camera moves), and only the panes
+   * whose picture is not already the one on their canvas.
    */
   function requestDraw() {
     if (state.drawPending) return;
     state.drawPending = true;
     setTimeout(() => {
       state.drawPending = false;
-      if (pictureKey() !== state.lastDrawn) drawNow();
+      for (const pane of visiblePanes()) if (pictureKey(pane) !== pane.lastDrawn) drawPane(pane);
     }, 0);
   }
 
-  /** Draws the shown frame from the current camera, re-sorting if either changed. */
-  function drawNow() {
-    const { shown, camera, renderer } = state;
-    if (!shown || !camera || state.errorKind === 'fatal') return;
-    const key = pictureKey();
-    if (state.sortedFor !== key) {
-      renderer.setOrder(state.sorter.sort(shown.records, camera));
-      state.sortedFor = key;
+  /** Draws a pane's frame from the current camera, re-sorting if either changed. */
+  function drawPane(pane) {
+    const { shown, renderer } = pane;
+    if (!shown || !state.camera || !pane.visible || hasError('fatal')) return;
+    const key = orderKey(pane);
+    if (pane.sortedFor !== key) {
+      renderer.setOrder(pane.sorter.sort(shown.records, state.camera));
+      pane.sortedFor = key;
     }
-    renderer.draw(camera, state.manifest.background);
-    state.lastDrawn = key;
+    renderer.draw(state.camera, state.manifest.background);
+    pane.lastDrawn = pictureKey(pane);
+    if (pane === state.main) mainDrawn(drawTracks());
+    else compareDrawn();
+  }
+
+  /** The attributes tests read once the main pane has drawn (`tracks`: how many are on it). */
+  function mainDrawn(tracks) {
+    const { dataset } = document.body;
     state.drawn += 1;
-    document.body.dataset.frame = String(shown.index);
-    document.body.dataset.drawn = String(state.drawn);
-    if (state.drawn === 1) document.body.dataset.firstPictureMs = performance.now().toFixed(0);
+    dataset.frame = String(state.main.shown.index);
+    dataset.drawn = String(state.drawn);
+    dataset.tracks = String(tracks);
+    if (state.drawn === 1) dataset.firstPictureMs = performance.now().toFixed(0);
+  }
+
+  /** data-compare-frame: the clip frame the compare pane shows, or "none". */
+  function compareDrawn() {
+    const { shown, frames } = state.compare;
+    const number = shown.index < 0 ? 'none' : frameNumber(frames[shown.index], shown.index);
+    document.body.dataset.compareFrame = String(number);
+  }
+
+  // Tracks --------------------------------------------------------------------------------
+
+  /** Whether the tracks are loaded and switched on. */
+  function tracksShown() {
+    return state.tracks !== null && state.ui.showTracks.checked;
+  }
+
+  /** Draws the tracks over the main pane, up to its clip frame; returns how many it drew. */
+  function drawTracks() {
+    if (!tracksShown()) return 0;
+    const cam = state.camera;
+    const { lines, dots } = trackVertices(state.tracks, clipFrame(state.main.shown.index), cam);
+    state.overlay.draw(lines, dots, cam.width, cam.height);
+    return state.tracks.count;
+  }
+
+  /**
+   * The overlay's vertices for clip frame `c` from `cam`: each track's polyline through its
+   * positions at clip frames 0 to c, faint where either end is hidden and broken where an
+   * end is behind the near plane, and a dot at frame c.
+   */
+  function trackVertices(tracks, c, cam) {
+    const { count, frames, positions, visible } = tracks;
+    const last = Math.min(c, frames - 1);
+    const lines = new Float32Array(2 * OVERLAY_FLOATS * count * Math.max(0, last));
+    const dots = new Float32Array(OVERLAY_FLOATS * count);
+    let nLines = 0;
+    let nDots = 0;
+    const put = (array, at, uv, rgb, alpha) => {
+      array.set(uv, at);
+      array.set(rgb, at + 2);
+      array[at + 5] = alpha;
+      return at + OVERLAY_FLOATS;
+    };
+    for (let t = 0; t < count; t++) {
+      const rgb = trackColour(t, count);
+      const first = t * frames; // the track's point at clip frame 0
+      let previous = projectPoint(cam, positions, 3 * first);
+      for (let f = 1; f <= last; f++) {
+        const point = projectPoint(cam, positions, 3 * (first + f));
+        if (previous && point) {
+          const alpha = visible[first + f - 1] && visible[first + f] ? 1 : HIDDEN_TRACK_ALPHA;
+          nLines = put(lines, nLines, previous, rgb, alpha);
+          nLines = put(lines, nLines, point, rgb, alpha);
+        }
+        previous = point;
+      }
+      const dot = c >= 0 && c < frames ? projectPoint(cam, positions, 3 * (first + c)) : null;
+      if (dot) nDots = put(dots, nDots, dot, rgb, visible[first + c] ? 1 : HIDDEN_TRACK_ALPHA);
+    }
+    return { lines: lines.subarray(0, nLines), dots: dots.subarray(0, nDots) };
+  }
+
+  /** The pixel (u, v) of the world point at positions[o..o+2], or null if behind the near plane. */
+  function projectPoint(cam, positions, o) {
+    const p = add(matVec(cam.rotation, [positions[o], positions[o + 1], positions[o + 2]]), cam.translation);
+    if (!(p[2] >= NEAR)) return null;
+    return [(cam.fx * p[0]) / p[2] + cam.cx, (cam.fy * p[1]) / p[2] + cam.cy];
+  }
+
+  /** Track t's colour: hues evenly spaced round the colour wheel, bright and saturated. */
+  function trackColour(t, count) {
+    const hue = (6 * t) / Math.max(1, count);
+    const channel = (n) => {
+      const k = (n + hue) % 6;
+      return 1 - 0.85 * Math.max(0, Math.min(k, 4 - k, 1));
+    };
+    return [channel(5), channel(3), channel(1)];
+  }
+
+  /**
+   * Starts loading the tracks, when the manifest has them; they are drawn once loaded. With
+   * ui=0 they start switched off (the picture is the render alone) unless the hash says
+   * tracks=1.
+   */
+  function setUpTracks() {
+    const spec = state.manifest.tracks;
+    state.ui.showTracks.checked = !state.bare;
+    if (!spec) return;
+    loadTracks(spec)
+      .then((tracks) => {
+        state.overlay = new OverlayRenderer(state.main.renderer.gl);
+        state.tracks = tracks;
+        requestDraw();
+      })
+      .catch((e) => showError(`the tracks (${spec.url}): ${e.message}`, 'tracks'));
   }
 
   // Frames --------------------------------------------------------------------------------
 
   /**
-   * Shows frame `index`: loads it (if needed), uploads and draws it, and prefetches the next
-   * two. Resolves to 'shown', 'superseded' (another frame was asked for meanwhile) or
-   * 'failed' (the error is shown).
+   * Shows manifest frame `index` in both panes; resolves when both are done, to what the
+   * main pane's showMainFrame resolved to.
    */
   async function showFrame(index) {
-    const n = state.manifest.frames.length;
-    state.wanted = index;
+    const [main] = await Promise.all([showMainFrame(index), showCompareFrame(index)]);
+    return main;
+  }
+
+  /**
+   * Shows frame `index` in the main pane: loads it (if needed), uploads and draws it, and
+   * prefetches the next two. Resolves to 'shown', 'superseded' (another frame was asked for
+   * meanwhile) or 'failed' (the error is shown).
+   */
+  async function showMainFrame(index) {
+    const pane = state.main;
+    const n = pane.frames.length;
+    pane.wanted = index;
     setStatus(index, 'loading…');
-    for (let k = 1; k <= PREFETCH && k < n; k++) state.store.prefetch((index + k) % n);
+    for (let k = 1; k <= PREFETCH && k < n; k++) pane.store.prefetch((index + k) % n);
     let records;
     try {
-      records = await state.store.get(index);
-      if (state.wanted !== index) return 'superseded';
-      if (!state.shown || state.shown.index !== index) {
-        state.renderer.setFrame(records);
-        state.shown = { index, records };
-        state.sortedFor = '';
-      }
+      records = await pane.store.get(index);
+      if (pane.wanted !== index) return 'superseded';
+      putFrame(pane, index, records);
     } catch (e) {
-      if (state.wanted !== index) return 'superseded';
+      if (pane.wanted !== index) return 'superseded';
       failFrame(index, e);
       return 'failed';
     }
     clearError('frame');
     setStatus(index, `${records.length / FLOATS_PER_GAUSSIAN} Gaussians`);
-    drawNow();
+    drawPane(pane);
     return 'shown';
+  }
+
+  /** Makes frame `index` of a pane (its records) the one on its GPU. */
+  function putFrame(pane, index, records) {
+    if (pane.shown && pane.shown.index === index) return;
+    pane.renderer.setFrame(records);
+    pane.shown = { index, records };
+    pane.sortedFor = '';
   }
 
   /** A frame that did not load: the message, a cleared canvas, playback stopped. */
   function failFrame(index, e) {
-    state.shown = null;
+    state.main.shown = null;
     setPlaying(false);
     setStatus(index, 'failed');
     showError(e.message, 'frame');
+  }
+
+  /** The compare pane's frame index for manifest frame `index` (same clip frame), or -1. */
+  function compareIndex(index) {
+    return state.compare.byNumber.get(clipFrame(index)) ?? -1;
+  }
+
+  /**
+   * Shows, in the compare pane (when it is on), the compare frame of manifest frame
+   * `index`'s clip frame, or the background and "no frame F" when the compare has none.
+   * Loads and prefetches as the main pane does; a failure shows its error and leaves the
+   * main pane and playback alone.
+   */
+  async function showCompareFrame(index) {
+    const pane = state.compare;
+    if (!pane || !pane.visible) return;
+    const n = state.manifest.frames.length;
+    const number = clipFrame(index);
+    const k = compareIndex(index);
+    pane.wanted = index;
+    for (let j = 1; j <= PREFETCH && j < n; j++) pane.store.prefetch(compareIndex((index + j) % n));
+    let records = NO_RECORDS;
+    try {
+      if (k >= 0) records = await pane.store.get(k);
+      if (pane.wanted !== index) return;
+      putFrame(pane, k, records);
+    } catch (e) {
+      if (pane.wanted !== index) return;
+      failCompareFrame(number, e);
+      return;
+    }
+    clearError('compare');
+    setCompareLabel(k < 0 ? `no frame ${number}` : '');
+    drawPane(pane);
+  }
+
+  /** A compare frame that did not load: the message (naming the pane) and a cleared canvas. */
+  function failCompareFrame(number, e) {
+    const pane = state.compare;
+    pane.shown = null;
+    setCompareLabel(`frame ${number} failed`);
+    document.body.dataset.compareFrame = 'none';
+    showError(`the compare pane (${pane.title}): ${e.message}`, 'compare');
+  }
+
+  /** The compare pane's label: its title, and `note` when there is one. */
+  function setCompareLabel(note) {
+    const pane = state.compare;
+    pane.label.textContent = note ? `${pane.title} · ${note}` : pane.title;
+  }
+
+  /**
+   * The compare pane, when the manifest has one: a second canvas, WebGL2 context and
+   * renderer, its frames, and whether it shows (#show-compare; with ui=0, pane=compare).
+   */
+  function setUpCompare(paneParameter) {
+    const { ui, manifest } = state;
+    if (!manifest.compare) return;
+    let pane;
+    try {
+      pane = makePane(ui.canvasCompare, ui.labelCompare);
+    } catch (e) {
+      showError(`the compare pane: ${e.message}`, 'compare');
+      return;
+    }
+    ui.canvasCompare.addEventListener('webglcontextlost', () => {
+      const why = 'a GPU reset, or too little GPU memory';
+      showError(`the compare pane's WebGL context was lost (${why}); reload the page`, 'compare');
+    });
+    pane.title = manifest.compare.title;
+    pane.frames = manifest.compare.frames;
+    pane.store = new FrameStore(pane.frames);
+    pane.frames.forEach((entry, k) => {
+      const number = frameNumber(entry, k);
+      if (!pane.byNumber.has(number)) pane.byNumber.set(number, k);
+    });
+    state.compare = pane;
+    ui.labelMain.textContent = manifest.title;
+    ui.labelMain.hidden = false;
+    setCompareLabel('');
+    if (state.bare && paneParameter === 'compare') document.body.classList.add('pane-compare');
+    setCompareVisible(state.bare ? paneParameter === 'compare' : ui.showCompare.checked);
+  }
+
+  /**
+   * Switches the compare pane on or off. Two panes on screen are enlarged less (both
+   * canvases are resized); a pane switched on loads and draws the current clip frame.
+   */
+  function setCompareVisible(on) {
+    const pane = state.compare;
+    pane.visible = on;
+    state.ui.paneCompare.hidden = !on;
+    document.body.classList.toggle('two-panes', on && !state.bare);
+    if (state.camera) resizePanes();
+    if (on) {
+      if (state.camera) showCompareFrame(state.main.wanted);
+    } else {
+      clearError('compare');
+      document.body.dataset.compareFrame = 'none';
+    }
   }
 
   // Playback ------------------------------------------------------------------------------
@@ -996,7 +1458,7 @@ void main() {
   /** Advances one frame (looping); the next tick is one period after this one started. */
   async function playTick() {
     const started = performance.now();
-    const next = (state.wanted + 1) % state.manifest.frames.length;
+    const next = (state.main.wanted + 1) % state.manifest.frames.length;
     state.ui.frame.value = String(next);
     await showFrame(next);
     if (!state.playing) return;
@@ -1006,12 +1468,19 @@ void main() {
 
   // Views ---------------------------------------------------------------------------------
 
-  /** Makes `camera` the view; `index` is the scene camera it is, or -1. */
+  /** Sizes every pane's canvas to the current camera. */
+  function resizePanes() {
+    for (const pane of [state.main, state.compare]) {
+      if (pane) pane.renderer.resize(state.camera.width, state.camera.height);
+    }
+  }
+
+  /** Makes `camera` the view of both panes; `index` is the scene camera it is, or -1. */
   function setView(camera, index) {
     state.camera = camera;
     state.cameraIndex = index;
     state.viewVersion += 1;
-    state.renderer.resize(camera.width, camera.height);
+    resizePanes();
     state.ui.cameras.querySelectorAll('button').forEach((b, i) => b.classList.toggle('active', i === index));
     requestDraw();
   }
@@ -1053,6 +1522,15 @@ void main() {
     ui.reset.addEventListener('click', resetView);
     addCameraButtons();
     connectMouse(ui.canvas);
+    // The checkboxes show only when there is something to switch.
+    ui.showCompare.closest('label').hidden = !state.compare;
+    ui.showTracks.closest('label').hidden = !manifest.tracks;
+    ui.showTracks.closest('.row').hidden = !state.compare && !manifest.tracks;
+    ui.showTracks.addEventListener('change', requestDraw);
+    if (state.compare) {
+      ui.showCompare.addEventListener('change', () => setCompareVisible(ui.showCompare.checked));
+      connectMouse(ui.canvasCompare);
+    }
   }
 
   function addCameraButtons() {
@@ -1070,7 +1548,10 @@ void main() {
     });
   }
 
-  /** Left drag orbits, right or shift+left drag pans, the wheel zooms. */
+  /**
+   * Left drag orbits, right or shift+left drag pans, the wheel zooms; on either pane's
+   * canvas, moving the one view both show.
+   */
   function connectMouse(canvas) {
     let drag = null;
     canvas.addEventListener('contextmenu', (e) => e.preventDefault());
@@ -1130,8 +1611,21 @@ void main() {
   }
 
   /**
-   * camera=I, frame=K and play=1, applied through the controls as a user would. Returns
-   * whether a frame was asked for (else the caller shows the first).
+   * pane=main or pane=compare (which pane ui=0 shows alone), checked against the manifest;
+   * returns it, or null.
+   */
+  function paneParameter(params) {
+    const pane = params.get('pane');
+    if (pane === null || pane === 'main') return pane;
+    if (pane !== 'compare') showError(`pane=${pane}: use pane=main or pane=compare`, 'hash');
+    else if (!state.manifest.compare) showError('pane=compare: the manifest has no compare', 'hash');
+    else return pane;
+    return null;
+  }
+
+  /**
+   * camera=I, frame=K, tracks=0|1 and play=1, applied through the controls as a user would.
+   * Returns whether a frame was asked for (else the caller shows the first).
    */
   function applyHash(params) {
     const { ui, manifest } = state;
@@ -1140,6 +1634,15 @@ void main() {
       const button = document.getElementById(`camera-${params.get('camera')}`);
       if (button) button.click();
       else showError(`camera=${params.get('camera')}: the manifest has ${manifest.cameras.length} cameras`, 'hash');
+    }
+    if (params.has('tracks')) {
+      const on = params.get('tracks');
+      if (on === '0' || on === '1') {
+        ui.showTracks.checked = on === '1';
+        ui.showTracks.dispatchEvent(new Event('change', { bubbles: true }));
+      } else {
+        showError(`tracks=${on}: use tracks=0 or tracks=1`, 'hash');
+      }
     }
     if (params.has('frame')) {
       const k = Number(params.get('frame'));
@@ -1163,8 +1666,8 @@ void main() {
     let n = 0;
     while (performance.now() - start < ms) {
       step();
-      drawNow();
-      state.renderer.finish();
+      drawPane(state.main);
+      state.main.renderer.finish();
       n += 1;
       await new Promise((resolve) => setTimeout(resolve, 0));
     }
@@ -1174,16 +1677,16 @@ void main() {
   /**
    * bench=1: once the first picture is up, 3 s of orbiting (sort and draw every picture),
    * then 3 s of redrawing the same view (draw only); results in data-fps and
-   * data-fps-static.
+   * data-fps-static. (They time the main pane; a compare pane is drawn between pictures.)
    */
   async function runBench() {
-    while (state.drawn === 0 && !state.errorKind) await new Promise((r) => setTimeout(r, 20));
-    if (state.errorKind) return;
+    while (state.drawn === 0 && !state.errors.has('main')) await new Promise((r) => setTimeout(r, 20));
+    if (state.errors.has('main')) return;
     const fps = await picturesPerSecond(3000, () => orbitBy(1, 0));
     const fpsStatic = await picturesPerSecond(3000, () => {});
     document.body.dataset.fps = fps.toFixed(2);
     document.body.dataset.fpsStatic = fpsStatic.toFixed(2);
-    document.body.dataset.renderTarget = state.renderer.target.format;
+    document.body.dataset.renderTarget = state.main.renderer.target.format;
   }
 
   // Start ---------------------------------------------------------------------------------
@@ -1191,9 +1694,10 @@ void main() {
   async function main() {
     state.ui = findControls();
     const params = hashParameters();
-    if (params.get('ui') === '0') document.body.classList.add('bare');
+    state.bare = params.get('ui') === '0';
+    if (state.bare) document.body.classList.add('bare');
     try {
-      state.renderer = new SplatRenderer(state.ui.canvas);
+      state.main = makePane(state.ui.canvas, state.ui.labelMain);
     } catch (e) {
       showError(e.message, 'fatal');
       return;
@@ -1207,11 +1711,15 @@ void main() {
       showError(`the manifest did not load: ${e.message}`, 'fatal');
       return;
     }
-    state.store = new FrameStore(state.manifest.frames);
-    if (params.has('frame')) state.store.prefetch(Number(params.get('frame')));
+    state.main.title = state.manifest.title;
+    state.main.frames = state.manifest.frames;
+    state.main.store = new FrameStore(state.manifest.frames);
+    if (params.has('frame')) state.main.store.prefetch(Number(params.get('frame')));
+    setUpCompare(paneParameter(params));
+    setUpTracks();
     setUpControls();
     // The orbit's target is the first frame's centre: load it before any view is set.
-    state.home = await state.store.get(0).then(boundingSphere, () => ({ centre: [0, 0, 0], radius: 1 }));
+    state.home = await state.main.store.get(0).then(boundingSphere, () => ({ centre: [0, 0, 0], radius: 1 }));
     resetView();
     if (!applyHash(params)) showFrame(0);
     if (params.get('bench') === '1') runBench();
