@@ -190,22 +190,14 @@ pub fn run(a: &RenderArgs) -> CliResult<()> {
 
 /// Camera `view` of a scene's cameras.json: its input views, then its supervision views.
 fn scene_camera(scene: &Path, view: usize) -> CliResult<Camera> {
-    let path = scene.join("cameras.json");
-    let text = std::fs::read_to_string(&path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
-    let json: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| format!("{}: not JSON: {e}", path.display()))?;
-    let mut cameras = Vec::new();
-    for group in ["input", "supervision"] {
-        if let Some(list) = json.get(group) {
-            let list: Vec<Camera> = serde_json::from_value(list.clone())
-                .map_err(|e| format!("{}: the {group} cameras are unreadable: {e}", path.display()))?;
-            cameras.extend(list);
-        }
-    }
+    let cameras = crate::view::scene_cameras(scene)?;
     let count = cameras.len();
-    cameras.get(view).copied().ok_or_else(|| {
-        format!("--view {view}: {} has {count} cameras (input, then supervision views)", path.display())
-            .into()
+    cameras.get(view).map(|c| c.camera).ok_or_else(|| {
+        format!(
+            "--view {view}: {} has {count} cameras (input, then supervision views)",
+            scene.join("cameras.json").display()
+        )
+        .into()
     })
 }
 

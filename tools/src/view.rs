@@ -101,11 +101,12 @@ enum Kind {
     Points,
 }
 
+/// A scene camera and its name (`input 3`, `supervision 0`).
 #[derive(Serialize)]
-struct NamedCamera {
-    name: String,
+pub struct NamedCamera {
+    pub name: String,
     #[serde(flatten)]
-    camera: Camera,
+    pub camera: Camera,
 }
 
 /// What PATH holds, checked.
@@ -268,8 +269,9 @@ fn is_gaussian(header: &Header) -> bool {
     ["x", "f_dc_0", "opacity", "scale_0", "rot_0"].iter().all(|p| names.contains(p))
 }
 
-/// A scene folder's cameras (its input views, then its supervision views), if it has them.
-fn scene_cameras(scene: &Path) -> CliResult<Vec<NamedCamera>> {
+/// A scene folder's cameras: its input views, then its supervision views (the order of the
+/// viewer's camera buttons and of `velox render --view`).
+pub fn scene_cameras(scene: &Path) -> CliResult<Vec<NamedCamera>> {
     let path = scene.join("cameras.json");
     let text = std::fs::read_to_string(&path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
     let json: serde_json::Value =
