@@ -119,8 +119,9 @@ pub struct GaussiansArgs {
     /// Sampling of the surface points whose voxels are the queries (`--voxels surface`).
     #[command(flatten)]
     sampling: SamplingArgs,
-    /// Also write the decoded frames as an animated GIF (`clip.gif`) beside the truth: the
-    /// scene's first supervision view (needs --cloud to be a dataset scene).
+    /// Also write the decoded frames as an animated GIF (`clip.gif`, and each frame as
+    /// `clip/fFF.png`) beside the truth: the scene's first supervision view (needs --cloud to
+    /// be a dataset scene).
     #[arg(long)]
     gif: bool,
 }
@@ -217,13 +218,14 @@ pub fn read_cloud(path: &Path) -> CliResult<Vec<f32>> {
 
 /// The frames `frames` of a clip as an animated GIF at `gif`: the first supervision view of the
 /// dataset scene `scene` beside `gaussians(f)` rendered from that view's camera (on black, as
-/// the data's images).
+/// the data's images). With `pngs`, each frame also as `fFF.png` in that folder.
 pub fn clip_gif(
     gpu: &Gpu,
     scene: &Path,
     frames: &[usize],
     mut gaussians: impl FnMut(usize) -> CliResult<Gaussians>,
     gif: &Path,
+    pngs: Option<&Path>,
 ) -> CliResult<()> {
     let scene = velox_data::format::read_scene(scene, true)?;
     let camera = scene.cameras.supervision[0];
@@ -233,7 +235,12 @@ pub fn clip_gif(
     for &f in frames {
         let ours: Vec<f32> = render(gpu, &gaussians(f)?, &camera, [0.0; 3])?.image.rgb.read()?;
         let truth: Vec<f32> = scene.supervision[f * views].iter().map(|&b| b as f32 / 255.0).collect();
-        images.push(crate::overlay::side_by_side(&[truth, ours], w, h));
+        let frame = crate::overlay::side_by_side(&[truth, ours], w, h);
+        if let Some(dir) = pngs {
+            std::fs::create_dir_all(dir).map_err(|e| format!("creating {}: {e}", dir.display()))?;
+            image::write_png(&dir.join(format!("f{f:02}.png")), &frame, 2 * w as u32, h as u32)?;
+        }
+        images.push(frame);
     }
     image::write_gif(gif, &images, 2 * w as u32, h as u32, 80)?;
     Ok(())
@@ -370,8 +377,9 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
     if gif {
         let read =
             |f: usize| Ok(ply::read(&common.out.join(format!("gaussians_f{f:02}.ply")))?.upload(&gpu)?);
-        clip_gif(&gpu, &common.cloud, &common.frames.0, read, &common.out.join("clip.gif"))?;
-        println!("wrote {} (ground truth | decoded)", common.out.join("clip.gif").display());
+        let (gif, pngs) = (common.out.join("clip.gif"), common.out.join("clip"));
+        clip_gif(&gpu, &common.cloud, &common.frames.0, read, &gif, Some(&pngs))?;
+        println!("wrote {} and its frames under {} (ground truth | decoded)", gif.display(), pngs.display());
     }
     println!(
         "wrote {} files to {} in {:.1} s (decode.json lists them)",

@@ -146,7 +146,7 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
     let gaussians = |f: usize| -> CliResult<Gaussians> {
         Ok(decoding.gaussians(f, &decoding.voxels(f, VoxelSource::Input, &Sampling::heun(1))?)?)
     };
-    clip_gif(&gpu, &scene_dir, &every_other, gaussians, &out.join("decoded.gif"))?;
+    clip_gif(&gpu, &scene_dir, &every_other, gaussians, &out.join("decoded.gif"), None)?;
 
     // 4. Renders beside the ground truth, and the metrics.
     println!("4/4 rendering and measuring");

@@ -135,6 +135,11 @@ fn decode_gaussians_writes_splat_files_from_surface_or_cloud_voxels() {
     ok(&velox(&[&args[..], &["--frames", "3,9", "--voxels", "cloud", "--gif"][..]].concat()));
     let gif = velox_io::image::read_gif(&out.join("clip.gif")).unwrap();
     assert_eq!((gif.frames.len(), gif.width), (2, 2 * gif.height));
+    let (png, w, _) = velox_io::image::read_png(&out.join("clip/f09.png")).unwrap();
+    assert_eq!(w, gif.width);
+    // The GIF's frame is the PNG quantised to a palette of 256 colours.
+    let mean = png.iter().zip(&gif.frames[1]).map(|(a, b)| (a - b).abs()).sum::<f32>() / png.len() as f32;
+    assert!(mean <= 4.0 / 255.0, "the PNG is the frame: mean difference {mean}");
     let cloud = dir.join("cloud.ply");
     std::fs::copy(scene.join("points.ply"), &cloud).unwrap();
     let args =
