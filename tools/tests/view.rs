@@ -169,7 +169,16 @@ fn the_server_answers_its_routes_and_nothing_outside_them() {
     let (status, page) = get(a, "/");
     assert_eq!(status, 200);
     assert!(String::from_utf8_lossy(&page).contains("viewer.js"));
-    assert_eq!(get(a, "/viewer.js").0, 200);
+    let (status, script) = get(a, "/viewer.js");
+    assert_eq!(status, 200);
+    // Nothing the page loads names another host: every request stays on 127.0.0.1.
+    for text in [&page, &script] {
+        let text = String::from_utf8_lossy(text);
+        assert!(
+            !text.contains("http://") && !text.contains("https://") && !text.contains("//cdn"),
+            "an outside URL"
+        );
+    }
     let (status, manifest) = get(a, "/manifest.json");
     assert_eq!(status, 200);
     let m: serde_json::Value = serde_json::from_slice(&manifest).unwrap();
