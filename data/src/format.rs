@@ -261,6 +261,11 @@ impl Scene {
     }
 }
 
+/// A scene folder's cameras (`cameras.json`).
+pub fn read_cameras(dir: &Path) -> DataResult<CameraSet> {
+    read_json(&dir.join("cameras.json"))
+}
+
 pub(crate) fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> DataResult<T> {
     let text = std::fs::read_to_string(path).map_err(|e| io(path, e))?;
     serde_json::from_str(&text)
@@ -382,7 +387,7 @@ pub fn read_scene(dir: &Path, images: bool) -> DataResult<Scene> {
     let invalid =
         |file: &str, why: String| DataError::Invalid(format!("{}: {why}", dir.join(file).display()));
     let meta = read_meta(dir)?;
-    let cameras: CameraSet = read_json(&dir.join("cameras.json"))?;
+    let cameras = read_cameras(dir)?;
     check_cameras(&cameras, &meta).map_err(|why| invalid("cameras.json", why))?;
     let points = read_ply(&dir.join("points.ply"))?;
     if points.len() != meta.points {

@@ -20,10 +20,12 @@ use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
-use velox_engine::ops::raster::{render, Gaussians};
+use velox_engine::ops::raster::{render, Camera};
+
+use crate::overlay::clip_gif;
 use velox_engine::{Gpu, Precision};
 use velox_io::cloud::CHANNELS;
-use velox_io::{image, ply, write_bytes};
+use velox_io::{ply, write_bytes};
 use velox_models::velox::autoencoder::{Autoencoder, FRAMES};
 use velox_models::velox::decode::{frame_points, Decoding, FrameOutput, Sampling, VoxelSource};
 use velox_models::velox::surface::Sampler;
@@ -216,36 +218,6 @@ pub fn read_cloud(path: &Path) -> CliResult<Vec<f32>> {
     Ok(points.iter().flatten().copied().collect())
 }
 
-/// The frames `frames` of a clip as an animated GIF at `gif`: the first supervision view of the
-/// dataset scene `scene` beside `gaussians(f)` rendered from that view's camera (on black, as
-/// the data's images). With `pngs`, each frame also as `fFF.png` in that folder.
-pub fn clip_gif(
-    gpu: &Gpu,
-    scene: &Path,
-    frames: &[usize],
-    mut gaussians: impl FnMut(usize) -> CliResult<Gaussians>,
-    gif: &Path,
-    pngs: Option<&Path>,
-) -> CliResult<()> {
-    let scene = velox_data::format::read_scene(scene, true)?;
-    let camera = scene.cameras.supervision[0];
-    let (w, h) = (camera.width as usize, camera.height as usize);
-    let views = scene.meta.supervision_views;
-    let mut images = Vec::with_capacity(frames.len());
-    for &f in frames {
-        let ours: Vec<f32> = render(gpu, &gaussians(f)?, &camera, [0.0; 3])?.image.rgb.read()?;
-        let truth: Vec<f32> = scene.supervision[f * views].iter().map(|&b| b as f32 / 255.0).collect();
-        let frame = crate::overlay::side_by_side(&[truth, ours], w, h);
-        if let Some(dir) = pngs {
-            std::fs::create_dir_all(dir).map_err(|e| format!("creating {}: {e}", dir.display()))?;
-            image::write_png(&dir.join(format!("f{f:02}.png")), &frame, 2 * w as u32, h as u32)?;
-        }
-        images.push(frame);
-    }
-    image::write_gif(gif, &images, 2 * w as u32, h as u32, 80)?;
-    Ok(())
-}
-
 /// A progress bar over `len` items of `what`.
 pub fn progress(len: usize, what: &str) -> ProgressBar {
     let bar = ProgressBar::new(len as u64);
@@ -340,9 +312,12 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
         None => FrameOutput::Points,
         Some(source) => FrameOutput::Gaussians(source),
     };
+    // Called before each frame: the bar counts the frames done.
+    let mut done = 0;
     let mut on_frame = |f: usize| {
-        bar.set_position(common.frames.0.iter().position(|&g| g == f).unwrap_or(0) as u64);
+        bar.set_position(done);
         bar.set_message(format!("frame {f}"));
+        done += 1;
     };
     let written =
         decoding.write_frames(&common.frames.0, output, &sampling.sampling(), &common.out, &mut on_frame)?;
@@ -375,10 +350,14 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
     let json = common.out.join("decode.json");
     write_bytes(&json, serde_json::to_string_pretty(&report)?.as_bytes())?;
     if gif {
-        let read =
-            |f: usize| Ok(ply::read(&common.out.join(format!("gaussians_f{f:02}.ply")))?.upload(&gpu)?);
+        // The frames as written, read back from their files.
+        let path = |f: usize| written.iter().find(|w| w.frame == f).map(|w| w.path.clone());
         let (gif, pngs) = (common.out.join("clip.gif"), common.out.join("clip"));
-        clip_gif(&gpu, &common.cloud, &common.frames.0, read, &gif, Some(&pngs))?;
+        let render_frame = |f: usize, camera: &Camera| -> CliResult<Vec<Vec<f32>>> {
+            let g = ply::read(&path(f).ok_or("a frame that was not decoded")?)?.upload(&gpu)?;
+            Ok(vec![render(&gpu, &g, camera, [0.0; 3])?.image.rgb.read()?])
+        };
+        clip_gif(&common.cloud, &common.frames.0, render_frame, &gif, 80, Some(&pngs))?;
         println!("wrote {} and its frames under {} (ground truth | decoded)", gif.display(), pngs.display());
     }
     println!(

@@ -10,7 +10,7 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use velox_data::format::write_scene;
 use velox_data::{procedural, SynthOptions};
-use velox_engine::ops::raster::Gaussians;
+use velox_engine::ops::raster::{render, Camera};
 use velox_engine::Gpu;
 use velox_io::write_bytes;
 use velox_models::velox::autoencoder::FRAMES;
@@ -21,9 +21,10 @@ use velox_models::velox::autoencoder::Autoencoder;
 use velox_models::velox::decode::{Decoding, FrameOutput, Sampling, VoxelSource};
 use velox_tasks::SceneFolders;
 
-use crate::decode::{clip_gif, progress, read_cloud};
+use crate::decode::{progress, read_cloud};
 use crate::eval::recon;
 use crate::interrupt::Interrupt;
+use crate::overlay::clip_gif;
 use crate::train::{train_autoencoder, AutoencoderArgs, RunArgs};
 use crate::CliResult;
 
@@ -143,10 +144,11 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
     bar.finish_and_clear();
     // Every other frame of the clip, the Gaussians over the input cloud's voxels.
     let every_other: Vec<usize> = (0..FRAMES).step_by(2).collect();
-    let gaussians = |f: usize| -> CliResult<Gaussians> {
-        Ok(decoding.gaussians(f, &decoding.voxels(f, VoxelSource::Input, &Sampling::heun(1))?)?)
+    let render_frame = |f: usize, camera: &Camera| -> CliResult<Vec<Vec<f32>>> {
+        let g = decoding.gaussians(f, &decoding.voxels(f, VoxelSource::Input, &Sampling::heun(1))?)?;
+        Ok(vec![render(&gpu, &g, camera, [0.0; 3])?.image.rgb.read()?])
     };
-    clip_gif(&gpu, &scene_dir, &every_other, gaussians, &out.join("decoded.gif"), None)?;
+    clip_gif(&scene_dir, &every_other, render_frame, &out.join("decoded.gif"), 80, None)?;
 
     // 4. Renders beside the ground truth, and the metrics.
     println!("4/4 rendering and measuring");

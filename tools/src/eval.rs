@@ -23,6 +23,7 @@ use velox_tasks::generate::GeneratorModels;
 use velox_tasks::{SceneFolders, TokenScenes, TrackScenes};
 
 use crate::decode::{progress, voxel_decoder, PrecisionArg, SamplerArg, VoxelArg};
+use crate::overlay::{clip_gif, splat_points};
 use crate::CliResult;
 
 #[derive(clap::Subcommand)]
@@ -883,30 +884,6 @@ impl velox_tasks::evaluate::ClothObserver for Frames {
     }
 }
 
-/// A cloth scene's clip as an animated GIF: its first supervision view beside the surface
-/// decoded from the generated and from the encoded tokens, drawn as small Gaussians from that
-/// view's camera.
-fn cloth_gif(
-    gpu: &Gpu,
-    scene: &std::path::Path,
-    surfaces: &[Vec<Vec<f32>>; 2],
-    gif: &std::path::Path,
-) -> CliResult<()> {
-    let data = velox_data::format::read_scene(scene, true)?;
-    let camera = data.cameras.supervision[0];
-    let (w, h) = (camera.width as usize, camera.height as usize);
-    let views = data.meta.supervision_views;
-    let mut clip = Vec::with_capacity(surfaces[0].len());
-    for (f, (generated, encoded)) in surfaces[0].iter().zip(&surfaces[1]).enumerate() {
-        let truth: Vec<f32> = data.supervision[f * views].iter().map(|&b| b as f32 / 255.0).collect();
-        let drawn = [generated, encoded].map(|p| crate::overlay::splat_points(gpu, p, &camera));
-        let [generated, encoded] = drawn;
-        clip.push(crate::overlay::side_by_side(&[truth, generated?, encoded?], w, h));
-    }
-    velox_io::image::write_gif(gif, &clip, 3 * w as u32, h as u32, 100)?;
-    Ok(())
-}
-
 fn run_cloth(a: &ClothEvalArgs) -> CliResult<()> {
     use velox_models::eval::cloth::ClothScene;
 
@@ -941,7 +918,13 @@ fn run_cloth(a: &ClothEvalArgs) -> CliResult<()> {
         let name = &r.scene.scene;
         r.scene.plot(&a.out.join(name), dt)?;
         if let Some((_, surfaces)) = observer.surfaces.iter().find(|(n, _)| n == name) {
-            cloth_gif(&gpu, &scenes.dirs()[i], surfaces, &a.out.join(format!("{name}.gif")))?;
+            // The scene beside the surface decoded from the generated and the encoded tokens.
+            let [generated, encoded] = surfaces;
+            let splat = |f: usize, camera: &velox_engine::ops::raster::Camera| {
+                Ok(vec![splat_points(&gpu, &generated[f], camera)?, splat_points(&gpu, &encoded[f], camera)?])
+            };
+            let frames: Vec<usize> = (0..generated.len()).collect();
+            clip_gif(&scenes.dirs()[i], &frames, splat, &a.out.join(format!("{name}.gif")), 100, None)?;
         }
         results.push(r.scene);
     }

@@ -180,10 +180,8 @@ pub fn grid(images: &[Vec<f32>], cols: usize, w: usize, h: usize) -> Vec<f32> {
     images.chunks(cols).flat_map(|row| crate::overlay::side_by_side(row, w, h)).collect()
 }
 
-/// Images side by side in a frame of `clip.gif`: the condition and up to two views.
-fn clip_row_panes(views: usize) -> usize {
-    1 + views.min(2)
-}
+/// Views beside the condition in a frame of `clip.gif`: the input view and the first novel one.
+const CLIP_VIEWS: usize = 2;
 
 /// Up to 6 of `frames`, spread evenly, for the contact sheet.
 pub fn sheet_frames(frames: &[usize]) -> Vec<usize> {
@@ -284,7 +282,7 @@ pub fn run(a: &GenerateArgs) -> CliResult<()> {
         let mut clip_row = vec![condition_frame(&pixels, cfg.task, cfg.image_size, f, w, h)];
         for (v, cam) in cams.iter().enumerate() {
             let rgb = rendered(&gpu, &g, cam)?;
-            if v < 2 {
+            if v < CLIP_VIEWS {
                 clip_row.push(rgb.clone());
             }
             let file = match v {
@@ -310,7 +308,7 @@ pub fn run(a: &GenerateArgs) -> CliResult<()> {
     let sheet_path = a.out.join("sheet.png");
     write_png(&sheet_path, &big, (cols * w * k) as u32, ((images.len() / cols) * h * k) as u32)?;
     let clip_path = a.out.join("clip.gif");
-    let panes = clip_row_panes(cams.len());
+    let panes = 1 + cams.len().min(CLIP_VIEWS);
     write_gif(&clip_path, &clip, (panes * w) as u32, h as u32, 100)?;
     let report = Report {
         command: "generate",

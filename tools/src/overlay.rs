@@ -115,9 +115,25 @@ pub fn enlarged(rgb: &[f32], w: usize, h: usize, k: usize) -> Vec<f32> {
     out
 }
 
-/// Standard deviation of the Gaussian a decoded surface point is drawn as, in scene units (the
-/// scenes span [-1, 1]).
-pub const POINT_SIGMA: f32 = 0.012;
+/// Colour of points that carry none (decoded surface points): a light grey.
+pub const POINT_GREY: [f32; 3] = [0.8, 0.8, 0.8];
+/// Standard deviation of the Gaussian a decoded surface point is drawn as in a picture, in
+/// scene units (the scenes span [-1, 1]).
+pub const SURFACE_POINT_SIGMA: f32 = 0.012;
+
+/// Points (xyz and colour) as small round Gaussians of standard deviation `sigma` and opacity
+/// logit `logit`: how the viewer and the pictures draw point clouds.
+pub fn points_as_gaussians(
+    points: impl IntoIterator<Item = ([f32; 3], [f32; 3])>,
+    sigma: f32,
+    logit: f32,
+) -> velox_engine::ops::raster::GaussianData {
+    let mut g = velox_engine::ops::raster::GaussianData::default();
+    for (xyz, rgb) in points {
+        g.push(xyz, [sigma.ln(); 3], [1.0, 0.0, 0.0, 0.0], logit, rgb);
+    }
+    g
+}
 
 /// Points (xyz rows) drawn as small, nearly opaque light-grey Gaussians from `camera` on black:
 /// `[h, w, 3]`.
@@ -126,15 +142,48 @@ pub fn splat_points(
     points: &[f32],
     camera: &velox_engine::ops::raster::Camera,
 ) -> crate::CliResult<Vec<f32>> {
-    let mut g = velox_engine::ops::raster::GaussianData::default();
-    for p in points.chunks_exact(3) {
-        g.push([p[0], p[1], p[2]], [POINT_SIGMA.ln(); 3], [1.0, 0.0, 0.0, 0.0], 3.0, [0.8, 0.8, 0.8]);
-    }
+    let grey = points.chunks_exact(3).map(|p| ([p[0], p[1], p[2]], POINT_GREY));
+    let g = points_as_gaussians(grey, SURFACE_POINT_SIGMA, 3.0);
     if g.is_empty() {
         return Ok(vec![0.0; 3 * camera.width as usize * camera.height as usize]);
     }
     let image = velox_engine::ops::raster::render(gpu, &g.upload(gpu)?, camera, [0.0; 3])?;
     Ok(image.image.rgb.read()?)
+}
+
+/// The frames `frames` of a clip as an animated GIF at `gif`, each frame shown `delay_ms`: the
+/// first supervision view of the dataset scene `scene` beside the pictures `panes(f, camera)`
+/// makes of frame `f` from that view's camera (on black, as the data's images). With `pngs`,
+/// each frame also as `fFF.png` in that folder.
+pub fn clip_gif(
+    scene: &std::path::Path,
+    frames: &[usize],
+    mut panes: impl FnMut(usize, &velox_engine::ops::raster::Camera) -> crate::CliResult<Vec<Vec<f32>>>,
+    gif: &std::path::Path,
+    delay_ms: u32,
+    pngs: Option<&std::path::Path>,
+) -> crate::CliResult<()> {
+    let scene = velox_data::format::read_scene(scene, true)?;
+    let camera = scene.cameras.supervision[0];
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    let views = scene.meta.supervision_views;
+    if let Some(dir) = pngs {
+        std::fs::create_dir_all(dir).map_err(|e| format!("creating {}: {e}", dir.display()))?;
+    }
+    let mut images = Vec::with_capacity(frames.len());
+    let mut width = w;
+    for &f in frames {
+        let truth: Vec<f32> = scene.supervision[f * views].iter().map(|&b| b as f32 / 255.0).collect();
+        let row: Vec<Vec<f32>> = std::iter::once(truth).chain(panes(f, &camera)?).collect();
+        width = row.len() * w;
+        let frame = side_by_side(&row, w, h);
+        if let Some(dir) = pngs {
+            velox_io::image::write_png(&dir.join(format!("f{f:02}.png")), &frame, width as u32, h as u32)?;
+        }
+        images.push(frame);
+    }
+    velox_io::image::write_gif(gif, &images, width as u32, h as u32, delay_ms)?;
+    Ok(())
 }
 
 #[cfg(test)]

@@ -34,11 +34,13 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use serde::Serialize;
+use velox_data::format::{CameraSet, Scene};
 use velox_engine::ops::raster::{Camera, GaussianData};
 use velox_io::ply::{self, Header};
 use velox_io::write_bytes;
-use velox_models::velox::autoencoder::FRAMES;
+use velox_models::velox::autoencoder::{frame_of_tau, tau_of, FRAMES};
 
+use crate::overlay::{points_as_gaussians, POINT_GREY};
 use crate::CliResult;
 
 #[derive(clap::Args)]
@@ -73,8 +75,8 @@ pub struct ViewArgs {
 /// Standard deviation of the Gaussian a point is drawn as, in scene units (the scenes span
 /// [-1, 1]: a point covers a few pixels at the data's resolutions).
 pub const POINT_SIGMA: f32 = 0.006;
-/// Colour of points that carry none (decoded surface points): a light grey.
-const POINT_GREY: [f32; 3] = [0.8, 0.8, 0.8];
+/// The opacity logit of a drawn point: its sigmoid rounds to 1 in f32 (opaque).
+const OPAQUE_LOGIT: f32 = 20.0;
 /// Floats per Gaussian in a frame's body.
 const RECORD: usize = 13;
 
@@ -174,14 +176,13 @@ fn read_track_json(path: &Path) -> CliResult<Tracks> {
 
 /// A dataset scene's ground-truth surface tracks, seen where any input camera sees them;
 /// none when the scene was made without tracks.
-fn scene_tracks(scene: &Path) -> CliResult<Option<Tracks>> {
-    let s = velox_data::format::read_scene(scene, false)?;
+fn scene_tracks(s: &Scene) -> Option<Tracks> {
     if s.tracks.is_empty() {
-        return Ok(None);
+        return None;
     }
     let positions = s.tracks.iter().flatten().flatten().copied().collect();
     let visible = s.visibility.iter().flatten().map(|&bits| (bits != 0) as u8).collect();
-    Ok(Some(Tracks { count: s.tracks.len(), frames: FRAMES, positions, visible }))
+    Some(Tracks { count: s.tracks.len(), frames: FRAMES, positions, visible })
 }
 
 #[derive(Serialize)]
@@ -217,16 +218,6 @@ struct ManifestTracks {
     frames: usize,
 }
 
-/// tau of frame `f` (the clips' 100 frames per second).
-fn tau(f: usize) -> f32 {
-    f as f32 / 100.0
-}
-
-/// The frame a cloud row's tau belongs to.
-fn frame_index(tau: f32) -> usize {
-    ((tau * 100.0).round() as usize).min(FRAMES - 1)
-}
-
 /// The frame index in a name `PREFIX_fFF.ply`, if it is one.
 fn frame_of(name: &str, prefix: &str) -> Option<usize> {
     name.strip_prefix(prefix)?.strip_prefix("_f")?.strip_suffix(".ply")?.parse().ok()
@@ -235,17 +226,12 @@ fn frame_of(name: &str, prefix: &str) -> Option<usize> {
 /// The header of a PLY file and its vertex count, reading only the start of the file; the
 /// file's length is checked against the header.
 fn ply_header(path: &Path) -> CliResult<(Header, usize)> {
-    let mut file = std::fs::File::open(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
-    let mut start = vec![0u8; 64 * 1024];
-    let mut got = 0;
-    while got < start.len() {
-        match file.read(&mut start[got..]) {
-            Ok(0) => break,
-            Ok(n) => got += n,
-            Err(e) => return Err(format!("cannot read {}: {e}", path.display()).into()),
-        }
-    }
-    start.truncate(got);
+    let file = std::fs::File::open(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    let mut start = Vec::new();
+    (&file)
+        .take(64 * 1024)
+        .read_to_end(&mut start)
+        .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
     let header = Header::parse(&start).map_err(|e| format!("{}: {e}", path.display()))?;
     let (_, vertex) =
         header.find("vertex").ok_or_else(|| format!("{}: the PLY has no vertex element", path.display()))?;
@@ -272,22 +258,13 @@ fn is_gaussian(header: &Header) -> bool {
 /// A scene folder's cameras: its input views, then its supervision views (the order of the
 /// viewer's camera buttons and of `velox render --view`).
 pub fn scene_cameras(scene: &Path) -> CliResult<Vec<NamedCamera>> {
-    let path = scene.join("cameras.json");
-    let text = std::fs::read_to_string(&path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
-    let json: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| format!("{}: not JSON: {e}", path.display()))?;
-    let mut cameras = Vec::new();
-    for group in ["input", "supervision"] {
-        let Some(list) = json.get(group) else { continue };
-        let list: Vec<Camera> = serde_json::from_value(list.clone())
-            .map_err(|e| format!("{}: the {group} cameras are unreadable: {e}", path.display()))?;
-        cameras.extend(
-            list.into_iter()
-                .enumerate()
-                .map(|(i, camera)| NamedCamera { name: format!("{group} {i}"), camera }),
-        );
-    }
-    Ok(cameras)
+    Ok(named_cameras(velox_data::format::read_cameras(scene)?))
+}
+
+fn named_cameras(set: CameraSet) -> Vec<NamedCamera> {
+    let name = |group: &'static str| move |(i, camera)| NamedCamera { name: format!("{group} {i}"), camera };
+    let input = set.input.into_iter().enumerate().map(name("input"));
+    input.chain(set.supervision.into_iter().enumerate().map(name("supervision"))).collect()
 }
 
 /// The scene a decode or generate output was made from (decode.json's `cloud`), when it is a
@@ -328,13 +305,22 @@ fn discover(path: &Path, scene: Option<&Path>) -> CliResult<Source> {
             None,
         )
     } else if path.join("points.ply").is_file() && path.join("cameras.json").is_file() {
-        let cloud = velox_data::format::read_ply(&path.join("points.ply"))?;
+        // A dataset scene, read once: its cloud frame by frame, its cameras and its tracks
+        // (`--scene` names another scene for the cameras and tracks).
+        let s = velox_data::format::read_scene(path, false)?;
+        let (cameras, tracks) = match scene {
+            Some(other) => {
+                let o = velox_data::format::read_scene(other, false)?;
+                (named_cameras(o.cameras.clone()), scene_tracks(&o))
+            }
+            None => (named_cameras(s.cameras.clone()), scene_tracks(&s)),
+        };
         let mut counts = [0usize; FRAMES];
-        for p in &cloud {
-            counts[frame_index(p[6])] += 1;
+        for p in &s.points {
+            counts[frame_of_tau(p[6])] += 1;
         }
-        let cloud = Arc::new(cloud);
-        let frames = (0..counts.len())
+        let cloud = Arc::new(s.points);
+        let frames: Vec<Frame> = (0..counts.len())
             .filter(|&f| counts[f] > 0)
             .map(|f| Frame {
                 frame: f,
@@ -342,7 +328,9 @@ fn discover(path: &Path, scene: Option<&Path>) -> CliResult<Source> {
                 data: FrameData::ScenePoints { cloud: cloud.clone(), frame: f },
             })
             .collect();
-        (Kind::Points, frames, Some(path.to_path_buf()))
+        let title = format!("points of {name}: {} frame(s)", frames.len());
+        let scene = Some(scene.unwrap_or(path).to_path_buf());
+        return Ok(Source { title, kind: Kind::Points, frames, cameras, compare: None, tracks, scene });
     } else {
         let entries = std::fs::read_dir(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
         let mut files: Vec<(String, PathBuf)> = entries
@@ -399,12 +387,10 @@ fn discover(path: &Path, scene: Option<&Path>) -> CliResult<Source> {
         Kind::Points => "points",
     };
     let title = format!("{what} of {name}: {} frame(s)", frames.len());
+    // A track output's own tracks; a decode output's scene's come with it (see
+    // `discover_with_compare`, which reads that scene once).
     let track_json = path.join("tracks.json");
-    let tracks = match (&scene, track_json.is_file()) {
-        (_, true) => Some(read_track_json(&track_json)?),
-        (Some(s), false) => scene_tracks(s)?,
-        (None, false) => None,
-    };
+    let tracks = if track_json.is_file() { Some(read_track_json(&track_json)?) } else { None };
     Ok(Source { title, kind, frames, cameras, compare: None, tracks, scene })
 }
 
@@ -412,16 +398,27 @@ fn discover(path: &Path, scene: Option<&Path>) -> CliResult<Source> {
 /// truth's points of the scene PATH was decoded from (when PATH is not that scene itself).
 fn discover_with_compare(a: &ViewArgs) -> CliResult<Source> {
     let mut source = discover(&a.path, a.scene.as_deref())?;
-    let compare = match (&a.compare, &source.scene) {
+    // The scene PATH was made from, when PATH is not that scene itself.
+    let origin = source.scene.clone().filter(|s| !same_folder(s, &a.path));
+    let mut truth = None;
+    let compare = match (&a.compare, &origin) {
         _ if a.no_compare => None,
         (Some(other), _) => Some(discover(other, source.scene.as_deref())?),
-        (None, Some(scene)) if !same_folder(scene, &a.path) => {
-            let mut truth = discover(scene, None)?;
-            truth.title = format!("ground truth: {}", truth.title);
-            Some(truth)
+        (None, Some(scene)) => {
+            let mut t = discover(scene, None)?;
+            t.title = format!("ground truth: {}", t.title);
+            truth = t.tracks.take();
+            Some(t)
         }
-        (None, _) => None,
+        (None, None) => None,
     };
+    if source.tracks.is_none() {
+        source.tracks = match (truth, &origin) {
+            (Some(t), _) => Some(t),
+            (None, Some(scene)) => scene_tracks(&velox_data::format::read_scene(scene, false)?),
+            (None, None) => None,
+        };
+    }
     source.compare = compare.map(|c| Box::new(Source { compare: None, tracks: None, ..c }));
     Ok(source)
 }
@@ -464,18 +461,9 @@ fn gaussian_body(g: &GaussianData) -> Vec<u8> {
     out
 }
 
-/// Points (xyz and colour) as small round opaque Gaussians.
-fn points_body(points: &[([f32; 3], [f32; 3])]) -> Vec<u8> {
-    let mut out = Vec::with_capacity(8 + points.len() * RECORD * 4);
-    out.extend_from_slice(b"VXG1");
-    out.extend_from_slice(&(points.len() as u32).to_le_bytes());
-    let v = POINT_SIGMA * POINT_SIGMA;
-    for (xyz, rgb) in points {
-        for x in xyz.iter().chain(&[v, 0.0, 0.0, v, 0.0, v]).chain(&[1.0]).chain(rgb) {
-            out.extend_from_slice(&x.to_le_bytes());
-        }
-    }
-    out
+/// Points (xyz and colour) as small round opaque Gaussians, as a frame's body.
+fn points_body(points: impl IntoIterator<Item = ([f32; 3], [f32; 3])>) -> Vec<u8> {
+    gaussian_body(&points_as_gaussians(points, POINT_SIGMA, OPAQUE_LOGIT))
 }
 
 /// The points of a points PLY (x y z and, if present, r g b or red green blue in [0, 1] or
@@ -524,14 +512,10 @@ impl Frame {
     fn body(&self) -> CliResult<Vec<u8>> {
         Ok(match &self.data {
             FrameData::Gaussians(path) => gaussian_body(&ply::read(path)?),
-            FrameData::Points(path) => points_body(&read_points(path)?),
+            FrameData::Points(path) => points_body(read_points(path)?),
             FrameData::ScenePoints { cloud, frame } => {
-                let of_frame = cloud
-                    .iter()
-                    .filter(|p| frame_index(p[6]) == *frame)
-                    .map(|p| ([p[0], p[1], p[2]], [p[3], p[4], p[5]]))
-                    .collect::<Vec<_>>();
-                points_body(&of_frame)
+                let of_frame = cloud.iter().filter(|p| frame_of_tau(p[6]) == *frame);
+                points_body(of_frame.map(|p| ([p[0], p[1], p[2]], [p[3], p[4], p[5]])))
             }
         })
     }
@@ -543,7 +527,7 @@ impl Source {
         let url = |k: usize| if embedded { format!("#{route}-{k}") } else { format!("{route}/{k}.bin") };
         let frame = |(k, f): (usize, &Frame)| ManifestFrame {
             frame: f.frame,
-            tau: tau(f.frame),
+            tau: tau_of(f.frame),
             url: url(k),
             count: f.count,
         };

@@ -118,10 +118,6 @@ fn bound(op: &str) -> f64 {
     BOUNDS.iter().find(|(o, _)| *o == op).unwrap_or_else(|| panic!("no bound for {op}")).1
 }
 
-fn f64v(x: &[f32]) -> Vec<f64> {
-    f64s(x)
-}
-
 fn upload(gpu: &Gpu, shape: &[usize], data: &[f32]) -> Result<Tensor> {
     Tensor::from_slice(gpu, shape, data)
 }
@@ -276,7 +272,7 @@ fn matmul_case(gpu: &Gpu, s: &[usize], rng: &mut Rng) -> Result<Vec<Output>> {
         let sb = if tb { [n, k] } else { [k, n] };
         let (a, b) = (rng.normal_vec(m * k), rng.normal_vec(k * n));
         let y = recorded(gpu, |rec| matmul(rec, &upload(gpu, &sa, &a)?, &upload(gpu, &sb, &b)?, ta, tb))?;
-        let (want, _) = matmul::reference::matmul(&f64v(&a), &sa, &f64v(&b), &sb, ta, tb)?;
+        let (want, _) = matmul::reference::matmul(&f64s(&a), &sa, &f64s(&b), &sb, ta, tb)?;
         outs.push(out(format!("ta={ta} tb={tb}"), &y, want)?);
     }
     Ok(outs)
@@ -304,9 +300,9 @@ fn rmsnorm_case(gpu: &Gpu, s: &[usize], rng: &mut Rng) -> Result<Vec<Output>> {
         let dx = rmsnorm_backward(rec, &xt, &wt, &rstd, &upload(gpu, s, &dy)?, Some(&dw), None)?;
         Ok((y, dx))
     })?;
-    let (want_y, _) = rmsnorm::reference::rmsnorm(&f64v(&x), &f64v(&g), eps as f64);
+    let (want_y, _) = rmsnorm::reference::rmsnorm(&f64s(&x), &f64s(&g), eps as f64);
     let (want_dx, want_dw) =
-        rmsnorm::reference::rmsnorm_backward(&f64v(&x), &f64v(&g), eps as f64, &f64v(&dy));
+        rmsnorm::reference::rmsnorm_backward(&f64s(&x), &f64s(&g), eps as f64, &f64s(&dy));
     Ok(vec![out("y", &y, want_y)?, out("dx", &dx, want_dx)?, out("dw", &dw, want_dw)?])
 }
 
@@ -338,10 +334,10 @@ fn layernorm_case(gpu: &Gpu, s: &[usize], rng: &mut Rng) -> Result<Vec<Output>> 
         )?;
         Ok((o.y, dx))
     })?;
-    let (gx, gg, gb) = (f64v(&x), f64v(&g), f64v(&b));
+    let (gx, gg, gb) = (f64s(&x), f64s(&g), f64s(&b));
     let (want_y, _, _) = layernorm::reference::layernorm(&gx, w, Some((&gg, &gb)), eps as f64);
     let (want_dx, want_dw, want_db) =
-        layernorm::reference::layernorm_backward(&gx, w, Some(&gg), eps as f64, &f64v(&dy));
+        layernorm::reference::layernorm_backward(&gx, w, Some(&gg), eps as f64, &f64s(&dy));
     Ok(vec![
         out("y", &y, want_y)?,
         out("dx", &dx, want_dx)?,
@@ -357,8 +353,8 @@ fn swiglu_case(gpu: &Gpu, s: &[usize], rng: &mut Rng) -> Result<Vec<Output>> {
         let (at, bt) = (upload(gpu, s, &a)?, upload(gpu, s, &b)?);
         Ok((swiglu(rec, &at, &bt)?, swiglu_backward(rec, &at, &bt, &upload(gpu, s, &dh)?)?))
     })?;
-    let (ga, gb) = (f64v(&a), f64v(&b));
-    let (want_da, want_db) = swiglu::reference::swiglu_backward(&ga, &gb, &f64v(&dh));
+    let (ga, gb) = (f64s(&a), f64s(&b));
+    let (want_da, want_db) = swiglu::reference::swiglu_backward(&ga, &gb, &f64s(&dh));
     Ok(vec![
         out("h", &h, swiglu::reference::swiglu(&ga, &gb))?,
         out("da", &da, want_da)?,
@@ -370,7 +366,7 @@ fn gelu_case(gpu: &Gpu, s: &[usize], rng: &mut Rng) -> Result<Vec<Output>> {
     let n = s[0] * s[1];
     let (x, dy) = (rng.normal_vec(n).iter().map(|v| 3.0 * v).collect::<Vec<f32>>(), rng.normal_vec(n));
     let dx = recorded(gpu, |rec| gelu_backward(rec, &upload(gpu, s, &x)?, &upload(gpu, s, &dy)?))?;
-    Ok(vec![out("dx", &dx, gelu::reference::gelu_backward(&f64v(&x), &f64v(&dy)))?])
+    Ok(vec![out("dx", &dx, gelu::reference::gelu_backward(&f64s(&x), &f64s(&dy)))?])
 }
 
 fn fourier_case(gpu: &Gpu, s: &[usize], rng: &mut Rng) -> Result<Vec<Output>> {
@@ -386,13 +382,13 @@ fn fourier_case(gpu: &Gpu, s: &[usize], rng: &mut Rng) -> Result<Vec<Output>> {
             let y = fourier(rec, &xt, &ft, include_input)?;
             Ok((y, fourier_backward(rec, &xt, &ft, include_input, &upload(gpu, &[rows, width], &dy)?)?))
         })?;
-        let (gx, gf) = (f64v(&x), f64v(&freq));
+        let (gx, gf) = (f64s(&x), f64s(&freq));
         outs.push(out(
             format!("y input={include_input}"),
             &y,
             fourier::reference::fourier(&gx, c, &gf, include_input),
         )?);
-        let want_dx = fourier::reference::fourier_backward(&gx, c, &gf, include_input, &f64v(&dy));
+        let want_dx = fourier::reference::fourier_backward(&gx, c, &gf, include_input, &f64s(&dy));
         outs.push(out(format!("dx input={include_input}"), &dx, want_dx)?);
     }
     Ok(outs)
@@ -409,7 +405,7 @@ fn loss_case(gpu: &Gpu, s: &[usize], rng: &mut Rng) -> Result<Vec<Output>> {
         };
         let (value, grad) =
             recorded(gpu, |rec| loss(rec, kind, &upload(gpu, s, &pred)?, &upload(gpu, s, &target)?, 0.75))?;
-        let (want_value, want_grad) = loss::reference::loss(kind, &f64v(&pred), &f64v(&target), 0.75);
+        let (want_value, want_grad) = loss::reference::loss(kind, &f64s(&pred), &f64s(&target), 0.75);
         outs.push(out(format!("{kind:?} value"), &value, vec![want_value])?);
         outs.push(out(format!("{kind:?} grad"), &grad, want_grad)?);
     }
@@ -437,13 +433,13 @@ fn attention_case(gpu: &Gpu, s: &[usize], rng: &mut Rng) -> Result<Vec<Output>> 
         Ok((o, grads))
     })?;
     let (q_off, k_off) = (attention::reference::offsets(&q_lens), attention::reference::offsets(&k_lens));
-    let (gq, gk, gv) = (f64v(&q), f64v(&k), f64v(&v));
+    let (gq, gk, gv) = (f64s(&q), f64s(&k), f64s(&v));
     let (want_o, _) = attention::reference::attention(&gq, &gk, &gv, &q_off, &k_off, h, d, scale as f64);
     let (dq, dk, dv) = attention::reference::attention_backward(
         &gq,
         &gk,
         &gv,
-        &f64v(&d_o),
+        &f64s(&d_o),
         &q_off,
         &k_off,
         h,

@@ -48,6 +48,11 @@ pub fn tau_of(frame: usize) -> f32 {
     frame as f32 / 100.0
 }
 
+/// The frame a frame time belongs to: the nearest, clamped to the clip.
+pub fn frame_of_tau(tau: f32) -> usize {
+    ((tau * 100.0).round() as usize).min(FRAMES - 1)
+}
+
 /// What a training step needs of a scene, on the host and the device.
 pub struct TrainScene {
     /// The cloud `[N, 7]` as host rows and on the device.

@@ -24,7 +24,7 @@ use serde::Serialize;
 use velox_engine::ops::raster::Gaussians;
 use velox_engine::{Error, Precision, Result, Tensor};
 
-use crate::velox::autoencoder::{tau_of, Autoencoder, FRAMES};
+use crate::velox::autoencoder::{frame_of_tau, tau_of, Autoencoder, FRAMES};
 use crate::velox::surface::{SampleSpec, Sampler};
 use crate::velox::voxels::{occupied_centres, VoxelDecoder};
 use velox_io::cloud::{self, CHANNELS};
@@ -75,7 +75,7 @@ pub fn frame_seed(seed: u64, frame: usize) -> u64 {
 pub fn frame_points(cloud: &[f32]) -> Vec<Vec<f32>> {
     let mut frames = vec![Vec::new(); FRAMES];
     for p in cloud.chunks(CHANNELS) {
-        frames[((p[6] * 100.0).round() as usize).min(FRAMES - 1)].extend_from_slice(&p[..3]);
+        frames[frame_of_tau(p[6])].extend_from_slice(&p[..3]);
     }
     frames
 }

@@ -338,14 +338,30 @@
     return decodeBase64(element.textContent).buffer;
   }
 
+  /**
+   * Checks a body's header (at least `headerBytes` long, starting with the 4 ASCII bytes
+   * `magic`) and returns a little-endian view of it, or throws saying what is wrong.
+   */
+  function checkedHeader(buffer, magic, headerBytes) {
+    if (buffer.byteLength < headerBytes) {
+      throw new Error(`${buffer.byteLength} bytes, shorter than the ${headerBytes}-byte header`);
+    }
+    const found = String.fromCharCode(...new Uint8Array(buffer, 0, 4));
+    if (found !== magic) throw new Error(`starts with ${JSON.stringify(found)}, not ${magic}`);
+    return new DataView(buffer);
+  }
+
+  /** `n` little-endian float32 of `view` from byte `at` (a view of the buffer where it can). */
+  function floatsAt(view, at, n) {
+    if (LITTLE_ENDIAN_HOST) return new Float32Array(view.buffer, at, n);
+    const out = new Float32Array(n);
+    for (let i = 0; i < n; i++) out[i] = view.getFloat32(at + 4 * i, true);
+    return out;
+  }
+
   /** A frame body as its records (count x 13 float32), or an Error saying what is wrong. */
   function parseFrame(buffer) {
-    if (buffer.byteLength < HEADER_BYTES) {
-      throw new Error(`${buffer.byteLength} bytes, shorter than the ${HEADER_BYTES}-byte header`);
-    }
-    const magic = String.fromCharCode(...new Uint8Array(buffer, 0, 4));
-    if (magic !== MAGIC) throw new Error(`starts with ${JSON.stringify(magic)}, not ${MAGIC}`);
-    const view = new DataView(buffer);
+    const view = checkedHeader(buffer, MAGIC, HEADER_BYTES);
     const count = view.getUint32(4, true);
     const expected = HEADER_BYTES + RECORD_BYTES * count;
     if (buffer.byteLength !== expected) {
@@ -353,10 +369,7 @@
         `${buffer.byteLength} bytes, but ${count} Gaussians take ${expected} (8 + 52 x ${count}): truncated or corrupt`,
       );
     }
-    if (LITTLE_ENDIAN_HOST) return new Float32Array(buffer, HEADER_BYTES, FLOATS_PER_GAUSSIAN * count);
-    const records = new Float32Array(FLOATS_PER_GAUSSIAN * count);
-    for (let i = 0; i < records.length; i++) records[i] = view.getFloat32(HEADER_BYTES + 4 * i, true);
-    return records;
+    return floatsAt(view, HEADER_BYTES, FLOATS_PER_GAUSSIAN * count);
   }
 
   /** The clip frame number of a manifest frame entry (its position when it has none). */
@@ -413,12 +426,7 @@
    * {count, frames, positions, visible}, or throws saying what is wrong.
    */
   function parseTracks(buffer) {
-    if (buffer.byteLength < TRACKS_HEADER_BYTES) {
-      throw new Error(`${buffer.byteLength} bytes, shorter than the ${TRACKS_HEADER_BYTES}-byte header`);
-    }
-    const magic = String.fromCharCode(...new Uint8Array(buffer, 0, 4));
-    if (magic !== TRACKS_MAGIC) throw new Error(`starts with ${JSON.stringify(magic)}, not ${TRACKS_MAGIC}`);
-    const view = new DataView(buffer);
+    const view = checkedHeader(buffer, TRACKS_MAGIC, TRACKS_HEADER_BYTES);
     const count = view.getUint32(4, true);
     const frames = view.getUint32(8, true);
     const points = count * frames;
@@ -431,14 +439,7 @@
       );
     }
     const visibleAt = TRACKS_HEADER_BYTES + 12 * points;
-    let positions;
-    if (LITTLE_ENDIAN_HOST) positions = new Float32Array(buffer, TRACKS_HEADER_BYTES, 3 * points);
-    else {
-      positions = new Float32Array(3 * points);
-      for (let i = 0; i < positions.length; i++) {
-        positions[i] = view.getFloat32(TRACKS_HEADER_BYTES + 4 * i, true);
-      }
-    }
+    const positions = floatsAt(view, TRACKS_HEADER_BYTES, 3 * points);
     return { count, frames, positions, visible: new Uint8Array(buffer, visibleAt, points) };
   }
 
