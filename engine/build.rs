@@ -128,16 +128,18 @@ fn main() {
                         .collect();
                     writeln!(
                         table,
-                        "    KernelInfo {{ module: {module_index}, file: {stem:?}, entry: {:?}, workgroup_size: {:?}, bindings: &[{}], push_bytes: {}, shared_bytes: {}, needs: Needs {{ f16: {}, float_atomics: {}, coop_matrix: {}, subgroups: {}, subgroup_size: {:?} }} }},",
+                        "    KernelInfo {{ module: {module_index}, file: {stem:?}, entry: {:?}, workgroup_size: {:?}, bindings: &[{}], push_bytes: {}, shared_bytes: {}, needs: Needs {{ f16: {}, float_atomics: {}, coop_matrix: {}, memory_model: {}, subgroups: {}, subgroup_ops: {:#x}, subgroup_size: {:?} }} }},",
                         k.entry,
                         k.workgroup_size,
                         bindings.join(", "),
                         k.push_bytes,
                         k.shared_bytes,
-                        k.needs_f16,
-                        k.needs_float_atomics,
-                        k.needs_coop,
-                        k.needs_subgroups,
+                        k.needs.f16,
+                        k.needs.float_atomics,
+                        k.needs.coop_matrix,
+                        k.needs.memory_model,
+                        k.needs.subgroup_ops != 0,
+                        k.needs.subgroup_ops,
                         k.subgroup_size,
                     )
                     .unwrap();
@@ -196,10 +198,7 @@ struct Kernel {
     bindings: Vec<(u32, bool, String)>,
     push_bytes: u32,
     shared_bytes: u32,
-    needs_f16: bool,
-    needs_float_atomics: bool,
-    needs_coop: bool,
-    needs_subgroups: bool,
+    needs: CapabilityNeeds,
     subgroup_size: Option<u32>,
     /// The Rust name of the push-constant struct's generated mirror (`None`: no push constants).
     params: Option<String>,
@@ -330,14 +329,9 @@ fn compile(shader_dir: &Path, path: &Path, source: &str) -> Result<Compiled, Str
         .map_err(|e| format!("{shown}: SPIR-V generation failed: {e}"))?;
     let words = flatten_access_chains(&words);
     let words = strip_layouts_outside_buffers(&words).map_err(|e| format!("{shown}: {e}"))?;
-
-    // What the code says, comments left out (a comment that mentions subgroups needs none).
-    let text: String =
-        source.lines().map(|l| l.split("//").next().unwrap_or("")).collect::<Vec<_>>().join("\n");
-    let needs_f16 = text.contains("enable f16");
-    let needs_coop = text.contains("wgpu_cooperative_matrix");
-    let needs_float_atomics = text.contains("atomic<f32>");
-    let needs_subgroups = text.contains("subgroup");
+    let words = strip_capabilities(&words, UNUSED_CAPABILITIES);
+    // What the module needs of the device, from the capabilities it declares.
+    let needs = capability_needs(&words).map_err(|e| format!("{shown}: {e}"))?;
     // `// @subgroup_size N`: the kernels of the file are written for subgroups of exactly N.
     let mut subgroup_size = None;
     for line in source.lines() {
@@ -409,10 +403,7 @@ fn compile(shader_dir: &Path, path: &Path, source: &str) -> Result<Compiled, Str
             bindings,
             push_bytes,
             shared_bytes,
-            needs_f16,
-            needs_float_atomics,
-            needs_coop,
-            needs_subgroups,
+            needs,
             subgroup_size,
             params: (push_bytes > 0).then(|| layout.as_ref().map(|l| l.rust_name.clone())).flatten(),
         });
@@ -719,6 +710,78 @@ fn strip_layouts_outside_buffers(words: &[u32]) -> Result<Vec<u32>, String> {
         at += count;
     }
     Ok(out)
+}
+
+const OP_CAPABILITY: u32 = 17;
+
+/// Capabilities naga declares for every `enable f16` module that compute kernels never use:
+/// f16 in uniform buffers (the kernels take none: `compile` refuses them) and f16 shader inputs
+/// and outputs (a compute shader's only inputs are its u32 builtins). The engine enables neither
+/// feature (NVIDIA reports `storageInputOutput16 = false`), and a module that declares a
+/// capability the device was not created with is invalid (VUID-VkShaderModuleCreateInfo-pCode-08740).
+const UNUSED_CAPABILITIES: &[u32] = &[
+    4434, // UniformAndStorageBuffer16BitAccess
+    4436, // StorageInputOutput16
+];
+
+/// The module without the `OpCapability` instructions of `drop`.
+fn strip_capabilities(words: &[u32], drop: &[u32]) -> Vec<u32> {
+    let mut out = words[..5].to_vec();
+    let mut at = 5;
+    while at < words.len() {
+        let count = ((words[at] >> 16) as usize).max(1);
+        let inst = &words[at..at + count];
+        if !(inst[0] & 0xffff == OP_CAPABILITY && count == 2 && drop.contains(&inst[1])) {
+            out.extend_from_slice(inst);
+        }
+        at += count;
+    }
+    out
+}
+
+/// What a module needs of the device, read from the capabilities it declares: each one the
+/// engine knows maps to the feature it enables at device creation (engine/src/device.rs), and one
+/// it does not know stops the build, so that no module can ask for a feature the device was not
+/// created with.
+#[derive(Clone, Copy, Default)]
+struct CapabilityNeeds {
+    f16: bool,
+    float_atomics: bool,
+    coop_matrix: bool,
+    memory_model: bool,
+    /// `VkSubgroupFeatureFlags` bits: BASIC 1, VOTE 2, ARITHMETIC 4, SHUFFLE 16.
+    subgroup_ops: u32,
+}
+
+fn capability_needs(words: &[u32]) -> Result<CapabilityNeeds, String> {
+    let mut needs = CapabilityNeeds::default();
+    let mut at = 5;
+    while at < words.len() {
+        let count = ((words[at] >> 16) as usize).max(1);
+        if words[at] & 0xffff == OP_CAPABILITY && count == 2 {
+            match words[at + 1] {
+                1 => {} // Shader
+                // Float16 (shaderFloat16) and StorageBuffer16BitAccess (storageBuffer16BitAccess):
+                // the engine enables both together, or neither.
+                9 | 4433 => needs.f16 = true,
+                6033 => needs.float_atomics = true, // AtomicFloat32AddEXT
+                6022 => needs.coop_matrix = true,   // CooperativeMatrixKHR
+                5345 => needs.memory_model = true,  // VulkanMemoryModel
+                61 => needs.subgroup_ops |= 1,      // GroupNonUniform
+                62 => needs.subgroup_ops |= 1 | 2,  // ...Vote
+                63 => needs.subgroup_ops |= 1 | 4,  // ...Arithmetic
+                65 => needs.subgroup_ops |= 1 | 16, // ...Shuffle
+                other => {
+                    return Err(format!(
+                        "the SPIR-V declares capability {other}, which the engine neither enables nor \
+                         checks for (engine/build.rs, capability_needs)"
+                    ))
+                }
+            }
+        }
+        at += count;
+    }
+    Ok(needs)
 }
 
 fn bytemuck_words(words: &[u32]) -> Vec<u8> {

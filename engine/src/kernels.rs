@@ -29,7 +29,12 @@ pub struct Needs {
     pub f16: bool,
     pub float_atomics: bool,
     pub coop_matrix: bool,
+    /// The Vulkan memory model (`vulkanMemoryModel`; naga's cooperative-matrix modules use it).
+    pub memory_model: bool,
+    /// Any subgroup operation, and which (`VkSubgroupFeatureFlags` bits: basic 1, vote 2,
+    /// arithmetic 4, shuffle 16), from the capabilities the module declares.
     pub subgroups: bool,
+    pub subgroup_ops: u32,
     /// The exact subgroup size the kernel is written for (`// @subgroup_size N` in its file),
     /// requested when its pipeline is made; `None` for kernels that work at any width.
     pub subgroup_size: Option<u32>,
@@ -67,8 +72,16 @@ impl KernelInfo {
                 "f16 cooperative matrices (VK_KHR_cooperative_matrix)".into(),
             ));
         }
-        if n.subgroups && !c.subgroup_arithmetic {
+        if n.memory_model && !c.vulkan_memory_model {
+            return Some((Feature::MemoryModel, "the Vulkan memory model (vulkanMemoryModel)".into()));
+        }
+        const VOTE_OR_ARITHMETIC: u32 = 2 | 4;
+        const SHUFFLE: u32 = 16;
+        if (n.subgroups || n.subgroup_ops & VOTE_OR_ARITHMETIC != 0) && !c.subgroup_arithmetic {
             return Some((Feature::Subgroups, "subgroup arithmetic and votes in compute shaders".into()));
+        }
+        if n.subgroup_ops & SHUFFLE != 0 && !c.subgroup_shuffle {
+            return Some((Feature::Subgroups, "subgroup shuffles in compute shaders".into()));
         }
         if let Some(size) = n.subgroup_size {
             if !c.subgroup_size_fits(size) {

@@ -104,3 +104,53 @@ fn workgroup_memory_fits_32_kib_outside_the_48_kib_variants() {
         );
     }
 }
+
+/// The capabilities a SPIR-V module declares (its `OpCapability` operands).
+fn capabilities(spirv: &[u8]) -> Vec<u32> {
+    let words: Vec<u32> =
+        spirv.chunks_exact(4).map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+    let mut out = Vec::new();
+    let mut at = 5;
+    while at < words.len() {
+        let count = ((words[at] >> 16) as usize).max(1);
+        if words[at] & 0xffff == 17 && count == 2 {
+            out.push(words[at + 1]);
+        }
+        at += count;
+    }
+    out
+}
+
+/// Would catch: a module that declares a capability the device is never created with (naga
+/// declares f16 inputs and outputs and f16 uniform buffers for every `enable f16` module; NVIDIA
+/// offers no `storageInputOutput16`, and such a module is invalid, VUID-VkShaderModuleCreateInfo-
+/// pCode-08740), and kernels whose needs, read from the capabilities, do not say what they use.
+#[test]
+fn modules_declare_only_capabilities_the_engine_enables() {
+    use velox_engine::kernels::{KERNELS, MODULES};
+    // Shader, Float16, GroupNonUniform{,Vote,Arithmetic,Shuffle}, StorageBuffer16BitAccess,
+    // VulkanMemoryModel, CooperativeMatrixKHR, AtomicFloat32AddEXT.
+    let enabled = [1, 9, 61, 62, 63, 65, 4433, 5345, 6022, 6033];
+    for (index, m) in MODULES.iter().enumerate() {
+        let caps = capabilities(m.spirv);
+        assert!(caps.contains(&1), "{}: no Shader capability (not a module?)", m.name);
+        for c in &caps {
+            assert!(
+                enabled.contains(c),
+                "{}.spv declares capability {c}, which the engine does not enable",
+                m.name
+            );
+        }
+        for k in KERNELS.iter().filter(|k| k.module == index) {
+            let n = k.needs;
+            let name = format!("{}::{}", k.file, k.entry);
+            assert_eq!(n.f16, caps.contains(&9) || caps.contains(&4433), "{name}: f16 need");
+            assert_eq!(n.coop_matrix, caps.contains(&6022), "{name}: cooperative-matrix need");
+            assert_eq!(n.float_atomics, caps.contains(&6033), "{name}: float-atomics need");
+            assert_eq!(n.memory_model, caps.contains(&5345), "{name}: memory-model need");
+            assert_eq!(n.subgroups, caps.contains(&61), "{name}: subgroup need");
+        }
+    }
+    // The f16 modules are among them, so the check saw what it is for.
+    assert!(MODULES.iter().any(|m| capabilities(m.spirv).contains(&9)));
+}
