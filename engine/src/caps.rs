@@ -58,6 +58,14 @@ pub struct Caps {
     /// Buffers are bound with VK_KHR_push_descriptor; where it is missing (or switched off),
     /// through ordinary descriptor sets, one per dispatch.
     pub push_descriptors: bool,
+    /// The device is a portability implementation (it lists VK_KHR_portability_subset, as
+    /// MoltenVK does): the engine enables the extension, as the specification requires.
+    pub portability_subset: bool,
+    /// The device offers `robustBufferAccess`, and whether the engine enabled it
+    /// (`VELOX_ROBUST=1`): out-of-bounds reads return zero or in-bounds values and writes are
+    /// dropped, instead of a device loss, at some cost in speed.
+    pub robust_buffer_access_available: bool,
+    pub robust_buffer_access: bool,
     /// The fallbacks forced by `VELOX_DISABLE` and `VELOX_MAX_BINDING` (see [`Switches`]), as
     /// `velox info` shows them; empty on a normal run.
     pub forced: Vec<String>,
@@ -84,16 +92,28 @@ pub const DISABLE_NAMES: &[(&str, &str)] = &[
 pub struct Switches {
     pub disabled: Vec<&'static str>,
     pub max_binding: Option<u64>,
+    /// `VELOX_ROBUST=1`: enable robust buffer access where the device offers it.
+    pub robust: bool,
 }
 
 impl Switches {
     /// The switches the environment sets; a name or size it cannot read is an error that lists
     /// what it accepts.
     pub fn from_env() -> Result<Switches> {
-        Switches::parse(
+        let mut switches = Switches::parse(
             std::env::var("VELOX_DISABLE").ok().as_deref(),
             std::env::var("VELOX_MAX_BINDING").ok().as_deref(),
-        )
+        )?;
+        switches.robust = match std::env::var("VELOX_ROBUST").ok().as_deref().map(str::trim) {
+            None | Some("" | "0") => false,
+            Some("1") => true,
+            Some(other) => {
+                return Err(Error::Invalid(format!(
+                    "VELOX_ROBUST={other}: give 1 (robust buffer access) or 0"
+                )))
+            }
+        };
+        Ok(switches)
     }
 
     pub fn parse(disable: Option<&str>, max_binding: Option<&str>) -> Result<Switches> {
@@ -137,7 +157,7 @@ impl Switches {
                 }
             }
         };
-        Ok(Switches { disabled, max_binding })
+        Ok(Switches { disabled, max_binding, robust: false })
     }
 
     pub fn disables(&self, name: &str) -> bool {
@@ -174,6 +194,14 @@ impl Switches {
             }
             forced.push(format!("storage bindings of at most {b} bytes"));
         }
+        caps.robust_buffer_access = self.robust && caps.robust_buffer_access_available;
+        if self.robust {
+            forced.push(if caps.robust_buffer_access {
+                "robust buffer access".to_string()
+            } else {
+                "robust buffer access asked for, which the device does not offer".to_string()
+            });
+        }
         caps.forced = forced;
     }
 }
@@ -186,6 +214,9 @@ fn cstr(bytes: &[c_char_t]) -> String {
 
 #[allow(non_camel_case_types)]
 type c_char_t = std::ffi::c_char;
+
+/// `VK_KHR_portability_subset` (a provisional extension, so not among ash's names).
+pub(crate) const PORTABILITY_SUBSET: &CStr = c"VK_KHR_portability_subset";
 
 fn has_ext(exts: &[vk::ExtensionProperties], name: &CStr) -> bool {
     exts.iter().any(|e| e.extension_name_as_c_str() == Ok(name))
@@ -219,6 +250,7 @@ impl Caps {
             let has_atomic_ext = has_ext(&exts, ash::ext::shader_atomic_float::NAME);
             let has_coop_ext = has_ext(&exts, ash::khr::cooperative_matrix::NAME);
             let push_descriptors = has_ext(&exts, ash::khr::push_descriptor::NAME);
+            let portability_subset = has_ext(&exts, PORTABILITY_SUBSET);
 
             let mut p11 = vk::PhysicalDeviceVulkan11Properties::default();
             let mut p12 = vk::PhysicalDeviceVulkan12Properties::default();
@@ -285,7 +317,10 @@ impl Caps {
             // naga's cooperative-matrix SPIR-V needs f16 storage and arithmetic too.
             let f16_arithmetic = f12.shader_float16 == vk::TRUE;
             let f16_storage = f11.storage_buffer16_bit_access == vk::TRUE;
-            if !(f16_arithmetic && f16_storage) {
+            // ... and the Vulkan memory model, which its modules declare.
+            let vulkan_memory_model =
+                f12.vulkan_memory_model == vk::TRUE && f12.vulkan_memory_model_device_scope == vk::TRUE;
+            if !(f16_arithmetic && f16_storage && vulkan_memory_model) {
                 coop_matrix_f16 = None;
             }
 
@@ -349,8 +384,7 @@ impl Caps {
                 f16_arithmetic,
                 f16_storage,
                 int64: base.shader_int64 == vk::TRUE,
-                vulkan_memory_model: f12.vulkan_memory_model == vk::TRUE
-                    && f12.vulkan_memory_model_device_scope == vk::TRUE,
+                vulkan_memory_model,
                 float_atomic_add: has_atomic_ext && fa.shader_buffer_float32_atomic_add == vk::TRUE,
                 coop_matrix_shapes,
                 coop_matrix_f16,
@@ -359,6 +393,9 @@ impl Caps {
                 unified_memory,
                 device_memory,
                 push_descriptors,
+                portability_subset,
+                robust_buffer_access_available: base.robust_buffer_access == vk::TRUE,
+                robust_buffer_access: false,
                 forced: Vec::new(),
             })
         }

@@ -51,6 +51,11 @@ pub(crate) struct GpuInner {
     pub memory_peak: AtomicU64,
     /// Bytes uploaded and downloaded through staging buffers since the device was opened.
     pub staged_bytes: AtomicU64,
+    /// How long a submit waits for its recording ([`crate::recorder::wait_timeout`]).
+    pub wait_timeout: std::time::Duration,
+    /// A recording never finished (see the recorder's drop): the device is left as it is at
+    /// drop, since waiting for it to go idle would never return.
+    pub hung: std::sync::atomic::AtomicBool,
 }
 
 /// One line of the device list shown by `velox info`.
@@ -82,6 +87,14 @@ fn create_instance(entry: &ash::Entry, mode: validation::Mode) -> Result<ash::In
         .api_version(vk::API_VERSION_1_3);
     let mut layers: Vec<*const c_char> = Vec::new();
     let mut extensions: Vec<*const c_char> = Vec::new();
+    // Portability implementations (MoltenVK) are listed only to an instance that asks for them.
+    // SAFETY: plain enumeration call.
+    let offered = unsafe { entry.enumerate_instance_extension_properties(None) }.unwrap_or_default();
+    let portability =
+        offered.iter().any(|e| e.extension_name_as_c_str() == Ok(ash::khr::portability_enumeration::NAME));
+    if portability {
+        extensions.push(ash::khr::portability_enumeration::NAME.as_ptr());
+    }
     if mode != validation::Mode::Off {
         // SAFETY: plain enumeration call.
         let available = unsafe { entry.enumerate_instance_layer_properties() }.unwrap_or_default();
@@ -99,7 +112,13 @@ fn create_instance(entry: &ash::Entry, mode: validation::Mode) -> Result<ash::In
     let mut checks = vk::ValidationFeaturesEXT::default().enabled_validation_features(features);
     // Messages from vkCreateInstance itself reach the callback through this one.
     let mut messenger = validation::messenger_info();
+    let flags = if portability {
+        vk::InstanceCreateFlags::ENUMERATE_PORTABILITY_KHR
+    } else {
+        vk::InstanceCreateFlags::empty()
+    };
     let mut info = vk::InstanceCreateInfo::default()
+        .flags(flags)
         .application_info(&app)
         .enabled_layer_names(&layers)
         .enabled_extension_names(&extensions);
@@ -276,11 +295,12 @@ impl Gpu {
     fn create(local_rank: Option<usize>) -> Result<Gpu> {
         let mode = validation::Mode::from_env()?;
         let switches = Switches::from_env()?;
+        let wait_timeout = crate::recorder::wait_timeout()?;
         let entry = load_entry()?;
         let instance = create_instance(&entry, mode)?;
         // `entry` stays alive here: dropping it unloads the loader, whose functions the
         // error path below still calls.
-        match Self::open(entry.clone(), instance.clone(), local_rank, mode, &switches) {
+        match Self::open(entry.clone(), instance.clone(), local_rank, mode, &switches, wait_timeout) {
             Ok(gpu) => Ok(gpu),
             Err(e) => {
                 // SAFETY: `open` failed before handing the instance to a GpuInner.
@@ -296,6 +316,7 @@ impl Gpu {
         local_rank: Option<usize>,
         mode: validation::Mode,
         switches: &Switches,
+        wait_timeout: std::time::Duration,
     ) -> Result<Gpu> {
         let messenger = if mode == validation::Mode::Off {
             None
@@ -353,6 +374,8 @@ impl Gpu {
                 memory_live: AtomicU64::new(0),
                 memory_peak: AtomicU64::new(0),
                 staged_bytes: AtomicU64::new(0),
+                wait_timeout,
+                hung: std::sync::atomic::AtomicBool::new(false),
             }),
         })
     }
@@ -393,11 +416,17 @@ impl Gpu {
             .shader_buffer_float32_atomic_add(caps.float_atomic_add);
         let mut coop = vk::PhysicalDeviceCooperativeMatrixFeaturesKHR::default()
             .cooperative_matrix(caps.coop_matrix_f16.is_some());
-        let base = vk::PhysicalDeviceFeatures::default().shader_int64(caps.int64);
+        let base = vk::PhysicalDeviceFeatures::default()
+            .shader_int64(caps.int64)
+            .robust_buffer_access(caps.robust_buffer_access);
 
         let mut extensions: Vec<*const c_char> = REQUIRED_EXTENSIONS.iter().map(|e| e.as_ptr()).collect();
         if caps.push_descriptors {
             extensions.push(ash::khr::push_descriptor::NAME.as_ptr());
+        }
+        if caps.portability_subset {
+            // Required wherever a device lists it (VUID-VkDeviceCreateInfo-pProperties-04451).
+            extensions.push(crate::caps::PORTABILITY_SUBSET.as_ptr());
         }
         let mut features = vk::PhysicalDeviceFeatures2::default()
             .features(base)
@@ -468,6 +497,9 @@ impl Drop for GpuInner {
     fn drop(&mut self) {
         // SAFETY: the last handle is going away; no tensor or recorder can still use the
         // device because each holds a `Gpu` clone.
+        if self.hung.load(Ordering::Acquire) {
+            return;
+        }
         unsafe {
             let _ = self.device.device_wait_idle();
             self.pipelines.destroy(&self.device);

@@ -40,6 +40,12 @@ pub enum Error {
     /// The Khronos validation layer (`VELOX_VALIDATE`) reported errors; the message gives the
     /// first new one with its VUID.
     Validation(String),
+    /// A submitted recording did not finish within the wait limit (`VELOX_WAIT_TIMEOUT`):
+    /// which recording, and how long the host waited.
+    Timeout { recording: String, waited: std::time::Duration },
+    /// The driver reported the device lost (`VK_ERROR_DEVICE_LOST`: a kernel that faulted or
+    /// ran past the driver's watchdog); nothing more can run on this device in this process.
+    DeviceLost(String),
 }
 
 pub type Result<T> = std::result::Result<T, Error>;
@@ -69,8 +75,10 @@ pub enum Feature {
     FloatAtomics,
     /// f16 cooperative matrices (`VK_KHR_cooperative_matrix`).
     CooperativeMatrix,
-    /// Subgroup arithmetic and vote operations in compute shaders.
+    /// Subgroup arithmetic, vote and shuffle operations in compute shaders.
     Subgroups,
+    /// The Vulkan memory model (`vulkanMemoryModel`).
+    MemoryModel,
     /// Subgroups of one required size.
     SubgroupSize,
     /// Enough workgroup memory (`maxComputeSharedMemorySize`).
@@ -144,6 +152,16 @@ impl fmt::Display for Error {
             Error::File { path, op: FileOp::Content, reason } => write!(f, "{}: {reason}", path.display()),
             Error::Mpi(what) => write!(f, "MPI: {what}"),
             Error::Validation(what) => write!(f, "Vulkan validation: {what}"),
+            Error::Timeout { recording, waited } => write!(
+                f,
+                "the device did not finish {recording} within {:.1} s (VELOX_WAIT_TIMEOUT sets the limit, in seconds)",
+                waited.as_secs_f64()
+            ),
+            Error::DeviceLost(what) => write!(
+                f,
+                "the device was lost ({what}): a kernel faulted or ran past the driver's time limit; \
+                 VELOX_VALIDATE=gpu or VELOX_ROBUST=1 may say which"
+            ),
         }
     }
 }
@@ -171,6 +189,7 @@ impl<T> VkCheck<T> for std::result::Result<T, vk::Result> {
             vk::Result::ERROR_OUT_OF_DEVICE_MEMORY | vk::Result::ERROR_OUT_OF_HOST_MEMORY => {
                 Error::OutOfMemory(format!("{call} returned {result}"))
             }
+            vk::Result::ERROR_DEVICE_LOST => Error::DeviceLost(format!("{call} returned {result}")),
             _ => Error::Vulkan { call, result },
         })
     }

@@ -93,6 +93,30 @@ pub struct Recorder {
     profiled: Vec<(u32, KernelId)>,
     /// Set once the recording has run to completion (see [`Completion`]).
     done: Completion,
+    /// What the recording is, for a message about it ([`Recorder::set_label`]), and the first
+    /// and last kernels it dispatched.
+    label: Option<String>,
+    kernels: Option<(KernelId, KernelId)>,
+    /// How long [`Recorder::submit`] waits for the device (see [`wait_timeout`]).
+    wait: std::time::Duration,
+}
+
+/// How long a submit waits for its recording before it gives up with [`Error::Timeout`]:
+/// `VELOX_WAIT_TIMEOUT` seconds (a positive number), 600 by default. A hung kernel then ends
+/// the command with an error naming its recording instead of holding it forever.
+pub fn wait_timeout() -> Result<std::time::Duration> {
+    match std::env::var("VELOX_WAIT_TIMEOUT") {
+        Err(_) => Ok(std::time::Duration::from_secs(600)),
+        Ok(v) => v
+            .trim()
+            .parse::<f64>()
+            .ok()
+            .filter(|s| s.is_finite() && *s > 0.0 && *s < 1e9)
+            .map(std::time::Duration::from_secs_f64)
+            .ok_or_else(|| {
+                Error::Invalid(format!("VELOX_WAIT_TIMEOUT={v}: give a positive number of seconds"))
+            }),
+    }
 }
 
 /// Whether a recording has run: what a result cached across recordings (an attention work
@@ -181,6 +205,9 @@ impl Gpu {
             capacity: 0,
             profiled: Vec::new(),
             done: Completion::default(),
+            label: None,
+            kernels: None,
+            wait: self.inner.wait_timeout,
         };
         let begin = vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
         // SAFETY: a freshly allocated command buffer (the recorder's drop frees it on error).
@@ -227,6 +254,31 @@ impl Recorder {
 
     pub fn set_narrow_matmul(&mut self, choice: NarrowMatmul) {
         self.narrow_matmul = choice;
+    }
+
+    /// Names the recording in the messages about it (a timeout, a lost device): "training step
+    /// 12", say. Without a label it is described by its dispatch count and kernels.
+    pub fn set_label(&mut self, label: impl Into<String>) {
+        self.label = Some(label.into());
+    }
+
+    /// How long this recording's [`Recorder::submit`] waits for the device before it returns
+    /// [`Error::Timeout`] (the device's `VELOX_WAIT_TIMEOUT` unless set).
+    pub fn set_wait_timeout(&mut self, wait: std::time::Duration) {
+        self.wait = wait;
+    }
+
+    /// The recording in words: its label, its dispatch count and its first and last kernels.
+    pub fn describe(&self) -> String {
+        let what = match self.kernels {
+            None => format!("{} dispatches", self.dispatches),
+            Some((a, b)) if a == b => format!("{} dispatches of {}", self.dispatches, a.name()),
+            Some((a, b)) => format!("{} dispatches, {} to {}", self.dispatches, a.name(), b.name()),
+        };
+        match &self.label {
+            Some(l) => format!("the recording \"{l}\" ({what})"),
+            None => format!("a recording of {what}"),
+        }
     }
 
     /// Turns the barriers [`Recorder::dispatch`] inserts on or off. Off, dispatches that depend
@@ -386,6 +438,10 @@ impl Recorder {
             device.cmd_dispatch(self.cmd, groups[0], groups[1], groups[2]);
         }
         self.keep.extend(args.iter().map(|t| t.buf.clone()));
+        self.kernels = Some(match self.kernels {
+            None => (kernel.id(), kernel.id()),
+            Some((first, _)) => (first, kernel.id()),
+        });
         self.dispatches += 1;
         profile::count_dispatch();
         Ok(())
@@ -581,7 +637,18 @@ impl Recorder {
                 device.queue_submit(*queue, &submit, self.fence).vk("vkQueueSubmit")?;
             }
             self.submitted = true;
-            device.wait_for_fences(&[self.fence], true, u64::MAX).vk("vkWaitForFences")?;
+            let start = std::time::Instant::now();
+            let nanos = u64::try_from(self.wait.as_nanos()).unwrap_or(u64::MAX);
+            match device.wait_for_fences(&[self.fence], true, nanos) {
+                Ok(()) => {}
+                Err(vk::Result::TIMEOUT) => {
+                    return Err(Error::Timeout { recording: self.describe(), waited: start.elapsed() })
+                }
+                Err(vk::Result::ERROR_DEVICE_LOST) => {
+                    return Err(Error::DeviceLost(format!("while waiting for {}", self.describe())))
+                }
+                Err(e) => return Err(e).vk("vkWaitForFences"),
+            }
         }
         self.done.0.store(true, Ordering::Release);
         self.gpu.check_validation()?;
@@ -615,9 +682,18 @@ impl Drop for Recorder {
         // SAFETY: after `submit` the work has completed (or failed to start); without submit
         // the command buffer never ran.
         unsafe {
-            if self.submitted {
-                // If waiting failed in `submit`, the GPU may still hold the buffer.
-                let _ = device.wait_for_fences(&[self.fence], true, u64::MAX);
+            if self.submitted && device.get_fence_status(self.fence) != Ok(true) {
+                // Waiting failed or timed out in `submit`: the device may still run the
+                // commands. Wait once more, as long again; if it still has not finished (a hung
+                // kernel, a lost device), the pool, fence and buffers are left alive rather than
+                // freed under the device's feet: a leak, where the process is about to report
+                // the failure.
+                let nanos = u64::try_from(self.wait.as_nanos()).unwrap_or(u64::MAX);
+                if device.wait_for_fences(&[self.fence], true, nanos).is_err() {
+                    std::mem::forget(std::mem::take(&mut self.keep));
+                    self.gpu.inner.hung.store(true, Ordering::Release);
+                    return;
+                }
             }
             device.destroy_command_pool(self.pool, None);
             for &p in &self.descriptor_pools {

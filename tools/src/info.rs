@@ -71,8 +71,19 @@ pub fn run(json_path: Option<&Path>, probe: bool) -> CliResult<()> {
         if c.push_descriptors { "push descriptors" } else { "descriptor sets, one per dispatch" }
     );
     println!("  validation        {} (VELOX_VALIDATE)", gpu.validation().name());
+    println!(
+        "  robust access     {} (VELOX_ROBUST=1 enables it{})",
+        if c.robust_buffer_access { "on" } else { "off" },
+        if c.robust_buffer_access_available { "" } else { "; this device does not offer it" }
+    );
+    if c.portability_subset {
+        println!("  portability       a portability implementation (VK_KHR_portability_subset, as MoltenVK)");
+    }
     if !c.forced.is_empty() {
-        println!("  forced fallbacks  {} (VELOX_DISABLE, VELOX_MAX_BINDING)", c.forced.join(", "));
+        println!(
+            "  forced fallbacks  {} (VELOX_DISABLE, VELOX_MAX_BINDING, VELOX_ROBUST)",
+            c.forced.join(", ")
+        );
     }
     if c.coop_matrix_shapes.is_empty() {
         println!("  coop matrices     none");
@@ -129,6 +140,8 @@ pub fn report(gpu: &Gpu) -> serde_json::Value {
         "subgroup_shuffle": c.subgroup_shuffle, "coop_matrix_shapes": c.coop_matrix_shapes,
         "timestamps": c.timestamps, "push_descriptors": c.push_descriptors,
         "validation": gpu.validation().name(), "forced_fallbacks": c.forced,
+        "portability_subset": c.portability_subset, "robust_buffer_access": c.robust_buffer_access,
+        "vulkan_memory_model": c.vulkan_memory_model,
         "variants": {
             "matmul f32": matmul::matmul_variant(gpu, DType::F32),
             "matmul f16": matmul::matmul_variant(gpu, DType::F16),

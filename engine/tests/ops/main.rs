@@ -16,5 +16,6 @@ mod fill_copy;
 mod kernels;
 mod matmul;
 mod raster;
+mod recorder;
 mod scan_sort;
 mod subgroups;
