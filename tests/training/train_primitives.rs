@@ -623,3 +623,64 @@ fn adamw_minimises_a_quadratic_on_the_gpu() {
     eprintln!("quadratic: loss {first:.3e} -> {last:.3e} ({:.1e}x)", first / last);
     assert!(last * 1e4 < first, "loss fell from {first:.3e} only to {last:.3e}");
 }
+
+/// Would catch: a weights file that does not read back as the parameters it was written from
+/// (a part left out, a tensor in the wrong part, f16 rounding gone wrong), one that a run could
+/// resume from (it has no moments), and a split file whose missing part is not named.
+#[test]
+fn weights_files_hold_the_parameters_alone_in_parts_and_refuse_a_resume() {
+    use checkpoint::WeightsDtype;
+    let gpu = gpu();
+    let dir = temp_dir("weights");
+    let ckpt = dir.join("ckpt.safetensors");
+    let trained = trained_store(&gpu, 21);
+    checkpoint::save(&ckpt, &trained, r#"{"model": "test", "run": {"seed": 1}}"#).unwrap();
+    let params = flat_state(&trained)[0].clone();
+
+    // f32 in parts of at most 5 KiB: several parts, which read back as the whole, from any part
+    // or from the unsplit name.
+    let whole = dir.join("w32.safetensors");
+    let parts = checkpoint::save_weights(&ckpt, &whole, WeightsDtype::F32, Some(5 << 10)).unwrap();
+    assert!(parts.len() > 1, "{parts:?}");
+    assert!(parts.iter().all(|p| std::fs::metadata(p).unwrap().len() <= 5 << 10));
+    assert!(!whole.exists());
+    for name in [whole.clone(), parts[parts.len() - 1].clone()] {
+        let mut fresh = small_store(&gpu, 22, &[13, 7], false);
+        let info = checkpoint::load_model(&name, &mut fresh).unwrap();
+        assert!(info.weights_only && info.step == 3);
+        assert_eq!(flat_state(&fresh)[0], params, "{}", name.display());
+        assert_eq!(fresh.step(), 3);
+        // The run's settings stay behind: a weights file starts no resumed run.
+        assert!(!info.config.contains("\"run\""), "{}", info.config);
+    }
+    // A full load (what a resumed run does) is refused, naming why.
+    let mut fresh = small_store(&gpu, 22, &[13, 7], false);
+    let e = file_error(checkpoint::load(&whole, &mut fresh), &whole, FileOp::Content);
+    assert!(e.contains("weights only"), "{e}");
+    // A missing part is named.
+    std::fs::remove_file(&parts[1]).unwrap();
+    file_error(checkpoint::load_model(&whole, &mut fresh), &parts[1], FileOp::Read);
+
+    // f16, unsplit: each value is the f16 rounding of the f32 one.
+    let w16 = dir.join("w16.safetensors");
+    assert_eq!(checkpoint::save_weights(&ckpt, &w16, WeightsDtype::F16, None).unwrap(), [w16.clone()]);
+    let mut fresh = small_store(&gpu, 22, &[13, 7], false);
+    checkpoint::load_model(&w16, &mut fresh).unwrap();
+    let want: Vec<u32> = trained
+        .flat_params()
+        .read::<f32>()
+        .unwrap()
+        .iter()
+        .map(|&v| half::f16::from_f32(v).to_f32().to_bits())
+        .collect();
+    assert_eq!(flat_state(&fresh)[0], want);
+    // A parameter past f16's range is refused by name, not written as an infinity.
+    let mut big = trained.flat_params().read::<f32>().unwrap();
+    let w2 = trained.infos().iter().find(|p| p.name == "enc.w2").unwrap().offset;
+    big[w2] = 1e6;
+    trained.flat_params().write(&big).unwrap();
+    checkpoint::save(&ckpt, &trained, "{}").unwrap();
+    let e = checkpoint::save_weights(&ckpt, &w16, WeightsDtype::F16, None).unwrap_err().to_string();
+    assert!(e.contains("enc.w2") && e.contains("f16"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -97,11 +97,54 @@ enum Command {
         #[command(subcommand)]
         what: eval::EvalCommand,
     },
+    /// Write a checkpoint's parameters alone as a weights file (f16 by default: a quarter of the
+    /// checkpoint's size), split into parts of at most --max-part-mib where larger; decode,
+    /// encode, eval, track, generate and --init load it as they load a checkpoint.
+    Weights {
+        /// The checkpoint (or weights file) to read.
+        checkpoint: std::path::PathBuf,
+        /// The weights file to write (a name ending in .safetensors; parts are named
+        /// NAME-00001-of-0000N.safetensors beside it).
+        #[arg(long)]
+        out: std::path::PathBuf,
+        /// The number type of the tensors written.
+        #[arg(long, value_enum, default_value = "f16")]
+        dtype: WeightsDtypeArg,
+        /// Split into parts of at most this many MiB.
+        #[arg(long, value_parser = clap::value_parser!(u64).range(1..=1 << 20))]
+        max_part_mib: Option<u64>,
+    },
     /// Benchmarks: GPU time against error.
     Bench {
         #[command(subcommand)]
         what: bench::BenchCommand,
     },
+}
+
+/// The number types `velox weights` writes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum WeightsDtypeArg {
+    F16,
+    F32,
+}
+
+fn write_weights(
+    checkpoint: &std::path::Path,
+    out: &std::path::Path,
+    dtype: WeightsDtypeArg,
+    max_part_mib: Option<u64>,
+) -> CliResult<()> {
+    use velox_models::checkpoint::{save_weights, WeightsDtype};
+    let dtype = match dtype {
+        WeightsDtypeArg::F16 => WeightsDtype::F16,
+        WeightsDtypeArg::F32 => WeightsDtype::F32,
+    };
+    let written = save_weights(checkpoint, out, dtype, max_part_mib.map(|m| m << 20))?;
+    for path in &written {
+        let bytes = std::fs::metadata(path).map(|m| m.len()).unwrap_or(0);
+        println!("wrote {} ({:.2} MiB)", path.display(), bytes as f64 / (1 << 20) as f64);
+    }
+    Ok(())
 }
 
 /// The models `velox config` knows.
@@ -277,6 +320,9 @@ fn dispatch(command: Command) -> CliResult<()> {
         Command::Generate(args) => generate::run(&args),
         Command::Decode { what } => decode::run(what),
         Command::Eval { what } => eval::run(what),
+        Command::Weights { checkpoint, out, dtype, max_part_mib } => {
+            write_weights(&checkpoint, &out, dtype, max_part_mib)
+        }
     }
 }
 

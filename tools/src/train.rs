@@ -570,6 +570,14 @@ fn starting_model<M: RunModel>(
 ) -> CliResult<M> {
     Ok(match begin {
         Begin::Resume => {
+            if velox_models::checkpoint::peek(&folder.checkpoint)?.weights_only {
+                return Err(velox_engine::Error::file(
+                    &folder.checkpoint,
+                    velox_engine::FileOp::Content,
+                    "holds weights only (no optimiser moments): --resume needs the run's checkpoint",
+                )
+                .into());
+            }
             let m = M::load(gpu, &folder.checkpoint)?;
             note_resumed_config(m.config_name(), asked);
             m

@@ -184,10 +184,11 @@ macro_rules! token_model_files {
                 $crate::checkpoint::model_config(path, MODEL_KIND, $what)
             }
 
-            /// The model a checkpoint holds, with its moments and step.
+            /// The model a checkpoint holds, with its moments and step (or a weights file: its
+            /// parameters and step).
             pub fn load(gpu: &velox_engine::Gpu, path: &std::path::Path) -> velox_engine::Result<Self> {
                 let mut m = <$model>::new(gpu, &<$model>::checkpoint_config(path)?, 0)?;
-                $crate::checkpoint::load(path, &mut m.store)?;
+                $crate::checkpoint::load_model(path, &mut m.store)?;
                 Ok(m)
             }
 

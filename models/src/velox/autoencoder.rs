@@ -511,11 +511,12 @@ impl Autoencoder {
         })
     }
 
-    /// The autoencoder a checkpoint holds, with its config, moments and step.
+    /// The autoencoder a checkpoint holds, with its config, moments and step (or a weights
+    /// file: its parameters and step; see [`crate::checkpoint::load_model`]).
     pub fn load(gpu: &Gpu, path: &std::path::Path) -> Result<Autoencoder> {
         let cfg = Autoencoder::checkpoint_config(path)?;
         let mut ae = Autoencoder::new(gpu, &cfg, 0)?;
-        crate::checkpoint::load(path, &mut ae.store)?;
+        crate::checkpoint::load_model(path, &mut ae.store)?;
         Ok(ae)
     }
 
