@@ -5,11 +5,14 @@
 # bookworm-backports) has no cooperative matrices and runs the portable kernels instead.
 #
 # Needs root, debootstrap and network the first time: it builds a minimal Debian sid tree at
-# $CHROOT (default /opt/velox-sid) with mesa-vulkan-drivers, then bind-mounts the repository
-# into it and runs the test binaries built here (`cargo test --release --no-run`) inside it.
+# $CHROOT (default /opt/velox-sid) with mesa-vulkan-drivers, spirv-tools and the validation
+# layers, then bind-mounts the repository into it and, inside it, checks every SPIR-V module with
+# sid's spirv-val (tools/spirv-check.sh: the only one here that knows cooperative matrices) and
+# runs the test binaries built here (`cargo test --release --no-run`). VELOX_VALIDATE=1 runs them
+# under sid's validation layer, which knows VK_KHR_cooperative_matrix (Debian 12's does not).
 #
 #   sudo tools/coop-check.sh            # every test binary
-#   sudo tools/coop-check.sh attention  # only binaries whose name starts with "attention"
+#   sudo tools/coop-check.sh ops        # only binaries whose name starts with "ops"
 set -euo pipefail
 
 repo=$(cd "$(dirname "$0")/.." && pwd)
@@ -24,6 +27,10 @@ if [ ! -e "$chroot_dir/usr/share/vulkan/icd.d/lvp_icd.json" ]; then
     chroot "$chroot_dir" env DEBIAN_FRONTEND=noninteractive \
         apt-get -o Acquire::Check-Valid-Until=false install -y mesa-vulkan-drivers libvulkan1
 fi
+for p in spirv-tools vulkan-validationlayers; do
+    chroot "$chroot_dir" dpkg -s "$p" >/dev/null 2>&1 || chroot "$chroot_dir" env DEBIAN_FRONTEND=noninteractive \
+        apt-get -o Acquire::Check-Valid-Until=false install -y "$p"
+done
 
 # The same path inside as outside, so the binaries find the repository's files.
 mkdir -p "$chroot_dir$repo" "$chroot_dir/proc" "$chroot_dir/dev"
@@ -36,6 +43,8 @@ mapfile -t bins < <(cargo test --release --no-run 2>&1 | grep -o 'target/release
 echo "device inside the chroot:"
 chroot "$chroot_dir" sh -c "cd '$repo' && ./target/release/velox info | grep -E 'Chosen|coop matrices|  (attention|matmul) f16'"
 failed=0
+chroot "$chroot_dir" sh -c "cd '$repo' && tools/spirv-check.sh" || failed=1
+export VK_LAYER_SETTINGS_PATH=$repo/vk_layer_settings.txt
 for b in "${bins[@]}"; do
     name=$(basename "$b")
     [[ -n $filter && $name != "$filter"* ]] && continue
