@@ -6,6 +6,7 @@ mod kernels;
 mod layers;
 mod models;
 mod raster;
+mod report;
 mod train;
 
 use std::path::PathBuf;
@@ -40,6 +41,10 @@ pub enum BenchCommand {
     /// Training throughput: samples per second against the batch size for a config, with the
     /// step's time split into data, compute, all-reduce and optimiser.
     Train(TrainBenchArgs),
+    /// A Markdown page of a folder of results (tools/device-check.sh's, tools/bench-all.sh's):
+    /// the device, tests, every benchmark row beside PyTorch's time where
+    /// tools/peers/torch_bench.py measured it, training and evaluation.
+    Report(report::ReportArgs),
 }
 
 #[derive(clap::Args)]
@@ -82,6 +87,7 @@ type Suite = fn(&Gpu, bool, u32) -> Result<Vec<Record>>;
 pub fn run(cmd: BenchCommand) -> CliResult<()> {
     let (args, which): (BenchArgs, Suite) = match cmd {
         BenchCommand::Train(t) => return run_train(t),
+        BenchCommand::Report(a) => return report::run(&a),
         BenchCommand::Kernels(a) => (a, kernels::run),
         BenchCommand::Attention(a) => (a, attention::run),
         BenchCommand::Layers(a) => (a, layers::run),
@@ -90,6 +96,7 @@ pub fn run(cmd: BenchCommand) -> CliResult<()> {
         BenchCommand::Cloth(a) => (a, cloth::run),
     };
     let gpu = Gpu::new()?;
+    keep_in(args.json.as_deref());
     let records = which(&gpu, args.quick, args.repeats)?;
     if let Some(path) = args.json {
         write_json(&path, &records)?;
@@ -97,8 +104,30 @@ pub fn run(cmd: BenchCommand) -> CliResult<()> {
     Ok(())
 }
 
+/// Where the records of this run go as they come (`--json`), and those so far: each record is
+/// written out as soon as it is measured, so a suite stopped part way (a time limit, a device
+/// lost) leaves the records it finished.
+static KEPT: std::sync::Mutex<Option<(PathBuf, Vec<Record>)>> = std::sync::Mutex::new(None);
+
+fn keep_in(path: Option<&std::path::Path>) {
+    *KEPT.lock().unwrap_or_else(|e| e.into_inner()) = path.map(|p| (p.to_path_buf(), Vec::new()));
+}
+
+/// Adds `r` to the records kept so far and rewrites the `--json` file with them (atomically;
+/// nothing when no file was asked for). A write that fails here is reported by the final write.
+pub fn keep(r: &Record) {
+    let mut kept = KEPT.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some((path, records)) = kept.as_mut() {
+        records.push(r.clone());
+        if let Ok(text) = serde_json::to_string_pretty(records) {
+            let _ = velox_io::write_bytes(path, text.as_bytes());
+        }
+    }
+}
+
 fn run_train(t: TrainBenchArgs) -> CliResult<()> {
     let gpu = Gpu::new()?;
+    keep_in(t.bench.json.as_deref());
     let batches: Option<Vec<usize>> = t.batches.map(|b| b.into_iter().map(usize::from).collect());
     let precisions: Vec<velox_engine::Precision> = t.precision.into_iter().map(Into::into).collect();
     let records = match t.model {
@@ -242,7 +271,9 @@ pub fn print_header() {
     );
 }
 
+/// Prints `r` as a row of the table and keeps it (see [`keep`]).
 pub fn print_row(r: &Record) {
+    keep(r);
     let peak = r.peak_fraction.map(|p| format!("{:.1}", 100.0 * p)).unwrap_or_else(|| "-".into());
     println!(
         "{:<26} {:<32} {:<9} {:>10.3} {:>10} {:<7} {:>7} {:>10.2e} {:>10.2e}",

@@ -158,13 +158,15 @@ pub fn run(
                 rate,
                 "samples/s",
             );
-            out.push(Record {
+            let record = Record {
                 time_split_ms: Some(split),
                 dispatches_per_step: Some(profiled.dispatches),
                 peak_memory_bytes: Some(peak),
                 family_ms: Some(profiled.family_ms),
                 ..record
-            });
+            };
+            super::keep(&record);
+            out.push(record);
         }
     }
     println!(
@@ -310,13 +312,15 @@ pub fn run_token_model(
             rate,
             "samples/s",
         );
-        out.push(Record {
+        let record = Record {
             time_split_ms: Some(split),
             dispatches_per_step: Some(dispatches),
             peak_memory_bytes: Some(peak),
             family_ms: Some(family_ms),
             ..record
-        });
+        };
+        super::keep(&record);
+        out.push(record);
     }
     let _ = std::fs::remove_dir_all(&dir);
     Ok(out)
