@@ -8,7 +8,7 @@
 
 use std::ffi::{c_char, CStr};
 use std::mem::ManuallyDrop;
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 use ash::vk;
@@ -35,11 +35,9 @@ pub(crate) struct GpuInner {
     pub allocator: ManuallyDrop<Mutex<Allocator>>,
     /// Loaded where the device has VK_KHR_push_descriptor and `caps.push_descriptors` is on.
     pub push_descriptor: ash::khr::push_descriptor::Device,
-    /// Validation asked for by `VELOX_VALIDATE`, its messenger, and the count of errors
-    /// [`Recorder::submit`](crate::Recorder::submit) has already reported.
+    /// Validation asked for by `VELOX_VALIDATE`, and its messenger.
     pub validation: validation::Mode,
     messenger: Option<validation::Messenger>,
-    pub reported_errors: AtomicUsize,
     pub caps: Caps,
     /// Reads and writes go through staging buffers even where memory is mapped
     /// (`VELOX_FORCE_STAGING=1`): the path discrete GPUs take, testable on any device.
@@ -367,7 +365,6 @@ impl Gpu {
                 push_descriptor,
                 validation: mode,
                 messenger,
-                reported_errors: AtomicUsize::new(validation::error_count()),
                 caps,
                 force_staging: std::env::var("VELOX_FORCE_STAGING").is_ok_and(|v| v == "1"),
                 pipelines: PipelineCache::new(),

@@ -651,7 +651,7 @@ impl Recorder {
             }
         }
         self.done.0.store(true, Ordering::Release);
-        self.gpu.check_validation()?;
+        self.gpu.check_validation_during(Some(self.cmd), &self.describe())?;
         let mut timestamps_ns = Vec::new();
         if let (Some(pool), n) = (self.queries, self.timestamps) {
             if n > 0 {
@@ -696,6 +696,9 @@ impl Drop for Recorder {
                 }
             }
             device.destroy_command_pool(self.pool, None);
+            if self.gpu.validation() != validation::Mode::Off {
+                validation::forget_command_buffer(vk::Handle::as_raw(self.cmd));
+            }
             for &p in &self.descriptor_pools {
                 device.destroy_descriptor_pool(p, None);
             }
@@ -719,18 +722,19 @@ pub fn linear_groups(total: u64, max: [u32; 3]) -> Option<[u32; 3]> {
 }
 
 impl Gpu {
-    /// Fails with [`Error::Validation`] when the validation layer reported errors that no
-    /// earlier call reported; does nothing when validation is off.
+    /// Fails with [`Error::Validation`] when the validation layer reported errors on this
+    /// thread's Vulkan calls that no check on this thread reported yet; does nothing when
+    /// validation is off.
     pub fn check_validation(&self) -> Result<()> {
+        self.check_validation_during(None, "this thread's Vulkan calls")
+    }
+
+    /// [`Gpu::check_validation`], and the errors that name the command buffer `cmd`.
+    fn check_validation_during(&self, cmd: Option<vk::CommandBuffer>, what: &str) -> Result<()> {
         if self.inner.validation == validation::Mode::Off {
             return Ok(());
         }
-        let now = validation::error_count();
-        let before = self.inner.reported_errors.swap(now, Ordering::AcqRel);
-        if now > before {
-            return Err(validation::failure(now, before));
-        }
-        Ok(())
+        validation::take_failure(cmd.map(vk::Handle::as_raw), what).map_or(Ok(()), Err)
     }
 
     /// The validation `VELOX_VALIDATE` asked for when the device was opened.

@@ -9,11 +9,15 @@
 //! checks do not track accesses made through push descriptors.
 //!
 //! A debug messenger counts every message of error severity, prints its VUID and text, and keeps
-//! the first few. [`Recorder::submit`](crate::Recorder::submit) fails with [`Error::Validation`]
-//! when errors arrived since the last one it reported, so any test that submits work fails on
-//! an error made by any earlier call; the `velox` command exits non-zero when the count is above
-//! zero at its end ([`error_count`]). Asking for validation where the layer is not installed is
-//! an error, not a silent run without it.
+//! the first few, for the process and for the thread whose Vulkan call the layer reported it in
+//! (the layer calls the messenger on that thread: recording, pipeline creation and submit
+//! checks arrive on the thread that records and submits). [`Recorder::submit`](crate::Recorder::submit)
+//! fails with [`Error::Validation`], naming the recording, when errors arrived on its thread since
+//! that thread last reported one, so the test that fails is the one whose work the layer
+//! reported, even while tests share one device on parallel threads. The `velox` command exits
+//! non-zero when the process's count is above zero at its end ([`error_count`]), and the test
+//! binaries' shared device does the same at exit for errors no submit reported. Asking for
+//! validation where the layer is not installed is an error, not a silent run without it.
 
 use std::ffi::{c_void, CStr};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -68,31 +72,89 @@ impl Mode {
 
 pub(crate) const LAYER: &CStr = c"VK_LAYER_KHRONOS_validation";
 
-/// Messages of error severity since the process started.
+/// Messages of error severity since the process started, and how many of them a check has
+/// reported (on the thread they arrived on).
 static ERRORS: AtomicUsize = AtomicUsize::new(0);
+static REPORTED: AtomicUsize = AtomicUsize::new(0);
 /// The first [`KEPT`] of them, as printed.
 static FIRST: Mutex<Vec<String>> = Mutex::new(Vec::new());
 const KEPT: usize = 16;
+
+/// This thread's errors: how many, how many of them a check has reported, and the first few.
+#[derive(Default)]
+struct ThreadErrors {
+    count: usize,
+    reported: usize,
+    first: Vec<String>,
+}
+
+thread_local! {
+    static THREAD: std::cell::RefCell<ThreadErrors> = std::cell::RefCell::new(ThreadErrors::default());
+}
+
+/// Errors whose message names a command buffer (GPU-assisted checks report them from the
+/// layer's own threads), by its handle: they belong to the recording of that command buffer.
+static BY_COMMAND_BUFFER: Mutex<Vec<(u64, Vec<String>)>> = Mutex::new(Vec::new());
 
 /// Validation errors reported since the process started (0 when validation is off).
 pub fn error_count() -> usize {
     ERRORS.load(Ordering::Acquire)
 }
 
-/// The first validation errors reported, each as `VUID: message`.
-pub fn first_errors() -> Vec<String> {
-    FIRST.lock().map(|v| v.clone()).unwrap_or_default()
+/// Validation errors no check reported on the thread they arrived on: made by work that never
+/// submitted after them. The `velox` command and the test binaries fail on them at exit.
+pub fn unreported_count() -> usize {
+    error_count().saturating_sub(REPORTED.load(Ordering::Acquire))
 }
 
-/// The error [`Recorder::submit`](crate::Recorder::submit) returns when `count` errors are known,
-/// `since` of them already reported.
-pub(crate) fn failure(count: usize, since: usize) -> Error {
-    let first = first_errors();
-    let shown = first.get(since.min(first.len())).or(first.last()).cloned().unwrap_or_default();
-    Error::Validation(format!(
-        "{} new validation error(s), {count} in all; first new one: {shown}",
-        count - since
-    ))
+/// Validation errors the layer reported on this thread's Vulkan calls since it started.
+pub fn thread_error_count() -> usize {
+    THREAD.with(|t| t.borrow().count)
+}
+
+/// The errors that no check has reported yet of the recording whose command buffer is `cmd`
+/// (those naming it, wherever they arrived) and of this thread (those naming no command buffer):
+/// marks them reported and returns the error naming the first, with `what` the work they
+/// arrived during.
+pub(crate) fn take_failure(cmd: Option<u64>, what: &str) -> Option<Error> {
+    let mut new: Vec<String> = Vec::new();
+    if let Some(cmd) = cmd {
+        if let Ok(mut by) = BY_COMMAND_BUFFER.lock() {
+            if let Some(i) = by.iter().position(|(h, _)| *h == cmd) {
+                new.extend(by.swap_remove(i).1);
+            }
+        }
+    }
+    let thread_new = THREAD.with(|t| {
+        let mut t = t.borrow_mut();
+        let n = t.count - t.reported;
+        let first = t.first.get(t.reported).or(t.first.last()).cloned();
+        t.reported = t.count;
+        (n, first)
+    });
+    let count = new.len() + thread_new.0;
+    if count == 0 {
+        return None;
+    }
+    REPORTED.fetch_add(count, Ordering::AcqRel);
+    let shown = new.first().cloned().or(thread_new.1).unwrap_or_default();
+    Some(Error::Validation(format!(
+        "{count} new validation error(s) during {what} ({} in the process); first new one: {shown}",
+        error_count()
+    )))
+}
+
+/// Forgets what was kept for the command buffer `cmd` (its recording is gone; the handle may
+/// be reused). Errors still unreported stay counted by [`unreported_count`].
+pub(crate) fn forget_command_buffer(cmd: u64) {
+    if let Ok(mut by) = BY_COMMAND_BUFFER.lock() {
+        by.retain(|(h, _)| *h != cmd);
+    }
+}
+
+/// The first validation errors reported in the process, each as `VUID: message`.
+pub fn first_errors() -> Vec<String> {
+    FIRST.lock().map(|v| v.clone()).unwrap_or_default()
 }
 
 /// The messenger's create info: errors and warnings, of every type.
@@ -154,7 +216,35 @@ unsafe extern "system" fn callback(
         eprintln!("velox: validation error {line}");
         if let Ok(mut first) = FIRST.lock() {
             if first.len() < KEPT {
-                first.push(line);
+                first.push(line.clone());
+            }
+        }
+        // The recording of the command buffer the message names, else this thread's work. (A
+        // thread being torn down no longer has its counts: the process's still counts.)
+        // SAFETY: the layer passes `object_count` valid entries, or a null pointer with none.
+        let objects = if data.object_count == 0 || data.p_objects.is_null() {
+            &[][..]
+        } else {
+            std::slice::from_raw_parts(data.p_objects, data.object_count as usize)
+        };
+        match objects.iter().find(|o| o.object_type == vk::ObjectType::COMMAND_BUFFER) {
+            Some(o) => {
+                if let Ok(mut by) = BY_COMMAND_BUFFER.lock() {
+                    match by.iter_mut().find(|(h, _)| *h == o.object_handle) {
+                        Some((_, lines)) => lines.push(line),
+                        None => by.push((o.object_handle, vec![line])),
+                    }
+                }
+            }
+            None => {
+                let _ = THREAD.try_with(|t| {
+                    if let Ok(mut t) = t.try_borrow_mut() {
+                        if t.first.len() < KEPT {
+                            t.first.push(line);
+                        }
+                        t.count += 1;
+                    }
+                });
             }
         }
         ERRORS.fetch_add(1, Ordering::AcqRel);

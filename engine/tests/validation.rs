@@ -63,6 +63,14 @@ fn a_missing_barrier_is_reported() {
     assert!(text.contains("SYNC-HAZARD-READ-AFTER-WRITE"), "{text}");
 }
 
+/// Would catch: a validation error blamed on whichever test submits next rather than on the one
+/// whose work the layer reported: tests share one device on parallel threads.
+#[test]
+fn a_validation_error_fails_its_own_recording_not_another_threads() {
+    let text = run_child("child_error_on_one_thread", "1");
+    assert!(text.contains("the racing recording"), "{text}");
+}
+
 /// Would catch: GPU-assisted validation not enabled by `VELOX_VALIDATE=gpu`, or not able to see
 /// a read past a binding of this engine's kernels.
 #[test]
@@ -97,6 +105,45 @@ fn child_missing_barrier() {
         other => panic!("a missing barrier went unreported: {:?}", other.map(|_| ())),
     }
     assert!(validation::error_count() > 0);
+}
+
+#[test]
+#[ignore = "run by a_validation_error_fails_its_own_recording_not_another_threads in a process of its own"]
+fn child_error_on_one_thread() {
+    let gpu = Gpu::new().unwrap();
+    assert_eq!(gpu.validation(), Mode::Sync);
+    let t = Tensor::empty(&gpu, &[4096], DType::F32).unwrap();
+    // One thread records a race (the layer reports it as the dispatch is recorded) and waits;
+    // the other then submits clean work, and only after that does the first submit its race.
+    let (raced, clean) = std::sync::mpsc::channel::<()>();
+    let (go, wait) = std::sync::mpsc::channel::<()>();
+    let racer = {
+        let (gpu, t) = (gpu.clone(), t.clone());
+        std::thread::spawn(move || {
+            let mut rec = gpu.recorder().unwrap();
+            rec.set_label("the racing recording");
+            rec.set_hazard_tracking(false);
+            fill(&mut rec, &t, 1.0).unwrap();
+            binary(&mut rec, &t, &t, Binary::Add).unwrap();
+            raced.send(()).unwrap();
+            wait.recv().unwrap();
+            rec.submit().map(|_| ())
+        })
+    };
+    clean.recv().unwrap();
+    let u = Tensor::empty(&gpu, &[4096], DType::F32).unwrap();
+    let mut rec = gpu.recorder().unwrap();
+    fill(&mut rec, &u, 2.0).unwrap();
+    let sum = binary(&mut rec, &u, &u, Binary::Add).unwrap();
+    assert!(validation::error_count() > 0, "the race was not reported as it was recorded");
+    rec.submit().expect("the clean thread's submit is not blamed for the other's race");
+    assert_eq!(sum.read::<f32>().unwrap()[0], 4.0);
+    go.send(()).unwrap();
+    match racer.join().unwrap() {
+        Err(Error::Validation(what)) => eprintln!("the race failed its own submit: {what}"),
+        other => panic!("the race went unreported on its thread: {other:?}"),
+    }
+    assert_eq!(validation::unreported_count(), 0);
 }
 
 #[test]

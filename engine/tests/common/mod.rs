@@ -24,12 +24,27 @@ static SHARED: std::sync::Mutex<Option<Gpu>> = std::sync::Mutex::new(None);
 
 extern "C" {
     fn atexit(f: extern "C" fn()) -> std::ffi::c_int;
+    fn _exit(status: std::ffi::c_int) -> !;
 }
 
-/// Drops the shared device (the last handle, once every test is done with it).
+/// Drops the shared device (the last handle, once every test is done with it), and fails the
+/// process when the validation layer reported errors that no test's submit reported (work that
+/// never submitted after its error): every error fails the run, and each submitted one fails
+/// the test whose thread made it.
 extern "C" fn close_shared() {
     let gpu = SHARED.lock().map(|mut g| g.take()).unwrap_or(None);
     drop(gpu);
+    let unreported = velox_engine::validation::unreported_count();
+    if unreported > 0 {
+        eprintln!(
+            "{unreported} validation error(s) arrived after the last submit of the work that made them:"
+        );
+        for line in velox_engine::validation::first_errors() {
+            eprintln!("  {line}");
+        }
+        // SAFETY: ends the process at once, as exit() may not be called again from an atexit handler.
+        unsafe { _exit(1) };
+    }
 }
 
 /// Whether `bytes` bind as one storage buffer on this device. Where they do not (a binding
