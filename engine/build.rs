@@ -161,6 +161,7 @@ fn main() {
     for (name, value, stem) in &flags {
         writeln!(consts, "/// `{name}` of `shaders/{stem}.wgsl` (and every shader that shares it).\npub const {name}: u32 = {value};").unwrap();
     }
+    consts.push_str(&op_tables(&flags));
     layouts.sort_by(|a, b| a.rust_name.cmp(&b.rust_name));
     let args: String =
         arg_structs.iter().map(|(name, _, fields, from)| args_struct(name, fields, from)).collect();
@@ -178,17 +179,45 @@ fn main() {
     std::fs::write(out_dir.join("kernels.rs"), generated).unwrap();
 }
 
-/// The module-scope constants named `<FAMILY>_FLAG_<NAME>`: each must be a `u32` literal.
+/// The module-scope constants the host side takes by name: flags `<FAMILY>_FLAG_<NAME>` (bits
+/// of a `Params` field) and op codes `<FAMILY>_OP_<NAME>` (the values of a `Params` field that
+/// selects the op); each must be a `u32` literal.
 fn flag_constants(module: &naga::Module, shown: &str) -> Result<Vec<(String, u32)>, String> {
     let mut out = Vec::new();
     for (_, c) in module.constants.iter() {
-        let Some(name) = c.name.as_ref().filter(|n| n.contains("_FLAG_")) else { continue };
+        let Some(name) = c.name.as_ref().filter(|n| n.contains("_FLAG_") || n.contains("_OP_")) else {
+            continue;
+        };
         match module.global_expressions[c.init] {
             naga::Expression::Literal(naga::Literal::U32(v)) => out.push((name.clone(), v)),
-            _ => return Err(format!("{shown}: flag constant {name} must be a u32 literal")),
+            _ => return Err(format!("{shown}: constant {name} must be a u32 literal")),
         }
     }
     Ok(out)
+}
+
+/// Per family, its op codes `<FAMILY>_OP_<NAME>` as `(NAME, code)` in code order: the table a
+/// host-side enum is checked against, so that an op added to a shader without a variant (or a
+/// variant without its op) fails a test.
+fn op_tables(flags: &[(String, u32, String)]) -> String {
+    let mut families: std::collections::BTreeMap<&str, Vec<(&str, u32)>> = Default::default();
+    for (name, value, _) in flags {
+        if let Some((family, op)) = name.split_once("_OP_") {
+            families.entry(family).or_default().push((op, *value));
+        }
+    }
+    let mut out = String::new();
+    for (family, mut ops) in families {
+        ops.sort_by_key(|&(_, v)| v);
+        let list: Vec<String> = ops.iter().map(|(n, v)| format!("({n:?}, {v})")).collect();
+        writeln!(
+            out,
+            "/// The op codes `{family}_OP_*` of the shaders, as (name, code).\npub const {family}_OPS: &[(&str, u32)] = &[{}];",
+            list.join(", ")
+        )
+        .unwrap();
+    }
+    out
 }
 
 struct Kernel {

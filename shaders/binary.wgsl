@@ -15,12 +15,12 @@ struct Params {
 @group(0) @binding(2) var<storage, read_write> out: array<f32>;
 var<immediate> pc: Params;
 
-const OP_ADD: u32 = 0u;
-const OP_SUB: u32 = 1u;
-const OP_MUL: u32 = 2u;
-const OP_DIV: u32 = 3u;
-const OP_MAX: u32 = 4u;
-const OP_MIN: u32 = 5u;
+const BINARY_OP_ADD: u32 = 0u;
+const BINARY_OP_SUB: u32 = 1u;
+const BINARY_OP_MUL: u32 = 2u;
+const BINARY_OP_DIV: u32 = 3u;
+const BINARY_OP_MAX: u32 = 4u;
+const BINARY_OP_MIN: u32 = 5u;
 
 @compute @workgroup_size(256)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
@@ -44,12 +44,12 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
     let y = b[ib];
     var r: f32;
     switch pc.op {
-        case OP_ADD: { r = x + y; }
-        case OP_SUB: { r = x - y; }
-        case OP_MUL: { r = x * y; }
-        case OP_DIV: { r = x / y; }
-        case OP_MAX: { r = max(x, y); }
-        case OP_MIN: { r = min(x, y); }
+        case BINARY_OP_ADD: { r = x + y; }
+        case BINARY_OP_SUB: { r = x - y; }
+        case BINARY_OP_MUL: { r = x * y; }
+        case BINARY_OP_DIV: { r = x / y; }
+        case BINARY_OP_MAX: { r = max(x, y); }
+        case BINARY_OP_MIN: { r = min(x, y); }
         default: { r = x; }
     }
     out[i] = r;

@@ -26,11 +26,11 @@ struct Params {
 @group(0) @binding(3) var<storage, read_write> grad: array<f32>;
 var<immediate> pc: Params;
 
-const MSE: u32 = 0u;
-const L1: u32 = 1u;
-const HUBER: u32 = 2u;
-const BCE: u32 = 3u;
-const FOCAL: u32 = 4u;
+const LOSS_OP_MSE: u32 = 0u;
+const LOSS_OP_L1: u32 = 1u;
+const LOSS_OP_HUBER: u32 = 2u;
+const LOSS_OP_BCE: u32 = 3u;
+const LOSS_OP_FOCAL: u32 = 4u;
 
 // log(1 + u) for u >= 0, accurate when u is tiny (where 1 + u rounds to 1).
 fn log1p_pos(u: f32) -> f32 {
@@ -54,15 +54,15 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
     var l = 0.0;
     var g = 0.0;
     switch pc.kind {
-        case MSE: {
+        case LOSS_OP_MSE: {
             l = r * r;
             g = 2.0 * r;
         }
-        case L1: {
+        case LOSS_OP_L1: {
             l = abs(r);
             g = sign(r);
         }
-        case HUBER: {
+        case LOSS_OP_HUBER: {
             let a = abs(r);
             if (a <= pc.delta) {
                 l = 0.5 * r * r;
@@ -71,7 +71,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
             }
             g = clamp(r, -pc.delta, pc.delta);
         }
-        case FOCAL: {
+        case LOSS_OP_FOCAL: {
             let ce = max(x, 0.0) - x * t + log1p_pos(exp(-abs(x)));
             let p = 1.0 / (1.0 + exp(-x));
             let q = t / (1.0 + exp(x)) + (1.0 - t) * p;

@@ -17,28 +17,28 @@ struct Params {
 @group(0) @binding(1) var<storage, read_write> y: array<f32>;
 var<immediate> pc: Params;
 
-const OP_SUM: u32 = 0u;
-const OP_MEAN: u32 = 1u;
-const OP_MAX: u32 = 2u;
+const REDUCE_OP_SUM: u32 = 0u;
+const REDUCE_OP_MEAN: u32 = 1u;
+const REDUCE_OP_MAX: u32 = 2u;
 
 var<workgroup> partial: array<f32, 256>;
 
 fn identity() -> f32 {
-    if (pc.op == OP_MAX) {
+    if (pc.op == REDUCE_OP_MAX) {
         return bitcast<f32>(0xff800000u); // -inf, so a row of -inf has max -inf
     }
     return 0.0;
 }
 
 fn combine(a: f32, b: f32) -> f32 {
-    if (pc.op == OP_MAX) {
+    if (pc.op == REDUCE_OP_MAX) {
         return max(a, b);
     }
     return a + b;
 }
 
 fn finish(v: f32) -> f32 {
-    if (pc.op == OP_MEAN && pc.len > 0u) {
+    if (pc.op == REDUCE_OP_MEAN && pc.len > 0u) {
         return v / f32(pc.len);
     }
     return v;
@@ -88,7 +88,7 @@ fn strided(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
     let a = o / pc.inner;
     let c = o % pc.inner;
     let base = a * pc.len * pc.inner + c;
-    if (pc.op == OP_MAX) {
+    if (pc.op == REDUCE_OP_MAX) {
         var m = identity();
         for (var j = 0u; j < pc.len; j++) {
             m = max(m, x[base + j * pc.inner]);

@@ -1,4 +1,5 @@
-// Elementwise maps y = f(x) over f32, one op code per call (a uniform branch).
+// Elementwise maps y = f(x) over f32, one op code per call (a uniform branch), and their
+// backward dx = dy f'(x).
 // Written for stability: tanh never overflows, sigmoid saturates cleanly, and GELU uses an
 // erfc form whose negative tail keeps its relative accuracy.
 
@@ -13,24 +14,26 @@ struct Params {
 
 @group(0) @binding(0) var<storage, read> x: array<f32>;
 @group(0) @binding(1) var<storage, read_write> y: array<f32>;
+@group(0) @binding(2) var<storage, read> dy: array<f32>;
+@group(0) @binding(3) var<storage, read_write> dx: array<f32>;
 var<immediate> pc: Params;
 
-const OP_AFFINE: u32 = 0u;   // alpha * x + beta
-const OP_EXP: u32 = 1u;
-const OP_LOG: u32 = 2u;
-const OP_SIGMOID: u32 = 3u;
-const OP_SILU: u32 = 4u;
-const OP_GELU: u32 = 5u;     // exact (erf) GELU
-const OP_GELU_TANH: u32 = 6u;
-const OP_SQRT: u32 = 7u;
-const OP_RSQRT: u32 = 8u;
-const OP_ABS: u32 = 9u;
-const OP_TANH: u32 = 10u;
-const OP_RELU: u32 = 11u;
-const OP_SQUARE: u32 = 12u;
-const OP_RECIP: u32 = 13u;
-const OP_SIN: u32 = 14u;
-const OP_COS: u32 = 15u;
+const UNARY_OP_AFFINE: u32 = 0u;   // alpha * x + beta
+const UNARY_OP_EXP: u32 = 1u;
+const UNARY_OP_LOG: u32 = 2u;
+const UNARY_OP_SIGMOID: u32 = 3u;
+const UNARY_OP_SILU: u32 = 4u;
+const UNARY_OP_GELU: u32 = 5u;     // exact (erf) GELU
+const UNARY_OP_GELU_TANH: u32 = 6u;
+const UNARY_OP_SQRT: u32 = 7u;
+const UNARY_OP_RSQRT: u32 = 8u;
+const UNARY_OP_ABS: u32 = 9u;
+const UNARY_OP_TANH: u32 = 10u;
+const UNARY_OP_RELU: u32 = 11u;
+const UNARY_OP_SQUARE: u32 = 12u;
+const UNARY_OP_RECIP: u32 = 13u;
+const UNARY_OP_SIN: u32 = 14u;
+const UNARY_OP_COS: u32 = 15u;
 
 fn sigmoid(v: f32) -> f32 {
     // exp of a large positive argument is +inf and 1/inf = 0: saturates without NaN.
@@ -46,26 +49,53 @@ fn stable_tanh(v: f32) -> f32 {
 
 fn apply(op: u32, v: f32) -> f32 {
     switch op {
-        case OP_AFFINE: { return pc.alpha * v + pc.beta; }
-        case OP_EXP: { return exp(v); }
-        case OP_LOG: { return log(v); }
-        case OP_SIGMOID: { return sigmoid(v); }
-        case OP_SILU: { return v * sigmoid(v); }
-        case OP_GELU: { return gelu(v); }
-        case OP_GELU_TANH: {
+        case UNARY_OP_AFFINE: { return pc.alpha * v + pc.beta; }
+        case UNARY_OP_EXP: { return exp(v); }
+        case UNARY_OP_LOG: { return log(v); }
+        case UNARY_OP_SIGMOID: { return sigmoid(v); }
+        case UNARY_OP_SILU: { return v * sigmoid(v); }
+        case UNARY_OP_GELU: { return gelu(v); }
+        case UNARY_OP_GELU_TANH: {
             // 0.5 v (1 + tanh u) = v sigmoid(2u): no cancellation in the negative tail.
             return v * sigmoid(1.5957691216057308 * (v + 0.044715 * v * v * v));
         }
-        case OP_SQRT: { return sqrt(v); }
-        case OP_RSQRT: { return inverseSqrt(v); }
-        case OP_ABS: { return abs(v); }
-        case OP_TANH: { return stable_tanh(v); }
-        case OP_RELU: { return max(v, 0.0); }
-        case OP_SQUARE: { return v * v; }
-        case OP_RECIP: { return 1.0 / v; }
-        case OP_SIN: { return sincos(v).x; }
-        case OP_COS: { return sincos(v).y; }
+        case UNARY_OP_SQRT: { return sqrt(v); }
+        case UNARY_OP_RSQRT: { return inverseSqrt(v); }
+        case UNARY_OP_ABS: { return abs(v); }
+        case UNARY_OP_TANH: { return stable_tanh(v); }
+        case UNARY_OP_RELU: { return max(v, 0.0); }
+        case UNARY_OP_SQUARE: { return v * v; }
+        case UNARY_OP_RECIP: { return 1.0 / v; }
+        case UNARY_OP_SIN: { return sincos(v).x; }
+        case UNARY_OP_COS: { return sincos(v).y; }
         default: { return v; }
+    }
+}
+
+// f'(v), written from the same pieces as `apply`.
+fn derivative(op: u32, v: f32) -> f32 {
+    switch op {
+        case UNARY_OP_AFFINE: { return pc.alpha; }
+        case UNARY_OP_EXP: { return exp(v); }
+        case UNARY_OP_LOG: { return 1.0 / v; }
+        case UNARY_OP_SIGMOID: { let s = sigmoid(v); return s * (1.0 - s); }
+        case UNARY_OP_SILU: { let s = sigmoid(v); return s * (1.0 + v * (1.0 - s)); }
+        case UNARY_OP_GELU: { return gelu_grad(v); }
+        case UNARY_OP_GELU_TANH: {
+            // y = v s with s = sigmoid(2u), u = c (v + 0.044715 v^3).
+            let s = sigmoid(1.5957691216057308 * (v + 0.044715 * v * v * v));
+            return s + v * s * (1.0 - s) * 1.5957691216057308 * (1.0 + 0.134145 * v * v);
+        }
+        case UNARY_OP_SQRT: { return 0.5 * inverseSqrt(v); }
+        case UNARY_OP_RSQRT: { let r = inverseSqrt(v); return -0.5 * r * r * r; }
+        case UNARY_OP_ABS: { return sign(v); }
+        case UNARY_OP_TANH: { let t = stable_tanh(v); return 1.0 - t * t; }
+        case UNARY_OP_RELU: { return select(0.0, 1.0, v > 0.0); }
+        case UNARY_OP_SQUARE: { return 2.0 * v; }
+        case UNARY_OP_RECIP: { let r = 1.0 / v; return -r * r; }
+        case UNARY_OP_SIN: { return sincos(v).y; }
+        case UNARY_OP_COS: { return -sincos(v).x; }
+        default: { return 1.0; }
     }
 }
 
@@ -75,5 +105,14 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
     let i = (wid.x + wid.y * nwg.x) * 256u + lid;
     if (i < pc.n) {
         y[i] = apply(pc.op, x[i]);
+    }
+}
+
+@compute @workgroup_size(256)
+fn backward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+            @builtin(local_invocation_index) lid: u32) {
+    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
+    if (i < pc.n) {
+        dx[i] = dy[i] * derivative(pc.op, x[i]);
     }
 }

@@ -1,6 +1,8 @@
 //! The layers of `velox::models::layers`: every GPU forward and backward against its f64
-//! reference on awkward sizes, every reference backward against central finite differences
-//! of the reference forward, and stability at large and tiny magnitudes.
+//! reference on awkward sizes, the composite references' backward passes (linear, the
+//! feed-forwards) against central finite differences of their forwards (the single ops' are in
+//! the engine's harness, `engine/tests/ops/cases.rs`), and stability at large and tiny
+//! magnitudes.
 
 use crate::common;
 use common::*;
@@ -550,25 +552,10 @@ fn norms_are_stable_at_large_tiny_and_constant_rows() {
     assert_nmse("stable ln db", &read(&pb.grad), &dbl_ref, 3e-14);
 }
 
+/// The focal loss's reference gradient is checked against finite differences in the engine's
+/// harness (`engine/tests/ops/cases.rs`); here, its parameter's range.
 #[test]
-fn focal_loss_reference_matches_finite_differences() {
-    // The focal loss's gradient has a second term (the focus factor's derivative); check the
-    // reference's against central differences, for hard and soft labels and gamma 1, 2, 3.
-    let mut rng = Rng::new(90);
-    for gamma in [1.0f32, 2.0, 3.0] {
-        for _ in 0..40 {
-            let x = rng.range(-6.0, 6.0);
-            let t = if rng.uniform() < 0.5 { rng.below(2) as f64 } else { rng.uniform() };
-            let kind = LossKind::Focal { gamma };
-            let (_, g) = r::pointwise(kind, x, t);
-            let h = 1e-6;
-            let numeric = (r::pointwise(kind, x + h, t).0 - r::pointwise(kind, x - h, t).0) / (2.0 * h);
-            assert!(
-                (g - numeric).abs() <= 1e-7 * (1.0 + numeric.abs()),
-                "gamma {gamma} x {x} t {t}: {g} vs {numeric}"
-            );
-        }
-    }
+fn focal_loss_refuses_gamma_below_one() {
     let mut rec = rec();
     let t = upload(&[1], &[1.0]);
     assert!(Loss::focal(0.5).forward_backward(&mut rec, &t, &t).is_err(), "gamma below 1 is refused");
@@ -590,7 +577,8 @@ fn bce_with_saturated_logits_stays_finite() {
     }
 }
 
-// ---- the references' backward passes against finite differences of their forwards ----
+// ---- the layer references' backward passes against finite differences of their forwards (the
+// single ops' are in the engine's harness, engine/tests/ops/cases.rs) ----
 
 const EPS: f64 = 1e-6;
 const FD_TOL: f64 = 1e-8;
@@ -629,62 +617,4 @@ fn reference_linear_and_feed_forwards_match_finite_differences() {
     let grads = r::gelu_mlp_backward(&inputs[0], &inputs[1], &inputs[2], &inputs[3], &g, n, d, h, o);
     let loss = |v: &[Vec<f64>]| dot(&r::gelu_mlp(&v[0], &v[1], &v[2], &v[3], &v[4], n, d, h, o), &g);
     finite_differences("gelu feed-forward", &inputs, &grads, loss, EPS, FD_TOL);
-}
-
-#[test]
-fn reference_norms_match_finite_differences() {
-    let mut rng = Rng::new(21);
-    let (n, width, eps) = (3, 5, 1e-5);
-    let g = normals(&mut rng, n * width);
-    let inputs = vec![normals(&mut rng, n * width), normals(&mut rng, width)];
-    let (dx, dw) = r::rmsnorm_backward(&inputs[0], &inputs[1], eps, &g);
-    let loss = |v: &[Vec<f64>]| dot(&r::rmsnorm(&v[0], &v[1], eps).0, &g);
-    finite_differences("rmsnorm", &inputs, &[dx, dw], loss, EPS, FD_TOL);
-
-    let inputs = vec![normals(&mut rng, n * width), normals(&mut rng, width), normals(&mut rng, width)];
-    let (dx, dw, db) = r::layernorm_backward(&inputs[0], width, Some(&inputs[1]), eps, &g);
-    let loss = |v: &[Vec<f64>]| dot(&r::layernorm(&v[0], width, Some((&v[1], &v[2])), eps).0, &g);
-    finite_differences("layernorm affine", &inputs, &[dx, dw, db], loss, EPS, FD_TOL);
-    let (dx, _, _) = r::layernorm_backward(&inputs[0], width, None, eps, &g);
-    let loss = |v: &[Vec<f64>]| dot(&r::layernorm(&v[0], width, None, eps).0, &g);
-    finite_differences("layernorm plain", &inputs[..1], &[dx], loss, EPS, FD_TOL);
-}
-
-#[test]
-fn reference_adaln_fourier_and_losses_match_finite_differences() {
-    let mut rng = Rng::new(22);
-    let (b, t, d) = (2, 3, 4);
-    let g = normals(&mut rng, b * t * d);
-    let inputs = vec![normals(&mut rng, b * t * d), normals(&mut rng, b * d), normals(&mut rng, b * d)];
-    let grads = r::modulate_backward(&inputs[0], &inputs[2], &g, b, t, d);
-    let loss = |v: &[Vec<f64>]| dot(&r::modulate(&v[0], &v[1], &v[2], b, t, d), &g);
-    finite_differences("modulate", &inputs, &grads, loss, EPS, FD_TOL);
-
-    let inputs = vec![normals(&mut rng, b * t * d), normals(&mut rng, b * d), normals(&mut rng, b * t * d)];
-    let grads = r::gated_residual_backward(&inputs[1], &inputs[2], &g, b, t, d);
-    let loss = |v: &[Vec<f64>]| dot(&r::gated_residual(&v[0], &v[1], &v[2], b, t, d), &g);
-    finite_differences("gated residual", &inputs, &grads, loss, EPS, FD_TOL);
-
-    // Fourier features up to 2^12: the third derivative grows as (pi 2^12)^3, so a smaller
-    // step keeps the truncation error of the central difference down.
-    let (n, c) = (2, 3);
-    let freqs: Vec<f64> = (0..6).map(|f| (12.0 * f as f64 / 5.0).exp2()).collect();
-    for include in [false, true] {
-        let width = c * 2 * freqs.len() + if include { c } else { 0 };
-        let g = normals(&mut rng, n * width);
-        let inputs = vec![(0..n * c).map(|_| rng.range(-1.0, 1.0)).collect::<Vec<f64>>()];
-        let dx = r::fourier_backward(&inputs[0], c, &freqs, include, &g);
-        let loss = |v: &[Vec<f64>]| dot(&r::fourier(&v[0], c, &freqs, include), &g);
-        finite_differences(&format!("fourier input={include}"), &inputs, &[dx], loss, 1e-9, 2e-7);
-    }
-
-    for l in losses() {
-        let n = 7;
-        let (pred, target) = loss_inputs(&mut rng, l.kind, n);
-        let inputs = vec![f64s(&pred)];
-        let target = f64s(&target);
-        let (_, grad) = r::loss(l.kind, &inputs[0], &target, l.weight as f64);
-        let loss = |v: &[Vec<f64>]| r::loss(l.kind, &v[0], &target, l.weight as f64).0;
-        finite_differences(&format!("{:?} loss", l.kind), &inputs, &[grad], loss, EPS, FD_TOL);
-    }
 }

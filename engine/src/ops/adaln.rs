@@ -7,6 +7,10 @@
 //!   both backward passes (`one` = 1: modulate's `dx` and `dy * x`; `one` = 0: the gate's
 //!   `dy` and `dout * y`); the per-sample gradients are `gp` (and `dy`) summed over T, which
 //!   is `gp` itself when T = 1 (a per-point modulation, as the surface decoder trains with).
+//!
+//! Tests: the harness (`engine/tests/ops/cases.rs`: both passes and the backward against the
+//! reference, the reference against finite differences) and the layers built on it
+//! (`tests/models/layers.rs`).
 
 use crate::error::{Error, Result};
 use crate::kernels::args;
@@ -82,4 +86,68 @@ pub fn backward(
         &params,
     )?;
     Ok((ga, gp))
+}
+
+/// Plain f64 loops.
+pub mod reference {
+    /// `y = x * (1 + scale) + shift`, `x [b, t, d]`, `shift`, `scale [b, d]`.
+    pub fn modulate(x: &[f64], shift: &[f64], scale: &[f64], b: usize, t: usize, d: usize) -> Vec<f64> {
+        let mut y = vec![0.0; b * t * d];
+        for s in 0..b {
+            for k in 0..t {
+                for j in 0..d {
+                    let i = (s * t + k) * d + j;
+                    y[i] = x[i] * (1.0 + scale[s * d + j]) + shift[s * d + j];
+                }
+            }
+        }
+        y
+    }
+
+    /// Returns `(dx, dshift, dscale)`.
+    pub fn modulate_backward(
+        x: &[f64],
+        scale: &[f64],
+        dy: &[f64],
+        b: usize,
+        t: usize,
+        d: usize,
+    ) -> [Vec<f64>; 3] {
+        let (mut dx, mut dshift, mut dscale) = (vec![0.0; b * t * d], vec![0.0; b * d], vec![0.0; b * d]);
+        for s in 0..b {
+            for k in 0..t {
+                for j in 0..d {
+                    let i = (s * t + k) * d + j;
+                    dx[i] = dy[i] * (1.0 + scale[s * d + j]);
+                    dshift[s * d + j] += dy[i];
+                    dscale[s * d + j] += dy[i] * x[i];
+                }
+            }
+        }
+        [dx, dshift, dscale]
+    }
+
+    /// `out = res + gate * y`, `res`, `y [b, t, d]`, `gate [b, d]`.
+    pub fn gated_residual(res: &[f64], gate: &[f64], y: &[f64], b: usize, t: usize, d: usize) -> Vec<f64> {
+        (0..b * t * d).map(|i| res[i] + gate[(i / (t * d)) * d + i % d] * y[i]).collect()
+    }
+
+    /// Returns `(dres, dgate, dy)`.
+    pub fn gated_residual_backward(
+        gate: &[f64],
+        y: &[f64],
+        dout: &[f64],
+        b: usize,
+        t: usize,
+        d: usize,
+    ) -> [Vec<f64>; 3] {
+        let mut dgate = vec![0.0; b * d];
+        let mut dy = vec![0.0; b * t * d];
+        for i in 0..b * t * d {
+            let g = (i / (t * d)) * d + i % d;
+            dgate[g] += dout[i] * y[i];
+            dy[i] = dout[i] * gate[g];
+        }
+        [dout.to_vec(), dgate, dy]
+    }
 }

@@ -11,6 +11,10 @@
 //! earlier in the same command buffer), the kernel scales the gradient by
 //! `min(1, max_norm / (grad_scale * norm + 1e-6))`, and skips the whole step when the norm is
 //! NaN or Inf. Without one, gradients are used as they are (times `grad_scale`).
+//!
+//! Tests: the harness's `adamw` row (`engine/tests/ops/cases.rs`: forward against the f64 reference
+//! at awkward shapes); `tests/training/train_primitives.rs` (chunked steps, clipping, a skipped
+//! non-finite step, the store).
 
 use crate::error::{Error, Result};
 use crate::kernels::args;

@@ -16,6 +16,10 @@
 //!
 //! That is the layout the per-cell cross-attention takes: query `c` attends to its segment, and
 //! a query whose segment is empty gets zeros.
+//!
+//! Tests: the harness's `assign` row (`engine/tests/ops/cases.rs`: forward against the f64
+//! reference at awkward shapes); `engine/tests/ops/assign.rs` (ties, continuous points, grouped
+//! cells, bad input).
 
 use crate::error::{Error, Result};
 use crate::fit_u32;

@@ -7,6 +7,11 @@
 //! and its queries see only its keys. Dense self- or cross-attention is one segment; the
 //! encoder's voxel-window self-attention and per-cell cross-attention are many. Empty segments
 //! cost nothing; a query whose segment has no keys gets zeros.
+//!
+//! Tests: the harness's `attention` row (`engine/tests/ops/cases.rs`: forward and backward, the
+//! reference against finite differences against the f64 reference at awkward shapes);
+//! `engine/tests/ops/attention.rs` (f16 and cooperative kernels, long rows, segment layouts,
+//! errors) and the layer's `tests/models/attention_layer.rs`.
 
 use crate::error::{Error, Result};
 use crate::kernels::{self, args, Kernel};

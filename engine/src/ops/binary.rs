@@ -1,4 +1,7 @@
 //! Elementwise binary ops with numpy-style broadcasting. Kernel: `shaders/binary.wgsl`.
+//!
+//! Tests: the harness's `binary` row (`engine/tests/ops/cases.rs`: forward against the f64
+//! reference at awkward shapes); `engine/tests/ops/elementwise.rs` (broadcasts, bad shapes).
 
 use crate::error::{Error, Result};
 use crate::fit_u32;
@@ -7,6 +10,8 @@ use crate::kernels::BINARY_MAIN;
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
+/// The ops, each one of the op codes `BINARY_OP_*` of `shaders/binary.wgsl` (exported by the
+/// build; checked both ways by the harness).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Binary {
     Add,
@@ -18,10 +23,20 @@ pub enum Binary {
 }
 
 impl Binary {
-    pub const ALL: [Binary; 6] =
-        [Binary::Add, Binary::Sub, Binary::Mul, Binary::Div, Binary::Max, Binary::Min];
-    fn code(self) -> u32 {
-        self as u32
+    pub const ALL: &[Binary] =
+        &[Binary::Add, Binary::Sub, Binary::Mul, Binary::Div, Binary::Max, Binary::Min];
+
+    /// The shader's op code.
+    pub fn code(self) -> u32 {
+        use crate::kernels as k;
+        match self {
+            Binary::Add => k::BINARY_OP_ADD,
+            Binary::Sub => k::BINARY_OP_SUB,
+            Binary::Mul => k::BINARY_OP_MUL,
+            Binary::Div => k::BINARY_OP_DIV,
+            Binary::Max => k::BINARY_OP_MAX,
+            Binary::Min => k::BINARY_OP_MIN,
+        }
     }
 }
 

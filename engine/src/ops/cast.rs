@@ -1,4 +1,7 @@
 //! f32 <-> f16 conversion. Kernel: `shaders/cast.wgsl` (packed halves, runs everywhere).
+//!
+//! Tests: the harness's `cast` row (`engine/tests/ops/cases.rs`: forward against the f64 reference
+//! at awkward shapes); `engine/tests/ops/elementwise.rs` (round trips and extremes).
 
 use crate::error::{Error, Result};
 use crate::kernels::args;

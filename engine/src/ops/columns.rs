@@ -1,4 +1,8 @@
 //! Copies of column blocks between row-major matrices. Kernel: `shaders/columns.wgsl`.
+//!
+//! Tests: the harness's `columns` row (`engine/tests/ops/cases.rs`: forward against the f64
+//! reference at awkward shapes); `engine/tests/ops/elementwise.rs` (the permutation's inverse, bad
+//! ranges).
 
 use crate::error::{Error, Result};
 use crate::kernels::args;

@@ -3,6 +3,9 @@
 //! A batched layout is built per sample (each sample's points, queries and windows numbered
 //! from 0) and merged into the batch's numbering: [`copy_add`] copies a sample's list into its
 //! place in the batch's list, adding the sample's first index.
+//!
+//! Tests: the harness's `concat` row (`engine/tests/ops/cases.rs`: forward against the f64
+//! reference at awkward shapes); `engine/tests/ops/fill_copy.rs` (index concatenation).
 
 use crate::error::{Error, Result};
 use crate::kernels::args;

@@ -1,4 +1,6 @@
 //! Fill a tensor with one value. Kernel: `shaders/fill.wgsl`.
+//!
+//! Tests: `engine/tests/ops/fill_copy.rs` (every dtype, awkward sizes, ordering with copies).
 
 use crate::error::Result;
 use crate::kernels::args;

@@ -3,6 +3,10 @@
 //! For `x [rows, c]` and frequencies `w [F]` each output row is, in this order:
 //! `x_0 .. x_{c-1}` (only with `include_input`), then `sin(pi w_f x_i)` at `i * F + f`, then
 //! `cos(pi w_f x_i)` at `c * F + i * F + f`: width `c * 2F (+ c)`.
+//!
+//! Tests: the harness's `fourier` row (`engine/tests/ops/cases.rs`: forward and backward, the
+//! reference against finite differences against the f64 reference at awkward shapes); the layer's
+//! `tests/models/layers.rs`.
 
 use crate::error::{Error, Result};
 use crate::kernels::args;

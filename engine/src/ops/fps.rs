@@ -9,6 +9,10 @@
 //! candidate position. The output is u32 `[k]`: the chosen **point** indices (not candidate
 //! positions), in the order chosen. Repeated candidate indices are allowed: each copy counts
 //! once, so duplicates are chosen only after every distinct point is at distance 0.
+//!
+//! Tests: the harness's `fps` row (`engine/tests/ops/cases.rs`: forward against the f64 reference
+//! at awkward shapes); `engine/tests/ops/assign.rs` (exact choices on clusters, spheres and ties,
+//! candidates).
 
 use crate::device::Gpu;
 use crate::error::{Error, Result};

@@ -1,4 +1,7 @@
 //! Row gather. Kernel: `shaders/gather.wgsl`.
+//!
+//! Tests: the harness's `gather` row (`engine/tests/ops/cases.rs`: forward against the f64
+//! reference at awkward shapes); `engine/tests/ops/elementwise.rs` (with scatter-add, bad indices).
 
 use crate::error::{Error, Result};
 use crate::fit_u32;

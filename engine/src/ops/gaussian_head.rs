@@ -1,5 +1,6 @@
 //! The Gaussian decoder's head activations, forward and backward. Kernel:
-//! `shaders/gaussian_head.wgsl` (the formulas are in its header).
+//! `shaders/gaussian_head.wgsl` (the formulas are in its header). Tests: the harness
+//! (`engine/tests/ops/cases.rs`) and `engine/tests/ops/elementwise.rs` (saturation).
 
 use crate::error::{Error, Result};
 use crate::fit_u32;
@@ -115,6 +116,29 @@ pub mod reference {
             out[3].push(g[10]);
             for a in 0..3 {
                 out[4].push(sigmoid(g[11 + a]));
+            }
+        }
+        out
+    }
+
+    /// The gradient of `raw` [M, 14] from the gradients `d` of the head's five outputs (the
+    /// order of [`head`]).
+    pub fn head_backward(raw: &[f64], d: &[Vec<f64>; 5], r: &HeadRange) -> Vec<f64> {
+        let ds = |v: f64| sigmoid(v) * (1.0 - sigmoid(v));
+        let span = (r.scale_max - r.scale_min) as f64;
+        let mut out = Vec::with_capacity(raw.len());
+        for (m, g) in raw.chunks(RAW).enumerate() {
+            for a in 0..3 {
+                out.push(d[0][3 * m + a] * 2.0 * r.offset_range as f64 * ds(g[a]));
+            }
+            for a in 0..3 {
+                let l = g[3 + a];
+                out.push(d[1][3 * m + a] * span * ds(l) / (r.scale_min as f64 + span * sigmoid(l)));
+            }
+            out.extend_from_slice(&d[2][4 * m..4 * m + 4]);
+            out.push(d[3][m]);
+            for a in 0..3 {
+                out.push(d[4][3 * m + a] * ds(g[11 + a]));
             }
         }
         out

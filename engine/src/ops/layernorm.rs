@@ -3,6 +3,10 @@
 //!
 //! `y = (x - mean) / sqrt(var + eps) * w + b`. The forward saves the per-row `mean` and `rstd`
 //! for the backward, which gives `dx` and adds `dw`, `db` into gradient tensors.
+//!
+//! Tests: the harness's `layernorm` row (`engine/tests/ops/cases.rs`: forward and backward, the
+//! reference against finite differences against the f64 reference at awkward shapes);
+//! `tests/models/layers.rs` (stability at large, tiny and constant rows).
 
 use crate::error::{Error, Result};
 use crate::kernels::args;

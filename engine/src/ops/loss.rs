@@ -1,6 +1,10 @@
 //! Mean losses with their gradients: MSE, L1, Huber, binary cross-entropy with logits and
 //! the focal loss with logits.
 //! Kernel: `shaders/loss.wgsl` (per-element loss and gradient), then a sum by `reduce.wgsl`.
+//!
+//! Tests: the harness's `loss` row (`engine/tests/ops/cases.rs`: forward and its gradient, the
+//! reference against finite differences against the f64 reference at awkward shapes);
+//! `tests/models/layers.rs` (saturated logits, the focal loss's range).
 
 use crate::error::{Error, Result};
 use crate::fit_u32;
@@ -28,13 +32,15 @@ pub enum LossKind {
 }
 
 impl LossKind {
-    fn code(self) -> (u32, f32) {
+    /// The shader's op code (`LOSS_OP_*` of `shaders/loss.wgsl`) and the kind's parameter.
+    pub fn code(self) -> (u32, f32) {
+        use crate::kernels as k;
         match self {
-            LossKind::Mse => (0, 0.0),
-            LossKind::L1 => (1, 0.0),
-            LossKind::Huber { delta } => (2, delta),
-            LossKind::BceWithLogits => (3, 0.0),
-            LossKind::Focal { gamma } => (4, gamma),
+            LossKind::Mse => (k::LOSS_OP_MSE, 0.0),
+            LossKind::L1 => (k::LOSS_OP_L1, 0.0),
+            LossKind::Huber { delta } => (k::LOSS_OP_HUBER, delta),
+            LossKind::BceWithLogits => (k::LOSS_OP_BCE, 0.0),
+            LossKind::Focal { gamma } => (k::LOSS_OP_FOCAL, gamma),
         }
     }
 }

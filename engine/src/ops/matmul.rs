@@ -9,6 +9,10 @@
 //! with an optional leading batch dimension; an operand without one (or with batch 1) is
 //! broadcast over the other's batch, which is how `x @ W` runs for a batch of `x`. The output is
 //! f32 `[.., M, N]`.
+//!
+//! Tests: the harness's `matmul` row (`engine/tests/ops/cases.rs`: forward against the f64
+//! reference at awkward shapes); `engine/tests/ops/matmul.rs` (f16 and cooperative kernels,
+//! split-K, narrow tiles, large dispatches).
 
 use crate::caps::Caps;
 use crate::device::Gpu;

@@ -6,6 +6,9 @@
 //! stays on the device, where the AdamW kernel reads it ([`crate::ops::adamw`]); read it back
 //! after the step for logging, and treat a non-finite norm as NaN or Inf in the gradients
 //! ([`check_finite`]).
+//!
+//! Tests: the harness's `global_norm` row (`engine/tests/ops/cases.rs`: forward against the f64
+//! reference at awkward shapes); `tests/training/train_primitives.rs` (chunked, non-finite values).
 
 use crate::error::{Error, Result};
 use crate::kernels::args;

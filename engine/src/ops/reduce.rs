@@ -1,4 +1,7 @@
 //! Sum, mean and max along one axis. Kernel: `shaders/reduce.wgsl`.
+//!
+//! Tests: the harness's `reduce` row (`engine/tests/ops/cases.rs`: forward against the f64
+//! reference at awkward shapes); `engine/tests/ops/elementwise.rs` (empty axes, bad shapes).
 
 use crate::error::{Error, Result};
 use crate::fit_u32;
@@ -7,11 +10,27 @@ use crate::kernels::{REDUCE_ROWS, REDUCE_STRIDED};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
+/// The reductions, each one of the op codes `REDUCE_OP_*` of `shaders/reduce.wgsl` (exported
+/// by the build; checked both ways by the harness).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Reduce {
     Sum,
     Mean,
     Max,
+}
+
+impl Reduce {
+    pub const ALL: &[Reduce] = &[Reduce::Sum, Reduce::Mean, Reduce::Max];
+
+    /// The shader's op code.
+    pub fn code(self) -> u32 {
+        use crate::kernels as k;
+        match self {
+            Reduce::Sum => k::REDUCE_OP_SUM,
+            Reduce::Mean => k::REDUCE_OP_MEAN,
+            Reduce::Max => k::REDUCE_OP_MAX,
+        }
+    }
 }
 
 use crate::kernels::params::ReduceParams as Params;
@@ -65,7 +84,7 @@ pub fn reduce_into(
         outer: fit(outer)?,
         len: fit(len)?,
         inner: fit(inner)?,
-        op: op as u32,
+        op: op.code(),
         accumulate: accumulate as u32,
     };
     fit(x.numel())?;

@@ -2,6 +2,10 @@
 //!
 //! `y = x / sqrt(mean(x^2) + eps) * w`. The forward saves the per-row `rstd` for the backward,
 //! which gives `dx` and adds `dw` into a gradient tensor.
+//!
+//! Tests: the harness's `rmsnorm` row (`engine/tests/ops/cases.rs`: forward and backward, the
+//! reference against finite differences against the f64 reference at awkward shapes);
+//! `tests/models/layers.rs` (stability at large, tiny and constant rows).
 
 use crate::error::{Error, Result};
 use crate::kernels::args;

@@ -6,6 +6,9 @@
 //! the default [`ITEMS`], a million elements take two levels) and `add_block_offsets` adds
 //! each block's scanned total back. The top level always has a single block, whose total is the
 //! total of the whole input, so the op hands it back for free.
+//!
+//! Tests: the harness's `scan` row (`engine/tests/ops/cases.rs`: forward against the f64 reference
+//! at awkward shapes); `engine/tests/ops/scan_sort.rs` (multi-level scans, many workgroups).
 
 use crate::error::{Error, Result};
 use crate::fit_u32;

@@ -1,5 +1,9 @@
 //! Row scatter-add. Kernels: `shaders/scatter_add.wgsl` (native f32 atomics) and
 //! `shaders/scatter_add_cas.wgsl` (compare-and-swap fallback), chosen by the device.
+//!
+//! Tests: the harness's `scatter_add` row (`engine/tests/ops/cases.rs`: forward against the f64
+//! reference at awkward shapes); `engine/tests/ops/elementwise.rs` (the compare-and-swap path,
+//! determinism).
 
 use crate::error::{Error, Result};
 use crate::fit_u32;

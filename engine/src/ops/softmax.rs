@@ -1,4 +1,8 @@
 //! Softmax over the last axis. Kernel: `shaders/softmax.wgsl`.
+//!
+//! Tests: the harness's `softmax` row (`engine/tests/ops/cases.rs`: forward against the f64
+//! reference at awkward shapes); `engine/tests/ops/elementwise.rs` (stability on long and extreme
+//! rows).
 
 use crate::error::{Error, Result};
 use crate::kernels::args;

@@ -10,6 +10,9 @@
 //! Only the masked bits order the keys, but the keys come back whole, high bits included: a
 //! caller that packs a payload above `key_bits` (the rasteriser packs tile and depth) gets it
 //! back with its key, and one that wants masked keys can mask them.
+//!
+//! Tests: the harness's `sort` row (`engine/tests/ops/cases.rs`: forward against the f64 reference
+//! at awkward shapes); `engine/tests/ops/scan_sort.rs` (stability, every key width, large inputs).
 
 use crate::error::{Error, Result};
 use crate::fit_u32;

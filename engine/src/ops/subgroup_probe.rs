@@ -7,6 +7,8 @@
 //! `subgroupAdd(1)`. Drivers can disagree with themselves here: lavapipe (Mesa 25.0) with
 //! `LP_NATIVE_VECTOR_WIDTH=1024` reports subgroups of 32 (property and builtin) while its
 //! subgroup ids, counts and reductions run over 16 invocations.
+//!
+//! Tests: `engine/tests/ops/subgroups.rs` (the ids, counts and reductions the kernels rely on).
 
 use crate::device::Gpu;
 use crate::error::Result;

@@ -1,4 +1,8 @@
 //! The SwiGLU gate `h = silu(a) * b` and its backward, fused. Kernel: `shaders/swiglu.wgsl`.
+//!
+//! Tests: the harness's `swiglu` row (`engine/tests/ops/cases.rs`: forward and backward, the
+//! reference against finite differences against the f64 reference at awkward shapes); the
+//! feed-forward layer's `tests/models/layers.rs`.
 
 use crate::error::{Error, Result};
 use crate::kernels::args;

@@ -1,13 +1,20 @@
-//! Elementwise maps over f32. Kernel: `shaders/unary.wgsl`.
+//! Elementwise maps over f32 and their backward. Kernel: `shaders/unary.wgsl`. Tests: the
+//! harness (`engine/tests/ops/cases.rs`, forward, backward and the reference against finite
+//! differences) and `engine/tests/ops/elementwise.rs` (extremes and stability).
 
 use crate::error::{Error, Result};
 use crate::fit_u32;
 use crate::kernels::args;
-use crate::kernels::UNARY_MAIN;
+use crate::kernels::{UNARY_BACKWARD, UNARY_MAIN};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
-/// The maps; the discriminants are the op codes in `shaders/unary.wgsl`.
+/// The maps, each one of the op codes `UNARY_OP_*` of `shaders/unary.wgsl` (exported by the
+/// build; `cases::every_op_code_of_a_shader_has_its_variant` checks that every code has one
+/// variant here and every variant a code). An op is added in three places: the shader (its code
+/// and its line in `apply`, and its derivative in `derivative`), here (the variant, its code,
+/// its f64 value and derivative in [`reference`]) and, if its inputs need a domain, one line of
+/// the harness's `unary_input`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Unary {
     /// alpha * x + beta
@@ -32,7 +39,8 @@ pub enum Unary {
 }
 
 impl Unary {
-    pub const ALL: [Unary; 16] = [
+    /// Every map (the affine one with one pair of coefficients).
+    pub const ALL: &[Unary] = &[
         Unary::Affine(1.5, -0.25),
         Unary::Exp,
         Unary::Log,
@@ -51,24 +59,26 @@ impl Unary {
         Unary::Cos,
     ];
 
-    fn code(self) -> (u32, f32, f32) {
+    /// The shader's op code, and the affine map's coefficients.
+    pub fn code(self) -> (u32, f32, f32) {
+        use crate::kernels as k;
         match self {
-            Unary::Affine(a, b) => (0, a, b),
-            Unary::Exp => (1, 0.0, 0.0),
-            Unary::Log => (2, 0.0, 0.0),
-            Unary::Sigmoid => (3, 0.0, 0.0),
-            Unary::Silu => (4, 0.0, 0.0),
-            Unary::Gelu => (5, 0.0, 0.0),
-            Unary::GeluTanh => (6, 0.0, 0.0),
-            Unary::Sqrt => (7, 0.0, 0.0),
-            Unary::Rsqrt => (8, 0.0, 0.0),
-            Unary::Abs => (9, 0.0, 0.0),
-            Unary::Tanh => (10, 0.0, 0.0),
-            Unary::Relu => (11, 0.0, 0.0),
-            Unary::Square => (12, 0.0, 0.0),
-            Unary::Recip => (13, 0.0, 0.0),
-            Unary::Sin => (14, 0.0, 0.0),
-            Unary::Cos => (15, 0.0, 0.0),
+            Unary::Affine(a, b) => (k::UNARY_OP_AFFINE, a, b),
+            Unary::Exp => (k::UNARY_OP_EXP, 0.0, 0.0),
+            Unary::Log => (k::UNARY_OP_LOG, 0.0, 0.0),
+            Unary::Sigmoid => (k::UNARY_OP_SIGMOID, 0.0, 0.0),
+            Unary::Silu => (k::UNARY_OP_SILU, 0.0, 0.0),
+            Unary::Gelu => (k::UNARY_OP_GELU, 0.0, 0.0),
+            Unary::GeluTanh => (k::UNARY_OP_GELU_TANH, 0.0, 0.0),
+            Unary::Sqrt => (k::UNARY_OP_SQRT, 0.0, 0.0),
+            Unary::Rsqrt => (k::UNARY_OP_RSQRT, 0.0, 0.0),
+            Unary::Abs => (k::UNARY_OP_ABS, 0.0, 0.0),
+            Unary::Tanh => (k::UNARY_OP_TANH, 0.0, 0.0),
+            Unary::Relu => (k::UNARY_OP_RELU, 0.0, 0.0),
+            Unary::Square => (k::UNARY_OP_SQUARE, 0.0, 0.0),
+            Unary::Recip => (k::UNARY_OP_RECIP, 0.0, 0.0),
+            Unary::Sin => (k::UNARY_OP_SIN, 0.0, 0.0),
+            Unary::Cos => (k::UNARY_OP_COS, 0.0, 0.0),
         }
     }
 }
@@ -95,6 +105,25 @@ pub fn unary_into(rec: &mut Recorder, x: &Tensor, y: &Tensor, f: Unary) -> Resul
         args::UnaryMainArgs { x, y },
         &Params { n, op, alpha, beta },
     )
+}
+
+/// `dx = dy * f'(x)`, a new tensor.
+pub fn unary_backward(rec: &mut Recorder, x: &Tensor, dy: &Tensor, f: Unary) -> Result<Tensor> {
+    if x.dtype() != DType::F32 || dy.dtype() != DType::F32 || x.shape() != dy.shape() {
+        return Err(Error::Shape(format!(
+            "unary {f:?} backward: x {x:?} and dy {dy:?} must be f32 of one shape"
+        )));
+    }
+    let n = fit_u32(x.numel(), || format!("unary {f:?} backward of {x:?}"))?;
+    let dx = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
+    let (op, alpha, beta) = f.code();
+    rec.dispatch_linear(
+        UNARY_BACKWARD,
+        (n as u64).div_ceil(256),
+        args::UnaryBackwardArgs { x, dy, dx: &dx },
+        &Params { n, op, alpha, beta },
+    )?;
+    Ok(dx)
 }
 
 pub mod reference {
@@ -149,7 +178,48 @@ pub mod reference {
         }
     }
 
+    /// f'(v).
+    pub fn derivative(f: Unary, v: f64) -> f64 {
+        let sigmoid = |v: f64| 1.0 / (1.0 + (-v).exp());
+        match f {
+            Unary::Affine(a, _) => a as f64,
+            Unary::Exp => v.exp(),
+            Unary::Log => 1.0 / v,
+            Unary::Sigmoid => sigmoid(v) * (1.0 - sigmoid(v)),
+            Unary::Silu => sigmoid(v) * (1.0 + v * (1.0 - sigmoid(v))),
+            Unary::Gelu => {
+                let cdf = 0.5 * (1.0 + erf(v / std::f64::consts::SQRT_2));
+                cdf + v * (-0.5 * v * v).exp() / (2.0 * std::f64::consts::PI).sqrt()
+            }
+            Unary::GeluTanh => {
+                let c = 0.797_884_560_802_865_4;
+                let t = (c * (v + 0.044715 * v * v * v)).tanh();
+                0.5 * (1.0 + t) + 0.5 * v * (1.0 - t * t) * c * (1.0 + 3.0 * 0.044715 * v * v)
+            }
+            Unary::Sqrt => 0.5 / v.sqrt(),
+            Unary::Rsqrt => -0.5 * v.powf(-1.5),
+            Unary::Abs => {
+                if v == 0.0 {
+                    0.0
+                } else {
+                    v.signum()
+                }
+            }
+            Unary::Tanh => 1.0 - v.tanh() * v.tanh(),
+            Unary::Relu => f64::from(u8::from(v > 0.0)),
+            Unary::Square => 2.0 * v,
+            Unary::Recip => -1.0 / (v * v),
+            Unary::Sin => v.cos(),
+            Unary::Cos => -v.sin(),
+        }
+    }
+
     pub fn unary(x: &[f32], f: Unary) -> Vec<f64> {
         x.iter().map(|&v| apply(f, v as f64)).collect()
+    }
+
+    /// `dy * f'(x)`.
+    pub fn unary_backward(x: &[f64], dy: &[f64], f: Unary) -> Vec<f64> {
+        x.iter().zip(dy).map(|(&v, &g)| g * derivative(f, v)).collect()
     }
 }

@@ -1,5 +1,6 @@
 //! The voxel decoder's head pre-activation, forward and backward, fused. Kernel:
-//! `shaders/voxel_head.wgsl` (the formulas are in its header).
+//! `shaders/voxel_head.wgsl` (the formulas are in its header). Tests: the harness
+//! (`engine/tests/ops/cases.rs`) and the voxel decoder's (`tests/models/voxel_decoder.rs`).
 
 use crate::error::{Error, Result};
 use crate::kernels::args;
@@ -102,6 +103,27 @@ pub mod reference {
                         }
                     }
                     out.push(x);
+                }
+            }
+        }
+        out
+    }
+
+    /// The gradient of `features [cells, F]` from `dpre [cells, per, h]`.
+    pub fn pre_backward(offsets: &[f64], dpre: &[f64], cells: usize, h: usize, directions: bool) -> Vec<f64> {
+        let per = offsets.len() / 3;
+        let f = if directions { 4 * h } else { h };
+        let mut out = vec![0.0; cells * f];
+        for c in 0..cells {
+            for v in 0..per {
+                for j in 0..h {
+                    let g = dpre[(c * per + v) * h + j];
+                    out[c * f + j] += g;
+                    if directions {
+                        for k in 0..3 {
+                            out[c * f + (k + 1) * h + j] += g * offsets[v * 3 + k];
+                        }
+                    }
                 }
             }
         }

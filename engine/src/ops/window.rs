@@ -30,6 +30,10 @@
 //!
 //! This is the layout variable-length segment attention takes: tokens gathered by `order`,
 //! segment bounds `offsets[..=S]`. Empty windows cost nothing.
+//!
+//! Tests: the harness's `window` row (`engine/tests/ops/cases.rs`: forward against the f64
+//! reference at awkward shapes); `engine/tests/ops/assign.rs` (grid geometry, border cells,
+//! grouping).
 
 use crate::error::{Error, Result};
 use crate::kernels::args;

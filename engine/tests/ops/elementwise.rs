@@ -48,7 +48,7 @@ fn cast_round_trips_f32_f16_f32() {
 fn unary_maps_match_reference() {
     let gpu = gpu();
     let mut rng = Rng::new(2);
-    for f in Unary::ALL {
+    for &f in Unary::ALL {
         for &n in &SIZES {
             // Domains where the map is finite; large magnitudes test saturation.
             let x: Vec<f32> = match f {
@@ -145,7 +145,7 @@ fn binary_broadcasts_match_reference() {
         (&[2, 1, 4, 5], &[3, 1, 1]),
         (&[6, 7, 8, 9, 10], &[7, 8, 9, 10]),
     ];
-    for op in Binary::ALL {
+    for &op in Binary::ALL {
         for &(sa, sb) in cases {
             let na: usize = sa.iter().product();
             let nb: usize = sb.iter().product();
@@ -351,47 +351,12 @@ fn column_copies_and_permutation_inverse() {
     assert!(copy_columns(&mut rec, &t, 0, &d, 2, 3, 1.0).is_err());
 }
 
+/// The voxel head's forward and backward are rows of the harness (`cases.rs`); this keeps the
+/// refusal of a features tensor of the wrong width.
 #[test]
-fn the_voxel_head_pre_activation_and_its_gradient_match_reference() {
+fn the_voxel_head_refuses_features_of_the_wrong_width() {
     use velox_engine::ops::voxel_head;
     let gpu = gpu();
-    let mut rng = Rng::new(44);
-    for (cells, per, h, directions) in [(3, 8, 5, false), (7, 27, 16, true), (1, 1, 1, true)] {
-        let f = if directions { 4 * h } else { h };
-        let (feat, emb, off) = (rng.normal_vec(cells * f), rng.normal_vec(per * h), rng.normal_vec(per * 3));
-        let dpre = rng.normal_vec(cells * per * h);
-        let t = |s: &[usize], d: &[f32]| Tensor::from_slice(&gpu, s, d).unwrap();
-        let (tf, te, to) = (t(&[cells, f], &feat), t(&[per, h], &emb), t(&[per, 3], &off));
-        let mut rec = gpu.recorder().unwrap();
-        let (pre, act) = voxel_head::forward(&mut rec, &tf, &te, &to, directions).unwrap();
-        let d =
-            voxel_head::backward(&mut rec, &tf, &te, &to, directions, &t(&[cells, per, h], &dpre)).unwrap();
-        rec.submit().unwrap();
-        let what = format!("voxel head {cells} cells x {per} x {h}, directions {directions}");
-        let want = voxel_head::reference::pre(&f64s(&feat), &f64s(&emb), &f64s(&off), h, directions);
-        assert_nmse(&format!("pre {what}"), &pre.read::<f32>().unwrap(), &want, 1e-13);
-        let gelu: Vec<f64> = want
-            .iter()
-            .map(|&x| 0.5 * x * (1.0 + velox_engine::ops::unary::reference::erf(x / 2f64.sqrt())))
-            .collect();
-        assert_nmse(&format!("gelu {what}"), &act.read::<f32>().unwrap(), &gelu, 1e-12);
-        // d features[c, k h + j] = sum_v dpre[c, v, j] (k = 0) or dpre[c, v, j] o[v, k - 1].
-        let mut dwant = vec![0.0f64; cells * f];
-        for c in 0..cells {
-            for v in 0..per {
-                for j in 0..h {
-                    let g = dpre[(c * per + v) * h + j] as f64;
-                    dwant[c * f + j] += g;
-                    if directions {
-                        for k in 0..3 {
-                            dwant[c * f + (k + 1) * h + j] += g * off[v * 3 + k] as f64;
-                        }
-                    }
-                }
-            }
-        }
-        assert_nmse(&format!("d features {what}"), &d.read::<f32>().unwrap(), &dwant, 1e-12);
-    }
     let mut rec = gpu.recorder().unwrap();
     let bad = Tensor::empty(&gpu, &[2, 7], DType::F32).unwrap();
     let (e, o) = (

@@ -1,7 +1,10 @@
 //! f64 references of the layers, in plain loops. Row-major arrays; `n` rows. The single-op
-//! references (norms, Fourier features, losses, the SwiGLU gate, GELU) live beside their
+//! references (norms, Fourier features, losses, the SwiGLU gate, GELU, adaLN) live beside their
 //! kernels' host sides in `engine/src/ops` and are re-exported here.
 
+pub use velox_engine::ops::adaln::reference::{
+    gated_residual, gated_residual_backward, modulate, modulate_backward,
+};
 pub use velox_engine::ops::fourier::reference::{fourier, fourier_backward};
 pub use velox_engine::ops::layernorm::reference::{layernorm, layernorm_backward};
 pub use velox_engine::ops::loss::reference::{loss, pointwise};
@@ -142,65 +145,4 @@ pub fn gelu_mlp_backward(
     let du = velox_engine::ops::gelu::reference::gelu_backward(&u, &dg);
     let (dx, dw1, db1) = linear_backward(x, w1, &du, n, d, h);
     [dx, dw1, db1, dw2, db2]
-}
-
-/// `y = x * (1 + scale) + shift`, `x [b, t, d]`, `shift`, `scale [b, d]`.
-pub fn modulate(x: &[f64], shift: &[f64], scale: &[f64], b: usize, t: usize, d: usize) -> Vec<f64> {
-    let mut y = vec![0.0; b * t * d];
-    for s in 0..b {
-        for k in 0..t {
-            for j in 0..d {
-                let i = (s * t + k) * d + j;
-                y[i] = x[i] * (1.0 + scale[s * d + j]) + shift[s * d + j];
-            }
-        }
-    }
-    y
-}
-
-/// Returns `(dx, dshift, dscale)`.
-pub fn modulate_backward(
-    x: &[f64],
-    scale: &[f64],
-    dy: &[f64],
-    b: usize,
-    t: usize,
-    d: usize,
-) -> [Vec<f64>; 3] {
-    let (mut dx, mut dshift, mut dscale) = (vec![0.0; b * t * d], vec![0.0; b * d], vec![0.0; b * d]);
-    for s in 0..b {
-        for k in 0..t {
-            for j in 0..d {
-                let i = (s * t + k) * d + j;
-                dx[i] = dy[i] * (1.0 + scale[s * d + j]);
-                dshift[s * d + j] += dy[i];
-                dscale[s * d + j] += dy[i] * x[i];
-            }
-        }
-    }
-    [dx, dshift, dscale]
-}
-
-/// `out = res + gate * y`, `res`, `y [b, t, d]`, `gate [b, d]`.
-pub fn gated_residual(res: &[f64], gate: &[f64], y: &[f64], b: usize, t: usize, d: usize) -> Vec<f64> {
-    (0..b * t * d).map(|i| res[i] + gate[(i / (t * d)) * d + i % d] * y[i]).collect()
-}
-
-/// Returns `(dres, dgate, dy)`.
-pub fn gated_residual_backward(
-    gate: &[f64],
-    y: &[f64],
-    dout: &[f64],
-    b: usize,
-    t: usize,
-    d: usize,
-) -> [Vec<f64>; 3] {
-    let mut dgate = vec![0.0; b * d];
-    let mut dy = vec![0.0; b * t * d];
-    for i in 0..b * t * d {
-        let g = (i / (t * d)) * d + i % d;
-        dgate[g] += dout[i] * y[i];
-        dy[i] = dout[i] * gate[g];
-    }
-    [dout.to_vec(), dgate, dy]
 }
