@@ -53,16 +53,20 @@ impl Precision {
     }
 }
 
-/// Which kernels f32 matrix products with a narrow side (64 or less) take in a recording.
+/// Which kernels f32 matrix products take in a recording.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum NarrowMatmul {
-    /// The device's own: `Rows` on CPU devices (lavapipe), `Tiles` on GPUs.
+    /// The device's own: on CPU devices (lavapipe) `Vec4` where the layout allows, else `Rows`
+    /// for a narrow side (64 or less); on GPUs `Tiles` for a narrow side and the 128x128 tile.
     #[default]
     Device,
     /// The narrow-tile kernels (`matmul_small.wgsl`), through workgroup memory.
     Tiles,
     /// One row of outputs per invocation, no workgroup memory (`matmul_rows.wgsl`).
     Rows,
+    /// The CPU kernel (`matmul_cpu.wgsl`: vec4 accesses, subgroup broadcasts) wherever its
+    /// layout conditions hold, whatever the device.
+    Vec4,
 }
 
 pub struct Recorder {

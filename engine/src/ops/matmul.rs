@@ -19,9 +19,10 @@ use crate::device::Gpu;
 use crate::error::{Error, Result};
 use crate::kernels::args;
 use crate::kernels::{
-    Kernel, MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN, MATMUL_FLAG_BIAS, MATMUL_FLAG_BIAS_PER_ENTRY,
-    MATMUL_FLAG_SUMMED, MATMUL_FLAG_TRANS_A, MATMUL_FLAG_TRANS_B, MATMUL_MAIN, MATMUL_MAIN_F16,
-    MATMUL_ROWS_MAIN, MATMUL_SMALL_TS32_MAIN, MATMUL_SMALL_TS64_MAIN,
+    Kernel, MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN, MATMUL_CPU_LAYOUT0_MAIN, MATMUL_CPU_LAYOUT1_MAIN,
+    MATMUL_CPU_LAYOUT2_MAIN, MATMUL_FLAG_BIAS, MATMUL_FLAG_BIAS_PER_ENTRY, MATMUL_FLAG_SUMMED,
+    MATMUL_FLAG_TRANS_A, MATMUL_FLAG_TRANS_B, MATMUL_MAIN, MATMUL_MAIN_F16, MATMUL_ROWS_MAIN,
+    MATMUL_SMALL_TS32_MAIN, MATMUL_SMALL_TS64_MAIN,
 };
 use crate::ops::binary::{binary_into, Binary};
 use crate::ops::reduce::{reduce_into, Reduce};
@@ -40,6 +41,9 @@ const NARROW: usize = 64;
 const NARROW_32: usize = 32;
 const ROWS_NC: usize = 16;
 const ROWS_WG: usize = 64;
+/// Output tile of the CPU kernel (`matmul_cpu.wgsl`): 8 rows x 32 columns, one SIMD group.
+const CPU_ROWS: usize = 8;
+const CPU_COLS: usize = 32;
 /// Workgroup memory the cooperative-matrix kernels declare. 16x16 fragments: two buffers of two
 /// 128x40 f16 tiles (40 KiB) and one 16x16 f32 staging slot per subgroup for edge tiles (8 KiB).
 /// 8x8 fragments: k step 16, so two buffers of two 128x24 tiles (24 KiB), and 8 KiB of slots.
@@ -67,6 +71,13 @@ enum MatmulKernel {
 impl MatmulKernel {
     fn is(self, k: TiledKernel) -> bool {
         self == MatmulKernel::Tiled(k)
+    }
+
+    /// The CPU kernel (any layout): it sums a batch itself and splits nothing along K.
+    fn is_cpu(self) -> bool {
+        [MATMUL_CPU_LAYOUT0_MAIN, MATMUL_CPU_LAYOUT1_MAIN, MATMUL_CPU_LAYOUT2_MAIN]
+            .into_iter()
+            .any(|k| self.is(k))
     }
 
     /// Whether the kernel has a bias binding (read where `MATMUL_FLAG_BIAS` is set).
@@ -211,6 +222,11 @@ pub fn coop_layout_ok(p: &Plan, trans_a: bool, trans_b: bool) -> bool {
 /// Which kernel a product of `dtype` operands runs on this device, for `velox info`.
 pub fn matmul_variant(gpu: &Gpu, dtype: DType) -> &'static str {
     match dtype {
+        DType::F32 if gpu.caps().kind == "CPU" && cpu_kernel_fits(gpu.caps()) => {
+            "CPU kernel: 8 rows x 32 columns per SIMD group of 8, vec4 loads, A shared by subgroup \
+             broadcasts, where the contiguous axes are multiples of 4; else 16 outputs of a row per \
+             invocation (a side of 64 or less) or the 128x128 tile (CPU device)"
+        }
         DType::F32 if gpu.caps().kind == "CPU" => {
             "tiled f32: 128x128 tile per 256 invocations, 8x8 per invocation, k step 8; \
              when M or N <= 64, 16 outputs of a row per invocation, no workgroup memory (CPU device)"
@@ -318,18 +334,18 @@ pub fn matmul_sum_into(
     check_out(a, b, out, &[p.m, p.n])?;
     let kernel = choose_kernel(a.gpu(), a.dtype(), &p, trans_a, trans_b, rec.narrow_matmul());
     let fits = u32::try_from(p.batch).is_ok() && [a, b].iter().all(|t| t.numel() <= u32::MAX as usize);
-    if !kernel.is(MATMUL_ROWS_MAIN) || !fits || p.m == 0 || p.n == 0 {
+    if !(kernel.is(MATMUL_ROWS_MAIN) || kernel.is_cpu()) || !fits || p.m == 0 || p.n == 0 {
         let parts = Tensor::empty(a.gpu(), &p.out_shape, DType::F32)?;
         product(rec, a, b, trans_a, trans_b, &parts, false, None)?;
         let parts = parts.reshape(&[p.batch, p.m, p.n])?;
         return reduce_into(rec, &parts, 0, Reduce::Sum, out, accumulate);
     }
-    let groups = grid(a.gpu(), MatmulKernel::Tiled(MATMUL_ROWS_MAIN), &p, 1)?;
+    let groups = grid(a.gpu(), kernel, &p, 1)?;
     let base = Params::of(&p, trans_a, trans_b, accumulate);
     let params = Params { flags: base.flags | MATMUL_FLAG_SUMMED, batch_base: p.batch as u32, ..base };
     let g = [groups[0] as u32, groups[1] as u32, 1];
     // The bias binding is unused (MATMUL_FLAG_BIAS clear): b stands in.
-    rec.dispatch(MATMUL_ROWS_MAIN, g, args::MatmulRowsMainArgs { a, b, out, bias: b }, &params)
+    kernel.dispatch(rec, g, [a, b, out, b], &params)
 }
 
 /// Fails unless `out` is f32 of `shape` and apart from the operands.
@@ -356,6 +372,7 @@ fn grid(gpu: &Gpu, kernel: MatmulKernel, p: &Plan, z: usize) -> Result<[usize; 3
         k if k.is(MATMUL_SMALL_TS32_MAIN) => (32, 32),
         k if k.is(MATMUL_SMALL_TS64_MAIN) => (64, 64),
         k if k.is(MATMUL_ROWS_MAIN) => (ROWS_WG, ROWS_NC),
+        k if k.is_cpu() => (CPU_ROWS, CPU_COLS),
         _ => (TILE, TILE),
     };
     let groups = [p.n.div_ceil(tn), p.m.div_ceil(tm), z];
@@ -408,7 +425,9 @@ fn product(
     }
     let params = Params::of(&p, trans_a, trans_b, accumulate);
     let tiles = groups[0] * groups[1];
-    let splits = split_k(p.batch, tiles, p.k);
+    // The CPU kernel has tiles enough for a CPU's threads, and K pieces would break its
+    // multiples of 4.
+    let splits = if kernel.is_cpu() { 1 } else { split_k(p.batch, tiles, p.k) };
     if splits > 1 && kernel.takes_bias() {
         let grid = [groups[0] as u32, groups[1] as u32];
         split_k_into(rec, kernel, grid, [a, b, out], &p, params, splits, accumulate)?;
@@ -416,7 +435,8 @@ fn product(
     }
     // The bias binding: the bias itself, or any buffer when there is none (nothing reads it).
     // Only the narrow-side kernel reads a bias per batch entry.
-    let fused = bias.filter(|_| kernel.takes_bias() && (!per_entry || kernel.is(MATMUL_ROWS_MAIN)));
+    let fused = bias
+        .filter(|_| kernel.takes_bias() && (!per_entry || kernel.is(MATMUL_ROWS_MAIN) || kernel.is_cpu()));
     let bias_flags = match (fused.is_some(), per_entry) {
         (false, _) => 0,
         (true, false) => MATMUL_FLAG_BIAS,
@@ -516,10 +536,20 @@ fn choose_kernel(
     narrow_choice: NarrowMatmul,
 ) -> MatmulKernel {
     if dtype == DType::F32 {
+        let vec4 = match narrow_choice {
+            NarrowMatmul::Device => gpu.caps().kind == "CPU",
+            NarrowMatmul::Vec4 => true,
+            NarrowMatmul::Rows | NarrowMatmul::Tiles => false,
+        };
+        if let Some(k) = cpu_kernel(p, trans_a, trans_b)
+            .filter(|&k| vec4 && cpu_kernel_fits(gpu.caps()) && gpu.supports(k))
+        {
+            return MatmulKernel::Tiled(k);
+        }
         let narrow = p.m.min(p.n);
         let rows = match narrow_choice {
             NarrowMatmul::Device => gpu.caps().kind == "CPU",
-            NarrowMatmul::Rows => true,
+            NarrowMatmul::Rows | NarrowMatmul::Vec4 => true,
             NarrowMatmul::Tiles => false,
         };
         return MatmulKernel::Tiled(if narrow <= NARROW && rows {
@@ -536,6 +566,26 @@ fn choose_kernel(
         Some(k) if gpu.supports(k) && coop_layout_ok(p, trans_a, trans_b) => MatmulKernel::Coop(k),
         _ => MatmulKernel::Tiled(MATMUL_MAIN_F16),
     }
+}
+
+/// The CPU kernel for a product's layout, where its axes allow it: the contiguous axis of each
+/// operand and of the output a multiple of 4 (vec4 accesses; tensors start on a storage offset
+/// alignment, at least 16 bytes), both operands read along their rows (a transposed, or b, but
+/// not both).
+fn cpu_kernel(p: &Plan, trans_a: bool, trans_b: bool) -> Option<TiledKernel> {
+    let n4 = p.n % 4 == 0;
+    match (trans_a, trans_b) {
+        (false, false) if n4 && p.k % 4 == 0 => Some(MATMUL_CPU_LAYOUT0_MAIN),
+        (true, false) if n4 && p.m % 4 == 0 => Some(MATMUL_CPU_LAYOUT1_MAIN),
+        (false, true) if n4 && p.k % 4 == 0 => Some(MATMUL_CPU_LAYOUT2_MAIN),
+        _ => None,
+    }
+}
+
+/// Whether the CPU kernel's workgroup of 8 lanes lies within one subgroup on this device (its
+/// broadcasts read the other lanes of the subgroup).
+fn cpu_kernel_fits(caps: &Caps) -> bool {
+    caps.min_subgroup_size >= 8
 }
 
 fn check_dtypes(a: &Tensor, b: &Tensor) -> Result<()> {

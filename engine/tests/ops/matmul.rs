@@ -11,9 +11,10 @@ use velox_engine::ops::matmul::{
 };
 use velox_engine::{Error, Gpu, NarrowMatmul, Recorder};
 
-/// Every f32 test runs on both kernels of narrow products (a side of 64 or less), whatever the
-/// device: the narrow-tile kernels, GPUs' choice, and the row kernel, CPU devices' choice.
-const NARROW_CHOICES: [NarrowMatmul; 2] = [NarrowMatmul::Tiles, NarrowMatmul::Rows];
+/// Every f32 test runs on each kernel choice, whatever the device: the narrow-tile kernels
+/// (GPUs' choice for a side of 64 or less), the row kernel and the CPU kernel (CPU devices'
+/// choices; the CPU kernel takes the products whose contiguous axes are multiples of 4).
+const NARROW_CHOICES: [NarrowMatmul; 3] = [NarrowMatmul::Tiles, NarrowMatmul::Rows, NarrowMatmul::Vec4];
 
 fn recorder(gpu: &Gpu, narrow: NarrowMatmul) -> Recorder {
     let mut rec = gpu.recorder().unwrap();
@@ -557,7 +558,11 @@ fn plan_broadcasts_and_names_sizes() {
 fn kernel_choice_follows_the_device() {
     let gpu = gpu();
     let caps = gpu.caps().clone();
-    assert!(matmul_variant(&gpu, DType::F32).contains("tiled f32"));
+    let f32_variant = matmul_variant(&gpu, DType::F32);
+    assert!(
+        f32_variant.contains("tiled f32") || (caps.kind == "CPU" && f32_variant.contains("CPU kernel")),
+        "{f32_variant}"
+    );
     if caps.coop_matrix_f16.is_none() {
         // lavapipe before Mesa 26 and other devices without cooperative matrices: the portable
         // f16 kernel.
@@ -711,4 +716,63 @@ fn a_batched_product_takes_a_bias_per_entry() {
         Tensor::empty(&gpu, &[k, din, dout], DType::F32).unwrap(),
     );
     assert!(matmul_bias(&mut rec, &xt, &wt, false, false, &wrong).is_err());
+}
+
+/// Would catch: a slip in the CPU kernel's indexing that no other shape reaches: every layout it
+/// takes (a [M, K] or [K, M], b [K, N] or [N, K]) at multiples of 4 that leave its 8 x 32 tile
+/// and its 4-deep K blocks partly filled, batched and broadcast operands, a bias (per column and
+/// per entry), accumulation and a sum over the batch; and the products it cannot take (an axis
+/// not a multiple of 4, both operands transposed) falling back to another kernel.
+#[test]
+fn the_cpu_kernel_takes_every_layout_with_partial_tiles() {
+    let gpu = gpu();
+    let mut rng = Rng::new(33);
+    let mut rec = recorder(&gpu, NarrowMatmul::Vec4);
+    let mut cases = Vec::new();
+    let list: [Sizes; 6] = [
+        (4, 4, 4, None, None),
+        (12, 36, 20, None, None),
+        (68, 132, 36, None, None),
+        (9, 40, 6, None, None),
+        (20, 12, 44, Some(3), Some(3)),
+        (36, 8, 12, Some(2), None),
+    ];
+    for &(m, n, k, ab, bb) in &list {
+        for (ta, tb) in [(false, false), (true, false), (false, true), (true, true)] {
+            let (sa, sb) = shapes(m, n, k, ta, tb, ab, bb);
+            let (a, b) = (rng.normal_vec(numel(&sa)), rng.normal_vec(numel(&sb)));
+            let batch = ab.or(bb).unwrap_or(1);
+            let bias = rng.normal_vec(batch * n);
+            let old = rng.normal_vec(batch * m * n);
+            let t = |s: &[usize], d: &[f32]| Tensor::from_slice(&gpu, s, d).unwrap();
+            let (at, bt) = (t(&sa, &a), t(&sb, &b));
+            let plain = matmul(&mut rec, &at, &bt, ta, tb).unwrap();
+            let shape = plain.shape().to_vec();
+            // One bias row, or one per batch entry.
+            let bias_shape = if batch > 1 { vec![batch, n] } else { vec![n] };
+            let biased = matmul_bias(&mut rec, &at, &bt, ta, tb, &t(&bias_shape, &bias)).unwrap();
+            let acc = t(&shape, &old);
+            matmul_into(&mut rec, &at, &bt, ta, tb, &acc, true).unwrap();
+            let (r, _) = reference::matmul(&f64s(&a), &sa, &f64s(&b), &sb, ta, tb).unwrap();
+            let with_bias: Vec<f64> =
+                r.iter().enumerate().map(|(i, v)| v + bias[(i / (m * n)) * n + i % n] as f64).collect();
+            let added: Vec<f64> = r.iter().zip(&old).map(|(v, &o)| v + o as f64).collect();
+            let what = format!("m={m} n={n} k={k} batches {ab:?} {bb:?} ta={ta} tb={tb}");
+            cases.push((what.clone(), plain, r));
+            cases.push((format!("{what} bias"), biased, with_bias));
+            cases.push((format!("{what} accumulate"), acc, added));
+            if batch > 1 {
+                let sum = t(&[m, n], &vec![f32::NAN; m * n]);
+                matmul_sum_into(&mut rec, &at, &bt, ta, tb, &sum, false).unwrap();
+                let want: Vec<f64> = (0..m * n)
+                    .map(|j| (0..batch).map(|z| cases[cases.len() - 3].2[z * m * n + j]).sum())
+                    .collect();
+                cases.push((format!("{what} summed"), sum, want));
+            }
+        }
+    }
+    rec.submit().unwrap();
+    for (what, out, want) in cases {
+        assert_nmse(&what, &out.read::<f32>().unwrap(), &want, F32_BOUND);
+    }
 }
