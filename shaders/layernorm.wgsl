@@ -1,3 +1,4 @@
+// @variants WG: 256 8
 // LayerNorm over the last axis: xhat = (x - mean) * rstd, rstd = 1 / sqrt(var + eps),
 // y = xhat * w + b when `affine`, else y = xhat (w and b are then not read; the host binds x in
 // their place). The variance is a second pass over (x - mean)^2, never E[x^2] - mean^2, so rows
@@ -34,10 +35,13 @@ var<immediate> pc: Params;
 
 // @include row_reduce.wgsl
 
-var<workgroup> partial2: array<f32, 256>;
+var<workgroup> partial2: array<f32, WG>;
 
 // Two sums at once (one set of barriers).
 fn reduce_sum2(lid: u32, lanes: u32, v: vec2<f32>) -> vec2<f32> {
+    if (lanes == 1u) {
+        return v;
+    }
     partial[lid] = v.x;
     partial2[lid] = v.y;
     workgroupBarrier();
@@ -54,7 +58,7 @@ fn reduce_sum2(lid: u32, lanes: u32, v: vec2<f32>) -> vec2<f32> {
     return r;
 }
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WG)
 fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
            @builtin(local_invocation_index) lid: u32) {
     let at = row_slot(wid, nwg, lid, pc.lanes, pc.rows);
@@ -90,7 +94,7 @@ fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
     }
 }
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WG)
 fn backward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
             @builtin(local_invocation_index) lid: u32) {
     let at = row_slot(wid, nwg, lid, pc.lanes, pc.rows);

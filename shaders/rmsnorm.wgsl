@@ -1,3 +1,4 @@
+// @variants WG: 256 8
 // RMSNorm over the last axis: y = x * rstd * w, rstd = 1 / sqrt(mean(x^2) + eps).
 // `forward` and `backward` give each row `pc.lanes` invocations and reduce in workgroup memory
 // (row_reduce.wgsl). `param_grads` gives each invocation one column and a chunk of rows
@@ -27,7 +28,7 @@ var<immediate> pc: Params;
 
 // @include row_reduce.wgsl
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WG)
 fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
            @builtin(local_invocation_index) lid: u32) {
     let at = row_slot(wid, nwg, lid, pc.lanes, pc.rows);
@@ -51,7 +52,7 @@ fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
     }
 }
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WG)
 fn backward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
             @builtin(local_invocation_index) lid: u32) {
     let at = row_slot(wid, nwg, lid, pc.lanes, pc.rows);

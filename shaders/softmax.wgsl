@@ -1,3 +1,4 @@
+// @variants WG: 256 8
 // Row softmax over rows of any length, `pc.lanes` invocations per row (row_reduce.wgsl). Three
 // passes over the row: the maximum, the sum of exp(x - max) (both reduced in workgroup
 // memory), then the normalised output. Subtracting the row maximum keeps every exponent <= 0,
@@ -15,7 +16,7 @@ var<immediate> pc: Params;
 
 // @include row_reduce.wgsl
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WG)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
         @builtin(local_invocation_index) lid: u32) {
     let at = row_slot(wid, nwg, lid, pc.lanes, pc.rows);

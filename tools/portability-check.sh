@@ -35,6 +35,9 @@ CONFIGS=(
   "subgroup-4|LP_NATIVE_VECTOR_WIDTH=128|all"
   "subgroup-16|LP_NATIVE_VECTOR_WIDTH=512|all"
   "subgroup-32|LP_NATIVE_VECTOR_WIDTH=1024|all"
+  # The GPU kernel variants on a CPU device, at lavapipe's width and NVIDIA's.
+  "gpu-kernels|VELOX_CPU_KERNELS=0|all"
+  "gpu-kernels-32|VELOX_CPU_KERNELS=0 LP_NATIVE_VECTOR_WIDTH=1024|ops"
   "poisoned-memory|LVP_POISON_MEMORY=true|all"
   "staging|VELOX_FORCE_STAGING=1|all"
   "no-f16|VELOX_DISABLE=f16|all"

@@ -4,7 +4,8 @@
 # none, the validation layers, Open MPI). Then it runs:
 #   1. the whole suite under the validation layer with synchronization checks
 #      (`VELOX_VALIDATE=1 cargo test --release`): any validation error fails the test that meets it;
-#   2. on lavapipe, the op-level tests at NVIDIA's subgroup width (LP_NATIVE_VECTOR_WIDTH=1024);
+#   2. on lavapipe, the op-level tests at NVIDIA's subgroup width (LP_NATIVE_VECTOR_WIDTH=1024),
+#      with the GPU kernel variants (VELOX_CPU_KERNELS=0) and with the CPU ones;
 #   3. the two-process test of data-parallel training over MPI.
 # tools/portability-check.sh runs the rest of the matrix (every width, poisoned memory, staging,
 # each fallback, SwiftShader).
@@ -22,10 +23,13 @@ VELOX_VALIDATE=1 cargo test --release
 # all of the output: with -q it could stop early, and pipefail would count the writer's broken
 # pipe as a failure, skipping this step.)
 if cargo run --release -q -- info 2>/dev/null | grep 'llvmpipe' >/dev/null; then
-  # The engine's op tests (the whole binary) and the layers built on them.
+  # The engine's op tests (the whole binary) and the layers built on them, with the GPU kernel
+  # variants (step 1 ran lavapipe's own, the CPU variants), and the op tests once more with the
+  # CPU variants at this width.
   export LP_NATIVE_VECTOR_WIDTH=1024
+  VELOX_CPU_KERNELS=0 cargo test --release -p velox-engine --test ops
+  VELOX_CPU_KERNELS=0 cargo test --release --test models -- attention_layer:: layers::
   cargo test --release -p velox-engine --test ops
-  cargo test --release --test models -- attention_layer:: layers::
   unset LP_NATIVE_VECTOR_WIDTH
 fi
 

@@ -66,6 +66,10 @@ pub struct Caps {
     /// dropped, instead of a device loss, at some cost in speed.
     pub robust_buffer_access_available: bool,
     pub robust_buffer_access: bool,
+    /// The kernel variants shaped for CPU devices (lavapipe, SwiftShader: one SIMD group a
+    /// workgroup, vec4 accesses, no workgroup barriers) instead of the GPU ones: on by default
+    /// on CPU devices, set either way by `VELOX_CPU_KERNELS=1` or `0`.
+    pub cpu_kernels: bool,
     /// The fallbacks forced by `VELOX_DISABLE` and `VELOX_MAX_BINDING` (see [`Switches`]), as
     /// `velox info` shows them; empty on a normal run.
     pub forced: Vec<String>,
@@ -94,6 +98,8 @@ pub struct Switches {
     pub max_binding: Option<u64>,
     /// `VELOX_ROBUST=1`: enable robust buffer access where the device offers it.
     pub robust: bool,
+    /// `VELOX_CPU_KERNELS`: the CPU devices' kernel variants forced on or off.
+    pub cpu_kernels: Option<bool>,
 }
 
 impl Switches {
@@ -104,6 +110,16 @@ impl Switches {
             std::env::var("VELOX_DISABLE").ok().as_deref(),
             std::env::var("VELOX_MAX_BINDING").ok().as_deref(),
         )?;
+        switches.cpu_kernels = match std::env::var("VELOX_CPU_KERNELS").ok().as_deref().map(str::trim) {
+            None | Some("") => None,
+            Some("1") => Some(true),
+            Some("0") => Some(false),
+            Some(other) => {
+                return Err(Error::Invalid(format!(
+                    "VELOX_CPU_KERNELS={other}: give 1 (the CPU devices' kernels) or 0 (the GPU ones)"
+                )))
+            }
+        };
         switches.robust = match std::env::var("VELOX_ROBUST").ok().as_deref().map(str::trim) {
             None | Some("" | "0") => false,
             Some("1") => true,
@@ -157,7 +173,7 @@ impl Switches {
                 }
             }
         };
-        Ok(Switches { disabled, max_binding, robust: false })
+        Ok(Switches { disabled, max_binding, robust: false, cpu_kernels: None })
     }
 
     pub fn disables(&self, name: &str) -> bool {
@@ -193,6 +209,12 @@ impl Switches {
                 caps.max_storage_buffer_range = b;
             }
             forced.push(format!("storage bindings of at most {b} bytes"));
+        }
+        if let Some(on) = self.cpu_kernels {
+            if on != caps.cpu_kernels {
+                forced.push(format!("{} kernels", if on { "CPU" } else { "GPU" }));
+            }
+            caps.cpu_kernels = on;
         }
         caps.robust_buffer_access = self.robust && caps.robust_buffer_access_available;
         if self.robust {
@@ -396,6 +418,7 @@ impl Caps {
                 portability_subset,
                 robust_buffer_access_available: base.robust_buffer_access == vk::TRUE,
                 robust_buffer_access: false,
+                cpu_kernels: p.device_type == vk::PhysicalDeviceType::CPU,
                 forced: Vec::new(),
             })
         }

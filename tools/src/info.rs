@@ -72,6 +72,10 @@ pub fn run(json_path: Option<&Path>, probe: bool) -> CliResult<()> {
     );
     println!("  validation        {} (VELOX_VALIDATE)", gpu.validation().name());
     println!(
+        "  kernels           {} variants (VELOX_CPU_KERNELS=1 or 0 chooses)",
+        if c.cpu_kernels { "CPU" } else { "GPU" }
+    );
+    println!(
         "  robust access     {} (VELOX_ROBUST=1 enables it{})",
         if c.robust_buffer_access { "on" } else { "off" },
         if c.robust_buffer_access_available { "" } else { "; this device does not offer it" }
@@ -81,7 +85,7 @@ pub fn run(json_path: Option<&Path>, probe: bool) -> CliResult<()> {
     }
     if !c.forced.is_empty() {
         println!(
-            "  forced fallbacks  {} (VELOX_DISABLE, VELOX_MAX_BINDING, VELOX_ROBUST)",
+            "  forced fallbacks  {} (VELOX_DISABLE, VELOX_MAX_BINDING, VELOX_ROBUST, VELOX_CPU_KERNELS)",
             c.forced.join(", ")
         );
     }
@@ -141,10 +145,11 @@ pub fn report(gpu: &Gpu) -> serde_json::Value {
         "timestamps": c.timestamps, "push_descriptors": c.push_descriptors,
         "validation": gpu.validation().name(), "forced_fallbacks": c.forced,
         "portability_subset": c.portability_subset, "robust_buffer_access": c.robust_buffer_access,
-        "vulkan_memory_model": c.vulkan_memory_model,
+        "vulkan_memory_model": c.vulkan_memory_model, "cpu_kernels": c.cpu_kernels,
         "variants": {
             "matmul f32": matmul::matmul_variant(gpu, DType::F32),
             "matmul f16": matmul::matmul_variant(gpu, DType::F16),
+            "rows (softmax, norms)": velox_engine::ops::rmsnorm::row_variant(gpu),
             "attention f16": velox_engine::ops::attention::f16_forward_variant(gpu, 32),
             "scatter-add": scatter_add::variant(gpu),
             "fps": velox_engine::ops::fps::variant(gpu).1,

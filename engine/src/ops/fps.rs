@@ -154,7 +154,7 @@ fn fps_with(
 /// 128 invocations and 16 KiB; the engine's other kernels already need 256).
 pub fn variant(gpu: &Gpu) -> (Kernel<Params, args::FpsWg256MainArgs<'static>>, String) {
     let caps = gpu.caps();
-    let wg = if caps.kind == "CPU" || !gpu.supports(FPS_WG1024_MAIN) { WG_CPU } else { WG_GPU };
+    let wg = if caps.cpu_kernels || !gpu.supports(FPS_WG1024_MAIN) { WG_CPU } else { WG_GPU };
     let kernel = if wg == WG_GPU { FPS_WG1024_MAIN } else { FPS_WG256_MAIN };
     let slots = |m: u32| m.div_ceil(wg);
     (

@@ -10,10 +10,11 @@
 
 use crate::error::{Error, Result};
 use crate::kernels::args;
-use crate::kernels::{LAYERNORM_BACKWARD, LAYERNORM_FORWARD, LAYERNORM_PARAM_GRADS};
-use crate::ops::rmsnorm::{
-    add_partials, check_residual, check_vector, chunking, row_groups, row_lanes, rows_and_width,
+use crate::kernels::{
+    LAYERNORM_WG256_BACKWARD, LAYERNORM_WG256_FORWARD, LAYERNORM_WG256_PARAM_GRADS, LAYERNORM_WG8_BACKWARD,
+    LAYERNORM_WG8_FORWARD,
 };
+use crate::ops::rmsnorm::{add_partials, check_residual, check_vector, chunking, rows_and_width, RowShape};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
@@ -47,13 +48,14 @@ pub fn layernorm(
     let y = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
     let mean = Tensor::empty(x.gpu(), stats_shape, DType::F32)?;
     let rstd = Tensor::empty(x.gpu(), stats_shape, DType::F32)?;
-    let lanes = row_lanes(w32);
+    let shape = RowShape::of(x.gpu(), w32);
     let affine = affine.is_some() as u32;
-    let p = Params { rows, width: w32, eps, rows_per_chunk: 0, affine, lanes, residual: 0, _pad: 0 };
+    let p =
+        Params { rows, width: w32, eps, rows_per_chunk: 0, affine, lanes: shape.lanes, residual: 0, _pad: 0 };
     rec.dispatch_linear(
-        LAYERNORM_FORWARD,
-        row_groups(rows, lanes),
-        args::LayernormForwardArgs { x, w, b, y: &y, mean: &mean, rstd: &rstd },
+        shape.pick(LAYERNORM_WG256_FORWARD, LAYERNORM_WG8_FORWARD),
+        shape.groups(rows),
+        args::LayernormWg256ForwardArgs { x, w, b, y: &y, mean: &mean, rstd: &rstd },
         &p,
     )?;
     Ok(LayerNormOut { y, mean, rstd })
@@ -90,22 +92,22 @@ pub fn layernorm_backward(
         None => x,
     };
     let dx = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
+    let shape = RowShape::of(x.gpu(), w32);
     let mut p = Params {
         rows,
         width: w32,
         eps: 0.0,
         rows_per_chunk: 0,
         affine: affine.is_some() as u32,
-        lanes: row_lanes(w32),
+        lanes: shape.lanes,
         residual: residual.is_some() as u32,
         _pad: 0,
     };
-    let groups = row_groups(rows, p.lanes);
     // Without a residual, dy stands in for the binding the kernel then does not read.
     rec.dispatch_linear(
-        LAYERNORM_BACKWARD,
-        groups,
-        args::LayernormBackwardArgs { x, w, mean, rstd, dy, dx: &dx, res: residual.unwrap_or(dy) },
+        shape.pick(LAYERNORM_WG256_BACKWARD, LAYERNORM_WG8_BACKWARD),
+        shape.groups(rows),
+        args::LayernormWg256BackwardArgs { x, w, mean, rstd, dy, dx: &dx, res: residual.unwrap_or(dy) },
         &p,
     )?;
     if let Some((_, dw, db)) = affine {
@@ -114,8 +116,9 @@ pub fn layernorm_backward(
         let shape = [chunks as usize, width];
         let dw_part = Tensor::empty(x.gpu(), &shape, DType::F32)?;
         let db_part = Tensor::empty(x.gpu(), &shape, DType::F32)?;
-        let args = args::LayernormParamGradsArgs { x, mean, rstd, dy, dw_part: &dw_part, db_part: &db_part };
-        rec.dispatch(LAYERNORM_PARAM_GRADS, [w32.div_ceil(64), chunks, 1], args, &p)?;
+        let args =
+            args::LayernormWg256ParamGradsArgs { x, mean, rstd, dy, dw_part: &dw_part, db_part: &db_part };
+        rec.dispatch(LAYERNORM_WG256_PARAM_GRADS, [w32.div_ceil(64), chunks, 1], args, &p)?;
         add_partials(rec, &dw_part, dw)?;
         add_partials(rec, &db_part, db)?;
     }

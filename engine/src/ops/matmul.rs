@@ -222,12 +222,12 @@ pub fn coop_layout_ok(p: &Plan, trans_a: bool, trans_b: bool) -> bool {
 /// Which kernel a product of `dtype` operands runs on this device, for `velox info`.
 pub fn matmul_variant(gpu: &Gpu, dtype: DType) -> &'static str {
     match dtype {
-        DType::F32 if gpu.caps().kind == "CPU" && cpu_kernel_fits(gpu.caps()) => {
+        DType::F32 if gpu.caps().cpu_kernels && cpu_kernel_fits(gpu.caps()) => {
             "CPU kernel: 8 rows x 32 columns per SIMD group of 8, vec4 loads, A shared by subgroup \
              broadcasts, where the contiguous axes are multiples of 4; else 16 outputs of a row per \
              invocation (a side of 64 or less) or the 128x128 tile (CPU device)"
         }
-        DType::F32 if gpu.caps().kind == "CPU" => {
+        DType::F32 if gpu.caps().cpu_kernels => {
             "tiled f32: 128x128 tile per 256 invocations, 8x8 per invocation, k step 8; \
              when M or N <= 64, 16 outputs of a row per invocation, no workgroup memory (CPU device)"
         }
@@ -537,7 +537,7 @@ fn choose_kernel(
 ) -> MatmulKernel {
     if dtype == DType::F32 {
         let vec4 = match narrow_choice {
-            NarrowMatmul::Device => gpu.caps().kind == "CPU",
+            NarrowMatmul::Device => gpu.caps().cpu_kernels,
             NarrowMatmul::Vec4 => true,
             NarrowMatmul::Rows | NarrowMatmul::Tiles => false,
         };
@@ -548,7 +548,7 @@ fn choose_kernel(
         }
         let narrow = p.m.min(p.n);
         let rows = match narrow_choice {
-            NarrowMatmul::Device => gpu.caps().kind == "CPU",
+            NarrowMatmul::Device => gpu.caps().cpu_kernels,
             NarrowMatmul::Rows | NarrowMatmul::Vec4 => true,
             NarrowMatmul::Tiles => false,
         };
@@ -573,11 +573,11 @@ fn choose_kernel(
 /// alignment, at least 16 bytes), both operands read along their rows (a transposed, or b, but
 /// not both).
 fn cpu_kernel(p: &Plan, trans_a: bool, trans_b: bool) -> Option<TiledKernel> {
-    let n4 = p.n % 4 == 0;
+    let n4 = p.n.is_multiple_of(4);
     match (trans_a, trans_b) {
-        (false, false) if n4 && p.k % 4 == 0 => Some(MATMUL_CPU_LAYOUT0_MAIN),
-        (true, false) if n4 && p.m % 4 == 0 => Some(MATMUL_CPU_LAYOUT1_MAIN),
-        (false, true) if n4 && p.k % 4 == 0 => Some(MATMUL_CPU_LAYOUT2_MAIN),
+        (false, false) if n4 && p.k.is_multiple_of(4) => Some(MATMUL_CPU_LAYOUT0_MAIN),
+        (true, false) if n4 && p.m.is_multiple_of(4) => Some(MATMUL_CPU_LAYOUT1_MAIN),
+        (false, true) if n4 && p.k.is_multiple_of(4) => Some(MATMUL_CPU_LAYOUT2_MAIN),
         _ => None,
     }
 }

@@ -26,7 +26,7 @@ pub const MAX_GROUPS_CPU: usize = 16;
 
 /// Workgroups of the first stage per chunk on `gpu`.
 pub fn max_groups(gpu: &crate::Gpu) -> usize {
-    if gpu.caps().kind == "CPU" {
+    if gpu.caps().cpu_kernels {
         MAX_GROUPS_CPU
     } else {
         MAX_GROUPS

@@ -9,7 +9,10 @@
 
 use crate::error::{Error, Result};
 use crate::kernels::args;
-use crate::kernels::{RMSNORM_BACKWARD, RMSNORM_FORWARD, RMSNORM_PARAM_GRADS};
+use crate::kernels::{
+    RMSNORM_WG256_BACKWARD, RMSNORM_WG256_FORWARD, RMSNORM_WG256_PARAM_GRADS, RMSNORM_WG8_BACKWARD,
+    RMSNORM_WG8_FORWARD,
+};
 use crate::ops::reduce::{reduce_into, Reduce};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
@@ -35,16 +38,51 @@ pub(crate) fn check_vector(what: &str, t: &Tensor, width: usize) -> Result<()> {
     Ok(())
 }
 
-/// Invocations per row of the row kernels (`shaders/include/row_reduce.wgsl`): a power of two
-/// giving each about 4 elements, at most 256 (one row per workgroup). Narrow rows (the widths
-/// of 32 to 128 of the small models) then share a workgroup instead of idling most of it.
-pub(crate) fn row_lanes(width: u32) -> u32 {
-    width.div_ceil(4).next_power_of_two().clamp(1, 256)
+/// How the row kernels (`shaders/include/row_reduce.wgsl`) run on a device. GPUs: workgroups
+/// of 256 and a power of two of invocations per row giving each about 4 elements (narrow rows,
+/// the widths of 32 to 128 of the small models, then share a workgroup instead of idling most
+/// of it). CPU devices (`Caps::cpu_kernels`): the variant of workgroups of 8, one SIMD group on
+/// lavapipe, with a row per invocation and no barrier; a barrier in a workgroup of 256 costs
+/// a switch between its 32 SIMD groups there.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct RowShape {
+    pub cpu: bool,
+    pub lanes: u32,
+    pub wg: u32,
 }
 
-/// Workgroups of a row kernel over `rows` rows of `lanes` invocations each.
-pub(crate) fn row_groups(rows: u32, lanes: u32) -> u64 {
-    rows.div_ceil(256 / lanes) as u64
+impl RowShape {
+    pub(crate) fn of(gpu: &crate::Gpu, width: u32) -> RowShape {
+        if gpu.caps().cpu_kernels {
+            RowShape { cpu: true, lanes: 1, wg: 8 }
+        } else {
+            RowShape { cpu: false, lanes: width.div_ceil(4).next_power_of_two().clamp(1, 256), wg: 256 }
+        }
+    }
+
+    /// Workgroups over `rows` rows.
+    pub(crate) fn groups(&self, rows: u32) -> u64 {
+        rows.div_ceil(self.wg / self.lanes) as u64
+    }
+
+    /// The variant of a row kernel this shape runs.
+    pub(crate) fn pick<K>(&self, gpu_kernel: K, cpu_kernel: K) -> K {
+        if self.cpu {
+            cpu_kernel
+        } else {
+            gpu_kernel
+        }
+    }
+}
+
+/// Which variant the row kernels (softmax, RMSNorm, LayerNorm) run on this device, for `velox
+/// info`.
+pub fn row_variant(gpu: &crate::Gpu) -> &'static str {
+    if gpu.caps().cpu_kernels {
+        "a row per invocation in workgroups of 8 (one SIMD group), no barriers; softmax rows of a multiple of 4 as vec4s, in two passes (CPU kernels)"
+    } else {
+        "workgroups of 256, a power of two of invocations per row, reductions in workgroup memory"
+    }
 }
 
 /// Rows each invocation of a `param_grads` kernel sums: at least 256, and few enough chunks to
@@ -77,12 +115,12 @@ pub fn rmsnorm(rec: &mut Recorder, x: &Tensor, w: &Tensor, eps: f32) -> Result<(
     let (rows, width) = rows_and_width("rmsnorm", x, width)?;
     let y = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
     let rstd = Tensor::empty(x.gpu(), &x.shape()[..x.shape().len() - 1], DType::F32)?;
-    let lanes = row_lanes(width);
-    let p = Params { rows, width, eps, rows_per_chunk: 0, lanes, residual: 0 };
+    let shape = RowShape::of(x.gpu(), width);
+    let p = Params { rows, width, eps, rows_per_chunk: 0, lanes: shape.lanes, residual: 0 };
     rec.dispatch_linear(
-        RMSNORM_FORWARD,
-        row_groups(rows, lanes),
-        args::RmsnormForwardArgs { x, w, y: &y, rstd: &rstd },
+        shape.pick(RMSNORM_WG256_FORWARD, RMSNORM_WG8_FORWARD),
+        shape.groups(rows),
+        args::RmsnormWg256ForwardArgs { x, w, y: &y, rstd: &rstd },
         &p,
     )?;
     Ok((y, rstd))
@@ -109,21 +147,28 @@ pub fn rmsnorm_backward(
     }
     check_residual("rmsnorm backward", residual, x)?;
     let dx = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
-    let lanes = row_lanes(width);
-    let mut p =
-        Params { rows, width, eps: 0.0, rows_per_chunk: 0, lanes, residual: residual.is_some() as u32 };
+    let shape = RowShape::of(x.gpu(), width);
+    let mut p = Params {
+        rows,
+        width,
+        eps: 0.0,
+        rows_per_chunk: 0,
+        lanes: shape.lanes,
+        residual: residual.is_some() as u32,
+    };
     // Without a residual, dy stands in for the binding the kernel then does not read.
-    let args = args::RmsnormBackwardArgs { x, w, rstd, dy, dx: &dx, res: residual.unwrap_or(dy) };
-    rec.dispatch_linear(RMSNORM_BACKWARD, row_groups(rows, lanes), args, &p)?;
+    let args = args::RmsnormWg256BackwardArgs { x, w, rstd, dy, dx: &dx, res: residual.unwrap_or(dy) };
+    let kernel = shape.pick(RMSNORM_WG256_BACKWARD, RMSNORM_WG8_BACKWARD);
+    rec.dispatch_linear(kernel, shape.groups(rows), args, &p)?;
     if let Some(dw) = dw {
         check_vector("rmsnorm weight gradient", dw, width as usize)?;
         let (per, chunks) = chunking(rows, x.gpu().caps().max_workgroup_count[1]);
         p.rows_per_chunk = per;
         let partial = Tensor::empty(x.gpu(), &[chunks as usize, width as usize], DType::F32)?;
         rec.dispatch(
-            RMSNORM_PARAM_GRADS,
+            RMSNORM_WG256_PARAM_GRADS,
             [width.div_ceil(64), chunks, 1],
-            args::RmsnormParamGradsArgs { x, rstd, dy, dw_part: &partial },
+            args::RmsnormWg256ParamGradsArgs { x, rstd, dy, dw_part: &partial },
             &p,
         )?;
         add_partials(rec, &partial, dw)?;

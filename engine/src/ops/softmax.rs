@@ -1,4 +1,6 @@
-//! Softmax over the last axis. Kernel: `shaders/softmax.wgsl`.
+//! Softmax over the last axis. Kernels: `shaders/softmax.wgsl` (rows of any length; its
+//! workgroup of 256 for GPUs, of 8 with a row per invocation for CPU devices) and
+//! `shaders/softmax_cpu.wgsl` (CPU devices, rows of a multiple of 4, as vec4s).
 //!
 //! Tests: the harness's `softmax` row (`engine/tests/ops/cases.rs`: forward against the f64
 //! reference at awkward shapes); `engine/tests/ops/elementwise.rs` (stability on long and extreme
@@ -6,8 +8,8 @@
 
 use crate::error::{Error, Result};
 use crate::kernels::args;
-use crate::kernels::SOFTMAX_MAIN;
-use crate::ops::rmsnorm::{row_groups, row_lanes};
+use crate::kernels::{SOFTMAX_CPU_MAIN, SOFTMAX_WG256_MAIN, SOFTMAX_WG8_MAIN};
+use crate::ops::rmsnorm::RowShape;
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
@@ -25,12 +27,24 @@ pub fn softmax(rec: &mut Recorder, x: &Tensor) -> Result<Tensor> {
     let fit = |v: usize| fit_u32(v, || format!("softmax of {x:?}"));
     fit(x.numel())?;
     let (rows, len) = (fit(rows)?, fit(len)?);
-    let lanes = row_lanes(len);
+    let shape = RowShape::of(x.gpu(), len);
+    if shape.cpu && len.is_multiple_of(4) {
+        // Rows of vec4s (`shaders/softmax_cpu.wgsl`).
+        let p = crate::kernels::params::SoftmaxCpuParams { rows, len, lanes: 1 };
+        return rec
+            .dispatch_linear(
+                SOFTMAX_CPU_MAIN,
+                shape.groups(rows),
+                args::SoftmaxCpuMainArgs { x, y: &out },
+                &p,
+            )
+            .map(|_| out);
+    }
     rec.dispatch_linear(
-        SOFTMAX_MAIN,
-        row_groups(rows, lanes),
-        args::SoftmaxMainArgs { x, y: &out },
-        &Params { rows, len, lanes },
+        shape.pick(SOFTMAX_WG256_MAIN, SOFTMAX_WG8_MAIN),
+        shape.groups(rows),
+        args::SoftmaxWg256MainArgs { x, y: &out },
+        &Params { rows, len, lanes: shape.lanes },
     )?;
     Ok(out)
 }
