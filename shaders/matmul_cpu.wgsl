@@ -9,11 +9,13 @@
 // the lane that holds it. On lavapipe 25 this ran 256^3 at 11.9 GFLOP/s and 10000x64x256 at
 // 11.8, against 4.1 and 1.8 for the tiled and row kernels (docs/decisions/kernels.md).
 //
-// The same push constants, strides, flags, bias and output layout as matmul.wgsl (see
-// matmul_params.wgsl); host side engine/src/ops/matmul.rs, which takes it only where the
-// contiguous axes are multiples of 4: LAYOUT 0 (a [M, K], b [K, N]) and 2 (b [N, K]) need
-// K and N so, LAYOUT 1 (a [K, M]) M and N. Needs subgroups of at least 8 lanes (one workgroup is
-// then within one subgroup).
+// Any shape and layout runs: where an operand's contiguous axis is not a multiple of 4, its
+// values are read one by one at the strides of the push constants (MATMUL_FLAG_A_SCALAR,
+// MATMUL_FLAG_B_SCALAR), and where N is not, the outputs are written one by one. LAYOUT
+// chooses the vec4 reads: 0, A along K ([M, K]) and B along N ([K, N]); 1, A along M ([K, M],
+// transposed); 2, B along K ([N, K], transposed). The same push constants, strides, flags, bias
+// and output layout as matmul.wgsl (matmul_params.wgsl); host side engine/src/ops/matmul.rs.
+// Needs subgroups of at least 8 lanes (one workgroup is then within one subgroup).
 
 // @include matmul_params.wgsl
 
@@ -24,8 +26,15 @@
 @group(0) @binding(3) var<storage, read> bias: array<vec4<f32>>;
 var<immediate> pc: Params;
 
-// 0: a [M, K] and b [K, N]; 1: a transposed, [K, M]; 2: b transposed, [N, K].
 const LAYOUT: u32 = 0u;
+
+// One f32 of a vec4 array, by element index (the scalar paths).
+fn a_at(i: u32) -> f32 {
+    return a[i >> 2u][i & 3u];
+}
+fn b_at(i: u32) -> f32 {
+    return b[i >> 2u][i & 3u];
+}
 
 @compute @workgroup_size(8)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
@@ -33,10 +42,14 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     let m4 = pc.m / 4u;
     let n4 = pc.n / 4u;
     let k4 = pc.k / 4u;
+    // Groups of 4 columns (the last one partial where N is not a multiple of 4).
+    let groups = (pc.n + 3u) / 4u;
     let col4 = wid.x * 8u + lid;
     // Loads clamp to the last row or column; what they read there is never stored.
-    let cl = min(col4, n4 - 1u);
+    let cl = min(col4, groups - 1u);
     let r0 = wid.y * 8u;
+    let a_scalar = (pc.flags & MATMUL_FLAG_A_SCALAR) != 0u;
+    let b_scalar = (pc.flags & MATMUL_FLAG_B_SCALAR) != 0u;
     var c0 = vec4<f32>(0.0);
     var c1 = vec4<f32>(0.0);
     var c2 = vec4<f32>(0.0);
@@ -50,20 +63,27 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     let entries = select(1u, pc.batch_base, summed);
     let first = select(z, 0u, summed);
     for (var e = 0u; e < entries; e++) {
-        // Batch strides are in elements, multiples of 4 where this kernel runs.
-        let za = (first + e) * (pc.a_batch / 4u);
-        let zb = (first + e) * (pc.b_batch / 4u);
+        // Batch offsets in elements (multiples of 4 on the vec4 paths).
+        let za = (first + e) * pc.a_batch;
+        let zb = (first + e) * pc.b_batch;
         for (var kb = 0u; kb < (pc.k + 3u) / 4u; kb++) {
             // The 8 x 4 block of A (rows r0.., k 4 kb..), a vec4 a lane.
             var av: vec4<f32>;
             if LAYOUT == 1u {
                 // a [K, M]: lane l holds k = 4 kb + l / 2, rows r0 + 4 (l % 2) ..; past K, zeros.
                 let kk = kb * 4u + lid / 2u;
-                av = a[za + min(kk, pc.k - 1u) * m4 + min(r0 / 4u + lid % 2u, m4 - 1u)];
+                av = a[za / 4u + min(kk, pc.k - 1u) * m4 + min(r0 / 4u + lid % 2u, m4 - 1u)];
                 av = select(vec4<f32>(0.0), av, kk < pc.k);
+            } else if a_scalar {
+                // Lane l holds row r0 + l, k 4 kb .. (zeros past K), at the push constants' strides.
+                let at = za + min(r0 + lid, pc.m - 1u) * pc.a_row;
+                for (var j = 0u; j < 4u; j++) {
+                    let kk = kb * 4u + j;
+                    av[j] = select(0.0, a_at(at + min(kk, pc.k - 1u) * pc.a_col), kk < pc.k);
+                }
             } else {
                 // a [M, K]: lane l holds row r0 + l, k 4 kb ..
-                av = a[za + min(r0 + lid, pc.m - 1u) * k4 + kb];
+                av = a[za / 4u + min(r0 + lid, pc.m - 1u) * k4 + kb];
             }
             // B at k = 4 kb + j, the lane's 4 columns.
             var b0: vec4<f32>;
@@ -72,19 +92,33 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
             var b3: vec4<f32>;
             if LAYOUT == 2u {
                 // b [N, K]: rows 4 cl + j of it hold the 4 k of column j; transpose the 4 x 4.
-                let t0 = b[zb + min(cl * 4u + 0u, pc.n - 1u) * k4 + kb];
-                let t1 = b[zb + min(cl * 4u + 1u, pc.n - 1u) * k4 + kb];
-                let t2 = b[zb + min(cl * 4u + 2u, pc.n - 1u) * k4 + kb];
-                let t3 = b[zb + min(cl * 4u + 3u, pc.n - 1u) * k4 + kb];
+                let t0 = b[zb / 4u + min(cl * 4u + 0u, pc.n - 1u) * k4 + kb];
+                let t1 = b[zb / 4u + min(cl * 4u + 1u, pc.n - 1u) * k4 + kb];
+                let t2 = b[zb / 4u + min(cl * 4u + 2u, pc.n - 1u) * k4 + kb];
+                let t3 = b[zb / 4u + min(cl * 4u + 3u, pc.n - 1u) * k4 + kb];
                 b0 = vec4<f32>(t0.x, t1.x, t2.x, t3.x);
                 b1 = vec4<f32>(t0.y, t1.y, t2.y, t3.y);
                 b2 = vec4<f32>(t0.z, t1.z, t2.z, t3.z);
                 b3 = vec4<f32>(t0.w, t1.w, t2.w, t3.w);
+            } else if b_scalar {
+                // One by one at the push constants' strides (A is zero past K, so a clamped k
+                // reads a value that counts for nothing).
+                var t: array<vec4<f32>, 4>;
+                for (var j = 0u; j < 4u; j++) {
+                    let row = zb + min(kb * 4u + j, pc.k - 1u) * pc.b_row;
+                    for (var c = 0u; c < 4u; c++) {
+                        t[j][c] = b_at(row + min(cl * 4u + c, pc.n - 1u) * pc.b_col);
+                    }
+                }
+                b0 = t[0];
+                b1 = t[1];
+                b2 = t[2];
+                b3 = t[3];
             } else {
-                b0 = b[zb + min(kb * 4u + 0u, pc.k - 1u) * n4 + cl];
-                b1 = b[zb + min(kb * 4u + 1u, pc.k - 1u) * n4 + cl];
-                b2 = b[zb + min(kb * 4u + 2u, pc.k - 1u) * n4 + cl];
-                b3 = b[zb + min(kb * 4u + 3u, pc.k - 1u) * n4 + cl];
+                b0 = b[zb / 4u + min(kb * 4u + 0u, pc.k - 1u) * n4 + cl];
+                b1 = b[zb / 4u + min(kb * 4u + 1u, pc.k - 1u) * n4 + cl];
+                b2 = b[zb / 4u + min(kb * 4u + 2u, pc.k - 1u) * n4 + cl];
+                b3 = b[zb / 4u + min(kb * 4u + 3u, pc.k - 1u) * n4 + cl];
             }
             // A[r0 + i, 4 kb + j] is lane i's component j (layouts 0, 2), or lane 2 j + i / 4's
             // component i % 4 (layout 1): broadcast from there, one row a line.
@@ -126,34 +160,54 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
             c7 = fma(vec4<f32>(select(subgroupBroadcast(av.w, 7u), subgroupBroadcast(av.w, 7u), LAYOUT == 1u)), b3, c7);
         }
     }
-    if col4 >= n4 {
+    if col4 >= groups {
         return;
     }
-    let o = select(z, 0u, summed) * pc.m * n4 + col4;
-    let bias_at = select(0u, z * n4, (pc.flags & MATMUL_FLAG_BIAS_PER_ENTRY) != 0u) + col4;
-    store(r0 + 0u, o, bias_at, n4, c0);
-    store(r0 + 1u, o, bias_at, n4, c1);
-    store(r0 + 2u, o, bias_at, n4, c2);
-    store(r0 + 3u, o, bias_at, n4, c3);
-    store(r0 + 4u, o, bias_at, n4, c4);
-    store(r0 + 5u, o, bias_at, n4, c5);
-    store(r0 + 6u, o, bias_at, n4, c6);
-    store(r0 + 7u, o, bias_at, n4, c7);
+    let entry = select(z, 0u, summed);
+    let bias_row = select(0u, z, (pc.flags & MATMUL_FLAG_BIAS_PER_ENTRY) != 0u);
+    store(r0 + 0u, entry, bias_row, col4, c0);
+    store(r0 + 1u, entry, bias_row, col4, c1);
+    store(r0 + 2u, entry, bias_row, col4, c2);
+    store(r0 + 3u, entry, bias_row, col4, c3);
+    store(r0 + 4u, entry, bias_row, col4, c4);
+    store(r0 + 5u, entry, bias_row, col4, c5);
+    store(r0 + 6u, entry, bias_row, col4, c6);
+    store(r0 + 7u, entry, bias_row, col4, c7);
 }
 
-// Writes row `row`'s vec4 of outputs (skipped past M), with the bias and onto the output when
-// accumulating.
-fn store(row: u32, o: u32, bias_at: u32, n4: u32, value: vec4<f32>) {
+// Writes row `row`'s 4 outputs from column 4 col4 (skipped past M, and past N one by one), with
+// the bias and onto the output when accumulating.
+fn store(row: u32, entry: u32, bias_row: u32, col4: u32, value: vec4<f32>) {
     if row >= pc.m {
         return;
     }
-    var x = value;
-    if (pc.flags & MATMUL_FLAG_BIAS) != 0u {
-        x += bias[bias_at];
+    let with_bias = (pc.flags & MATMUL_FLAG_BIAS) != 0u;
+    if pc.n % 4u == 0u {
+        let n4 = pc.n / 4u;
+        var x = value;
+        if with_bias {
+            x += bias[bias_row * n4 + col4];
+        }
+        let at = (entry * pc.m + row) * n4 + col4;
+        if pc.accumulate != 0u {
+            x += out[at];
+        }
+        out[at] = x;
+        return;
     }
-    let at = o + row * n4;
-    if pc.accumulate != 0u {
-        x += out[at];
+    for (var c = 0u; c < 4u; c++) {
+        let col = col4 * 4u + c;
+        if col < pc.n {
+            var x = value[c];
+            if with_bias {
+                let bi = bias_row * pc.n + col;
+                x += bias[bi >> 2u][bi & 3u];
+            }
+            let at = (entry * pc.m + row) * pc.n + col;
+            if pc.accumulate != 0u {
+                x += out[at >> 2u][at & 3u];
+            }
+            out[at >> 2u][at & 3u] = x;
+        }
     }
-    out[at] = x;
 }

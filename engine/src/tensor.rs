@@ -54,7 +54,8 @@ impl Buffer {
     pub(crate) fn new(gpu: &Gpu, size: u64, location: MemoryLocation, name: &str) -> Result<Buffer> {
         let caps = gpu.caps();
         // Vulkan forbids empty buffers; 16 bytes also keeps f16 tails in whole words.
-        let size = size.max(16).next_multiple_of(4);
+        // Whole vec4s: a kernel may read a tensor's last 16 bytes as one (binding_range).
+        let size = size.max(16).next_multiple_of(16);
         if size > caps.max_buffer_size {
             return Err(Error::too_large(
                 Limit::Buffer,
@@ -270,11 +271,13 @@ impl Tensor {
         bytes.div_ceil(self.dtype.size())
     }
 
-    /// The byte range to bind: the tensor's bytes rounded up to whole words, at least one word,
-    /// never past the buffer.
+    /// The byte range to bind: the tensor's bytes rounded up to whole vec4s (16 bytes, which
+    /// kernels reading f32 tensors in vec4s rely on: buffers are allocated so, and views start on
+    /// the storage offset alignment, at least 16), never past the buffer nor the device's range.
     pub(crate) fn binding_range(&self) -> (u64, u64) {
-        let range = self.bytes().next_multiple_of(4).max(4).min(self.buf.size - self.offset);
-        (self.offset, range)
+        let max = self.gpu().caps().max_storage_buffer_range;
+        let range = self.bytes().next_multiple_of(16).max(16).min(self.buf.size - self.offset);
+        (self.offset, range.min(max.max(self.bytes().next_multiple_of(4))))
     }
 
     /// Whether two tensors share storage.

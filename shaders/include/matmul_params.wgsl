@@ -14,6 +14,10 @@ const MATMUL_FLAG_BIAS: u32 = 4u;
 const MATMUL_FLAG_SUMMED: u32 = 8u;
 // matmul_rows.wgsl, with MATMUL_FLAG_BIAS: the bias holds a row per batch entry, [batch, N].
 const MATMUL_FLAG_BIAS_PER_ENTRY: u32 = 16u;
+// matmul_cpu.wgsl: read A (B) one value at a time, at the strides (its contiguous axis is not
+// a multiple of 4).
+const MATMUL_FLAG_A_SCALAR: u32 = 32u;
+const MATMUL_FLAG_B_SCALAR: u32 = 64u;
 
 struct Params {
     m: u32,

@@ -20,9 +20,9 @@ use crate::error::{Error, Result};
 use crate::kernels::args;
 use crate::kernels::{
     Kernel, MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN, MATMUL_CPU_LAYOUT0_MAIN, MATMUL_CPU_LAYOUT1_MAIN,
-    MATMUL_CPU_LAYOUT2_MAIN, MATMUL_FLAG_BIAS, MATMUL_FLAG_BIAS_PER_ENTRY, MATMUL_FLAG_SUMMED,
-    MATMUL_FLAG_TRANS_A, MATMUL_FLAG_TRANS_B, MATMUL_MAIN, MATMUL_MAIN_F16, MATMUL_ROWS_MAIN,
-    MATMUL_SMALL_TS32_MAIN, MATMUL_SMALL_TS64_MAIN,
+    MATMUL_CPU_LAYOUT2_MAIN, MATMUL_FLAG_A_SCALAR, MATMUL_FLAG_BIAS, MATMUL_FLAG_BIAS_PER_ENTRY,
+    MATMUL_FLAG_B_SCALAR, MATMUL_FLAG_SUMMED, MATMUL_FLAG_TRANS_A, MATMUL_FLAG_TRANS_B, MATMUL_MAIN,
+    MATMUL_MAIN_F16, MATMUL_ROWS_MAIN, MATMUL_SMALL_TS32_MAIN, MATMUL_SMALL_TS64_MAIN,
 };
 use crate::ops::binary::{binary_into, Binary};
 use crate::ops::reduce::{reduce_into, Reduce};
@@ -223,9 +223,9 @@ pub fn coop_layout_ok(p: &Plan, trans_a: bool, trans_b: bool) -> bool {
 pub fn matmul_variant(gpu: &Gpu, dtype: DType) -> &'static str {
     match dtype {
         DType::F32 if gpu.caps().cpu_kernels && cpu_kernel_fits(gpu.caps()) => {
-            "CPU kernel: 8 rows x 32 columns per SIMD group of 8, vec4 loads, A shared by subgroup \
-             broadcasts, where the contiguous axes are multiples of 4; else 16 outputs of a row per \
-             invocation (a side of 64 or less) or the 128x128 tile (CPU device)"
+            "CPU kernel: 8 rows x 32 columns per SIMD group of 8, A shared by subgroup broadcasts, \
+             operands read in vec4s where their contiguous axis is a multiple of 4, else one value at \
+             a time (CPU device)"
         }
         DType::F32 if gpu.caps().cpu_kernels => {
             "tiled f32: 128x128 tile per 256 invocations, 8x8 per invocation, k step 8; \
@@ -342,7 +342,8 @@ pub fn matmul_sum_into(
     }
     let groups = grid(a.gpu(), kernel, &p, 1)?;
     let base = Params::of(&p, trans_a, trans_b, accumulate);
-    let params = Params { flags: base.flags | MATMUL_FLAG_SUMMED, batch_base: p.batch as u32, ..base };
+    let flags = base.flags | MATMUL_FLAG_SUMMED | cpu_flags(kernel, &p, trans_a, trans_b);
+    let params = Params { flags, batch_base: p.batch as u32, ..base };
     let g = [groups[0] as u32, groups[1] as u32, 1];
     // The bias binding is unused (MATMUL_FLAG_BIAS clear): b stands in.
     kernel.dispatch(rec, g, [a, b, out, b], &params)
@@ -424,6 +425,7 @@ fn product(
         }
     }
     let params = Params::of(&p, trans_a, trans_b, accumulate);
+    let params = Params { flags: params.flags | cpu_flags(kernel, &p, trans_a, trans_b), ..params };
     let tiles = groups[0] * groups[1];
     // The CPU kernel has tiles enough for a CPU's threads, and K pieces would break its
     // multiples of 4.
@@ -541,9 +543,8 @@ fn choose_kernel(
             NarrowMatmul::Vec4 => true,
             NarrowMatmul::Rows | NarrowMatmul::Tiles => false,
         };
-        if let Some(k) = cpu_kernel(p, trans_a, trans_b)
-            .filter(|&k| vec4 && cpu_kernel_fits(gpu.caps()) && gpu.supports(k))
-        {
+        let k = cpu_kernel(p, trans_a, trans_b);
+        if vec4 && cpu_kernel_fits(gpu.caps()) && gpu.supports(k) {
             return MatmulKernel::Tiled(k);
         }
         let narrow = p.m.min(p.n);
@@ -568,17 +569,32 @@ fn choose_kernel(
     }
 }
 
-/// The CPU kernel for a product's layout, where its axes allow it: the contiguous axis of each
-/// operand and of the output a multiple of 4 (vec4 accesses; tensors start on a storage offset
-/// alignment, at least 16 bytes), both operands read along their rows (a transposed, or b, but
-/// not both).
-fn cpu_kernel(p: &Plan, trans_a: bool, trans_b: bool) -> Option<TiledKernel> {
-    let n4 = p.n.is_multiple_of(4);
-    match (trans_a, trans_b) {
-        (false, false) if n4 && p.k.is_multiple_of(4) => Some(MATMUL_CPU_LAYOUT0_MAIN),
-        (true, false) if n4 && p.m.is_multiple_of(4) => Some(MATMUL_CPU_LAYOUT1_MAIN),
-        (false, true) if n4 && p.k.is_multiple_of(4) => Some(MATMUL_CPU_LAYOUT2_MAIN),
-        _ => None,
+/// The CPU kernel's variant for a product: which operand it reads in vec4s along which axis
+/// (`shaders/matmul_cpu.wgsl`'s LAYOUT; tensors start on a storage offset alignment, at least 16
+/// bytes, and bind whole vec4s). Every shape and layout has one; [`cpu_flags`] says which
+/// operands it reads one value at a time.
+fn cpu_kernel(p: &Plan, trans_a: bool, trans_b: bool) -> TiledKernel {
+    if trans_a && p.m.is_multiple_of(4) {
+        MATMUL_CPU_LAYOUT1_MAIN
+    } else if !trans_a && trans_b && p.k.is_multiple_of(4) {
+        MATMUL_CPU_LAYOUT2_MAIN
+    } else {
+        MATMUL_CPU_LAYOUT0_MAIN
+    }
+}
+
+/// The flags of the CPU kernel's scalar paths for a product (0 for other kernels): A or B read
+/// one value at a time where its variant cannot read it in vec4s.
+fn cpu_flags(kernel: MatmulKernel, p: &Plan, trans_a: bool, trans_b: bool) -> u32 {
+    let a_vec4 = !trans_a && p.k.is_multiple_of(4);
+    let b_vec4 = !trans_b && p.n.is_multiple_of(4);
+    let scalar = |vec4: bool, flag: u32| if vec4 { 0 } else { flag };
+    match kernel {
+        k if k.is(MATMUL_CPU_LAYOUT0_MAIN) => {
+            scalar(a_vec4, MATMUL_FLAG_A_SCALAR) | scalar(b_vec4, MATMUL_FLAG_B_SCALAR)
+        }
+        k if k.is(MATMUL_CPU_LAYOUT1_MAIN) => scalar(b_vec4, MATMUL_FLAG_B_SCALAR),
+        _ => 0,
     }
 }
 

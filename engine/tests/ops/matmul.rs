@@ -718,24 +718,27 @@ fn a_batched_product_takes_a_bias_per_entry() {
     assert!(matmul_bias(&mut rec, &xt, &wt, false, false, &wrong).is_err());
 }
 
-/// Would catch: a slip in the CPU kernel's indexing that no other shape reaches: every layout it
-/// takes (a [M, K] or [K, M], b [K, N] or [N, K]) at multiples of 4 that leave its 8 x 32 tile
-/// and its 4-deep K blocks partly filled, batched and broadcast operands, a bias (per column and
-/// per entry), accumulation and a sum over the batch; and the products it cannot take (an axis
-/// not a multiple of 4, both operands transposed) falling back to another kernel.
+/// Would catch: a slip in the CPU kernel's indexing that no other shape reaches: every layout
+/// (a [M, K] or [K, M], b [K, N] or [N, K]) at multiples of 4 (its vec4 paths) and not (its
+/// scalar paths) that leave its 8 x 32 tile and its 4-deep K blocks partly filled, batched and
+/// broadcast operands, a bias (per column and per entry), accumulation and a sum over the
+/// batch.
 #[test]
 fn the_cpu_kernel_takes_every_layout_with_partial_tiles() {
     let gpu = gpu();
     let mut rng = Rng::new(33);
     let mut rec = recorder(&gpu, NarrowMatmul::Vec4);
     let mut cases = Vec::new();
-    let list: [Sizes; 6] = [
+    let list: [Sizes; 9] = [
         (4, 4, 4, None, None),
         (12, 36, 20, None, None),
         (68, 132, 36, None, None),
         (9, 40, 6, None, None),
         (20, 12, 44, Some(3), Some(3)),
         (36, 8, 12, Some(2), None),
+        (1, 1, 1, None, None),
+        (37, 3, 195, None, None),
+        (10, 41, 7, Some(2), Some(2)),
     ];
     for &(m, n, k, ab, bb) in &list {
         for (ta, tb) in [(false, false), (true, false), (false, true), (true, true)] {
