@@ -23,6 +23,8 @@ struct Params {
 @group(0) @binding(6) var<storage, read_write> gp: array<f32>;
 var<immediate> pc: Params;
 
+// @include elements.wgsl
+
 fn index(wid: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
     return (wid.x + wid.y * nwg.x) * 256u + lid;
 }
@@ -34,32 +36,26 @@ fn sample(i: u32) -> u32 {
 @compute @workgroup_size(256)
 fn modulate(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
             @builtin(local_invocation_index) lid: u32) {
-    let i = index(wid, nwg, lid);
-    if (i >= pc.n) {
-        return;
+    for (var i = first_element(wid, nwg, lid); i < pc.n; i += element_stride(nwg)) {
+        let s = sample(i);
+        out[i] = a[i] * (1.0 + p[s]) + q[s];
     }
-    let s = sample(i);
-    out[i] = a[i] * (1.0 + p[s]) + q[s];
 }
 
 @compute @workgroup_size(256)
 fn gate(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
         @builtin(local_invocation_index) lid: u32) {
-    let i = index(wid, nwg, lid);
-    if (i >= pc.n) {
-        return;
+    for (var i = first_element(wid, nwg, lid); i < pc.n; i += element_stride(nwg)) {
+        out[i] = q[i] + p[sample(i)] * a[i];
     }
-    out[i] = q[i] + p[sample(i)] * a[i];
 }
 
 @compute @workgroup_size(256)
 fn backward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
             @builtin(local_invocation_index) lid: u32) {
-    let i = index(wid, nwg, lid);
-    if (i >= pc.n) {
-        return;
+    for (var i = first_element(wid, nwg, lid); i < pc.n; i += element_stride(nwg)) {
+        let gi = g[i];
+        ga[i] = gi * (pc.one + p[sample(i)]);
+        gp[i] = gi * a[i];
     }
-    let gi = g[i];
-    ga[i] = gi * (pc.one + p[sample(i)]);
-    gp[i] = gi * a[i];
 }

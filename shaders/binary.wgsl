@@ -15,6 +15,8 @@ struct Params {
 @group(0) @binding(2) var<storage, read_write> out: array<f32>;
 var<immediate> pc: Params;
 
+// @include elements.wgsl
+
 const BINARY_OP_ADD: u32 = 0u;
 const BINARY_OP_SUB: u32 = 1u;
 const BINARY_OP_MUL: u32 = 2u;
@@ -25,32 +27,30 @@ const BINARY_OP_MIN: u32 = 5u;
 @compute @workgroup_size(256)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
         @builtin(local_invocation_index) lid: u32) {
-    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
-    if (i >= pc.n) {
-        return;
+    for (var i = first_element(wid, nwg, lid); i < pc.n; i += element_stride(nwg)) {
+        // Decompose the output index, last dimension fastest.
+        var rem = i;
+        let i3 = rem % pc.shape.w;
+        rem = rem / pc.shape.w;
+        let i2 = rem % pc.shape.z;
+        rem = rem / pc.shape.z;
+        let i1 = rem % pc.shape.y;
+        let i0 = rem / pc.shape.y;
+        let idx = vec4<u32>(i0, i1, i2, i3);
+        let ia = dot(idx, pc.a_strides);
+        let ib = dot(idx, pc.b_strides);
+        let x = a[ia];
+        let y = b[ib];
+        var r: f32;
+        switch pc.op {
+            case BINARY_OP_ADD: { r = x + y; }
+            case BINARY_OP_SUB: { r = x - y; }
+            case BINARY_OP_MUL: { r = x * y; }
+            case BINARY_OP_DIV: { r = x / y; }
+            case BINARY_OP_MAX: { r = max(x, y); }
+            case BINARY_OP_MIN: { r = min(x, y); }
+            default: { r = x; }
+        }
+        out[i] = r;
     }
-    // Decompose the output index, last dimension fastest.
-    var rem = i;
-    let i3 = rem % pc.shape.w;
-    rem = rem / pc.shape.w;
-    let i2 = rem % pc.shape.z;
-    rem = rem / pc.shape.z;
-    let i1 = rem % pc.shape.y;
-    let i0 = rem / pc.shape.y;
-    let idx = vec4<u32>(i0, i1, i2, i3);
-    let ia = dot(idx, pc.a_strides);
-    let ib = dot(idx, pc.b_strides);
-    let x = a[ia];
-    let y = b[ib];
-    var r: f32;
-    switch pc.op {
-        case BINARY_OP_ADD: { r = x + y; }
-        case BINARY_OP_SUB: { r = x - y; }
-        case BINARY_OP_MUL: { r = x * y; }
-        case BINARY_OP_DIV: { r = x / y; }
-        case BINARY_OP_MAX: { r = max(x, y); }
-        case BINARY_OP_MIN: { r = min(x, y); }
-        default: { r = x; }
-    }
-    out[i] = r;
 }

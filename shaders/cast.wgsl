@@ -13,19 +13,22 @@ struct Params {
 @group(0) @binding(3) var<storage, read_write> dst_f32: array<f32>;
 var<immediate> pc: Params;
 
+// @include elements.wgsl
+
 @compute @workgroup_size(256)
 fn f32_to_f16(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
               @builtin(local_invocation_index) lid: u32) {
-    let w = (wid.x + wid.y * nwg.x) * 256u + lid;
-    let i = 2u * w;
-    if (i >= pc.n) {
-        return;
+    for (var w = first_element(wid, nwg, lid); ; w += element_stride(nwg)) {
+        let i = 2u * w;
+        if (i >= pc.n) {
+            break;
+        }
+        var hi = 0.0;
+        if (i + 1u < pc.n) {
+            hi = src_f32[i + 1u];
+        }
+        dst_f16[w] = pack_halves(vec2<f32>(src_f32[i], hi));
     }
-    var hi = 0.0;
-    if (i + 1u < pc.n) {
-        hi = src_f32[i + 1u];
-    }
-    dst_f16[w] = pack_halves(vec2<f32>(src_f32[i], hi));
 }
 
 // pack2x16float, with magnitudes that round past the largest half (65504; from 65520 on) made
@@ -46,14 +49,15 @@ fn pack_halves(v: vec2<f32>) -> u32 {
 @compute @workgroup_size(256)
 fn f16_to_f32(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
               @builtin(local_invocation_index) lid: u32) {
-    let w = (wid.x + wid.y * nwg.x) * 256u + lid;
-    let i = 2u * w;
-    if (i >= pc.n) {
-        return;
-    }
-    let v = unpack2x16float(src_f16[w]);
-    dst_f32[i] = v.x;
-    if (i + 1u < pc.n) {
-        dst_f32[i + 1u] = v.y;
+    for (var w = first_element(wid, nwg, lid); ; w += element_stride(nwg)) {
+        let i = 2u * w;
+        if (i >= pc.n) {
+            break;
+        }
+        let v = unpack2x16float(src_f16[w]);
+        dst_f32[i] = v.x;
+        if (i + 1u < pc.n) {
+            dst_f32[i + 1u] = v.y;
+        }
     }
 }

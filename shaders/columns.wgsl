@@ -16,14 +16,14 @@ struct Params {
 @group(0) @binding(1) var<storage, read_write> dst: array<f32>;
 var<immediate> pc: Params;
 
+// @include elements.wgsl
+
 @compute @workgroup_size(256)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
         @builtin(local_invocation_index) lid: u32) {
-    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
-    if (i >= pc.rows * pc.count) {
-        return;
+    for (var i = first_element(wid, nwg, lid); i < pc.rows * pc.count; i += element_stride(nwg)) {
+        let r = i / pc.count;
+        let j = i - r * pc.count;
+        dst[r * pc.dst_width + pc.dst_col + j] = pc.scale * src[r * pc.src_width + pc.src_col + j];
     }
-    let r = i / pc.count;
-    let j = i - r * pc.count;
-    dst[r * pc.dst_width + pc.dst_col + j] = pc.scale * src[r * pc.src_width + pc.src_col + j];
 }

@@ -13,12 +13,12 @@ struct Params {
 @group(0) @binding(1) var<storage, read_write> dst: array<u32>;
 var<immediate> pc: Params;
 
+// @include elements.wgsl
+
 @compute @workgroup_size(256)
 fn copy_add(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
             @builtin(local_invocation_index) lid: u32) {
-    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
-    if (i >= pc.count) {
-        return;
+    for (var i = first_element(wid, nwg, lid); i < pc.count; i += element_stride(nwg)) {
+        dst[pc.dst_start + i] = src[pc.src_start + i] + pc.add;
     }
-    dst[pc.dst_start + i] = src[pc.src_start + i] + pc.add;
 }

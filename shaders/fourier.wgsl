@@ -27,6 +27,8 @@ struct Params {
 @group(0) @binding(4) var<storage, read_write> dx: array<f32>;
 var<immediate> pc: Params;
 
+// @include elements.wgsl
+
 const PI: f32 = 3.14159265358979;
 
 // @include sincos.wgsl
@@ -38,52 +40,51 @@ fn out_width() -> u32 {
 @compute @workgroup_size(256)
 fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
            @builtin(local_invocation_index) lid: u32) {
-    let o = (wid.x + wid.y * nwg.x) * 256u + lid;
-    let width = out_width();
-    if (o >= pc.rows * width) {
-        return;
-    }
-    let row = o / width;
-    var k = o % width;
-    if (pc.include_input != 0u) {
-        if (k < pc.channels) {
-            y[o] = x[row * pc.channels + k];
-            return;
+    for (var o = first_element(wid, nwg, lid); ; o += element_stride(nwg)) {
+        let width = out_width();
+        if (o >= pc.rows * width) {
+            break;
         }
-        k -= pc.channels;
+        let row = o / width;
+        var k = o % width;
+        if (pc.include_input != 0u) {
+            if (k < pc.channels) {
+                y[o] = x[row * pc.channels + k];
+                continue;
+            }
+            k -= pc.channels;
+        }
+        let block = pc.channels * pc.freqs;
+        let is_cos = k >= block;
+        let kk = k % block;
+        let i = kk / pc.freqs;
+        let f = kk % pc.freqs;
+        let sc = sincospi(freq[f] * x[row * pc.channels + i]);
+        y[o] = select(sc.x, sc.y, is_cos);
     }
-    let block = pc.channels * pc.freqs;
-    let is_cos = k >= block;
-    let kk = k % block;
-    let i = kk / pc.freqs;
-    let f = kk % pc.freqs;
-    let sc = sincospi(freq[f] * x[row * pc.channels + i]);
-    y[o] = select(sc.x, sc.y, is_cos);
 }
 
 @compute @workgroup_size(256)
 fn backward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
             @builtin(local_invocation_index) lid: u32) {
-    let e = (wid.x + wid.y * nwg.x) * 256u + lid;
-    if (e >= pc.rows * pc.channels) {
-        return;
+    for (var e = first_element(wid, nwg, lid); e < pc.rows * pc.channels; e += element_stride(nwg)) {
+        let row = e / pc.channels;
+        let i = e % pc.channels;
+        let width = out_width();
+        var base = row * width;
+        var g = 0.0;
+        if (pc.include_input != 0u) {
+            g = dy[base + i];
+            base += pc.channels;
+        }
+        let v = x[e];
+        let block = pc.channels * pc.freqs;
+        for (var f = 0u; f < pc.freqs; f++) {
+            let w = freq[f];
+            let sc = sincospi(w * v);
+            let k = base + i * pc.freqs + f;
+            g += PI * w * (sc.y * dy[k] - sc.x * dy[k + block]);
+        }
+        dx[e] = g;
     }
-    let row = e / pc.channels;
-    let i = e % pc.channels;
-    let width = out_width();
-    var base = row * width;
-    var g = 0.0;
-    if (pc.include_input != 0u) {
-        g = dy[base + i];
-        base += pc.channels;
-    }
-    let v = x[e];
-    let block = pc.channels * pc.freqs;
-    for (var f = 0u; f < pc.freqs; f++) {
-        let w = freq[f];
-        let sc = sincospi(w * v);
-        let k = base + i * pc.freqs + f;
-        g += PI * w * (sc.y * dy[k] - sc.x * dy[k + block]);
-    }
-    dx[e] = g;
 }

@@ -16,24 +16,24 @@ struct Params {
 @group(0) @binding(4) var<storage, read> base: array<f32>;
 var<immediate> pc: Params;
 
+// @include elements.wgsl
+
 @compute @workgroup_size(256)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
         @builtin(local_invocation_index) lid: u32) {
-    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
-    if (i >= pc.rows * pc.width) {
-        return;
+    for (var i = first_element(wid, nwg, lid); i < pc.rows * pc.width; i += element_stride(nwg)) {
+        let r = i / pc.width;
+        let c = i - r * pc.width;
+        let s = idx[r];
+        var v = 0.0;
+        if (s < pc.src_rows) {
+            v = src[s * pc.width + c];
+        }
+        if (pc.add != 0u) {
+            v += base[i];
+        }
+        out[i] = v;
     }
-    let r = i / pc.width;
-    let c = i - r * pc.width;
-    let s = idx[r];
-    var v = 0.0;
-    if (s < pc.src_rows) {
-        v = src[s * pc.width + c];
-    }
-    if (pc.add != 0u) {
-        v += base[i];
-    }
-    out[i] = v;
 }
 
 // The inverse of a permutation: inverse[idx[i]] = i for i < rows (`rows` = its length).

@@ -15,6 +15,8 @@ struct Params {
 @group(0) @binding(6) var<storage, read_write> dsilu: array<f32>;
 var<immediate> pc: Params;
 
+// @include elements.wgsl
+
 fn sigmoid(v: f32) -> f32 {
     // exp(large) is +inf and 1 / inf = 0: saturates without NaN.
     return 1.0 / (1.0 + exp(-v));
@@ -23,25 +25,21 @@ fn sigmoid(v: f32) -> f32 {
 @compute @workgroup_size(256)
 fn forward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
            @builtin(local_invocation_index) lid: u32) {
-    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
-    if (i >= pc.n) {
-        return;
+    for (var i = first_element(wid, nwg, lid); i < pc.n; i += element_stride(nwg)) {
+        let v = a[i];
+        h[i] = v * sigmoid(v) * b[i];
     }
-    let v = a[i];
-    h[i] = v * sigmoid(v) * b[i];
 }
 
 @compute @workgroup_size(256)
 fn backward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
             @builtin(local_invocation_index) lid: u32) {
-    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
-    if (i >= pc.n) {
-        return;
+    for (var i = first_element(wid, nwg, lid); i < pc.n; i += element_stride(nwg)) {
+        let v = a[i];
+        let g = dh[i];
+        da[i] = g * b[i] * silu_grad(v);
+        db[i] = g * v * sigmoid(v);
     }
-    let v = a[i];
-    let g = dh[i];
-    da[i] = g * b[i] * silu_grad(v);
-    db[i] = g * v * sigmoid(v);
 }
 
 // silu'(v) = s (1 + v (1 - s)), s = sigmoid(v).
@@ -54,9 +52,7 @@ fn silu_grad(v: f32) -> f32 {
 @compute @workgroup_size(256)
 fn silu_backward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
                  @builtin(local_invocation_index) lid: u32) {
-    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
-    if (i >= pc.n) {
-        return;
+    for (var i = first_element(wid, nwg, lid); i < pc.n; i += element_stride(nwg)) {
+        dsilu[i] = dh[i] * silu_grad(a[i]);
     }
-    dsilu[i] = dh[i] * silu_grad(a[i]);
 }

@@ -18,6 +18,8 @@ struct Params {
 @group(0) @binding(3) var<storage, read_write> dx: array<f32>;
 var<immediate> pc: Params;
 
+// @include elements.wgsl
+
 const UNARY_OP_AFFINE: u32 = 0u;   // alpha * x + beta
 const UNARY_OP_EXP: u32 = 1u;
 const UNARY_OP_LOG: u32 = 2u;
@@ -102,8 +104,7 @@ fn derivative(op: u32, v: f32) -> f32 {
 @compute @workgroup_size(256)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
         @builtin(local_invocation_index) lid: u32) {
-    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
-    if (i < pc.n) {
+    for (var i = first_element(wid, nwg, lid); i < pc.n; i += element_stride(nwg)) {
         y[i] = apply(pc.op, x[i]);
     }
 }
@@ -111,8 +112,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
 @compute @workgroup_size(256)
 fn backward(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
             @builtin(local_invocation_index) lid: u32) {
-    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
-    if (i < pc.n) {
+    for (var i = first_element(wid, nwg, lid); i < pc.n; i += element_stride(nwg)) {
         dx[i] = dy[i] * derivative(pc.op, x[i]);
     }
 }

@@ -501,6 +501,22 @@ impl Recorder {
         self.dispatch(kernel, groups, args, push)
     }
 
+    /// Dispatches a linear kernel over `elements` elements, 256 invocations a workgroup, that
+    /// loops over its elements from `first_element` by `element_stride`
+    /// (`shaders/include/elements.wgsl`): a workgroup per 256 elements on a GPU, per 4096 on a
+    /// device with the CPU kernels (`Caps::cpu_kernels`), where starting a workgroup costs as
+    /// much as a hundred elements.
+    pub fn dispatch_elements<P: bytemuck::Pod, B: Binds>(
+        &mut self,
+        kernel: Kernel<P, B>,
+        elements: u64,
+        args: B::Args<'_>,
+        push: &P,
+    ) -> Result<()> {
+        let per_group = if self.gpu.caps().cpu_kernels { 256 * 16 } else { 256 };
+        self.dispatch_linear(kernel, elements.div_ceil(per_group), args, push)
+    }
+
     /// Copies `bytes` bytes between raw buffers (uploads and downloads).
     pub(crate) fn copy_raw(
         &mut self,

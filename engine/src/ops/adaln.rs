@@ -38,17 +38,13 @@ fn check(what: &str, x: &Tensor, per_sample: &[&Tensor], full: &[&Tensor]) -> Re
     Ok(Params { n: fit(x.numel())?, t: fit(xs[1])?, d: fit(xs[2])?, one: 0.0 })
 }
 
-fn groups(p: &Params) -> u64 {
-    (p.n as u64).div_ceil(256)
-}
-
 /// `y = x * (1 + scale) + shift`.
 pub fn modulate(rec: &mut Recorder, x: &Tensor, scale: &Tensor, shift: &Tensor) -> Result<Tensor> {
     let p = check("modulate", x, &[scale, shift], &[])?;
     let y = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
-    rec.dispatch_linear(
+    rec.dispatch_elements(
         ADALN_MODULATE,
-        groups(&p),
+        p.n as u64,
         args::AdalnModulateArgs { a: x, p: scale, q: shift, out: &y },
         &p,
     )?;
@@ -59,9 +55,9 @@ pub fn modulate(rec: &mut Recorder, x: &Tensor, scale: &Tensor, shift: &Tensor) 
 pub fn gate(rec: &mut Recorder, y: &Tensor, gate: &Tensor, res: &Tensor) -> Result<Tensor> {
     let p = check("gated residual", y, &[gate], &[res])?;
     let out = Tensor::empty(y.gpu(), y.shape(), DType::F32)?;
-    rec.dispatch_linear(
+    rec.dispatch_elements(
         ADALN_GATE,
-        groups(&p),
+        p.n as u64,
         args::AdalnGateArgs { a: y, p: gate, q: res, out: &out },
         &p,
     )?;
@@ -79,9 +75,9 @@ pub fn backward(
     let params = Params { one, ..check("adaln backward", a, &[p], &[dy])? };
     let ga = Tensor::empty(a.gpu(), a.shape(), DType::F32)?;
     let gp = Tensor::empty(a.gpu(), a.shape(), DType::F32)?;
-    rec.dispatch_linear(
+    rec.dispatch_elements(
         ADALN_BACKWARD,
-        groups(&params),
+        params.n as u64,
         args::AdalnBackwardArgs { a, p, g: dy, ga: &ga, gp: &gp },
         &params,
     )?;

@@ -30,15 +30,15 @@ pub fn cast_into(rec: &mut Recorder, x: &Tensor, out: &Tensor) -> Result<()> {
     let params = Params { n };
     match (x.dtype(), out.dtype()) {
         (a, b) if a == b => rec.copy(x, out),
-        (DType::F32, DType::F16) => rec.dispatch_linear(
+        (DType::F32, DType::F16) => rec.dispatch_elements(
             CAST_F32_TO_F16,
-            words.div_ceil(256),
+            words as u64,
             args::CastF32ToF16Args { src_f32: x, dst_f16: out },
             &params,
         ),
-        (DType::F16, DType::F32) => rec.dispatch_linear(
+        (DType::F16, DType::F32) => rec.dispatch_elements(
             CAST_F16_TO_F32,
-            words.div_ceil(256),
+            words as u64,
             args::CastF16ToF32Args { src_f16: x, dst_f32: out },
             &params,
         ),

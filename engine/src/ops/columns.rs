@@ -47,7 +47,7 @@ pub fn copy_columns(
         dst_col: dst_col as u32,
         scale,
     };
-    rec.dispatch_linear(COLUMNS_MAIN, (total as u64).div_ceil(256), args::ColumnsMainArgs { src, dst }, &p)
+    rec.dispatch_elements(COLUMNS_MAIN, total as u64, args::ColumnsMainArgs { src, dst }, &p)
 }
 
 /// A new `[rows, count]` matrix of `scale * src[:, col..col + count]`.

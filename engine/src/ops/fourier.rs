@@ -47,9 +47,9 @@ fn params(x: &Tensor, freq: &Tensor, include_input: bool) -> Result<(Params, usi
 pub fn fourier(rec: &mut Recorder, x: &Tensor, freq: &Tensor, include_input: bool) -> Result<Tensor> {
     let (p, width) = params(x, freq, include_input)?;
     let y = Tensor::empty(x.gpu(), &[x.shape()[0], width], DType::F32)?;
-    rec.dispatch_linear(
+    rec.dispatch_elements(
         FOURIER_FORWARD,
-        y.numel().div_ceil(256) as u64,
+        y.numel() as u64,
         args::FourierForwardArgs { x, freq, y: &y },
         &p,
     )?;
@@ -72,9 +72,9 @@ pub fn fourier_backward(
         )));
     }
     let dx = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
-    rec.dispatch_linear(
+    rec.dispatch_elements(
         FOURIER_BACKWARD,
-        x.numel().div_ceil(256) as u64,
+        x.numel() as u64,
         args::FourierBackwardArgs { x, freq, dy, dx: &dx },
         &p,
     )?;

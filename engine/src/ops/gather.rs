@@ -53,9 +53,9 @@ fn gather_with(rec: &mut Recorder, src: &Tensor, idx: &Tensor, base: Option<&Ten
     };
     fit(total)?;
     // Without `base`, src stands in for the binding the kernel then does not read.
-    rec.dispatch_linear(
+    rec.dispatch_elements(
         GATHER_MAIN,
-        (total as u64).div_ceil(256),
+        total as u64,
         args::GatherMainArgs { src, idx, out: &out, base: base.unwrap_or(src) },
         &p,
     )?;

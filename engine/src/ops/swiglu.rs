@@ -26,12 +26,7 @@ fn check(what: &str, ts: &[&Tensor]) -> Result<Params> {
 pub fn swiglu(rec: &mut Recorder, a: &Tensor, b: &Tensor) -> Result<Tensor> {
     let p = check("swiglu", &[a, b])?;
     let h = Tensor::empty(a.gpu(), a.shape(), DType::F32)?;
-    rec.dispatch_linear(
-        SWIGLU_FORWARD,
-        (p.n as u64).div_ceil(256),
-        args::SwigluForwardArgs { a, b, h: &h },
-        &p,
-    )?;
+    rec.dispatch_elements(SWIGLU_FORWARD, p.n as u64, args::SwigluForwardArgs { a, b, h: &h }, &p)?;
     Ok(h)
 }
 
@@ -54,9 +49,9 @@ pub fn swiglu_backward_into(
     db: &Tensor,
 ) -> Result<()> {
     let p = check("swiglu backward", &[a, b, dh, da, db])?;
-    rec.dispatch_linear(
+    rec.dispatch_elements(
         SWIGLU_BACKWARD,
-        (p.n as u64).div_ceil(256),
+        p.n as u64,
         args::SwigluBackwardArgs { a, b, dh, da, db },
         &p,
     )
@@ -66,9 +61,9 @@ pub fn swiglu_backward_into(
 pub fn silu_backward(rec: &mut Recorder, a: &Tensor, dy: &Tensor) -> Result<Tensor> {
     let p = check("silu backward", &[a, dy])?;
     let da = Tensor::empty(a.gpu(), a.shape(), DType::F32)?;
-    rec.dispatch_linear(
+    rec.dispatch_elements(
         SWIGLU_SILU_BACKWARD,
-        (p.n as u64).div_ceil(256),
+        p.n as u64,
         args::SwigluSiluBackwardArgs { a, dh: dy, dsilu: &da },
         &p,
     )?;

@@ -99,9 +99,9 @@ pub fn unary_into(rec: &mut Recorder, x: &Tensor, y: &Tensor, f: Unary) -> Resul
     }
     let n = fit_u32(x.numel(), || format!("unary on {x:?}"))?;
     let (op, alpha, beta) = f.code();
-    rec.dispatch_linear(
+    rec.dispatch_elements(
         UNARY_MAIN,
-        (n as u64).div_ceil(256),
+        (n as u64) as u64,
         args::UnaryMainArgs { x, y },
         &Params { n, op, alpha, beta },
     )
@@ -117,9 +117,9 @@ pub fn unary_backward(rec: &mut Recorder, x: &Tensor, dy: &Tensor, f: Unary) -> 
     let n = fit_u32(x.numel(), || format!("unary {f:?} backward of {x:?}"))?;
     let dx = Tensor::empty(x.gpu(), x.shape(), DType::F32)?;
     let (op, alpha, beta) = f.code();
-    rec.dispatch_linear(
+    rec.dispatch_elements(
         UNARY_BACKWARD,
-        (n as u64).div_ceil(256),
+        (n as u64) as u64,
         args::UnaryBackwardArgs { x, dy, dx: &dx },
         &Params { n, op, alpha, beta },
     )?;
