@@ -143,7 +143,7 @@ pub fn binary_into(rec: &mut Recorder, a: &Tensor, b: &Tensor, out: &Tensor, op:
         p.a_strides[pad + i] = sa[i] as u32;
         p.b_strides[pad + i] = sb[i] as u32;
     }
-    rec.dispatch_elements(BINARY_MAIN, (n as u64) as u64, args::BinaryMainArgs { a, b, out }, &p)
+    rec.dispatch_elements(BINARY_MAIN, n as u64, args::BinaryMainArgs { a, b, out }, &p)
 }
 
 pub mod reference {

@@ -42,7 +42,7 @@ pub fn copy_add(
     let p = Params { src_start: fit(src_start)?, dst_start: fit(dst_start)?, count: fit(count)?, add };
     fit(src_start + count)?;
     fit(dst_start + count)?;
-    rec.dispatch_elements(CONCAT_COPY_ADD, (count as u64) as u64, args::ConcatCopyAddArgs { src, dst }, &p)
+    rec.dispatch_elements(CONCAT_COPY_ADD, count as u64, args::ConcatCopyAddArgs { src, dst }, &p)
 }
 
 pub mod reference {

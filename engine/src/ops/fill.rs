@@ -28,7 +28,7 @@ pub fn fill(rec: &mut Recorder, t: &Tensor, value: f64) -> Result<()> {
 pub fn fill_bits(rec: &mut Recorder, t: &Tensor, bits: u32) -> Result<()> {
     let words = t.bytes().div_ceil(4);
     let params = Params { words: u32::try_from(words).map_err(|_| too_many(t))?, value: bits };
-    rec.dispatch_elements(FILL_MAIN, words as u64, args::FillMainArgs { data: t }, &params)
+    rec.dispatch_elements(FILL_MAIN, words, args::FillMainArgs { data: t }, &params)
 }
 
 fn too_many(t: &Tensor) -> crate::Error {

@@ -49,12 +49,7 @@ pub fn swiglu_backward_into(
     db: &Tensor,
 ) -> Result<()> {
     let p = check("swiglu backward", &[a, b, dh, da, db])?;
-    rec.dispatch_elements(
-        SWIGLU_BACKWARD,
-        p.n as u64,
-        args::SwigluBackwardArgs { a, b, dh, da, db },
-        &p,
-    )
+    rec.dispatch_elements(SWIGLU_BACKWARD, p.n as u64, args::SwigluBackwardArgs { a, b, dh, da, db }, &p)
 }
 
 /// `silu'(a) * dy`, the backward of `silu(a) = a sigmoid(a)` (the gate's `da` with `b = 1`).

@@ -99,12 +99,7 @@ pub fn unary_into(rec: &mut Recorder, x: &Tensor, y: &Tensor, f: Unary) -> Resul
     }
     let n = fit_u32(x.numel(), || format!("unary on {x:?}"))?;
     let (op, alpha, beta) = f.code();
-    rec.dispatch_elements(
-        UNARY_MAIN,
-        (n as u64) as u64,
-        args::UnaryMainArgs { x, y },
-        &Params { n, op, alpha, beta },
-    )
+    rec.dispatch_elements(UNARY_MAIN, n as u64, args::UnaryMainArgs { x, y }, &Params { n, op, alpha, beta })
 }
 
 /// `dx = dy * f'(x)`, a new tensor.
@@ -119,7 +114,7 @@ pub fn unary_backward(rec: &mut Recorder, x: &Tensor, dy: &Tensor, f: Unary) -> 
     let (op, alpha, beta) = f.code();
     rec.dispatch_elements(
         UNARY_BACKWARD,
-        (n as u64) as u64,
+        n as u64,
         args::UnaryBackwardArgs { x, dy, dx: &dx },
         &Params { n, op, alpha, beta },
     )?;

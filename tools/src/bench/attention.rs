@@ -17,7 +17,7 @@ use velox_engine::ops::matmul;
 use velox_engine::rng::Rng;
 use velox_engine::{DType, Gpu, Result, Tensor};
 
-use super::{print_header, print_row, time_gpu, Record};
+use super::{print_header, print_row, time_gpu, Record, SizeSet};
 
 struct Case {
     name: &'static str,
@@ -65,8 +65,8 @@ fn cases(rng: &mut Rng, small: bool) -> Vec<Case> {
     }
 }
 
-pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
-    let small = quick || gpu.caps().kind == "CPU";
+pub fn run(gpu: &Gpu, sizes: SizeSet, repeats: u32) -> Result<Vec<Record>> {
+    let small = sizes.small();
     let mut rng = Rng::new(11);
     let c = gpu.caps();
     let device = c.name.clone();

@@ -11,7 +11,7 @@ use velox_engine::rng::Rng;
 use velox_engine::stats::{max_abs_err, nmse};
 use velox_engine::{Gpu, Result};
 
-use super::{print_header, print_row, time_gpu, Record};
+use super::{print_header, print_row, time_gpu, Record, SizeSet};
 
 fn sheet(side: usize) -> Result<ClothMesh> {
     let h = 0.025f32;
@@ -41,8 +41,8 @@ fn garment() -> Result<ClothMesh> {
     ClothMesh::from_triangles(pos, &pattern.triangles, 1e-7, 1e-3)
 }
 
-pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
-    let side = if quick || gpu.caps().kind == "CPU" { 24 } else { 48 };
+pub fn run(gpu: &Gpu, sizes: SizeSet, repeats: u32) -> Result<Vec<Record>> {
+    let side = if sizes.small() { 24 } else { 48 };
     let device = gpu.caps().name.clone();
     println!("device: {device}; a t-shirt of the cloth data and a {side} x {side} sheet, frames of 0.01 s");
     print_header();

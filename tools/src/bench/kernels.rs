@@ -9,7 +9,7 @@ use velox_engine::ops::{assign, fps, matmul, scan, scatter_add, softmax, sort};
 use velox_engine::rng::Rng;
 use velox_engine::{DType, Gpu, Result, Tensor};
 
-use super::{print_header, print_row, time_gpu, Record};
+use super::{print_header, print_row, time_gpu, Record, SizeSet};
 
 /// A model-shaped f32 product: (what, m, n, k, a transposed).
 type Shaped = (&'static str, usize, usize, usize, bool);
@@ -29,8 +29,8 @@ struct Sizes {
     assign: Vec<(usize, usize)>,
 }
 
-fn sizes(gpu: &Gpu, quick: bool) -> Sizes {
-    if quick || gpu.caps().kind == "CPU" {
+fn sizes(set: SizeSet) -> Sizes {
+    if set.small() {
         Sizes {
             matmul: vec![128, 256],
             shaped: vec![
@@ -65,8 +65,8 @@ fn sizes(gpu: &Gpu, quick: bool) -> Sizes {
     }
 }
 
-pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
-    let s = sizes(gpu, quick);
+pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
+    let s = sizes(set);
     let c = gpu.caps();
     let peaks = c.known_peaks();
     let device = c.name.clone();

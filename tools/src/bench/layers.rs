@@ -12,7 +12,7 @@ use velox_engine::rng::Rng;
 use velox_engine::{Gpu, Recorder, Result, Tensor};
 use velox_models::layers::{reference, Fourier, GeluMlp, Layer, LayerNorm, Linear, Param, RmsNorm, SwiGlu};
 
-use super::{print_header, print_row, time_gpu, Record};
+use super::{print_header, print_row, time_gpu, Record, SizeSet};
 
 /// A benchmarked layer's sizes, the work of a pass, and its f64 reference (outputs and input
 /// gradients of given rows).
@@ -200,8 +200,8 @@ fn benches(gpu: &Gpu, rng: &mut Rng, small: bool) -> Result<Vec<Box<dyn Bench>>>
     Ok(out)
 }
 
-pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
-    let small = quick || gpu.caps().kind == "CPU";
+pub fn run(gpu: &Gpu, sizes: SizeSet, repeats: u32) -> Result<Vec<Record>> {
+    let small = sizes.small();
     let mut rng = Rng::new(13);
     let c = gpu.caps();
     let device = c.name.clone();

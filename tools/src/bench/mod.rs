@@ -68,11 +68,47 @@ pub struct TrainBenchArgs {
     model: train::ModelArg,
 }
 
+/// Which sizes a suite times.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum SizeSet {
+    /// The smallest: seconds on lavapipe.
+    Quick,
+    /// Sizes a CPU device times in minutes (the default there).
+    Small,
+    /// The paper's sizes (the default on GPUs).
+    Large,
+}
+
+impl SizeSet {
+    /// `--quick`, else `--sizes`, else the device's default.
+    fn of(gpu: &Gpu, quick: bool, sizes: Option<SizeSet>) -> SizeSet {
+        match (quick, sizes) {
+            (true, _) => SizeSet::Quick,
+            (false, Some(s)) => s,
+            (false, None) if gpu.caps().kind == "CPU" => SizeSet::Small,
+            (false, None) => SizeSet::Large,
+        }
+    }
+
+    /// Whether the suite takes its small set (quick or small).
+    pub fn small(self) -> bool {
+        self != SizeSet::Large
+    }
+}
+
 #[derive(clap::Args)]
 pub struct BenchArgs {
-    /// Small sizes only (the default on CPU devices such as lavapipe).
+    /// The quickest sizes (the same as --sizes quick).
     #[arg(long)]
     quick: bool,
+    /// Which sizes to time, on any device [default: small on a CPU device such as lavapipe,
+    /// large (the paper's) on a GPU].
+    #[arg(long, value_enum)]
+    sizes: Option<SizeSet>,
+    /// PyTorch's times at the same shapes (tools/peers/torch_bench.py's or torch_cpu.py's JSON,
+    /// from these records): each row is printed with PyTorch's time and the ratio.
+    #[arg(long)]
+    peer: Option<PathBuf>,
     /// Timed repeats per case (the median is reported).
     #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(1..=1000))]
     repeats: u32,
@@ -81,8 +117,8 @@ pub struct BenchArgs {
     json: Option<PathBuf>,
 }
 
-/// A benchmark suite: (device, quick, repeats) -> records.
-type Suite = fn(&Gpu, bool, u32) -> Result<Vec<Record>>;
+/// A benchmark suite: (device, sizes, repeats) -> records.
+type Suite = fn(&Gpu, SizeSet, u32) -> Result<Vec<Record>>;
 
 pub fn run(cmd: BenchCommand) -> CliResult<()> {
     let (args, which): (BenchArgs, Suite) = match cmd {
@@ -97,7 +133,8 @@ pub fn run(cmd: BenchCommand) -> CliResult<()> {
     };
     let gpu = Gpu::new()?;
     keep_in(args.json.as_deref());
-    let records = which(&gpu, args.quick, args.repeats)?;
+    load_peer(args.peer.as_deref())?;
+    let records = which(&gpu, SizeSet::of(&gpu, args.quick, args.sizes), args.repeats)?;
     if let Some(path) = args.json {
         write_json(&path, &records)?;
     }
@@ -128,13 +165,16 @@ pub fn keep(r: &Record) {
 fn run_train(t: TrainBenchArgs) -> CliResult<()> {
     let gpu = Gpu::new()?;
     keep_in(t.bench.json.as_deref());
+    load_peer(t.bench.peer.as_deref())?;
+    // The small sizes: --quick, --sizes quick or small, or a CPU device's default.
+    let quick = SizeSet::of(&gpu, t.bench.quick, t.bench.sizes).small();
     let batches: Option<Vec<usize>> = t.batches.map(|b| b.into_iter().map(usize::from).collect());
     let precisions: Vec<velox_engine::Precision> = t.precision.into_iter().map(Into::into).collect();
     let records = match t.model {
         train::ModelArg::Autoencoder => {
-            train::run(&gpu, t.bench.quick, t.bench.repeats, &t.config, batches.as_deref(), &precisions)?
+            train::run(&gpu, quick, t.bench.repeats, &t.config, batches.as_deref(), &precisions)?
         }
-        model => train::run_token_model(&gpu, model, t.bench.quick, t.bench.repeats, &t.config, &precisions)?,
+        model => train::run_token_model(&gpu, model, quick, t.bench.repeats, &t.config, &precisions)?,
     };
     if let Some(path) = t.bench.json {
         write_json(&path, &records)?;
@@ -271,12 +311,40 @@ pub fn print_header() {
     );
 }
 
-/// Prints `r` as a row of the table and keeps it (see [`keep`]).
+/// PyTorch's median ms by (name, shape, precision), from `--peer`.
+type PeerTimes = std::collections::BTreeMap<(String, String, String), f64>;
+static PEER: std::sync::Mutex<Option<PeerTimes>> = std::sync::Mutex::new(None);
+
+fn load_peer(path: Option<&std::path::Path>) -> CliResult<()> {
+    let Some(path) = path else { return Ok(()) };
+    let text = std::fs::read_to_string(path).map_err(|e| format!("--peer {}: {e}", path.display()))?;
+    let json: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| format!("--peer {}: not JSON: {e}", path.display()))?;
+    let records = json["records"].as_array().ok_or_else(|| {
+        format!("--peer {}: no \"records\" list (the output of tools/peers/torch_bench.py)", path.display())
+    })?;
+    let s = |r: &serde_json::Value, k: &str| r[k].as_str().unwrap_or("").to_string();
+    let map = records
+        .iter()
+        .filter_map(|r| Some(((s(r, "name"), s(r, "shape"), s(r, "precision")), r["median_ms"].as_f64()?)))
+        .collect();
+    *PEER.lock().unwrap_or_else(|e| e.into_inner()) = Some(map);
+    Ok(())
+}
+
+/// Prints `r` as a row of the table (with PyTorch's time and the ratio under `--peer`) and keeps
+/// it (see [`keep`]).
 pub fn print_row(r: &Record) {
     keep(r);
     let peak = r.peak_fraction.map(|p| format!("{:.1}", 100.0 * p)).unwrap_or_else(|| "-".into());
+    let peer = PEER.lock().unwrap_or_else(|e| e.into_inner()).as_ref().map(|m| {
+        match m.get(&(r.name.clone(), r.shape.clone(), r.precision.clone())) {
+            Some(&t) => format!("   PyTorch {t:.3} ms, ours x{:.2}", r.median_ms / t),
+            None => "   PyTorch -".to_string(),
+        }
+    });
     println!(
-        "{:<26} {:<32} {:<9} {:>10.3} {:>10} {:<7} {:>7} {:>10.2e} {:>10.2e}",
+        "{:<26} {:<32} {:<9} {:>10.3} {:>10} {:<7} {:>7} {:>10.2e} {:>10.2e}{}",
         r.name,
         r.shape,
         r.precision,
@@ -285,7 +353,8 @@ pub fn print_row(r: &Record) {
         r.throughput_unit,
         peak,
         r.nmse,
-        r.max_abs_err
+        r.max_abs_err,
+        peer.unwrap_or_default()
     );
 }
 

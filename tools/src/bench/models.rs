@@ -49,7 +49,7 @@ use velox_models::velox::surface::{SampleSpec, Sampler, SurfaceDecoder};
 use velox_models::velox::tracker::Tracker;
 use velox_models::velox::voxels::{cell_labels, VoxelDecoder, FRAME_WORDS};
 
-use super::{print_header, print_row, time_gpu, Record};
+use super::{print_header, print_row, time_gpu, Record, SizeSet};
 
 /// The paper's H100 times in ms (docs/models.md): encoder, Gaussian decoder one frame, 4D surface
 /// decoder 16384 points (the table does not give its steps).
@@ -85,11 +85,11 @@ struct Sizes {
     steps: [usize; 2],
 }
 
-fn sizes(gpu: &Gpu, quick: bool) -> Sizes {
-    if quick {
+fn sizes(set: SizeSet) -> Sizes {
+    if set == SizeSet::Quick {
         // Seconds on lavapipe: fewer points and steps for the surface decoder.
         Sizes { cfg: AutoencoderConfig::small(), points: 24_000, surface_points: 256, steps: [4, 20] }
-    } else if gpu.caps().kind == "CPU" {
+    } else if set == SizeSet::Small {
         Sizes { cfg: AutoencoderConfig::small(), points: 24_000, surface_points: 1024, steps: [20, 100] }
     } else {
         Sizes { cfg: AutoencoderConfig::paper(), points: 1_440_000, surface_points: 16384, steps: [20, 100] }
@@ -201,8 +201,8 @@ fn errors(first: &[f32], last: &[f32]) -> (f64, f64) {
     (nmse(last, &reference), max_abs_err(last, &reference))
 }
 
-pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
-    let s = sizes(gpu, quick);
+pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
+    let s = sizes(set);
     let cfg = &s.cfg;
     let device = gpu.caps().name.clone();
     let mut rng = Rng::new(11);

@@ -18,7 +18,7 @@ use velox_engine::rng::Rng;
 use velox_engine::stats::{max_abs_err, nmse};
 use velox_engine::{Gpu, Recorder, Result, Tensor};
 
-use super::{print_header, print_row, Record};
+use super::{print_header, print_row, Record, SizeSet};
 
 /// gsplat 1.5.3 on an H100, same scene at 1920 x 1080 (issue 4): (Gaussians, forward ms,
 /// forward + backward ms).
@@ -33,8 +33,8 @@ struct Sizes {
     res_count: usize,
 }
 
-fn sizes(gpu: &Gpu, quick: bool) -> Sizes {
-    if quick || gpu.caps().kind == "CPU" {
+fn sizes(set: SizeSet) -> Sizes {
+    if set.small() {
         Sizes {
             counts: vec![10_000, 100_000],
             count_res: (640, 360),
@@ -145,8 +145,8 @@ fn forward_error(gpu: &Gpu, g: &GaussianData, cam: &Camera, samples: usize) -> R
     Ok((nmse(&have, &wanted), max_abs_err(&have, &wanted), pixels.len()))
 }
 
-pub fn run(gpu: &Gpu, quick: bool, repeats: u32) -> Result<Vec<Record>> {
-    let s = sizes(gpu, quick);
+pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
+    let s = sizes(set);
     let c = gpu.caps();
     let device = c.name.clone();
     println!("device: {device} ({}); {repeats} timed repeats per case, median shown", c.kind);

@@ -84,8 +84,7 @@ pub fn run(
     batches: Option<&[usize]>,
     precisions: &[Precision],
 ) -> Result<Vec<Record>> {
-    let cpu = gpu.caps().kind == "CPU";
-    let small = quick || cpu;
+    let small = quick;
     let batches = batches.map_or(if small { vec![1, 2, 4] } else { vec![1, 2, 4, 8, 16] }, <[usize]>::to_vec);
     let base = AutoencoderConfig::named(config)?;
     let device = gpu.caps().name.clone();
@@ -208,7 +207,7 @@ pub fn run_token_model(
     use velox_models::velox::tokens::CloudSource;
     use velox_tasks::encode::{encode_dataset, EncodeOptions};
 
-    let small = quick || gpu.caps().kind == "CPU";
+    let small = quick;
     let dir = std::env::temp_dir().join(format!("velox-bench-train-tokens-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let data = dir.join("data");
