@@ -18,6 +18,9 @@
 //! folder is flushed, so a crash leaves either the old checkpoint or the new one, never half of
 //! one. Loads check every tensor's name, dtype, shape and values (all finite) against the store
 //! before changing anything, and say what does not match.
+//!
+//! Tests: `tests/training/train_primitives.rs` (round trips, refusals, weights files),
+//! `tests/data/fuzz.rs` (damaged files).
 
 use std::borrow::Cow;
 use std::collections::{BTreeMap, HashMap};

@@ -22,6 +22,9 @@
 //!     Linear::new(w, Some(b))
 //! })?;
 //! ```
+//!
+//! Tests: `tests/training/train_primitives.rs` (the store's layout, steps and norms),
+//! `tests/models/slips.rs` (every model's weight-decay layout) and `tests/data/fuzz.rs`.
 
 use std::collections::HashMap;
 

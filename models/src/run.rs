@@ -2,6 +2,8 @@
 //! the seed, the length, the batch, the scenes and their order, the learning-rate cooldown.
 //! Every checkpoint of the run stores them, so a resumed run takes them from there and repeats
 //! the uninterrupted run step for step, whatever the command line of the resumption says.
+//!
+//! Tests: `tests/training/trainer.rs` and `tests/training/mixed_precision.rs`.
 
 use std::path::Path;
 

@@ -6,6 +6,8 @@
 //! lr(step) = peak * min(step / warmup, sqrt(warmup / step)),   step = 1, 2, ...
 //!
 //! The two branches meet at step == warmup, where lr == peak.
+//!
+//! Tests: `tests/training/train_primitives.rs`.
 
 /// The noam schedule with its peak learning rate and warm-up length.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -5,6 +5,9 @@
 //!   backward `dx = dy * (1 + scale)`, `dshift = sum_t dy`, `dscale = sum_t dy * x`.
 //! - [`GatedResidual`]: `out = res + gate * y`;
 //!   backward `dres = dout`, `dgate = sum_t dout * y`, `dy = dout * gate`.
+//!
+//! Tests: `tests/models/layers.rs` (against the reference, the gated residual) and the engine's
+//! harness row of adaLN.
 
 use velox_engine::ops::adaln;
 use velox_engine::ops::reduce::{reduce, Reduce};

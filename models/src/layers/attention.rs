@@ -12,6 +12,9 @@
 //! In an f16 recording the projections run on f16 operands (see [`Linear::forward`]) and the
 //! attention reads q, k, v rounded to f16, in the forward and the backward pass (mixed-precision
 //! training); gradients, softmax statistics and outputs stay f32.
+//!
+//! Tests: `tests/models/attention_layer.rs` (multi-head attention against the reference, forward
+//! and backward) and `tests/training/train_transformer.rs`.
 
 use velox_engine::ops::attention::{
     attention, attention_backward_into, AttentionGrads, AttentionOut, Segments,

@@ -3,6 +3,9 @@
 //! - [`SwiGlu`]: `y = W2 (silu(x W1) * (x W3))`, no biases (`shaders/swiglu.wgsl`).
 //! - [`GeluMlp`]: `y = W2 gelu(x W1 + b1) + b2`, exact GELU (`shaders/unary.wgsl` forward,
 //!   `shaders/gelu.wgsl` backward).
+//!
+//! Tests: `tests/models/layers.rs` (both feed-forwards against the reference and finite
+//! differences).
 
 use velox_engine::ops::gelu::gelu_backward;
 use velox_engine::ops::swiglu::{swiglu, swiglu_backward, swiglu_backward_into};

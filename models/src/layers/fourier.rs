@@ -4,6 +4,8 @@
 //! `[x_0 .. x_{c-1}]` (only with `include_input`), then `sin(pi w_f x_i)` at `i * F + f`, then
 //! `cos(pi w_f x_i)` at `c * F + i * F + f`. docs/models.md uses 32 frequencies from 2^0 to 2^12
 //! for xyz ([`Fourier::log_spaced`]`(3, 32, 12.0, ..)`) and 8 for tau.
+//!
+//! Tests: `tests/models/layers.rs` and the engine's harness row of the Fourier features.
 
 use velox_engine::ops::fourier::{fourier, fourier_backward, fourier_width};
 use velox_engine::{Gpu, Recorder, Result, Tensor};

@@ -1,6 +1,9 @@
 //! Linear layer: `y = x @ W (+ b)`, `x [.., in]`, `W [in, out]`, `b [out]`.
 //!
 //! Backward: `dx = dy @ W^T`, `dW += x^T @ dy`, `db += sum over rows of dy`.
+//!
+//! Tests: `tests/models/layers.rs` (against the reference, stacks, f16 operands, finite
+//! differences).
 
 use velox_engine::ops::cast::cast;
 use velox_engine::ops::matmul::{matmul, matmul_bias, matmul_bias_into, matmul_into, matmul_sum_into};

@@ -1,5 +1,8 @@
 //! Mean losses: each gives the scalar loss as a 1-element tensor and the gradient of its input.
 //! Kernel: `shaders/loss.wgsl`; host side `engine/src/ops/loss.rs`.
+//!
+//! Tests: `tests/models/layers.rs` (every loss against the reference, saturated logits) and the
+//! engine's harness row of the losses.
 
 use velox_engine::ops::fill::fill;
 pub use velox_engine::ops::loss::LossKind;

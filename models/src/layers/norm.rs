@@ -1,5 +1,7 @@
 //! RMSNorm and LayerNorm over the last axis. Kernels: `shaders/rmsnorm.wgsl`,
 //! `shaders/layernorm.wgsl` (host sides in `engine/src/ops/{rmsnorm,layernorm}.rs`).
+//!
+//! Tests: `tests/models/layers.rs` (against the reference, residual gradients, stability).
 
 use velox_engine::ops::layernorm::{layernorm, layernorm_backward};
 use velox_engine::ops::rmsnorm::{rmsnorm, rmsnorm_backward};

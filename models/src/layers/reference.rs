@@ -1,6 +1,8 @@
 //! f64 references of the layers, in plain loops. Row-major arrays; `n` rows. The single-op
 //! references (norms, Fourier features, losses, the SwiGLU gate, GELU, adaLN) live beside their
 //! kernels' host sides in `engine/src/ops` and are re-exported here.
+//!
+//! Tests: `tests/models/layers.rs` (the composites against finite differences).
 
 pub use velox_engine::ops::adaln::reference::{
     gated_residual, gated_residual_backward, modulate, modulate_backward,

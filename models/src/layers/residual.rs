@@ -1,4 +1,6 @@
 //! Residual add `y = x + f(x)`; its backward hands `dy` to both branches.
+//!
+//! Tests: `tests/models/layers.rs` (gradients to both branches).
 
 use velox_engine::ops::binary::{binary, Binary};
 use velox_engine::{Error, Recorder, Result, Tensor};

@@ -3,6 +3,8 @@
 //! then takes the same optimiser step, so all hold the same parameters. A one-process run uses
 //! [`SingleProcess`], whose operations have nothing to do; an MPI run implements the trait over
 //! its communicator.
+//!
+//! Tests: `tests/training/trainer.rs` (one process's all-reduce).
 
 use velox_engine::{Error, Result, Tensor};
 

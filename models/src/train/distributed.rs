@@ -33,6 +33,8 @@
 //! without finalising. MPI cannot start twice in a process, so a run keeps one `Comm` from
 //! start to end, on the thread that created it (a `Comm` is neither `Send` nor `Sync`, with or
 //! without the feature: MPI is initialised for calls from that thread only).
+//!
+//! Tests: `tests/distributed.rs` and `tools/tests/distributed_train.rs` (two processes over MPI).
 
 use std::marker::PhantomData;
 

@@ -14,6 +14,8 @@
 //! the dataset without replaying the passes before it (a resumed run repeats the
 //! uninterrupted one), and they do not depend on how the global batch is split between
 //! processes and micro-batches.
+//!
+//! Tests: `tests/data/data.rs` (the sample order) and `tools/tests/train_cli.rs`.
 
 use velox_engine::rng::Rng;
 

@@ -3,6 +3,8 @@
 //! thread ahead of the steps that need it ([`prefetch`]), [`SampleSource::prepare`] (host to
 //! device) on the training thread. The data crate implements it for a folder of scenes; the
 //! models crate cannot read those itself.
+//!
+//! Tests: `tests/training/trainer.rs` and `tests/data/tokens.rs`.
 
 use std::sync::mpsc::{sync_channel, Receiver};
 use std::thread::Scope;

@@ -29,6 +29,9 @@
 //! by all processes. The samples of a step depend on the seed, the step and the dataset, not
 //! on how `G` is split, so a run's samples are the same on one process or several, and a
 //! resumed run repeats the uninterrupted one bit for bit.
+//!
+//! Tests: `tests/training/trainer.rs` (micro-batches, accumulation, resume to the bit),
+//! `tests/training/mixed_precision.rs` and `tools/tests/train_cli.rs`.
 
 use std::ops::Range;
 use std::path::{Path, PathBuf};

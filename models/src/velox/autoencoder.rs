@@ -17,6 +17,11 @@
 //!    that the mean over a step's batch, and AdamW updates every parameter (noam schedule,
 //!    global-norm clipping); a NaN or Inf gradient stops the step before anything changes.
 //!    [`Autoencoder::train_step`] does all of it for one scene.
+//!
+//! Tests: `tests/models/autoencoder.rs` (the step against finite differences, learning),
+//! `tests/models/slips.rs` (token noise, the token loss weight and the encoder's subset reaching
+//! what they should), `tests/training/mixed_precision.rs` (f16 against f32, loss scaling, resume)
+//! and `tools/tests/train_cli.rs` (the command).
 
 use std::time::Instant;
 

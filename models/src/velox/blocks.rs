@@ -1,6 +1,9 @@
 //! Pieces the Velox models share: parameter declarations for linear layers, norms, attention
 //! and feed-forwards, the pre-norm residual feed-forward, and self-attention within voxel
 //! windows (tokens gathered into window order, attended per window, gathered back).
+//!
+//! Tests: through every model's step against finite differences (`tests/models/`), and the
+//! weight-decay layout its helpers declare (`tests/models/slips.rs`).
 
 use velox_engine::ops::attention::Segments;
 use velox_engine::ops::gather::{gather, gather_plus, invert_permutation};

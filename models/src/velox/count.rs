@@ -1,6 +1,10 @@
 //! Parameter counts of the models' parts, from their declarations (the constructors run over
 //! stand-ins, see `crate::params`: a device is needed, but no parameter memory): what `velox
 //! config NAME --params` prints, to compare configs.
+//!
+//! Tests: `tests/models/gaussian_decoder.rs`, `voxel_decoder.rs` and `tracker.rs` (the paper
+//! configs' parameter counts), `tools/tests/models_cli.rs` (`velox config --params`) and
+//! `tests/models/slips.rs` (every model's declarations and their weight decay).
 
 use serde::Serialize;
 use velox_engine::{Gpu, Result};

@@ -16,6 +16,8 @@
 //! lies, are dropped first (the grid would clamp them onto its border voxels). Predicted voxels
 //! of the 64^3 grid are taken to the Gaussian decoder's grid (a voxel there is occupied where
 //! one of its 64^3 voxels is).
+//!
+//! Tests: `tools/tests/models_cli.rs` (decode commands) and `tests/models/eval_alignment.rs`.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;

@@ -20,6 +20,9 @@
 //!
 //! In an f16 recording the products and the attention read f16 operands ([`Linear::forward`]);
 //! norms, softmax statistics and the residual stream stay f32.
+//!
+//! Tests: `tests/models/dinov2.rs` (against the `transformers` package's outputs on fixtures,
+//! weight names, the position resampling, the parameter count).
 
 use std::collections::BTreeMap;
 use std::path::Path;

@@ -17,6 +17,9 @@
 //! encoder is a smooth function of its parameters and its backward pass goes through the
 //! attention, the layers and the gathers alone. Tokens are reordered into window order (and
 //! back) with gathers by a permutation and its inverse, which are exact.
+//!
+//! Tests: `tests/models/encoder.rs` (tokens, the backward against finite differences per tensor,
+//! batches, bad clouds).
 
 use velox_engine::ops::assign::assign_grouped;
 use velox_engine::ops::attention::Segments;

@@ -11,6 +11,8 @@
 //!   parameters.
 //!
 //! The backward pass returns the gradient with respect to the tokens, which the encoder needs.
+//!
+//! Tests: `tests/models/gaussian_decoder.rs` (forward and backward, voxel queries, the head).
 
 use velox_engine::ops::gaussian_head::{head_backward, head_forward, HeadRange, RAW};
 use velox_engine::ops::raster::Gaussians;

@@ -15,6 +15,9 @@
 //!   query, its last layer initialised small (normal, `head_std`).
 //!
 //! The backward pass takes the gradient of the head's output and returns the tokens'.
+//!
+//! Tests: through the encoder's and the Gaussian decoder's (`tests/models/encoder.rs`,
+//! `tests/models/gaussian_decoder.rs`).
 
 use velox_engine::ops::attention::Segments;
 use velox_engine::ops::columns::copy_columns;

@@ -25,6 +25,10 @@
 //! Each point has its own `t` in training, so the modulation is per point (`Modulate` with
 //! `B = points, T = 1`); in sampling every point shares one `t`, and the modulation is computed
 //! once (`B = 1, T = points`).
+//!
+//! Tests: `tests/models/surface_decoder.rs` (the backward against finite differences, independent
+//! points, overfitting a shape, Heun's exactness), `tests/models/slips.rs` (the flow noise reaching
+//! input, target and time).
 
 use velox_engine::ops::attention::Segments;
 use velox_engine::ops::binary::{binary, binary_into, Binary};

@@ -42,6 +42,9 @@
 //! their keys sorted, so the same tokens give the same bytes. Every reader checks everything
 //! before returning (shapes, dtypes, finite values and ranges, the scene names, the hash's
 //! form, the config) and names the file and the problem.
+//!
+//! Tests: `tests/data/tokens.rs` (the store, its statistics and refusals) and `tests/data/fuzz.rs`
+//! (its files).
 
 use std::collections::{BTreeSet, HashMap};
 use std::io::Read;

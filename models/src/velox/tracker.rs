@@ -12,6 +12,9 @@
 //!
 //! Visibility is not learned (as in the paper): a predicted point is occluded where the
 //! video's camera does not see it in its depth frame (`Camera::sees`, the data's own test).
+//!
+//! Tests: `tests/models/tracker.rs` (the step against finite differences, learning against the
+//! static baseline), `tests/models/slips.rs` (training reads the tokens prediction reads).
 
 use std::time::Instant;
 

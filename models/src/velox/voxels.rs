@@ -1,5 +1,8 @@
 //! The voxel decoder (docs/models.md, Voxel decoder; the occupied voxels of a frame predicted
 //! from the dynamic tokens, so Gaussians decode without sampling the surface ODE).
+//!
+//! Tests: `tests/models/voxel_decoder.rs` (both stages, learning against the trivial model, other
+//! scenes' tokens), `tests/models/slips.rs` (the dilation reaching the fine stage alone).
 
 use std::time::Instant;
 
