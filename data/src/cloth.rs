@@ -45,6 +45,22 @@ pub const TILT_DEGREES: f32 = 30.0;
 pub const SPACING: f32 = 0.04;
 /// Seconds between frames (the data's 100 frames per second).
 pub const FRAME_DT: f32 = 0.01;
+/// Compliance of the garments' stretch constraints (every edge): nearly inextensible.
+pub const STRETCH_COMPLIANCE: f32 = 1e-7;
+/// Compliance of their bending constraints (across every interior edge): soft, so the cloth
+/// folds and drapes.
+pub const BEND_COMPLIANCE: f32 = 2e-3;
+/// Friction with the ground: sideways travel in contact is cut by this times the depth lifted.
+pub const FRICTION: f32 = 0.8;
+/// Bounce off the ground: none, cloth lands dead.
+pub const RESTITUTION: f32 = 0.0;
+/// Air drag, per second.
+pub const DAMPING: f32 = 1.0;
+/// Particle radius: a quarter of the grid's spacing, so mesh neighbours are never within reach.
+pub const RADIUS: f32 = 0.25 * SPACING;
+/// Particles within this of each other in the flat pattern never collide: 1.5 spacings, past
+/// every edge and diagonal of the grid (the stretch and bending constraints hold those).
+pub const EXCLUDE: f32 = 1.5 * SPACING;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -178,18 +194,31 @@ pub fn pattern(kind: GarmentKind, rng: &mut Rng) -> Pattern {
     Pattern { kind, points, triangles, uvs }
 }
 
-fn params() -> ClothParams {
+/// How the garments move: the constants above, 20 substeps a frame, self-collision on.
+pub fn params() -> ClothParams {
     ClothParams {
         gravity: GRAVITY,
         ground: GROUND,
-        friction: 0.8,
-        restitution: 0.0,
-        radius: 0.25 * SPACING,
-        exclude: 1.5 * SPACING,
+        friction: FRICTION,
+        restitution: RESTITUTION,
+        radius: RADIUS,
+        exclude: EXCLUDE,
         substeps: 20,
         collide: true,
-        damping: 1.0,
+        damping: DAMPING,
     }
+}
+
+/// The solver's mesh of `pat` laid flat on the ground turned `yaw` about the vertical:
+/// stretch constraints of [`STRETCH_COMPLIANCE`], bending ones of [`BEND_COMPLIANCE`], the
+/// flat pattern as the rest shape of the collision exclusion.
+pub fn garment_mesh(pat: &Pattern, yaw: f32) -> DataResult<ClothMesh> {
+    let (c, s) = (yaw.cos(), yaw.sin());
+    let laid: Vec<[f32; 3]> =
+        pat.points.iter().map(|p| [c * p[0] - s * p[1], GROUND + RADIUS, s * p[0] + c * p[1]]).collect();
+    let mut mesh = ClothMesh::from_triangles(laid, &pat.triangles, STRETCH_COMPLIANCE, BEND_COMPLIANCE)?;
+    mesh.rest_positions = pat.points.iter().map(|p| [p[0], 0.0, p[1]]).collect();
+    Ok(mesh)
 }
 
 /// Folds the cloth in `sim` over the line through `origin` along `dir` (unit, in xz): the
@@ -241,16 +270,8 @@ pub fn scene(gpu: &Gpu, seed: u64, images: Option<&ImageFolder>) -> DataResult<(
     let kind = [GarmentKind::Towel, GarmentKind::Shirt, GarmentKind::Shorts][rng.below(3) as usize];
     let pat = pattern(kind, &mut rng);
     let yaw = rng.range(0.0, std::f64::consts::TAU) as f32;
-    let (c, s) = (yaw.cos(), yaw.sin());
-    let flat: Vec<[f32; 3]> = pat.points.iter().map(|p| [p[0], 0.0, p[1]]).collect();
     let params = params();
-    let laid: Vec<[f32; 3]> = pat
-        .points
-        .iter()
-        .map(|p| [c * p[0] - s * p[1], GROUND + params.radius, s * p[0] + c * p[1]])
-        .collect();
-    let mut mesh = ClothMesh::from_triangles(laid, &pat.triangles, 1e-7, 2e-3)?;
-    mesh.rest_positions = flat;
+    let mesh = garment_mesh(&pat, yaw)?;
     let inv_mass = mesh.inv_mass.clone();
     let mut sim = ClothSim::new(gpu, &mesh, params)?;
     let folds = 1 + rng.below(2) as usize;

@@ -69,7 +69,10 @@ fn backward_matches_a_directional_finite_difference() {
         // Every parameter together (measured within 9e-4), and in the run that has them all
         // (the DINOv2 path, a dropped condition) each part alone (a block, the adaLN maps, the
         // time embedding...): the loss is large with every parameter randomised, and its f32
-        // rounding (about 1e-3 in a derivative at these steps) would swamp a small tensor alone.
+        // rounding (about 1e-3 in a derivative at these steps) would swamp a small tensor alone:
+        // measured up to 3.5e-4 off in absolute terms in every part, whichever the kernels'
+        // summation order (the positions' 2e-2: 4e-5 off with the GPU variants, 2.8e-4 with
+        // the CPU ones), so a part's slope is held to that floor.
         let mut groups = vec![ParamGroup::under(&g.store, "")];
         if dino > 0 {
             let mut parts: Vec<String> = Vec::new();
@@ -99,7 +102,7 @@ fn backward_matches_a_directional_finite_difference() {
             &groups,
             (1, 1),
             1e-3,
-            (2e-3, 1e-4),
+            (2e-3, 5e-4),
             &mut Rng::new(5),
             &mut at,
         );

@@ -283,12 +283,30 @@ impl ClothSim {
         self.n
     }
 
+    /// The constraints as the device holds them (particles, rest length and compliance read
+    /// back from its buffers), in the order they are solved: colour by colour.
+    pub fn constraints(&self) -> Result<Vec<Constraint>> {
+        let count = self.colours.iter().map(|&(_, c)| c).sum::<usize>();
+        let (pairs, rest, compliance) =
+            (self.pairs.read::<u32>()?, self.rest.read::<f32>()?, self.compliance.read::<f32>()?);
+        Ok((0..count)
+            .map(|k| Constraint {
+                a: pairs[2 * k],
+                b: pairs[2 * k + 1],
+                rest: rest[k],
+                compliance: compliance[k],
+            })
+            .collect())
+    }
+
     /// Colours of the constraints (dispatches per substep of the constraint solve).
     pub fn colours(&self) -> usize {
         self.colours.len()
     }
 
-    fn push(&self, dt: f32) -> Params {
+    /// The push constants every kernel of a substep of `dt` seconds reads (the distance
+    /// kernel's colour span left at 0): the parameters as the shaders see them.
+    pub fn substep_params(&self, dt: f32) -> Params {
         let q = &self.params;
         Params {
             n: self.n as u32,
@@ -313,7 +331,7 @@ impl ClothSim {
 
     /// Records one substep of `h` seconds.
     pub fn record_substep(&self, rec: &mut Recorder, h: f32) -> Result<()> {
-        let pc = self.push(h);
+        let pc = self.substep_params(h);
         let groups = (self.n as u64).div_ceil(256);
         rec.dispatch_linear(
             CLOTH_PREDICT,
@@ -404,6 +422,19 @@ impl ClothSim {
             )));
         }
         self.x.write(x)
+    }
+
+    /// Overwrites the velocities (`[n * 3]`, finite): a cloth thrown rather than dropped. Pinned
+    /// particles lose theirs at the next substep.
+    pub fn set_velocities(&self, v: &[f32]) -> Result<()> {
+        if v.len() != 3 * self.n || v.iter().any(|x| !x.is_finite()) {
+            return Err(Error::Invalid(format!(
+                "cloth: {} velocities for {} particles, or one not finite",
+                v.len() / 3,
+                self.n
+            )));
+        }
+        self.v.write(v)
     }
 
     /// Overwrites the inverse masses (`[n]`, finite, >= 0; 0 pins a particle).

@@ -29,8 +29,10 @@
 //! and its means turn NaN; here [`TrackingMetrics::of`] refuses such a video by name and the
 //! evaluation leaves it out of the means, saying so. The benchmark's code computes in the
 //! arrays' precision (f32 for its files) and sums means pairwise; this module computes in f64
-//! and sums in order, so figures agree to rounding (`tests/tracking_metrics.rs` checks them to
-//! 1e-12 on tracks worked out by hand from the official formulas).
+//! and sums in order, so figures agree to rounding (this module's tests check them to 1e-12 on
+//! tracks worked out by hand from the official formulas, `the_benchmarks_formulas_by_hand`
+//! and `local_neighbourhoods_by_hand`; `tests/models/eval_alignment.rs` checks that each track
+//! and frame is scored against its own truth).
 
 use serde::Serialize;
 use velox_engine::ops::raster::Camera;

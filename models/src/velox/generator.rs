@@ -31,6 +31,10 @@
 //! classifier-free guidance needs. Sampling integrates from `t = 0` (noise) to 1 with Euler or
 //! Heun steps and guidance `v = v_null + s (v_cond - v_null)`; the condition's keys and values
 //! are computed once per generation, not once per step.
+//!
+//! Tests: `tests/models/generator.rs` (the step per part against finite differences, learning),
+//! `tests/models/slips.rs` (one guided step is the guided combination; condition dropout; the flow
+//! noise).
 
 use std::time::Instant;
 
@@ -625,6 +629,22 @@ impl Generator {
             return Err(Error::Invalid(format!("the loss became non-finite ({total})")));
         }
         Ok(Losses { terms: vec![("total", total)] })
+    }
+
+    /// The velocity `[k, token_dim]` of one scene at `x_t` and flow time `t`, in f32: under
+    /// `condition` (`keep`), or under the null condition as training's dropout makes it (every
+    /// condition row zero, `keep` false). One evaluation of the network, reading the condition
+    /// as training does (not through the keys and values the sampler computes once): for tests
+    /// that check a sampler's guided step, `v_null + guidance (v_cond - v_null)`, against two
+    /// of these, and the training loss against the velocity at its `x_t`.
+    pub fn velocity(&self, x_t: &Tensor, t: f32, condition: &Condition, keep: bool) -> Result<Tensor> {
+        let gpu = x_t.gpu().clone();
+        let mut rec = gpu.recorder()?;
+        let (ctx, _) = self.embed_condition(&mut rec, &[condition], &[keep])?;
+        let t = Tensor::from_slice(&gpu, &[1], &[t])?;
+        let (v, _) = self.forward(&mut rec, x_t, &t, Context::Embedded(&ctx), &[self.cond_rows()])?;
+        rec.submit()?;
+        Ok(v)
     }
 
     /// Generates one scene's tokens `[k, token_dim]` for `condition`, normalised (see
