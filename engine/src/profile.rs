@@ -58,18 +58,22 @@ pub fn take() -> Vec<KernelTotal> {
 
 /// The family a kernel (`file::entry`) belongs to, for a step's time by kind of work: matrix
 /// products, attention, norms, elementwise passes, reductions, layouts (sorts, scans, windows,
-/// cells), rasterisation, the optimiser.
+/// cells), rasterisation, the optimiser. A module built at several workgroup sizes
+/// (`rmsnorm_wg8`, `fps_wg1024`) is of its source's family.
 pub fn family(kernel: &str) -> &'static str {
     let file = kernel.split("::").next().unwrap_or(kernel);
+    let file = match file.rsplit_once("_wg") {
+        Some((source, size)) if !size.is_empty() && size.bytes().all(|b| b.is_ascii_digit()) => source,
+        _ => file,
+    };
     match file {
         f if f.starts_with("matmul") => "matmul",
         f if f.starts_with("attention") => "attention",
         f if f.starts_with("raster") || f == "gaussian_head" || f == "mesh_raster" => "raster",
         "rmsnorm" | "layernorm" => "norm",
         "reduce" | "loss" => "reduce",
-        "sort" | "scan" | "window" | "assign" | "fps" | "gather" | "scatter_add" | "columns" | "concat" => {
-            "layout"
-        }
+        "sort" | "scan" | "window" | "assign" | "fps" | "fps_order" | "gather" | "scatter_add"
+        | "columns" | "concat" => "layout",
         "adamw" | "norm" => "optimiser",
         "cast" => "cast",
         _ => "elementwise",
@@ -122,4 +126,28 @@ pub fn report() -> Option<String> {
         );
     }
     Some(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::family;
+
+    /// Would catch: a kernel built at a second workgroup size (the CPU row variants) counted
+    /// as elementwise work, which `velox bench train`'s split by family showed as no norm time.
+    #[test]
+    fn every_variant_is_of_its_sources_family() {
+        for (kernel, want) in [
+            ("rmsnorm_wg256::forward", "norm"),
+            ("rmsnorm_wg8::backward", "norm"),
+            ("layernorm_wg8::forward", "norm"),
+            ("fps_wg1024::fps", "layout"),
+            ("fps_order::order", "layout"),
+            ("matmul_cpu_layout1::main", "matmul"),
+            ("attention_coop8_d16_bq64::forward", "attention"),
+            ("norm::sum_squares", "optimiser"),
+            ("raster_backward_cas::main", "raster"),
+        ] {
+            assert_eq!(family(kernel), want, "{kernel}");
+        }
+    }
 }
