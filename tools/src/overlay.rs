@@ -153,8 +153,10 @@ pub fn splat_points(
 
 /// The frames `frames` of a clip as an animated GIF at `gif`, each frame shown `delay_ms`: the
 /// first supervision view of the dataset scene `scene` beside the pictures `panes(f, camera)`
-/// makes of frame `f` from that view's camera (on black, as the data's images). With `pngs`,
-/// each frame also as `fFF.png` in that folder.
+/// makes of frame `f` from that view's camera (on black, as the data's images), enlarged by
+/// the smallest whole factor that makes it at least [`GIF_MIN_WIDTH`] wide (each pixel a
+/// square of pixels: no filtering blurs what is compared). With `pngs`, each frame also as
+/// `fFF.png` in that folder, at the views' own size.
 pub fn clip_gif(
     scene: &std::path::Path,
     frames: &[usize],
@@ -182,9 +184,15 @@ pub fn clip_gif(
         }
         images.push(frame);
     }
-    velox_io::image::write_gif(gif, &images, width as u32, h as u32, delay_ms)?;
+    let k = GIF_MIN_WIDTH.div_ceil(width.max(1)).max(1);
+    let images: Vec<Vec<f32>> = images.iter().map(|i| enlarged(i, width, h, k)).collect();
+    velox_io::image::write_gif(gif, &images, (k * width) as u32, (k * h) as u32, delay_ms)?;
     Ok(())
 }
+
+/// The narrowest a clip's GIF is written: a few hundred pixels, so that views of tens of
+/// pixels can be seen.
+pub const GIF_MIN_WIDTH: usize = 256;
 
 #[cfg(test)]
 mod tests {

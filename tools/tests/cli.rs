@@ -167,9 +167,13 @@ fn demo_runs_end_to_end_and_says_where_its_outputs_are() {
     let summary: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(dir.join("demo.json")).unwrap()).unwrap();
     assert!(summary["metrics"]["psnr"].as_f64().unwrap().is_finite());
-    // The clip, every other frame: the truth beside the decoded Gaussians.
+    // The clip, every other frame: the truth beside the decoded Gaussians, two views of 32
+    // enlarged 4 times to reach 256 px.
     let gif = velox_io::image::read_gif(&dir.join("decoded.gif")).unwrap();
-    assert_eq!((gif.frames.len(), gif.width, gif.height), (12, 64, 32));
+    assert_eq!((gif.frames.len(), gif.width, gif.height), (12, 256, 128));
+    // Every frame decoded as Gaussians (what the viewer plays), and the viewer's command given.
+    assert!(dir.join("decoded/gaussians_f00.ply").exists() && dir.join("decoded/gaussians_f11.ply").exists());
+    assert!(text.contains(&format!("view {}", dir.join("decoded").display())), "{text}");
     assert!(gif.frames[0] != gif.frames[6], "the clip moves");
     // A second run replaces the first demo's outputs; a folder that is not a demo's is refused.
     let again = velox()

@@ -135,9 +135,16 @@ fn decode_gaussians_writes_splat_files_from_surface_or_cloud_voxels() {
     ok(&velox(&[&args[..], &["--frames", "3,9", "--voxels", "cloud", "--gif"][..]].concat()));
     let gif = velox_io::image::read_gif(&out.join("clip.gif")).unwrap();
     assert_eq!((gif.frames.len(), gif.width), (2, 2 * gif.height));
-    let (png, w, _) = velox_io::image::read_png(&out.join("clip/f09.png")).unwrap();
-    assert_eq!(w, gif.width);
-    // The GIF's frame is the PNG quantised to a palette of 256 colours.
+    let (png, w, h) = velox_io::image::read_png(&out.join("clip/f09.png")).unwrap();
+    // The GIF enlarges the views by a whole factor to at least 256 px; the PNG keeps their size.
+    let k = gif.width / w;
+    assert!(k * w == gif.width && gif.width >= 256 && (k - 1) * w < 256, "{} from {w}", gif.width);
+    // The GIF's frame is the PNG enlarged and quantised to a palette of 256 colours.
+    let (w, k) = (w as usize, k as usize);
+    let png: Vec<f32> = (0..h as usize * k)
+        .flat_map(|y| (0..w * k).flat_map(move |x| [0, 1, 2].map(|c| 3 * ((y / k) * w + x / k) + c)))
+        .map(|i| png[i])
+        .collect();
     let mean = png.iter().zip(&gif.frames[1]).map(|(a, b)| (a - b).abs()).sum::<f32>() / png.len() as f32;
     assert!(mean <= 4.0 / 255.0, "the PNG is the frame: mean difference {mean}");
     let cloud = dir.join("cloud.ply");
