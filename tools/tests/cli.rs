@@ -2,6 +2,8 @@
 
 use std::process::Command;
 
+mod common;
+
 fn velox() -> Command {
     Command::new(env!("CARGO_BIN_EXE_velox"))
 }
@@ -335,20 +337,7 @@ fn data_cloth_writes_scenes_with_their_centre_of_mass_and_refuses_bad_requests()
 
 /// Every file under `dir` (relative path, bytes), in name order.
 fn tree(dir: &std::path::Path) -> Vec<(String, Vec<u8>)> {
-    let mut out = Vec::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d).unwrap() {
-            let p = e.unwrap().path();
-            if p.is_dir() {
-                stack.push(p);
-            } else {
-                out.push((p.strip_prefix(dir).unwrap().display().to_string(), std::fs::read(&p).unwrap()));
-            }
-        }
-    }
-    out.sort();
-    out
+    common::files_under(dir).into_iter().map(|(name, p)| (name, std::fs::read(p).unwrap())).collect()
 }
 
 #[test]

@@ -6,6 +6,8 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+mod common;
+
 fn temp_dir(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("velox-device-check-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
@@ -81,22 +83,9 @@ fn pack(work: &Path, out: &Path, limits: &[(&str, &str)]) -> std::process::Outpu
     cmd.output().unwrap()
 }
 
-/// Every file under `dir`, as paths relative to it.
+/// Every file under `dir`, as paths relative to it, in name order.
 fn files(dir: &Path) -> Vec<String> {
-    let mut out = Vec::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d).unwrap() {
-            let p = e.unwrap().path();
-            if p.is_dir() {
-                stack.push(p);
-            } else {
-                out.push(p.strip_prefix(dir).unwrap().to_string_lossy().into_owned());
-            }
-        }
-    }
-    out.sort();
-    out
+    common::files_under(dir).into_iter().map(|(name, _)| name).collect()
 }
 
 /// Would catch: a device check that returns more files than a call brings back, or deeper
