@@ -27,7 +27,9 @@ use velox_engine::{Gpu, Precision};
 use velox_io::cloud::CHANNELS;
 use velox_io::{ply, write_bytes};
 use velox_models::velox::autoencoder::{Autoencoder, FRAMES};
-use velox_models::velox::decode::{frame_points, Decoding, FrameOutput, Sampling, VoxelSource};
+use velox_models::velox::decode::{
+    frame_points, sampler_name, Decoding, FrameOutput, Sampling, VoxelSource, WrittenFrame,
+};
 use velox_models::velox::surface::Sampler;
 use velox_models::velox::voxels::VoxelDecoder;
 
@@ -247,11 +249,57 @@ struct Report {
     precision: &'static str,
     input_points: usize,
     voxels: Option<VoxelSource>,
-    sampler: SamplerArg,
-    steps: u64,
-    points: u64,
+    sampler: &'static str,
+    steps: usize,
+    points: usize,
     encode_seconds: f64,
     frames: Vec<FrameFile>,
+}
+
+/// What a decoding wrote, for `decode.json` beside its files: which checkpoint decoded which
+/// cloud (a scene folder, whose cameras and truth `velox view` then shows beside the frames),
+/// how, and each frame's file.
+pub struct DecodeRecord<'a> {
+    pub checkpoint: &'a Path,
+    pub cloud: &'a Path,
+    pub ae: &'a Autoencoder,
+    pub input_points: usize,
+    pub voxels: Option<VoxelSource>,
+    pub sampling: &'a Sampling,
+    pub encode_seconds: f64,
+}
+
+/// Writes `out/decode.json` listing `written` (frames of one kind: points where `voxels` is
+/// `None`, Gaussians otherwise) and returns its path.
+pub fn write_report(out: &Path, record: &DecodeRecord, written: &[WrittenFrame]) -> CliResult<PathBuf> {
+    let frames = written
+        .iter()
+        .map(|w| FrameFile {
+            frame: w.frame,
+            tau: w.tau,
+            file: name(&w.path),
+            count: w.count,
+            voxels: w.voxels,
+            seconds: w.seconds,
+        })
+        .collect();
+    let report = Report {
+        command: if record.voxels.is_some() { "decode gaussians" } else { "decode points" },
+        checkpoint: record.checkpoint.display().to_string(),
+        cloud: record.cloud.display().to_string(),
+        config: record.ae.cfg.name.clone(),
+        precision: record.ae.precision().name(),
+        input_points: record.input_points,
+        voxels: record.voxels,
+        sampler: sampler_name(record.sampling.sampler),
+        steps: record.sampling.steps,
+        points: record.sampling.points,
+        encode_seconds: record.encode_seconds,
+        frames,
+    };
+    let json = out.join("decode.json");
+    write_bytes(&json, serde_json::to_string_pretty(&report)?.as_bytes())?;
+    Ok(json)
 }
 
 pub fn run(cmd: DecodeCommand) -> CliResult<()> {
@@ -321,34 +369,17 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
     };
     let written =
         decoding.write_frames(&common.frames.0, output, &sampling.sampling(), &common.out, &mut on_frame)?;
-    let files = written
-        .iter()
-        .map(|w| FrameFile {
-            frame: w.frame,
-            tau: w.tau,
-            file: name(&w.path),
-            count: w.count,
-            voxels: w.voxels,
-            seconds: w.seconds,
-        })
-        .collect();
     bar.finish_and_clear();
-    let report = Report {
-        command: if voxels.is_some() { "decode gaussians" } else { "decode points" },
-        checkpoint: common.checkpoint.display().to_string(),
-        cloud: common.cloud.display().to_string(),
-        config: ae.cfg.name.clone(),
-        precision: ae.precision().name(),
+    let record = DecodeRecord {
+        checkpoint: &common.checkpoint,
+        cloud: &common.cloud,
+        ae: &ae,
         input_points: cloud_host.len() / CHANNELS,
         voxels,
-        sampler: sampling.sampler,
-        steps: sampling.steps,
-        points: sampling.points,
+        sampling: &sampling.sampling(),
         encode_seconds,
-        frames: files,
     };
-    let json = common.out.join("decode.json");
-    write_bytes(&json, serde_json::to_string_pretty(&report)?.as_bytes())?;
+    write_report(&common.out, &record, &written)?;
     if gif {
         // The frames as written, read back from their files.
         let path = |f: usize| written.iter().find(|w| w.frame == f).map(|w| w.path.clone());
@@ -362,7 +393,7 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
     }
     println!(
         "wrote {} files to {} in {:.1} s (decode.json lists them)",
-        report.frames.len(),
+        written.len(),
         common.out.display(),
         start.elapsed().as_secs_f64()
     );

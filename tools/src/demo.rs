@@ -13,6 +13,7 @@ use velox_data::format::write_scene;
 use velox_data::{procedural, SynthOptions};
 use velox_engine::ops::raster::{render, Camera};
 use velox_engine::Gpu;
+use velox_io::cloud::CHANNELS;
 use velox_io::write_bytes;
 use velox_models::velox::autoencoder::FRAMES;
 
@@ -23,7 +24,7 @@ use velox_models::velox::autoencoder::Autoencoder;
 use velox_models::velox::decode::{Decoding, FrameOutput, Sampling, VoxelSource};
 use velox_tasks::SceneFolders;
 
-use crate::decode::{progress, read_cloud};
+use crate::decode::{progress, read_cloud, write_report, DecodeRecord};
 use crate::eval::recon;
 use crate::interrupt::Interrupt;
 use crate::overlay::clip_gif;
@@ -167,7 +168,10 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
     let decoded = out.join("decoded");
     std::fs::create_dir_all(&decoded).map_err(|e| format!("creating {}: {e}", decoded.display()))?;
     let ae = Autoencoder::load(&gpu, &summary.checkpoint)?;
-    let decoding = Decoding::encode(&ae, &read_cloud(&scene_dir)?, 0)?;
+    let cloud = read_cloud(&scene_dir)?;
+    let encode_start = Instant::now();
+    let decoding = Decoding::encode(&ae, &cloud, 0)?;
+    let encode_seconds = encode_start.elapsed().as_secs_f64();
     let frames = [0, 12, 23];
     // Sampling costs points x steps: the decoded and measured sets grow with the scene.
     let decoded_points = Sampling::heun((points / 4).clamp(256, 4000));
@@ -177,7 +181,18 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
     let mut on_frame = |_| bar.inc(1);
     decoding.write_frames(&frames, FrameOutput::Points, &decoded_points, &decoded, &mut on_frame)?;
     let gaussians = FrameOutput::Gaussians(VoxelSource::Input);
-    decoding.write_frames(&all, gaussians, &decoded_points, &decoded, &mut on_frame)?;
+    let written = decoding.write_frames(&all, gaussians, &decoded_points, &decoded, &mut on_frame)?;
+    // decode.json names the scene, so the viewer shows its truth and cameras beside the frames.
+    let record = DecodeRecord {
+        checkpoint: &summary.checkpoint,
+        cloud: &scene_dir,
+        ae: &ae,
+        input_points: cloud.len() / CHANNELS,
+        voxels: Some(VoxelSource::Input),
+        sampling: &decoded_points,
+        encode_seconds,
+    };
+    write_report(&decoded, &record, &written)?;
     bar.finish_and_clear();
     // Every other frame of the clip, the Gaussians over the input cloud's voxels.
     let every_other: Vec<usize> = (0..FRAMES).step_by(2).collect();

@@ -524,7 +524,13 @@ impl Frame {
 impl Source {
     /// The manifest's list of `frames`, at URLs `{route}/K.bin` (or `#{route}-K` embedded).
     fn manifest_frames(frames: &[Frame], route: &str, embedded: bool) -> Vec<ManifestFrame> {
-        let url = |k: usize| if embedded { format!("#{route}-{k}") } else { format!("{route}/{k}.bin") };
+        let url = |k: usize| {
+            if embedded {
+                format!("#{}", embedded_id(route, k))
+            } else {
+                format!("{route}/{k}.bin")
+            }
+        };
         let frame = |(k, f): (usize, &Frame)| ManifestFrame {
             frame: f.frame,
             tau: tau_of(f.frame),
@@ -539,12 +545,12 @@ impl Source {
             version: 1,
             title: &self.title,
             kind: self.kind,
-            frames: Source::manifest_frames(&self.frames, "frames", embedded),
+            frames: Source::manifest_frames(&self.frames, FRAMES_ROUTE, embedded),
             cameras: &self.cameras,
             background: [0.0; 3],
             compare: self.compare.as_ref().map(|c| ManifestCompare {
                 title: &c.title,
-                frames: Source::manifest_frames(&c.frames, "compare", embedded),
+                frames: Source::manifest_frames(&c.frames, COMPARE_ROUTE, embedded),
             }),
             tracks: self.tracks.as_ref().map(|t| ManifestTracks {
                 url: if embedded { "#tracks".into() } else { "tracks.bin".into() },
@@ -579,6 +585,16 @@ fn base64(bytes: &[u8]) -> String {
     out
 }
 
+/// Where the served page fetches frame K of the result (`frames/K.bin`) and of the comparison.
+const FRAMES_ROUTE: &str = "frames";
+const COMPARE_ROUTE: &str = "compare";
+
+/// The id of the element that holds frame `k` of `route` in the one-file page: the manifest's
+/// URL for it is `#` and this id, so both are made here.
+fn embedded_id(route: &str, k: usize) -> String {
+    format!("{route}-{k}")
+}
+
 /// The page with the manifest and every frame inside it, and the viewer's script inline.
 fn embedded_page(source: &Source) -> CliResult<String> {
     if !INDEX.contains(EMBED_MARKER) {
@@ -593,10 +609,10 @@ fn embedded_page(source: &Source) -> CliResult<String> {
         format!("<script id=\"{id}\" type=\"application/octet-stream\">{}</script>\n", base64(bytes))
     };
     for (k, f) in source.frames.iter().enumerate() {
-        inserts.push_str(&data(&format!("frame-{k}"), &f.body()?));
+        inserts.push_str(&data(&embedded_id(FRAMES_ROUTE, k), &f.body()?));
     }
     for (k, f) in source.compare.iter().flat_map(|c| c.frames.iter().enumerate()) {
-        inserts.push_str(&data(&format!("compare-{k}"), &f.body()?));
+        inserts.push_str(&data(&embedded_id(COMPARE_ROUTE, k), &f.body()?));
     }
     if let Some(t) = &source.tracks {
         inserts.push_str(&data("tracks", &t.body()));

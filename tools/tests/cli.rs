@@ -176,6 +176,11 @@ fn demo_runs_end_to_end_and_says_where_its_outputs_are() {
     // Every frame decoded as Gaussians (what the viewer plays), and the viewer's command given.
     assert!(dir.join("decoded/gaussians_f00.ply").exists() && dir.join("decoded/gaussians_f11.ply").exists());
     assert!(text.contains(&format!("view {}", dir.join("decoded").display())), "{text}");
+    // decode.json names the scene, which the viewer shows beside the frames with its cameras.
+    let decode: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("decoded/decode.json")).unwrap()).unwrap();
+    assert_eq!(decode["cloud"], dir.join("data/scene_00000").display().to_string());
+    assert_eq!(decode["frames"].as_array().unwrap().len(), 24);
     assert!(gif.frames[0] != gif.frames[6], "the clip moves");
     // A second run replaces the first demo's outputs; a folder that is not a demo's is refused.
     let again = velox()

@@ -228,10 +228,54 @@ fn html_writes_one_page_that_holds_every_frame() {
     let out = velox().arg("view").arg(&decoded).arg("--html").arg(&page).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let text = std::fs::read_to_string(&page).unwrap();
-    assert!(text.contains("id=\"velox-manifest\"") && text.contains("id=\"frame-1\""));
-    assert!(text.contains("id=\"compare-23\"") && text.contains("id=\"tracks\""));
+    assert!(text.contains("id=\"velox-manifest\"") && text.contains("id=\"tracks\""));
     assert!(!text.contains("src=\"viewer.js\""), "the script is inline");
     assert!(!text.contains("http://") && !text.contains("https://"), "nothing fetched from outside");
+    // Every frame the manifest names is in the page under the id its URL gives. Would catch:
+    // the manifest naming `#frames-K` where the page holds `frame-K` (nothing drawn).
+    // (The page's comments show the tag too: the manifest is the one that holds an object.)
+    let tag = "<script id=\"velox-manifest\" type=\"application/json\">{";
+    let json = &text[text.find(tag).unwrap() + tag.len() - 1..];
+    let json = &json[..json.find("</script>").unwrap()].replace("<\\/", "</");
+    let manifest: serde_json::Value = serde_json::from_str(json).unwrap();
+    let urls: Vec<String> = manifest["frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .chain(manifest["compare"]["frames"].as_array().unwrap())
+        .map(|f| f["url"].as_str().unwrap().to_string())
+        .collect();
+    assert_eq!(urls.len(), 2 + 24, "two frames and the truth's 24");
+    for url in &urls {
+        let id = url.strip_prefix('#').unwrap_or_else(|| panic!("{url} is not in the page"));
+        assert!(
+            text.contains(&format!("id=\"{id}\"")),
+            "the manifest names {url}, the page has no such element"
+        );
+    }
+    // And the one-file page draws from disk what `velox render` draws of that frame.
+    let (scene, dir) =
+        (decoded.parent().unwrap().join("data/scene_00000"), decoded.parent().unwrap().to_path_buf());
+    let window = (32, 32);
+    let one =
+        screenshot(&format!("file://{}#camera=0&frame=1&ui=0", page.display()), window, &dir, "one-file.png");
+    let render = dir.join("render");
+    let out = velox()
+        .arg("render")
+        .arg(decoded.join("gaussians_f12.ply"))
+        .arg("--scene")
+        .arg(&scene)
+        .args(["--view", "0", "--no-depth", "--out"])
+        .arg(&render)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let (want, w, h) = read_png(&render.join("frame_0000.png")).unwrap();
+    assert_eq!((w, h), window);
+    assert!(want.iter().any(|&v| v > 0.1), "the frame is not empty");
+    let p = psnr(&one, &want);
+    assert!(p >= 30.0, "the one-file page against velox render: PSNR {p:.1} dB");
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// Headless Chromium with software WebGL2 (SwiftShader), at device scale 1.
