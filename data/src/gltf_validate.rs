@@ -447,10 +447,6 @@ fn meshes(root: &Root) -> Check {
                         needs_data: false,
                     }
                     .check(root, index, &at)?,
-                    Checked::Valid(Semantic::Tangents) => {
-                        Use { what, types: &[Type::Vec4], plain: FLOAT, normalized: &[], needs_data: false }
-                            .check(root, index, &at)?
-                    }
                     Checked::Valid(Semantic::TexCoords(_)) => Use {
                         what,
                         types: &[Type::Vec2],
@@ -483,9 +479,11 @@ fn meshes(root: &Root) -> Check {
                         needs_data: true,
                     }
                     .check(root, index, &at)?,
-                    // Attributes the importer does not know are not read; their index must
-                    // still be in range.
-                    _ => get(&root.accessors, index, &format!("{name} of {at}"), "accessors")?.count.0,
+                    // Attributes the importer does not read (tangents, and those it does not
+                    // know) are not checked for their kind: a file whose tangents are of a kind
+                    // an extension allows imports all the same. Their index must still be in
+                    // range and their count the primitive's.
+                    _ => get(&root.accessors, index, &what, "accessors")?.count.0,
                 };
                 match &vertices {
                     Some((n, first)) if *n != count => {
@@ -530,7 +528,12 @@ fn meshes(root: &Root) -> Check {
                         normalized: if quantized { SIGNED_8_16 } else { &[] },
                         needs_data: false,
                     };
-                    let count = target_use.check(root, index, &at)?;
+                    // A target's tangents are not read either: their kind is not checked.
+                    let count = if name == "TANGENT" {
+                        get(&root.accessors, index, &target_use.what, "accessors")?.count.0
+                    } else {
+                        target_use.check(root, index, &at)?
+                    };
                     if let Some((n, first)) = &vertices {
                         if count != *n {
                             return Err(format!(

@@ -834,6 +834,52 @@ fn quantized_positions_and_morph_targets_read_as_their_values() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Tangents are never read by the import, so no kind of them stops it: normalised bytes (as
+/// KHR_mesh_quantization allows), or a kind no extension allows; their index must still be in
+/// range and their count the primitive's. Would catch: a file refused for an attribute the
+/// import does not use ("TANGENT ... expected VEC4 of FLOAT" for a valid quantized file).
+#[test]
+fn attributes_the_import_does_not_read_never_stop_it() {
+    let dir = temp_dir("unread-attributes");
+    let (v, bin) = quad_parts();
+    let plain = import_quad(&dir, "plain.glb", &v, &bin);
+    let tangent_bytes: Vec<u8> = [[127i8, 0, 0, 127]; 4].iter().flatten().map(|&c| c as u8).collect();
+    let cases: [(&str, u32, bool, &str, bool); 3] = [
+        ("normalized_bytes", 5120, true, "VEC4", true),
+        ("plain_bytes_undeclared", 5120, false, "VEC4", false),
+        ("scalar_bytes", 5121, false, "SCALAR", false),
+    ];
+    for (name, component, normalized, kind, quantized) in cases {
+        let (mut q, mut b) = (v.clone(), bin.clone());
+        let view = add_view(&mut q, &mut b, &tangent_bytes);
+        let accessors = q["accessors"].as_array_mut().unwrap();
+        accessors.push(json!({"bufferView": view, "componentType": component, "normalized": normalized,
+            "count": 4, "type": kind}));
+        let n = accessors.len();
+        q["meshes"][0]["primitives"][0]["attributes"]["TANGENT"] = json!(n - 1);
+        if quantized {
+            q["extensionsUsed"] = json!(["KHR_mesh_quantization"]);
+            q["extensionsRequired"] = json!(["KHR_mesh_quantization"]);
+        }
+        let got = import_quad(&dir, &format!("{name}.glb"), &q, &b);
+        assert_eq!(got.mesh, plain.mesh, "{name}");
+    }
+    // Out of range, or of another count than the positions: refused, by name.
+    let mut q = v.clone();
+    q["meshes"][0]["primitives"][0]["attributes"]["TANGENT"] = json!(99);
+    let e = import_file(&dir, "out_of_range.glb", &glb(&q.to_string(), &bin)).unwrap_err();
+    assert!(e.contains("TANGENT") && e.contains("accessors[99]"), "{e}");
+    let (mut q, mut b) = (v.clone(), bin.clone());
+    let view = add_view(&mut q, &mut b, &tangent_bytes);
+    let accessors = q["accessors"].as_array_mut().unwrap();
+    accessors.push(json!({"bufferView": view, "componentType": 5121, "count": 3, "type": "VEC4"}));
+    let n = accessors.len();
+    q["meshes"][0]["primitives"][0]["attributes"]["TANGENT"] = json!(n - 1);
+    let e = import_file(&dir, "short.glb", &glb(&q.to_string(), &b)).unwrap_err();
+    assert!(e.contains("TANGENT") && e.contains("3 elements"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn a_texture_transform_moves_the_sampled_coordinates() {
     // KHR_texture_transform on the base colour: scale, then rotation, then offset, as the
