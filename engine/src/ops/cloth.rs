@@ -16,6 +16,11 @@
 //!
 //! Every step is a fixed sequence of dispatches with no atomics, so the same input gives the
 //! same bits on a device. [`reference`] runs the same substep in f64 on the CPU.
+//!
+//! Tests: the harness's `cloth` row (`engine/tests/ops/cases.rs`: positions after 16 substeps
+//! against the reference, sheets of 4 to 289 particles); `tests/data/cloth.rs` (velocities
+//! too, free fall, rest lengths, each parameter by construction and by effect, layers that do
+//! not pass through each other, a thousand random drops, the same bits again).
 
 use crate::error::{Error, Result};
 use crate::fit_u32;
