@@ -18,16 +18,7 @@ fn grid(side: usize, h: f32, y: f32, cx: f32, cz: f32) -> (Vec<[f32; 3]>, Vec<[u
     let pos = (0..side * side)
         .map(|i| [cx + (i % side) as f32 * h - c, y, cz + (i / side) as f32 * h - c])
         .collect();
-    let mut tris = Vec::new();
-    for r in 0..side - 1 {
-        for q in 0..side - 1 {
-            let a = (r * side + q) as u32;
-            let s = side as u32;
-            tris.push([a, a + 1, a + s]);
-            tris.push([a + 1, a + s + 1, a + s]);
-        }
-    }
-    (pos, tris)
+    (pos, ClothMesh::grid_triangles(side))
 }
 
 fn sheet(side: usize, h: f32, y: f32) -> ClothMesh {

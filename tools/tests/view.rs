@@ -223,7 +223,7 @@ fn the_server_answers_its_routes_and_nothing_outside_them() {
 
 #[test]
 fn html_writes_one_page_that_holds_every_frame() {
-    let (_, decoded) = fixture("html", 32, 8);
+    let (scene, decoded) = fixture("html", 32, 8);
     let page = decoded.join("view.html");
     let out = velox().arg("view").arg(&decoded).arg("--html").arg(&page).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
@@ -254,24 +254,11 @@ fn html_writes_one_page_that_holds_every_frame() {
         );
     }
     // And the one-file page draws from disk what `velox render` draws of that frame.
-    let (scene, dir) =
-        (decoded.parent().unwrap().join("data/scene_00000"), decoded.parent().unwrap().to_path_buf());
+    let dir = decoded.parent().unwrap().to_path_buf();
     let window = (32, 32);
     let one =
         screenshot(&format!("file://{}#camera=0&frame=1&ui=0", page.display()), window, &dir, "one-file.png");
-    let render = dir.join("render");
-    let out = velox()
-        .arg("render")
-        .arg(decoded.join("gaussians_f12.ply"))
-        .arg("--scene")
-        .arg(&scene)
-        .args(["--view", "0", "--no-depth", "--out"])
-        .arg(&render)
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let (want, w, h) = read_png(&render.join("frame_0000.png")).unwrap();
-    assert_eq!((w, h), window);
+    let want = rendered_f12(&decoded, &scene, &dir, window);
     assert!(want.iter().any(|&v| v > 0.1), "the frame is not empty");
     let p = psnr(&one, &want);
     assert!(p >= 30.0, "the one-file page against velox render: PSNR {p:.1} dB");
@@ -311,6 +298,25 @@ fn dom(url: &str, dir: &Path) -> String {
     String::from_utf8_lossy(&out.stdout).to_string()
 }
 
+/// Frame 12 of `decoded` (`gaussians_f12.ply`) as `velox render` draws it from the scene's
+/// camera 0, `window` pixels (checked).
+fn rendered_f12(decoded: &Path, scene: &Path, dir: &Path, window: (u32, u32)) -> Vec<f32> {
+    let render = dir.join("render");
+    let out = velox()
+        .arg("render")
+        .arg(decoded.join("gaussians_f12.ply"))
+        .arg("--scene")
+        .arg(scene)
+        .args(["--view", "0", "--no-depth", "--out"])
+        .arg(&render)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let (want, w, h) = read_png(&render.join("frame_0000.png")).unwrap();
+    assert_eq!((w, h), window);
+    want
+}
+
 fn psnr(a: &[f32], b: &[f32]) -> f64 {
     let mse = a.iter().zip(b).map(|(x, y)| (*x as f64 - *y as f64).powi(2)).sum::<f64>() / a.len() as f64;
     10.0 * (1.0 / mse.max(1e-12)).log10()
@@ -334,19 +340,7 @@ fn the_page_draws_a_frame_as_velox_render_does_and_plays() {
 
     // Frame 1 (clip frame 12) from scene camera 0, through the page's own controls.
     let page = screenshot(&url("camera=0&frame=1&ui=0"), window, &dir, "page.png");
-    let render = dir.join("render");
-    let out = velox()
-        .arg("render")
-        .arg(decoded.join("gaussians_f12.ply"))
-        .arg("--scene")
-        .arg(&scene)
-        .args(["--view", "0", "--no-depth", "--out"])
-        .arg(&render)
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let (want, w, h) = read_png(&render.join("frame_0000.png")).unwrap();
-    assert_eq!((w, h), window);
+    let want = rendered_f12(&decoded, &scene, &dir, window);
     let p = psnr(&page, &want);
     eprintln!("page against velox render: PSNR {p:.1} dB");
     assert!(p >= 30.0, "PSNR {p:.1} dB");

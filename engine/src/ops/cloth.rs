@@ -113,6 +113,14 @@ pub struct ClothMesh {
 }
 
 impl ClothMesh {
+    /// The triangles of a square sheet of `side` x `side` particles numbered row by row: two a
+    /// cell, wound alike (for [`ClothMesh::from_triangles`]).
+    pub fn grid_triangles(side: usize) -> Vec<[u32; 3]> {
+        let w = side as u32;
+        let cells = (0..w.saturating_sub(1)).flat_map(|r| (0..w - 1).map(move |q| r * w + q));
+        cells.flat_map(|a| [[a, a + 1, a + w], [a + 1, a + w + 1, a + w]]).collect()
+    }
+
     /// A mesh of `triangles` over `positions` (the rest shape too): a stretch constraint on
     /// every edge (compliance `stretch`) and a bending one between the opposite corners of
     /// the two triangles of every interior edge (compliance `bend`); every particle of mass 1.

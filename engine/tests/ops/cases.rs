@@ -1086,15 +1086,7 @@ fn cloth_case(gpu: &Gpu, s: &[usize], rng: &mut Rng) -> Result<Vec<Output>> {
             ]
         })
         .collect();
-    let mut triangles = Vec::new();
-    for r in 0..side - 1 {
-        for q in 0..side - 1 {
-            let (a, w) = ((r * side + q) as u32, side as u32);
-            triangles.push([a, a + 1, a + w]);
-            triangles.push([a + 1, a + w + 1, a + w]);
-        }
-    }
-    let mut mesh = ClothMesh::from_triangles(points, &triangles, 1e-6, 1e-3)?;
+    let mut mesh = ClothMesh::from_triangles(points, &ClothMesh::grid_triangles(side), 1e-6, 1e-3)?;
     mesh.inv_mass[0] = 0.0;
     let params =
         ClothParams { substeps: 4, restitution: 0.3, radius: 0.02, exclude: 0.035, ..ClothParams::default() };

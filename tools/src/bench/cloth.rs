@@ -23,15 +23,7 @@ fn sheet(side: usize) -> Result<ClothMesh> {
             [x, 0.2 + 0.3 * x, z]
         })
         .collect();
-    let mut tris = Vec::new();
-    for r in 0..side - 1 {
-        for q in 0..side - 1 {
-            let (a, s) = ((r * side + q) as u32, side as u32);
-            tris.push([a, a + 1, a + s]);
-            tris.push([a + 1, a + s + 1, a + s]);
-        }
-    }
-    ClothMesh::from_triangles(pos, &tris, 1e-7, 1e-3)
+    ClothMesh::from_triangles(pos, &ClothMesh::grid_triangles(side), 1e-7, 1e-3)
 }
 
 /// The t-shirt of the cloth data's seed 2, flat and tilted like the sheet.
