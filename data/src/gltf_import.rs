@@ -403,6 +403,17 @@ fn import_checked(path: &Path, animation: Option<usize>) -> DataResult<Imported>
     if mesh.triangles.is_empty() {
         return Err(bad("the default scene has no triangle meshes".into()));
     }
+    // An animation whose keys hold one pose (a T-pose clip) imports as a still scene: legal,
+    // but not what a user importing an animation means, so it is said.
+    if let Some(a) = &anim {
+        if mesh.frames.iter().all(|f| f == &mesh.frames[0]) {
+            let name = a.name().map(|n| format!(" ({n})")).unwrap_or_default();
+            warnings.push(format!(
+                "animations[{}]{name} moves nothing: every sampled frame is the first, so the scene is still",
+                a.index()
+            ));
+        }
+    }
     // Before normalising, so that a NaN is named as such rather than spread over every vertex.
     mesh.validate().map_err(|e| bad(e.to_string()))?;
     mesh.normalise();

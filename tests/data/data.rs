@@ -834,6 +834,31 @@ fn quantized_positions_and_morph_targets_read_as_their_values() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// An animation whose keys hold one pose imports as a still scene, with a warning naming it;
+/// the moving one has none. Would catch: a T-pose clip imported as motionless without a word.
+#[test]
+fn an_animation_that_moves_nothing_is_said() {
+    let dir = temp_dir("still-animation");
+    let (v, bin) = quad_parts();
+    let moving = import_quad(&dir, "moving.glb", &v, &bin);
+    assert!(moving.warnings.is_empty(), "{:?}", moving.warnings);
+    // Only the translation channel, its two keys the same.
+    let (mut q, mut b) = (v.clone(), bin.clone());
+    let still: Vec<u8> = [0f32, 1., 0., 0., 1., 0.].iter().flat_map(|x| x.to_le_bytes()).collect();
+    let view = add_view(&mut q, &mut b, &still);
+    let accessors = q["accessors"].as_array_mut().unwrap();
+    accessors.push(json!({"bufferView": view, "componentType": 5126, "count": 2, "type": "VEC3"}));
+    let n = accessors.len();
+    q["animations"][0]["samplers"][1]["output"] = json!(n - 1);
+    q["animations"][0]["channels"] = json!([{"sampler": 1, "target": {"node": 0, "path": "translation"}}]);
+    q["animations"][0]["name"] = json!("rest");
+    let got = import_quad(&dir, "still.glb", &q, &b);
+    assert!(got.mesh.frames.iter().all(|f| f == &got.mesh.frames[0]), "the scene is still");
+    assert_eq!(got.warnings.len(), 1, "{:?}", got.warnings);
+    assert!(got.warnings[0].contains("animations[0] (rest) moves nothing"), "{:?}", got.warnings);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// Tangents are never read by the import, so no kind of them stops it: normalised bytes (as
 /// KHR_mesh_quantization allows), or a kind no extension allows; their index must still be in
 /// range and their count the primitive's. Would catch: a file refused for an attribute the
