@@ -256,6 +256,20 @@ struct Report {
     frames: Vec<FrameFile>,
 }
 
+/// Frame `f` of the Gaussians a decoding wrote (`written`), read back from its file and
+/// rendered from `camera` on black: a clip's pane.
+pub fn render_written(
+    gpu: &Gpu,
+    written: &[WrittenFrame],
+    f: usize,
+    camera: &Camera,
+) -> CliResult<Vec<Vec<f32>>> {
+    let path =
+        written.iter().find(|w| w.frame == f).map(|w| &w.path).ok_or("a frame that was not decoded")?;
+    let g = ply::read(path)?.upload(gpu)?;
+    Ok(vec![render(gpu, &g, camera, [0.0; 3])?.image.rgb.read()?])
+}
+
 /// What a decoding wrote, for `decode.json` beside its files: which checkpoint decoded which
 /// cloud (a scene folder, whose cameras and truth `velox view` then shows beside the frames),
 /// how, and each frame's file.
@@ -382,12 +396,8 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
     write_report(&common.out, &record, &written)?;
     if gif {
         // The frames as written, read back from their files.
-        let path = |f: usize| written.iter().find(|w| w.frame == f).map(|w| w.path.clone());
         let (gif, pngs) = (common.out.join("clip.gif"), common.out.join("clip"));
-        let render_frame = |f: usize, camera: &Camera| -> CliResult<Vec<Vec<f32>>> {
-            let g = ply::read(&path(f).ok_or("a frame that was not decoded")?)?.upload(&gpu)?;
-            Ok(vec![render(&gpu, &g, camera, [0.0; 3])?.image.rgb.read()?])
-        };
+        let render_frame = |f: usize, camera: &Camera| render_written(&gpu, &written, f, camera);
         clip_gif(&common.cloud, &common.frames.0, render_frame, &gif, 80, Some(&pngs))?;
         println!("wrote {} and its frames under {} (ground truth | decoded)", gif.display(), pngs.display());
     }

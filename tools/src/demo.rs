@@ -11,7 +11,7 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use velox_data::format::write_scene;
 use velox_data::{procedural, SynthOptions};
-use velox_engine::ops::raster::{render, Camera};
+use velox_engine::ops::raster::Camera;
 use velox_engine::Gpu;
 use velox_io::cloud::CHANNELS;
 use velox_io::write_bytes;
@@ -24,7 +24,7 @@ use velox_models::velox::autoencoder::Autoencoder;
 use velox_models::velox::decode::{Decoding, FrameOutput, Sampling, VoxelSource};
 use velox_tasks::SceneFolders;
 
-use crate::decode::{progress, read_cloud, write_report, DecodeRecord};
+use crate::decode::{progress, read_cloud, render_written, write_report, DecodeRecord};
 use crate::eval::recon;
 use crate::interrupt::Interrupt;
 use crate::overlay::clip_gif;
@@ -196,10 +196,8 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
     bar.finish_and_clear();
     // Every other frame of the clip, the Gaussians over the input cloud's voxels.
     let every_other: Vec<usize> = (0..FRAMES).step_by(2).collect();
-    let render_frame = |f: usize, camera: &Camera| -> CliResult<Vec<Vec<f32>>> {
-        let g = decoding.gaussians(f, &decoding.voxels(f, VoxelSource::Input, &Sampling::heun(1))?)?;
-        Ok(vec![render(&gpu, &g, camera, [0.0; 3])?.image.rgb.read()?])
-    };
+    // Rendered from the files just written, not decoded again.
+    let render_frame = |f: usize, camera: &Camera| render_written(&gpu, &written, f, camera);
     clip_gif(&scene_dir, &every_other, render_frame, &out.join("decoded.gif"), 80, None)?;
 
     // 4. Renders beside the ground truth, and the metrics.
