@@ -25,6 +25,20 @@ pub(crate) fn count_dispatch() {
     DISPATCHES.fetch_add(1, Ordering::Relaxed);
 }
 
+/// Submissions by every recorder of the process. Each is also a host wait: a recorder's
+/// submit waits for its work to finish.
+static SUBMITS: AtomicU64 = AtomicU64::new(0);
+
+/// Submissions (each with its host wait) so far by the whole process, counted as
+/// [`dispatches`] are.
+pub fn submits() -> u64 {
+    SUBMITS.load(Ordering::Relaxed)
+}
+
+pub(crate) fn count_submit() {
+    SUBMITS.fetch_add(1, Ordering::Relaxed);
+}
+
 /// Whether `VELOX_PROFILE` is set (to anything but `0`, read once), or [`set_enabled`] turned
 /// profiling on.
 pub fn enabled() -> bool {

@@ -657,6 +657,7 @@ impl Recorder {
                 device.queue_submit(*queue, &submit, self.fence).vk("vkQueueSubmit")?;
             }
             self.submitted = true;
+            profile::count_submit();
             let start = std::time::Instant::now();
             let nanos = u64::try_from(self.wait.as_nanos()).unwrap_or(u64::MAX);
             match device.wait_for_fences(&[self.fence], true, nanos) {

@@ -495,6 +495,10 @@ fn bench_train_reports_samples_per_second_the_time_split_dispatches_and_memory()
         assert_eq!(r["shape"], format!("tiny config, batch {batch}"));
         assert_eq!(r["precision"], precision);
         assert!(r["dispatches_per_step"].as_u64().unwrap() > 50, "{r}");
+        // A step submits at least once (each submit a host wait), and far fewer times than it
+        // dispatches.
+        let submits = r["submits_per_step"].as_u64().unwrap();
+        assert!(submits >= 1 && submits * 20 < r["dispatches_per_step"].as_u64().unwrap(), "{r}");
         assert!(r["peak_memory_bytes"].as_u64().unwrap() > 1 << 20, "{r}");
         let families = r["family_ms"].as_object().unwrap();
         for family in ["matmul", "attention", "norm", "raster", "optimiser"] {

@@ -16,7 +16,7 @@
 //! that step's. The peak memory is the most the engine's buffers held during the timed steps
 //! (the model, its moments and f16 copies included). One more step runs with per-dispatch
 //! timestamps (which slow it, so it is not among the timed ones) for the dispatch count and
-//! the family split. `--model voxels|tracker|generator` times a model downstream of the
+//! the family split, and for its submissions (each a host wait). `--model voxels|tracker|generator` times a model downstream of the
 //! encoder the same way on one scene's tokens ([`run_token_model`]).
 
 use std::collections::BTreeMap;
@@ -47,9 +47,11 @@ fn scene(gpu: &Gpu, small: bool) -> Result<TrainScene> {
     Ok(made?)
 }
 
-/// What one profiled step recorded: its dispatches and its GPU milliseconds by kernel family.
+/// What one profiled step recorded: its dispatches, its submissions (each one a host wait: a
+/// recorder's submit waits for its work) and its GPU milliseconds by kernel family.
 pub struct StepProfile {
     pub dispatches: u64,
+    pub submits: u64,
     pub family_ms: BTreeMap<String, f64>,
 }
 
@@ -58,7 +60,9 @@ pub fn profile_step(step: impl FnOnce() -> Result<()>) -> Result<StepProfile> {
     let was = profile::enabled();
     profile::set_enabled(true);
     profile::take();
+    let submits = profile::submits();
     let result = step();
+    let submits = profile::submits() - submits;
     let totals = profile::take();
     profile::set_enabled(was);
     result?;
@@ -66,7 +70,7 @@ pub fn profile_step(step: impl FnOnce() -> Result<()>) -> Result<StepProfile> {
     for t in &totals {
         *family_ms.entry(profile::family(&t.kernel).to_string()).or_insert(0.0) += t.ns / 1e6;
     }
-    Ok(StepProfile { dispatches: totals.iter().map(|t| t.dispatches).sum(), family_ms })
+    Ok(StepProfile { dispatches: totals.iter().map(|t| t.dispatches).sum(), submits, family_ms })
 }
 
 /// `family ms, ...`, the longest first.
@@ -97,7 +101,7 @@ pub fn run(
         data.cloud_host.len() / CHANNELS
     );
     println!(
-        "{:>5} {:>6} {:>10} {:>10} {:>12} {:>14} {:>13} {:>11} {:>10}",
+        "{:>5} {:>6} {:>10} {:>10} {:>12} {:>14} {:>13} {:>11} {:>14} {:>10}",
         "prec",
         "batch",
         "samples/s",
@@ -106,6 +110,7 @@ pub fn run(
         "(fwd / bwd)",
         "optimiser ms",
         "dispatches",
+        "submits/waits",
         "peak MiB"
     );
     let mut out = Vec::new();
@@ -139,10 +144,11 @@ pub fn run(
             };
             let name = precision.name();
             println!(
-                "{name:>5} {batch:>6} {rate:>10.3} {median:>10.1} {:>12.1} {passes:>14} {:>13.2} {:>11} {:>10.1}",
+                "{name:>5} {batch:>6} {rate:>10.3} {median:>10.1} {:>12.1} {passes:>14} {:>13.2} {:>11} {:>14} {:>10.1}",
                 split.compute,
                 split.optimiser,
                 profiled.dispatches,
+                profiled.submits,
                 peak as f64 / (1 << 20) as f64
             );
             println!("{:>12} GPU ms by family (profiled step): {}", "", longest_first(&profiled.family_ms));
@@ -160,6 +166,7 @@ pub fn run(
             let record = Record {
                 time_split_ms: Some(split),
                 dispatches_per_step: Some(profiled.dispatches),
+                submits_per_step: Some(profiled.submits),
                 peak_memory_bytes: Some(peak),
                 family_ms: Some(profiled.family_ms),
                 ..record
@@ -238,8 +245,8 @@ pub fn run_token_model(
         1 + repeats
     );
     println!(
-        "{:>5} {:>10} {:>10} {:>12} {:>11} {:>10}",
-        "prec", "samples/s", "step ms", "compute ms", "dispatches", "peak MiB"
+        "{:>5} {:>10} {:>10} {:>12} {:>11} {:>14} {:>10}",
+        "prec", "samples/s", "step ms", "compute ms", "dispatches", "submits/waits", "peak MiB"
     );
     let mut out = Vec::new();
     for &precision in precisions {
@@ -286,6 +293,7 @@ pub fn run_token_model(
             Ok(())
         })?;
         let dispatches = (profile::dispatches() - before) / steps;
+        let submits = profiled.submits / steps;
         let peak = gpu.memory().1;
         let o = outcome.expect("the run finished");
         let split = o.time.scale(1e3);
@@ -293,7 +301,7 @@ pub fn run_token_model(
         let rate = o.settings.global_batch as f64 / (step_ms * 1e-3);
         let label = precision.name();
         println!(
-            "{label:>5} {rate:>10.3} {step_ms:>10.1} {:>12.1} {dispatches:>11} {:>10.1}",
+            "{label:>5} {rate:>10.3} {step_ms:>10.1} {:>12.1} {dispatches:>11} {submits:>14} {:>10.1}",
             split.compute,
             peak as f64 / (1 << 20) as f64
         );
@@ -314,6 +322,7 @@ pub fn run_token_model(
         let record = Record {
             time_split_ms: Some(split),
             dispatches_per_step: Some(dispatches),
+            submits_per_step: Some(submits),
             peak_memory_bytes: Some(peak),
             family_ms: Some(family_ms),
             ..record
