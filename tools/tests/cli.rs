@@ -89,7 +89,14 @@ fn bench_kernels_writes_records_with_time_and_error() {
         // (against the product of the rounded inputs), the integer kernels exactly.
         let bound = if r["precision"] == "f16->f32" { 1e-6 } else { 1e-9 };
         assert!(r["nmse"].as_f64().unwrap() <= bound, "{r}");
+        // Every record says its work: FLOPs (none for the integer kernels) and bytes.
+        assert!(r["flops"].as_f64().unwrap() >= 0.0 && r["bytes"].as_f64().unwrap() > 0.0, "{r}");
     }
+    // An n^3 f32 product: 2 n^3 FLOPs over three n x n matrices of 4 bytes, n / 6 FLOPs a byte.
+    let r = records.iter().find(|r| r["shape"] == "128x128x128" && r["precision"] == "f32").unwrap();
+    let intensity = r["flops"].as_f64().unwrap() / r["bytes"].as_f64().unwrap();
+    assert!((intensity - 128.0 / 6.0).abs() < 1e-9, "{r}");
+    assert!(r["kernel"].as_str().is_some_and(|k| !k.is_empty()), "{r}");
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -119,7 +126,16 @@ fn bench_attention_reports_every_variant_with_small_error() {
             let r =
                 records.iter().find(|r| r["name"] == name.as_str()).unwrap_or_else(|| panic!("no {name}"));
             assert!(r["nmse"].as_f64().unwrap() < 1e-10, "{r}");
+            // The work and the kernel chosen: a backward does 2.5 times a forward's FLOPs.
+            assert!(r["bytes"].as_f64().unwrap() > 0.0 && r["kernel"].is_string(), "{r}");
         }
+        let flops = |pass: &str| {
+            let name = format!("attn {case} {pass}");
+            records.iter().find(|r| r["name"] == name.as_str() && r["precision"] == "f32").unwrap()["flops"]
+                .as_f64()
+                .unwrap()
+        };
+        assert!((flops("bwd") / flops("fwd") - 2.5).abs() < 1e-12, "{case}");
     }
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -72,6 +72,7 @@ pub fn run(gpu: &Gpu, sizes: SizeSet, repeats: u32) -> Result<Vec<Record>> {
     let device = c.name.clone();
     let f32_peak = c.known_peaks().map(|p| p.1);
     let f16_peak = c.known_peaks().map(|p| p.0);
+    let (roof16, roof32) = (super::Roof::of(c, true), super::Roof::of(c, false));
     println!("device: {device} ({}); {repeats} timed repeats per case, median shown", c.kind);
     print_header();
     let mut records = Vec::new();
@@ -187,11 +188,54 @@ pub fn run(gpu: &Gpu, sizes: SizeSet, repeats: u32) -> Result<Vec<Record>> {
             None => "f16".to_string(),
         };
         let shape = format!("{nq}x{nk} h{h} d{d} ({segments} seg)");
-        for (pass, precision, ms, min, f, got, want) in [
-            ("fwd", "f32", fwd_ms, fwd_min, flops, &fwd_got, &fwd_want),
-            ("fwd", f16_name.as_str(), f16_ms, f16_min, flops, &f16_got, &fwd_want),
-            ("bwd", "f32", bwd_ms, bwd_min, 2.5 * flops, &bwd_got, &bwd_want),
-            ("bwd", "f16", bwd16_ms, bwd16_min, 2.5 * flops, &bwd16_got, &bwd_want),
+        // Compulsory traffic: the forward reads Q, K, V and writes O and each row's log-sum-exp;
+        // the backward reads Q, K, V, O, dO and the log-sum-exps and writes dQ, dK, dV (its dQ,
+        // dK, dV in f32 whatever the inputs).
+        let (q_vals, kv_vals, lse) = ((nq * h * d) as f64, (nk * h * d) as f64, (nq * h * 4) as f64);
+        let fwd_bytes = |elem: f64| elem * (2.0 * q_vals + 2.0 * kv_vals) + lse;
+        let bwd_bytes = |elem: f64| {
+            elem * (2.0 * q_vals + 2.0 * kv_vals) + 4.0 * q_vals + lse + 4.0 * (q_vals + 2.0 * kv_vals)
+        };
+        let portable = "portable: a row per thread, f32 arithmetic";
+        let f16_fwd_kernel = match coop {
+            Some(_) => attention::f16_forward_variant(gpu, d),
+            None => portable.to_string(),
+        };
+        for (pass, precision, ms, min, f, got, want, bytes, kernel) in [
+            ("fwd", "f32", fwd_ms, fwd_min, flops, &fwd_got, &fwd_want, fwd_bytes(4.0), portable.to_string()),
+            (
+                "fwd",
+                f16_name.as_str(),
+                f16_ms,
+                f16_min,
+                flops,
+                &f16_got,
+                &fwd_want,
+                fwd_bytes(2.0),
+                f16_fwd_kernel.clone(),
+            ),
+            (
+                "bwd",
+                "f32",
+                bwd_ms,
+                bwd_min,
+                2.5 * flops,
+                &bwd_got,
+                &bwd_want,
+                bwd_bytes(4.0),
+                portable.to_string(),
+            ),
+            (
+                "bwd",
+                "f16",
+                bwd16_ms,
+                bwd16_min,
+                2.5 * flops,
+                &bwd16_got,
+                &bwd_want,
+                bwd_bytes(2.0),
+                portable.to_string(),
+            ),
         ] {
             let tflops = f / (ms * 1e-3) / 1e12;
             let name = format!("attn {} {pass}", case.name);
@@ -207,7 +251,9 @@ pub fn run(gpu: &Gpu, sizes: SizeSet, repeats: u32) -> Result<Vec<Record>> {
                 "TFLOP/s",
             )
             .peak(peak.map(|p| tflops / p))
-            .against(got, want, error_over.clone());
+            .against(got, want, error_over.clone())
+            .work(f, bytes, if precision.starts_with("f16") { roof16 } else { roof32 })
+            .kernel(kernel);
             print_row(&r);
             records.push(r);
         }
@@ -237,6 +283,11 @@ pub fn run(gpu: &Gpu, sizes: SizeSet, repeats: u32) -> Result<Vec<Record>> {
                 )
                 .peak(peak.map(|p| tflops / p))
                 .error(0.0, 0.0, "not checked (timing baseline)");
+                // Q, P read and S, O written, in the operands' type (the outputs f32).
+                let elem = if dtype == DType::F16 { 2.0 } else { 4.0 };
+                let bytes = (b * rows * (rows + d)) as f64 * (elem + 4.0);
+                let roof = if dtype == DType::F16 { roof16 } else { roof32 };
+                let r = r.work(4.0 * (b * rows * rows * d) as f64, bytes, roof);
                 print_row(&r);
                 records.push(r);
             }

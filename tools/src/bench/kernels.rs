@@ -69,6 +69,7 @@ pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
     let s = sizes(set);
     let c = gpu.caps();
     let peaks = c.known_peaks();
+    let (roof16, roof32) = (super::Roof::of(c, true), super::Roof::of(c, false));
     let device = c.name.clone();
     let mut out = Vec::new();
     let mut rng = Rng::new(7);
@@ -130,7 +131,10 @@ pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
                 tflops,
                 "TFLOP/s",
             );
-            push(r.peak(peak).against(&have, &want, over));
+            let (elem, roof) = if precision == DType::F16 { (2.0, roof16) } else { (4.0, roof32) };
+            let nn = (n * n) as f64;
+            let r = r.work(2.0 * nn * n as f64, 2.0 * nn * elem + 4.0 * nn, roof);
+            push(r.peak(peak).against(&have, &want, over).kernel(matmul::matmul_variant(gpu, precision)));
         }
     }
 
@@ -162,6 +166,7 @@ pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
             tflops,
             "TFLOP/s",
         );
+        let r = r.work(2.0 * (m * n * k) as f64, 4.0 * (m * k + k * n + m * n) as f64, roof32);
         push(r.peak(peaks.map(|p| tflops / p.1)).against(&have, &want, "1024 sampled outputs"));
     }
 
@@ -180,6 +185,8 @@ pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
         let want = softmax::reference::softmax(&x, len);
         let g = gbs((rows * len * 8) as f64, timing.0);
         let r = Record::timed("softmax", format!("{rows}x{len}"), "f32", &device, timing, repeats, g, "GB/s");
+        // A value's maximum, difference, exp, sum and scale: five operations.
+        let r = r.work(5.0 * (rows * len) as f64, (rows * len * 8) as f64, roof32);
         push(r.peak(bw_peak(g)).against(&got, &want, "all outputs"));
     }
 
@@ -198,6 +205,7 @@ pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
         let g = gbs((n * 8) as f64, timing.0);
         let r = Record::timed("exclusive scan", format!("{n}"), "u32", &device, timing, repeats, g, "GB/s");
         let over = "exact: nmse = fraction wrong, max abs = count wrong";
+        let r = r.work(0.0, (n * 8) as f64, roof32);
         push(r.peak(bw_peak(g)).error(wrong as f64 / n as f64, wrong as f64, over));
     }
 
@@ -229,6 +237,8 @@ pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
             "Mkey/s",
         );
         let over = "exact and stable: nmse = fraction wrong, max abs = count wrong";
+        // Keys and values read once and written once.
+        let r = r.work(0.0, (n * 16) as f64, roof32);
         push(r.error(wrong as f64 / n as f64, wrong as f64, over));
     }
 
@@ -260,6 +270,9 @@ pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
             g,
             "GB/s",
         );
+        // Each source value read and added into its row (read and written once), the indices read.
+        let bytes = (rows * width * 4 + rows * 4 + 2 * dst_rows * width * 4) as f64;
+        let r = r.work((rows * width) as f64, bytes, roof32);
         push(r.peak(bw_peak(g)).against(&got, &want, "all outputs"));
     }
 
@@ -286,6 +299,9 @@ pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
         );
         let over = "steps not choosing the farthest remaining point (f64, up to 1e-5 relative): \
                     nmse = fraction, max abs = count";
+        // Each step updates every point's distance to the chosen set (a difference, a squared
+        // length and a minimum: 9 operations) and takes the farthest; the points read once.
+        let r = r.work(9.0 * (m * (k - 1)) as f64, (m * 16 + k * 4) as f64, roof32);
         push(r.error(wrong as f64 / k as f64, wrong as f64, over));
     }
 
@@ -326,6 +342,7 @@ pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
             "TFLOP/s",
         );
         let over = "4096 sampled points against the f64 nearest: nmse = fraction farther, max abs = count";
+        let r = r.work(assign::flops(n, k) as f64, ((n + k) * 16 + n * 4) as f64, roof32);
         push(r.peak(peaks.map(|p| tflops / p.1)).error(
             wrong as f64 / sample.len() as f64,
             wrong as f64,

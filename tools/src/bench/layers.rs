@@ -24,6 +24,9 @@ struct Info {
     out_width: usize,
     /// Forward and backward work, and the unit of their rate.
     work: (f64, f64, &'static str),
+    /// Forward and backward (FLOPs, compulsory bytes): the inputs (parameters included) read
+    /// once and the outputs (the backward's parameter gradients included) written once.
+    traffic: [(f64, f64); 2],
     /// Inputs are coordinates in [-1, 1] (else standard normal).
     coordinates: bool,
     reference: Reference,
@@ -72,6 +75,8 @@ fn benches(gpu: &Gpu, rng: &mut Rng, small: bool) -> Result<Vec<Box<dyn Bench>>>
     // Row layers move each element in and out forward, and about twice that backward.
     let bytes = |elements: usize| (8.0 * elements as f64, 16.0 * elements as f64, "GB/s");
     let mut out: Vec<Box<dyn Bench>> = Vec::new();
+    // Values of the activations in and out, in f32 bytes.
+    let (nd, f4) = ((n * d) as f64, |v: f64| 4.0 * v);
 
     let (w, wv) = param(gpu, rng, &[d, d], std)?;
     let (b, bv) = param(gpu, rng, &[d], 0.1)?;
@@ -84,6 +89,11 @@ fn benches(gpu: &Gpu, rng: &mut Rng, small: bool) -> Result<Vec<Box<dyn Bench>>>
             in_width: d,
             out_width: d,
             work: matmul(2.0 * (n * d * d) as f64),
+            // Backward: dx and dW (a product each) and db; reads x, dy, W, writes dx, dW, db.
+            traffic: {
+                let (dd, fl) = ((d * d) as f64, 2.0 * (n * d * d) as f64);
+                [(fl, f4(2.0 * nd + dd + d as f64)), (2.0 * fl, f4(3.0 * nd + 2.0 * dd + d as f64))]
+            },
             coordinates: false,
             reference: Box::new(move |x, dy, r| {
                 (
@@ -104,6 +114,8 @@ fn benches(gpu: &Gpu, rng: &mut Rng, small: bool) -> Result<Vec<Box<dyn Bench>>>
             in_width: d,
             out_width: d,
             work: bytes(n * d),
+            // A square, a sum, a scale and the gain a value forward, about twice that backward.
+            traffic: [(4.0 * nd, f4(2.0 * nd + d as f64)), (8.0 * nd, f4(3.0 * nd + 2.0 * d as f64))],
             coordinates: false,
             reference: Box::new(move |x, dy, _| {
                 (rmsnorm_ref::rmsnorm(x, &gv, 1e-6).0, rmsnorm_ref::rmsnorm_backward(x, &gv, 1e-6, dy).0)
@@ -122,6 +134,8 @@ fn benches(gpu: &Gpu, rng: &mut Rng, small: bool) -> Result<Vec<Box<dyn Bench>>>
             in_width: d,
             out_width: d,
             work: bytes(n * d),
+            // A mean, a variance, a normalisation and the affine map a value forward.
+            traffic: [(7.0 * nd, f4(2.0 * nd + 2.0 * d as f64)), (12.0 * nd, f4(3.0 * nd + 4.0 * d as f64))],
             coordinates: false,
             reference: Box::new(move |x, dy, _| {
                 let y = layernorm_ref::layernorm(x, d, Some((&gv, &bbv)), 1e-6).0;
@@ -142,6 +156,12 @@ fn benches(gpu: &Gpu, rng: &mut Rng, small: bool) -> Result<Vec<Box<dyn Bench>>>
             in_width: d,
             out_width: d,
             work: matmul(2.0 * (n * d * h * 3) as f64),
+            // Three products forward, six backward; the weights read (and their gradients
+            // written backward) once.
+            traffic: {
+                let (dh, fl) = ((3 * d * h) as f64, 2.0 * (n * d * h * 3) as f64);
+                [(fl, f4(2.0 * nd + dh)), (2.0 * fl, f4(3.0 * nd + 2.0 * dh))]
+            },
             coordinates: false,
             reference: Box::new(move |x, dy, r| {
                 let y = reference::swiglu_ff(x, &w1v, &w3v, &w2v, r, d, h, d);
@@ -164,6 +184,10 @@ fn benches(gpu: &Gpu, rng: &mut Rng, small: bool) -> Result<Vec<Box<dyn Bench>>>
             in_width: d,
             out_width: d,
             work: matmul(2.0 * (n * d * h * 2) as f64),
+            traffic: {
+                let (dh, fl) = ((2 * d * h + h + d) as f64, 2.0 * (n * d * h * 2) as f64);
+                [(fl, f4(2.0 * nd + dh)), (2.0 * fl, f4(3.0 * nd + 2.0 * dh))]
+            },
             coordinates: false,
             reference: Box::new(move |x, dy, r| {
                 let y = reference::gelu_mlp(x, &w1v, &b1v, &w2v, &b2v, r, d, h, d);
@@ -188,6 +212,12 @@ fn benches(gpu: &Gpu, rng: &mut Rng, small: bool) -> Result<Vec<Box<dyn Bench>>>
             out_width: width,
             // Reads 3 and writes `width` floats per point forward; twice that backward.
             work: (4.0 * (points * (3 + width)) as f64, 8.0 * (points * (3 + width)) as f64, "GB/s"),
+            // A product and a sine or cosine an output forward; backward reads dy and x and
+            // writes dx.
+            traffic: {
+                let (pts, w) = (points as f64, width as f64);
+                [(2.0 * pts * w, f4(pts * (3.0 + w))), (4.0 * pts * w, f4(pts * (6.0 + w)))]
+            },
             coordinates: true,
             reference: Box::new(move |x, dy, _| {
                 (
@@ -240,9 +270,10 @@ pub fn run(gpu: &Gpu, sizes: SizeSet, repeats: u32) -> Result<Vec<Record>> {
         let (fwd_work, bwd_work, unit) = info.work;
         let scale = if unit == "TFLOP/s" { 1e12 } else { 1e9 };
         let peak = |t: f64| peaks.map(|p| if unit == "TFLOP/s" { t / p.1 } else { t / p.2 });
-        for (pass, ms, min, work, got, want) in [
-            ("fwd", fwd_ms, fwd_min, fwd_work, &y_got, &y_ref),
-            ("fwd+bwd", all_ms, all_min, fwd_work + bwd_work, &dx_got, &dx_ref),
+        let [(ff, fb), (bf, bb)] = info.traffic;
+        for (pass, ms, min, work, got, want, (flops, bytes)) in [
+            ("fwd", fwd_ms, fwd_min, fwd_work, &y_got, &y_ref, (ff, fb)),
+            ("fwd+bwd", all_ms, all_min, fwd_work + bwd_work, &dx_got, &dx_ref, (ff + bf, fb + bb)),
         ] {
             let t = work / (ms * 1e-3) / scale;
             let what = if pass == "fwd" { "y" } else { "dx" };
@@ -251,7 +282,8 @@ pub fn run(gpu: &Gpu, sizes: SizeSet, repeats: u32) -> Result<Vec<Record>> {
             let r =
                 Record::timed(name, info.shape.clone(), "f32", &device, (ms, min, timed), repeats, t, unit)
                     .peak(peak(t))
-                    .against(got, want, over);
+                    .against(got, want, over)
+                    .work(flops, bytes, super::Roof::of(c, false));
             print_row(&r);
             records.push(r);
         }

@@ -209,10 +209,47 @@ pub struct Record {
     /// during the timed steps, and one step's GPU milliseconds by kernel family.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub dispatches_per_step: Option<u64>,
+    /// `bench train`: the submissions a step makes, each one a host wait.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub submits_per_step: Option<u64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub peak_memory_bytes: Option<u64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub family_ms: Option<std::collections::BTreeMap<String, f64>>,
+    /// The case's arithmetic: floating-point operations (a multiply-add is two, an exp one).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub flops: Option<f64>,
+    /// The case's compulsory global-memory traffic: every input read once and every output
+    /// written once. With `flops` it gives the arithmetic intensity, and with the device's peaks
+    /// the roofline bound: no kernel can take less time than `bound_ms`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub bytes: Option<f64>,
+    /// The shortest time the device's peaks allow for `flops` and `bytes` (the slower of the
+    /// two at peak), where the peaks are known.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub bound_ms: Option<f64>,
+    /// Which kernel the engine chose for the case, where it has several.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub kernel: Option<String>,
+}
+
+/// A device's peak rates for one kind of work: floating-point operations and global-memory
+/// bytes a second.
+#[derive(Clone, Copy, Debug)]
+pub struct Roof {
+    pub flops_per_s: f64,
+    pub bytes_per_s: f64,
+}
+
+impl Roof {
+    /// The device's roof for f16 tensor-core work (`f16`) or f32 work, where its peaks are
+    /// known ([`velox_engine::Caps::known_peaks`]).
+    pub fn of(caps: &velox_engine::Caps, f16: bool) -> Option<Roof> {
+        caps.known_peaks().map(|(tensor, fp32, gbps)| Roof {
+            flops_per_s: if f16 { tensor } else { fp32 } * 1e12,
+            bytes_per_s: gbps * 1e9,
+        })
+    }
 }
 
 impl Record {
@@ -247,9 +284,26 @@ impl Record {
             gpu_timed,
             time_split_ms: None,
             dispatches_per_step: None,
+            submits_per_step: None,
             peak_memory_bytes: None,
             family_ms: None,
+            flops: None,
+            bytes: None,
+            bound_ms: None,
+            kernel: None,
         }
+    }
+
+    /// The case's work: `flops` floating-point operations (0 for integer work) and `bytes` of
+    /// compulsory global-memory traffic, and the roofline bound under `roof` where known.
+    pub fn work(self, flops: f64, bytes: f64, roof: Option<Roof>) -> Record {
+        let bound_ms = roof.map(|r| (flops / r.flops_per_s).max(bytes / r.bytes_per_s) * 1e3);
+        Record { flops: Some(flops), bytes: Some(bytes), bound_ms, ..self }
+    }
+
+    /// The kernel the engine chose for the case.
+    pub fn kernel(self, kernel: impl Into<String>) -> Record {
+        Record { kernel: Some(kernel.into()), ..self }
     }
 
     pub fn peak(self, peak_fraction: Option<f64>) -> Record {
@@ -306,8 +360,17 @@ pub fn time_gpu(
 
 pub fn print_header() {
     println!(
-        "{:<26} {:<32} {:<9} {:>10} {:>18} {:>7} {:>10} {:>10}",
-        "kernel", "shape", "precision", "median ms", "throughput", "% peak", "nmse", "max abs"
+        "{:<26} {:<32} {:<9} {:>10} {:>18} {:>7} {:>10} {:>10} {:>8} {:>9}",
+        "kernel",
+        "shape",
+        "precision",
+        "median ms",
+        "throughput",
+        "% peak",
+        "nmse",
+        "max abs",
+        "FLOP/B",
+        "bound ms"
     );
 }
 
@@ -344,7 +407,7 @@ pub fn print_row(r: &Record) {
         }
     });
     println!(
-        "{:<26} {:<32} {:<9} {:>10.3} {:>10} {:<7} {:>7} {:>10.2e} {:>10.2e}{}",
+        "{:<26} {:<32} {:<9} {:>10.3} {:>10} {:<7} {:>7} {:>10.2e} {:>10.2e} {:>8} {:>9}{}{}",
         r.name,
         r.shape,
         r.precision,
@@ -354,8 +417,19 @@ pub fn print_row(r: &Record) {
         peak,
         r.nmse,
         r.max_abs_err,
-        peer.unwrap_or_default()
+        intensity(r),
+        r.bound_ms.map(significant).unwrap_or_else(|| "-".into()),
+        peer.unwrap_or_default(),
+        r.kernel.as_ref().map(|k| format!("   [{k}]")).unwrap_or_default(),
     );
+}
+
+/// FLOPs per compulsory byte, "-" for integer work or where the record has no work figures.
+fn intensity(r: &Record) -> String {
+    match (r.flops, r.bytes) {
+        (Some(f), Some(b)) if f > 0.0 && b > 0.0 => significant(f / b),
+        _ => "-".into(),
+    }
 }
 
 /// Four significant digits, without an exponent, for the magnitudes benchmarks produce.

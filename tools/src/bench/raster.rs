@@ -13,12 +13,13 @@
 
 use velox_engine::ops::raster::{
     self, project, rasterize, reference, render, render_backward_with, BackwardKernel, Camera, GaussianData,
+    TILE,
 };
 use velox_engine::rng::Rng;
 use velox_engine::stats::{max_abs_err, nmse};
 use velox_engine::{Gpu, Recorder, Result, Tensor};
 
-use super::{print_header, print_row, Record, SizeSet};
+use super::{print_header, print_row, Record, Roof, SizeSet};
 
 /// gsplat 1.5.3 on an H100, same scene at 1920 x 1080 (issue 4): (Gaussians, forward ms,
 /// forward + backward ms).
@@ -172,8 +173,10 @@ pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
             let rate = n as f64 / (median * 1e-3) / 1e6;
             let over = format!("forward rgb on {sampled} sampled pixels; {} tile pairs", timing.pairs);
             let t = (median, min, timing.gpu_timed);
+            let (flops, bytes) = raster_work(n, w, h, timing.pairs, name != "raster forward");
             let r = Record::timed(name, shape.clone(), "f32", &device, t, repeats, rate, "MGauss/s")
-                .error(e, m, over);
+                .error(e, m, over)
+                .work(flops, bytes, Roof::of(gpu.caps(), false));
             print_row(&r);
             out.push(r);
         }
@@ -247,4 +250,20 @@ fn backward_error(gpu: &Gpu, kernel: BackwardKernel, repeats: u32, device: &str)
         "MGauss/s",
     );
     Ok(r.against(&have, &wanted, "every parameter gradient, loss = sum of the image"))
+}
+
+/// A render's work, for the roofline columns: about 120 FLOPs to project a Gaussian and 15 for
+/// each of the 256 pixels of each (tile, Gaussian) pair it blends into (the conic, an exp, the
+/// blend), twice that backward; its compulsory bytes are the Gaussians' 14 f32 parameters read
+/// and an RGBA image written, and backward the parameters and the image gradient read and the
+/// parameter gradients written.
+fn raster_work(n: usize, w: u32, h: u32, pairs: usize, backward: bool) -> (f64, f64) {
+    let (n, pixels, pairs) = (n as f64, (w as f64) * (h as f64), pairs as f64);
+    let tile = (TILE * TILE) as f64;
+    let forward = (120.0 * n + 15.0 * tile * pairs, 4.0 * (14.0 * n + 4.0 * pixels));
+    if backward {
+        (3.0 * forward.0, forward.1 + 4.0 * (28.0 * n + 4.0 * pixels))
+    } else {
+        forward
+    }
 }
