@@ -14,6 +14,17 @@ fn arg(p: &Path) -> &str {
     p.to_str().unwrap()
 }
 
+/// `mpirun` for two processes, each free to run on any core as the single-process run is:
+/// Open MPI binds each process to a core by default, and lavapipe's results depend on the cores
+/// a process may use (the Gaussian decoder's outputs move by an ulp when a process is bound to
+/// one core, measured on an AMD EPYC machine; same binding, same bits), which would make the
+/// two runs differ for a reason that is not the all-reduce.
+fn mpirun() -> Command {
+    let mut c = Command::new("mpirun");
+    c.args(["--allow-run-as-root", "--oversubscribe", "--bind-to", "none", "--timeout", "300", "-np", "2"]);
+    c
+}
+
 fn ok(out: Output) -> String {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{:?}\n{err}", out.status);
@@ -33,8 +44,7 @@ fn two_processes_train_as_one_accumulating_two_micro_batches() {
         .unwrap());
     let train = ["train", "autoencoder", "--data", arg(&data), "--config", "tiny", "--steps", "4"];
     let (two, one) = (dir.join("two"), dir.join("one"));
-    let said = ok(Command::new("mpirun")
-        .args(["--allow-run-as-root", "--oversubscribe", "--timeout", "300", "-np", "2"])
+    let said = ok(mpirun()
         .arg(env!("CARGO_BIN_EXE_velox"))
         .args(train)
         .args(["--steps-per-scene", "2", "--out", arg(&two)])
@@ -83,8 +93,7 @@ fn two_processes_train_as_one_accumulating_two_micro_batches() {
     // A run of two processes stopped at step 2 resumes as one process (accumulating two
     // micro-batches to keep the batch) and ends where the uninterrupted run did.
     let resumed = dir.join("resumed");
-    ok(Command::new("mpirun")
-        .args(["--allow-run-as-root", "--oversubscribe", "--timeout", "300", "-np", "2"])
+    ok(mpirun()
         .arg(env!("CARGO_BIN_EXE_velox"))
         .args(train)
         .args(["--steps-per-scene", "2", "--stop-at", "2", "--out", arg(&resumed)])

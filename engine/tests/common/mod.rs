@@ -1,5 +1,5 @@
 //! Shared by the test binaries of the engine (and, through the root tests' `common`, by every
-//! other): one device for all tests of a binary, and the checks of a result against its f64
+//! other): a device for each test running at once, and the checks of a result against its f64
 //! reference.
 #![allow(dead_code, unused_imports)]
 
@@ -7,33 +7,80 @@ pub use velox_engine::rng::Rng;
 pub use velox_engine::stats::{max_abs_err, nmse};
 pub use velox_engine::{DType, Gpu, Precision, Tensor};
 
-/// The device every test of this binary shares (lavapipe in CI). It is closed when the
-/// process exits, before the Vulkan layers' own teardown: the validation layer's GPU-assisted
-/// build aborts at exit when a device is still open.
+/// The device of this test's thread (lavapipe in CI). The binary keeps a pool of devices and
+/// lends each test thread one that no other running test holds, for as long as the thread
+/// lives (libtest runs each test on a thread of its own): tests running at once then submit to
+/// queues of their own, which lavapipe runs side by side, where one shared queue would run
+/// their work one submission at a time (the models binary: 206 -> 136 s on 2 cores). A device
+/// returns to the pool when its thread ends, so a binary opens as many as tests run at once
+/// (`--test-threads`). Under GPU-assisted validation the binary has one device, which every
+/// test shares: that build of the layer crashes at exit with a second device open or closed.
 pub fn gpu() -> Gpu {
-    let mut shared = SHARED.lock().unwrap_or_else(|e| e.into_inner());
-    if shared.is_none() {
-        *shared = Some(Gpu::new().unwrap_or_else(|e| panic!("tests need a Vulkan device: {e}")));
-        // SAFETY: `close_shared` is a plain function that neither unwinds nor returns a value.
-        unsafe { atexit(close_shared) };
-    }
-    shared.clone().expect("opened above")
+    LEASE.with(|lease| {
+        let mut lease = lease.borrow_mut();
+        if lease.is_none() {
+            let mut pool = POOL.lock().unwrap_or_else(|e| e.into_inner());
+            if pool.is_empty() {
+                // SAFETY: `close_shared` is a plain function that neither unwinds nor returns a value.
+                unsafe { atexit(close_shared) };
+            }
+            let gpu_assisted = velox_engine::validation::Mode::from_env()
+                .is_ok_and(|m| m == velox_engine::validation::Mode::GpuAssisted);
+            let slot = match pool.iter().position(|(_, holders)| *holders == 0) {
+                Some(i) => i,
+                None if gpu_assisted && !pool.is_empty() => 0,
+                None => {
+                    let gpu = Gpu::new().unwrap_or_else(|e| panic!("tests need a Vulkan device: {e}"));
+                    pool.push((Some(gpu), 0));
+                    pool.len() - 1
+                }
+            };
+            pool[slot].1 += 1;
+            *lease = Some(Lease { slot, gpu: pool[slot].0.clone().expect("closed only at exit") });
+        }
+        lease.as_ref().expect("leased above").gpu.clone()
+    })
 }
 
-static SHARED: std::sync::Mutex<Option<Gpu>> = std::sync::Mutex::new(None);
+/// The binary's devices, each with the number of running tests' threads that hold it.
+static POOL: std::sync::Mutex<Vec<(Option<Gpu>, usize)>> = std::sync::Mutex::new(Vec::new());
+
+/// A thread's hold on a device of the pool, given back when the thread ends.
+struct Lease {
+    slot: usize,
+    gpu: Gpu,
+}
+
+impl Drop for Lease {
+    fn drop(&mut self) {
+        if let Ok(mut pool) = POOL.lock() {
+            if let Some(entry) = pool.get_mut(self.slot) {
+                entry.1 = entry.1.saturating_sub(1);
+            }
+        }
+    }
+}
+
+thread_local! {
+    static LEASE: std::cell::RefCell<Option<Lease>> = const { std::cell::RefCell::new(None) };
+}
 
 extern "C" {
     fn atexit(f: extern "C" fn()) -> std::ffi::c_int;
     fn _exit(status: std::ffi::c_int) -> !;
 }
 
-/// Drops the shared device (the last handle, once every test is done with it), and fails the
-/// process when the validation layer reported errors that no test's submit reported (work that
-/// never submitted after its error): every error fails the run, and each submitted one fails
-/// the test whose thread made it.
+/// Closes the first device of the pool (the last handle, once every test is done with it), and
+/// fails the process when the validation layer reported errors that no test's submit reported
+/// (work that never submitted after its error): every error fails the run, and each submitted
+/// one fails the test whose thread made it. The other devices are left to the process's end:
+/// the validation layer of Debian 12 (1.3.239) crashes when a second instance is destroyed.
 extern "C" fn close_shared() {
-    let gpu = SHARED.lock().map(|mut g| g.take()).unwrap_or(None);
-    drop(gpu);
+    let devices: Vec<Gpu> =
+        POOL.lock().map(|mut p| p.iter_mut().filter_map(|(g, _)| g.take()).collect()).unwrap_or_default();
+    let mut devices = devices.into_iter();
+    drop(devices.next());
+    devices.for_each(std::mem::forget);
     let unreported = velox_engine::validation::unreported_count();
     if unreported > 0 {
         eprintln!(
