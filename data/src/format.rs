@@ -89,6 +89,51 @@ pub(crate) fn write_file(path: &Path, bytes: &[u8]) -> DataResult<()> {
     std::fs::write(path, bytes).map_err(|e| write_error(path, e))
 }
 
+/// What to tell whoever made a scene, beside its files: fewer tracks than the `asked` (frame 0
+/// shows too little surface over the input views to place them), and, as a warning, a scene
+/// the tracking task cannot use because the video camera sees no surface at frame 0 (a flat
+/// model seen edge-on from +x, say): `velox track` and `velox eval tracking` then have no
+/// query to follow in it.
+pub fn scene_notes(meta: &SceneMeta, asked: usize) -> Vec<(Severity, String)> {
+    let mut notes = Vec::new();
+    if meta.tracks < asked {
+        notes.push((
+            Severity::Note,
+            format!(
+                "{} tracks of the {asked} asked for: frame 0 shows only {} surface pixels over the input views",
+                meta.tracks, meta.tracks
+            ),
+        ));
+    }
+    if asked > 0 && meta.video_tracks == 0 {
+        notes.push((
+            Severity::Warning,
+            "the video camera (on +x, looking at the origin) sees no surface at frame 0, so the scene has \
+             no tracking queries: velox track and eval tracking have nothing to follow in it (a flat \
+             model seen edge-on does this; turn it in its file)"
+                .to_string(),
+        ));
+    } else if meta.video_tracks < asked {
+        notes.push((
+            Severity::Note,
+            format!(
+                "{} tracking queries of the {asked} asked for: the video camera sees only {} surface pixels at frame 0",
+                meta.video_tracks, meta.video_tracks
+            ),
+        ));
+    }
+    notes
+}
+
+/// How much a [`scene_notes`] entry matters.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Severity {
+    /// Worth knowing; the scene serves every task.
+    Note,
+    /// A task cannot use the scene.
+    Warning,
+}
+
 /// Renders `mesh` into the scene folder `dir` (through `dir.partial`, renamed when complete, so
 /// a crash never leaves a half scene under the scene's name). `source` names where the mesh
 /// came from (a recipe, or a glTF file whose credits are `detail`); `progress` is called after

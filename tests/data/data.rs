@@ -10,7 +10,8 @@ use serde_json::{json, Value};
 
 use velox::data::camera::{input_cameras, Camera};
 use velox::data::format::{
-    read_ply, read_scene, write_arrays, write_ply, write_scene, CameraSet, SceneMeta, FORMAT,
+    read_ply, read_scene, scene_notes, write_arrays, write_ply, write_scene, CameraSet, SceneMeta, Severity,
+    FORMAT,
 };
 use velox::data::gltf_import::import;
 use velox::data::math::{sub, V3};
@@ -856,6 +857,41 @@ fn an_animation_that_moves_nothing_is_said() {
     assert!(got.mesh.frames.iter().all(|f| f == &got.mesh.frames[0]), "the scene is still");
     assert_eq!(got.warnings.len(), 1, "{:?}", got.warnings);
     assert!(got.warnings[0].contains("animations[0] (rest) moves nothing"), "{:?}", got.warnings);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A flat model seen edge-on by the video camera (on +x) gives the scene no tracking queries,
+/// and the scene's notes say so as a warning; the same model turned to face the camera gets
+/// its queries and no warning. Would catch: a scene the tracking task cannot use written
+/// without a word.
+#[test]
+fn a_scene_the_video_camera_cannot_see_is_warned_of() {
+    let dir = temp_dir("edge-on");
+    let (mut v, bin) = quad_parts();
+    // Without its morph target the quad stays in z = 0 (its animation moves it along x), the
+    // plane the video camera lies in.
+    v["meshes"][0]["primitives"][0].as_object_mut().unwrap().remove("targets");
+    v["meshes"][0].as_object_mut().unwrap().remove("weights");
+    v["animations"][0]["channels"] = json!([{"sampler": 1, "target": {"node": 0, "path": "translation"}}]);
+    let opts = SynthOptions { res: 24, points: 300, supersample: 1, tracks: 8 };
+    let notes = |name: &str, v: &Value| {
+        let imported = import_quad(&dir, &format!("{name}.glb"), v, &bin);
+        let meta = write_scene(&gpu(), &imported.mesh, name, None, 0, &opts, &dir.join(name), &mut |_| {})
+            .unwrap_or_else(|e| panic!("{name}: {e}"));
+        (meta.video_tracks, scene_notes(&meta, opts.tracks))
+    };
+    let (queries, edge_on) = notes("edge-on", &v);
+    assert_eq!(queries, 0);
+    let warnings: Vec<_> = edge_on.iter().filter(|n| n.0 == Severity::Warning).collect();
+    assert_eq!(warnings.len(), 1, "{edge_on:?}");
+    assert!(warnings[0].1.contains("no tracking queries"), "{edge_on:?}");
+    // Turned a quarter about y, it faces the camera.
+    let mut facing = v.clone();
+    facing["nodes"][0]["rotation"] =
+        json!([0.0, std::f32::consts::FRAC_1_SQRT_2, 0.0, std::f32::consts::FRAC_1_SQRT_2]);
+    let (queries, facing) = notes("facing", &facing);
+    assert!(queries > 0, "{facing:?}");
+    assert!(facing.iter().all(|n| n.0 == Severity::Note), "{facing:?}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -353,7 +353,8 @@ fn run_jobs(
     Ok(())
 }
 
-/// Makes one scene; returns the warnings of its source.
+/// Makes one scene; returns the warnings of its source and of the scene written (a scene
+/// a task cannot use: `format::scene_notes`).
 fn make_scene(
     gpu: &Gpu,
     job: Job,
@@ -375,13 +376,16 @@ fn make_scene(
     for (file, bytes) in &made.extra {
         velox_io::write_bytes(&dir.join(file), bytes)?;
     }
-    if meta.tracks < opts.tracks {
-        bar.suspend(|| {
-            eprintln!(
-                "note: {}: {} tracks of the {} asked for: frame 0 shows only {} surface pixels over the input views",
-                job.name, meta.tracks, opts.tracks, meta.tracks
-            )
-        });
+    let mut warnings = made.warnings;
+    for (severity, note) in velox_data::format::scene_notes(&meta, opts.tracks) {
+        let said = match severity {
+            velox_data::format::Severity::Note => "note",
+            velox_data::format::Severity::Warning => {
+                warnings.push(note.clone());
+                "warning"
+            }
+        };
+        bar.suspend(|| eprintln!("{said}: {}: {note}", job.name));
     }
-    Ok(made.warnings)
+    Ok(warnings)
 }
