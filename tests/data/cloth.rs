@@ -303,6 +303,13 @@ fn bad_meshes_and_parameters_are_refused_by_name() {
     assert!(sim.step(&gpu, f32::NAN).unwrap_err().to_string().contains("seconds"));
     assert!(sim.set_velocities(&[0.0; 26]).unwrap_err().to_string().contains("velocities"));
     assert!(sim.set_velocities(&[f32::INFINITY; 27]).unwrap_err().to_string().contains("velocities"));
+    // The first bad value is named with its particle.
+    let mut x = sim.positions().unwrap();
+    x[7] = f32::NAN;
+    assert!(sim.set_positions(&x).unwrap_err().to_string().contains("positions of particle 2 holds NaN"));
+    let mut w = vec![1.0; 9];
+    w[4] = -1.0;
+    assert!(sim.set_inv_mass(&w).unwrap_err().to_string().contains("inverse masses of particle 4 holds -1"));
 }
 
 /// A whole cloth scene: the garment falls as gravity says until it lands, ends on the ground,

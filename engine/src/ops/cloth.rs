@@ -427,39 +427,45 @@ impl ClothSim {
     /// Overwrites the positions (`[n * 3]`, finite): a hand that carries pinned particles
     /// moves them this way between frames.
     pub fn set_positions(&self, x: &[f32]) -> Result<()> {
-        if x.len() != 3 * self.n || x.iter().any(|v| !v.is_finite()) {
-            return Err(Error::Invalid(format!(
-                "cloth: {} positions for {} particles, or one not finite",
-                x.len() / 3,
-                self.n
-            )));
-        }
+        self.check_per_particle("positions", x, 3, |_| true)?;
         self.x.write(x)
     }
 
     /// Overwrites the velocities (`[n * 3]`, finite): a cloth thrown rather than dropped. Pinned
     /// particles lose theirs at the next substep.
     pub fn set_velocities(&self, v: &[f32]) -> Result<()> {
-        if v.len() != 3 * self.n || v.iter().any(|x| !x.is_finite()) {
-            return Err(Error::Invalid(format!(
-                "cloth: {} velocities for {} particles, or one not finite",
-                v.len() / 3,
-                self.n
-            )));
-        }
+        self.check_per_particle("velocities", v, 3, |_| true)?;
         self.v.write(v)
     }
 
     /// Overwrites the inverse masses (`[n]`, finite, >= 0; 0 pins a particle).
     pub fn set_inv_mass(&self, w: &[f32]) -> Result<()> {
-        if w.len() != self.n || w.iter().any(|v| !(v.is_finite() && *v >= 0.0)) {
+        self.check_per_particle("inverse masses", w, 1, |v| v >= 0.0)?;
+        self.w.write(w)
+    }
+
+    /// Checks that `values` holds `width` values a particle, each finite and passing `ok`; the
+    /// error names `what`, and the count or the first bad value and its particle.
+    fn check_per_particle(
+        &self,
+        what: &str,
+        values: &[f32],
+        width: usize,
+        ok: impl Fn(f32) -> bool,
+    ) -> Result<()> {
+        if values.len() != width * self.n {
             return Err(Error::Invalid(format!(
-                "cloth: {} inverse masses for {} particles, or one bad",
-                w.len(),
+                "cloth: {} values of {what} for {} particles ({width} a particle)",
+                values.len(),
                 self.n
             )));
         }
-        self.w.write(w)
+        match values.iter().position(|&v| !(v.is_finite() && ok(v))) {
+            Some(i) => {
+                Err(Error::Invalid(format!("cloth: {what} of particle {} holds {}", i / width, values[i])))
+            }
+            None => Ok(()),
+        }
     }
 
     /// Positions, `[n * 3]`.
