@@ -12,9 +12,10 @@ pub use velox_engine::{DType, Gpu, Precision, Tensor};
 /// lives (libtest runs each test on a thread of its own): tests running at once then submit to
 /// queues of their own, which lavapipe runs side by side, where one shared queue would run
 /// their work one submission at a time (the models binary: 206 -> 136 s on 2 cores). A device
-/// returns to the pool when its thread ends, so a binary opens as many as tests run at once
-/// (`--test-threads`). Under GPU-assisted validation the binary has one device, which every
-/// test shares: that build of the layer crashes at exit with a second device open or closed.
+/// returns to the pool when its thread ends: the first stays open for the next test, the
+/// others are closed (see [`Lease`]), so a binary has at most as many open as tests run at
+/// once (`--test-threads`). Under GPU-assisted validation the binary has one device, which
+/// every test shares: Debian 12's layer crashes at exit in that mode with a second one.
 pub fn gpu() -> Gpu {
     LEASE.with(|lease| {
         let mut lease = lease.borrow_mut();
@@ -30,11 +31,14 @@ pub fn gpu() -> Gpu {
                 Some(i) => i,
                 None if gpu_assisted && !pool.is_empty() => 0,
                 None => {
-                    let gpu = Gpu::new().unwrap_or_else(|e| panic!("tests need a Vulkan device: {e}"));
-                    pool.push((Some(gpu), 0));
+                    pool.push((None, 0));
                     pool.len() - 1
                 }
             };
+            if pool[slot].0.is_none() {
+                let gpu = Gpu::new().unwrap_or_else(|e| panic!("tests need a Vulkan device: {e}"));
+                pool[slot].0 = Some(gpu);
+            }
             pool[slot].1 += 1;
             *lease = Some(Lease { slot, gpu: pool[slot].0.clone().expect("closed only at exit") });
         }
@@ -52,12 +56,22 @@ struct Lease {
 }
 
 impl Drop for Lease {
+    /// Gives the device back; a device other than the first is closed once no thread holds it
+    /// (the next test to need a second one opens it again), so that only the first is open
+    /// when the process exits: validation layers crash (Debian 12's, destroying a second
+    /// instance at exit) or abort (sid's, finding one still open) otherwise.
     fn drop(&mut self) {
-        if let Ok(mut pool) = POOL.lock() {
-            if let Some(entry) = pool.get_mut(self.slot) {
-                entry.1 = entry.1.saturating_sub(1);
+        let closing = POOL.lock().ok().and_then(|mut pool| {
+            let entry = pool.get_mut(self.slot)?;
+            entry.1 = entry.1.saturating_sub(1);
+            if self.slot > 0 && entry.1 == 0 {
+                entry.0.take()
+            } else {
+                None
             }
-        }
+        });
+        // Closed outside the pool's lock (the last handle is this lease's own, dropped after).
+        drop(closing);
     }
 }
 
@@ -70,17 +84,14 @@ extern "C" {
     fn _exit(status: std::ffi::c_int) -> !;
 }
 
-/// Closes the first device of the pool (the last handle, once every test is done with it), and
-/// fails the process when the validation layer reported errors that no test's submit reported
-/// (work that never submitted after its error): every error fails the run, and each submitted
-/// one fails the test whose thread made it. The other devices are left to the process's end:
-/// the validation layer of Debian 12 (1.3.239) crashes when a second instance is destroyed.
+/// Closes the pool's devices (the last handles, once every test is done with them: by then
+/// only the first is open), and fails the process when the validation layer reported errors
+/// that no test's submit reported (work that never submitted after its error): every error
+/// fails the run, and each submitted one fails the test whose thread made it.
 extern "C" fn close_shared() {
     let devices: Vec<Gpu> =
         POOL.lock().map(|mut p| p.iter_mut().filter_map(|(g, _)| g.take()).collect()).unwrap_or_default();
-    let mut devices = devices.into_iter();
-    drop(devices.next());
-    devices.for_each(std::mem::forget);
+    drop(devices);
     let unreported = velox_engine::validation::unreported_count();
     if unreported > 0 {
         eprintln!(
