@@ -14,8 +14,8 @@ pub use velox_engine::{DType, Gpu, Precision, Tensor};
 /// their work one submission at a time (the models binary: 206 -> 136 s on 2 cores). A device
 /// returns to the pool when its thread ends: the first stays open for the next test, the
 /// others are closed (see [`Lease`]), so a binary has at most as many open as tests run at
-/// once (`--test-threads`). Under GPU-assisted validation the binary has one device, which
-/// every test shares: Debian 12's layer crashes at exit in that mode with a second one.
+/// once (`--test-threads`). Under GPU-assisted validation and on SwiftShader the binary has one
+/// device, which every test shares: both crash at exit once a second one has been open.
 pub fn gpu() -> Gpu {
     LEASE.with(|lease| {
         let mut lease = lease.borrow_mut();
@@ -25,11 +25,17 @@ pub fn gpu() -> Gpu {
                 // SAFETY: `close_shared` is a plain function that neither unwinds nor returns a value.
                 unsafe { atexit(close_shared) };
             }
+            // GPU-assisted validation and SwiftShader crash at exit once a second device has
+            // been open: there every test shares the first.
             let gpu_assisted = velox_engine::validation::Mode::from_env()
                 .is_ok_and(|m| m == velox_engine::validation::Mode::GpuAssisted);
+            let swiftshader = pool
+                .first()
+                .and_then(|(g, _)| g.as_ref())
+                .is_some_and(|g| g.caps().name.contains("SwiftShader"));
             let slot = match pool.iter().position(|(_, holders)| *holders == 0) {
                 Some(i) => i,
-                None if gpu_assisted && !pool.is_empty() => 0,
+                None if (gpu_assisted || swiftshader) && !pool.is_empty() => 0,
                 None => {
                     pool.push((None, 0));
                     pool.len() - 1
