@@ -165,15 +165,16 @@ pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
         let timing = time_case(gpu, &g, &cam, repeats)?;
         let (e, m, sampled) = forward_error(gpu, &g, &cam, 4096)?;
         let shape = format!("{n} gaussians {w}x{h}");
-        let mut rows = vec![("raster forward".to_string(), timing.forward)];
+        // (name, times, whether the backward ran too)
+        let mut rows = vec![("raster forward".to_string(), timing.forward, false)];
         for (k, t) in kernels(gpu).into_iter().zip(&timing.forward_backward) {
-            rows.push((format!("raster fwd+bwd {}", kernel_name(k)), *t));
+            rows.push((format!("raster fwd+bwd {}", kernel_name(k)), *t, true));
         }
-        for (name, (median, min)) in rows {
+        for (name, (median, min), backward) in rows {
             let rate = n as f64 / (median * 1e-3) / 1e6;
             let over = format!("forward rgb on {sampled} sampled pixels; {} tile pairs", timing.pairs);
             let t = (median, min, timing.gpu_timed);
-            let (flops, bytes) = raster_work(n, w, h, timing.pairs, name != "raster forward");
+            let (flops, bytes) = raster_work(n, w, h, timing.pairs, backward);
             let r = Record::timed(name, shape.clone(), "f32", &device, t, repeats, rate, "MGauss/s")
                 .error(e, m, over)
                 .work(flops, bytes, Roof::of(gpu.caps(), false));
