@@ -194,18 +194,34 @@ fn summaries(instance: &ash::Instance) -> Result<(Vec<vk::PhysicalDevice>, Vec<D
     Ok((pds, list))
 }
 
-/// The index of the device to use, honouring `VELOX_DEVICE`; `local_rank` is the process's rank
-/// on its machine in a multi-process run (see [`choose_for_rank`]), `None` for a lone process.
+/// Which device a [`Gpu`] opens.
+#[derive(Clone, Debug)]
+enum Choice {
+    /// The preferred one ([`choose_preferred`]), or `VELOX_DEVICE`'s.
+    Preferred,
+    /// That of the process with this rank on its machine in a multi-process run
+    /// ([`choose_for_rank`]), or `VELOX_DEVICE`'s.
+    LocalRank(usize),
+    /// The one a caller names (an index or part of a name, as `VELOX_DEVICE` takes), whatever
+    /// the environment says.
+    Named(String),
+}
+
+/// The index of the device `choice` asks for.
 fn choose(
     instance: &ash::Instance,
     pds: &[vk::PhysicalDevice],
     list: &[DeviceSummary],
-    local_rank: Option<usize>,
+    choice: &Choice,
 ) -> Result<usize> {
     if pds.is_empty() {
         return Err(Error::NoDevice("the Vulkan loader reports no physical device".into()));
     }
-    if let Ok(want) = std::env::var("VELOX_DEVICE") {
+    let (asked, source) = match choice {
+        Choice::Named(name) => (Some(name.clone()), "device"),
+        _ => (std::env::var("VELOX_DEVICE").ok(), "VELOX_DEVICE"),
+    };
+    if let Some(want) = asked {
         let want = want.trim();
         let found = match want.parse::<usize>() {
             Ok(i) => list.get(i).map(|d| d.index),
@@ -215,11 +231,11 @@ fn choose(
         };
         let names: Vec<String> = list.iter().map(|d| format!("{}: {}", d.index, d.name)).collect();
         let i = found.ok_or_else(|| {
-            Error::Invalid(format!("VELOX_DEVICE={want} matches none of [{}]", names.join(", ")))
+            Error::Invalid(format!("{source} {want:?} matches none of [{}]", names.join(", ")))
         })?;
         if let Some(why) = &list[i].unusable {
             return Err(Error::NoDevice(format!(
-                "VELOX_DEVICE={want} selects {}, which cannot be used: {why}",
+                "{source} {want:?} selects {}, which cannot be used: {why}",
                 list[i].name
             )));
         }
@@ -234,9 +250,9 @@ fn choose(
             (d.index, props.device_type)
         })
         .collect();
-    let chosen = match local_rank {
-        None => choose_preferred(&usable),
-        Some(rank) => choose_for_rank(&usable, rank),
+    let chosen = match choice {
+        Choice::LocalRank(rank) => choose_for_rank(&usable, *rank),
+        _ => choose_preferred(&usable),
     };
     chosen.ok_or_else(|| {
         let why: Vec<String> =
@@ -280,17 +296,23 @@ pub fn list_devices() -> Result<Vec<DeviceSummary>> {
 impl Gpu {
     /// Opens the preferred device (see the module docs).
     pub fn new() -> Result<Gpu> {
-        Self::create(None)
+        Self::create(Choice::Preferred)
     }
 
     /// Opens the device of the process with rank `local_rank` among the processes of a
     /// multi-process run on this machine: the `local_rank`-th discrete GPU, wrapping around, or
     /// the preferred device where there is no discrete GPU. `VELOX_DEVICE` still overrides.
     pub fn for_local_rank(local_rank: usize) -> Result<Gpu> {
-        Self::create(Some(local_rank))
+        Self::create(Choice::LocalRank(local_rank))
     }
 
-    fn create(local_rank: Option<usize>) -> Result<Gpu> {
+    /// Opens the device `name` names: an index of [`list_devices`] (as `velox info` numbers
+    /// them), or part of a device's name (case ignored); `VELOX_DEVICE` does not apply.
+    pub fn named(name: &str) -> Result<Gpu> {
+        Self::create(Choice::Named(name.to_string()))
+    }
+
+    fn create(choice: Choice) -> Result<Gpu> {
         let mode = validation::Mode::from_env()?;
         let switches = Switches::from_env()?;
         let wait_timeout = crate::recorder::wait_timeout()?;
@@ -298,7 +320,7 @@ impl Gpu {
         let instance = create_instance(&entry, mode)?;
         // `entry` stays alive here: dropping it unloads the loader, whose functions the
         // error path below still calls.
-        match Self::open(entry.clone(), instance.clone(), local_rank, mode, &switches, wait_timeout) {
+        match Self::open(entry.clone(), instance.clone(), &choice, mode, &switches, wait_timeout) {
             Ok(gpu) => Ok(gpu),
             Err(e) => {
                 // SAFETY: `open` failed before handing the instance to a GpuInner.
@@ -311,7 +333,7 @@ impl Gpu {
     fn open(
         entry: ash::Entry,
         instance: ash::Instance,
-        local_rank: Option<usize>,
+        choice: &Choice,
         mode: validation::Mode,
         switches: &Switches,
         wait_timeout: std::time::Duration,
@@ -321,8 +343,7 @@ impl Gpu {
         } else {
             Some(validation::Messenger::new(&entry, &instance)?)
         };
-        let opened =
-            Self::open_device(&entry, &instance, local_rank, switches, mode != validation::Mode::Off);
+        let opened = Self::open_device(&entry, &instance, choice, switches, mode != validation::Mode::Off);
         let allocator = opened.and_then(|(device, physical, queue_family, caps)| {
             let desc = AllocatorCreateDesc {
                 instance: instance.clone(),
@@ -382,12 +403,12 @@ impl Gpu {
     fn open_device(
         entry: &ash::Entry,
         instance: &ash::Instance,
-        local_rank: Option<usize>,
+        choice: &Choice,
         switches: &Switches,
         validating: bool,
     ) -> Result<(ash::Device, vk::PhysicalDevice, u32, Caps)> {
         let (pds, list) = summaries(instance)?;
-        let index = choose(instance, &pds, &list, local_rank)?;
+        let index = choose(instance, &pds, &list, choice)?;
         let physical = pds[index];
         let queue_family = compute_queue_family(instance, physical).expect("checked");
         let mut caps = Caps::query(entry, instance, physical, index, queue_family)?;

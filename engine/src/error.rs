@@ -28,6 +28,11 @@ pub enum Error {
     Unsupported { feature: Feature, what: String },
     /// Bad input from outside (a file, an argument).
     Invalid(String),
+    /// A setting a caller asked for that does not fit (a run's seed, its steps, where it
+    /// starts from). `message` names each setting it speaks of as `{name}` (`{seed}`,
+    /// `{stop_at}`), so that each front end spells it its own way ([`Error::spelled`]): the
+    /// command line as `--seed`, Python as `seed=`; `setting` is the one at fault.
+    Setting { setting: &'static str, message: String },
     /// A file could not be written (a full disk, a file size limit, a missing folder); the
     /// message names the file.
     Io(String),
@@ -117,6 +122,20 @@ impl Error {
         Error::Unsupported { feature, what: what.to_string() }
     }
 
+    /// A [`Error::Setting`] about `setting`; `message` names settings as `{name}`.
+    pub fn setting(setting: &'static str, message: impl fmt::Display) -> Error {
+        Error::Setting { setting, message: message.to_string() }
+    }
+
+    /// The message with each setting `{name}` of an [`Error::Setting`] spelled by `spell`
+    /// (`Display` spells it as its bare name); any other error as `Display` shows it.
+    pub fn spelled(&self, spell: impl Fn(&str) -> String) -> String {
+        match self {
+            Error::Setting { message, .. } => spell_settings(message, spell),
+            other => other.to_string(),
+        }
+    }
+
     /// A file error: `path`, what was done with it and why it failed.
     pub fn file(path: &std::path::Path, op: FileOp, reason: impl fmt::Display) -> Error {
         Error::File { path: path.to_path_buf(), op, reason: reason.to_string() }
@@ -142,6 +161,7 @@ impl fmt::Display for Error {
             Error::DType(what) => write!(f, "dtype error: {what}"),
             Error::Unsupported { what, .. } => write!(f, "unsupported on this device: {what}"),
             Error::Invalid(what) => write!(f, "invalid input: {what}"),
+            Error::Setting { message, .. } => write!(f, "{}", spell_settings(message, |n| n.to_string())),
             Error::Io(what) => write!(f, "{what}"),
             Error::File { path, op: FileOp::Read, reason } => {
                 write!(f, "cannot read {}: {reason}", path.display())
@@ -168,6 +188,30 @@ impl fmt::Display for Error {
 
 impl std::error::Error for Error {}
 
+/// `message` with each `{name}` (lower-case letters, digits and `_`) replaced by `spell(name)`;
+/// any other brace is kept.
+fn spell_settings(message: &str, spell: impl Fn(&str) -> String) -> String {
+    let mut out = String::with_capacity(message.len());
+    let mut rest = message;
+    while let Some(open) = rest.find('{') {
+        out.push_str(&rest[..open]);
+        let after = &rest[open + 1..];
+        let name_len = after.find(|c: char| !(c.is_ascii_lowercase() || c.is_ascii_digit() || c == '_'));
+        match name_len {
+            Some(n) if n > 0 && after[n..].starts_with('}') => {
+                out.push_str(&spell(&after[..n]));
+                rest = &after[n + 1..];
+            }
+            _ => {
+                out.push('{');
+                rest = after;
+            }
+        }
+    }
+    out.push_str(rest);
+    out
+}
+
 /// `value` as a 32-bit count or index for a kernel, or a [`Limit::Index`] error naming `what`.
 pub fn fit_u32<T: TryInto<u32> + Copy + fmt::Display>(
     value: T,
@@ -192,5 +236,27 @@ impl<T> VkCheck<T> for std::result::Result<T, vk::Result> {
             vk::Result::ERROR_DEVICE_LOST => Error::DeviceLost(format!("{call} returned {result}")),
             _ => Error::Vulkan { call, result },
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_setting_error_is_spelled_by_its_front_end() {
+        let e = Error::setting(
+            "seed",
+            "{seed} 2 differs from the 1 the run started with: leave {seed} out, or {out} {x",
+        );
+        assert_eq!(
+            e.to_string(),
+            "seed 2 differs from the 1 the run started with: leave seed out, or out {x"
+        );
+        let cli = e.spelled(|n| format!("--{}", n.replace('_', "-")));
+        assert_eq!(cli, "--seed 2 differs from the 1 the run started with: leave --seed out, or --out {x");
+        let stop = Error::setting("stop_at", "{stop_at} {} is not a step {Stop}");
+        assert_eq!(stop.spelled(|n| format!("{n}=")), "stop_at= {} is not a step {Stop}");
+        assert_eq!(Error::Invalid("x".into()).spelled(|_| unreachable!()), "invalid input: x");
     }
 }

@@ -59,7 +59,7 @@ fn unknown_device_choice_is_a_clear_error() {
     let out = velox().arg("info").env("VELOX_DEVICE", "no-such-device").output().unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success());
-    assert!(err.contains("VELOX_DEVICE=no-such-device matches none"), "{err}");
+    assert!(err.contains("VELOX_DEVICE \"no-such-device\" matches none"), "{err}");
 }
 
 #[test]
