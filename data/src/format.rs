@@ -232,6 +232,13 @@ pub fn write_ply(path: &Path, points: &[[f32; 7]]) -> DataResult<()> {
     w.flush().map_err(|e| write_error(path, e))
 }
 
+/// The 4D colour cloud of a scene folder (its `points.ply`) or of a PLY file of float `x y z r
+/// g b tau` ([`read_ply`] validates it), as host rows of 7.
+pub fn read_cloud(path: &Path) -> DataResult<Vec<f32>> {
+    let file = if path.is_dir() { path.join("points.ply") } else { path.to_path_buf() };
+    Ok(read_ply(&file)?.iter().flatten().copied().collect())
+}
+
 /// Reads a PLY written by [`write_ply`]: one `vertex` element of float x y z r g b tau,
 /// binary little-endian, a body of exactly the declared points, every point as the format
 /// says (see [`check_points`]).

@@ -32,6 +32,7 @@ use velox_models::velox::decode::{
 };
 use velox_models::velox::surface::Sampler;
 use velox_models::velox::voxels::VoxelDecoder;
+use velox_models::Model;
 
 use crate::CliResult;
 
@@ -215,9 +216,7 @@ pub fn parse_frames(s: &str) -> Result<Frames, String> {
 /// The cloud of a scene folder (its points.ply) or of a PLY file, as host rows (`read_ply`
 /// validates them).
 pub fn read_cloud(path: &Path) -> CliResult<Vec<f32>> {
-    let file = if path.is_dir() { path.join("points.ply") } else { path.to_path_buf() };
-    let points = velox_data::format::read_ply(&file).map_err(|e| format!("reading the cloud: {e}"))?;
-    Ok(points.iter().flatten().copied().collect())
+    Ok(velox_data::format::read_cloud(path).map_err(|e| format!("reading the cloud: {e}"))?)
 }
 
 /// A progress bar over `len` items of `what`.
