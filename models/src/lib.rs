@@ -7,8 +7,11 @@ pub mod config;
 pub mod eval;
 pub mod layers;
 pub mod metrics;
+pub mod model;
 pub mod params;
 pub mod run;
 pub mod schedule;
 pub mod train;
 pub mod velox;
+
+pub use model::Model;

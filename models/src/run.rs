@@ -134,25 +134,32 @@ impl RunSettings {
         processes: u64,
     ) -> Result<(RunSettings, Vec<String>)> {
         let stored = checkpoint.display();
-        for (flag, asked, kept) in [
-            ("--seed", request.seed, self.seed),
-            ("--steps-per-scene", request.steps_per_scene, self.steps_per_scene),
-            ("--cooldown", request.cooldown, self.cooldown),
+        for (setting, asked, kept) in [
+            ("seed", request.seed, self.seed),
+            ("steps_per_scene", request.steps_per_scene, self.steps_per_scene),
+            ("cooldown", request.cooldown, self.cooldown),
         ] {
             if let Some(asked) = asked.filter(|&a| a != kept) {
-                return Err(Error::Invalid(format!(
-                    "{flag} {asked} differs from the {kept} the run started with ({stored}): a resumed \
-                     run keeps its settings; leave {flag} out, or start a new run in another folder"
-                )));
+                return Err(Error::setting(
+                    setting,
+                    format!(
+                        "{{{setting}}} {asked} differs from the {kept} the run started with ({stored}): a \
+                         resumed run keeps its settings; leave {{{setting}}} out, or start a new run in \
+                         another folder"
+                    ),
+                ));
             }
         }
         if let Some(asked) = request.precision.filter(|&p| p != self.precision) {
-            return Err(Error::Invalid(format!(
-                "--precision {} differs from the {} the run started with ({stored}): a resumed run keeps \
-                 its settings; leave --precision out, or start a new run in another folder",
-                asked.name(),
-                self.precision.name()
-            )));
+            return Err(Error::setting(
+                "precision",
+                format!(
+                    "{{precision}} {} differs from the {} the run started with ({stored}): a resumed run \
+                     keeps its settings; leave {{precision}} out, or start a new run in another folder",
+                    asked.name(),
+                    self.precision.name()
+                ),
+            ));
         }
         if scenes != self.scenes.as_slice() {
             let gone = self.scenes.iter().find(|s| !scenes.contains(s));
@@ -182,12 +189,15 @@ impl RunSettings {
         }
         let accumulate = g / per_micro_batch;
         if let Some(asked) = request.accumulate.filter(|&a| a != accumulate) {
-            return Err(Error::Invalid(format!(
-                "--accumulate {asked} makes a batch of {} samples a step ({micro_batch} a micro-batch on \
-                 {processes} process(es)), and the run ({stored}) takes {g}: a resumed run keeps its \
-                 batch; leave --accumulate out, or start a new run in another folder",
-                asked.saturating_mul(per_micro_batch)
-            )));
+            return Err(Error::setting(
+                "accumulate",
+                format!(
+                    "{{accumulate}} {asked} makes a batch of {} samples a step ({micro_batch} a micro-batch \
+                     on {processes} process(es)), and the run ({stored}) takes {g}: a resumed run keeps its \
+                     batch; leave {{accumulate}} out, or start a new run in another folder",
+                    asked.saturating_mul(per_micro_batch)
+                ),
+            ));
         }
         if accumulate != self.accumulate {
             notes.push(format!(
@@ -248,7 +258,7 @@ mod tests {
         let keep = RunRequest { accumulate: Some(2), ..Default::default() };
         assert_eq!(stored.resume(&keep, &ab, path, 2, 3).unwrap().0.accumulate, 2);
         let e = stored.resume(&keep, &ab, path, 2, 2).unwrap_err().to_string();
-        assert!(e.contains("--accumulate 2 makes a batch of 8") && e.contains("takes 12"), "{e}");
+        assert!(e.contains("accumulate 2 makes a batch of 8") && e.contains("takes 12"), "{e}");
         // 12 samples do not split over 5 processes.
         let e = stored.resume(&RunRequest::default(), &ab, path, 2, 5).unwrap_err().to_string();
         assert!(e.contains("do not split into micro-batches of 2 on 5") && e.contains("divides 6"), "{e}");
@@ -284,15 +294,15 @@ mod tests {
         assert_eq!(longer, RunSettings { steps: 150, ..stored.clone() });
         assert!(notes[0].contains("now ends at step 150 instead of 100"), "{notes:?}");
         for (request, flag) in [
-            (RunRequest { seed: Some(0), ..Default::default() }, "--seed 0 differs from the 3"),
+            (RunRequest { seed: Some(0), ..Default::default() }, "seed 0 differs from the 3"),
             (
                 RunRequest { steps_per_scene: Some(8), ..Default::default() },
-                "--steps-per-scene 8 differs from the 4",
+                "steps_per_scene 8 differs from the 4",
             ),
-            (RunRequest { cooldown: Some(0), ..Default::default() }, "--cooldown 0 differs from the 10"),
+            (RunRequest { cooldown: Some(0), ..Default::default() }, "cooldown 0 differs from the 10"),
             (
                 RunRequest { precision: Some(Precision::F32), ..Default::default() },
-                "--precision f32 differs from the f16",
+                "precision f32 differs from the f16",
             ),
         ] {
             let e = resume(&request, &ab).unwrap_err().to_string();

@@ -33,6 +33,7 @@ use velox_models::velox::tokens::{
     check_scene_name, checkpoint_hash, read_scene_file, scene_file, write_scene_file, CloudSource,
     SceneTokens, TokenManifest, TokenOrigin, TokenStats, MANIFEST,
 };
+use velox_models::Model;
 
 use velox_data::format::{list_some_scenes, read_ply};
 use velox_data::{DataError, DataResult};

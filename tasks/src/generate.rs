@@ -8,6 +8,7 @@ use velox_engine::{Error, Gpu, Result, Tensor};
 use velox_models::velox::autoencoder::Autoencoder;
 use velox_models::velox::dinov2::Dinov2;
 use velox_models::velox::generator::{GenerateSpec, Generator};
+use velox_models::Model;
 
 use crate::GenScenes;
 

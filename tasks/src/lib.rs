@@ -10,6 +10,8 @@
 //! - [`condition`] reads a video's frames as the generators' condition, normalised as DINOv2
 //!   expects, and [`generate`] loads a generator with the models it was trained against and
 //!   makes tokens from them;
+//! - [`run`] starts a training run (new, resumed, or from another run's parameters) and
+//!   trains it: the one way every front end trains a model;
 //! - [`evaluate`] runs the evaluations of the models downstream of the encoder scene by scene
 //!   (the voxel decoder, the tracker, the generator as images and as falling cloth).
 
@@ -18,6 +20,7 @@ pub mod encode;
 pub mod evaluate;
 pub mod generate;
 pub mod loader;
+pub mod run;
 pub mod training;
 
 pub use loader::{Loader, LoaderOptions};

@@ -10,6 +10,7 @@
 
 use crate::common;
 use common::*;
+use velox_models::Model;
 
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::{Path, PathBuf};

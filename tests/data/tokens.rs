@@ -6,6 +6,7 @@
 
 use crate::common;
 use common::*;
+use velox_models::Model;
 
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;

@@ -15,6 +15,7 @@ use velox::models::run::RunSettings;
 use velox::models::train::trainer::{run_settings, save_checkpoint};
 use velox::models::velox::autoencoder::{tau_of, Autoencoder, StepLosses, TrainScene};
 use velox::tasks::training::train_scene;
+use velox_models::Model;
 
 fn scene(gpu: &Gpu, name: &str) -> TrainScene {
     scene_of(gpu, name, 3)

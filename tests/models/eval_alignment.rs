@@ -11,6 +11,7 @@
 
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
+use velox_models::Model;
 
 use crate::common;
 use common::*;

@@ -16,6 +16,7 @@ use velox_engine::Gpu;
 use velox_io::cloud::CHANNELS;
 use velox_io::write_bytes;
 use velox_models::velox::autoencoder::FRAMES;
+use velox_models::Model;
 
 use velox_models::config::AutoencoderConfig;
 use velox_models::eval::recon::ReconOptions;

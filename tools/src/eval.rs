@@ -18,6 +18,7 @@ use velox_models::velox::autoencoder::Autoencoder;
 use velox_models::velox::decode::{Sampling, VoxelSource};
 use velox_models::velox::tracker::Tracker;
 use velox_models::velox::voxels::{VoxelDecoder, FRAME_WORDS};
+use velox_models::Model;
 use velox_tasks::evaluate::ClothTokens;
 use velox_tasks::generate::GeneratorModels;
 use velox_tasks::{SceneFolders, TokenScenes, TrackScenes};

@@ -17,6 +17,7 @@ mod train;
 mod view;
 
 use clap::{Parser, Subcommand};
+use velox_models::Model;
 
 #[derive(Parser)]
 #[command(name = "velox", version, about = "Velox 4D dynamic tokens on a Vulkan compute runtime")]
@@ -279,7 +280,7 @@ fn main() {
             eprintln!("{stop}");
             std::process::exit(stop.exit_code());
         }
-        eprintln!("error: {e}");
+        eprintln!("error: {}", message(&*e));
         std::process::exit(1);
     }
     // Under VELOX_VALIDATE, a validation error anywhere fails the command, even one the work
@@ -328,3 +329,17 @@ fn dispatch(command: Command) -> CliResult<()> {
 
 /// Errors of the command: engine errors and I/O, each with what was being done.
 pub type CliResult<T> = Result<T, Box<dyn std::error::Error>>;
+
+/// An error as the command says it: the library's settings named as this command's flags
+/// (`velox_engine::Error::Setting`'s `{stop_at}` as `--stop-at`).
+pub fn message(e: &(dyn std::error::Error + 'static)) -> String {
+    let engine =
+        e.downcast_ref::<velox_engine::Error>().or(match e.downcast_ref::<velox_data::DataError>() {
+            Some(velox_data::DataError::Engine(inner)) => Some(inner),
+            _ => None,
+        });
+    match engine {
+        Some(inner) => inner.spelled(|setting| format!("--{}", setting.replace('_', "-"))),
+        None => e.to_string(),
+    }
+}

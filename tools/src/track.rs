@@ -19,6 +19,7 @@ use velox_io::image::{write_gif, write_png};
 use velox_io::write_bytes;
 use velox_models::velox::autoencoder::{Autoencoder, FRAMES};
 use velox_models::velox::tracker::{Track, Tracker};
+use velox_models::Model;
 
 use crate::overlay::{colours, draw_tracks};
 use crate::CliResult;

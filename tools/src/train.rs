@@ -1,29 +1,20 @@
-//! `velox train autoencoder`: the library's trainer (`velox_models::train::trainer`) on a
-//! dataset made by `velox data`, with a progress bar and a summary. The command parses, builds
-//! the model (new, from another run's weights, or the checkpoint to resume), and prints; the
-//! run itself (settings, samples, steps, log, plot, checkpoints, stops) is the library's.
+//! `velox train autoencoder|voxels|tracker|generator`: the library's run API
+//! (`velox_tasks::run`: how a run starts, new, resumed or from another run's parameters, and
+//! the trainer) on a dataset made by `velox data`, with a progress bar, signals and a summary.
+//! The command parses its arguments into a `RunSpec` and prints; the run itself (the folder,
+//! the model, settings, samples, steps, log, plot, checkpoints, stops) is the library's.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use velox_engine::{Gpu, Precision};
-use velox_models::config::{AutoencoderConfig, GenerationTask, GeneratorConfig, TrackerConfig, VoxelConfig};
+use velox_models::config::GenerationTask;
 use velox_models::run::{RunRequest, RunSettings};
 use velox_models::train::collective::Collective;
 use velox_models::train::distributed::Comm;
-use velox_models::train::source::SampleSource;
-use velox_models::train::trainer::{
-    train, Begin, Observer, Outcome, Quiet, RunFolder, StepReport, Stop, TimeSplit, TrainOptions,
-};
-use velox_models::train::Trainable;
-use velox_models::velox::autoencoder::Autoencoder;
-use velox_models::velox::dinov2::Dinov2;
-use velox_models::velox::generator::Generator;
-use velox_models::velox::tokens::TokenManifest;
-use velox_models::velox::tracker::Tracker;
-use velox_models::velox::voxels::VoxelDecoder;
-use velox_tasks::{GenScenes, SceneFolders, TokenScenes, TrackScenes};
+use velox_models::train::trainer::{Begin, Observer, Outcome, Quiet, StepReport, Stop, TimeSplit};
+use velox_tasks::run::{RunSpec, TokenData};
 
 use crate::decode::PrecisionArg;
 use crate::interrupt::{signal_name, Interrupt, Interrupted};
@@ -178,17 +169,29 @@ pub struct RunArgs {
 }
 
 impl RunArgs {
-    /// The run settings the command line gives (`None` where it leaves one out; a new run
-    /// without --precision takes `default_precision`, the device's).
-    fn request(&self, default_precision: Precision) -> RunRequest {
-        let default = (!self.resume).then_some(default_precision);
+    /// The run settings the command line gives (`None` where it leaves one out: the library's
+    /// defaults, or a resumed run's own).
+    fn request(&self) -> RunRequest {
         RunRequest {
             seed: self.seed,
             steps: self.steps,
             steps_per_scene: self.steps_per_scene,
             cooldown: self.cooldown,
             accumulate: self.accumulate,
-            precision: self.precision.map(Precision::from).or(default),
+            precision: self.precision.map(Precision::from),
+        }
+    }
+
+    /// The run the command asks for, of the model config `config`.
+    pub fn spec(&self, config: Option<&str>) -> RunSpec {
+        RunSpec {
+            out: self.out.clone(),
+            begin: self.begin(),
+            config: config.map(str::to_string),
+            request: self.request(),
+            checkpoint_every: self.checkpoint_every,
+            plot_every: self.plot_every,
+            stop_at: self.stop_at,
         }
     }
 
@@ -220,7 +223,7 @@ pub fn run(cmd: TrainCommand) -> CliResult<()> {
         // A stop ends every process alike (they agree on it before it happens); an error of
         // one process must end the others, which could wait for it forever.
         Err(e) if comm.size() > 1 && e.downcast_ref::<Interrupted>().is_none() => {
-            eprintln!("error on process {} of {}: {e}", comm.rank(), comm.size());
+            eprintln!("error on process {} of {}: {}", comm.rank(), comm.size(), crate::message(&*e));
             comm.abort_all(1)
         }
         Err(e) => return Err(e),
@@ -325,15 +328,10 @@ pub fn train_autoencoder<C: Collective>(
     interrupt: &Interrupt,
     collective: &C,
 ) -> CliResult<Outcome> {
-    let run = &args.run;
-    let begin = run.begin();
-    let folder = RunFolder::new(&run.out);
-    folder.prepare(&begin)?;
-    let scenes = SceneFolders::open(gpu, &args.data)?;
-    let seed = run.seed.unwrap_or(RunSettings::DEFAULT_SEED);
-    let named = |name: Option<&str>| Ok(AutoencoderConfig::named(name.unwrap_or("small"))?);
-    let mut model: Autoencoder = starting_model(gpu, &begin, &folder, args.config.as_deref(), seed, named)?;
-    run_training(&mut model, &scenes, run, begin, interrupt, collective)
+    let spec = args.run.spec(args.config.as_deref());
+    with_progress(interrupt, collective, |observer, stop| {
+        velox_tasks::run::train_autoencoder(gpu, &args.data, &spec, observer, stop, collective)
+    })
 }
 
 /// Trains the voxel decoder as `velox train voxels` does, as one of `collective`'s processes.
@@ -343,8 +341,10 @@ pub fn train_voxels<C: Collective>(
     interrupt: &Interrupt,
     collective: &C,
 ) -> CliResult<Outcome> {
-    let scenes = TokenScenes::open(gpu, &args.data, args.tokens.as_deref(), args.checkpoint.as_deref())?;
-    train_on_tokens::<VoxelDecoder, _, _>(gpu, args, &scenes, &scenes, interrupt, collective)
+    let spec = args.run.spec(args.config.as_deref());
+    with_progress(interrupt, collective, |observer, stop| {
+        velox_tasks::run::train_voxels(gpu, &args.token_data(), &spec, observer, stop, collective)
+    })
 }
 
 /// Trains the tracker as `velox train tracker` does, as one of `collective`'s processes.
@@ -354,8 +354,10 @@ pub fn train_tracker<C: Collective>(
     interrupt: &Interrupt,
     collective: &C,
 ) -> CliResult<Outcome> {
-    let scenes = TrackScenes::open(gpu, &args.data, args.tokens.as_deref(), args.checkpoint.as_deref())?;
-    train_on_tokens::<Tracker, _, _>(gpu, args, &scenes, &scenes.0, interrupt, collective)
+    let spec = args.run.spec(args.config.as_deref());
+    with_progress(interrupt, collective, |observer, stop| {
+        velox_tasks::run::train_tracker(gpu, &args.token_data(), &spec, observer, stop, collective)
+    })
 }
 
 /// Trains the generator as `velox train generator` does, as one of `collective`'s processes.
@@ -366,275 +368,42 @@ pub fn train_generator<C: Collective>(
     collective: &C,
 ) -> CliResult<Outcome> {
     let m = &args.model;
-    let tokens = TokenScenes::open(gpu, &m.data, m.tokens.as_deref(), m.checkpoint.as_deref())?;
-    let dino = match &args.dinov2 {
-        Some(path) => Some(Dinov2::load(gpu, path)?),
-        None => {
-            eprintln!("note: no DINOv2 weights (--dinov2): the condition is the RGB patch embedding alone");
-            None
-        }
-    };
-    let task: GenerationTask = args.task.into();
-    let (dino_width, dino_hash) = dino.as_ref().map_or((0, None), |d| (d.config.width, d.file_hash.clone()));
-    let model: Generator = start_token_model(gpu, m, &tokens, |cfg: &mut GeneratorConfig| {
-        cfg.task = task;
-        cfg.dino_width = dino_width;
-        cfg.dino_hash = dino_hash.clone();
-    })?;
-    let cfg = &model.cfg;
-    if cfg.task != task {
-        return Err(format!(
-            "the generator was trained for the {:?} task, not {:?} (--task)",
-            cfg.task, task
+    let spec = m.run.spec(m.config.as_deref());
+    let (task, dinov2) = (args.task.into(), args.dinov2.as_deref());
+    with_progress(interrupt, collective, |observer, stop| {
+        velox_tasks::run::train_generator(
+            gpu,
+            &m.token_data(),
+            task,
+            dinov2,
+            &spec,
+            observer,
+            stop,
+            collective,
         )
-        .into());
-    }
-    if cfg.dino_hash != dino_hash {
-        return Err(match &cfg.dino_hash {
-            Some(h) => format!(
-                "the generator was trained on the DINOv2 weights of hash {h}: give them with --dinov2"
-            ),
-            None => "the generator was trained without DINOv2: leave out --dinov2".to_string(),
-        }
-        .into());
-    }
-    let source = GenScenes::new(tokens, cfg, dino)?;
-    let mut model = model;
-    run_training(&mut model, &source, &m.run, m.run.begin(), interrupt, collective)
-}
-
-/// The config of a model that trains on stored tokens: its name for messages, and the token
-/// width and autoencoder hash it records.
-trait TokenModelConfig: Sized {
-    const WHAT: &'static str;
-    fn named(name: &str) -> velox_engine::Result<Self>;
-    fn tokens(&mut self) -> (&mut usize, &mut Option<String>);
-    /// What else a new config takes from the tokens (the generator: their count, for a named
-    /// config, and their statistics).
-    fn fit(&mut self, _manifest: &TokenManifest, _named: bool) {}
-}
-
-impl TokenModelConfig for GeneratorConfig {
-    const WHAT: &'static str = "generator";
-    fn named(name: &str) -> velox_engine::Result<Self> {
-        GeneratorConfig::named(name)
-    }
-    fn tokens(&mut self) -> (&mut usize, &mut Option<String>) {
-        (&mut self.token_dim, &mut self.encoder_hash)
-    }
-    fn fit(&mut self, manifest: &TokenManifest, named: bool) {
-        if named {
-            self.tokens = manifest.tokens;
-        }
-        self.token_mean = manifest.mean.iter().map(|&v| v as f32).collect();
-        // A channel that never varies keeps a deviation of 1 (it normalises to its offset).
-        self.token_std = manifest.std.iter().map(|&v| if v > 0.0 { v as f32 } else { 1.0 }).collect();
-    }
-}
-
-impl TokenModelConfig for VoxelConfig {
-    const WHAT: &'static str = "voxel decoder";
-    fn named(name: &str) -> velox_engine::Result<Self> {
-        VoxelConfig::named(name)
-    }
-    fn tokens(&mut self) -> (&mut usize, &mut Option<String>) {
-        (&mut self.token_dim, &mut self.encoder_hash)
-    }
-}
-
-impl TokenModelConfig for TrackerConfig {
-    const WHAT: &'static str = "tracker";
-    fn named(name: &str) -> velox_engine::Result<Self> {
-        TrackerConfig::named(name)
-    }
-    fn tokens(&mut self) -> (&mut usize, &mut Option<String>) {
-        (&mut self.token_dim, &mut self.encoder_hash)
-    }
-}
-
-/// A run of a model downstream of the encoder on `source` (whose tokens are `tokens`').
-fn train_on_tokens<M, S, C>(
-    gpu: &Gpu,
-    args: &TokenModelArgs,
-    source: &S,
-    tokens: &TokenScenes,
-    interrupt: &Interrupt,
-    collective: &C,
-) -> CliResult<Outcome>
-where
-    M: RunModel + Trainable,
-    M::Config: TokenModelConfig,
-    S: SampleSource<Sample = M::Sample>,
-    C: Collective,
-{
-    let mut model: M = start_token_model(gpu, args, tokens, |_| {})?;
-    run_training(&mut model, source, &args.run, args.run.begin(), interrupt, collective)
-}
-
-/// The model a run on stored tokens starts from, its folder prepared: a named config takes
-/// the tokens' width (and what [`TokenModelConfig::fit`] takes) and records their
-/// autoencoder, then `adjust` sets what the command decides; a model that learned another
-/// autoencoder's tokens, or tokens of another width, is refused.
-fn start_token_model<M>(
-    gpu: &Gpu,
-    args: &TokenModelArgs,
-    tokens: &TokenScenes,
-    adjust: impl Fn(&mut M::Config),
-) -> CliResult<M>
-where
-    M: RunModel,
-    M::Config: TokenModelConfig,
-{
-    let run = &args.run;
-    let begin = run.begin();
-    let folder = RunFolder::new(&run.out);
-    folder.prepare(&begin)?;
-    if let Some(note) = tokens.checkpoint().note() {
-        eprintln!("note: {note}");
-    }
-    let manifest = tokens.manifest();
-    let (token_dim, hash) = (manifest.token_dim, &manifest.origin.checkpoint_hash);
-    let seed = run.seed.unwrap_or(RunSettings::DEFAULT_SEED);
-    // A named config takes the tokens' width; a config file must already have it.
-    let named = |name: Option<&str>| -> CliResult<M::Config> {
-        let name = name.unwrap_or("small");
-        let mut cfg = M::Config::named(name)?;
-        let is_named = matches!(name, "paper" | "small" | "tiny");
-        let (dim, from) = cfg.tokens();
-        if is_named {
-            *dim = token_dim;
-        }
-        *from = Some(hash.clone());
-        cfg.fit(manifest, is_named);
-        adjust(&mut cfg);
-        Ok(cfg)
-    };
-    let mut model: M = starting_model(gpu, &begin, &folder, args.config.as_deref(), seed, named)?;
-    let (dim, from) = model.config_mut().tokens();
-    tokens.check_model(<M::Config as TokenModelConfig>::WHAT, from.as_deref(), *dim)?;
-    Ok(model)
-}
-
-/// What a run needs of a model to start it: load a checkpoint, read a checkpoint's config,
-/// build a fresh model of a config.
-trait RunModel: Sized {
-    type Config;
-    fn load(gpu: &Gpu, checkpoint: &Path) -> velox_engine::Result<Self>;
-    fn checkpoint_config(checkpoint: &Path) -> velox_engine::Result<Self::Config>;
-    fn fresh(gpu: &Gpu, cfg: &Self::Config, seed: u64) -> velox_engine::Result<Self>;
-    fn config_name(&self) -> &str;
-    fn config_mut(&mut self) -> &mut Self::Config;
-}
-
-/// [`RunModel`] for a model whose `load`, `checkpoint_config` and `new` have the usual
-/// signatures and whose config has a `name`.
-macro_rules! run_model {
-    ($model:ty, $config:ty) => {
-        impl RunModel for $model {
-            type Config = $config;
-            fn load(gpu: &Gpu, checkpoint: &Path) -> velox_engine::Result<Self> {
-                <$model>::load(gpu, checkpoint)
-            }
-            fn checkpoint_config(checkpoint: &Path) -> velox_engine::Result<$config> {
-                <$model>::checkpoint_config(checkpoint)
-            }
-            fn fresh(gpu: &Gpu, cfg: &$config, seed: u64) -> velox_engine::Result<Self> {
-                <$model>::new(gpu, cfg, seed)
-            }
-            fn config_name(&self) -> &str {
-                &self.cfg.name
-            }
-            fn config_mut(&mut self) -> &mut $config {
-                &mut self.cfg
-            }
-        }
-    };
-}
-
-run_model!(Autoencoder, AutoencoderConfig);
-run_model!(VoxelDecoder, VoxelConfig);
-run_model!(Tracker, TrackerConfig);
-run_model!(Generator, GeneratorConfig);
-
-/// The model a run starts from: its own checkpoint when it resumes (the config asked for, if
-/// another, is ignored with a note); a fresh model of the config asked for, or else of the
-/// checkpoint's, when it starts from another run's parameters; a fresh model of the config
-/// asked for (`named(None)`: the default) when it is new.
-fn starting_model<M: RunModel>(
-    gpu: &Gpu,
-    begin: &Begin,
-    folder: &RunFolder,
-    asked: Option<&str>,
-    seed: u64,
-    named: impl Fn(Option<&str>) -> CliResult<M::Config>,
-) -> CliResult<M> {
-    Ok(match begin {
-        Begin::Resume => {
-            if velox_models::checkpoint::peek(&folder.checkpoint)?.weights_only {
-                return Err(velox_engine::Error::file(
-                    &folder.checkpoint,
-                    velox_engine::FileOp::Content,
-                    "holds weights only (no optimiser moments): --resume needs the run's checkpoint",
-                )
-                .into());
-            }
-            let m = M::load(gpu, &folder.checkpoint)?;
-            note_resumed_config(m.config_name(), asked);
-            m
-        }
-        Begin::Init(from) => {
-            let cfg = match asked {
-                Some(name) => named(Some(name))?,
-                None => M::checkpoint_config(from)?,
-            };
-            M::fresh(gpu, &cfg, seed)?
-        }
-        Begin::New => M::fresh(gpu, &named(asked)?, seed)?,
     })
 }
 
-/// f16 where the device multiplies f16 on cooperative matrices (tensor cores), else f32: the
-/// portable f16 kernels save memory but not time.
-pub fn default_training_precision(gpu: &Gpu) -> Precision {
-    match velox_engine::ops::matmul::coop_kernel(gpu.caps()) {
-        Some(k) if gpu.supports(k) => Precision::F16,
-        _ => Precision::F32,
+impl TokenModelArgs {
+    fn token_data(&self) -> TokenData {
+        TokenData {
+            data: self.data.clone(),
+            tokens: self.tokens.clone(),
+            checkpoint: self.checkpoint.clone(),
+        }
     }
 }
 
-fn note_resumed_config(kept: &str, asked: Option<&str>) {
-    if let Some(asked) = asked.filter(|&c| c != kept) {
-        eprintln!("note: resuming the checkpoint's config {kept:?} (--config {asked:?} is ignored)");
-    }
-}
-
-/// The library's trainer with the command's progress bar, signals and stop message.
-fn run_training<M, S, C>(
-    model: &mut M,
-    source: &S,
-    run: &RunArgs,
-    begin: Begin,
+/// A run of the library's with the command's progress bar, signals and stop message.
+fn with_progress<C: Collective>(
     interrupt: &Interrupt,
     collective: &C,
-) -> CliResult<Outcome>
-where
-    M: Trainable,
-    S: SampleSource<Sample = M::Sample>,
-    C: Collective,
-{
-    let options = TrainOptions {
-        out: run.out.clone(),
-        begin,
-        request: run.request(default_training_precision(model.store().flat_params().gpu())),
-        checkpoint_every: run.checkpoint_every,
-        plot_every: run.plot_every,
-        stop_at: run.stop_at,
-        prefetch: 2,
-    };
+    run: impl FnOnce(&mut dyn Observer, &dyn Fn() -> bool) -> velox_data::DataResult<Outcome>,
+) -> CliResult<Outcome> {
     let stop = || interrupt.requested().is_some();
     let mut progress = Progress::default();
     let observer: &mut dyn Observer = if collective.is_root() { &mut progress } else { &mut Quiet };
-    let outcome = train(model, source, &options, collective, observer, &stop)?;
+    let outcome = run(observer, &stop)?;
     if outcome.stopped == Some(Stop::Asked) {
         let signal = interrupt.requested().expect("the stop was asked for by a signal");
         let step = outcome.last.step;
@@ -679,15 +448,12 @@ mod tests {
         }
         let args = Cli::try_parse_from(["train", "--data", "d", "--out", "o", "--seed", "3"]).unwrap().args;
         let precision = Some(Precision::F16);
-        assert_eq!(
-            args.run.request(Precision::F16),
-            RunRequest { seed: Some(3), precision, ..Default::default() }
-        );
+        assert_eq!(args.run.request(), RunRequest { seed: Some(3), ..Default::default() });
         let args = Cli::try_parse_from(["train", "--data", "d", "--out", "o", "--resume"]).unwrap().args;
-        assert_eq!(args.run.request(Precision::F16).precision, None, "a resumed run keeps its precision");
+        assert_eq!(args.run.request().precision, None, "a resumed run keeps its precision");
         let args =
-            Cli::try_parse_from(["train", "--data", "d", "--out", "o", "--precision", "f32"]).unwrap().args;
-        assert_eq!(args.run.request(Precision::F16).precision, Some(Precision::F32));
+            Cli::try_parse_from(["train", "--data", "d", "--out", "o", "--precision", "f16"]).unwrap().args;
+        assert_eq!(args.run.request().precision, precision);
         assert_eq!(args.run.begin(), Begin::New);
         let both = Cli::try_parse_from(["train", "--data", "d", "--out", "o", "--resume", "--init", "c"]);
         assert!(both.is_err(), "--resume and --init exclude each other");

@@ -13,6 +13,7 @@ use velox_engine::Gpu;
 use velox_io::ply;
 use velox_models::config::AutoencoderConfig;
 use velox_models::velox::autoencoder::Autoencoder;
+use velox_models::Model;
 use velox_tasks::training::train_scene;
 
 fn velox(args: &[&str]) -> Output {

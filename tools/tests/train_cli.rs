@@ -8,6 +8,7 @@ use std::process::{Command, Output};
 use std::sync::OnceLock;
 
 use velox_models::train::trainer::{run_settings, save_checkpoint};
+use velox_models::Model;
 
 fn velox() -> Command {
     Command::new(env!("CARGO_BIN_EXE_velox"))

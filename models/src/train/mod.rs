@@ -166,38 +166,19 @@ macro_rules! trainable {
 }
 pub(crate) use trainable;
 
-/// The checkpoint files of a model downstream of the encoder (a struct with `cfg`, whose
-/// `encoder_hash` names the autoencoder of its tokens, and `store`, an inherent
-/// `new(gpu, cfg, seed)`, and [`Trainable`] by [`trainable!`]): `save`, `checkpoint_config`,
-/// `load` and `check_encoder`. `$what` names it in messages.
+/// `check_encoder` for a model downstream of the encoder (a struct with `cfg`, whose
+/// `encoder_hash` names the autoencoder of its tokens), and its [`crate::Model`] by
+/// `crate::model::model!`. `$what` names it in messages.
 macro_rules! token_model_files {
     ($model:ty, $config:ty, $what:literal) => {
         impl $model {
-            /// Writes parameters, AdamW moments, the step and the config to `path` (atomically).
-            pub fn save(&self, path: &std::path::Path) -> velox_engine::Result<()> {
-                let describe = $crate::train::Trainable::describe(self).to_string();
-                $crate::checkpoint::save(path, &self.store, &describe)
-            }
-
-            /// The config a checkpoint of this model holds.
-            pub fn checkpoint_config(path: &std::path::Path) -> velox_engine::Result<$config> {
-                $crate::checkpoint::model_config(path, MODEL_KIND, $what)
-            }
-
-            /// The model a checkpoint holds, with its moments and step (or a weights file: its
-            /// parameters and step).
-            pub fn load(gpu: &velox_engine::Gpu, path: &std::path::Path) -> velox_engine::Result<Self> {
-                let mut m = <$model>::new(gpu, &<$model>::checkpoint_config(path)?, 0)?;
-                $crate::checkpoint::load_model(path, &mut m.store)?;
-                Ok(m)
-            }
-
             /// Fails unless `autoencoder` (a checkpoint file) is the one whose tokens the model
             /// learned, when it recorded one.
             pub fn check_encoder(&self, autoencoder: &std::path::Path) -> velox_engine::Result<()> {
                 $crate::velox::tokens::check_encoder(self.cfg.encoder_hash.as_deref(), autoencoder, $what)
             }
         }
+        $crate::model::model!($model, $config, $what);
     };
 }
 pub(crate) use token_model_files;

@@ -38,7 +38,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
-use velox_engine::{Error, Precision, Result};
+use velox_engine::{Error, FileOp, Precision, Result};
 
 use super::collective::Collective;
 use super::log::{Log, LogLine, Terms};
@@ -402,14 +402,17 @@ impl RunFolder {
         std::fs::create_dir_all(&self.dir)
             .map_err(|e| Error::Io(format!("cannot create {}: {e}", self.dir.display())))?;
         match (begin, self.checkpoint.exists()) {
-            (Begin::Resume, false) => Err(Error::Invalid(format!(
-                "--resume: {} holds no checkpoint.safetensors to resume from",
-                self.dir.display()
-            ))),
-            (Begin::New | Begin::Init(_), true) => Err(Error::Invalid(format!(
-                "{} already holds a checkpoint: pass --resume to continue it, or choose another --out",
-                self.dir.display()
-            ))),
+            (Begin::Resume, false) => Err(Error::setting(
+                "resume",
+                format!("{{resume}}: {} holds no checkpoint.safetensors to resume from", self.dir.display()),
+            )),
+            (Begin::New | Begin::Init(_), true) => Err(Error::setting(
+                "out",
+                format!(
+                    "{} already holds a checkpoint: ask for {{resume}} to continue it, or choose another {{out}}",
+                    self.dir.display()
+                ),
+            )),
             _ => Ok(()),
         }
     }
@@ -496,24 +499,36 @@ pub fn save_checkpoint<M: Trainable>(model: &M, settings: &RunSettings, path: &P
     checkpoint::save(path, model.store(), &config.to_string())
 }
 
+/// Fails unless the checkpoint `path` a run starts from ([`Begin::Init`]) holds a model of the
+/// kind `ours` (the `"model"` of [`Trainable::describe`]).
+pub fn check_init_kind(path: &Path, ours: &serde_json::Value) -> Result<()> {
+    if let Some(kind) = checkpoint::config_json(path)?.get("model").filter(|k| *k != ours) {
+        return Err(Error::setting(
+            "init",
+            format!("{{init}} {} holds a {kind} checkpoint; this run trains a {ours}", path.display()),
+        ));
+    }
+    Ok(())
+}
+
 /// Sets `model`'s parameters to those of another run's checkpoint, `path` (the moments and the
 /// step stay those of a new model). The checkpoint must be of the same kind of model
 /// ([`Trainable::describe`]'s `"model"`) with parameters of the same names and shapes; the
 /// error names what differs.
 pub fn init_parameters<M: Trainable>(model: &mut M, path: &Path) -> Result<()> {
     let shown = path.display();
-    let ours = model.describe()["model"].clone();
-    if let Some(kind) = checkpoint::config_json(path)?.get("model").filter(|k| **k != ours) {
-        return Err(Error::Invalid(format!(
-            "--init {shown} holds a {kind} checkpoint; this run trains a {ours}"
-        )));
-    }
+    check_init_kind(path, &model.describe()["model"])?;
     if model.store().step() != 0 {
-        return Err(Error::Invalid(format!("--init {shown}: the model has already taken steps")));
+        return Err(Error::setting("init", format!("{{init}} {shown}: the model has already taken steps")));
     }
     checkpoint::load_params(path, model.store_mut()).map(|_| ()).map_err(|e| match e {
-        Error::Invalid(why) => Error::Invalid(format!("--init: {why}")),
-        Error::File { path, op, reason } => Error::File { path, op, reason: format!("--init: {reason}") },
+        Error::Invalid(why) => Error::setting("init", format!("{{init}}: {why}")),
+        Error::File { path, op: FileOp::Content, reason } => {
+            Error::setting("init", format!("{{init}} {}: {reason}", path.display()))
+        }
+        Error::File { path, op, reason } => {
+            Error::File { path, op, reason: format!("the parameters to start from: {reason}") }
+        }
         other => other,
     })
 }
@@ -626,17 +641,23 @@ where
     same_everywhere(collective, &settings)?;
     let start_step = model.store().step();
     if start_step >= settings.steps {
-        return Err(Error::Invalid(format!(
-            "the checkpoint is at step {start_step} of a run of {} steps: pass a larger --steps to go on",
-            settings.steps
-        )));
+        return Err(Error::setting(
+            "steps",
+            format!(
+                "the checkpoint is at step {start_step} of a run of {} steps: ask for more {{steps}} to go on",
+                settings.steps
+            ),
+        ));
     }
     if let Some(at) = options.stop_at.filter(|&at| at <= start_step || at > settings.steps) {
-        return Err(Error::Invalid(format!(
-            "--stop-at {at} is not a step to come: the run goes from step {} to {}",
-            start_step + 1,
-            settings.steps
-        )));
+        return Err(Error::setting(
+            "stop_at",
+            format!(
+                "{{stop_at}} {at} is not a step to come: the run goes from step {} to {}",
+                start_step + 1,
+                settings.steps
+            ),
+        ));
     }
     let mut log = on_root(collective, || Log::open(&folder.log, start_step))?;
     let mut trainer = Trainer::new(model, collective, settings.clone())?;

@@ -500,31 +500,6 @@ impl Autoencoder {
         Ok(Some(Tensor::from_slice(scene.cloud.gpu(), &[k, CHANNELS], &rows)?))
     }
 
-    /// Writes parameters, AdamW moments, the step and the config to `path` (atomically); a
-    /// training run saves with its settings through `crate::train::trainer::save_checkpoint`.
-    pub fn save(&self, path: &std::path::Path) -> Result<()> {
-        crate::checkpoint::save(path, &self.store, &self.describe().to_string())
-    }
-
-    /// The config stored in an autoencoder checkpoint.
-    pub fn checkpoint_config(path: &std::path::Path) -> Result<AutoencoderConfig> {
-        serde_json::from_value(crate::checkpoint::config_json(path)?["config"].clone()).map_err(|e| {
-            Error::Invalid(format!(
-                "checkpoint {} does not hold a Velox autoencoder config: {e}",
-                path.display()
-            ))
-        })
-    }
-
-    /// The autoencoder a checkpoint holds, with its config, moments and step (or a weights
-    /// file: its parameters and step; see [`crate::checkpoint::load_model`]).
-    pub fn load(gpu: &Gpu, path: &std::path::Path) -> Result<Autoencoder> {
-        let cfg = Autoencoder::checkpoint_config(path)?;
-        let mut ae = Autoencoder::new(gpu, &cfg, 0)?;
-        crate::checkpoint::load_model(path, &mut ae.store)?;
-        Ok(ae)
-    }
-
     /// The generator of step `step` of a run seeded with `seed`: a resumed run draws exactly
     /// what an uninterrupted one would.
     pub fn step_rng(seed: u64, step: u64) -> Rng {
@@ -538,6 +513,7 @@ impl Autoencoder {
 }
 
 crate::train::trainable!(Autoencoder, TrainScene);
+crate::model::model!(Autoencoder, AutoencoderConfig, "autoencoder");
 
 /// Gaussians `start .. start + len` of a set, as a set of their own (the whole set when it is
 /// all of it).

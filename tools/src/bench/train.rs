@@ -31,6 +31,7 @@ use velox_models::run::{RunRequest, RunSettings};
 use velox_models::train::collective::SingleProcess;
 use velox_models::train::trainer::Trainer;
 use velox_models::velox::autoencoder::{Autoencoder, TrainScene};
+use velox_models::Model;
 
 use super::Record;
 
