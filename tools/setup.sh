@@ -6,7 +6,7 @@
 #     (vulkan-validationlayers), Debian's chromium (headless, for the viewer's browser test;
 #     its chromium-common brings SwiftShader and the newer build of the layer whose
 #     GPU-assisted checks one test uses), Open MPI and libclang for the two-process training
-#     test.
+#     test, and Python's venv and pip for the Python package's tests.
 # Does nothing where everything is there. Usage: tools/setup.sh [--tests]
 set -euo pipefail
 
@@ -51,6 +51,11 @@ if [ "${1:-}" = --tests ]; then
   for p in vulkan-validationlayers chromium chromium-common openmpi-bin libopenmpi-dev libclang-dev; do
     installed "$p" || needed+=("$p")
   done
+  # The Python package's tests run in a fresh venv (tools/python-check.sh): Python 3.9 or
+  # later with venv and pip, which a Debian machine may lack.
+  if ! python3 -c 'import sys, venv, ensurepip; assert sys.version_info >= (3, 9)' 2>/dev/null; then
+    needed+=(python3 python3-venv python3-pip)
+  fi
   if [ ${#needed[@]} -gt 0 ]; then
     echo "setup: installing ${needed[*]}" >&2
     apt_update

@@ -21,6 +21,9 @@ export VK_LAYER_SETTINGS_PATH=$PWD/vk_layer_settings.txt
 # over MPI included (README, "Training on several GPUs").
 VELOX_VALIDATE=1 cargo test --release --features mpi
 
+# The Python package, built and installed as a user gets it, against the command it wraps.
+tools/python-check.sh
+
 # 2. The op-level tests at NVIDIA's subgroup width, where the device is lavapipe. (grep reads
 # all of the output: with -q it could stop early, and pipefail would count the writer's broken
 # pipe as a failure, skipping this step.)

@@ -1,0 +1,257 @@
+"""The Python package against the command line on the same inputs (the same PLY bytes, the
+same pixels, the same tokens and checkpoints), and its refusals of bad input.
+
+Runs in a fresh venv with the package installed (`tools/test.sh` does it); the `velox`
+command is `VELOX_BIN`, else the repository's `target/release/velox`."""
+
+import json
+import os
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import velox
+
+ROOT = Path(__file__).resolve().parents[2]
+VELOX = os.environ.get("VELOX_BIN", str(ROOT / "target" / "release" / "velox"))
+
+
+def cli(*args):
+    """Runs the velox command; fails the test with its stderr when it fails."""
+    run = subprocess.run([VELOX, *map(str, args)], capture_output=True, text=True)
+    assert run.returncode == 0, f"velox {' '.join(map(str, args))}:\n{run.stderr}"
+    return run
+
+
+def random_gaussians(n=300, seed=0):
+    rng = np.random.default_rng(seed)
+    q = rng.standard_normal((n, 4)).astype(np.float32)
+    return {
+        "means": (rng.standard_normal((n, 3)) * 0.6).astype(np.float32),
+        "scales": rng.uniform(0.02, 0.12, (n, 3)).astype(np.float32),
+        "quats": q / np.linalg.norm(q, axis=1, keepdims=True),
+        "opacities": rng.uniform(0.2, 0.95, n).astype(np.float32),
+        "colors": rng.random((n, 3)).astype(np.float32),
+    }
+
+
+def to_rgb8(rgb):
+    """8-bit values as the PNG writer makes them: clamp, times 255 in float32, halves up."""
+    y = np.clip(rgb, 0, 1).astype(np.float32) * np.float32(255)
+    return np.where(y - np.floor(y) == 0.5, np.floor(y) + 1, np.round(y)).astype(np.uint8)
+
+
+def points_ply(path):
+    """The float rows of a binary little-endian PLY of float properties only."""
+    data = Path(path).read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    names = [l.split()[-1] for l in data[:end].decode().splitlines() if l.startswith("property")]
+    return np.frombuffer(data[end:], dtype="<f4").reshape(-1, len(names)), names
+
+
+@pytest.fixture(scope="session")
+def dataset(tmp_path_factory):
+    """Two small procedural scenes, written by Python and by the command line."""
+    root = tmp_path_factory.mktemp("data")
+    options = dict(scenes=2, seed=3, res=24, points=1500, tracks=64, supersample=1)
+    dirs = velox.data.synth(root / "py", progress=False, **options)
+    cli("data", "synth", "--out", root / "cli", "--scenes", 2, "--seed", 3, "--res", 24,
+        "--points", 1500, "--tracks", 64, "--supersample", 1)
+    return root, dirs
+
+
+@pytest.fixture(scope="session")
+def trained(dataset, tmp_path_factory):
+    """A tiny autoencoder trained 3 steps from Python, and the same run from the command line."""
+    root, _ = dataset
+    runs = tmp_path_factory.mktemp("runs")
+    events = []
+    out = velox.train("autoencoder", root / "py", runs / "py", config="tiny", steps=3, seed=5,
+                      precision="f32", progress=events.append)
+    cli("train", "autoencoder", "--data", root / "cli", "--out", runs / "cli", "--config", "tiny",
+        "--steps", 3, "--seed", 5, "--precision", "f32")
+    return runs, out, events
+
+
+def test_devices_and_the_default_device():
+    listed = velox.devices()
+    assert listed and {"index", "name", "kind", "api_version", "unusable"} <= set(listed[0])
+    assert velox.Device().name == velox.Device(0).name == listed[0]["name"] or any(
+        d["unusable"] for d in listed)
+    with pytest.raises(ValueError, match="matches none"):
+        velox.Device("no such device")
+
+
+def test_gaussians_pass_through_a_ply_to_the_bit(tmp_path):
+    g = random_gaussians()
+    velox.write_gaussians(tmp_path / "a.ply", g)
+    raw = velox.read_gaussians(tmp_path / "a.ply", raw=True)
+    assert set(raw) == {"means", "log_scales", "quats", "opacity_logits", "colors"}
+    velox.write_gaussians(tmp_path / "b.ply", raw)
+    assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
+    back = velox.read_gaussians(tmp_path / "a.ply")
+    for key, value in g.items():
+        assert back[key].dtype == np.float32 and back[key].shape == value.shape
+        np.testing.assert_allclose(back[key], value, rtol=1e-6, atol=1e-6)
+
+
+def test_a_render_has_the_pixels_of_velox_render(tmp_path):
+    velox.write_gaussians(tmp_path / "g.ply", random_gaussians())
+    cli("render", tmp_path / "g.ply", "--out", tmp_path / "r", "--frames", 2, "--width", 40,
+        "--height", 24, "--radius", 3, "--background", "0.2,0.3,0.4")
+    frames = json.loads((tmp_path / "r" / "render.json").read_text())
+    g = velox.read_gaussians(tmp_path / "g.ply")
+    for frame in frames:
+        c = frame["camera"]
+        w2c = np.eye(4)
+        w2c[:3, :3] = c["rotation"]
+        w2c[:3, 3] = c["translation"]
+        cam = {"world_to_camera": w2c, "fx": c["fx"], "fy": c["fy"], "cx": c["cx"], "cy": c["cy"]}
+        rgb, alpha, depth = velox.render(g, cam, c["width"], c["height"], background=(0.2, 0.3, 0.4),
+                                         alpha=True, depth=True)
+        assert rgb.shape == (24, 40, 3) and alpha.shape == depth.shape == (24, 40)
+        png = velox.read_image(tmp_path / "r" / frame["png"])
+        assert np.array_equal(to_rgb8(rgb), to_rgb8(png)), frame["png"]
+        assert alpha.max() > 0.5 and 2.0 < depth[alpha > 0.5].mean() < 4.0
+
+
+def test_the_data_is_the_commands_byte_for_byte(dataset):
+    root, dirs = dataset
+    assert [d.name for d in map(Path, dirs)] == ["scene_00003", "scene_00004"]
+    for scene in dirs:
+        scene = Path(scene)
+        for f in sorted(p for p in scene.rglob("*") if p.is_file()):
+            twin = root / "cli" / scene.name / f.relative_to(scene)
+            assert f.read_bytes() == twin.read_bytes(), f
+    cloud = velox.data.read_cloud(dirs[0])
+    assert cloud.dtype == np.float32 and cloud.shape == (1500, 7)
+
+
+def test_a_training_run_is_the_commands_bit_for_bit(trained):
+    runs, out, events = trained
+    assert out["step"] == out["steps"] == 3 and out["stopped"] is None and out["seed"] == 5
+    a = (runs / "py" / "checkpoint.safetensors").read_bytes()
+    b = (runs / "cli" / "checkpoint.safetensors").read_bytes()
+    assert a == b, "the checkpoints of the same run from Python and from the command line differ"
+    kinds = [e["event"] for e in events]
+    assert kinds[0] == "begin" and kinds.count("step") == 3 and kinds[-1] == "end"
+    assert all(np.isfinite(e["loss"]) for e in events if e["event"] == "step")
+
+
+def test_a_run_resumes_and_refuses_what_would_change_it(trained, dataset):
+    runs, _, _ = trained
+    root, _ = dataset
+    with pytest.raises(ValueError, match="`seed` 6 differs from the 5"):
+        velox.train("autoencoder", root / "py", runs / "py", resume=True, seed=6, progress=False)
+    with pytest.raises(ValueError, match="already holds a checkpoint: ask for `resume`"):
+        velox.train("autoencoder", root / "py", runs / "py", config="tiny", progress=False)
+    with pytest.raises(ValueError, match="at step 3 of a run of 3 steps: ask for more `steps`"):
+        velox.train("autoencoder", root / "py", runs / "py", resume=True, progress=False)
+    with pytest.raises(ValueError, match="`stop_at` 2 is not a step to come"):
+        velox.train("autoencoder", root / "py", runs / "py", resume=True, steps=6, stop_at=2, progress=False)
+    with pytest.raises(ValueError, match="resume and init exclude each other"):
+        velox.train("autoencoder", root / "py", runs / "x", resume=True, init=runs / "py" / "checkpoint.safetensors")
+
+
+def test_an_exception_in_progress_stops_the_run_with_its_checkpoint(dataset, tmp_path):
+    root, _ = dataset
+
+    def stop_at_the_second_step(event):
+        if event["event"] == "step" and event["step"] == 2:
+            raise RuntimeError("enough")
+
+    with pytest.raises(RuntimeError, match="enough"):
+        velox.train("autoencoder", root / "py", tmp_path / "run", config="tiny", steps=5,
+                    progress=stop_at_the_second_step)
+    assert (tmp_path / "run" / "checkpoint.safetensors").is_file()
+    out = velox.train("autoencoder", root / "py", tmp_path / "run", resume=True, progress=False)
+    assert out["step"] == 5
+
+
+def test_encode_and_decode_are_the_commands(trained, dataset, tmp_path):
+    runs, _, _ = trained
+    _, dirs = dataset
+    ckpt = runs / "py" / "checkpoint.safetensors"
+    ae = velox.Autoencoder.load(ckpt)
+    assert ae.config == "tiny"
+    cloud = velox.data.read_cloud(dirs[0])
+    tokens = ae.encode(cloud, seed=2)
+    assert tokens.shape == ae.token_shape and tokens.dtype == np.float32
+    assert np.array_equal(tokens, ae.encode(cloud, seed=2)), "the same seed, the same tokens"
+
+    cli("decode", "points", "--checkpoint", ckpt, "--cloud", dirs[0], "--out", tmp_path / "p",
+        "--frames", "0,5", "--seed", 2, "--points", 500, "--steps", 4, "--sampler", "euler")
+    for frame in (0, 5):
+        xyz = ae.decode_points(tokens, frame / 100, 500, steps=4, sampler="euler", seed=2)
+        rows, names = points_ply(tmp_path / "p" / f"points_f{frame:02}.ply")
+        assert names == ["x", "y", "z", "tau"]
+        assert np.array_equal(xyz, rows[:, :3]), f"frame {frame}"
+
+    for voxels in ("surface", "cloud"):
+        out = tmp_path / voxels
+        cli("decode", "gaussians", "--checkpoint", ckpt, "--cloud", dirs[0], "--out", out,
+            "--frames", 3, "--seed", 2, "--points", 800, "--steps", 4, "--voxels", voxels)
+        g = ae.decode_gaussians(tokens, 0.03, cloud=cloud if voxels == "cloud" else None,
+                                points=800, steps=4, seed=2, raw=True)
+        velox.write_gaussians(tmp_path / f"{voxels}.ply", g)
+        assert (tmp_path / f"{voxels}.ply").read_bytes() == (out / "gaussians_f03.ply").read_bytes()
+    with pytest.raises(ValueError, match="not a frame's time"):
+        ae.decode_gaussians(tokens, 0.035)
+
+
+@pytest.mark.parametrize("call, named", [
+    (lambda g, c: velox.render({**g, "means": g["means"].astype(np.float64)}, c, 8, 8), r'gaussians\["means"\].*float64'),
+    (lambda g, c: velox.render({**g, "quats": g["quats"][:, :3]}, c, 8, 8), r'gaussians\["quats"\].*\[300, 3\]'),
+    (lambda g, c: velox.render({**g, "colors": g["colors"][:5]}, c, 8, 8), r'gaussians\["colors"\] has 5 rows'),
+    (lambda g, c: velox.render({**g, "scales": -g["scales"]}, c, 8, 8), r"scales must be positive"),
+    (lambda g, c: velox.render({**g, "opacities": np.ones(300, np.float32)}, c, 8, 8), r"opacities must lie in \(0, 1\)"),
+    (lambda g, c: velox.render({k: v for k, v in g.items() if k != "colors"}, c, 8, 8), r'no "colors"'),
+    (lambda g, c: velox.render(g, {**c, "fx": -1.0}, 8, 8), r"fx, fy must be positive"),
+    (lambda g, c: velox.render(g, {**c, "world_to_camera": np.eye(3)}, 8, 8), r"must be 4 x 4"),
+    (lambda g, c: velox.render(g, c, 0, 8), r"non-zero"),
+    (lambda g, c: velox.render(g, "camera", 8, 8), r"camera must be a dict"),
+    (lambda g, c: velox.metrics.chamfer(g["means"], g["quats"]), r"b must be a float32 array of shape \[N, 3\]"),
+    (lambda g, c: velox.metrics.psnr(np.full((4, 4, 3), np.nan, np.float32), np.zeros((4, 4, 3), np.float32)), r"image\[0, 0, 0\] is NaN"),
+    (lambda g, c: velox.write_gaussians("/nonexistent-dir/x.ply", g), r"x.ply"),
+])
+def test_bad_input_is_refused_naming_it(call, named):
+    g = random_gaussians()
+    w2c = np.eye(4)
+    w2c[2, 3] = 3
+    cam = {"world_to_camera": w2c, "fx": 10.0, "fy": 10.0, "cx": 4.0, "cy": 4.0}
+    with pytest.raises((ValueError, OSError), match=named):
+        call(g, cam)
+
+
+def test_missing_files_are_file_not_found_errors(tmp_path):
+    with pytest.raises(FileNotFoundError) as e:
+        velox.read_gaussians(tmp_path / "missing.ply")
+    assert e.value.filename == str(tmp_path / "missing.ply")
+    with pytest.raises(FileNotFoundError):
+        velox.Autoencoder.load(tmp_path / "missing.safetensors")
+    (tmp_path / "bad.ply").write_bytes(b"ply\nformat ascii 1.0\nend_header\n")
+    with pytest.raises(ValueError, match="bad.ply"):
+        velox.read_gaussians(tmp_path / "bad.ply")
+
+
+def test_metrics_on_arrays():
+    a = np.zeros((16, 16, 3), np.float32)
+    b = np.full((16, 16, 3), 0.1, np.float32)
+    assert velox.metrics.psnr(a, b) == pytest.approx(20.0, abs=1e-5)
+    assert velox.metrics.ssim(b, b) == pytest.approx(1.0)
+    p = np.array([[0, 0, 0], [1, 0, 0]], np.float32)
+    q = np.array([[0, 0, 0.5]], np.float32)
+    # a -> b: (0.25 + 1.25) / 2; b -> a: 0.25.
+    assert velox.metrics.chamfer(p, q) == pytest.approx(1.0)
+    rng = np.random.default_rng(1)
+    truth = (rng.random((8, 24, 3)) + [0, 0, 2]).astype(np.float32)
+    visible = rng.random((8, 24)) > 0.2
+    perfect = velox.metrics.tapvid3d(truth, visible, truth, visible, (200.0, 200.0, 128.0, 128.0), (256, 256))
+    assert perfect["average_jaccard"] == pytest.approx(1.0) and perfect["occlusion_accuracy"] == 1.0
+    off = velox.metrics.tapvid3d(truth + 0.3, visible, truth, visible, (200.0, 200.0, 128.0, 128.0),
+                                 (256, 256), scaling="none")
+    assert off["average_jaccard"] < perfect["average_jaccard"]
+    with pytest.raises(ValueError, match="pred_visible must be a bool array"):
+        velox.metrics.tapvid3d(truth, visible.astype(np.float32), truth, visible, (1.0, 1.0, 0.0, 0.0), (8, 8))
