@@ -12,6 +12,7 @@
 //!   makes tokens from them;
 //! - [`run`] starts a training run (new, resumed, or from another run's parameters) and
 //!   trains it: the one way every front end trains a model;
+//! - [`track`] follows query points through an RGBD video with a trained tracker;
 //! - [`evaluate`] runs the evaluations of the models downstream of the encoder scene by scene
 //!   (the voxel decoder, the tracker, the generator as images and as falling cloth).
 
@@ -21,6 +22,7 @@ pub mod evaluate;
 pub mod generate;
 pub mod loader;
 pub mod run;
+pub mod track;
 pub mod training;
 
 pub use loader::{Loader, LoaderOptions};

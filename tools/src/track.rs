@@ -14,12 +14,13 @@ use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 use velox_engine::Gpu;
-use velox_io::cloud;
 use velox_io::image::{write_gif, write_png};
 use velox_io::write_bytes;
 use velox_models::velox::autoencoder::{Autoencoder, FRAMES};
-use velox_models::velox::tracker::{Track, Tracker};
+use velox_models::velox::tracker::Tracker;
 use velox_models::Model;
+
+use velox_tasks::track::{grid_queries, read_video};
 
 use crate::overlay::{colours, draw_tracks};
 use crate::CliResult;
@@ -71,15 +72,6 @@ struct QueryJson {
     visible: Vec<bool>,
 }
 
-/// The video of `dir`: a scene's when it has `cameras.json`, else a video folder's.
-fn read_video(dir: &Path) -> CliResult<velox_data::rgbd::RgbdVideo> {
-    Ok(if dir.join("cameras.json").is_file() {
-        velox_data::rgbd::read_scene_video(dir)?
-    } else {
-        velox_data::rgbd::read_video_folder(dir)?
-    })
-}
-
 /// Queries from a JSON file of [x, y, z] points.
 fn read_queries(path: &Path) -> CliResult<Vec<[f32; 3]>> {
     let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
@@ -89,24 +81,6 @@ fn read_queries(path: &Path) -> CliResult<Vec<[f32; 3]>> {
         return Err(format!("{}: no query points", path.display()).into());
     }
     Ok(q)
-}
-
-/// The pixels of a `grid` x `grid` lattice of the first frame that show surface,
-/// back-projected.
-fn grid_queries(video: &velox_data::rgbd::RgbdVideo, grid: usize) -> Vec<[f32; 3]> {
-    let cam = &video.camera;
-    let mut out = Vec::new();
-    for j in 0..grid {
-        for i in 0..grid {
-            let u = ((i as f32 + 0.5) * cam.width as f32 / grid as f32).floor();
-            let v = ((j as f32 + 0.5) * cam.height as f32 / grid as f32).floor();
-            let z = video.depth[0][v as usize * cam.width as usize + u as usize];
-            if z > 0.0 {
-                out.push(cam.unproject(u + 0.5, v + 0.5, z).map(|x| x.clamp(-1.0, 1.0)));
-            }
-        }
-    }
-    out
 }
 
 /// The PLY of one frame's points: float x y z, uchar red green blue visible.
@@ -146,43 +120,27 @@ pub fn run(a: &TrackArgs) -> CliResult<()> {
         )
         .into());
     }
-    let points = velox_data::rgbd::rgbd_cloud(&video, a.points as usize, a.seed)?;
-    let k = ae.cfg.encoder.tokens;
-    if points.len() < k {
-        return Err(format!(
-            "the video shows {} surface pixels over its frames; the encoder needs at least {k}",
-            points.len()
-        )
-        .into());
-    }
     println!(
-        "tracking {} queries through {} ({} back-projected points) with the {} tracker on {}",
+        "tracking {} queries through {} with the {} tracker on {}",
         queries.len(),
         a.video.display(),
-        points.len(),
         tracker.cfg.name,
         gpu.caps().name
     );
-    let flat: Vec<f32> = points.iter().flatten().copied().collect();
-    let (tokens, picked) = ae.encode_with_queries(&cloud::upload(&gpu, &flat)?, a.seed)?;
-    let token_points = cloud::query_points(&flat, &picked.read::<u32>()?);
-    let token_points = velox_engine::Tensor::from_slice(&gpu, &[k, 4], &token_points)?;
-    let first_colours = velox_data::rgbd::colours_at(&video.rgb[0], &video.camera, &queries);
-    let tracks: Vec<Track> = tracker.predict(&tokens, &token_points, &queries, &first_colours)?;
-    let cam = &video.camera;
-    let hidden: Vec<[bool; FRAMES]> =
-        tracks.iter().map(|t| std::array::from_fn(|f| !cam.sees(t[f], &video.depth[f]))).collect();
+    let tracked = velox_tasks::track::track(&ae, &tracker, &video, &queries, a.points as usize, a.seed)?;
+    let (tracks, cam) = (&tracked.tracks, &video.camera);
+    let hidden: Vec<[bool; FRAMES]> = tracked.visible.iter().map(|v| v.map(|s| !s)).collect();
 
     let overlay = a.out.join("overlay");
     std::fs::create_dir_all(&overlay).map_err(|e| format!("creating {}: {e}", overlay.display()))?;
-    let colour = colours(&tracks, cam);
+    let colour = colours(tracks, cam);
     let mut clip = Vec::with_capacity(FRAMES);
     for f in 0..FRAMES {
         let positions: Vec<[f32; 3]> = tracks.iter().map(|t| t[f]).collect();
         let visible: Vec<bool> = hidden.iter().map(|h| !h[f]).collect();
         write_bytes(&a.out.join(format!("tracks_f{f:02}.ply")), &frame_ply(&positions, &colour, &visible))?;
         let mut rgb = video.rgb[f].clone();
-        draw_tracks(&mut rgb, cam, &tracks, &hidden, &colour, f);
+        draw_tracks(&mut rgb, cam, tracks, &hidden, &colour, f);
         write_png(&overlay.join(format!("f{f:02}.png")), &rgb, cam.width, cam.height)?;
         clip.push(rgb);
     }
@@ -194,7 +152,7 @@ pub fn run(a: &TrackArgs) -> CliResult<()> {
         frames: FRAMES,
         queries: queries
             .iter()
-            .zip(&tracks)
+            .zip(tracks)
             .zip(&hidden)
             .map(|((q, t), h)| QueryJson {
                 query: *q,

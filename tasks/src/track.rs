@@ -1,0 +1,91 @@
+//! Tracking points through an RGBD video, for every front end (`velox track`, the Python
+//! package): the video back-projected to a 4D cloud, the autoencoder's encoder turning it into
+//! tokens, the tracker following each query from the first frame, and where the video shows
+//! each tracked point (the depth test the data uses; not learned).
+//!
+//! Tests: `tools/tests/models_cli.rs` (`velox track`), `python/tests`.
+
+use std::path::Path;
+
+use velox_data::rgbd::{self, RgbdVideo};
+use velox_data::{DataError, DataResult};
+use velox_engine::Tensor;
+use velox_io::cloud;
+use velox_models::velox::autoencoder::{Autoencoder, FRAMES};
+use velox_models::velox::tracker::{Track, Tracker};
+
+/// The video of `dir`: a scene's (its `video/` and the video camera of `cameras.json`) when it
+/// has `cameras.json`, else a video folder's (`fFF.png`, `fFF_depth.exr`, `camera.json`).
+pub fn read_video(dir: &Path) -> DataResult<RgbdVideo> {
+    if dir.join("cameras.json").is_file() {
+        rgbd::read_scene_video(dir)
+    } else {
+        rgbd::read_video_folder(dir)
+    }
+}
+
+/// The pixels of a `grid` x `grid` lattice of the first frame that show surface,
+/// back-projected: the default queries.
+pub fn grid_queries(video: &RgbdVideo, grid: usize) -> Vec<[f32; 3]> {
+    let cam = &video.camera;
+    let mut out = Vec::new();
+    for j in 0..grid {
+        for i in 0..grid {
+            let u = ((i as f32 + 0.5) * cam.width as f32 / grid as f32).floor();
+            let v = ((j as f32 + 0.5) * cam.height as f32 / grid as f32).floor();
+            let z = video.depth[0][v as usize * cam.width as usize + u as usize];
+            if z > 0.0 {
+                out.push(cam.unproject(u + 0.5, v + 0.5, z).map(|x| x.clamp(-1.0, 1.0)));
+            }
+        }
+    }
+    out
+}
+
+/// Tracks of queries through a video.
+pub struct Tracked {
+    /// Per query, its position at every frame (scene units).
+    pub tracks: Vec<Track>,
+    /// Per query and frame, whether the video shows the point there.
+    pub visible: Vec<[bool; FRAMES]>,
+    /// Points of the back-projected cloud the tokens encode.
+    pub cloud_points: usize,
+}
+
+/// Follows `queries` (points on the first frame) through `video` with `tracker` on the tokens
+/// `ae` makes of the video's back-projected cloud (at most `points` points, drawn, like the
+/// encoder's queries, from `seed`). `tracker` must have learned `ae`'s tokens (checked by the
+/// caller with `Tracker::check_encoder`, which needs the autoencoder's file).
+pub fn track(
+    ae: &Autoencoder,
+    tracker: &Tracker,
+    video: &RgbdVideo,
+    queries: &[[f32; 3]],
+    points: usize,
+    seed: u64,
+) -> DataResult<Tracked> {
+    if queries.is_empty() {
+        return Err(DataError::Invalid("no query points to track".into()));
+    }
+    if let Some(q) = queries.iter().find(|q| q.iter().any(|v| !v.is_finite())) {
+        return Err(DataError::Invalid(format!("query {q:?} is not a finite point")));
+    }
+    let gpu = ae.store.flat_params().gpu();
+    let cloud_points = rgbd::rgbd_cloud(video, points, seed)?;
+    let k = ae.cfg.encoder.tokens;
+    if cloud_points.len() < k {
+        return Err(DataError::Invalid(format!(
+            "the video shows {} surface pixels over its frames; the encoder needs at least {k}",
+            cloud_points.len()
+        )));
+    }
+    let flat: Vec<f32> = cloud_points.iter().flatten().copied().collect();
+    let (tokens, picked) = ae.encode_with_queries(&cloud::upload(gpu, &flat)?, seed)?;
+    let token_points = cloud::query_points(&flat, &picked.read::<u32>()?);
+    let token_points = Tensor::from_slice(gpu, &[k, 4], &token_points)?;
+    let first_colours = rgbd::colours_at(&video.rgb[0], &video.camera, queries);
+    let tracks = tracker.predict(&tokens, &token_points, queries, &first_colours)?;
+    let cam = &video.camera;
+    let visible = tracks.iter().map(|t| std::array::from_fn(|f| cam.sees(t[f], &video.depth[f]))).collect();
+    Ok(Tracked { tracks, visible, cloud_points: cloud_points.len() })
+}
