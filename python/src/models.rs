@@ -5,6 +5,7 @@
 
 use std::path::PathBuf;
 
+use numpy::PyArrayMethods;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use velox_engine::{Precision, Tensor};
@@ -209,7 +210,166 @@ impl PyAutoencoder {
     }
 }
 
+/// A trained 3D tracker (`velox.Tracker`), with the autoencoder whose tokens it learned.
+#[pyclass(frozen, module = "velox", name = "Tracker")]
+pub struct PyTracker {
+    tracker: velox_models::velox::tracker::Tracker,
+    autoencoder: Autoencoder,
+}
+
+/// An RGBD video from Python: a folder (a dataset scene, or `fFF.png`, `fFF_depth.exr` and
+/// `camera.json`), or a dict of `rgb` [24, H, W, 3] and `depth` [24, H, W] (camera-space z, 0
+/// where nothing is) float32 arrays and `camera` (as `velox.render` takes it).
+fn video_of(video: &Bound<'_, PyAny>) -> PyResult<velox_data::rgbd::RgbdVideo> {
+    if let Ok(path) = video.extract::<PathBuf>() {
+        return velox_tasks::track::read_video(&path).map_err(errors::data);
+    }
+    let d = video.cast::<PyDict>().map_err(|_| {
+        invalid("video must be a folder, or a dict of rgb [24, H, W, 3], depth [24, H, W] and camera")
+    })?;
+    let item = |key: &str| -> PyResult<Bound<'_, PyAny>> {
+        d.get_item(key)?.ok_or_else(|| invalid(format!("video has no {key:?}")))
+    };
+    let (rgb, shape) = f32_array(&item("rgb")?, "video[\"rgb\"]", &[Some(FRAMES), None, None, Some(3)])?;
+    let (h, w) = (shape[1], shape[2]);
+    let (depth, _) = f32_array(&item("depth")?, "video[\"depth\"]", &[Some(FRAMES), Some(h), Some(w)])?;
+    if let Some(z) = depth.iter().find(|&&z| z < 0.0) {
+        return Err(invalid(format!("video[\"depth\"] holds {z}: depths are 0 (no surface) or positive")));
+    }
+    let camera = crate::gaussians::camera_of(&item("camera")?, w as u32, h as u32)?;
+    Ok(velox_data::rgbd::RgbdVideo {
+        camera,
+        rgb: rgb.chunks(h * w * 3).map(<[f32]>::to_vec).collect(),
+        depth: depth.chunks(h * w).map(<[f32]>::to_vec).collect(),
+    })
+}
+
+#[pymethods]
+impl PyTracker {
+    /// `Tracker.load(checkpoint, autoencoder, device=None)`: a tracker of `velox train
+    /// tracker`, and the autoencoder checkpoint whose encoder made the tokens it learned
+    /// (checked).
+    #[staticmethod]
+    #[pyo3(signature = (checkpoint, autoencoder, *, device = None))]
+    fn load(
+        py: Python<'_>,
+        checkpoint: PathBuf,
+        autoencoder: PathBuf,
+        device: Option<&Bound<'_, Device>>,
+    ) -> PyResult<PyTracker> {
+        let gpu = gpu_of(py, device)?;
+        py.detach(|| -> velox_engine::Result<PyTracker> {
+            let tracker = velox_models::velox::tracker::Tracker::load(&gpu, &checkpoint)?;
+            tracker.check_encoder(&autoencoder)?;
+            Ok(PyTracker { tracker, autoencoder: Autoencoder::load(&gpu, &autoencoder)? })
+        })
+        .map_err(errors::engine)
+    }
+
+    /// `track(video, queries=None, grid=16, points=100000, seed=0)`: each query point [Q, 3]
+    /// on the first frame (default: the pixels of a grid x grid lattice of the first frame
+    /// that show surface, back-projected) followed through the video's 24 frames: a dict of
+    /// `queries` [Q, 3], `tracks` [Q, 24, 3] and `visible` [Q, 24] (bool: the video shows the
+    /// point there). The video back-projects to at most `points` points, drawn with `seed`:
+    /// what `velox track` writes to tracks.json.
+    #[pyo3(signature = (video, *, queries = None, grid = 16, points = velox_data::rgbd::DEFAULT_POINTS, seed = 0))]
+    fn track<'py>(
+        &self,
+        py: Python<'py>,
+        video: &Bound<'py, PyAny>,
+        queries: Option<&Bound<'py, PyAny>>,
+        grid: usize,
+        points: usize,
+        seed: u64,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        if grid == 0 || points == 0 {
+            return Err(invalid(format!("grid ({grid}) and points ({points}) must be positive")));
+        }
+        let video = video_of(video)?;
+        let queries: Vec<[f32; 3]> = match queries {
+            Some(q) => {
+                let (v, _) = f32_array(q, "queries", &[None, Some(3)])?;
+                v.chunks(3).map(|p| [p[0], p[1], p[2]]).collect()
+            }
+            None => velox_tasks::track::grid_queries(&video, grid),
+        };
+        if queries.is_empty() {
+            return Err(invalid(format!(
+                "no pixel of a {grid} x {grid} grid on the first frame shows surface: give queries or a finer grid"
+            )));
+        }
+        let tracked = py
+            .detach(|| {
+                velox_tasks::track::track(&self.autoencoder, &self.tracker, &video, &queries, points, seed)
+            })
+            .map_err(errors::data)?;
+        let q = queries.len();
+        let d = PyDict::new(py);
+        d.set_item("queries", to_array(py, queries.into_iter().flatten().collect(), &[q, 3])?)?;
+        let xyz: Vec<f32> = tracked.tracks.iter().flatten().flatten().copied().collect();
+        d.set_item("tracks", to_array(py, xyz, &[q, FRAMES, 3])?)?;
+        let visible: Vec<bool> = tracked.visible.iter().flatten().copied().collect();
+        d.set_item("visible", numpy::PyArray1::from_vec(py, visible).reshape([q, FRAMES])?)?;
+        Ok(d)
+    }
+
+    fn __repr__(&self) -> String {
+        format!("velox.Tracker(config={:?})", self.tracker.config_name())
+    }
+}
+
+/// `velox.encode_dataset(checkpoint, data, out=None, source="points", seed=0,
+/// precision="f32", force=False, video_points=100000)`: the tokens of every scene of a
+/// dataset stored beside it (DATA/tokens; with `source="video"`, of the scenes' RGBD videos,
+/// DATA/tokens-video) for the models that train on them, as `velox encode` stores them.
+/// Returns a dict of `dir`, `encoded` and `kept` (scene names).
+#[pyfunction]
+#[pyo3(signature = (checkpoint, data, *, out = None, source = "points", seed = 0, precision = "f32", force = false, video_points = velox_data::rgbd::DEFAULT_POINTS, device = None))]
+#[allow(clippy::too_many_arguments)]
+fn encode_dataset<'py>(
+    py: Python<'py>,
+    checkpoint: PathBuf,
+    data: PathBuf,
+    out: Option<PathBuf>,
+    source: &str,
+    seed: u64,
+    precision: &str,
+    force: bool,
+    video_points: usize,
+    device: Option<&Bound<'py, Device>>,
+) -> PyResult<Bound<'py, PyDict>> {
+    use velox_models::velox::tokens::CloudSource;
+    let source = match source {
+        "points" => CloudSource::Points,
+        "video" => CloudSource::Video,
+        other => return Err(invalid(format!("source {other:?}: use \"points\" or \"video\""))),
+    };
+    if video_points == 0 {
+        return Err(invalid("`video_points` must be at least 1"));
+    }
+    let options = velox_tasks::encode::EncodeOptions {
+        checkpoint,
+        data,
+        out,
+        seed,
+        precision: precision_of(precision)?,
+        force,
+        source,
+        video_points,
+    };
+    let gpu = gpu_of(py, device)?;
+    let report =
+        py.detach(|| velox_tasks::encode::encode_dataset(&gpu, &options, &mut ())).map_err(errors::data)?;
+    let d = PyDict::new(py);
+    d.set_item("dir", report.dir)?;
+    d.set_item("encoded", report.encoded)?;
+    d.set_item("kept", report.kept)?;
+    Ok(d)
+}
+
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyAutoencoder>()?;
+    m.add_class::<PyTracker>()?;
+    m.add_function(wrap_pyfunction!(encode_dataset, m)?)?;
     Ok(())
 }

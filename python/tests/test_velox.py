@@ -255,3 +255,57 @@ def test_metrics_on_arrays():
     assert off["average_jaccard"] < perfect["average_jaccard"]
     with pytest.raises(ValueError, match="pred_visible must be a bool array"):
         velox.metrics.tapvid3d(truth, visible.astype(np.float32), truth, visible, (1.0, 1.0, 0.0, 0.0), (8, 8))
+
+
+def test_video_tokens_and_tracks_are_the_commands(trained, dataset, tmp_path):
+    runs, _, _ = trained
+    root, dirs = dataset
+    ae = runs / "py" / "checkpoint.safetensors"
+    stored = velox.encode_dataset(ae, root / "py", source="video", video_points=3000, seed=1)
+    assert stored["encoded"] == ["scene_00003", "scene_00004"] and stored["kept"] == []
+    cli("encode", "--checkpoint", ae, "--data", root / "cli", "--source", "video", "--video-points", 3000,
+        "--seed", 1)
+    for name in stored["encoded"]:
+        mine = sorted((Path(stored["dir"])).glob(f"{name}*"))
+        assert mine, name
+        for f in mine:
+            assert f.read_bytes() == (root / "cli" / "tokens-video" / f.name).read_bytes(), f.name
+
+    out = velox.train("tracker", root / "py", tmp_path / "tracker", config="tiny", steps=2, seed=1,
+                      progress=False)
+    tracker = velox.Tracker.load(out["checkpoint"], ae)
+    tracked = tracker.track(dirs[0], grid=12, points=3000, seed=1)
+    q = len(tracked["queries"])
+    assert q > 0 and tracked["tracks"].shape == (q, 24, 3) and tracked["visible"].shape == (q, 24)
+    assert tracked["visible"].dtype == np.bool_
+    cli("track", "--video", dirs[0], "--autoencoder", ae, "--checkpoint", out["checkpoint"], "--out",
+        tmp_path / "t", "--grid", 12, "--points", 3000, "--seed", 1)
+    written = json.loads((tmp_path / "t" / "tracks.json").read_text())["queries"]
+    assert np.array_equal(tracked["queries"], np.array([w["query"] for w in written], np.float32))
+    assert np.array_equal(tracked["tracks"], np.array([w["positions"] for w in written], np.float32))
+    assert np.array_equal(tracked["visible"], np.array([w["visible"] for w in written]))
+    with pytest.raises(ValueError, match=r'video\["depth"\] must be a float32 array of shape \[24, 8, 8\]'):
+        tracker.track({"rgb": np.zeros((24, 8, 8, 3), np.float32), "depth": np.zeros((24, 8, 9), np.float32),
+                       "camera": {}})
+
+
+def test_ctrl_c_stops_a_run_with_its_checkpoint(dataset, tmp_path):
+    import signal
+    import sys
+
+    root, _ = dataset
+    script = (
+        "import sys, velox\n"
+        "def told(e):\n"
+        "    if e['event'] == 'step':\n"
+        "        print('step', e['step'], flush=True)\n"
+        f"velox.train('autoencoder', {str(root / 'py')!r}, {str(tmp_path / 'run')!r}, config='tiny',\n"
+        "            steps=1000, progress=told)\n"
+    )
+    run = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                           text=True)
+    assert run.stdout.readline().split() == ["step", "1"]
+    run.send_signal(signal.SIGINT)
+    _, err = run.communicate(timeout=300)
+    assert run.returncode != 0 and "KeyboardInterrupt: stopped after step" in err, err
+    assert "continue with resume=True" in err and (tmp_path / "run" / "checkpoint.safetensors").is_file()

@@ -17,8 +17,10 @@ from . import _velox
 from ._velox import (
     Autoencoder,
     Device,
+    Tracker,
     __version__,
     devices,
+    encode_dataset,
     read_gaussians,
     read_image,
     render,
@@ -30,9 +32,11 @@ from . import data, metrics
 __all__ = [
     "Autoencoder",
     "Device",
+    "Tracker",
     "__version__",
     "data",
     "devices",
+    "encode_dataset",
     "metrics",
     "read_gaussians",
     "read_image",
