@@ -31,7 +31,8 @@ pub enum Error {
     /// A setting a caller asked for that does not fit (a run's seed, its steps, where it
     /// starts from). `message` names each setting it speaks of as `{name}` (`{seed}`,
     /// `{stop_at}`), so that each front end spells it its own way ([`Error::spelled`]): the
-    /// command line as `--seed`, Python as `seed=`; `setting` is the one at fault.
+    /// command line as `--seed`; `Display` (and Python) as `` `seed` ``. `setting` is the one
+    /// at fault.
     Setting { setting: &'static str, message: String },
     /// A file could not be written (a full disk, a file size limit, a missing folder); the
     /// message names the file.
@@ -128,7 +129,7 @@ impl Error {
     }
 
     /// The message with each setting `{name}` of an [`Error::Setting`] spelled by `spell`
-    /// (`Display` spells it as its bare name); any other error as `Display` shows it.
+    /// (`Display` spells it in backticks); any other error as `Display` shows it.
     pub fn spelled(&self, spell: impl Fn(&str) -> String) -> String {
         match self {
             Error::Setting { message, .. } => spell_settings(message, spell),
@@ -161,7 +162,7 @@ impl fmt::Display for Error {
             Error::DType(what) => write!(f, "dtype error: {what}"),
             Error::Unsupported { what, .. } => write!(f, "unsupported on this device: {what}"),
             Error::Invalid(what) => write!(f, "invalid input: {what}"),
-            Error::Setting { message, .. } => write!(f, "{}", spell_settings(message, |n| n.to_string())),
+            Error::Setting { message, .. } => write!(f, "{}", spell_settings(message, |n| format!("`{n}`"))),
             Error::Io(what) => write!(f, "{what}"),
             Error::File { path, op: FileOp::Read, reason } => {
                 write!(f, "cannot read {}: {reason}", path.display())
@@ -251,7 +252,7 @@ mod tests {
         );
         assert_eq!(
             e.to_string(),
-            "seed 2 differs from the 1 the run started with: leave seed out, or out {x"
+            "`seed` 2 differs from the 1 the run started with: leave `seed` out, or `out` {x"
         );
         let cli = e.spelled(|n| format!("--{}", n.replace('_', "-")));
         assert_eq!(cli, "--seed 2 differs from the 1 the run started with: leave --seed out, or --out {x");

@@ -319,8 +319,8 @@ fn read_parts(path: &Path, store: &ParamStore, parts: &[&str]) -> Result<(Checkp
     if info.weights_only && parts.iter().any(|p| *p != PARTS[0]) {
         return Err(content(
             path,
-            "holds weights only (no optimiser moments): decode, encode, eval and --init take it, \
-             but a run cannot resume from it",
+            "holds weights only (no optimiser moments): decoding, encoding, evaluation and a run's \
+             initial parameters take it, but a run cannot resume from it",
         ));
     }
     let total = store.flat_params().numel();

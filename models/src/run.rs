@@ -258,7 +258,7 @@ mod tests {
         let keep = RunRequest { accumulate: Some(2), ..Default::default() };
         assert_eq!(stored.resume(&keep, &ab, path, 2, 3).unwrap().0.accumulate, 2);
         let e = stored.resume(&keep, &ab, path, 2, 2).unwrap_err().to_string();
-        assert!(e.contains("accumulate 2 makes a batch of 8") && e.contains("takes 12"), "{e}");
+        assert!(e.contains("`accumulate` 2 makes a batch of 8") && e.contains("takes 12"), "{e}");
         // 12 samples do not split over 5 processes.
         let e = stored.resume(&RunRequest::default(), &ab, path, 2, 5).unwrap_err().to_string();
         assert!(e.contains("do not split into micro-batches of 2 on 5") && e.contains("divides 6"), "{e}");
@@ -294,15 +294,15 @@ mod tests {
         assert_eq!(longer, RunSettings { steps: 150, ..stored.clone() });
         assert!(notes[0].contains("now ends at step 150 instead of 100"), "{notes:?}");
         for (request, flag) in [
-            (RunRequest { seed: Some(0), ..Default::default() }, "seed 0 differs from the 3"),
+            (RunRequest { seed: Some(0), ..Default::default() }, "`seed` 0 differs from the 3"),
             (
                 RunRequest { steps_per_scene: Some(8), ..Default::default() },
-                "steps_per_scene 8 differs from the 4",
+                "`steps_per_scene` 8 differs from the 4",
             ),
-            (RunRequest { cooldown: Some(0), ..Default::default() }, "cooldown 0 differs from the 10"),
+            (RunRequest { cooldown: Some(0), ..Default::default() }, "`cooldown` 0 differs from the 10"),
             (
                 RunRequest { precision: Some(Precision::F32), ..Default::default() },
-                "precision f32 differs from the f16",
+                "`precision` f32 differs from the f16",
             ),
         ] {
             let e = resume(&request, &ab).unwrap_err().to_string();

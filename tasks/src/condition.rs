@@ -16,6 +16,9 @@
 use std::path::{Path, PathBuf};
 
 use image::imageops::FilterType;
+/// The image type of [`condition_frame`].
+pub use image::RgbImage;
+use velox_models::config::GenerationTask;
 use velox_models::velox::dinov2::{IMAGENET_MEAN, IMAGENET_STD};
 
 use velox_data::{DataError, DataResult};
@@ -60,15 +63,38 @@ pub fn read_condition_video(dir: &Path, frames: usize, size: usize) -> DataResul
     Ok(out)
 }
 
+/// The condition of `task` from `path`: a video folder (a dataset scene's `video/`, or any
+/// folder of PNG frames) for either task (the image task reads its first frame), or one image
+/// file for the image task.
+pub fn read_condition(path: &Path, task: GenerationTask, size: usize) -> DataResult<Vec<f32>> {
+    if path.is_dir() {
+        let scene = path.join("meta.json").is_file();
+        let frames = if scene { path.join("video") } else { path.to_path_buf() };
+        return read_condition_video(&frames, task.frames(), size);
+    }
+    if task == GenerationTask::Video {
+        return Err(DataError::Invalid(format!(
+            "{}: this generator reads videos (a folder of frames), not one image",
+            path.display()
+        )));
+    }
+    read_frame(path, size)
+}
+
 /// One frame, cropped square, resized and normalised, `[3, size, size]`.
 pub fn read_frame(path: &Path, size: usize) -> DataResult<Vec<f32>> {
     let img = image::open(path).map_err(|e| DataError::Io(format!("{}: {e}", path.display())))?.to_rgb8();
+    condition_frame(&img, size).map_err(|e| DataError::Invalid(format!("{}: {e}", path.display())))
+}
+
+/// An image as a condition frame, cropped square, resized and normalised, `[3, size, size]`.
+pub fn condition_frame(img: &image::RgbImage, size: usize) -> DataResult<Vec<f32>> {
     let (w, h) = img.dimensions();
     let side = w.min(h);
     if side == 0 {
-        return Err(DataError::Invalid(format!("{}: an empty image", path.display())));
+        return Err(DataError::Invalid("an empty image".into()));
     }
-    let square = image::imageops::crop_imm(&img, (w - side) / 2, (h - side) / 2, side, side).to_image();
+    let square = image::imageops::crop_imm(img, (w - side) / 2, (h - side) / 2, side, side).to_image();
     let resized = if side as usize == size {
         square
     } else {

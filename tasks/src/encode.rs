@@ -26,7 +26,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use velox_engine::{Gpu, Precision};
+use velox_engine::{Error, Gpu, Precision};
 use velox_io::cloud::{self, CHANNELS};
 use velox_models::velox::autoencoder::Autoencoder;
 use velox_models::velox::tokens::{
@@ -154,15 +154,21 @@ pub fn encode_dataset(
                 continue;
             }
             let (stored, tokens) = read_scene_file(&path).map_err(|e| {
-                DataError::Invalid(format!("{e}; remove it to encode the scene again, or pass --force"))
+                DataError::Engine(Error::setting(
+                    "force",
+                    format!("{e}; remove it to encode the scene again, or ask for {{force}}"),
+                ))
             })?;
             let differences = stored.differences(&origin);
             if !differences.is_empty() {
-                return Err(DataError::Invalid(format!(
-                    "{} holds tokens encoded otherwise ({}): pass --force to replace them, or choose another \
-                     --out",
-                    path.display(),
-                    differences.join("; ")
+                return Err(DataError::Engine(Error::setting(
+                    "force",
+                    format!(
+                        "{} holds tokens encoded otherwise ({}): ask for {{force}} to replace them, or \
+                         choose another {{out}}",
+                        path.display(),
+                        differences.join("; ")
+                    ),
                 )));
             }
             *stat = Some(TokenStats::of(&tokens.tokens, d));
@@ -233,9 +239,12 @@ fn check_previous(out: &Path, origin: &TokenOrigin, force: bool) -> DataResult<O
         Err(e) => format!("an unreadable manifest ({e})"),
     };
     if !force {
-        return Err(DataError::Invalid(format!(
-            "{} holds {differs}: pass --force to replace them, or choose another --out",
-            out.display()
+        return Err(DataError::Engine(Error::setting(
+            "force",
+            format!(
+                "{} holds {differs}: ask for {{force}} to replace them, or choose another {{out}}",
+                out.display()
+            ),
         )));
     }
     std::fs::remove_file(&path)

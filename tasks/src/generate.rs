@@ -36,13 +36,15 @@ impl GeneratorModels {
         let dino = match (&g.cfg.dino_hash, dinov2) {
             (None, None) => None,
             (None, Some(_)) => {
-                return Err(Error::Invalid(
-                    "the generator was trained without DINOv2: leave out --dinov2".into(),
+                return Err(Error::setting(
+                    "dinov2",
+                    "the generator was trained without DINOv2: leave out {dinov2}",
                 ))
             }
             (Some(_), None) => {
-                return Err(Error::Invalid(
-                    "the generator was trained on DINOv2 features: give its weights with --dinov2".into(),
+                return Err(Error::setting(
+                    "dinov2",
+                    "the generator was trained on DINOv2 features: give its weights as {dinov2}",
                 ))
             }
             (Some(want), Some(path)) => {

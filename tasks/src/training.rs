@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
 use velox_engine::ops::raster::Camera;
-use velox_engine::Gpu;
+use velox_engine::{Error, Gpu};
 use velox_models::config::GeneratorConfig;
 use velox_models::train::source::SampleSource;
 use velox_models::velox::autoencoder::TrainScene;
@@ -182,11 +182,16 @@ impl TokenScenes {
         let (dirs, names) = dataset_scenes(data)?;
         let token_dir = tokens.map_or_else(|| data.join(source.default_dir()), Path::to_path_buf);
         let encode = match source {
-            CloudSource::Points => format!("velox encode --data {}", data.display()),
-            CloudSource::Video => format!("velox encode --source video --data {}", data.display()),
+            CloudSource::Points => {
+                format!("`velox encode --data {}`, or velox.encode_dataset", data.display())
+            }
+            CloudSource::Video => format!(
+                "`velox encode --source video --data {}`, or velox.encode_dataset with source=\"video\"",
+                data.display()
+            ),
         };
         let folder = TokenFolder::open(&token_dir, checkpoint)
-            .map_err(|e| DataError::Invalid(format!("{e} (tokens are made by `{encode}`)")))?;
+            .map_err(|e| DataError::Invalid(format!("{e} (tokens are made by {encode})")))?;
         let manifest = token_dir.join(MANIFEST);
         let stored = folder.manifest.origin.source;
         if stored != source {
@@ -357,8 +362,8 @@ impl SampleSource for TrackScenes {
         let (tracks, visible) = read_video_tracks(&self.0.dirs[index])?;
         if tracks.is_empty() {
             return Err(DataError::Invalid(format!(
-                "{}: the scene has no video tracks (made with --tracks 0, or before the tracking task): \
-                 make the data again with --tracks N",
+                "{}: the scene has no video tracks (made with 0 tracks, or before the tracking task): \
+                 make the data again with tracks",
                 self.0.dirs[index].display()
             ))
             .into());
@@ -417,12 +422,16 @@ impl GenScenes {
         }
         let width = dino.as_ref().map_or(0, |d| d.config.width);
         if width != cfg.dino_width {
-            return Err(DataError::Invalid(match cfg.dino_width {
-                0 => "the generator reads no DINOv2 features, but DINOv2 weights were given".into(),
-                w => format!(
-                    "the generator reads {w}-wide DINOv2 features; give its DINOv2 weights (--dinov2)"
-                ),
-            }));
+            return Err(DataError::Engine(Error::setting(
+                "dinov2",
+                match cfg.dino_width {
+                    0 => "the generator reads no DINOv2 features, but DINOv2 weights were given ({dinov2})"
+                        .into(),
+                    w => format!(
+                        "the generator reads {w}-wide DINOv2 features; give its DINOv2 weights ({{dinov2}})"
+                    ),
+                },
+            )));
         }
         let n = tokens.dirs().len();
         Ok(GenScenes { tokens, cfg: cfg.clone(), dino, dino_cache: Mutex::new(vec![None; n]) })

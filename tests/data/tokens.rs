@@ -203,7 +203,7 @@ fn a_rerun_keeps_what_is_stored_and_refuses_tokens_of_another_origin_without_for
 
     // Another seed or precision over these tokens: refused, unless forced.
     let e = encode_err(&EncodeOptions { seed: 8, ..opts.clone() });
-    assert!(e.contains("seed 7, not 8") && e.contains("--force") && e.contains("tokens"), "{e}");
+    assert!(e.contains("seed 7, not 8") && e.contains("`force`") && e.contains("tokens"), "{e}");
     let e = encode_err(&EncodeOptions { precision: Precision::F16, ..opts.clone() });
     assert!(e.contains("precision f32, not f16"), "{e}");
     // A scene file of another seed without a manifest (a forced run that stopped): refused.
@@ -232,7 +232,7 @@ fn a_rerun_keeps_what_is_stored_and_refuses_tokens_of_another_origin_without_for
     let e = TokenScenes::open(&gpu(), &dir.join("data"), None, None).err().unwrap().to_string();
     assert!(e.contains("encoder changed"), "{e}");
     let e = encode_err(&opts);
-    assert!(e.contains("not ") && e.contains("hash") && e.contains("--force"), "{e}");
+    assert!(e.contains("not ") && e.contains("hash") && e.contains("`force`"), "{e}");
     let replaced = encode(&EncodeOptions { force: true, ..opts.clone() });
     assert!(replaced.replaced.as_deref().is_some_and(|r| r.contains(&first.manifest.origin.checkpoint_hash)));
     assert_ne!(replaced.manifest.origin.checkpoint_hash, first.manifest.origin.checkpoint_hash);

@@ -266,6 +266,6 @@ fn an_f16_run_stopped_and_resumed_repeats_the_uninterrupted_run() {
     asked.request.precision = Some(Precision::F32);
     asked.request.steps = Some(6);
     let err = train(&mut model, &memory, &asked, &SingleProcess, &mut Quiet, &|| false).unwrap_err();
-    assert!(err.to_string().contains("precision f32 differs from the f16"), "{err}");
+    assert!(err.to_string().contains("`precision` f32 differs from the f16"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }

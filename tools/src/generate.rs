@@ -29,7 +29,7 @@ use velox_models::config::GenerationTask;
 use velox_models::eval::generation::rendered;
 use velox_models::velox::decode::{Decoding, Sampling, VoxelSource};
 use velox_models::velox::generator::GenerateSpec;
-use velox_tasks::condition::{read_condition_video, read_frame};
+use velox_tasks::condition::read_condition;
 use velox_tasks::generate::GeneratorModels;
 
 use crate::decode::{
@@ -133,8 +133,7 @@ pub fn read_input(
     match (video, image) {
         (Some(dir), None) => {
             let scene = dir.join("meta.json").is_file();
-            let frames_dir = if scene { dir.join("video") } else { dir.to_path_buf() };
-            let pixels = read_condition_video(&frames_dir, task.frames(), size)?;
+            let pixels = read_condition(dir, task, size)?;
             let camera = if scene {
                 velox_data::rgbd::scene_video_camera(dir)?
             } else if dir.join("camera.json").is_file() {
@@ -150,7 +149,7 @@ pub fn read_input(
             if task == GenerationTask::Video {
                 return Err("this generator reads videos: give --video".into());
             }
-            Ok((read_frame(png, size)?, video_camera_at(3.0, image_size(png)?), false))
+            Ok((read_condition(png, task, size)?, video_camera_at(3.0, image_size(png)?), false))
         }
         _ => Err("give --video or --image".into()),
     }

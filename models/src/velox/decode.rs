@@ -148,7 +148,7 @@ impl<'a> Decoding<'a> {
     /// Occupied voxel centres at the Gaussian decoder's grid, predicted by the voxel decoder.
     pub fn predicted_voxels(&self, frame: usize) -> Result<Vec<f32>> {
         let decoder = self.voxel_decoder.ok_or_else(|| {
-            Error::Invalid("predicted voxels need a voxel decoder (`--voxel-decoder`)".into())
+            Error::setting("voxel_decoder", "predicted voxels need a voxel decoder ({voxel_decoder})")
         })?;
         let p = decoder.predict(&self.tokens, &[tau_of(frame)])?;
         occupied_centres(&p[0].occupancy, self.ae.cfg.gaussians.grid)

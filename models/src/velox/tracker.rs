@@ -76,7 +76,7 @@ impl TrackSample {
         }
         if tracks.is_empty() {
             return Err(Error::Invalid(
-                "track sample: the scene has no tracks (made with --tracks 0?): nothing to learn".into(),
+                "track sample: the scene has no tracks (made with 0 tracks?): nothing to learn".into(),
             ));
         }
         if let Some(i) = tracks.iter().position(|t| t.iter().flatten().any(|v| !v.is_finite())) {
