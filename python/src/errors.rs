@@ -10,7 +10,7 @@ use velox_engine::{Error, FileOp};
 
 /// `e` as the exception a Python caller expects.
 pub fn engine(e: Error) -> PyErr {
-    let message = e.spelled(|setting| format!("`{setting}`"));
+    let message = e.to_string();
     match &e {
         Error::File { path, op: FileOp::Read, .. } if !path.exists() => {
             PyFileNotFoundError::new_err((2, message, path.display().to_string()))

@@ -318,6 +318,122 @@ impl PyTracker {
     }
 }
 
+/// A trained generator (`velox.Generator`, video-to-4D or image-to-4D), with the autoencoder
+/// whose tokens it makes and DINOv2 where it reads its features, checked against it.
+#[pyclass(frozen, module = "velox", name = "Generator")]
+pub struct PyGenerator {
+    models: velox_tasks::generate::GeneratorModels,
+}
+
+#[pymethods]
+impl PyGenerator {
+    /// `Generator.load(checkpoint, autoencoder, dinov2=None, device=None)`: a generator of
+    /// `velox train generator`, the autoencoder checkpoint it was trained against, and the
+    /// DINOv2 weights when it reads DINOv2's features.
+    #[staticmethod]
+    #[pyo3(signature = (checkpoint, autoencoder, *, dinov2 = None, device = None))]
+    fn load(
+        py: Python<'_>,
+        checkpoint: PathBuf,
+        autoencoder: PathBuf,
+        dinov2: Option<PathBuf>,
+        device: Option<&Bound<'_, Device>>,
+    ) -> PyResult<PyGenerator> {
+        let gpu = gpu_of(py, device)?;
+        let models = py
+            .detach(|| {
+                velox_tasks::generate::GeneratorModels::load(
+                    &gpu,
+                    &checkpoint,
+                    &autoencoder,
+                    dinov2.as_deref(),
+                )
+            })
+            .map_err(errors::engine)?;
+        Ok(PyGenerator { models })
+    }
+
+    /// "video" or "image": what the generator is conditioned on.
+    #[getter]
+    fn task(&self) -> &'static str {
+        match self.models.generator.cfg.task {
+            velox_models::config::GenerationTask::Video => "video",
+            velox_models::config::GenerationTask::Image => "image",
+        }
+    }
+
+    /// `generate(condition, steps=20, sampler="euler", guidance=3.0, seed=0)`: the tokens
+    /// [k, token_dim] of the object the condition shows, in the autoencoder's space (decode
+    /// them with `velox.Autoencoder`): what `velox generate` stores in tokens.safetensors.
+    /// `condition` is a video folder (a dataset scene, or PNG frames), an image file (the image
+    /// task), or float32 frames [T, H, W, 3] in [0, 1] (the video task reads 24 of them,
+    /// spread evenly; the image task the first), each cropped square and resized as the files
+    /// are (after rounding to 8 bits, as a PNG holds them).
+    #[pyo3(signature = (condition, *, steps = 20, sampler = "euler", guidance = 3.0, seed = 0))]
+    fn generate<'py>(
+        &self,
+        py: Python<'py>,
+        condition: &Bound<'py, PyAny>,
+        steps: usize,
+        sampler: &str,
+        guidance: f32,
+        seed: u64,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let cfg = &self.models.generator.cfg;
+        if steps == 0 || !guidance.is_finite() {
+            return Err(invalid(format!(
+                "steps ({steps}) must be positive and guidance ({guidance}) finite"
+            )));
+        }
+        let size = cfg.image_size;
+        let pixels = if let Ok(path) = condition.extract::<PathBuf>() {
+            velox_tasks::condition::read_condition(&path, cfg.task, size).map_err(errors::data)?
+        } else {
+            let (values, shape) = f32_array(condition, "condition", &[None, None, None, Some(3)])?;
+            let (t, h, w) = (shape[0], shape[1], shape[2]);
+            let frames = cfg.task.frames();
+            if t < frames || h == 0 || w == 0 {
+                return Err(invalid(format!(
+                    "condition has shape {shape:?}: this generator reads {frames} frame(s) of [H, W, 3]"
+                )));
+            }
+            let mut pixels = Vec::with_capacity(frames * 3 * size * size);
+            for i in velox_tasks::condition::spread(t, frames) {
+                let frame = &values[i * h * w * 3..(i + 1) * h * w * 3];
+                let bytes = frame.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
+                let img = image_of(w as u32, h as u32, bytes);
+                pixels.extend(velox_tasks::condition::condition_frame(&img, size).map_err(errors::data)?);
+            }
+            pixels
+        };
+        let spec = velox_models::velox::generator::GenerateSpec {
+            steps,
+            sampler: sampler_of(sampler)?,
+            guidance,
+            seed,
+            precision: Precision::F32,
+        };
+        let m = &self.models;
+        let gpu = m.ae.store.flat_params().gpu().clone();
+        let (tokens, shape) = py
+            .detach(|| -> velox_engine::Result<_> {
+                let t = m.generate(&gpu, &pixels, &spec, &mut |_| {})?;
+                Ok((t.read::<f32>()?, t.shape().to_vec()))
+            })
+            .map_err(errors::engine)?;
+        to_array(py, tokens, &shape)
+    }
+
+    fn __repr__(&self) -> String {
+        format!("velox.Generator(config={:?}, task={:?})", self.models.generator.config_name(), self.task())
+    }
+}
+
+/// An RGB image of 8-bit rows.
+fn image_of(w: u32, h: u32, bytes: Vec<u8>) -> velox_tasks::condition::RgbImage {
+    velox_tasks::condition::RgbImage::from_raw(w, h, bytes).expect("w * h * 3 bytes")
+}
+
 /// `velox.encode_dataset(checkpoint, data, out=None, source="points", seed=0,
 /// precision="f32", force=False, video_points=100000)`: the tokens of every scene of a
 /// dataset stored beside it (DATA/tokens; with `source="video"`, of the scenes' RGBD videos,
@@ -370,6 +486,7 @@ fn encode_dataset<'py>(
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyAutoencoder>()?;
     m.add_class::<PyTracker>()?;
+    m.add_class::<PyGenerator>()?;
     m.add_function(wrap_pyfunction!(encode_dataset, m)?)?;
     Ok(())
 }

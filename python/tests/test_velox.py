@@ -309,3 +309,43 @@ def test_ctrl_c_stops_a_run_with_its_checkpoint(dataset, tmp_path):
     _, err = run.communicate(timeout=300)
     assert run.returncode != 0 and "KeyboardInterrupt: stopped after step" in err, err
     assert "continue with resume=True" in err and (tmp_path / "run" / "checkpoint.safetensors").is_file()
+
+
+def safetensors_f32(path):
+    """The float32 tensors of a safetensors file, by name."""
+    import struct
+
+    data = Path(path).read_bytes()
+    (n,) = struct.unpack("<Q", data[:8])
+    header = json.loads(data[8:8 + n])
+    body = data[8 + n:]
+    out = {}
+    for name, t in header.items():
+        if name != "__metadata__":
+            assert t["dtype"] == "F32", (name, t["dtype"])
+            a, b = t["data_offsets"]
+            out[name] = np.frombuffer(body[a:b], dtype="<f4").reshape(t["shape"])
+    return out
+
+
+def test_generated_tokens_are_the_commands(trained, dataset, tmp_path):
+    runs, _, _ = trained
+    root, dirs = dataset
+    ae = runs / "py" / "checkpoint.safetensors"
+    velox.encode_dataset(ae, root / "py")
+    out = velox.train("generator", root / "py", tmp_path / "gen", config="tiny", steps=2, progress=False)
+    gen = velox.Generator.load(out["checkpoint"], ae)
+    assert gen.task == "video"
+    tokens = gen.generate(dirs[0], steps=3, guidance=2.0, seed=4)
+    cli("generate", "--checkpoint", out["checkpoint"], "--autoencoder", ae, "--video", dirs[0], "--out",
+        tmp_path / "g", "--steps", 3, "--guidance", 2.0, "--seed", 4, "--frames", 0, "--views", 0,
+        "--points", 300)
+    (written,) = safetensors_f32(tmp_path / "g" / "tokens.safetensors").values()
+    assert tokens.shape == written.shape and np.array_equal(tokens, written)
+    # The frames as arrays (8-bit, as the PNGs hold them) give the same tokens.
+    frames = np.stack([velox.read_image(Path(dirs[0]) / "video" / f"f{f:02}.png") for f in range(24)])
+    assert np.array_equal(gen.generate(frames, steps=3, guidance=2.0, seed=4), tokens)
+    with pytest.raises(ValueError, match="this generator reads 24 frame"):
+        gen.generate(frames[:3])
+    with pytest.raises(ValueError, match="reads videos"):
+        gen.generate(Path(dirs[0]) / "video" / "f00.png")

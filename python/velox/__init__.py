@@ -17,6 +17,7 @@ from . import _velox
 from ._velox import (
     Autoencoder,
     Device,
+    Generator,
     Tracker,
     __version__,
     devices,
@@ -32,6 +33,7 @@ from . import data, metrics
 __all__ = [
     "Autoencoder",
     "Device",
+    "Generator",
     "Tracker",
     "__version__",
     "data",
