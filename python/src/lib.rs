@@ -8,7 +8,8 @@
 //! - [`gaussians`]: Gaussians as dicts of arrays, their PLY files and renders;
 //! - [`models`]: the trained models (the autoencoder, the tracker);
 //! - [`run`]: training through the library's run API (`velox_tasks::run`), and the data;
-//! - [`metrics`]: the paper's metrics on arrays.
+//! - [`metrics`]: the paper's metrics on arrays;
+//! - [`view`]: the browser viewer of `velox view`.
 //!
 //! Tests: `python/tests/test_velox.py` (pytest, in a fresh venv: `tools/test.sh`).
 
@@ -21,6 +22,7 @@ mod gaussians;
 mod metrics;
 mod models;
 mod run;
+mod view;
 
 #[pymodule]
 fn _velox(m: &Bound<'_, PyModule>) -> PyResult<()> {
@@ -30,5 +32,6 @@ fn _velox(m: &Bound<'_, PyModule>) -> PyResult<()> {
     models::register(m)?;
     run::register(m)?;
     metrics::register(m)?;
+    view::register(m)?;
     Ok(())
 }

@@ -349,3 +349,23 @@ def test_generated_tokens_are_the_commands(trained, dataset, tmp_path):
         gen.generate(frames[:3])
     with pytest.raises(ValueError, match="reads videos"):
         gen.generate(Path(dirs[0]) / "video" / "f00.png")
+
+
+def test_the_viewer_is_the_commands(tmp_path):
+    import urllib.request
+
+    ply = tmp_path / "g.ply"
+    velox.write_gaussians(ply, random_gaussians())
+    assert velox.view(ply, html=tmp_path / "a.html") == tmp_path / "a.html"
+    cli("view", ply, "--html", tmp_path / "b.html")
+    assert (tmp_path / "a.html").read_bytes() == (tmp_path / "b.html").read_bytes()
+
+    url = velox.view([random_gaussians(seed=1), random_gaussians(seed=2)], open_browser=False)
+    manifest = json.loads(urllib.request.urlopen(url + "manifest.json", timeout=30).read())
+    assert manifest["kind"] == "gaussians" and len(manifest["frames"]) == 2
+    body = urllib.request.urlopen(url + "frames/1.bin", timeout=30).read()
+    assert body[:4] == b"VXG1" and int.from_bytes(body[4:8], "little") == 300
+    with pytest.raises(FileNotFoundError):
+        velox.view(tmp_path / "missing", html=tmp_path / "c.html")
+    with pytest.raises(ValueError, match="a dict of Gaussians"):
+        velox.view(42)

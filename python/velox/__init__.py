@@ -29,6 +29,7 @@ from ._velox import (
     write_image,
 )
 from . import data, metrics
+from .viewer import view
 
 __all__ = [
     "Autoencoder",
@@ -44,6 +45,7 @@ __all__ = [
     "read_image",
     "render",
     "train",
+    "view",
     "write_gaussians",
     "write_image",
 ]

@@ -13,6 +13,7 @@
 //! - [`run`] starts a training run (new, resumed, or from another run's parameters) and
 //!   trains it: the one way every front end trains a model;
 //! - [`track`] follows query points through an RGBD video with a trained tracker;
+//! - [`view`] shows a 4D result in a browser (the page, its frames, a small server);
 //! - [`evaluate`] runs the evaluations of the models downstream of the encoder scene by scene
 //!   (the voxel decoder, the tracker, the generator as images and as falling cloth).
 
@@ -24,6 +25,7 @@ pub mod loader;
 pub mod run;
 pub mod track;
 pub mod training;
+pub mod view;
 
 pub use loader::{Loader, LoaderOptions};
 pub use training::{train_scene, GenScenes, SceneFolders, TokenScenes, TrackScenes};

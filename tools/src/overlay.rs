@@ -5,6 +5,7 @@
 
 use velox_engine::ops::raster::Camera;
 use velox_models::velox::tracker::Track;
+use velox_tasks::view::{points_as_gaussians, POINT_GREY};
 
 /// A fully saturated colour for hue `h` in [0, 1).
 fn hue(h: f32) -> [f32; 3] {
@@ -115,25 +116,9 @@ pub fn enlarged(rgb: &[f32], w: usize, h: usize, k: usize) -> Vec<f32> {
     out
 }
 
-/// Colour of points that carry none (decoded surface points): a light grey.
-pub const POINT_GREY: [f32; 3] = [0.8, 0.8, 0.8];
 /// Standard deviation of the Gaussian a decoded surface point is drawn as in a picture, in
 /// scene units (the scenes span [-1, 1]).
 pub const SURFACE_POINT_SIGMA: f32 = 0.012;
-
-/// Points (xyz and colour) as small round Gaussians of standard deviation `sigma` and opacity
-/// logit `logit`: how the viewer and the pictures draw point clouds.
-pub fn points_as_gaussians(
-    points: impl IntoIterator<Item = ([f32; 3], [f32; 3])>,
-    sigma: f32,
-    logit: f32,
-) -> velox_engine::ops::raster::GaussianData {
-    let mut g = velox_engine::ops::raster::GaussianData::default();
-    for (xyz, rgb) in points {
-        g.push(xyz, [sigma.ln(); 3], [1.0, 0.0, 0.0, 0.0], logit, rgb);
-    }
-    g
-}
 
 /// Points (xyz rows) drawn as small, nearly opaque light-grey Gaussians from `camera` on black:
 /// `[h, w, 3]`.

@@ -190,7 +190,7 @@ pub fn run(a: &RenderArgs) -> CliResult<()> {
 
 /// Camera `view` of a scene's cameras.json: its input views, then its supervision views.
 fn scene_camera(scene: &Path, view: usize) -> CliResult<Camera> {
-    let cameras = crate::view::scene_cameras(scene)?;
+    let cameras = velox_tasks::view::scene_cameras(scene)?;
     let count = cameras.len();
     cameras.get(view).map(|c| c.camera).ok_or_else(|| {
         format!(
