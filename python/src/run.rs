@@ -241,6 +241,50 @@ fn train<'py>(
     Ok(d)
 }
 
+/// The options of a dataset's scenes, checked.
+fn synth_options(res: u32, points: usize, tracks: usize, supersample: u32) -> PyResult<SynthOptions> {
+    let opts = SynthOptions { res, points, supersample, tracks };
+    opts.check().map_err(errors::data)?;
+    Ok(opts)
+}
+
+/// Writes the scene `name` of `mesh` into `out` as `velox data` does, telling `shared` of
+/// each frame and of what the scene cannot serve.
+#[allow(clippy::too_many_arguments)]
+fn write_scene(
+    gpu: &velox_engine::Gpu,
+    shared: &Shared,
+    out: &std::path::Path,
+    name: &str,
+    mesh: &velox_data::AnimatedMesh,
+    source: &str,
+    detail: Option<String>,
+    seed: u64,
+    opts: &SynthOptions,
+) -> velox_data::DataResult<PathBuf> {
+    let dir = out.join(name);
+    let meta = velox_data::format::write_scene(gpu, mesh, source, detail, seed, opts, &dir, &mut |f| {
+        shared.tell(|d| {
+            d.set_item("event", "frame")?;
+            d.set_item("scene", name)?;
+            d.set_item("frame", f)?;
+            d.set_item("frames", procedural::FRAMES)
+        })
+    })?;
+    for (_, note) in velox_data::format::scene_notes(&meta, opts.tracks) {
+        shared.tell(|d| {
+            d.set_item("event", "note")?;
+            d.set_item("text", format!("{name}: {note}"))
+        });
+    }
+    Ok(dir)
+}
+
+fn create(out: &std::path::Path) -> velox_data::DataResult<()> {
+    std::fs::create_dir_all(out)
+        .map_err(|e| velox_data::DataError::Io(format!("cannot create {}: {e}", out.display())))
+}
+
 /// `velox.data.synth(out, scenes=8, seed=0, res=128, points=200000, tracks=1024,
 /// supersample=2)`: procedural scenes `scene_SSSSS` (seeds `seed` to `seed + scenes - 1`) in
 /// `out`, as `velox data synth` writes them; returns their folders. `progress(event)` hears
@@ -264,39 +308,29 @@ fn synth(
     if scenes == 0 {
         return Err(invalid("`scenes` must be at least 1"));
     }
-    let opts = SynthOptions { res, points, supersample, tracks };
-    opts.check().map_err(errors::data)?;
+    let opts = synth_options(res, points, tracks, supersample)?;
     let gpu = gpu_of(py, device)?;
     let shared = Shared { progress, raised: Mutex::new(None) };
     let written = py.detach(|| -> velox_data::DataResult<Vec<PathBuf>> {
-        std::fs::create_dir_all(&out)
-            .map_err(|e| velox_data::DataError::Io(format!("cannot create {}: {e}", out.display())))?;
+        create(&out)?;
         let mut dirs = Vec::new();
         for s in seed..seed + scenes as u64 {
             if shared.stop() {
                 break;
             }
-            let name = format!("scene_{s:05}");
             let (recipe, mesh) = procedural::scene(s, None)?;
-            let dir = out.join(&name);
-            let source = format!("procedural seed {s}");
-            let detail = Some(recipe.objects.join(", "));
-            let meta =
-                velox_data::format::write_scene(&gpu, &mesh, &source, detail, s, &opts, &dir, &mut |f| {
-                    shared.tell(|d| {
-                        d.set_item("event", "frame")?;
-                        d.set_item("scene", &name)?;
-                        d.set_item("frame", f)?;
-                        d.set_item("frames", procedural::FRAMES)
-                    })
-                })?;
-            for (_, note) in velox_data::format::scene_notes(&meta, opts.tracks) {
-                shared.tell(|d| {
-                    d.set_item("event", "note")?;
-                    d.set_item("text", format!("{name}: {note}"))
-                });
-            }
-            dirs.push(dir);
+            let (source, detail) = (format!("procedural seed {s}"), Some(recipe.objects.join(", ")));
+            dirs.push(write_scene(
+                &gpu,
+                &shared,
+                &out,
+                &format!("scene_{s:05}"),
+                &mesh,
+                &source,
+                detail,
+                s,
+                &opts,
+            )?);
         }
         Ok(dirs)
     });
@@ -306,8 +340,83 @@ fn synth(
     written.map_err(errors::data)
 }
 
+/// `velox.data.gltf(files, out, animation=None, seed=0, res=128, points=200000, tracks=1024,
+/// supersample=2)`: a scene of each glTF 2.0 file (`.gltf` or `.glb`), `STEM_III`, in `out`,
+/// as `velox data gltf` writes them (the scene of file i seeded with `seed + i`; a scene
+/// already complete is kept). Returns a dict of `written`, `kept` (folders) and `failed`
+/// (file -> reason): a file that cannot be imported does not stop the others.
+#[pyfunction]
+#[pyo3(signature = (files, out, *, animation = None, seed = 0, res = 128, points = 200_000, tracks = 1024, supersample = 2, progress = None, device = None))]
+#[allow(clippy::too_many_arguments)]
+fn gltf<'py>(
+    py: Python<'py>,
+    files: Vec<PathBuf>,
+    out: PathBuf,
+    animation: Option<usize>,
+    seed: u64,
+    res: u32,
+    points: usize,
+    tracks: usize,
+    supersample: u32,
+    progress: Option<Py<PyAny>>,
+    device: Option<&Bound<'py, Device>>,
+) -> PyResult<Bound<'py, PyDict>> {
+    if files.is_empty() {
+        return Err(invalid("files: no glTF file given"));
+    }
+    let opts = synth_options(res, points, tracks, supersample)?;
+    let gpu = gpu_of(py, device)?;
+    let shared = Shared { progress, raised: Mutex::new(None) };
+    type Outcome = (Vec<PathBuf>, Vec<PathBuf>, Vec<(String, String)>);
+    let done = py.detach(|| -> velox_data::DataResult<Outcome> {
+        create(&out)?;
+        let (mut written, mut kept, mut failed) = (Vec::new(), Vec::new(), Vec::new());
+        for (i, file) in files.iter().enumerate() {
+            if shared.stop() {
+                break;
+            }
+            let stem = file.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+            let name = format!("{stem}_{i:03}");
+            if out.join(&name).join("meta.json").is_file() {
+                kept.push(out.join(&name));
+                continue;
+            }
+            let source = file.display().to_string();
+            let made = velox_data::gltf_import::import(file, animation).and_then(|imported| {
+                for w in &imported.warnings {
+                    shared.tell(|d| {
+                        d.set_item("event", "note")?;
+                        d.set_item("text", format!("{source}: {w}"))
+                    });
+                }
+                let s = seed + i as u64;
+                write_scene(&gpu, &shared, &out, &name, &imported.mesh, &source, imported.credits, s, &opts)
+            });
+            match made {
+                Ok(dir) => written.push(dir),
+                Err(e) => failed.push((source, e.to_string())),
+            }
+        }
+        Ok((written, kept, failed))
+    });
+    if let Some(e) = shared.raised.lock().unwrap_or_else(|p| p.into_inner()).take() {
+        return Err(e);
+    }
+    let (written, kept, failed) = done.map_err(errors::data)?;
+    let d = PyDict::new(py);
+    d.set_item("written", written)?;
+    d.set_item("kept", kept)?;
+    let reasons = PyDict::new(py);
+    for (file, why) in failed {
+        reasons.set_item(file, why)?;
+    }
+    d.set_item("failed", reasons)?;
+    Ok(d)
+}
+
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(train, m)?)?;
     m.add_function(wrap_pyfunction!(synth, m)?)?;
+    m.add_function(wrap_pyfunction!(gltf, m)?)?;
     Ok(())
 }

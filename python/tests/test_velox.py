@@ -369,3 +369,20 @@ def test_the_viewer_is_the_commands(tmp_path):
         velox.view(tmp_path / "missing", html=tmp_path / "c.html")
     with pytest.raises(ValueError, match="a dict of Gaussians"):
         velox.view(42)
+
+
+def test_gltf_scenes_are_the_commands(tmp_path):
+    skin = ROOT / "tests" / "fixtures" / "gltf" / "SimpleSkin.gltf"
+    bad = tmp_path / "broken.gltf"
+    bad.write_text("{not json")
+    options = dict(res=16, points=800, tracks=16, supersample=1)
+    made = velox.data.gltf([skin, bad], tmp_path / "py", progress=False, **options)
+    assert [Path(p).name for p in made["written"]] == ["SimpleSkin_000"] and made["kept"] == []
+    assert list(made["failed"]) == [str(bad)]
+    cli("data", "gltf", skin, "--out", tmp_path / "cli", "--res", 16, "--points", 800, "--tracks", 16,
+        "--supersample", 1)
+    for f in sorted(p for p in (tmp_path / "py" / "SimpleSkin_000").rglob("*") if p.is_file()):
+        twin = tmp_path / "cli" / "SimpleSkin_000" / f.relative_to(tmp_path / "py" / "SimpleSkin_000")
+        assert f.read_bytes() == twin.read_bytes(), f
+    again = velox.data.gltf(skin, tmp_path / "py", progress=False, **options)
+    assert [Path(p).name for p in again["kept"]] == ["SimpleSkin_000"] and again["written"] == []

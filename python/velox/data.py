@@ -4,7 +4,7 @@ writes them."""
 from . import _velox
 from ._velox import read_cloud
 
-__all__ = ["read_cloud", "synth"]
+__all__ = ["gltf", "read_cloud", "synth"]
 
 
 def synth(out, *, scenes=8, seed=0, res=128, points=200_000, tracks=1024, supersample=2,
@@ -18,4 +18,21 @@ def synth(out, *, scenes=8, seed=0, res=128, points=200_000, tracks=1024, supers
     return _velox.synth(
         str(out), scenes=scenes, seed=seed, res=res, points=points, tracks=tracks,
         supersample=supersample, progress=_progress_of(progress, "frame", scenes * 24), device=device,
+    )
+
+
+def gltf(files, out, *, animation=None, seed=0, res=128, points=200_000, tracks=1024, supersample=2,
+         progress=None, device=None):
+    """Writes a scene of each glTF 2.0 file (`.gltf` or `.glb`; a path or a list of them) into
+    `out`, named `STEM_III`, as `velox data gltf FILES --out OUT` does (scene i seeded with
+    `seed + i`, animation `animation` or the first). A scene already complete is kept; a file
+    that cannot be imported does not stop the others. Returns a dict of `written` and `kept`
+    (scene folders) and `failed` (file: reason)."""
+    from . import _progress_of
+
+    files = [files] if isinstance(files, (str, bytes)) or hasattr(files, "__fspath__") else list(files)
+    return _velox.gltf(
+        [str(f) for f in files], str(out), animation=animation, seed=seed, res=res, points=points,
+        tracks=tracks, supersample=supersample, progress=_progress_of(progress, "frame", len(files) * 24),
+        device=device,
     )
