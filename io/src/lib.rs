@@ -2,7 +2,8 @@
 //!
 //! File formats users see: Gaussians as PLY in the 3D Gaussian splatting layout ([`ply`]),
 //! images as PNG and depth as EXR ([`image`]), and the colour point cloud every model and
-//! dataset passes around ([`cloud`]: its layout and validation). Every reader names what is
+//! dataset passes around ([`cloud`]: its layout and validation), and numpy's archives
+//! ([`npz`], TAPVid-3D's files). Every reader names what is
 //! wrong with a bad file.
 //!
 //! Every file the program writes goes through [`write_atomically`] (or [`write_bytes`]): the
@@ -13,6 +14,7 @@
 
 pub mod cloud;
 pub mod image;
+pub mod npz;
 pub mod ply;
 
 use std::fs::File;

@@ -12,6 +12,7 @@
 //!   makes tokens from them;
 //! - [`run`] starts a training run (new, resumed, or from another run's parameters) and
 //!   trains it: the one way every front end trains a model;
+//! - [`tapvid3d`] scores any tracker's predictions on TAPVid-3D's own files;
 //! - [`track`] follows query points through an RGBD video with a trained tracker;
 //! - [`view`] shows a 4D result in a browser (the page, its frames, a small server);
 //! - [`evaluate`] runs the evaluations of the models downstream of the encoder scene by scene
@@ -23,6 +24,7 @@ pub mod evaluate;
 pub mod generate;
 pub mod loader;
 pub mod run;
+pub mod tapvid3d;
 pub mod track;
 pub mod training;
 pub mod view;

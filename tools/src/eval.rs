@@ -46,6 +46,29 @@ pub enum EvalCommand {
     /// gravity, with plots of height, velocity and acceleration (`eval generation` gives the
     /// image metrics).
     Cloth(ClothEvalArgs),
+    /// TAPVid-3D's metrics of any tracker's predictions against the benchmark's own clips, as
+    /// its evaluation computes them (`velox_tasks::tapvid3d`): each ground-truth `.npz`
+    /// (tracks_XYZ, visibility, queries_xyt, fx_fy_cx_cy, images_jpeg_bytes) against the
+    /// prediction `.npz` of the same name (tracks_XYZ [T, N, 3] and visibility [T, N]).
+    Tapvid3d(Tapvid3dArgs),
+}
+
+#[derive(clap::Args)]
+pub struct Tapvid3dArgs {
+    /// The benchmark's clips: .npz files, or folders of them.
+    #[arg(required = true)]
+    ground_truth: Vec<PathBuf>,
+    /// The predictions: a folder holding an .npz of each clip's file name, or one .npz when
+    /// one clip is scored.
+    #[arg(long)]
+    predictions: PathBuf,
+    /// Depth scalings, comma-separated: median (the benchmark's default), none, mean,
+    /// per_trajectory, local_neighborhood, reproduce_2d, median_on_queries.
+    #[arg(long, default_value = "median", value_delimiter = ',')]
+    scaling: Vec<String>,
+    /// Also write every clip's metrics and the means to this JSON file.
+    #[arg(long)]
+    out: Option<PathBuf>,
 }
 
 /// What both evaluations of a generator take: the generator, its autoencoder and DINOv2, the
@@ -329,7 +352,74 @@ pub fn run(cmd: EvalCommand) -> CliResult<()> {
         EvalCommand::Tracking(a) => run_tracking(&a),
         EvalCommand::Generation(a) => run_generation(&a),
         EvalCommand::Cloth(a) => run_cloth(&a),
+        EvalCommand::Tapvid3d(a) => run_tapvid3d(&a),
     }
+}
+
+fn run_tapvid3d(a: &Tapvid3dArgs) -> CliResult<()> {
+    use velox_models::eval::tracking::Scaling;
+    let scalings = a.scaling.iter().map(|s| Scaling::parse(s)).collect::<velox_engine::Result<Vec<_>>>()?;
+    let mut clips = Vec::new();
+    for p in &a.ground_truth {
+        if p.is_dir() {
+            let mut found: Vec<PathBuf> = std::fs::read_dir(p)
+                .map_err(|e| format!("cannot read {}: {e}", p.display()))?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|f| f.extension().is_some_and(|x| x == "npz"))
+                .collect();
+            if found.is_empty() {
+                return Err(format!("{} holds no .npz clip", p.display()).into());
+            }
+            found.sort();
+            clips.extend(found);
+        } else {
+            clips.push(p.clone());
+        }
+    }
+    let predictions: Vec<PathBuf> = if a.predictions.is_dir() {
+        clips.iter().map(|c| a.predictions.join(c.file_name().unwrap_or_default())).collect()
+    } else if clips.len() == 1 {
+        vec![a.predictions.clone()]
+    } else {
+        return Err(format!(
+            "--predictions {} is a file, and {} clips are scored: give the folder of their predictions",
+            a.predictions.display(),
+            clips.len()
+        )
+        .into());
+    };
+    let names: Vec<&str> = scalings.iter().map(|s| s.name()).collect();
+    println!("{:<40} {:<18} {:>8} {:>8} {:>8}", "clip", "scaling", "AJ", "APD", "OA");
+    let mut rows = Vec::new();
+    let gt: Vec<&Path> = clips.iter().map(PathBuf::as_path).collect();
+    let pred: Vec<&Path> = predictions.iter().map(PathBuf::as_path).collect();
+    let means = velox_tasks::tapvid3d::evaluate(&gt, &pred, &scalings, &mut |clip, metrics| {
+        let name = clip.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        for (s, m) in names.iter().zip(metrics) {
+            println!(
+                "{name:<40} {s:<18} {:>8.4} {:>8.4} {:>8.4}",
+                m.average_jaccard, m.apd_visible, m.occlusion_accuracy
+            );
+        }
+        rows.push(serde_json::json!({ "clip": clip.display().to_string(), "metrics": names.iter().zip(metrics).map(|(s, m)| (s.to_string(), m)).collect::<std::collections::BTreeMap<_, _>>() }));
+    })?;
+    for (s, m) in names.iter().zip(&means) {
+        println!(
+            "{:<40} {s:<18} {:>8.4} {:>8.4} {:>8.4}",
+            format!("mean of {} clip(s)", clips.len()),
+            m.average_jaccard,
+            m.apd_visible,
+            m.occlusion_accuracy
+        );
+    }
+    if let Some(out) = &a.out {
+        let mean: std::collections::BTreeMap<String, _> =
+            names.iter().map(|s| s.to_string()).zip(&means).collect();
+        let json = serde_json::json!({ "clips": rows, "mean": mean });
+        write_bytes(out, serde_json::to_string_pretty(&json)?.as_bytes())?;
+        println!("wrote {}", out.display());
+    }
+    Ok(())
 }
 
 fn run_tracking(a: &TrackingEvalArgs) -> CliResult<()> {

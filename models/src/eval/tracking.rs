@@ -176,6 +176,21 @@ impl TrackingMetrics {
         fy: f64,
         scaling: Scaling,
     ) -> Result<TrackingMetrics> {
+        let tracks = truth.positions.len() / frames.max(1);
+        TrackingMetrics::of_queries(truth, pred, frames, &vec![0; tracks], fx, fy, scaling)
+    }
+
+    /// [`TrackingMetrics::of`] for tracks whose queries lie on the frames `query_frames` (one
+    /// a track; TAPVid-3D's `queries_xyt`), which the per-trajectory and query scalings read.
+    pub fn of_queries(
+        truth: CameraTracks,
+        pred: CameraTracks,
+        frames: usize,
+        query_frames: &[usize],
+        fx: f64,
+        fy: f64,
+        scaling: Scaling,
+    ) -> Result<TrackingMetrics> {
         let n = truth.positions.len();
         if n == 0 || [pred.positions.len(), truth.occluded.len(), pred.occluded.len()].iter().any(|&m| m != n)
         {
@@ -210,9 +225,15 @@ impl TrackingMetrics {
             ));
         }
         let tracks = n / frames;
-        let query = |i: usize| i * frames; // every track's query is its frame 0
-                                           // The factor each point's prediction is multiplied by; NaN where the benchmark's is
-                                           // (no point visible in both for the medians): no such point is within.
+        if query_frames.len() != tracks || query_frames.iter().any(|&f| f >= frames) {
+            return Err(Error::Invalid(format!(
+                "tracking metrics: {} query frames for {tracks} tracks of {frames} frames (one each, below {frames})",
+                query_frames.len()
+            )));
+        }
+        let query = |i: usize| i * frames + query_frames[i];
+        // The factor each point's prediction is multiplied by; NaN where the benchmark's is
+        // (no point visible in both for the medians): no such point is within.
         let both = |k: usize| !truth.occluded[k] && !pred.occluded[k];
         let ratio = |a: Option<f64>, b: Option<f64>| match (a, b) {
             (Some(a), Some(b)) => a / b,
