@@ -65,11 +65,12 @@ fn chamfer(py: Python<'_>, a: &Bound<'_, PyAny>, b: &Bound<'_, PyAny>) -> PyResu
 /// camera of `intrinsics` (fx, fy, cx, cy) and `image_size` (width, height), the thresholds
 /// in pixels of the benchmark's 256-pixel short side; `scaling` as the benchmark's
 /// (`median`, `none`, `mean`, `per_trajectory`, `local_neighborhood`, `reproduce_2d`,
-/// `median_on_queries`). A dict of `average_jaccard`, `apd_visible` (APD_3D), `occlusion_accuracy`,
+/// `median_on_queries`); `query_frames` [Q]: each track's query frame (default 0), which the
+/// per-trajectory and query scalings read. A dict of `average_jaccard`, `apd_visible` (APD_3D), `occlusion_accuracy`,
 /// `l2_all`, `l2_visible`, `apd_all`, `within_visible` and `jaccard` (per threshold).
 #[pyfunction]
 #[allow(clippy::too_many_arguments)]
-#[pyo3(signature = (pred_tracks, pred_visible, gt_tracks, gt_visible, intrinsics, image_size, *, scaling = "median"))]
+#[pyo3(signature = (pred_tracks, pred_visible, gt_tracks, gt_visible, intrinsics, image_size, *, scaling = "median", query_frames = None))]
 fn tapvid3d<'py>(
     py: Python<'py>,
     pred_tracks: &Bound<'py, PyAny>,
@@ -79,6 +80,7 @@ fn tapvid3d<'py>(
     intrinsics: (f64, f64, f64, f64),
     image_size: (u32, u32),
     scaling: &str,
+    query_frames: Option<Vec<usize>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     let (truth, shape) = f32_array(gt_tracks, "gt_tracks", &[None, None, Some(3)])?;
     let (q, t) = (shape[0], shape[1]);
@@ -93,15 +95,21 @@ fn tapvid3d<'py>(
     let (truth, pred) = (xyz(&truth), xyz(&pred));
     let hidden = |v: &[bool]| -> Vec<bool> { v.iter().map(|&s| !s).collect() };
     let (truth_hidden, pred_hidden) = (hidden(&truth_visible), hidden(&pred_visible));
-    let m = TrackingMetrics::of(
+    let query_frames = query_frames.unwrap_or_else(|| vec![0; q]);
+    let m = TrackingMetrics::of_queries(
         CameraTracks { positions: &truth, occluded: &truth_hidden },
         CameraTracks { positions: &pred, occluded: &pred_hidden },
         t,
+        &query_frames,
         fx,
         fy,
         scaling,
     )
     .map_err(errors::engine)?;
+    metrics_dict(py, &m)
+}
+
+fn metrics_dict<'py>(py: Python<'py>, m: &TrackingMetrics) -> PyResult<Bound<'py, PyDict>> {
     let d = PyDict::new(py);
     d.set_item("average_jaccard", m.average_jaccard)?;
     d.set_item("apd_visible", m.apd_visible)?;
@@ -114,7 +122,42 @@ fn tapvid3d<'py>(
     Ok(d)
 }
 
+/// `tapvid3d_files(ground_truth, predictions, scalings=("median",))`: TAPVid-3D's metrics of
+/// a tracker's predictions on the benchmark's own clips, as `velox eval tapvid3d` computes
+/// them: `ground_truth` and `predictions` are lists of `.npz` paths, clip i against prediction
+/// i (tracks_XYZ [T, N, 3] and visibility [T, N]). Returns a dict of `clips` (per clip, a dict
+/// per scaling) and `mean` (per scaling).
+#[pyfunction]
+#[pyo3(signature = (ground_truth, predictions, *, scalings = vec!["median".to_string()]))]
+fn tapvid3d_files<'py>(
+    py: Python<'py>,
+    ground_truth: Vec<std::path::PathBuf>,
+    predictions: Vec<std::path::PathBuf>,
+    scalings: Vec<String>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let parsed = scalings.iter().map(|s| Scaling::parse(s)).collect::<velox_engine::Result<Vec<_>>>();
+    let parsed = parsed.map_err(errors::engine)?;
+    let gt: Vec<&std::path::Path> = ground_truth.iter().map(|p| p.as_path()).collect();
+    let pred: Vec<&std::path::Path> = predictions.iter().map(|p| p.as_path()).collect();
+    let mut clips = Vec::new();
+    let means = py
+        .detach(|| velox_tasks::tapvid3d::evaluate(&gt, &pred, &parsed, &mut |_, m| clips.push(m.to_vec())))
+        .map_err(errors::data)?;
+    let per_scaling = |py: Python<'py>, ms: &[TrackingMetrics]| -> PyResult<Bound<'py, PyDict>> {
+        let d = PyDict::new(py);
+        for (name, m) in scalings.iter().zip(ms) {
+            d.set_item(name, metrics_dict(py, m)?)?;
+        }
+        Ok(d)
+    };
+    let out = PyDict::new(py);
+    out.set_item("clips", clips.iter().map(|c| per_scaling(py, c)).collect::<PyResult<Vec<_>>>()?)?;
+    out.set_item("mean", per_scaling(py, &means)?)?;
+    Ok(out)
+}
+
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(tapvid3d_files, m)?)?;
     m.add_function(wrap_pyfunction!(psnr, m)?)?;
     m.add_function(wrap_pyfunction!(ssim, m)?)?;
     m.add_function(wrap_pyfunction!(chamfer, m)?)?;

@@ -386,3 +386,59 @@ def test_gltf_scenes_are_the_commands(tmp_path):
         assert f.read_bytes() == twin.read_bytes(), f
     again = velox.data.gltf(skin, tmp_path / "py", progress=False, **options)
     assert [Path(p).name for p in again["kept"]] == ["SimpleSkin_000"] and again["written"] == []
+
+
+def fake_jpeg(width, height):
+    """The start of a baseline JPEG whose frame header gives its size (all the benchmark's
+    evaluation reads of its images)."""
+    import struct
+
+    app0 = b"\xff\xe0" + struct.pack(">H", 16) + b"JFIF\x00\x01\x01\x00\x00\x01\x00\x01\x00\x00"
+    sof = b"\xff\xc0" + struct.pack(">HBHHB", 17, 8, height, width, 3) + b"\x01\x11\x00\x02\x11\x01\x03\x11\x01"
+    return b"\xff\xd8" + app0 + sof + b"\xff\xd9"
+
+
+@pytest.mark.parametrize("save", [np.savez, np.savez_compressed])
+def test_tapvid3d_files_are_scored_as_the_arrays_are(tmp_path, save):
+    rng = np.random.default_rng(7)
+    t, n = 12, 9
+    truth = (rng.random((t, n, 3)) + [0, 0, 2]).astype(np.float32)       # time-major, as the files
+    visible = rng.random((t, n)) > 0.25
+    pred = truth + rng.normal(0, 0.02, truth.shape).astype(np.float32)
+    pred_visible = visible ^ (rng.random((t, n)) > 0.9)
+    q = rng.integers(0, t, n)
+    queries = np.stack([rng.random(n) * 640, rng.random(n) * 480, q], axis=1).astype(np.float32)
+    images = np.empty(t, dtype=object)
+    images[:] = [fake_jpeg(640, 480)] * t
+    intrinsics = np.array([500.0, 510.0, 320.0, 240.0], np.float32)
+    (tmp_path / "gt").mkdir()
+    (tmp_path / "pred").mkdir()
+    save(tmp_path / "gt" / "clip.npz", tracks_XYZ=truth, visibility=visible, queries_xyt=queries,
+         fx_fy_cx_cy=intrinsics, images_jpeg_bytes=images)
+    save(tmp_path / "pred" / "clip.npz", tracks_XYZ=pred, visibility=pred_visible)
+    scalings = ["median", "per_trajectory", "median_on_queries", "none"]
+    got = velox.metrics.tapvid3d_files([tmp_path / "gt" / "clip.npz"], [tmp_path / "pred" / "clip.npz"],
+                                       scalings=scalings)
+    for s in scalings:
+        want = velox.metrics.tapvid3d(pred.transpose(1, 0, 2).copy(), pred_visible.T.copy(),
+                                      truth.transpose(1, 0, 2).copy(), visible.T.copy(),
+                                      tuple(map(float, intrinsics)), (640, 480), scaling=s,
+                                      query_frames=[int(f) for f in q])
+        assert got["clips"][0][s] == want == got["mean"][s], s
+    frame0 = velox.metrics.tapvid3d(pred.transpose(1, 0, 2).copy(), pred_visible.T.copy(),
+                                    truth.transpose(1, 0, 2).copy(), visible.T.copy(),
+                                    tuple(map(float, intrinsics)), (640, 480), scaling="per_trajectory")
+    assert frame0 != got["mean"]["per_trajectory"], "the query frames change the per-trajectory scaling"
+
+    run = cli("eval", "tapvid3d", tmp_path / "gt", "--predictions", tmp_path / "pred", "--scaling",
+              "median,per_trajectory", "--out", tmp_path / "m.json")
+    written = json.loads((tmp_path / "m.json").read_text())
+    assert written["mean"]["median"]["average_jaccard"] == got["mean"]["median"]["average_jaccard"]
+    assert "mean of 1 clip(s)" in run.stdout
+
+    save(tmp_path / "pred" / "bad.npz", tracks_XYZ=pred[:, :3], visibility=pred_visible)
+    with pytest.raises(ValueError, match=r"tracks_XYZ has shape \[12, 3, 3\], expected \[12, 9, 3\]"):
+        velox.metrics.tapvid3d_files([tmp_path / "gt" / "clip.npz"], [tmp_path / "pred" / "bad.npz"])
+    save(tmp_path / "gt" / "nokey.npz", tracks_XYZ=truth)
+    with pytest.raises(ValueError, match="no visibility array"):
+        velox.metrics.tapvid3d_files([tmp_path / "gt" / "nokey.npz"], [tmp_path / "pred" / "clip.npz"])
