@@ -26,6 +26,7 @@
 //! morph targets), and `image` (PNG and JPEG for textures and the supervision views).
 
 pub mod camera;
+pub mod capture;
 pub mod cloth;
 pub mod format;
 pub mod gltf_import;

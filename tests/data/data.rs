@@ -26,7 +26,7 @@ fn small_opts() -> SynthOptions {
     SynthOptions { res: 32, points: 3000, supersample: 1, tracks: 48 }
 }
 
-fn temp_dir(name: &str) -> PathBuf {
+pub(crate) fn temp_dir(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("velox-data-test-{}-{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();

@@ -5,6 +5,7 @@
 #[path = "../common/mod.rs"]
 mod common;
 
+mod capture;
 mod cloth;
 mod data;
 mod fuzz;

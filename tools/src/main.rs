@@ -8,6 +8,7 @@ mod demo;
 mod encode;
 mod eval;
 mod generate;
+mod import;
 mod info;
 mod interrupt;
 mod overlay;
@@ -47,6 +48,12 @@ enum Command {
     Data {
         #[command(subcommand)]
         what: data::DataCommand,
+    },
+    /// Captures of the world made into the project's formats: an RGBD capture into the
+    /// tracker's video.
+    Import {
+        #[command(subcommand)]
+        what: import::ImportCommand,
     },
     /// Print a model's config as JSON (paper, small, tiny, a JSON file, or the config a
     /// .safetensors checkpoint was trained with): a start for a config file of one's own.
@@ -314,6 +321,7 @@ fn dispatch(command: Command) -> CliResult<()> {
         Command::View(args) => view::run(&args),
         Command::Bench { what } => bench::run(what),
         Command::Data { what } => data::run(what),
+        Command::Import { what } => import::run(what),
         Command::Config { name, model, params } => print_config(&name, model, params),
         Command::Train { what } => train::run(what),
         Command::Encode(args) => encode::run(&args),

@@ -1,0 +1,139 @@
+//! RGBD captures imported as the tracker's video (`velox::data::capture`): a procedural scene's
+//! video written out as a capture (colour PNGs, 16-bit millimetre depth PNGs, intrinsics of an
+//! image twice the size) comes back as a video whose points are the capture's, fitted into the
+//! box, with the frames it took; bad captures are refused naming the problem.
+
+use std::path::Path;
+
+use crate::common::*;
+use crate::data::temp_dir;
+use velox::data::capture::{import_rgbd, CaptureOptions, FILL};
+use velox::data::format::write_scene;
+use velox::data::procedural::{scene, FRAMES};
+use velox::data::rgbd::{read_scene_video, read_video_folder, rgbd_cloud, RgbdVideo};
+use velox::data::SynthOptions;
+
+/// Writes `video`'s frames `order` as a capture in `dir` (depth in millimetres).
+fn write_capture(dir: &Path, video: &RgbdVideo, order: &[usize]) {
+    let cam = &video.camera;
+    let (w, h) = (cam.width, cam.height);
+    std::fs::create_dir_all(dir.join("rgb")).unwrap();
+    std::fs::create_dir_all(dir.join("depth")).unwrap();
+    for (k, &f) in order.iter().enumerate() {
+        velox::io::image::write_png(&dir.join(format!("rgb/{k:06}.png")), &video.rgb[f], w, h).unwrap();
+        let mm: Vec<u16> = video.depth[f].iter().map(|&z| (z as f64 * 1000.0).round() as u16).collect();
+        image::ImageBuffer::<image::Luma<u16>, _>::from_raw(w, h, mm)
+            .unwrap()
+            .save(dir.join(format!("depth/{k:06}.png")))
+            .unwrap();
+    }
+    // Intrinsics of an image twice the depth's size: the import scales them to the depth's.
+    let k = serde_json::json!({
+        "fx": 2.0 * cam.fx, "fy": 2.0 * cam.fy, "cx": 2.0 * cam.cx, "cy": 2.0 * cam.cy,
+        "width": 2 * w, "height": 2 * h,
+    });
+    std::fs::write(dir.join("intrinsics.json"), k.to_string()).unwrap();
+}
+
+/// The camera-frame points (metres) of a frame's depth under `video`'s intrinsics.
+fn camera_points(video: &RgbdVideo, f: usize) -> Vec<[f64; 3]> {
+    let c = &video.camera;
+    video.depth[f]
+        .iter()
+        .enumerate()
+        .filter(|(_, z)| **z > 0.0)
+        .map(|(i, &z)| {
+            let (u, v) = ((i as u32 % c.width) as f64 + 0.5, (i as u32 / c.width) as f64 + 0.5);
+            let z = (z as f64 * 1000.0).round() / 1000.0;
+            [(u - c.cx as f64) / c.fx as f64 * z, (v - c.cy as f64) / c.fy as f64 * z, z]
+        })
+        .collect()
+}
+
+#[test]
+fn a_capture_becomes_the_trackers_video_in_the_box() {
+    let root = temp_dir("capture");
+    let (_, mesh) = scene(4, None).unwrap();
+    let opts = SynthOptions { res: 24, points: 500, supersample: 1, tracks: 6 };
+    write_scene(&gpu(), &mesh, "procedural seed 4", None, 4, &opts, &root.join("scene"), &mut |_| {})
+        .unwrap();
+    let source = read_scene_video(&root.join("scene")).unwrap();
+    write_capture(&root.join("capture"), &source, &(0..FRAMES).collect::<Vec<_>>());
+
+    let record = import_rgbd(&root.join("capture"), &root.join("video"), &CaptureOptions::default()).unwrap();
+    assert_eq!(record.frames, (0..FRAMES).collect::<Vec<_>>());
+    assert_eq!(record.colour_files[3], "000003.png");
+    let video = read_video_folder(&root.join("video")).unwrap();
+    let cam = &video.camera;
+    assert_eq!((cam.width, cam.height, cam.fx), (24, 24, source.camera.fx), "intrinsics at the depth's size");
+    assert_eq!(video.rgb[5], source.rgb[5], "the colour, unresized");
+    // Every pixel's point, taken back to metres, is the capture's.
+    for f in [0, 11, 23] {
+        let want = camera_points(&source, f);
+        let got: Vec<[f64; 3]> = video.depth[f]
+            .iter()
+            .enumerate()
+            .filter(|(_, z)| **z > 0.0)
+            .map(|(i, &z)| {
+                let p = cam.unproject((i as u32 % 24) as f32 + 0.5, (i as u32 / 24) as f32 + 0.5, z);
+                std::array::from_fn(|a| record.centre[a] + p[a] as f64 / record.scale)
+            })
+            .collect();
+        assert_eq!(got.len(), want.len(), "frame {f}");
+        let worst = got
+            .iter()
+            .zip(&want)
+            .flat_map(|(g, w)| (0..3).map(move |a| (g[a] - w[a]).abs()))
+            .fold(0.0, f64::max);
+        assert!(worst < 1e-5, "frame {f}: {worst}");
+    }
+    // The points fill the box to FILL along their longest side, and no further.
+    let cloud = rgbd_cloud(&video, usize::MAX, 0).unwrap();
+    let extent = (0..3)
+        .map(|a| {
+            let (lo, hi) = cloud.iter().fold((f32::MAX, f32::MIN), |(l, h), p| (l.min(p[a]), h.max(p[a])));
+            assert!(lo >= -FILL - 1e-4 && hi <= FILL + 1e-4, "axis {a}: {lo} to {hi}");
+            hi - lo
+        })
+        .fold(0.0f32, f32::max);
+    assert!((extent - 2.0 * FILL).abs() < 0.05, "the longest side spans {extent}");
+
+    // A longer clip is resampled to 24 frames spread over it, the first and the last kept.
+    let long: Vec<usize> = (0..30).map(|k| k * (FRAMES - 1) / 29).collect();
+    write_capture(&root.join("long"), &source, &long);
+    let record =
+        import_rgbd(&root.join("long"), &root.join("long-video"), &CaptureOptions::default()).unwrap();
+    assert_eq!((record.source_frames, record.frames[0], record.frames[23]), (30, 0, 29));
+    assert!(record.frames.windows(2).all(|w| w[1] > w[0]));
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+#[test]
+fn bad_captures_are_refused_naming_the_problem() {
+    let root = temp_dir("capture-bad");
+    let (_, mesh) = scene(5, None).unwrap();
+    let opts = SynthOptions { res: 16, points: 300, supersample: 1, tracks: 4 };
+    write_scene(&gpu(), &mesh, "procedural seed 5", None, 5, &opts, &root.join("scene"), &mut |_| {})
+        .unwrap();
+    let source = read_scene_video(&root.join("scene")).unwrap();
+    let err = |dir: &Path, options: &CaptureOptions| {
+        import_rgbd(dir, &root.join("out"), options).expect_err("refused").to_string()
+    };
+    let short = root.join("short");
+    write_capture(&short, &source, &(0..10).collect::<Vec<_>>());
+    assert!(err(&short, &CaptureOptions::default()).contains("10 frames: the video takes 24"));
+    let full = root.join("full");
+    write_capture(&full, &source, &(0..FRAMES).collect::<Vec<_>>());
+    let near = CaptureOptions { max_depth: Some(1e-3), ..Default::default() };
+    assert!(err(&full, &near).contains("no pixel of the 24 frames has a depth"));
+    let e = err(&full, &CaptureOptions { depth_scale: -1.0, ..Default::default() });
+    assert!(e.contains("depth scale -1 must be positive"), "{e}");
+    std::fs::remove_file(full.join("depth/000023.png")).unwrap();
+    assert!(err(&full, &CaptureOptions::default()).contains("24 colour frames and 23 depth frames"));
+    image::GrayImage::new(16, 16).save(full.join("depth/000023.png")).unwrap();
+    let e = err(&full, &CaptureOptions::default());
+    assert!(e.contains("000023.png") && e.contains("16-bit greyscale"), "{e}");
+    std::fs::remove_file(full.join("intrinsics.json")).unwrap();
+    assert!(err(&full, &CaptureOptions::default()).contains("intrinsics.json"));
+    let _ = std::fs::remove_dir_all(&root);
+}
