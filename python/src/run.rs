@@ -414,7 +414,28 @@ fn gltf<'py>(
     Ok(d)
 }
 
+/// `velox.data.import_rgbd(dir, out, depth_scale=0.001, max_depth=None)`: an RGBD capture
+/// (`intrinsics.json`, `rgb/`, `depth/`) made into the tracker's video folder `out`, as `velox
+/// import rgbd` makes it; returns what capture.json records (the frames taken, the centre and
+/// the scale that map the box back to metres).
+#[pyfunction]
+#[pyo3(signature = (dir, out, *, depth_scale = 0.001, max_depth = None))]
+fn import_rgbd<'py>(
+    py: Python<'py>,
+    dir: PathBuf,
+    out: PathBuf,
+    depth_scale: f64,
+    max_depth: Option<f64>,
+) -> PyResult<Bound<'py, PyAny>> {
+    let options = velox_data::capture::CaptureOptions { depth_scale, max_depth };
+    let record =
+        py.detach(|| velox_data::capture::import_rgbd(&dir, &out, &options)).map_err(errors::data)?;
+    let text = serde_json::to_string(&record).map_err(|e| invalid(e.to_string()))?;
+    py.import("json")?.call_method1("loads", (text,))
+}
+
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(import_rgbd, m)?)?;
     m.add_function(wrap_pyfunction!(train, m)?)?;
     m.add_function(wrap_pyfunction!(synth, m)?)?;
     m.add_function(wrap_pyfunction!(gltf, m)?)?;

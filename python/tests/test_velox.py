@@ -442,3 +442,36 @@ def test_tapvid3d_files_are_scored_as_the_arrays_are(tmp_path, save):
     save(tmp_path / "gt" / "nokey.npz", tracks_XYZ=truth)
     with pytest.raises(ValueError, match="no visibility array"):
         velox.metrics.tapvid3d_files([tmp_path / "gt" / "nokey.npz"], [tmp_path / "pred" / "clip.npz"])
+
+
+
+def test_an_rgbd_capture_is_imported_as_the_command_does_and_tracked(trained, dataset, tmp_path):
+    import shutil
+
+    root, dirs = dataset
+    video = Path(dirs[0]) / "video"
+    cams = json.loads((Path(dirs[0]) / "cameras.json").read_text())["video"]
+    capture = tmp_path / "capture"
+    (capture / "rgb").mkdir(parents=True)
+    (capture / "depth").mkdir()
+    for f in range(24):
+        shutil.copy(video / f"f{f:02}.png", capture / "rgb" / f"{f:04}.png")
+        shutil.copy(video / f"f{f:02}_depth.exr", capture / "depth" / f"{f:04}.exr")
+    (capture / "intrinsics.json").write_text(json.dumps({k: cams[k] for k in ["fx", "fy", "cx", "cy", "width", "height"]}))
+    record = velox.data.import_rgbd(capture, tmp_path / "py")
+    assert record["frames"] == list(range(24)) and record["scale"] > 0
+    cli("import", "rgbd", capture, "--out", tmp_path / "cli")
+    for f in sorted((tmp_path / "py").iterdir()):
+        if f.name != "capture.json":
+            assert f.read_bytes() == (tmp_path / "cli" / f.name).read_bytes(), f.name
+    runs, _, _ = trained
+    ae = runs / "py" / "checkpoint.safetensors"
+    velox.encode_dataset(ae, root / "py", source="video", video_points=3000, seed=1)  # kept if stored
+    out = velox.train("tracker", root / "py", tmp_path / "tracker", config="tiny", steps=1, progress=False)
+    tracked = velox.Tracker.load(out["checkpoint"], ae).track(tmp_path / "py", grid=8, points=2000)
+    assert tracked["tracks"].shape[1:] == (24, 3) and np.isfinite(tracked["tracks"]).all()
+    with pytest.raises(FileNotFoundError, match="intrinsics.json"):
+        velox.data.import_rgbd(tmp_path / "py", tmp_path / "x")
+    shutil.copy(capture / "intrinsics.json", tmp_path / "py" / "intrinsics.json")
+    with pytest.raises(ValueError, match="no rgb/"):
+        velox.data.import_rgbd(tmp_path / "py", tmp_path / "x")
