@@ -3,7 +3,8 @@
 //! ```text
 //! DIR/scene_00000/
 //!   meta.json                 SceneMeta: format, source (recipe or glTF file and credits),
-//!                             frames, fps, resolution and the counts below
+//!                             frames, fps, resolution, the counts below and the
+//!                             background of the views (black when absent)
 //!   cameras.json              {"input": [Camera; 35], "supervision": [Camera; 25], "video": Camera}
 //!                             (camera.rs: world-to-camera rows, translation, fx fy cx cy, size)
 //!   points.ply                binary little-endian PLY, float x y z r g b tau per point,
@@ -65,6 +66,10 @@ pub struct SceneMeta {
     pub video_tracks: usize,
     pub supervision_views: usize,
     pub supersample: u32,
+    /// The background of the supervision views and the video (scenes written before it:
+    /// black), which renders compared with them are drawn on.
+    #[serde(default)]
+    pub background: [f32; 3],
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -168,6 +173,7 @@ pub fn write_scene(
         video_tracks: arrays.video_tracks.len(),
         supervision_views: arrays.supervision_cameras.len(),
         supersample: opts.supersample,
+        background: opts.background,
     };
     write_arrays(&partial, &meta, &arrays)?;
     let _ = std::fs::remove_dir_all(dir);
@@ -372,7 +378,11 @@ fn check_meta(meta: &SceneMeta) -> Result<(), String> {
     in_range("points", meta.points, 1, MAX_POINTS)?;
     in_range("tracks", meta.tracks, 0, MAX_TRACKS)?;
     in_range("video_tracks", meta.video_tracks, 0, MAX_TRACKS)?;
-    in_range("supervision_views", meta.supervision_views, 1, MAX_SUPERVISION_VIEWS)
+    in_range("supervision_views", meta.supervision_views, 1, MAX_SUPERVISION_VIEWS)?;
+    if meta.background.iter().any(|c| !(0.0..=1.0).contains(c)) {
+        return Err(format!("background {:?}: each channel must lie in [0, 1]", meta.background));
+    }
+    Ok(())
 }
 
 /// Checks the cameras of a scene: the counts the format and `meta` give, finite values, a

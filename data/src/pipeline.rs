@@ -68,6 +68,9 @@ pub struct SynthOptions {
     /// Tracked surface points, at most [`MAX_TRACKS`]; fewer when frame 0 shows fewer surface
     /// pixels over the input views.
     pub tracks: usize,
+    /// Colour of the background of the supervision views and the video, RGB in [0, 1] (a
+    /// black model needs a lighter one); the point cloud has no background.
+    pub background: [f32; 3],
 }
 
 impl SynthOptions {
@@ -86,13 +89,19 @@ impl SynthOptions {
                 )));
             }
         }
+        if self.background.iter().any(|c| !(0.0..=1.0).contains(c)) {
+            return Err(DataError::Invalid(format!(
+                "background {:?}: each channel must lie in [0, 1]",
+                self.background
+            )));
+        }
         Ok(())
     }
 }
 
 impl Default for SynthOptions {
     fn default() -> SynthOptions {
-        SynthOptions { res: 128, points: 200_000, supersample: 2, tracks: 1024 }
+        SynthOptions { res: 128, points: 200_000, supersample: 2, tracks: 1024, background: [0.0; 3] }
     }
 }
 
@@ -236,7 +245,8 @@ pub fn render_scene(
         )));
     }
     opts.check()?;
-    let rast = MeshRasteriser::new(gpu, mesh)?;
+    let mut rast = MeshRasteriser::new(gpu, mesh)?;
+    rast.shading.background = opts.background;
     let mut rng = Rng::new(seed ^ 0x9e37_79b9_7f4a_7c15);
     let inputs = input_cameras(opts.res);
     let sup = supervision_cameras(&mut rng, opts.res);

@@ -223,6 +223,7 @@ pub fn generation(
             novel_truth: (0..FRAMES)
                 .map(|f| (0..views).map(|v| to_f32(&scene.supervision[f * per_frame + v])).collect())
                 .collect(),
+            background: scene.meta.background,
         };
         let (made, stored) = token_pair(gpu, models, scenes, i, &options.spec)?;
         let cloud: Vec<f32> = scene.points.iter().flatten().copied().collect();

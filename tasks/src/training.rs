@@ -34,6 +34,8 @@ pub struct HostScene {
     pub cameras: Vec<Camera>,
     /// Frame-major then view, RGB in [0, 1].
     pub images: Vec<Vec<f32>>,
+    /// The images' background.
+    pub background: [f32; 3],
 }
 
 impl HostScene {
@@ -54,6 +56,7 @@ impl HostScene {
                 .iter()
                 .map(|img| img.iter().map(|&b| b as f32 / 255.0).collect())
                 .collect(),
+            background: scene.meta.background,
         })
     }
 
@@ -61,6 +64,7 @@ impl HostScene {
     pub fn upload(self, gpu: &Gpu) -> DataResult<TrainScene> {
         let dir = self.dir;
         TrainScene::new(gpu, self.cloud, self.cameras, self.images)
+            .map(|s| s.with_background(self.background))
             .map_err(|e| DataError::Invalid(format!("{}: {e}", dir.display())))
     }
 }

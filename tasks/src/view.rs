@@ -551,7 +551,12 @@ impl Source {
             kind: self.kind,
             frames: Source::manifest_frames(&self.frames, FRAMES_ROUTE, embedded),
             cameras: &self.cameras,
-            background: [0.0; 3],
+            // The scene's background (its views were drawn on it), else black.
+            background: self
+                .scene
+                .as_deref()
+                .and_then(|s| velox_data::format::read_scene(s, false).ok())
+                .map_or([0.0; 3], |s| s.meta.background),
             compare: self.compare.as_ref().map(|c| ManifestCompare {
                 title: &c.title,
                 frames: Source::manifest_frames(&c.frames, COMPARE_ROUTE, embedded),

@@ -54,7 +54,7 @@ fn camera_points(video: &RgbdVideo, f: usize) -> Vec<[f64; 3]> {
 fn a_capture_becomes_the_trackers_video_in_the_box() {
     let root = temp_dir("capture");
     let (_, mesh) = scene(4, None).unwrap();
-    let opts = SynthOptions { res: 24, points: 500, supersample: 1, tracks: 6 };
+    let opts = SynthOptions { res: 24, points: 500, supersample: 1, tracks: 6, ..Default::default() };
     write_scene(&gpu(), &mesh, "procedural seed 4", None, 4, &opts, &root.join("scene"), &mut |_| {})
         .unwrap();
     let source = read_scene_video(&root.join("scene")).unwrap();
@@ -112,7 +112,7 @@ fn a_capture_becomes_the_trackers_video_in_the_box() {
 fn bad_captures_are_refused_naming_the_problem() {
     let root = temp_dir("capture-bad");
     let (_, mesh) = scene(5, None).unwrap();
-    let opts = SynthOptions { res: 16, points: 300, supersample: 1, tracks: 4 };
+    let opts = SynthOptions { res: 16, points: 300, supersample: 1, tracks: 4, ..Default::default() };
     write_scene(&gpu(), &mesh, "procedural seed 5", None, 5, &opts, &root.join("scene"), &mut |_| {})
         .unwrap();
     let source = read_scene_video(&root.join("scene")).unwrap();

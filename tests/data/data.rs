@@ -23,7 +23,7 @@ use velox::models::train::order;
 use velox::tasks::{Loader, LoaderOptions};
 
 fn small_opts() -> SynthOptions {
-    SynthOptions { res: 32, points: 3000, supersample: 1, tracks: 48 }
+    SynthOptions { res: 32, points: 3000, supersample: 1, tracks: 48, ..Default::default() }
 }
 
 pub(crate) fn temp_dir(name: &str) -> PathBuf {
@@ -209,7 +209,7 @@ fn occupancy_is_one_shell_at_any_resolution() {
     // The triangles shown set the voxels, not the pixels' points: 32 px and 96 px views give
     // nearly the same shell (pixels alone found 85 % of the voxels at 48 px against 256 px).
     let (_, mesh) = scene(21, None).unwrap();
-    let opts = |res| SynthOptions { res, points: 1000, supersample: 1, tracks: 0 };
+    let opts = |res| SynthOptions { res, points: 1000, supersample: 1, tracks: 0, ..Default::default() };
     let low = render_scene(&gpu(), &mesh, &opts(32), 1, None, &mut |_| {}).unwrap();
     let high = render_scene(&gpu(), &mesh, &opts(96), 1, None, &mut |_| {}).unwrap();
     let both: usize =
@@ -873,7 +873,7 @@ fn a_scene_the_video_camera_cannot_see_is_warned_of() {
     v["meshes"][0]["primitives"][0].as_object_mut().unwrap().remove("targets");
     v["meshes"][0].as_object_mut().unwrap().remove("weights");
     v["animations"][0]["channels"] = json!([{"sampler": 1, "target": {"node": 0, "path": "translation"}}]);
-    let opts = SynthOptions { res: 24, points: 300, supersample: 1, tracks: 8 };
+    let opts = SynthOptions { res: 24, points: 300, supersample: 1, tracks: 8, ..Default::default() };
     let notes = |name: &str, v: &Value| {
         let imported = import_quad(&dir, &format!("{name}.glb"), v, &bin);
         let meta = write_scene(&gpu(), &imported.mesh, name, None, 0, &opts, &dir.join(name), &mut |_| {})
@@ -1056,7 +1056,7 @@ fn a_scene_file_that_fails_is_a_file_error_with_its_path() {
 #[test]
 fn dataset_on_disk_reads_back_in_the_background() {
     let root = temp_dir("dataset");
-    let opts = SynthOptions { res: 16, points: 500, supersample: 2, tracks: 8 };
+    let opts = SynthOptions { res: 16, points: 500, supersample: 2, tracks: 8, ..Default::default() };
     let mut written = Vec::new();
     for seed in 0..2u64 {
         let (_, mesh) = scene(seed, None).unwrap();
@@ -1074,6 +1074,7 @@ fn dataset_on_disk_reads_back_in_the_background() {
             video_tracks: a.video_tracks.len(),
             supervision_views: a.supervision_cameras.len(),
             supersample: opts.supersample,
+            background: opts.background,
         };
         write_arrays(&dir, &meta, &a).unwrap();
         written.push(a);
@@ -1180,7 +1181,7 @@ fn damaged_scene_folders_are_errors_naming_the_file_and_the_problem() {
     let root = temp_dir("damaged");
     let dir = root.join("scene");
     let (_, mesh) = scene(2, None).unwrap();
-    let opts = SynthOptions { res: 16, points: 400, supersample: 1, tracks: 6 };
+    let opts = SynthOptions { res: 16, points: 400, supersample: 1, tracks: 6, ..Default::default() };
     let meta = write_scene(&gpu(), &mesh, "procedural seed 2", None, 2, &opts, &dir, &mut |_| {}).unwrap();
     let good = read_scene(&dir, true).unwrap();
     assert_eq!((good.points.len(), good.tracks.len()), (400, 6));
@@ -1210,6 +1211,8 @@ fn damaged_scene_folders_are_errors_naming_the_file_and_the_problem() {
     expect("meta.json", "10^18 tracks", &huge, &["tracks is 1000000000000000000, expected 0 to 1048576"]);
     let no_views = meta_with(&|m| m.supervision_views = 0);
     expect("meta.json", "no supervision views", &no_views, &["supervision_views is 0"]);
+    let glowing = meta_with(&|m| m.background = [0.0, 2.0, 0.0]);
+    expect("meta.json", "a background past white", &glowing, &["background [0.0, 2.0, 0.0]"]);
     let fewer_views = meta_with(&|m| m.supervision_views = 24);
     expect(
         "meta.json > cameras.json",
@@ -1314,7 +1317,7 @@ fn tracking_video_is_rgbd_and_its_queries_lie_on_its_first_frame() {
     use velox::data::rgbd::{colours_at, read_rgbd_video, rgbd_cloud};
     use velox::io::image::write_exr_depth;
     let root = temp_dir("tracking-video");
-    let opts = SynthOptions { res: 48, points: 500, supersample: 1, tracks: 40 };
+    let opts = SynthOptions { res: 48, points: 500, supersample: 1, tracks: 40, ..Default::default() };
     let (_, mesh) = scene(3, None).unwrap();
     let dir = root.join("scene_00003");
     let a = render_scene(&gpu(), &mesh, &opts, 3, Some(&dir), &mut |_| {}).unwrap();
@@ -1372,4 +1375,34 @@ fn tracking_video_is_rgbd_and_its_queries_lie_on_its_first_frame() {
     write_exr_depth(&dir.join("video/f05_depth.exr"), &video.depth[5][..w * 20], cam.width, 20).unwrap();
     let e = read_rgbd_video(&dir.join("video"), cam).unwrap_err().to_string();
     assert!(e.contains("48 x 20"), "{e}");
+}
+
+#[test]
+fn a_background_colours_the_views_and_never_the_cloud() {
+    use velox::tasks::training::HostScene;
+    let root = temp_dir("background");
+    let (_, mesh) = scene(3, None).unwrap();
+    let black = SynthOptions { res: 16, points: 400, supersample: 2, tracks: 4, ..Default::default() };
+    let white = SynthOptions { background: [1.0, 0.5, 0.25], ..black.clone() };
+    for (name, opts) in [("black", &black), ("white", &white)] {
+        write_scene(&gpu(), &mesh, "procedural seed 3", None, 3, opts, &root.join(name), &mut |_| {})
+            .unwrap();
+    }
+    let (b, w) =
+        (read_scene(&root.join("black"), true).unwrap(), read_scene(&root.join("white"), true).unwrap());
+    assert_eq!((b.meta.background, w.meta.background), ([0.0; 3], [1.0, 0.5, 0.25]));
+    // The cloud, its colours and the tracks are the same bits: the background is no surface.
+    assert_eq!(b.points, w.points);
+    assert_eq!(b.tracks, w.tracks);
+    // A pixel the object does not cover is the background in the views and the video.
+    let corner = |img: &[u8]| [img[0], img[1], img[2]];
+    assert_eq!(corner(&b.supervision[0]), [0, 0, 0]);
+    assert_eq!(corner(&w.supervision[0]), [255, 128, 64]);
+    assert_eq!(corner(&w.video[0]), [255, 128, 64]);
+    // Training renders on it.
+    assert_eq!(HostScene::new(&w).unwrap().upload(&gpu()).unwrap().background, [1.0, 0.5, 0.25]);
+    let bad = SynthOptions { background: [1.5, 0.0, 0.0], ..black };
+    let e = write_scene(&gpu(), &mesh, "x", None, 3, &bad, &root.join("bad"), &mut |_| {}).unwrap_err();
+    assert!(e.to_string().contains("background [1.5, 0.0, 0.0]: each channel must lie in [0, 1]"), "{e}");
+    let _ = std::fs::remove_dir_all(&root);
 }

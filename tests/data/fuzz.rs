@@ -613,7 +613,7 @@ fn fuzz_scene_folders() {
     let root = temp_dir("scene");
     let dir = root.join("scene_00001");
     let (_, mesh) = scene(1, None).unwrap();
-    let opts = SynthOptions { res: 16, points: 300, supersample: 1, tracks: 6 };
+    let opts = SynthOptions { res: 16, points: 300, supersample: 1, tracks: 6, ..Default::default() };
     write_scene(&gpu(), &mesh, "procedural seed 1", None, 1, &opts, &dir, &mut |_| {}).unwrap();
     read_scene(&dir, true).unwrap();
     let mut rng = Rng::new(0x5ce);

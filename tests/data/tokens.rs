@@ -45,7 +45,8 @@ fn base() -> &'static Path {
         let gpu = gpu();
         for (seed, name) in [3, 8].into_iter().zip(SCENES) {
             let (_, mesh) = procedural::scene(seed, None).unwrap();
-            let opts = SynthOptions { res: 16, points: 2000, supersample: 1, tracks: 4 };
+            let opts =
+                SynthOptions { res: 16, points: 2000, supersample: 1, tracks: 4, ..Default::default() };
             write_scene(&gpu, &mesh, "test", None, seed, &opts, &dir.join("data").join(name), &mut |_| {})
                 .unwrap();
         }

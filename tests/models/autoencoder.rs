@@ -25,7 +25,7 @@ fn scene(gpu: &Gpu, name: &str) -> TrainScene {
 fn scene_of(gpu: &Gpu, name: &str, seed: u64) -> TrainScene {
     let dir = std::env::temp_dir().join(format!("velox-ae-{}-{name}", std::process::id()));
     let (_, mesh) = procedural::scene(seed, None).unwrap();
-    let opts = SynthOptions { res: 32, points: 4000, supersample: 1, tracks: 8 };
+    let opts = SynthOptions { res: 32, points: 4000, supersample: 1, tracks: 8, ..Default::default() };
     write_scene(gpu, &mesh, "test", None, 3, &opts, &dir, &mut |_| {}).unwrap();
     let s = read_scene(&dir, true).unwrap();
     let t = train_scene(gpu, &s).unwrap();

@@ -62,7 +62,8 @@ fn fixture() -> &'static Fixture {
         let data = dir.join("data");
         for (i, seed) in [3u64, 8].into_iter().enumerate() {
             let (_, mesh) = procedural::scene(seed, None).unwrap();
-            let opts = SynthOptions { res: 16, points: 3000, supersample: 1, tracks: 8 };
+            let opts =
+                SynthOptions { res: 16, points: 3000, supersample: 1, tracks: 8, ..Default::default() };
             let scene = data.join(format!("scene_{i:05}"));
             write_scene(&gpu, &mesh, "test", None, seed, &opts, &scene, &mut |_| {}).unwrap();
         }
@@ -470,6 +471,7 @@ fn generation_scores_each_frame_and_view_against_its_own_truth() {
         input_truth: truth.iter().map(|t| t[0].clone()).collect(),
         novel: cams[1..].to_vec(),
         novel_truth: truth.iter().map(|t| t[1..].to_vec()).collect(),
+        background: [0.0; 3],
     };
     let frames = [0, 5, 10, 15];
     let generated = Decoding::from_tokens(&ae, theirs.clone(), Some(&cloud), SEED).unwrap();

@@ -64,7 +64,7 @@ fn grads_unmoved(what: &str, off: &[f32], on: &[f32]) {
 fn ae_scene(gpu: &Gpu, name: &str) -> TrainScene {
     let dir = std::env::temp_dir().join(format!("velox-slips-{}-{name}", std::process::id()));
     let (_, mesh) = procedural::scene(3, None).unwrap();
-    let opts = SynthOptions { res: 32, points: 4000, supersample: 1, tracks: 8 };
+    let opts = SynthOptions { res: 32, points: 4000, supersample: 1, tracks: 8, ..Default::default() };
     write_scene(gpu, &mesh, "test", None, 3, &opts, &dir, &mut |_| {}).unwrap();
     let s = read_scene(&dir, true).unwrap();
     let t = train_scene(gpu, &s).unwrap();

@@ -17,7 +17,7 @@ use velox::models::velox::voxels::{
 fn occupancy(gpu: &Gpu, seed: u64, test: &str) -> (Vec<u64>, Vec<[f32; 7]>) {
     let dir = std::env::temp_dir().join(format!("velox-voxels-{}-{test}-{seed}", std::process::id()));
     let (_, mesh) = procedural::scene(seed, None).unwrap();
-    let opts = SynthOptions { res: 48, points: 20000, supersample: 1, tracks: 0 };
+    let opts = SynthOptions { res: 48, points: 20000, supersample: 1, tracks: 0, ..Default::default() };
     write_scene(gpu, &mesh, "test", None, seed, &opts, &dir, &mut |_| {}).unwrap();
     let s = read_scene(&dir, false).unwrap();
     std::fs::remove_dir_all(&dir).ok();

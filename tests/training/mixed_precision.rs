@@ -33,7 +33,7 @@ fn temp_dir(name: &str) -> PathBuf {
 
 /// One small procedural scene, held on the host.
 fn host_scene(gpu: &Gpu, dir: &Path) -> HostScene {
-    let opts = SynthOptions { res: 24, points: 1500, supersample: 1, tracks: 8 };
+    let opts = SynthOptions { res: 24, points: 1500, supersample: 1, tracks: 8, ..Default::default() };
     let (_, mesh) = procedural::scene(2, None).unwrap();
     let at = dir.join("scene");
     write_scene(gpu, &mesh, "test", None, 2, &opts, &at, &mut |_| {}).unwrap();

@@ -130,7 +130,7 @@ fn temp_dir(name: &str) -> PathBuf {
 
 /// Three small procedural scenes in memory.
 fn scenes(gpu: &Gpu, dir: &Path) -> Memory {
-    let opts = SynthOptions { res: 24, points: 1500, supersample: 1, tracks: 8 };
+    let opts = SynthOptions { res: 24, points: 1500, supersample: 1, tracks: 8, ..Default::default() };
     let scenes = (0..3)
         .map(|seed| {
             let (_, mesh) = procedural::scene(seed, None).unwrap();

@@ -102,6 +102,10 @@ pub struct CommonArgs {
     /// Supersampling factor of the anti-aliased views.
     #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=4))]
     supersample: u32,
+    /// Background of the supervision views and the conditioning video as r,g,b in [0, 1]
+    /// (a dark model shows on a light one); training and evaluation render on it.
+    #[arg(long, default_value = "0,0,0", value_parser = crate::render::parse_vec3)]
+    background: [f32; 3],
 }
 
 /// The splits of `velox data cloth`.
@@ -273,6 +277,7 @@ fn run_jobs(
         points: common.points,
         supersample: common.supersample,
         tracks: common.tracks,
+        background: common.background,
     };
     let bar = ProgressBar::new((jobs.len() * FRAMES) as u64);
     bar.set_style(

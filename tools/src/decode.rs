@@ -256,17 +256,18 @@ struct Report {
 }
 
 /// Frame `f` of the Gaussians a decoding wrote (`written`), read back from its file and
-/// rendered from `camera` on black: a clip's pane.
+/// rendered from `camera` on `background` (the scene's): a clip's pane.
 pub fn render_written(
     gpu: &Gpu,
     written: &[WrittenFrame],
     f: usize,
     camera: &Camera,
+    background: [f32; 3],
 ) -> CliResult<Vec<Vec<f32>>> {
     let path =
         written.iter().find(|w| w.frame == f).map(|w| &w.path).ok_or("a frame that was not decoded")?;
     let g = ply::read(path)?.upload(gpu)?;
-    Ok(vec![render(gpu, &g, camera, [0.0; 3])?.image.rgb.read()?])
+    Ok(vec![render(gpu, &g, camera, background)?.image.rgb.read()?])
 }
 
 /// What a decoding wrote, for `decode.json` beside its files: which checkpoint decoded which
@@ -396,7 +397,7 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
     if gif {
         // The frames as written, read back from their files.
         let (gif, pngs) = (common.out.join("clip.gif"), common.out.join("clip"));
-        let render_frame = |f: usize, camera: &Camera| render_written(&gpu, &written, f, camera);
+        let render_frame = |f: usize, camera: &Camera, bg| render_written(&gpu, &written, f, camera, bg);
         clip_gif(&common.cloud, &common.frames.0, render_frame, &gif, 80, Some(&pngs))?;
         println!("wrote {} and its frames under {} (ground truth | decoded)", gif.display(), pngs.display());
     }

@@ -133,7 +133,7 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
     bar.set_style(
         ProgressStyle::with_template("{bar:30} {pos}/{len} frames  {elapsed}").expect("a valid template"),
     );
-    let opts = SynthOptions { res, points, supersample: 2, tracks: 64 };
+    let opts = SynthOptions { res, points, supersample: 2, tracks: 64, ..Default::default() };
     let source = format!("procedural seed {}: {recipe:?}", args.seed);
     write_scene(&gpu, &mesh, &source, None, args.seed, &opts, &scene_dir, &mut |f| {
         bar.set_position(f as u64 + 1)
@@ -198,7 +198,7 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
     // Every other frame of the clip, the Gaussians over the input cloud's voxels.
     let every_other: Vec<usize> = (0..FRAMES).step_by(2).collect();
     // Rendered from the files just written, not decoded again.
-    let render_frame = |f: usize, camera: &Camera| render_written(&gpu, &written, f, camera);
+    let render_frame = |f: usize, camera: &Camera, bg| render_written(&gpu, &written, f, camera, bg);
     clip_gif(&scene_dir, &every_other, render_frame, &out.join("decoded.gif"), 80, None)?;
 
     // 4. Renders beside the ground truth, and the metrics.

@@ -1011,7 +1011,8 @@ fn run_cloth(a: &ClothEvalArgs) -> CliResult<()> {
         if let Some((_, surfaces)) = observer.surfaces.iter().find(|(n, _)| n == name) {
             // The scene beside the surface decoded from the generated and the encoded tokens.
             let [generated, encoded] = surfaces;
-            let splat = |f: usize, camera: &velox_engine::ops::raster::Camera| {
+            // Surface points are light grey on black, whatever the scene's background.
+            let splat = |f: usize, camera: &velox_engine::ops::raster::Camera, _background| {
                 Ok(vec![splat_points(&gpu, &generated[f], camera)?, splat_points(&gpu, &encoded[f], camera)?])
             };
             let frames: Vec<usize> = (0..generated.len()).collect();

@@ -219,6 +219,11 @@ pub fn run(a: &GenerateArgs) -> CliResult<()> {
         _ => None,
     };
     let decoder = voxel_decoder(&gpu, a.voxel_decoder.as_deref(), &a.autoencoder, &[source])?;
+    // A dataset scene's views are drawn on its background; any other input's on black.
+    let background = match a.video.as_deref() {
+        Some(dir) if scene => velox_data::read_scene(dir, false)?.meta.background,
+        _ => [0.0; 3],
+    };
     std::fs::create_dir_all(a.out.join("input")).map_err(|e| format!("creating {}: {e}", a.out.display()))?;
     if a.views > 0 {
         std::fs::create_dir_all(a.out.join("novel"))
@@ -280,7 +285,7 @@ pub fn run(a: &GenerateArgs) -> CliResult<()> {
         // The clip's frame: the condition beside the input view and the first novel view.
         let mut clip_row = vec![condition_frame(&pixels, cfg.task, cfg.image_size, f, w, h)];
         for (v, cam) in cams.iter().enumerate() {
-            let rgb = rendered(&gpu, &g, cam)?;
+            let rgb = rendered(&gpu, &g, cam, background)?;
             if v < CLIP_VIEWS {
                 clip_row.push(rgb.clone());
             }

@@ -145,7 +145,7 @@ pub fn splat_points(
 pub fn clip_gif(
     scene: &std::path::Path,
     frames: &[usize],
-    mut panes: impl FnMut(usize, &velox_engine::ops::raster::Camera) -> crate::CliResult<Vec<Vec<f32>>>,
+    mut panes: impl FnMut(usize, &velox_engine::ops::raster::Camera, [f32; 3]) -> crate::CliResult<Vec<Vec<f32>>>,
     gif: &std::path::Path,
     delay_ms: u32,
     pngs: Option<&std::path::Path>,
@@ -161,7 +161,8 @@ pub fn clip_gif(
     let mut width = w;
     for &f in frames {
         let truth: Vec<f32> = scene.supervision[f * views].iter().map(|&b| b as f32 / 255.0).collect();
-        let row: Vec<Vec<f32>> = std::iter::once(truth).chain(panes(f, &camera)?).collect();
+        let row: Vec<Vec<f32>> =
+            std::iter::once(truth).chain(panes(f, &camera, scene.meta.background)?).collect();
         width = row.len() * w;
         let frame = side_by_side(&row, w, h);
         if let Some(dir) = pngs {

@@ -60,7 +60,7 @@ pub struct RenderArgs {
     view: usize,
 }
 
-fn parse_vec3(s: &str) -> Result<[f32; 3], String> {
+pub fn parse_vec3(s: &str) -> Result<[f32; 3], String> {
     let v: Vec<f32> = s
         .split(',')
         .map(|x| x.trim().parse::<f32>().map_err(|_| format!("`{x}` is not a number")))

@@ -42,7 +42,7 @@ fn fixture() -> &'static Path {
         let scene_dir = dir.join("data").join("scene_00000");
         let gpu = Gpu::new().unwrap();
         let (_, mesh) = procedural::scene(3, None).unwrap();
-        let opts = SynthOptions { res: 32, points: 4000, supersample: 1, tracks: 8 };
+        let opts = SynthOptions { res: 32, points: 4000, supersample: 1, tracks: 8, ..Default::default() };
         write_scene(&gpu, &mesh, "test", None, 3, &opts, &scene_dir, &mut |_| {}).unwrap();
         let scene = train_scene(&gpu, &read_scene(&scene_dir, true).unwrap()).unwrap();
         let mut ae = Autoencoder::new(&gpu, &AutoencoderConfig::tiny(), 1).unwrap();

@@ -25,6 +25,8 @@ pub struct GenerationViews {
     pub input_truth: Vec<Vec<f32>>,
     pub novel: Vec<Camera>,
     pub novel_truth: Vec<Vec<Vec<f32>>>,
+    /// The truth's background, which the renders are drawn on.
+    pub background: [f32; 3],
 }
 
 /// Mean PSNR (dB) and SSIM of a set of images.
@@ -89,9 +91,14 @@ impl Sums {
     }
 }
 
-/// Renders `g` from `cam` on black, clamped to [0, 1].
-pub fn rendered(gpu: &Gpu, g: &velox_engine::ops::raster::Gaussians, cam: &Camera) -> Result<Vec<f32>> {
-    let r = render(gpu, g, cam, [0.0; 3])?;
+/// Renders `g` from `cam` on `background`, clamped to [0, 1].
+pub fn rendered(
+    gpu: &Gpu,
+    g: &velox_engine::ops::raster::Gaussians,
+    cam: &Camera,
+    background: [f32; 3],
+) -> Result<Vec<f32>> {
+    let r = render(gpu, g, cam, background)?;
     Ok(r.image.rgb.read::<f32>()?.iter().map(|v| v.clamp(0.0, 1.0)).collect())
 }
 
@@ -141,7 +148,7 @@ pub fn evaluate_scene(
                 decoding.gaussians(f, &centres)?
             };
             for (v, cam) in cams.iter().enumerate() {
-                let img = rendered(&gpu, &g, cam)?;
+                let img = rendered(&gpu, &g, cam, views.background)?;
                 let truth = truth_of(v)?;
                 if img.len() != truth.len() {
                     return Err(Error::Invalid(format!(

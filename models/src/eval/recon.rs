@@ -288,7 +288,7 @@ fn evaluate_scene(
             };
             let mut view_metrics = Vec::new();
             for (v, cam) in cams.iter().enumerate().take(views) {
-                let rendered = render(gpu, &g, cam, [0.0; 3])?;
+                let rendered = render(gpu, &g, cam, scene.background)?;
                 let ours: Vec<f32> =
                     rendered.image.rgb.read::<f32>()?.iter().map(|v| v.clamp(0.0, 1.0)).collect();
                 let gt = &scene.images[f * cams.len() + v];

@@ -69,6 +69,8 @@ pub struct TrainScene {
     /// RGB in [0, 1], `[H, W, 3]` each.
     pub cameras: Vec<Camera>,
     pub images: Vec<Vec<f32>>,
+    /// The images' background, RGB: the renders compared with them are drawn on it.
+    pub background: [f32; 3],
 }
 
 impl TrainScene {
@@ -109,7 +111,13 @@ impl TrainScene {
             frame_points[f].extend_from_slice(&p[..3]);
         }
         let cloud = cloud::upload(gpu, &cloud_host)?;
-        Ok(TrainScene { cloud_host, cloud, frame_points, cameras, images })
+        Ok(TrainScene { cloud_host, cloud, frame_points, cameras, images, background: [0.0; 3] })
+    }
+
+    /// The scene with its images on `background` (black unless set).
+    pub fn with_background(mut self, background: [f32; 3]) -> TrainScene {
+        self.background = background;
+        self
     }
 
     /// Frames that have points.
@@ -391,7 +399,7 @@ impl Autoencoder {
                     let cam = &scene.cameras[v];
                     let (h, w) = (cam.height as usize, cam.width as usize);
                     let gt = Tensor::from_slice(&gpu, &[h, w, 3], &scene.images[frame * cams + v])?;
-                    views.push((render(&gpu, &g, cam, [0.0; 3])?, gt));
+                    views.push((render(&gpu, &g, cam, scene.background)?, gt));
                 }
                 rendered.push((g, views, weight / (frames.len() * nv) as f32));
                 group += 1;

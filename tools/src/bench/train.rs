@@ -40,7 +40,7 @@ fn scene(gpu: &Gpu, small: bool) -> Result<TrainScene> {
     let dir = std::env::temp_dir().join(format!("velox-bench-train-{}", std::process::id()));
     let (res, points) = if small { (32, 4000) } else { (128, 60_000) };
     let (_, mesh) = procedural::scene(3, None)?;
-    let opts = SynthOptions { res, points, supersample: 1, tracks: 8 };
+    let opts = SynthOptions { res, points, supersample: 1, tracks: 8, ..Default::default() };
     let made = write_scene(gpu, &mesh, "bench train", None, 3, &opts, &dir, &mut |_| {})
         .and_then(|_| read_scene(&dir, true))
         .and_then(|s| train_scene(gpu, &s));
@@ -221,7 +221,7 @@ pub fn run_token_model(
     let data = dir.join("data");
     let (res, points) = if small { (32, 4000) } else { (128, 60_000) };
     let (_, mesh) = procedural::scene(3, None)?;
-    let opts = SynthOptions { res, points, supersample: 1, tracks: 64 };
+    let opts = SynthOptions { res, points, supersample: 1, tracks: 64, ..Default::default() };
     write_scene(gpu, &mesh, "bench train", None, 3, &opts, &data.join("scene_00000"), &mut |_| {})?;
     let ae = dir.join("autoencoder.safetensors");
     Autoencoder::new(gpu, &AutoencoderConfig::small(), 0)?.save(&ae)?;
