@@ -242,8 +242,15 @@ fn train<'py>(
 }
 
 /// The options of a dataset's scenes, checked.
-fn synth_options(res: u32, points: usize, tracks: usize, supersample: u32) -> PyResult<SynthOptions> {
-    let opts = SynthOptions { res, points, supersample, tracks };
+fn synth_options(
+    res: u32,
+    points: usize,
+    tracks: usize,
+    supersample: u32,
+    background: (f32, f32, f32),
+) -> PyResult<SynthOptions> {
+    let background = [background.0, background.1, background.2];
+    let opts = SynthOptions { res, points, supersample, tracks, background };
     opts.check().map_err(errors::data)?;
     Ok(opts)
 }
@@ -286,12 +293,12 @@ fn create(out: &std::path::Path) -> velox_data::DataResult<()> {
 }
 
 /// `velox.data.synth(out, scenes=8, seed=0, res=128, points=200000, tracks=1024,
-/// supersample=2)`: procedural scenes `scene_SSSSS` (seeds `seed` to `seed + scenes - 1`) in
+/// supersample=2, background=(0, 0, 0))`: procedural scenes `scene_SSSSS` (seeds `seed` to `seed + scenes - 1`) in
 /// `out`, as `velox data synth` writes them; returns their folders. `progress(event)` hears
 /// `{"event": "frame", "scene", "frame", "frames"}` after each frame and `{"event": "note",
 /// "text"}` for what a scene cannot serve.
 #[pyfunction]
-#[pyo3(signature = (out, *, scenes = 8, seed = 0, res = 128, points = 200_000, tracks = 1024, supersample = 2, progress = None, device = None))]
+#[pyo3(signature = (out, *, scenes = 8, seed = 0, res = 128, points = 200_000, tracks = 1024, supersample = 2, background = (0.0, 0.0, 0.0), progress = None, device = None))]
 #[allow(clippy::too_many_arguments)]
 fn synth(
     py: Python<'_>,
@@ -302,13 +309,14 @@ fn synth(
     points: usize,
     tracks: usize,
     supersample: u32,
+    background: (f32, f32, f32),
     progress: Option<Py<PyAny>>,
     device: Option<&Bound<'_, Device>>,
 ) -> PyResult<Vec<PathBuf>> {
     if scenes == 0 {
         return Err(invalid("`scenes` must be at least 1"));
     }
-    let opts = synth_options(res, points, tracks, supersample)?;
+    let opts = synth_options(res, points, tracks, supersample, background)?;
     let gpu = gpu_of(py, device)?;
     let shared = Shared { progress, raised: Mutex::new(None) };
     let written = py.detach(|| -> velox_data::DataResult<Vec<PathBuf>> {
@@ -341,12 +349,12 @@ fn synth(
 }
 
 /// `velox.data.gltf(files, out, animation=None, seed=0, res=128, points=200000, tracks=1024,
-/// supersample=2)`: a scene of each glTF 2.0 file (`.gltf` or `.glb`), `STEM_III`, in `out`,
+/// supersample=2, background=(0, 0, 0))`: a scene of each glTF 2.0 file (`.gltf` or `.glb`), `STEM_III`, in `out`,
 /// as `velox data gltf` writes them (the scene of file i seeded with `seed + i`; a scene
 /// already complete is kept). Returns a dict of `written`, `kept` (folders) and `failed`
 /// (file -> reason): a file that cannot be imported does not stop the others.
 #[pyfunction]
-#[pyo3(signature = (files, out, *, animation = None, seed = 0, res = 128, points = 200_000, tracks = 1024, supersample = 2, progress = None, device = None))]
+#[pyo3(signature = (files, out, *, animation = None, seed = 0, res = 128, points = 200_000, tracks = 1024, supersample = 2, background = (0.0, 0.0, 0.0), progress = None, device = None))]
 #[allow(clippy::too_many_arguments)]
 fn gltf<'py>(
     py: Python<'py>,
@@ -358,13 +366,14 @@ fn gltf<'py>(
     points: usize,
     tracks: usize,
     supersample: u32,
+    background: (f32, f32, f32),
     progress: Option<Py<PyAny>>,
     device: Option<&Bound<'py, Device>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     if files.is_empty() {
         return Err(invalid("files: no glTF file given"));
     }
-    let opts = synth_options(res, points, tracks, supersample)?;
+    let opts = synth_options(res, points, tracks, supersample, background)?;
     let gpu = gpu_of(py, device)?;
     let shared = Shared { progress, raised: Mutex::new(None) };
     type Outcome = (Vec<PathBuf>, Vec<PathBuf>, Vec<(String, String)>);

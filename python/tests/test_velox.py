@@ -475,3 +475,15 @@ def test_an_rgbd_capture_is_imported_as_the_command_does_and_tracked(trained, da
     shutil.copy(capture / "intrinsics.json", tmp_path / "py" / "intrinsics.json")
     with pytest.raises(ValueError, match="no rgb/"):
         velox.data.import_rgbd(tmp_path / "py", tmp_path / "x")
+
+
+def test_a_background_is_the_commands(tmp_path):
+    options = dict(scenes=1, seed=9, res=16, points=300, tracks=4, supersample=1)
+    (scene,) = velox.data.synth(tmp_path / "py", background=(1.0, 1.0, 1.0), progress=False, **options)
+    cli("data", "synth", "--out", tmp_path / "cli", "--scenes", 1, "--seed", 9, "--res", 16, "--points", 300,
+        "--tracks", 4, "--supersample", 1, "--background", "1,1,1")
+    for f in sorted(p for p in Path(scene).rglob("*") if p.is_file()):
+        assert f.read_bytes() == (tmp_path / "cli" / "scene_00009" / f.relative_to(scene)).read_bytes(), f
+    assert json.loads((Path(scene) / "meta.json").read_text())["background"] == [1.0, 1.0, 1.0]
+    with pytest.raises(ValueError, match="each channel must lie in"):
+        velox.data.synth(tmp_path / "bad", background=(2.0, 0.0, 0.0), progress=False, **options)
