@@ -10,7 +10,10 @@
 //!   millimetres by default; 0 where there is no depth) or EXR (one channel of metres).
 //!
 //! The camera must stay still (the tracker's video has one camera). The clip is resampled to 24
-//! frames spread evenly over it (the first and the last kept; it needs 24 or more). Depths
+//! frames spread evenly over it (the first and the last kept; it needs 24 or more), or, with
+//! `windows`, cut into videos of 24 consecutive frames that overlap by that many frames (the
+//! last one ending on the clip's last frame), `window_000/`, `window_001/`, ..., fitted into
+//! the box together, so a long clip keeps its frame rate. Depths
 //! beyond `max_depth` are dropped (the background of a capture of an object). The points the
 //! depth of the 24 frames back-projects to are fitted into [-1, 1]^3: centred on their bounding
 //! box and scaled so that its longest side spans 95 % of the box. The folder written holds the
@@ -38,11 +41,16 @@ pub struct CaptureOptions {
     pub depth_scale: f64,
     /// Depths beyond this many metres are no surface (`None`: every depth counts).
     pub max_depth: Option<f64>,
+    /// Cut the clip into windows of 24 consecutive frames overlapping by this many (below 24)
+    /// instead of resampling it to 24.
+    pub windows: Option<usize>,
+    /// The capture's frame rate, when known: the record then gives each frame's time.
+    pub fps: Option<f64>,
 }
 
 impl Default for CaptureOptions {
     fn default() -> CaptureOptions {
-        CaptureOptions { depth_scale: 0.001, max_depth: None }
+        CaptureOptions { depth_scale: 0.001, max_depth: None, windows: None, fps: None }
     }
 }
 
@@ -56,17 +64,29 @@ struct Intrinsics {
     height: u32,
 }
 
-/// What an import records beside the video.
+/// One video an import wrote.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CaptureWindow {
+    /// Its folder, relative to the import's (`.` for a resampled clip).
+    pub dir: String,
+    /// The capture's frame index of each of its 24 frames, their files, and their times in
+    /// seconds when the capture's frame rate is known.
+    pub frames: Vec<usize>,
+    pub colour_files: Vec<String>,
+    pub depth_files: Vec<String>,
+    pub times: Option<Vec<f64>>,
+}
+
+/// What an import records beside the video (`capture.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct CaptureRecord {
     /// The capture's folder.
     pub source: String,
-    /// Frames of the capture.
+    /// Frames of the capture, and its frame rate when given.
     pub source_frames: usize,
-    /// The capture's frame index of each of the video's 24 frames, and its files.
-    pub frames: Vec<usize>,
-    pub colour_files: Vec<String>,
-    pub depth_files: Vec<String>,
+    pub fps: Option<f64>,
+    /// The videos written: one resampled clip, or the windows.
+    pub windows: Vec<CaptureWindow>,
     /// The box's centre in the camera's frame, metres, and the scale from metres to the box.
     pub centre: [f64; 3],
     pub scale: f64,
@@ -140,6 +160,14 @@ pub fn import_rgbd(dir: &Path, out: &Path, options: &CaptureOptions) -> DataResu
     if let Some(m) = options.max_depth.filter(|m| !(m.is_finite() && *m > 0.0)) {
         return Err(DataError::Invalid(format!("max depth {m} must be positive")));
     }
+    if let Some(o) = options.windows.filter(|&o| o >= FRAMES) {
+        return Err(DataError::Invalid(format!(
+            "windows overlapping by {o} frames: the overlap must be below {FRAMES}"
+        )));
+    }
+    if let Some(r) = options.fps.filter(|r| !(r.is_finite() && *r > 0.0)) {
+        return Err(DataError::Invalid(format!("frame rate {r} must be positive")));
+    }
     let k_path = dir.join("intrinsics.json");
     let k: Intrinsics = crate::format::read_json(&k_path)?;
     let sound = [k.fx, k.fy].iter().all(|v| v.is_finite() && *v > 0.0)
@@ -172,11 +200,19 @@ pub fn import_rgbd(dir: &Path, out: &Path, options: &CaptureOptions) -> DataResu
             format!("{} frames: the video takes {FRAMES}, spread over 24 or more", colours.len()),
         ));
     }
-    let frames = spread(colours.len(), FRAMES);
-    let mut depth = Vec::with_capacity(FRAMES);
+    let windows: Vec<Vec<usize>> = match options.windows {
+        None => vec![spread(colours.len(), FRAMES)],
+        Some(overlap) => {
+            window_starts(colours.len(), overlap).into_iter().map(|s| (s..s + FRAMES).collect()).collect()
+        }
+    };
+    let mut used: Vec<usize> = windows.iter().flatten().copied().collect();
+    used.sort_unstable();
+    used.dedup();
+    let mut depth = std::collections::BTreeMap::new();
     let mut size = None;
     let (mut pixels, mut dropped) = (0, 0);
-    for &f in &frames {
+    for &f in &used {
         let (mut z, w, h) = read_depth(&depths[f], options.depth_scale)?;
         if *size.get_or_insert((w, h)) != (w, h) {
             return Err(invalid(
@@ -199,7 +235,7 @@ pub fn import_rgbd(dir: &Path, out: &Path, options: &CaptureOptions) -> DataResu
                 }
             }
         }
-        depth.push(z);
+        depth.insert(f, z);
     }
     let (w, h) = size.expect("24 frames");
     // The intrinsics at the depth's resolution.
@@ -207,7 +243,7 @@ pub fn import_rgbd(dir: &Path, out: &Path, options: &CaptureOptions) -> DataResu
     let (fx, fy, cx, cy) = (k.fx * sx, k.fy * sy, k.cx * sx, k.cy * sy);
     // The bounding box of every back-projected point, in the camera's frame (metres).
     let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
-    for z in &depth {
+    for z in depth.values() {
         for (i, &d) in z.iter().enumerate().filter(|(_, d)| **d > 0.0) {
             let (u, v) = ((i as u32 % w) as f64 + 0.5, (i as u32 / w) as f64 + 0.5);
             let d = d as f64;
@@ -219,7 +255,7 @@ pub fn import_rgbd(dir: &Path, out: &Path, options: &CaptureOptions) -> DataResu
         }
     }
     if lo[0] > hi[0] {
-        return Err(invalid(dir, "no pixel of the 24 frames has a depth (within the max depth)"));
+        return Err(invalid(dir, "no pixel of the frames taken has a depth (within the max depth)"));
     }
     let centre: [f64; 3] = std::array::from_fn(|a| (lo[a] + hi[a]) / 2.0);
     let half = (0..3).map(|a| (hi[a] - lo[a]) / 2.0).fold(0.0, f64::max).max(1e-9);
@@ -234,32 +270,54 @@ pub fn import_rgbd(dir: &Path, out: &Path, options: &CaptureOptions) -> DataResu
         rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
         translation: centre.map(|c| (c * scale) as f32),
     };
-    std::fs::create_dir_all(out)
-        .map_err(|e| DataError::Io(format!("cannot create {}: {e}", out.display())))?;
-    for (k, (&f, z)) in frames.iter().zip(&depth).enumerate() {
-        let rgb = read_colour(&colours[f], w, h)?;
-        velox_io::image::write_png(&out.join(format!("f{k:02}.png")), &rgb, w, h)?;
-        let scene_z: Vec<f32> = z.iter().map(|&d| (d as f64 * scale) as f32).collect();
-        velox_io::image::write_exr_depth(&out.join(format!("f{k:02}_depth.exr")), &scene_z, w, h)?;
-    }
-    velox_io::write_bytes(&out.join("camera.json"), pretty(&camera).as_bytes())?;
     let name = |p: &PathBuf| p.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let mut written = Vec::with_capacity(windows.len());
+    for (k, frames) in windows.into_iter().enumerate() {
+        let sub = if options.windows.is_some() { format!("window_{k:03}") } else { ".".to_string() };
+        let folder = if options.windows.is_some() { out.join(&sub) } else { out.to_path_buf() };
+        std::fs::create_dir_all(&folder)
+            .map_err(|e| DataError::Io(format!("cannot create {}: {e}", folder.display())))?;
+        for (i, &f) in frames.iter().enumerate() {
+            let rgb = read_colour(&colours[f], w, h)?;
+            velox_io::image::write_png(&folder.join(format!("f{i:02}.png")), &rgb, w, h)?;
+            let scene_z: Vec<f32> = depth[&f].iter().map(|&d| (d as f64 * scale) as f32).collect();
+            velox_io::image::write_exr_depth(&folder.join(format!("f{i:02}_depth.exr")), &scene_z, w, h)?;
+        }
+        velox_io::write_bytes(&folder.join("camera.json"), pretty(&camera).as_bytes())?;
+        // Each video must read back as the tracker reads it, every point inside the box.
+        let video = crate::rgbd::read_video_folder(&folder)?;
+        crate::rgbd::rgbd_cloud(&video, crate::rgbd::DEFAULT_POINTS, 0)?;
+        written.push(CaptureWindow {
+            dir: sub,
+            colour_files: frames.iter().map(|&f| name(&colours[f])).collect(),
+            depth_files: frames.iter().map(|&f| name(&depths[f])).collect(),
+            times: options.fps.map(|r| frames.iter().map(|&f| f as f64 / r).collect()),
+            frames,
+        });
+    }
     let record = CaptureRecord {
         source: dir.display().to_string(),
         source_frames: colours.len(),
-        colour_files: frames.iter().map(|&f| name(&colours[f])).collect(),
-        depth_files: frames.iter().map(|&f| name(&depths[f])).collect(),
-        frames,
+        fps: options.fps,
+        windows: written,
         centre,
         scale,
         depth_pixels: pixels,
         dropped_beyond_max_depth: dropped,
     };
     velox_io::write_bytes(&out.join("capture.json"), pretty(&record).as_bytes())?;
-    // The video must read back as the tracker reads it, every point inside the box.
-    let video = crate::rgbd::read_video_folder(out)?;
-    crate::rgbd::rgbd_cloud(&video, crate::rgbd::DEFAULT_POINTS, 0)?;
     Ok(record)
+}
+
+/// The first frames of windows of 24 consecutive frames of a clip of `n` (24 or more) that
+/// overlap by `overlap`: every `24 - overlap` frames, the last one ending on the clip's last.
+pub fn window_starts(n: usize, overlap: usize) -> Vec<usize> {
+    let step = FRAMES - overlap.min(FRAMES - 1);
+    let mut starts: Vec<usize> = (0..).map(|k| k * step).take_while(|&s| s + FRAMES <= n).collect();
+    if starts.last().is_some_and(|&s| s + FRAMES < n) {
+        starts.push(n - FRAMES);
+    }
+    starts
 }
 
 /// Pretty JSON of plain data.

@@ -423,20 +423,23 @@ fn gltf<'py>(
     Ok(d)
 }
 
-/// `velox.data.import_rgbd(dir, out, depth_scale=0.001, max_depth=None)`: an RGBD capture
-/// (`intrinsics.json`, `rgb/`, `depth/`) made into the tracker's video folder `out`, as `velox
-/// import rgbd` makes it; returns what capture.json records (the frames taken, the centre and
-/// the scale that map the box back to metres).
+/// `velox.data.import_rgbd(dir, out, depth_scale=0.001, max_depth=None, windows=None,
+/// fps=None)`: an RGBD capture (`intrinsics.json`, `rgb/`, `depth/`) made into the tracker's
+/// video folder `out` (or, with `windows=OVERLAP`, into windows of 24 consecutive frames), as
+/// `velox import rgbd` makes it; returns what capture.json records (the videos and the frames
+/// each took, the centre and the scale that map the box back to metres).
 #[pyfunction]
-#[pyo3(signature = (dir, out, *, depth_scale = 0.001, max_depth = None))]
+#[pyo3(signature = (dir, out, *, depth_scale = 0.001, max_depth = None, windows = None, fps = None))]
 fn import_rgbd<'py>(
     py: Python<'py>,
     dir: PathBuf,
     out: PathBuf,
     depth_scale: f64,
     max_depth: Option<f64>,
+    windows: Option<usize>,
+    fps: Option<f64>,
 ) -> PyResult<Bound<'py, PyAny>> {
-    let options = velox_data::capture::CaptureOptions { depth_scale, max_depth };
+    let options = velox_data::capture::CaptureOptions { depth_scale, max_depth, windows, fps };
     let record =
         py.detach(|| velox_data::capture::import_rgbd(&dir, &out, &options)).map_err(errors::data)?;
     let text = serde_json::to_string(&record).map_err(|e| invalid(e.to_string()))?;

@@ -459,7 +459,7 @@ def test_an_rgbd_capture_is_imported_as_the_command_does_and_tracked(trained, da
         shutil.copy(video / f"f{f:02}_depth.exr", capture / "depth" / f"{f:04}.exr")
     (capture / "intrinsics.json").write_text(json.dumps({k: cams[k] for k in ["fx", "fy", "cx", "cy", "width", "height"]}))
     record = velox.data.import_rgbd(capture, tmp_path / "py")
-    assert record["frames"] == list(range(24)) and record["scale"] > 0
+    assert record["windows"][0]["frames"] == list(range(24)) and record["scale"] > 0
     cli("import", "rgbd", capture, "--out", tmp_path / "cli")
     for f in sorted((tmp_path / "py").iterdir()):
         if f.name != "capture.json":

@@ -61,8 +61,10 @@ fn a_capture_becomes_the_trackers_video_in_the_box() {
     write_capture(&root.join("capture"), &source, &(0..FRAMES).collect::<Vec<_>>());
 
     let record = import_rgbd(&root.join("capture"), &root.join("video"), &CaptureOptions::default()).unwrap();
-    assert_eq!(record.frames, (0..FRAMES).collect::<Vec<_>>());
-    assert_eq!(record.colour_files[3], "000003.png");
+    let window = &record.windows[0];
+    assert_eq!((record.windows.len(), window.dir.as_str()), (1, "."));
+    assert_eq!(window.frames, (0..FRAMES).collect::<Vec<_>>());
+    assert_eq!((window.colour_files[3].as_str(), &window.times), ("000003.png", &None));
     let video = read_video_folder(&root.join("video")).unwrap();
     let cam = &video.camera;
     assert_eq!((cam.width, cam.height, cam.fx), (24, 24, source.camera.fx), "intrinsics at the depth's size");
@@ -103,8 +105,31 @@ fn a_capture_becomes_the_trackers_video_in_the_box() {
     write_capture(&root.join("long"), &source, &long);
     let record =
         import_rgbd(&root.join("long"), &root.join("long-video"), &CaptureOptions::default()).unwrap();
-    assert_eq!((record.source_frames, record.frames[0], record.frames[23]), (30, 0, 29));
-    assert!(record.frames.windows(2).all(|w| w[1] > w[0]));
+    let frames = &record.windows[0].frames;
+    assert_eq!((record.source_frames, frames[0], frames[23]), (30, 0, 29));
+    assert!(frames.windows(2).all(|w| w[1] > w[0]));
+
+    // Or cut into windows of consecutive frames, fitted into the box together, with times.
+    let windows = CaptureOptions { windows: Some(4), fps: Some(30.0), ..Default::default() };
+    let longer: Vec<usize> = (0..40).map(|k| k * (FRAMES - 1) / 39).collect();
+    write_capture(&root.join("longer"), &source, &longer);
+    let record = import_rgbd(&root.join("longer"), &root.join("windows"), &windows).unwrap();
+    let dirs: Vec<&str> = record.windows.iter().map(|w| w.dir.as_str()).collect();
+    assert_eq!(dirs, ["window_000", "window_001"]);
+    assert_eq!(
+        record.windows[1].frames,
+        (16..40).collect::<Vec<_>>(),
+        "the last window ends on the last frame"
+    );
+    assert_eq!(record.windows[1].times.as_ref().unwrap()[0], 16.0 / 30.0);
+    let (a, b) = (
+        read_video_folder(&root.join("windows/window_000")).unwrap(),
+        read_video_folder(&root.join("windows/window_001")).unwrap(),
+    );
+    assert_eq!(a.camera, b.camera, "one fit for every window");
+    assert_eq!(a.depth[16..], b.depth[..8], "the overlap is the same frames");
+    assert_eq!(velox::data::capture::window_starts(24, 4), vec![0]);
+    assert_eq!(velox::data::capture::window_starts(60, 4), vec![0, 20, 36]);
     let _ = std::fs::remove_dir_all(&root);
 }
 
@@ -125,7 +150,9 @@ fn bad_captures_are_refused_naming_the_problem() {
     let full = root.join("full");
     write_capture(&full, &source, &(0..FRAMES).collect::<Vec<_>>());
     let near = CaptureOptions { max_depth: Some(1e-3), ..Default::default() };
-    assert!(err(&full, &near).contains("no pixel of the 24 frames has a depth"));
+    assert!(err(&full, &near).contains("no pixel of the frames taken has a depth"));
+    let e = err(&full, &CaptureOptions { windows: Some(24), ..Default::default() });
+    assert!(e.contains("the overlap must be below 24"), "{e}");
     let e = err(&full, &CaptureOptions { depth_scale: -1.0, ..Default::default() });
     assert!(e.contains("depth scale -1 must be positive"), "{e}");
     std::fs::remove_file(full.join("depth/000023.png")).unwrap();

@@ -33,28 +33,41 @@ pub struct RgbdArgs {
     /// Depths beyond this many metres are the background: dropped before the fit.
     #[arg(long)]
     max_depth: Option<f64>,
+    /// Cut the clip into videos of 24 consecutive frames overlapping by this many frames
+    /// (OUT/window_000, ...; 4 when given without a number) instead of resampling it to 24.
+    #[arg(long, value_name = "OVERLAP", num_args = 0..=1, default_missing_value = "4")]
+    windows: Option<usize>,
+    /// The capture's frame rate: capture.json then gives each frame's time.
+    #[arg(long)]
+    fps: Option<f64>,
 }
 
 pub fn run(cmd: ImportCommand) -> CliResult<()> {
     match cmd {
         ImportCommand::Rgbd(a) => {
-            let options = CaptureOptions { depth_scale: a.depth_scale, max_depth: a.max_depth };
+            let options = CaptureOptions {
+                depth_scale: a.depth_scale,
+                max_depth: a.max_depth,
+                windows: a.windows,
+                fps: a.fps,
+            };
             let r = import_rgbd(&a.dir, &a.out, &options)?;
             let dropped = if r.dropped_beyond_max_depth > 0 {
                 format!(", {} beyond --max-depth dropped", r.dropped_beyond_max_depth)
             } else {
                 String::new()
             };
+            let first = a.out.join(&r.windows[0].dir);
             println!(
-                "wrote the video of {} ({} of its {} frames, {} depth pixels{dropped}) to {}: 1 m is {:.3} scene units \
-                 (capture.json); track it with `velox track --video {}`",
+                "wrote {} video(s) of {} ({} frames, {} depth pixels{dropped}) to {}: 1 m is {:.3} scene units \
+                 (capture.json); track one with `velox track --video {}`",
+                r.windows.len(),
                 a.dir.display(),
-                r.frames.len(),
                 r.source_frames,
                 r.depth_pixels,
                 a.out.display(),
                 r.scale,
-                a.out.display()
+                first.display()
             );
             Ok(())
         }
