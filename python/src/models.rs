@@ -270,8 +270,10 @@ impl PyTracker {
     /// on the first frame (default: the pixels of a grid x grid lattice of the first frame
     /// that show surface, back-projected) followed through the video's 24 frames: a dict of
     /// `queries` [Q, 3], `tracks` [Q, 24, 3] and `visible` [Q, 24] (bool: the video shows the
-    /// point there). The video back-projects to at most `points` points, drawn with `seed`:
-    /// what `velox track` writes to tracks.json.
+    /// point there), and `frames` (the capture's frame of each). A capture imported with
+    /// `windows` (`velox import rgbd --windows`) is tracked over all its frames, each window
+    /// from where the one before puts the queries. Each video back-projects to at most
+    /// `points` points, drawn with `seed`: what `velox track` writes to tracks.json.
     #[pyo3(signature = (video, *, queries = None, grid = 16, points = velox_data::rgbd::DEFAULT_POINTS, seed = 0))]
     fn track<'py>(
         &self,
@@ -285,31 +287,48 @@ impl PyTracker {
         if grid == 0 || points == 0 {
             return Err(invalid(format!("grid ({grid}) and points ({points}) must be positive")));
         }
-        let video = video_of(video)?;
+        // A capture imported in windows is tracked as one clip over all its frames.
+        let windows = match video.extract::<PathBuf>() {
+            Ok(dir) => velox_tasks::track::read_windows(&dir).map_err(errors::data)?,
+            Err(_) => None,
+        };
+        let first = match &windows {
+            Some(w) => w[0].0.clone(),
+            None => video_of(video)?,
+        };
         let queries: Vec<[f32; 3]> = match queries {
             Some(q) => {
                 let (v, _) = f32_array(q, "queries", &[None, Some(3)])?;
                 v.chunks(3).map(|p| [p[0], p[1], p[2]]).collect()
             }
-            None => velox_tasks::track::grid_queries(&video, grid),
+            None => velox_tasks::track::grid_queries(&first, grid),
         };
         if queries.is_empty() {
             return Err(invalid(format!(
                 "no pixel of a {grid} x {grid} grid on the first frame shows surface: give queries or a finer grid"
             )));
         }
-        let tracked = py
-            .detach(|| {
-                velox_tasks::track::track(&self.autoencoder, &self.tracker, &video, &queries, points, seed)
+        let (ae, tracker) = (&self.autoencoder, &self.tracker);
+        let stitched = py
+            .detach(|| match &windows {
+                Some(w) => velox_tasks::track::track_windows(ae, tracker, w, &queries, points, seed),
+                None => velox_tasks::track::track(ae, tracker, &first, &queries, points, seed).map(|t| {
+                    velox_tasks::track::StitchedTracks {
+                        frames: (0..FRAMES).collect(),
+                        tracks: t.tracks.iter().map(|x| x.to_vec()).collect(),
+                        visible: t.visible.iter().map(|x| x.to_vec()).collect(),
+                    }
+                }),
             })
             .map_err(errors::data)?;
-        let q = queries.len();
+        let (q, f) = (queries.len(), stitched.frames.len());
         let d = PyDict::new(py);
         d.set_item("queries", to_array(py, queries.into_iter().flatten().collect(), &[q, 3])?)?;
-        let xyz: Vec<f32> = tracked.tracks.iter().flatten().flatten().copied().collect();
-        d.set_item("tracks", to_array(py, xyz, &[q, FRAMES, 3])?)?;
-        let visible: Vec<bool> = tracked.visible.iter().flatten().copied().collect();
-        d.set_item("visible", numpy::PyArray1::from_vec(py, visible).reshape([q, FRAMES])?)?;
+        d.set_item("frames", stitched.frames)?;
+        let xyz: Vec<f32> = stitched.tracks.iter().flatten().flatten().copied().collect();
+        d.set_item("tracks", to_array(py, xyz, &[q, f, 3])?)?;
+        let visible: Vec<bool> = stitched.visible.iter().flatten().copied().collect();
+        d.set_item("visible", numpy::PyArray1::from_vec(py, visible).reshape([q, f])?)?;
         Ok(d)
     }
 

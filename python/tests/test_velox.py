@@ -470,6 +470,29 @@ def test_an_rgbd_capture_is_imported_as_the_command_does_and_tracked(trained, da
     out = velox.train("tracker", root / "py", tmp_path / "tracker", config="tiny", steps=1, progress=False)
     tracked = velox.Tracker.load(out["checkpoint"], ae).track(tmp_path / "py", grid=8, points=2000)
     assert tracked["tracks"].shape[1:] == (24, 3) and np.isfinite(tracked["tracks"]).all()
+    assert tracked["frames"] == list(range(24))
+    # A longer capture in windows is tracked over all its frames.
+    longer = tmp_path / "longer"
+    (longer / "rgb").mkdir(parents=True)
+    (longer / "depth").mkdir()
+    for k in range(30):
+        f = k * 23 // 29
+        shutil.copy(video / f"f{f:02}.png", longer / "rgb" / f"{k:04}.png")
+        shutil.copy(video / f"f{f:02}_depth.exr", longer / "depth" / f"{k:04}.exr")
+    shutil.copy(capture / "intrinsics.json", longer / "intrinsics.json")
+    record = velox.data.import_rgbd(longer, tmp_path / "windows", windows=4, fps=30.0)
+    assert [w["dir"] for w in record["windows"]] == ["window_000", "window_001"]
+    assert record["windows"][1]["frames"][0] == 6 and record["windows"][1]["times"][0] == 0.2
+    tracker = velox.Tracker.load(out["checkpoint"], ae)
+    clip = tracker.track(tmp_path / "windows", grid=8, points=2000)
+    assert clip["frames"] == list(range(30)) and clip["tracks"].shape[1:] == (30, 3)
+    cli("track", "--video", tmp_path / "windows", "--autoencoder", ae, "--checkpoint", out["checkpoint"],
+        "--out", tmp_path / "t", "--grid", 8, "--points", 2000)
+    written = json.loads((tmp_path / "t" / "tracks.json").read_text())
+    assert written["source_frames"] == clip["frames"] and written["frames"] == 30
+    assert np.array_equal(clip["tracks"], np.array([w["positions"] for w in written["queries"]], np.float32))
+    assert np.array_equal(clip["visible"], np.array([w["visible"] for w in written["queries"]]))
+    assert (tmp_path / "t" / "overlay" / "f29.png").is_file() and (tmp_path / "t" / "tracks_f29.ply").is_file()
     with pytest.raises(FileNotFoundError, match="intrinsics.json"):
         velox.data.import_rgbd(tmp_path / "py", tmp_path / "x")
     shutil.copy(capture / "intrinsics.json", tmp_path / "py" / "intrinsics.json")

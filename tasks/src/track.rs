@@ -89,3 +89,88 @@ pub fn track(
     let visible = tracks.iter().map(|t| std::array::from_fn(|f| cam.sees(t[f], &video.depth[f]))).collect();
     Ok(Tracked { tracks, visible, cloud_points: cloud_points.len() })
 }
+
+/// A window of a clip: its video, and the capture's frame of each of its frames.
+pub type Window = (RgbdVideo, Vec<usize>);
+
+/// Tracks of queries through a clip cut into overlapping windows (`velox import rgbd
+/// --windows`), one track per query over every frame the windows cover.
+pub struct StitchedTracks {
+    /// The capture's frame of each frame of the tracks, in order.
+    pub frames: Vec<usize>,
+    /// Per query, its position at each of `frames`; and whether the video shows it there.
+    pub tracks: Vec<Vec<[f32; 3]>>,
+    pub visible: Vec<Vec<bool>>,
+}
+
+/// Follows `queries` (on the first window's first frame) through `windows` (each video with
+/// the capture's frame of each of its frames, consecutive, in order, each window starting
+/// inside the one before): each window after the first is tracked from where the one before
+/// puts the queries on its first frame, and takes over from the frame after the last one the
+/// windows share. Every window is encoded and tracked as [`track`] does it.
+pub fn track_windows(
+    ae: &Autoencoder,
+    tracker: &Tracker,
+    windows: &[Window],
+    queries: &[[f32; 3]],
+    points: usize,
+    seed: u64,
+) -> DataResult<StitchedTracks> {
+    let Some(((first_video, first_frames), rest)) = windows.split_first() else {
+        return Err(DataError::Invalid("no window to track".into()));
+    };
+    for (_, frames) in windows {
+        if frames.len() != FRAMES || frames.windows(2).any(|w| w[1] != w[0] + 1) {
+            return Err(DataError::Invalid(format!(
+                "a window's frames {frames:?} are not {FRAMES} consecutive frames"
+            )));
+        }
+    }
+    let first = track(ae, tracker, first_video, queries, points, seed)?;
+    let mut out = StitchedTracks {
+        frames: first_frames.clone(),
+        tracks: first.tracks.iter().map(|t| t.to_vec()).collect(),
+        visible: first.visible.iter().map(|v| v.to_vec()).collect(),
+    };
+    for (video, frames) in rest {
+        let start = frames[0];
+        let last = *out.frames.last().expect("a window's frames");
+        let at = out.frames.iter().position(|&f| f == start).ok_or_else(|| {
+            DataError::Invalid(format!(
+                "the window from frame {start} does not start inside the one before (which ends on {last})"
+            ))
+        })?;
+        let from: Vec<[f32; 3]> = out.tracks.iter().map(|t| t[at]).collect();
+        let next = track(ae, tracker, video, &from, points, seed)?;
+        // The frames after the last shared one come from this window.
+        let shared = last + 1 - start;
+        out.frames.extend_from_slice(&frames[shared..]);
+        for (q, (t, v)) in next.tracks.iter().zip(&next.visible).enumerate() {
+            out.tracks[q].extend_from_slice(&t[shared..]);
+            out.visible[q].extend_from_slice(&v[shared..]);
+        }
+    }
+    Ok(out)
+}
+
+/// The windows of a capture imported with `--windows` (its `capture.json`), read as the
+/// tracker reads them; `None` when `dir` is not such an import.
+pub fn read_windows(dir: &Path) -> DataResult<Option<Vec<Window>>> {
+    let path = dir.join("capture.json");
+    if !path.is_file() {
+        return Ok(None);
+    }
+    let text = std::fs::read_to_string(&path)
+        .map_err(|e| DataError::Io(format!("cannot read {}: {e}", path.display())))?;
+    let record: velox_data::capture::CaptureRecord = serde_json::from_str(&text)
+        .map_err(|e| DataError::Invalid(format!("{}: not an import's record: {e}", path.display())))?;
+    if record.windows.iter().all(|w| w.dir == ".") {
+        return Ok(None);
+    }
+    record
+        .windows
+        .into_iter()
+        .map(|w| Ok((rgbd::read_video_folder(&dir.join(&w.dir))?, w.frames)))
+        .collect::<DataResult<Vec<_>>>()
+        .map(Some)
+}

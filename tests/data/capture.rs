@@ -164,3 +164,49 @@ fn bad_captures_are_refused_naming_the_problem() {
     assert!(err(&full, &CaptureOptions::default()).contains("intrinsics.json"));
     let _ = std::fs::remove_dir_all(&root);
 }
+
+#[test]
+fn windows_are_tracked_as_one_clip_each_from_where_the_last_left_off() {
+    use velox::models::config::{AutoencoderConfig, TrackerConfig};
+    use velox::models::velox::autoencoder::Autoencoder;
+    use velox::models::velox::tracker::Tracker;
+    use velox::tasks::track::{grid_queries, read_windows, track, track_windows};
+
+    let root = temp_dir("capture-windows");
+    let (_, mesh) = scene(6, None).unwrap();
+    let opts = SynthOptions { res: 24, points: 500, supersample: 1, tracks: 6, ..Default::default() };
+    write_scene(&gpu(), &mesh, "procedural seed 6", None, 6, &opts, &root.join("scene"), &mut |_| {})
+        .unwrap();
+    let source = read_scene_video(&root.join("scene")).unwrap();
+    let order: Vec<usize> = (0..40).map(|k| k * (FRAMES - 1) / 39).collect();
+    write_capture(&root.join("capture"), &source, &order);
+    let options = CaptureOptions { windows: Some(4), ..Default::default() };
+    import_rgbd(&root.join("capture"), &root.join("video"), &options).unwrap();
+    let windows = read_windows(&root.join("video")).unwrap().expect("an import in windows");
+    assert_eq!(windows.len(), 2);
+
+    let gpu = gpu();
+    let ae = Autoencoder::new(&gpu, &AutoencoderConfig::tiny(), 1).unwrap();
+    let tracker = Tracker::new(&gpu, &TrackerConfig { token_dim: 8, ..TrackerConfig::tiny() }, 2).unwrap();
+    let queries = grid_queries(&windows[0].0, 6);
+    assert!(!queries.is_empty());
+    let stitched = track_windows(&ae, &tracker, &windows, &queries, 2000, 3).unwrap();
+    assert_eq!(stitched.frames, (0..40).collect::<Vec<_>>());
+    assert!(stitched.tracks.iter().all(|t| t.len() == 40) && stitched.visible.iter().all(|v| v.len() == 40));
+    // The first window as one clip; the second from where the first puts the queries on frame
+    // 16, taking over after frame 23.
+    let a = track(&ae, &tracker, &windows[0].0, &queries, 2000, 3).unwrap();
+    let from: Vec<[f32; 3]> = a.tracks.iter().map(|t| t[16]).collect();
+    let b = track(&ae, &tracker, &windows[1].0, &from, 2000, 3).unwrap();
+    for q in 0..queries.len() {
+        assert_eq!(stitched.tracks[q][..24], a.tracks[q][..]);
+        assert_eq!(stitched.tracks[q][24..], b.tracks[q][8..]);
+        assert_eq!(stitched.visible[q][24..], b.visible[q][8..]);
+    }
+    // A window that does not start inside the one before is refused.
+    let gap = [windows[0].clone(), (windows[1].0.clone(), (30..54).collect())];
+    let e = track_windows(&ae, &tracker, &gap, &queries, 2000, 3).err().unwrap().to_string();
+    assert!(e.contains("does not start inside the one before"), "{e}");
+    assert!(read_windows(&root.join("scene")).unwrap().is_none());
+    let _ = std::fs::remove_dir_all(&root);
+}

@@ -17,7 +17,7 @@ use velox_engine::Gpu;
 use velox_io::image::{write_gif, write_png};
 use velox_io::write_bytes;
 use velox_models::velox::autoencoder::{Autoencoder, FRAMES};
-use velox_models::velox::tracker::Tracker;
+use velox_models::velox::tracker::{Track, Tracker};
 use velox_models::Model;
 
 use velox_tasks::track::{grid_queries, read_video};
@@ -62,6 +62,8 @@ struct TrackJson {
     autoencoder: String,
     checkpoint: String,
     frames: usize,
+    /// The capture's frame of each frame (0 to 23 for a scene's or a video folder's video).
+    source_frames: Vec<usize>,
     queries: Vec<QueryJson>,
 }
 
@@ -104,13 +106,17 @@ fn frame_ply(points: &[[f32; 3]], colours: &[[f32; 3]], visible: &[bool]) -> Vec
 
 pub fn run(a: &TrackArgs) -> CliResult<()> {
     let gpu = Gpu::new()?;
-    let video = read_video(&a.video)?;
+    // A capture imported in windows (`velox import rgbd --windows`) is one clip of them all.
+    let windows = match velox_tasks::track::read_windows(&a.video)? {
+        Some(w) => w,
+        None => vec![(read_video(&a.video)?, (0..FRAMES).collect())],
+    };
     let tracker = Tracker::load(&gpu, &a.checkpoint)?;
     tracker.check_encoder(&a.autoencoder)?;
     let ae = Autoencoder::load(&gpu, &a.autoencoder)?;
     let queries = match &a.queries {
         Some(path) => read_queries(path)?,
-        None => grid_queries(&video, a.grid as usize),
+        None => grid_queries(&windows[0].0, a.grid as usize),
     };
     if queries.is_empty() {
         return Err(format!(
@@ -121,54 +127,73 @@ pub fn run(a: &TrackArgs) -> CliResult<()> {
         .into());
     }
     println!(
-        "tracking {} queries through {} with the {} tracker on {}",
+        "tracking {} queries through {}{} with the {} tracker on {}",
         queries.len(),
         a.video.display(),
+        if windows.len() > 1 { format!(" ({} windows)", windows.len()) } else { String::new() },
         tracker.cfg.name,
         gpu.caps().name
     );
-    let tracked = velox_tasks::track::track(&ae, &tracker, &video, &queries, a.points as usize, a.seed)?;
-    let (tracks, cam) = (&tracked.tracks, &video.camera);
-    let hidden: Vec<[bool; FRAMES]> = tracked.visible.iter().map(|v| v.map(|s| !s)).collect();
-
+    let stitched =
+        velox_tasks::track::track_windows(&ae, &tracker, &windows, &queries, a.points as usize, a.seed)?;
+    let clip_frames = stitched.frames.len();
+    // Each frame of the clip from the first window that holds it (as the stitching takes it),
+    // drawn with the tracks of that window's 24 frames.
+    let index_of =
+        |source: usize| stitched.frames.iter().position(|&f| f == source).expect("a tracked frame");
+    let window_tracks = |k: usize| -> (Vec<Track>, Vec<[bool; FRAMES]>) {
+        let at: Vec<usize> = windows[k].1.iter().map(|&f| index_of(f)).collect();
+        let tracks = stitched.tracks.iter().map(|t| std::array::from_fn(|j| t[at[j]])).collect();
+        let hidden = stitched.visible.iter().map(|v| std::array::from_fn(|j| !v[at[j]])).collect();
+        (tracks, hidden)
+    };
+    let cam = windows[0].0.camera;
     let overlay = a.out.join("overlay");
     std::fs::create_dir_all(&overlay).map_err(|e| format!("creating {}: {e}", overlay.display()))?;
-    let colour = colours(tracks, cam);
-    let mut clip = Vec::with_capacity(FRAMES);
-    for f in 0..FRAMES {
-        let positions: Vec<[f32; 3]> = tracks.iter().map(|t| t[f]).collect();
-        let visible: Vec<bool> = hidden.iter().map(|h| !h[f]).collect();
-        write_bytes(&a.out.join(format!("tracks_f{f:02}.ply")), &frame_ply(&positions, &colour, &visible))?;
-        let mut rgb = video.rgb[f].clone();
-        draw_tracks(&mut rgb, cam, tracks, &hidden, &colour, f);
-        write_png(&overlay.join(format!("f{f:02}.png")), &rgb, cam.width, cam.height)?;
-        clip.push(rgb);
+    let colour = colours(&window_tracks(0).0, &cam);
+    let mut clip = Vec::with_capacity(clip_frames);
+    let mut drawn = vec![false; clip_frames];
+    for (k, (video, frames)) in windows.iter().enumerate() {
+        let (tracks, hidden) = window_tracks(k);
+        for (j, &source) in frames.iter().enumerate() {
+            let i = index_of(source);
+            if std::mem::replace(&mut drawn[i], true) {
+                continue;
+            }
+            let positions: Vec<[f32; 3]> = tracks.iter().map(|t| t[j]).collect();
+            let visible: Vec<bool> = hidden.iter().map(|h| !h[j]).collect();
+            write_bytes(
+                &a.out.join(format!("tracks_f{i:02}.ply")),
+                &frame_ply(&positions, &colour, &visible),
+            )?;
+            let mut rgb = video.rgb[j].clone();
+            draw_tracks(&mut rgb, &cam, &tracks, &hidden, &colour, j);
+            write_png(&overlay.join(format!("f{i:02}.png")), &rgb, cam.width, cam.height)?;
+            clip.push(rgb);
+        }
     }
     write_gif(&a.out.join("overlay.gif"), &clip, cam.width, cam.height, 100)?;
     let json = TrackJson {
         video: a.video.display().to_string(),
         autoencoder: a.autoencoder.display().to_string(),
         checkpoint: a.checkpoint.display().to_string(),
-        frames: FRAMES,
+        frames: clip_frames,
+        source_frames: stitched.frames.clone(),
         queries: queries
             .iter()
-            .zip(tracks)
-            .zip(&hidden)
-            .map(|((q, t), h)| QueryJson {
-                query: *q,
-                positions: t.to_vec(),
-                visible: h.iter().map(|&x| !x).collect(),
-            })
+            .zip(&stitched.tracks)
+            .zip(&stitched.visible)
+            .map(|((q, t), v)| QueryJson { query: *q, positions: t.clone(), visible: v.clone() })
             .collect(),
     };
     write_bytes(&a.out.join("tracks.json"), serde_json::to_string_pretty(&json)?.as_bytes())?;
-    let shown = hidden.iter().map(|h| h.iter().filter(|&&x| !x).count()).sum::<usize>();
+    let shown = stitched.visible.iter().flatten().filter(|&&v| v).count();
     println!(
-        "wrote {} (tracks of {} queries, visible at {:.0} % of their frames), {FRAMES} PLY files and the \
+        "wrote {} (tracks of {} queries, visible at {:.0} % of their frames), {clip_frames} PLY files and the \
          overlay frames under {} (and as overlay.gif)",
         a.out.join("tracks.json").display(),
         queries.len(),
-        100.0 * shown as f64 / (queries.len() * FRAMES) as f64,
+        100.0 * shown as f64 / (queries.len() * clip_frames) as f64,
         overlay.display()
     );
     Ok(())
