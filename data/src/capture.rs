@@ -147,8 +147,13 @@ fn read_colour(path: &Path, w: u32, h: u32) -> DataResult<Vec<f32>> {
     Ok(img.pixels().flat_map(|p| p.0.map(|c| c as f32 / 255.0)).collect())
 }
 
-/// `count` indices spread evenly over `n` (the first and the last included).
-fn spread(n: usize, count: usize) -> Vec<usize> {
+/// `count` indices spread evenly over `n` (the first and the last included); the first alone
+/// for one. How a clip is resampled to the frames a model reads (here, and the generators'
+/// condition frames).
+pub fn spread(n: usize, count: usize) -> Vec<usize> {
+    if count <= 1 {
+        return vec![0];
+    }
     (0..count).map(|i| (i * (n - 1) + (count - 1) / 2) / (count - 1)).collect()
 }
 

@@ -552,7 +552,7 @@ fn read_positions(dir: &Path, file: &str, count: usize) -> DataResult<Vec<[[f32;
 }
 
 /// A scene's `meta.json`, read and checked against the format.
-fn read_meta(dir: &Path) -> DataResult<SceneMeta> {
+pub fn read_meta(dir: &Path) -> DataResult<SceneMeta> {
     let path = dir.join("meta.json");
     let meta: SceneMeta = read_json(&path)?;
     check_meta(&meta).map_err(|why| DataError::Invalid(format!("{}: {why}", path.display())))?;

@@ -49,6 +49,14 @@ impl Shared {
         });
     }
 
+    /// `result`, unless an exception stopped the work first: that exception then.
+    fn finish<T>(&self, result: velox_data::DataResult<T>) -> PyResult<T> {
+        match self.raised.lock().unwrap_or_else(|p| p.into_inner()).take() {
+            Some(e) => Err(e),
+            None => result.map_err(errors::data),
+        }
+    }
+
     /// Whether to stop: an exception came, or Ctrl-C (or another signal Python handles) is
     /// pending.
     fn stop(&self) -> bool {
@@ -342,10 +350,7 @@ fn synth(
         }
         Ok(dirs)
     });
-    if let Some(e) = shared.raised.lock().unwrap_or_else(|p| p.into_inner()).take() {
-        return Err(e);
-    }
-    written.map_err(errors::data)
+    shared.finish(written)
 }
 
 /// `velox.data.gltf(files, out, animation=None, seed=0, res=128, points=200000, tracks=1024,
@@ -408,10 +413,7 @@ fn gltf<'py>(
         }
         Ok((written, kept, failed))
     });
-    if let Some(e) = shared.raised.lock().unwrap_or_else(|p| p.into_inner()).take() {
-        return Err(e);
-    }
-    let (written, kept, failed) = done.map_err(errors::data)?;
+    let (written, kept, failed) = shared.finish(done)?;
     let d = PyDict::new(py);
     d.set_item("written", written)?;
     d.set_item("kept", kept)?;

@@ -34,14 +34,7 @@ pub fn frame_files(dir: &Path) -> DataResult<Vec<PathBuf>> {
     Ok(files)
 }
 
-/// `count` indices spread evenly over `n` (the first and the last included); the first alone
-/// for one.
-pub fn spread(n: usize, count: usize) -> Vec<usize> {
-    if count <= 1 {
-        return vec![0];
-    }
-    (0..count).map(|i| (i * (n - 1) + (count - 1) / 2) / (count - 1)).collect()
-}
+pub use velox_data::capture::spread;
 
 /// The condition frames of the video in `dir`: `[frames, 3, size, size]` (see the module docs).
 pub fn read_condition_video(dir: &Path, frames: usize, size: usize) -> DataResult<Vec<f32>> {

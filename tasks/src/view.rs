@@ -555,8 +555,8 @@ impl Source {
             background: self
                 .scene
                 .as_deref()
-                .and_then(|s| velox_data::format::read_scene(s, false).ok())
-                .map_or([0.0; 3], |s| s.meta.background),
+                .and_then(|s| velox_data::format::read_meta(s).ok())
+                .map_or([0.0; 3], |m| m.background),
             compare: self.compare.as_ref().map(|c| ManifestCompare {
                 title: &c.title,
                 frames: Source::manifest_frames(&c.frames, COMPARE_ROUTE, embedded),

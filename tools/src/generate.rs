@@ -221,7 +221,7 @@ pub fn run(a: &GenerateArgs) -> CliResult<()> {
     let decoder = voxel_decoder(&gpu, a.voxel_decoder.as_deref(), &a.autoencoder, &[source])?;
     // A dataset scene's views are drawn on its background; any other input's on black.
     let background = match a.video.as_deref() {
-        Some(dir) if scene => velox_data::read_scene(dir, false)?.meta.background,
+        Some(dir) if scene => velox_data::format::read_meta(dir)?.background,
         _ => [0.0; 3],
     };
     std::fs::create_dir_all(a.out.join("input")).map_err(|e| format!("creating {}: {e}", a.out.display()))?;
