@@ -3,9 +3,10 @@
 # Rust it first installs what is missing (tools/setup.sh --tests: a Vulkan driver where there is
 # none, the validation layers, Open MPI). Then it runs:
 #   1. the whole suite under the validation layer with synchronization checks
-#      (`VELOX_VALIDATE=1 cargo test --release --features mpi`): any validation error fails the
-#      test that meets it; with MPI, the two-process tests of data-parallel training too (one
-#      build of the workspace serves every step: a second feature set would rebuild it);
+#      (`VELOX_VALIDATE=1 cargo test --release`): any validation error fails the test that meets
+#      it; the two-process tests of data-parallel training too (VELOX_MPI_TESTS=1: they must
+#      find Open MPI's mpirun, not skip). One build of the workspace serves every step: no step
+#      asks for other features or another package's feature set, which would rebuild it;
 #   2. on lavapipe, the op-level tests at NVIDIA's subgroup width (LP_NATIVE_VECTOR_WIDTH=1024),
 #      with the GPU kernel variants (VELOX_CPU_KERNELS=0) and with the CPU ones.
 # tools/portability-check.sh runs the rest of the matrix (every width, poisoned memory, staging,
@@ -19,7 +20,7 @@ export VK_LAYER_SETTINGS_PATH=$PWD/vk_layer_settings.txt
 
 # 1. Every test, with the validation layer watching every Vulkan call, data-parallel training
 # over MPI included (README, "Training on several GPUs").
-VELOX_VALIDATE=1 cargo test --release --features mpi
+VELOX_VALIDATE=1 VELOX_MPI_TESTS=1 cargo test --release
 
 # The Python package, built and installed as a user gets it, against the command it wraps.
 tools/python-check.sh
@@ -27,13 +28,13 @@ tools/python-check.sh
 # 2. The op-level tests at NVIDIA's subgroup width, where the device is lavapipe. (grep reads
 # all of the output: with -q it could stop early, and pipefail would count the writer's broken
 # pipe as a failure, skipping this step.)
-if cargo run --release --features mpi -q -- info 2>/dev/null | grep 'llvmpipe' >/dev/null; then
+if cargo run --release -q -- info 2>/dev/null | grep 'llvmpipe' >/dev/null; then
   # The engine's op tests (the whole binary) and the layers built on them, with the GPU kernel
   # variants (step 1 ran lavapipe's own, the CPU variants), and the op tests once more with the
   # CPU variants at this width.
   export LP_NATIVE_VECTOR_WIDTH=1024
-  VELOX_CPU_KERNELS=0 cargo test --release -p velox-engine --test ops
-  VELOX_CPU_KERNELS=0 cargo test --release --features mpi --test models -- attention_layer:: layers::
-  cargo test --release -p velox-engine --test ops
+  VELOX_CPU_KERNELS=0 cargo test --release --test ops
+  VELOX_CPU_KERNELS=0 cargo test --release --test models -- attention_layer:: layers::
+  cargo test --release --test ops
   unset LP_NATIVE_VECTOR_WIDTH
 fi

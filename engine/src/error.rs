@@ -41,7 +41,7 @@ pub enum Error {
     /// why it failed.
     File { path: std::path::PathBuf, op: FileOp, reason: String },
     /// A multi-process run over MPI failed or cannot start (an MPI call's error, ranks that
-    /// disagree, a build without MPI started by mpirun); the message says which.
+    /// disagree, Open MPI's library missing under mpirun); the message says which.
     Mpi(String),
     /// The Khronos validation layer (`VELOX_VALIDATE`) reported errors; the message gives the
     /// first new one with its VUID.

@@ -1,7 +1,7 @@
 //! `velox train` as two MPI processes against one process accumulating two micro-batches: the
 //! same samples, the same draws, the gradients summed across the processes instead of into one
-//! buffer, so the runs end with the same parameters. `cargo test --release --features mpi
-//! --test distributed_train` (Open MPI's `openmpi-bin` and `libopenmpi-dev` installed).
+//! buffer, so the runs end with the same parameters. `cargo test --release --test
+//! distributed_train` (Open MPI's `openmpi-bin` installed).
 
 use std::path::Path;
 use std::process::{Command, Output};
@@ -25,6 +25,21 @@ fn mpirun() -> Command {
     c
 }
 
+/// Whether the two-process tests can run here: Open MPI's `mpirun` on the PATH. Where it is
+/// missing they say so and pass, unless `VELOX_MPI_TESTS=1` (the test command, tools/test.sh,
+/// sets it, having installed Open MPI), where that is a failure.
+fn mpirun_present() -> bool {
+    let found = Command::new("mpirun").arg("--version").output().is_ok_and(|o| o.status.success());
+    if !found {
+        assert!(
+            std::env::var("VELOX_MPI_TESTS").as_deref() != Ok("1"),
+            "VELOX_MPI_TESTS=1 but mpirun does not run: install Open MPI (Debian: openmpi-bin)"
+        );
+        eprintln!("skipped: no mpirun on the PATH (Debian: apt-get install openmpi-bin)");
+    }
+    found
+}
+
 fn ok(out: Output) -> String {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{:?}\n{err}", out.status);
@@ -34,6 +49,9 @@ fn ok(out: Output) -> String {
 #[test]
 fn two_processes_train_as_one_accumulating_two_micro_batches() {
     use velox_models::checkpoint::read_tensors;
+    if !mpirun_present() {
+        return;
+    }
 
     let dir = std::env::temp_dir().join(format!("velox-distributed-train-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);

@@ -3,11 +3,11 @@
 //! share of each step's micro-batches, and the ranks sum their gradients before the optimiser,
 //! so every rank applies the same update and the parameters stay identical everywhere.
 //!
-//! [`Comm::world`] is the run's communicator. Built with the cargo feature `mpi` and started by
-//! an MPI launcher, it initialises MPI (once per process); started without one, or built
-//! without the feature, it is a single-rank `Comm` whose collectives do nothing, so the same
-//! trainer runs alone. A build without the feature that finds itself one of several processes
-//! of an MPI launch refuses to start, rather than train N identical copies.
+//! [`Comm::world`] is the run's communicator. Started by an MPI launcher, it opens Open MPI's
+//! library (`super::mpi`: no build of velox links MPI) and initialises MPI, once per process;
+//! started without one, it is a single-rank `Comm` whose collectives do nothing, so the same
+//! trainer runs alone. A process of an MPI launch whose MPI library does not open refuses to
+//! start, rather than train N identical copies.
 //!
 //! A trainer's step, on every rank, with N ranks of k micro-batches each:
 //! 1. `store.zero_grads(&mut rec)` (`velox_models::params::ParamStore`);
@@ -31,8 +31,8 @@
 //! The MPI state lives as long as a `Comm` (clones share it) and is finalised when the last one
 //! is dropped: drop it before `std::process::exit`, or `mpirun` reports a rank that exited
 //! without finalising. MPI cannot start twice in a process, so a run keeps one `Comm` from
-//! start to end, on the thread that created it (a `Comm` is neither `Send` nor `Sync`, with or
-//! without the feature: MPI is initialised for calls from that thread only).
+//! start to end, on the thread that created it (a `Comm` is neither `Send` nor `Sync`, alone or
+//! not: MPI is initialised for calls from that thread only).
 //!
 //! Tests: `tests/distributed.rs` and `tools/tests/distributed_train.rs` (two processes over MPI).
 
@@ -60,7 +60,6 @@ pub struct Comm {
 enum Backend {
     /// One process: every collective is the identity.
     Single,
-    #[cfg(feature = "mpi")]
     Mpi(std::rc::Rc<mpi_world::World>),
 }
 
@@ -87,18 +86,6 @@ fn launch(var: impl Fn(&str) -> Option<String>) -> Result<Launch> {
     Ok(Launch::Alone)
 }
 
-#[cfg(not(feature = "mpi"))]
-fn start(launch: Launch) -> Result<Backend> {
-    match launch {
-        Launch::Mpi { size } if size > 1 => Err(Error::Mpi(format!(
-            "started as one of {size} processes of an MPI launch, but this velox was built without \
-             MPI: build with --features mpi (or each process would train its own copy alone)"
-        ))),
-        _ => Ok(Backend::Single),
-    }
-}
-
-#[cfg(feature = "mpi")]
 fn start(launch: Launch) -> Result<Backend> {
     match launch {
         Launch::Alone => Ok(Backend::Single),
@@ -107,10 +94,10 @@ fn start(launch: Launch) -> Result<Backend> {
 }
 
 impl Comm {
-    /// The run's communicator: MPI's world when built with the feature `mpi` and started by an
-    /// MPI launcher (initialising MPI on the first call; later calls on the same thread share
-    /// it), a single rank otherwise. Fails when a build without MPI is one of several processes
-    /// of an MPI launch, when MPI cannot start, or when MPI was started and finalised already.
+    /// The run's communicator: MPI's world when started by an MPI launcher (opening Open MPI's
+    /// library and initialising MPI on the first call; later calls on the same thread share it),
+    /// a single rank otherwise. Fails when a process of an MPI launch cannot open Open MPI's
+    /// library, when MPI cannot start, or when MPI was started and finalised already.
     pub fn world() -> Result<Comm> {
         let backend = start(launch(|name| std::env::var(name).ok())?)?;
         Ok(Comm { backend, bucket_len: DEFAULT_BUCKET_LEN, _one_thread: PhantomData })
@@ -125,8 +112,7 @@ impl Comm {
     pub fn rank(&self) -> usize {
         match &self.backend {
             Backend::Single => 0,
-            #[cfg(feature = "mpi")]
-            Backend::Mpi(w) => w.rank,
+                    Backend::Mpi(w) => w.rank,
         }
     }
 
@@ -134,8 +120,7 @@ impl Comm {
     pub fn size(&self) -> usize {
         match &self.backend {
             Backend::Single => 1,
-            #[cfg(feature = "mpi")]
-            Backend::Mpi(w) => w.size,
+                    Backend::Mpi(w) => w.size,
         }
     }
 
@@ -145,8 +130,7 @@ impl Comm {
     pub fn local_rank(&self) -> usize {
         match &self.backend {
             Backend::Single => 0,
-            #[cfg(feature = "mpi")]
-            Backend::Mpi(w) => w.local_rank,
+                    Backend::Mpi(w) => w.local_rank,
         }
     }
 
@@ -154,8 +138,7 @@ impl Comm {
     pub fn local_size(&self) -> usize {
         match &self.backend {
             Backend::Single => 1,
-            #[cfg(feature = "mpi")]
-            Backend::Mpi(w) => w.local_size,
+                    Backend::Mpi(w) => w.local_size,
         }
     }
 
@@ -214,8 +197,7 @@ impl Comm {
         }
         match &self.backend {
             Backend::Single => Ok(()),
-            #[cfg(feature = "mpi")]
-            Backend::Mpi(w) => w.all_reduce_sum(t, self.bucket_len),
+                    Backend::Mpi(w) => w.all_reduce_sum(t, self.bucket_len),
         }
     }
 
@@ -223,8 +205,6 @@ impl Comm {
     /// root's, whatever its length before. Every rank must name the same root. For the run's
     /// settings, a checkpoint, or a decision of the root (the data of a step) that every rank
     /// must follow.
-    // Without MPI there is one rank, the root, whose data stays as it is.
-    #[cfg_attr(not(feature = "mpi"), allow(unused_variables, clippy::ptr_arg))]
     pub fn broadcast_bytes(&self, root: usize, data: &mut Vec<u8>) -> Result<()> {
         if root >= self.size() {
             return Err(Error::Invalid(format!(
@@ -234,8 +214,7 @@ impl Comm {
         }
         match &self.backend {
             Backend::Single => Ok(()),
-            #[cfg(feature = "mpi")]
-            Backend::Mpi(w) => w.broadcast_bytes(root, data),
+                    Backend::Mpi(w) => w.broadcast_bytes(root, data),
         }
     }
 
@@ -243,8 +222,7 @@ impl Comm {
     pub fn all_gather_f64(&self, x: f64) -> Result<Vec<f64>> {
         match &self.backend {
             Backend::Single => Ok(vec![x]),
-            #[cfg(feature = "mpi")]
-            Backend::Mpi(w) => w.all_gather_f64(x),
+                    Backend::Mpi(w) => w.all_gather_f64(x),
         }
     }
 
@@ -252,8 +230,7 @@ impl Comm {
     pub fn barrier(&self) -> Result<()> {
         match &self.backend {
             Backend::Single => Ok(()),
-            #[cfg(feature = "mpi")]
-            Backend::Mpi(w) => w.barrier(),
+                    Backend::Mpi(w) => w.barrier(),
         }
     }
 
@@ -262,8 +239,7 @@ impl Comm {
     pub fn abort_all(&self, code: i32) -> ! {
         match &self.backend {
             Backend::Single => std::process::exit(code),
-            #[cfg(feature = "mpi")]
-            Backend::Mpi(w) => w.abort(code),
+                    Backend::Mpi(w) => w.abort(code),
         }
     }
 }
@@ -280,7 +256,6 @@ impl std::fmt::Debug for Comm {
 /// rounded up to a multiple of every rank's alignment, so that on every device each bucket
 /// starts where a view can. (The sums do not depend on it, but the ranks must exchange the
 /// same slices.)
-#[cfg_attr(not(feature = "mpi"), allow(dead_code))]
 fn agree_on_bucket(told: &[[u64; 3]]) -> Result<usize> {
     let first = told.first().map_or(0, |t| t[0]);
     if told.iter().any(|t| t[0] != first) {
@@ -311,7 +286,6 @@ fn agree_on_bucket(told: &[[u64; 3]]) -> Result<usize> {
 
 /// The sum over `ranks` of `slices` (the ranks' slices of `out.len()` elements, one after
 /// another in rank order), each element added in rank order: `((s_0 + s_1) + s_2) + ...`.
-#[cfg_attr(not(feature = "mpi"), allow(dead_code))]
 fn sum_in_rank_order(slices: &[f32], ranks: usize, out: &mut [f32]) {
     let n = out.len();
     debug_assert_eq!(slices.len(), n * ranks);
@@ -323,23 +297,19 @@ fn sum_in_rank_order(slices: &[f32], ranks: usize, out: &mut [f32]) {
     }
 }
 
-#[cfg(feature = "mpi")]
 mod mpi_world {
-    //! The MPI side of [`super::Comm`], on the raw MPI calls of the `mpi` crate, so that every
-    //! call's error code is checked (the crate's safe wrappers discard them) and returned as an
-    //! error naming the call and MPI's message: MPI errors are set to return on the run's
-    //! communicator instead of ending the job.
+    //! The MPI side of [`super::Comm`], on Open MPI's C calls (`super::mpi`), every call's
+    //! return code checked and returned as an error naming the call and MPI's message: MPI
+    //! errors are set to return on the run's communicator instead of ending the job.
 
     use std::cell::RefCell;
     use std::ffi::{c_int, c_void};
-    use std::mem::ManuallyDrop;
     use std::rc::{Rc, Weak};
     use std::sync::atomic::{AtomicBool, Ordering};
 
-    use mpi::environment::{Threading, Universe};
-    use mpi::ffi;
     use velox_engine::{Error, Result, Tensor};
 
+    use super::super::mpi::{self, Handle, Mpi};
     use super::{agree_on_bucket, sum_in_rank_order};
 
     /// Bytes per `MPI_Bcast` of a broadcast, so that a count fits MPI's `int`.
@@ -353,9 +323,9 @@ mod mpi_world {
     static STARTED: AtomicBool = AtomicBool::new(false);
 
     pub(super) struct World {
-        universe: ManuallyDrop<Universe>,
+        mpi: &'static Mpi,
         /// A duplicate of `MPI_COMM_WORLD`, whose errors return to the caller; null until made.
-        comm: ffi::MPI_Comm,
+        comm: Handle,
         pub rank: usize,
         pub size: usize,
         pub local_rank: usize,
@@ -363,15 +333,15 @@ mod mpi_world {
     }
 
     /// An MPI call's return code as a result that names the call.
-    fn check(code: c_int, call: &str) -> Result<()> {
-        if code == ffi::MPI_SUCCESS as c_int {
+    fn check(mpi: &Mpi, code: c_int, call: &str) -> Result<()> {
+        if code == mpi::SUCCESS {
             return Ok(());
         }
-        let mut text = vec![0u8; ffi::MPI_MAX_ERROR_STRING as usize + 1];
+        let mut text = vec![0u8; mpi::MAX_ERROR_STRING + 1];
         let mut len: c_int = 0;
         // SAFETY: the buffer holds MPI_MAX_ERROR_STRING characters, as MPI_Error_string needs.
-        let ok = unsafe { ffi::MPI_Error_string(code, text.as_mut_ptr().cast(), &mut len) };
-        let message = if ok == ffi::MPI_SUCCESS as c_int {
+        let ok = unsafe { (mpi.error_string)(code, text.as_mut_ptr().cast(), &mut len) };
+        let message = if ok == mpi::SUCCESS {
             String::from_utf8_lossy(&text[..(len.max(0) as usize).min(text.len())]).into_owned()
         } else {
             format!("error code {code}")
@@ -391,6 +361,7 @@ mod mpi_world {
             if let Some(world) = LIVE.with(|live| live.borrow().upgrade()) {
                 return Ok(world);
             }
+            let mpi = mpi::library()?;
             if STARTED.swap(true, Ordering::SeqCst) {
                 return Err(Error::Mpi(
                     "MPI was started once in this process already and was finalised when its last \
@@ -399,53 +370,68 @@ mod mpi_world {
                         .into(),
                 ));
             }
-            let (universe, _) = mpi::initialize_with_threading(Threading::Funneled).ok_or_else(|| {
-                Error::Mpi("MPI was initialised in this process by something other than velox".into())
-            })?;
+            let mut already: c_int = 0;
+            // SAFETY: MPI_Initialized may be called at any time; the out-pointer is valid.
+            check(mpi, unsafe { (mpi.initialized)(&mut already) }, "MPI_Initialized")?;
+            if already != 0 {
+                return Err(Error::Mpi("MPI was initialised in this process by something other than velox".into()));
+            }
+            let mut provided: c_int = 0;
+            // SAFETY: no arguments to pass on (null argc and argv are allowed); valid out-pointer.
+            let code = unsafe {
+                (mpi.init_thread)(std::ptr::null_mut(), std::ptr::null_mut(), mpi::THREAD_FUNNELED, &mut provided)
+            };
+            check(mpi, code, "MPI_Init_thread")?;
             // From here on, dropping `world` finalises MPI, on the error paths too.
             let mut world = World {
-                universe: ManuallyDrop::new(universe),
-                // SAFETY: reading a constant handle the mpi crate exports.
-                comm: unsafe { ffi::RSMPI_COMM_NULL },
+                mpi,
+                comm: mpi.comm_null,
                 rank: 0,
                 size: 1,
                 local_rank: 0,
                 local_size: 1,
             };
+            if provided < mpi::THREAD_FUNNELED {
+                return Err(Error::Mpi(format!(
+                    "MPI provides thread level {provided}, less than MPI_THREAD_FUNNELED, which a run \
+                     whose device work runs on other threads needs"
+                )));
+            }
             // SAFETY: MPI is initialised; the out-pointer is valid.
-            check(unsafe { ffi::MPI_Comm_dup(ffi::RSMPI_COMM_WORLD, &mut world.comm) }, "MPI_Comm_dup")?;
+            check(mpi, unsafe { (mpi.comm_dup)(mpi.comm_world, &mut world.comm) }, "MPI_Comm_dup")?;
             // SAFETY: `world.comm` is a valid communicator.
             check(
-                unsafe { ffi::MPI_Comm_set_errhandler(world.comm, ffi::RSMPI_ERRORS_RETURN) },
+                mpi,
+                unsafe { (mpi.comm_set_errhandler)(world.comm, mpi.errors_return) },
                 "MPI_Comm_set_errhandler",
             )?;
-            (world.rank, world.size) = rank_and_size(world.comm)?;
+            (world.rank, world.size) = rank_and_size(mpi, world.comm)?;
             if world.size != launched {
                 // An MPI library that did not recognise its launcher starts each process alone.
                 return Err(Error::Mpi(format!(
                     "the launcher started {launched} processes, but MPI's world holds {}: was this \
-                     velox started by the mpirun of the MPI it was built with (Open MPI)?",
+                     velox started by Open MPI's mpirun?",
                     world.size
                 )));
             }
-            // SAFETY: reading a constant handle the mpi crate exports.
-            let mut node = unsafe { ffi::RSMPI_COMM_NULL };
+            let mut node = mpi.comm_null;
             // SAFETY: valid communicator and constants; the out-pointer is valid.
             check(
+                mpi,
                 unsafe {
-                    ffi::MPI_Comm_split_type(
+                    (mpi.comm_split_type)(
                         world.comm,
-                        ffi::RSMPI_COMM_TYPE_SHARED,
+                        mpi::COMM_TYPE_SHARED,
                         world.rank as c_int,
-                        ffi::RSMPI_INFO_NULL,
+                        mpi.info_null,
                         &mut node,
                     )
                 },
                 "MPI_Comm_split_type",
             )?;
-            let local = rank_and_size(node);
+            let local = rank_and_size(mpi, node);
             // SAFETY: `node` was created above and is used no more.
-            let freed = check(unsafe { ffi::MPI_Comm_free(&mut node) }, "MPI_Comm_free");
+            let freed = check(mpi, unsafe { (mpi.comm_free)(&mut node) }, "MPI_Comm_free");
             (world.local_rank, world.local_size) = local?;
             freed?;
             let world = Rc::new(world);
@@ -488,14 +474,15 @@ mod mpi_world {
             let n = count(each, "MPI_Alltoall")?;
             // SAFETY: both buffers hold `each * size` f32; the communicator is valid.
             check(
+                self.mpi,
                 unsafe {
-                    ffi::MPI_Alltoall(
+                    (self.mpi.alltoall)(
                         send.as_ptr().cast::<c_void>(),
                         n,
-                        ffi::RSMPI_FLOAT,
+                        self.mpi.float,
                         recv.as_mut_ptr().cast::<c_void>(),
                         n,
-                        ffi::RSMPI_FLOAT,
+                        self.mpi.float,
                         self.comm,
                     )
                 },
@@ -511,7 +498,7 @@ mod mpi_world {
             &self,
             send: &[T],
             recv: &mut [T],
-            datatype: ffi::MPI_Datatype,
+            datatype: Handle,
         ) -> Result<()> {
             if recv.len() != send.len() * self.size {
                 return Err(Error::Invalid(format!(
@@ -525,8 +512,9 @@ mod mpi_world {
             // SAFETY: `recv` holds `send.len()` values of `datatype` per rank; the communicator is
             // valid.
             check(
+                self.mpi,
                 unsafe {
-                    ffi::MPI_Allgather(
+                    (self.mpi.allgather)(
                         send.as_ptr().cast::<c_void>(),
                         n,
                         datatype,
@@ -542,20 +530,20 @@ mod mpi_world {
 
         fn all_gather_f32(&self, send: &[f32], recv: &mut [f32]) -> Result<()> {
             // SAFETY: MPI_FLOAT is f32.
-            unsafe { self.all_gather(send, recv, ffi::RSMPI_FLOAT) }
+            unsafe { self.all_gather(send, recv, self.mpi.float) }
         }
 
         pub fn all_gather_f64(&self, x: f64) -> Result<Vec<f64>> {
             let mut all = vec![0f64; self.size];
             // SAFETY: MPI_DOUBLE is f64.
-            unsafe { self.all_gather(&[x], &mut all, ffi::RSMPI_DOUBLE) }?;
+            unsafe { self.all_gather(&[x], &mut all, self.mpi.double) }?;
             Ok(all)
         }
 
         fn all_gather_u64s(&self, x: &[u64]) -> Result<Vec<u64>> {
             let mut all = vec![0u64; x.len() * self.size];
             // SAFETY: MPI_UINT64_T is u64.
-            unsafe { self.all_gather(x, &mut all, ffi::RSMPI_UINT64_T) }?;
+            unsafe { self.all_gather(x, &mut all, self.mpi.uint64) }?;
             Ok(all)
         }
 
@@ -580,8 +568,9 @@ mod mpi_world {
             let n = count(piece.len(), "MPI_Bcast")?;
             // SAFETY: `piece` holds `n` bytes; root < size was checked by `Comm::broadcast_bytes`.
             check(
+                self.mpi,
                 unsafe {
-                    ffi::MPI_Bcast(piece.as_mut_ptr().cast(), n, ffi::RSMPI_UINT8_T, root as c_int, self.comm)
+                    (self.mpi.bcast)(piece.as_mut_ptr().cast(), n, self.mpi.uint8, root as c_int, self.comm)
                 },
                 "MPI_Bcast",
             )
@@ -589,22 +578,22 @@ mod mpi_world {
 
         pub fn barrier(&self) -> Result<()> {
             // SAFETY: the communicator is valid.
-            check(unsafe { ffi::MPI_Barrier(self.comm) }, "MPI_Barrier")
+            check(self.mpi, unsafe { (self.mpi.barrier)(self.comm) }, "MPI_Barrier")
         }
 
         pub fn abort(&self, code: i32) -> ! {
             // SAFETY: MPI is initialised; MPI_Abort does not return when it succeeds.
-            unsafe { ffi::MPI_Abort(ffi::RSMPI_COMM_WORLD, code) };
+            unsafe { (self.mpi.abort)(self.mpi.comm_world, code) };
             std::process::abort()
         }
     }
 
-    fn rank_and_size(comm: ffi::MPI_Comm) -> Result<(usize, usize)> {
+    fn rank_and_size(mpi: &Mpi, comm: Handle) -> Result<(usize, usize)> {
         let (mut rank, mut size): (c_int, c_int) = (0, 0);
         // SAFETY: a valid communicator and out-pointers.
-        check(unsafe { ffi::MPI_Comm_rank(comm, &mut rank) }, "MPI_Comm_rank")?;
+        check(mpi, unsafe { (mpi.comm_rank)(comm, &mut rank) }, "MPI_Comm_rank")?;
         // SAFETY: as above.
-        check(unsafe { ffi::MPI_Comm_size(comm, &mut size) }, "MPI_Comm_size")?;
+        check(mpi, unsafe { (mpi.comm_size)(comm, &mut size) }, "MPI_Comm_size")?;
         Ok((rank as usize, size as usize))
     }
 
@@ -620,12 +609,12 @@ mod mpi_world {
                 self.abort(1);
             }
             // SAFETY: no Comm uses the communicator any more (this is the last reference), and
-            // the universe is dropped once, here; its drop calls MPI_Finalize.
+            // MPI is finalised once, here.
             unsafe {
-                if self.comm != ffi::RSMPI_COMM_NULL {
-                    ffi::MPI_Comm_free(&mut self.comm);
+                if self.comm != self.mpi.comm_null {
+                    (self.mpi.comm_free)(&mut self.comm);
                 }
-                ManuallyDrop::drop(&mut self.universe);
+                (self.mpi.finalize)();
             }
         }
     }
@@ -674,16 +663,6 @@ mod tests {
             let e = launch(env(&[("OMPI_COMM_WORLD_SIZE", bad)])).unwrap_err().to_string();
             assert!(e.contains("OMPI_COMM_WORLD_SIZE") && e.contains("not a number of processes"), "{e}");
         }
-    }
-
-    #[cfg(not(feature = "mpi"))]
-    #[test]
-    fn a_build_without_mpi_refuses_to_be_one_of_several_processes() {
-        let e = start(Launch::Mpi { size: 2 }).err().expect("refused").to_string();
-        assert!(e.contains("this velox was built without MPI: build with --features mpi"), "{e}");
-        assert!(e.contains("2 processes"), "{e}");
-        assert!(matches!(start(Launch::Mpi { size: 1 }), Ok(Backend::Single)));
-        assert!(matches!(start(Launch::Alone), Ok(Backend::Single)));
     }
 
     #[test]

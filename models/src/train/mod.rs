@@ -8,6 +8,7 @@
 
 pub mod collective;
 pub mod distributed;
+mod mpi;
 pub mod log;
 pub mod order;
 pub mod plot;
