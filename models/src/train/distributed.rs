@@ -112,7 +112,7 @@ impl Comm {
     pub fn rank(&self) -> usize {
         match &self.backend {
             Backend::Single => 0,
-                    Backend::Mpi(w) => w.rank,
+            Backend::Mpi(w) => w.rank,
         }
     }
 
@@ -120,7 +120,7 @@ impl Comm {
     pub fn size(&self) -> usize {
         match &self.backend {
             Backend::Single => 1,
-                    Backend::Mpi(w) => w.size,
+            Backend::Mpi(w) => w.size,
         }
     }
 
@@ -130,7 +130,7 @@ impl Comm {
     pub fn local_rank(&self) -> usize {
         match &self.backend {
             Backend::Single => 0,
-                    Backend::Mpi(w) => w.local_rank,
+            Backend::Mpi(w) => w.local_rank,
         }
     }
 
@@ -138,7 +138,7 @@ impl Comm {
     pub fn local_size(&self) -> usize {
         match &self.backend {
             Backend::Single => 1,
-                    Backend::Mpi(w) => w.local_size,
+            Backend::Mpi(w) => w.local_size,
         }
     }
 
@@ -197,7 +197,7 @@ impl Comm {
         }
         match &self.backend {
             Backend::Single => Ok(()),
-                    Backend::Mpi(w) => w.all_reduce_sum(t, self.bucket_len),
+            Backend::Mpi(w) => w.all_reduce_sum(t, self.bucket_len),
         }
     }
 
@@ -214,7 +214,7 @@ impl Comm {
         }
         match &self.backend {
             Backend::Single => Ok(()),
-                    Backend::Mpi(w) => w.broadcast_bytes(root, data),
+            Backend::Mpi(w) => w.broadcast_bytes(root, data),
         }
     }
 
@@ -222,7 +222,7 @@ impl Comm {
     pub fn all_gather_f64(&self, x: f64) -> Result<Vec<f64>> {
         match &self.backend {
             Backend::Single => Ok(vec![x]),
-                    Backend::Mpi(w) => w.all_gather_f64(x),
+            Backend::Mpi(w) => w.all_gather_f64(x),
         }
     }
 
@@ -230,7 +230,7 @@ impl Comm {
     pub fn barrier(&self) -> Result<()> {
         match &self.backend {
             Backend::Single => Ok(()),
-                    Backend::Mpi(w) => w.barrier(),
+            Backend::Mpi(w) => w.barrier(),
         }
     }
 
@@ -239,7 +239,7 @@ impl Comm {
     pub fn abort_all(&self, code: i32) -> ! {
         match &self.backend {
             Backend::Single => std::process::exit(code),
-                    Backend::Mpi(w) => w.abort(code),
+            Backend::Mpi(w) => w.abort(code),
         }
     }
 }
@@ -374,23 +374,24 @@ mod mpi_world {
             // SAFETY: MPI_Initialized may be called at any time; the out-pointer is valid.
             check(mpi, unsafe { (mpi.initialized)(&mut already) }, "MPI_Initialized")?;
             if already != 0 {
-                return Err(Error::Mpi("MPI was initialised in this process by something other than velox".into()));
+                return Err(Error::Mpi(
+                    "MPI was initialised in this process by something other than velox".into(),
+                ));
             }
             let mut provided: c_int = 0;
             // SAFETY: no arguments to pass on (null argc and argv are allowed); valid out-pointer.
             let code = unsafe {
-                (mpi.init_thread)(std::ptr::null_mut(), std::ptr::null_mut(), mpi::THREAD_FUNNELED, &mut provided)
+                (mpi.init_thread)(
+                    std::ptr::null_mut(),
+                    std::ptr::null_mut(),
+                    mpi::THREAD_FUNNELED,
+                    &mut provided,
+                )
             };
             check(mpi, code, "MPI_Init_thread")?;
             // From here on, dropping `world` finalises MPI, on the error paths too.
-            let mut world = World {
-                mpi,
-                comm: mpi.comm_null,
-                rank: 0,
-                size: 1,
-                local_rank: 0,
-                local_size: 1,
-            };
+            let mut world =
+                World { mpi, comm: mpi.comm_null, rank: 0, size: 1, local_rank: 0, local_size: 1 };
             if provided < mpi::THREAD_FUNNELED {
                 return Err(Error::Mpi(format!(
                     "MPI provides thread level {provided}, less than MPI_THREAD_FUNNELED, which a run \
@@ -494,12 +495,7 @@ mod mpi_world {
         /// order. `datatype` must be the MPI type of `T`.
         ///
         /// SAFETY (of the callers): `datatype` describes `T`.
-        unsafe fn all_gather<T: Copy>(
-            &self,
-            send: &[T],
-            recv: &mut [T],
-            datatype: Handle,
-        ) -> Result<()> {
+        unsafe fn all_gather<T: Copy>(&self, send: &[T], recv: &mut [T], datatype: Handle) -> Result<()> {
             if recv.len() != send.len() * self.size {
                 return Err(Error::Invalid(format!(
                     "MPI_Allgather: {} values received for {} sent by each of {} ranks",

@@ -8,8 +8,8 @@
 
 pub mod collective;
 pub mod distributed;
-mod mpi;
 pub mod log;
+mod mpi;
 pub mod order;
 pub mod plot;
 pub mod source;

@@ -172,6 +172,9 @@ mod tests {
     fn a_library_that_is_not_open_mpi_is_refused_by_name() {
         // The C library is on every Linux machine and is no MPI.
         let e = open(&["libc.so.6"]).err().expect("refused").to_string();
-        assert!(e.contains("libc.so.6 is not Open MPI's library") && e.contains("ompi_mpi_comm_world"), "{e}");
+        assert!(
+            e.contains("libc.so.6 is not Open MPI's library") && e.contains("ompi_mpi_comm_world"),
+            "{e}"
+        );
     }
 }
