@@ -169,6 +169,17 @@ struct Kernels {
     /// The backward pass on f16 q, k, v (everything else f32).
     dq_f16: DqKernel,
     dkv_f16: DkvKernel,
+    /// The kernels for CPU devices (`attention_cpu.wgsl`, `attention_cpu_f16.wgsl`), in blocks
+    /// of [`CPU_BLOCK`] rows: the forward pass and the two backward ones, on f32 and on f16.
+    cpu: CpuKernels,
+    cpu_f16: CpuKernels,
+}
+
+#[derive(Clone, Copy)]
+struct CpuKernels {
+    fwd: ForwardKernel,
+    dq: DqKernel,
+    dkv: DkvKernel,
 }
 
 fn kernels_for(d: usize) -> Option<Kernels> {
@@ -183,6 +194,16 @@ fn kernels_for(d: usize) -> Option<Kernels> {
             dkv: ATTENTION_D16_BWD_DKV,
             dq_f16: ATTENTION_F16_D16_BWD_DQ,
             dkv_f16: ATTENTION_F16_D16_BWD_DKV,
+            cpu: CpuKernels {
+                fwd: ATTENTION_CPU_D16_FWD,
+                dq: ATTENTION_CPU_D16_BWD_DQ,
+                dkv: ATTENTION_CPU_D16_BWD_DKV,
+            },
+            cpu_f16: CpuKernels {
+                fwd: ATTENTION_CPU_F16_D16_FWD,
+                dq: ATTENTION_CPU_F16_D16_BWD_DQ,
+                dkv: ATTENTION_CPU_F16_D16_BWD_DKV,
+            },
         },
         32 => Kernels {
             fwd: ATTENTION_D32_FWD,
@@ -193,6 +214,16 @@ fn kernels_for(d: usize) -> Option<Kernels> {
             dkv: ATTENTION_D32_BWD_DKV,
             dq_f16: ATTENTION_F16_D32_BWD_DQ,
             dkv_f16: ATTENTION_F16_D32_BWD_DKV,
+            cpu: CpuKernels {
+                fwd: ATTENTION_CPU_D32_FWD,
+                dq: ATTENTION_CPU_D32_BWD_DQ,
+                dkv: ATTENTION_CPU_D32_BWD_DKV,
+            },
+            cpu_f16: CpuKernels {
+                fwd: ATTENTION_CPU_F16_D32_FWD,
+                dq: ATTENTION_CPU_F16_D32_BWD_DQ,
+                dkv: ATTENTION_CPU_F16_D32_BWD_DKV,
+            },
         },
         64 => Kernels {
             fwd: ATTENTION_D64_FWD,
@@ -203,6 +234,16 @@ fn kernels_for(d: usize) -> Option<Kernels> {
             dkv: ATTENTION_D64_BWD_DKV,
             dq_f16: ATTENTION_F16_D64_BWD_DQ,
             dkv_f16: ATTENTION_F16_D64_BWD_DKV,
+            cpu: CpuKernels {
+                fwd: ATTENTION_CPU_D64_FWD,
+                dq: ATTENTION_CPU_D64_BWD_DQ,
+                dkv: ATTENTION_CPU_D64_BWD_DKV,
+            },
+            cpu_f16: CpuKernels {
+                fwd: ATTENTION_CPU_F16_D64_FWD,
+                dq: ATTENTION_CPU_F16_D64_BWD_DQ,
+                dkv: ATTENTION_CPU_F16_D64_BWD_DKV,
+            },
         },
         72 => Kernels {
             fwd: ATTENTION_D72_FWD,
@@ -213,9 +254,48 @@ fn kernels_for(d: usize) -> Option<Kernels> {
             dkv: ATTENTION_D72_BWD_DKV,
             dq_f16: ATTENTION_F16_D72_BWD_DQ,
             dkv_f16: ATTENTION_F16_D72_BWD_DKV,
+            cpu: CpuKernels {
+                fwd: ATTENTION_CPU_D72_FWD,
+                dq: ATTENTION_CPU_D72_BWD_DQ,
+                dkv: ATTENTION_CPU_D72_BWD_DKV,
+            },
+            cpu_f16: CpuKernels {
+                fwd: ATTENTION_CPU_F16_D72_FWD,
+                dq: ATTENTION_CPU_F16_D72_BWD_DQ,
+                dkv: ATTENTION_CPU_F16_D72_BWD_DKV,
+            },
         },
         _ => return None,
     })
+}
+
+/// Rows per work item of the CPU kernels: one SIMD group of 8 lanes, a row each.
+pub const CPU_BLOCK: usize = 8;
+
+/// The CPU kernels for head width `d` and q's dtype, where this device takes them: a CPU device
+/// (`Caps::cpu_kernels`) whose subgroups are exactly the kernels' workgroup of 8 lanes (their
+/// shuffles read the other lanes; on wider SIMD groups lanes would idle, and lavapipe at 16 or
+/// 32 lanes compiles them for minutes), and that can make all three.
+fn cpu_kernels(gpu: &Gpu, d: usize, dtype: DType) -> Option<CpuKernels> {
+    let caps = gpu.caps();
+    let one_simd_group =
+        caps.min_subgroup_size == CPU_BLOCK as u32 && caps.max_subgroup_size == CPU_BLOCK as u32;
+    if !caps.cpu_kernels || !one_simd_group {
+        return None;
+    }
+    let kern = kernels_for(d)?;
+    let k = if dtype == DType::F16 { kern.cpu_f16 } else { kern.cpu };
+    (gpu.supports(k.fwd) && gpu.supports(k.dq) && gpu.supports(k.dkv)).then_some(k)
+}
+
+/// Which attention kernels inputs of head width `d` and `dtype` run on this device when no
+/// cooperative-matrix kernel takes them, for `velox info` and the benchmarks.
+pub fn portable_variant(gpu: &Gpu, d: usize, dtype: DType) -> &'static str {
+    if cpu_kernels(gpu, d, dtype).is_some() {
+        "CPU: a SIMD group of 8 rows, keys shared by subgroup shuffles, no workgroup memory"
+    } else {
+        "portable: a row per invocation, keys staged in workgroup memory"
+    }
 }
 
 /// Shapes (nq, nk, heads, head_dim) after checking q, k, v and the segments.
@@ -311,7 +391,10 @@ pub fn coop_forward_chosen(
 /// the benchmarks (segments of at least [`COOP_MIN_ROWS_PER_SEGMENT`] rows on average).
 pub fn f16_forward_variant(gpu: &Gpu, d: usize) -> String {
     let Some((_, short)) = coop_forward_kernel(gpu, d, false) else {
-        return "portable: f16 inputs widened to f32, f32 arithmetic".into();
+        return format!(
+            "{}; f16 inputs widened to f32, f32 arithmetic",
+            portable_variant(gpu, d, DType::F16)
+        );
     };
     // A tall block that does not fit gives way to the short one.
     let tall = coop_forward_kernel(gpu, d, true).map_or(short, |(_, rows)| rows);
@@ -387,9 +470,14 @@ pub fn attention(
         return Ok(AttentionOut { o, lse });
     }
     let kern = kernels_for(d).expect("checked");
+    let portable = match cpu_kernels(&gpu, d, q.dtype()) {
+        Some(cpu) => (cpu.fwd, CPU_BLOCK),
+        None if q.dtype() == DType::F16 => (kern.fwd_f16, BLOCK),
+        None => (kern.fwd, BLOCK),
+    };
     let (kernel, block) = match q.dtype() {
-        DType::F16 => coop_forward_chosen(&gpu, d, nq, seg.count()).unwrap_or((kern.fwd_f16, BLOCK)),
-        _ => (kern.fwd, BLOCK),
+        DType::F16 => coop_forward_chosen(&gpu, d, nq, seg.count()).unwrap_or(portable),
+        _ => portable,
     };
     let (list, capacity) = seg.work_list(rec, false, nq, block)?;
     let p = params(h, capacity, scale, nq, nk)?;
@@ -476,11 +564,14 @@ pub fn attention_backward_into(
     }
     let delta = Tensor::empty(&gpu, &[nq, h], DType::F32)?;
     let kern = kernels_for(d).expect("checked");
-    let (dq_kernel, dkv_kernel) =
-        if q.dtype() == DType::F16 { (kern.dq_f16, kern.dkv_f16) } else { (kern.dq, kern.dkv) };
+    let (dq_kernel, dkv_kernel, block) = match cpu_kernels(&gpu, d, q.dtype()) {
+        Some(cpu) => (cpu.dq, cpu.dkv, CPU_BLOCK),
+        None if q.dtype() == DType::F16 => (kern.dq_f16, kern.dkv_f16, BLOCK),
+        None => (kern.dq, kern.dkv, BLOCK),
+    };
     let (o, lse) = (&out.o, &out.lse);
     if nq > 0 {
-        let (q_list, q_capacity) = seg.work_list(rec, false, nq, BLOCK)?;
+        let (q_list, q_capacity) = seg.work_list(rec, false, nq, block)?;
         let p = params(h, q_capacity, scale, nq, nk)?;
         let (q_off, k_off, work) = (&seg.q_offsets, &seg.k_offsets, &q_list);
         let args =
@@ -488,7 +579,7 @@ pub fn attention_backward_into(
         rec.dispatch_linear(dq_kernel, (q_capacity * h) as u64, args, &p)?;
     }
     if nk > 0 {
-        let (k_list, k_capacity) = seg.work_list(rec, true, nk, BLOCK)?;
+        let (k_list, k_capacity) = seg.work_list(rec, true, nk, block)?;
         let p = params(h, k_capacity, scale, nq, nk)?;
         let (q_off, k_off, work) = (&seg.q_offsets, &seg.k_offsets, &k_list);
         let args =

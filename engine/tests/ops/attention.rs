@@ -436,3 +436,19 @@ fn bad_shapes_widths_and_offsets_are_handled() {
         assert!(t.read::<f32>().unwrap().iter().all(|v| v.is_finite()));
     }
 }
+
+#[test]
+fn cpu_devices_with_eight_lane_subgroups_take_the_cpu_kernels() {
+    // The rule in attention.rs: a CPU device (or VELOX_CPU_KERNELS=1) whose subgroups are
+    // exactly 8 lanes runs the CPU kernels at every head width and dtype; any other device the
+    // portable ones. A CPU kernel the device could not make would silently fall back here.
+    let gpu = gpu();
+    let caps = gpu.caps();
+    let takes = caps.cpu_kernels && caps.min_subgroup_size == 8 && caps.max_subgroup_size == 8;
+    for d in attention::HEAD_DIMS {
+        for dtype in [velox_engine::DType::F32, velox_engine::DType::F16] {
+            let variant = attention::portable_variant(&gpu, d, dtype);
+            assert_eq!(variant.starts_with("CPU"), takes, "d {d} {dtype:?}: {variant}");
+        }
+    }
+}

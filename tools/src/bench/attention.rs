@@ -196,11 +196,8 @@ pub fn run(gpu: &Gpu, sizes: SizeSet, repeats: u32) -> Result<Vec<Record>> {
         let bwd_bytes = |elem: f64| {
             elem * (2.0 * q_vals + 2.0 * kv_vals) + 4.0 * q_vals + lse + 4.0 * (q_vals + 2.0 * kv_vals)
         };
-        let portable = "portable: a row per thread, f32 arithmetic";
-        let f16_fwd_kernel = match coop {
-            Some(_) => attention::f16_forward_variant(gpu, d),
-            None => portable.to_string(),
-        };
+        let portable = attention::portable_variant(gpu, d, DType::F32);
+        let f16_fwd_kernel = attention::f16_forward_variant(gpu, d);
         for (pass, precision, ms, min, f, got, want, bytes, kernel) in [
             ("fwd", "f32", fwd_ms, fwd_min, flops, &fwd_got, &fwd_want, fwd_bytes(4.0), portable.to_string()),
             (
@@ -234,7 +231,7 @@ pub fn run(gpu: &Gpu, sizes: SizeSet, repeats: u32) -> Result<Vec<Record>> {
                 &bwd16_got,
                 &bwd_want,
                 bwd_bytes(2.0),
-                portable.to_string(),
+                attention::portable_variant(gpu, d, DType::F16).to_string(),
             ),
         ] {
             let tflops = f / (ms * 1e-3) / 1e12;
