@@ -452,3 +452,17 @@ fn cpu_devices_with_eight_lane_subgroups_take_the_cpu_kernels() {
         }
     }
 }
+
+#[test]
+fn portable_attention_kernels_use_no_subgroup_operations() {
+    // What tools/test.sh relies on to run the attention op tests with the GPU kernels at the
+    // default width only (lavapipe compiles them three times longer at 32 lanes): with no
+    // subgroup operation, the subgroup width cannot change what they compute.
+    // Their modules: attention.wgsl's and attention_f16.wgsl's, one per head width.
+    let portable = |file: &str| file.starts_with("attention_d") || file.starts_with("attention_f16_d");
+    let kernels: Vec<_> = velox_engine::kernels::KERNELS.iter().filter(|k| portable(k.file)).collect();
+    assert_eq!(kernels.len(), 2 * 3 * attention::HEAD_DIMS.len(), "forward, dQ, dK/dV per width and dtype");
+    for k in kernels {
+        assert!(!k.needs.subgroups, "{}::{} uses subgroup operations", k.file, k.entry);
+    }
+}
