@@ -63,14 +63,16 @@ fn losses(gpu: &Gpu, scene: &TrainScene, precision: Precision, steps: u64) -> Ve
 }
 
 #[test]
-fn f16_training_follows_f32_for_200_steps() {
+fn f16_training_follows_f32_for_100_steps() {
     // The tolerance: every step's loss within 1 % of the f32 run's, and 0.1 % on average over
-    // the run. Measured on lavapipe (portable f16 kernels): at most 0.15 %, 0.008 % on average;
-    // the loss falls from 1.25 to 0.79 in both runs.
+    // the run. Measured on lavapipe (portable f16 kernels): at most 0.066 %, 0.016 % on
+    // average; the loss falls from 1.15 to 0.43 in both runs. (100 steps: the loss scale, which
+    // grows after 1000 good ones, stays at its start in both lengths of run; 200 steps took
+    // the suite's longest test, 76 s, and stayed within the same bounds.)
     let gpu = gpu();
     let dir = temp_dir("follow");
     let scene = upload(&gpu, &host_scene(&gpu, &dir));
-    let steps = 200;
+    let steps = 100;
     let full = losses(&gpu, &scene, Precision::F32, steps);
     let half = losses(&gpu, &scene, Precision::F16, steps);
     let rel: Vec<f64> = full.iter().zip(&half).map(|(a, b)| (a - b).abs() / a.abs()).collect();
