@@ -48,10 +48,16 @@ const NONE: u32 = 0xffffffffu;
 @group(0) @binding(9) var<storage, read_write> out_depth: array<f32>;
 @group(0) @binding(10) var<storage, read_write> out_bary: array<f32>;
 @group(0) @binding(11) var<storage, read_write> out_rgb: array<u32>;
+// RGB per vertex, multiplying the texture (glTF's COLOR_0; 1 where the mesh has none).
+@group(0) @binding(12) var<storage, read> colours: array<f32>;
 var<immediate> pc: Params;
 
 fn vertex(i: u32) -> vec3<f32> {
     return vec3<f32>(verts[3u * i], verts[3u * i + 1u], verts[3u * i + 2u]);
+}
+
+fn vertex_colour(i: u32) -> vec3<f32> {
+    return vec3<f32>(colours[3u * i], colours[3u * i + 1u], colours[3u * i + 2u]);
 }
 
 // Pixel coordinates (x, y) and view-space depth z of world point p in view `view`.
@@ -239,7 +245,10 @@ fn shade(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: ve
     let i2 = tris[3u * tri + 2u];
     let uv = b.x * vec2<f32>(uvs[2u * i0], uvs[2u * i0 + 1u]) + b.y * vec2<f32>(uvs[2u * i1], uvs[2u * i1 + 1u])
         + b.z * vec2<f32>(uvs[2u * i2], uvs[2u * i2 + 1u]);
-    let albedo = sample_texture(tri_tex[tri], uv);
+    // From vertex 0 by the other two's differences: exactly 1 where every vertex is white.
+    let c0 = vertex_colour(i0);
+    let tint = c0 + b.y * (vertex_colour(i1) - c0) + b.z * (vertex_colour(i2) - c0);
+    let albedo = sample_texture(tri_tex[tri], uv) * tint;
     let v0 = vertex(i0);
     let n = cross(vertex(i1) - v0, vertex(i2) - v0);
     let len = length(n);

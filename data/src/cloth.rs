@@ -324,6 +324,7 @@ pub fn scene(gpu: &Gpu, seed: u64, images: Option<&ImageFolder>) -> DataResult<(
         uvs: pat.uvs,
         tri_texture: vec![0; tris],
         textures: vec![texture],
+        colours: Vec::new(),
     };
     Ok((mesh, record))
 }

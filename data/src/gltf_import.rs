@@ -2,7 +2,8 @@
 //! under the node hierarchy of the default scene, skins (linear blend skinning with the
 //! inverse bind matrices), morph targets (positions), node and morph-weight animation with
 //! step, linear (slerp for rotations) and cubic-spline interpolation, and base-colour textures
-//! times the base-colour factor (the factor alone where there is no texture).
+//! times the base-colour factor (the factor alone where there is no texture) times the
+//! vertex colours (`COLOR_0`, its RGB; alpha is not read), as the specification composes them.
 //!
 //! One animation is sampled at 24 evenly spaced times from its first to its last keyframe (a
 //! file without animation gives a still clip); the clip is then normalised into [-1, 1]^3 like
@@ -348,6 +349,23 @@ fn import_checked(path: &Path, animation: Option<usize>) -> DataResult<Imported>
                     gmesh.index()
                 )));
             }
+            let colours: Vec<[f32; 3]> = match reader.read_colors(0) {
+                Some(c) => c.into_rgb_f32().collect(),
+                None => vec![[1.0; 3]; n],
+            };
+            if colours.len() != n {
+                return Err(bad(format!(
+                    "mesh {}: {} colours for {n} vertices",
+                    gmesh.index(),
+                    colours.len()
+                )));
+            }
+            if let Some(c) = colours.iter().flatten().find(|c| !(0.0..=1.0).contains(*c)) {
+                return Err(bad(format!(
+                    "mesh {}: COLOR_0 holds {c}, outside [0, 1] where the specification keeps colours",
+                    gmesh.index()
+                )));
+            }
             let default_weights: Vec<f32> = gmesh.weights().map(|w| w.to_vec()).unwrap_or_default();
             let skinning = match (joint_mats, reader.read_joints(0), reader.read_weights(0)) {
                 (Some(mats), Some(j), Some(w)) => {
@@ -396,12 +414,17 @@ fn import_checked(path: &Path, animation: Option<usize>) -> DataResult<Imported>
                 mesh.frames[f].extend(verts);
             }
             mesh.uvs.extend(uvs);
+            mesh.colours.extend(colours);
             mesh.triangles.extend(tris.iter().map(|t| t.map(|i| i + base)));
             mesh.tri_texture.extend(std::iter::repeat_n(tex, tris.len()));
         }
     }
     if mesh.triangles.is_empty() {
         return Err(bad("the default scene has no triangle meshes".into()));
+    }
+    // A file without vertex colours keeps none (white): the mesh is then the one it was.
+    if mesh.colours.iter().all(|c| *c == [1.0; 3]) {
+        mesh.colours.clear();
     }
     // An animation whose keys hold one pose (a T-pose clip) imports as a still scene: legal,
     // but not what a user importing an animation means, so it is said.

@@ -455,12 +455,13 @@ fn meshes(root: &Root) -> Check {
                         needs_data: true,
                     }
                     .check(root, index, &at)?,
-                    Checked::Valid(Semantic::Colors(_)) => Use {
+                    Checked::Valid(Semantic::Colors(set)) => Use {
                         what,
                         types: &[Type::Vec3, Type::Vec4],
                         plain: FLOAT,
                         normalized: UNSIGNED_8_16,
-                        needs_data: false,
+                        // COLOR_0 is read; other sets are not.
+                        needs_data: *set == 0,
                     }
                     .check(root, index, &at)?,
                     Checked::Valid(Semantic::Joints(_)) => Use {

@@ -47,6 +47,10 @@ pub struct AnimatedMesh {
     /// Texture of each triangle (index into `textures`).
     pub tri_texture: Vec<u32>,
     pub textures: Vec<Texture>,
+    /// A colour per vertex that multiplies its triangle's texture (glTF's `COLOR_0`, RGB in
+    /// [0, 1], read like the base-colour factor), interpolated across each triangle; empty for
+    /// a mesh without, which is white.
+    pub colours: Vec<[f32; 3]>,
 }
 
 impl AnimatedMesh {
@@ -62,6 +66,15 @@ impl AnimatedMesh {
         }
         let base = self.num_vertices() as u32;
         let tex_base = self.textures.len() as u32;
+        if !(self.colours.is_empty() && other.colours.is_empty()) {
+            // Either side without colours is white.
+            self.colours.resize(base as usize, [1.0; 3]);
+            let theirs = other.num_vertices();
+            match other.colours.is_empty() {
+                true => self.colours.resize(base as usize + theirs, [1.0; 3]),
+                false => self.colours.extend_from_slice(&other.colours),
+            }
+        }
         for (mine, theirs) in self.frames.iter_mut().zip(other.frames) {
             mine.extend(theirs);
         }
@@ -89,6 +102,12 @@ impl AnimatedMesh {
         }
         if self.uvs.iter().flatten().any(|v| !v.is_finite()) {
             return bad("mesh has non-finite texture coordinates".into());
+        }
+        if !self.colours.is_empty() && self.colours.len() != n {
+            return bad(format!("{} vertex colours for {n} vertices", self.colours.len()));
+        }
+        if let Some(c) = self.colours.iter().flatten().find(|c| !(0.0..=1.0).contains(*c)) {
+            return bad(format!("a vertex colour of {c}: colours are in [0, 1]"));
         }
         if self.triangles.iter().flatten().any(|&i| i as usize >= n) {
             return bad(format!("a triangle index is out of range ({n} vertices)"));

@@ -76,6 +76,8 @@ pub struct MeshRasteriser {
     tri_tex: Tensor,
     tex_table: Tensor,
     texels: Tensor,
+    /// RGB per vertex (white for a mesh without colours).
+    colours: Tensor,
     pub shading: Shading,
 }
 
@@ -90,6 +92,10 @@ impl MeshRasteriser {
             table.extend([texels.len() as u32, t.width, t.height, 0]);
             texels.extend_from_slice(&t.texels);
         }
+        let colours: Vec<f32> = match mesh.colours.is_empty() {
+            true => vec![1.0; 3 * mesh.num_vertices()],
+            false => mesh.colours.iter().flatten().copied().collect(),
+        };
         let n_tris = u32::try_from(mesh.triangles.len())
             .map_err(|_| DataError::Invalid("more than 2^32 triangles".into()))?;
         Ok(MeshRasteriser {
@@ -101,6 +107,7 @@ impl MeshRasteriser {
             tri_tex: Tensor::from_slice(gpu, &[mesh.tri_texture.len()], &mesh.tri_texture)?,
             tex_table: Tensor::from_slice(gpu, &[table.len()], &table)?,
             texels: Tensor::from_slice(gpu, &[texels.len()], &texels)?,
+            colours: Tensor::from_slice(gpu, &[colours.len()], &colours)?,
             shading: Shading::default(),
         })
     }
@@ -204,6 +211,7 @@ impl MeshRasteriser {
                 out_depth: &depth,
                 out_bary: &bary,
                 out_rgb: &rgb,
+                colours: &self.colours,
             },
             &params,
         )?;

@@ -1406,3 +1406,77 @@ fn a_background_colours_the_views_and_never_the_cloud() {
     assert!(e.to_string().contains("background [1.5, 0.0, 0.0]: each channel must lie in [0, 1]"), "{e}");
     let _ = std::fs::remove_dir_all(&root);
 }
+
+/// The channels of each pixel that shows the surface, as fractions of 255.
+fn surface_rgb(frame: &velox::data::raster::Frame) -> Vec<[f64; 3]> {
+    (0..frame.ids.len())
+        .filter(|&k| frame.ids[k] != NO_TRIANGLE)
+        .map(|k| [0, 8, 16].map(|s| ((frame.rgb[k] >> s) & 255) as f64 / 255.0))
+        .collect()
+}
+
+#[test]
+fn vertex_colours_multiply_the_base_colour_in_the_import_and_the_render() {
+    // The quad with COLOR_0 as normalised unsigned bytes (RGBA) and as floats (RGB), and a
+    // base-colour factor: the import keeps every vertex's colour, and the render shows the
+    // product (a pink model imported white before). Shading scales the three channels alike,
+    // so their ratios are the product's.
+    let dir = temp_dir("vertex-colours");
+    let pink = [1.0f32, 0.4, 0.7];
+    let factor = [0.5f32, 1.0, 1.0];
+    let bytes: Vec<u8> = (0..4).flat_map(|_| [255u8, 102, 179, 255]).collect();
+    let floats: Vec<u8> = (0..4).flat_map(|_| pink).flat_map(f32::to_le_bytes).collect();
+    let cams: Vec<Camera> = input_cameras(16);
+    let (v, bin) = quad_parts();
+    let plain = import_quad(&dir, "plain.glb", &v, &bin);
+    assert!(plain.mesh.colours.is_empty(), "a file without COLOR_0 has no vertex colours");
+    for (name, data, component, ty) in [("bytes", &bytes, 5121, "VEC4"), ("floats", &floats, 5126, "VEC3")] {
+        let (mut v, mut bin) = quad_parts();
+        let view = add_view(&mut v, &mut bin, data);
+        let accessors = v["accessors"].as_array_mut().unwrap();
+        accessors
+            .push(json!({"bufferView": view, "componentType": component, "normalized": component != 5126,
+                              "count": 4, "type": ty}));
+        let index = accessors.len() - 1;
+        v["meshes"][0]["primitives"][0]["attributes"]["COLOR_0"] = index.into();
+        v["meshes"][0]["primitives"][0]["material"] = 0.into();
+        v["materials"] =
+            json!([{"pbrMetallicRoughness": {"baseColorFactor": [factor[0], factor[1], factor[2], 1.0]}}]);
+        let got = import_quad(&dir, &format!("{name}.glb"), &v, &bin);
+        assert_eq!(got.mesh.colours.len(), 4, "{name}");
+        for c in &got.mesh.colours {
+            for k in 0..3 {
+                assert!((c[k] - pink[k]).abs() < 1.0 / 255.0, "{name}: vertex colour {c:?}, want {pink:?}");
+            }
+        }
+        let rast = MeshRasteriser::new(&gpu(), &got.mesh).unwrap();
+        let rgb = surface_rgb(&rast.render(&got.mesh.frames[0], &cams).unwrap());
+        let bright: Vec<&[f64; 3]> = rgb.iter().filter(|c| c[0] > 0.3).collect();
+        assert!(bright.len() > 50, "{name}: {} lit pixels show the quad", bright.len());
+        let want = [0, 1, 2].map(|k| (factor[k] * pink[k]) as f64);
+        for c in bright {
+            for k in 1..3 {
+                let (ratio, expected) = (c[k] / c[0], want[k] / want[0]);
+                assert!(
+                    (ratio - expected).abs() < 0.03,
+                    "{name}: pixel {c:?}: channel {k} / red {ratio}, want {expected}"
+                );
+            }
+        }
+    }
+    // The same quad without COLOR_0 renders the factor alone.
+    let rast = MeshRasteriser::new(&gpu(), &plain.mesh).unwrap();
+    let rgb = surface_rgb(&rast.render(&plain.mesh.frames[0], &cams).unwrap());
+    assert!(rgb.iter().all(|c| c[0] == c[1] && c[1] == c[2]), "the plain quad is grey");
+    // Colours outside [0, 1] are refused by name.
+    let (mut v, mut bin) = quad_parts();
+    let too_bright: Vec<u8> = (0..4).flat_map(|_| [2.0f32, 0.5, 0.5]).flat_map(f32::to_le_bytes).collect();
+    let view = add_view(&mut v, &mut bin, &too_bright);
+    let accessors = v["accessors"].as_array_mut().unwrap();
+    accessors.push(json!({"bufferView": view, "componentType": 5126, "count": 4, "type": "VEC3"}));
+    let index = accessors.len() - 1;
+    v["meshes"][0]["primitives"][0]["attributes"]["COLOR_0"] = index.into();
+    let e = import_file(&dir, "too_bright.glb", &glb(&v.to_string(), &bin)).unwrap_err();
+    assert!(e.contains("too_bright.glb") && e.contains("COLOR_0") && e.contains("[0, 1]"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
