@@ -11,8 +11,8 @@
 # tools/peers/torch_cpu.py runs this on the CPU with lavapipe's thread count.
 """Times PyTorch at the shapes and precisions of our benchmark records.
 
-For every record it can map (matmuls, softmax, scan, sort, scatter-add; fused attention; the
-layers; the encoder network) it builds the same computation in PyTorch on random inputs and
+For every record it can map (matmuls, softmax, scan, sort, scatter-add, row gathers; fused
+attention; the layers; the encoder network) it builds the same computation in PyTorch on random inputs and
 times it with our policy (`tools/src/bench/mod.rs`, `time_gpu`): one warm-up run, then the
 record's `repeats` runs (or `--repeats`), each timed alone with an idle gap after it, the
 median (the upper one for an even count, as ours) and the minimum reported; no cache flush on
@@ -52,7 +52,7 @@ SUITES = ("kernels", "attention", "layers", "models")
 RECORD_KEYS = ("name", "shape", "precision", "median_ms", "repeats")
 # Name prefixes of each suite's records (tools/src/bench/*.rs).
 SUITE_PREFIXES = {
-    "kernels": ("matmul", "softmax", "exclusive scan", "radix sort", "scatter-add",
+    "kernels": ("matmul", "softmax", "exclusive scan", "radix sort", "scatter-add", "gather rows",
                 "farthest point sampling", "nearest-query assignment"),
     "attention": ("attn ", "window matmuls"),
     "layers": ("linear (bias)", "rmsnorm", "layernorm (affine)", "swiglu feed-forward",
@@ -199,6 +199,15 @@ def scatter_case(record, dev):
         return out.index_add_(0, index, src)
     return Case("out.zero_(); out.index_add_(0, index, src)", "int64 row indices (ours: u32); "
                 "the zero fill is timed, as ours", run)
+
+
+def gather_case(record, dev):
+    rows, src_rows, width = parse(r"(\d+) of (\d+)x(\d+)", record["shape"], "gather rows")
+    float_dtype(record["precision"], f16=False)
+    src = normal([src_rows, width], dev)
+    index = torch.randint(0, src_rows, (rows,), device=dev)
+    return Case("src.index_select(0, index)", "int64 row indices (ours: u32)",
+                lambda: src.index_select(0, index))
 
 
 # --- attention -------------------------------------------------------------------------------
@@ -489,6 +498,8 @@ def case_for(record, dev):
         return builders[name](record, dev)
     if name.startswith("scatter-add"):
         return scatter_case(record, dev)
+    if name.startswith("gather rows"):
+        return gather_case(record, dev)
     if name.startswith("attn "):
         return attention_case(record, dev)
     if suite_of(name) == "layers":

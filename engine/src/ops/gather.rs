@@ -1,4 +1,4 @@
-//! Row gather. Kernel: `shaders/gather.wgsl`.
+//! Row gather. Kernels: `shaders/gather.wgsl`, and `shaders/gather_vec4.wgsl` on CPU devices.
 //!
 //! Tests: the harness's `gather` row (`engine/tests/ops/cases.rs`: forward against the f64
 //! reference at awkward shapes); `engine/tests/ops/elementwise.rs` (with scatter-add, bad indices).
@@ -6,7 +6,7 @@
 use crate::error::{Error, Result};
 use crate::fit_u32;
 use crate::kernels::args;
-use crate::kernels::{GATHER_INVERT, GATHER_MAIN};
+use crate::kernels::{GATHER_INVERT, GATHER_MAIN, GATHER_VEC4_MAIN};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
@@ -18,6 +18,12 @@ pub(crate) fn rows_width(t: &Tensor) -> Result<(usize, usize)> {
         [] => Err(Error::Shape(format!("{t:?} has no row axis"))),
         [r, rest @ ..] => Ok((*r, rest.iter().product())),
     }
+}
+
+/// Whether rows of `width` floats are gathered a vec4 at a time (`gather_vec4.wgsl`): on CPU
+/// devices (`Caps::cpu_kernels`), for widths of a multiple of 4. GPUs keep `gather.wgsl`.
+fn vec4_rows(gpu: &crate::Gpu, width: usize) -> bool {
+    gpu.caps().cpu_kernels && width.is_multiple_of(4) && gpu.supports(GATHER_VEC4_MAIN)
 }
 
 /// out[r] = src[idx[r]] for every r (rows are the first axis; idx is u32 of any shape whose
@@ -53,12 +59,19 @@ fn gather_with(rec: &mut Recorder, src: &Tensor, idx: &Tensor, base: Option<&Ten
     };
     fit(total)?;
     // Without `base`, src stands in for the binding the kernel then does not read.
-    rec.dispatch_elements(
-        GATHER_MAIN,
-        total as u64,
-        args::GatherMainArgs { src, idx, out: &out, base: base.unwrap_or(src) },
-        &p,
-    )?;
+    let base = base.unwrap_or(src);
+    if vec4_rows(src.gpu(), width) {
+        let p = crate::kernels::params::GatherVec4Params { width: p.width / 4, ..bytemuck::cast(p) };
+        let args = args::GatherVec4MainArgs { src, idx, out: &out, base };
+        rec.dispatch_elements(GATHER_VEC4_MAIN, total as u64 / 4, args, &p)?;
+    } else {
+        rec.dispatch_elements(
+            GATHER_MAIN,
+            total as u64,
+            args::GatherMainArgs { src, idx, out: &out, base },
+            &p,
+        )?;
+    }
     Ok(out)
 }
 

@@ -260,7 +260,9 @@ fn softmax_matches_reference_and_is_stable() {
 fn gather_and_scatter_add_match_reference() {
     let gpu = gpu();
     let mut rng = Rng::new(6);
-    for &(src_rows, width, n_idx) in &[(1, 1, 0), (1, 1, 1), (5, 3, 17), (100, 64, 1000), (7, 1, 70_001)] {
+    // Widths of a multiple of 4 take the vec4 kernel on CPU devices, the others the scalar one.
+    let cases = [(1, 1, 0), (1, 1, 1), (5, 3, 17), (9, 4, 50), (6, 12, 31), (100, 64, 1000), (7, 1, 70_001)];
+    for &(src_rows, width, n_idx) in &cases {
         let src = rng.normal_vec(src_rows * width);
         // Include out-of-range indices: gather gives zeros, scatter skips them.
         let idx: Vec<u32> = (0..n_idx)
@@ -271,7 +273,16 @@ fn gather_and_scatter_add_match_reference() {
         let mut rec = gpu.recorder().unwrap();
         let g = gather(&mut rec, &ts, &ti).unwrap();
         rec.submit().unwrap();
-        assert_nmse("gather", &g.read::<f32>().unwrap(), &gather::reference::gather(&src, width, &idx), 0.0);
+        let want = gather::reference::gather(&src, width, &idx);
+        assert_nmse("gather", &g.read::<f32>().unwrap(), &want, 0.0);
+        // The same rows added to a base in the pass.
+        let base = rng.normal_vec(n_idx * width);
+        let tb = Tensor::from_slice(&gpu, &[n_idx, width], &base).unwrap();
+        let mut rec = gpu.recorder().unwrap();
+        let g = gather::gather_plus(&mut rec, &ts, &ti, &tb).unwrap();
+        rec.submit().unwrap();
+        let want: Vec<f64> = want.iter().zip(&base).map(|(w, b)| (*w as f32 + b) as f64).collect();
+        assert_nmse("gather_plus", &g.read::<f32>().unwrap(), &want, 0.0);
 
         // Scatter the gathered rows back, through both kernels: many rows collide.
         let rows_src = rng.normal_vec(n_idx * width);

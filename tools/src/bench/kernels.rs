@@ -1,4 +1,4 @@
-//! `velox bench kernels`: matmul, softmax, scan, sort, scatter-add, and the encoder's query
+//! `velox bench kernels`: matmul, softmax, scan, sort, scatter-add, row gathers, and the encoder's query
 //! sampling: farthest point sampling and the nearest-query assignment.
 //!
 //! Errors: against the f64 reference over the whole output, except for matmuls too large for
@@ -23,6 +23,8 @@ struct Sizes {
     scan: Vec<usize>,
     sort: Vec<(usize, u32)>,
     scatter: Vec<(usize, usize, usize)>,
+    /// Row gathers: (source rows, width, rows gathered).
+    gather: Vec<(usize, usize, usize)>,
     /// Farthest point sampling: (candidates, chosen).
     fps: Vec<(usize, usize)>,
     /// Nearest-query assignment: (points, queries).
@@ -43,6 +45,7 @@ fn sizes(set: SizeSet) -> Sizes {
             scan: vec![1 << 20],
             sort: vec![(1 << 18, 32), (1 << 18, 16)],
             scatter: vec![(1 << 16, 8, 1024)],
+            gather: vec![(10_000, 32, 10_000), (10_000, 64, 10_000)],
             fps: vec![(4096, 1024), (32768, 8192)],
             assign: vec![(100_000, 2048)],
         }
@@ -59,6 +62,7 @@ fn sizes(set: SizeSet) -> Sizes {
             scan: vec![1 << 26],
             sort: vec![(1 << 24, 32), (1 << 24, 16)],
             scatter: vec![(1 << 22, 32, 1 << 16)],
+            gather: vec![(1 << 20, 32, 1 << 20), (1 << 20, 64, 1 << 20)],
             fps: vec![(4096, 1024), (32768, 8192)],
             assign: vec![(1_440_000, 8192)],
         }
@@ -274,6 +278,26 @@ pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
         let bytes = (rows * width * 4 + rows * 4 + 2 * dst_rows * width * 4) as f64;
         let r = r.work((rows * width) as f64, bytes, roof32);
         push(r.peak(bw_peak(g)).against(&got, &want, "all outputs"));
+    }
+
+    for &(src_rows, width, rows) in &s.gather {
+        let src = rng.normal_vec(src_rows * width);
+        let idx: Vec<u32> = (0..rows).map(|_| rng.below(src_rows as u32)).collect();
+        let ts = Tensor::from_slice(gpu, &[src_rows, width], &src)?;
+        let ti = Tensor::from_slice(gpu, &[rows], &idx)?;
+        let mut y = None;
+        let timing = time_gpu(gpu, repeats, |rec| {
+            y = Some(velox_engine::ops::gather::gather(rec, &ts, &ti)?);
+            Ok(())
+        })?;
+        let got: Vec<f32> = y.unwrap().read()?;
+        let want = velox_engine::ops::gather::reference::gather(&src, width, &idx);
+        // Each output row read from its source row and written, the indices read.
+        let bytes = (2 * rows * width * 4 + rows * 4) as f64;
+        let g = gbs(bytes, timing.0);
+        let shape = format!("{rows} of {src_rows}x{width}");
+        let r = Record::timed("gather rows", shape, "f32", &device, timing, repeats, g, "GB/s");
+        push(r.work(0.0, bytes, roof32).peak(bw_peak(g)).against(&got, &want, "all outputs"));
     }
 
     for &(m, k) in &s.fps {
