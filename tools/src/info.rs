@@ -131,6 +131,22 @@ pub fn report(gpu: &Gpu) -> serde_json::Value {
         ),
         Err(e) => format!("unsupported: {e}"),
     };
+    // Apart, as one json! of everything passes the macro's recursion limit.
+    let variants = json!({
+        "matmul f32": matmul::matmul_variant(gpu, DType::F32),
+        "matmul f16": matmul::matmul_variant(gpu, DType::F16),
+        "rows (softmax, norms)": velox_engine::ops::rmsnorm::row_variant(gpu),
+        "attention f32": velox_engine::ops::attention::portable_variant(gpu, 32, DType::F32),
+        "attention f16": velox_engine::ops::attention::f16_forward_variant(gpu, 32),
+        "scatter-add": scatter_add::variant(gpu),
+        "gather": velox_engine::ops::gather::variant(gpu),
+        "fps": velox_engine::ops::fps::variant(gpu).1,
+        "sort": "LSD radix, 4 bits a pass",
+        "scan": "workgroup-memory block scan, multi-level",
+        "raster backward": raster_backward,
+        "raster backward (bench)": raster_backward_bench,
+        "determinism": "training and decoding give the same bits for the same seed on the same device: every reduction sums in a fixed order (scatter-add's atomics add once per row where the models use it)",
+    });
     json!({
         "device": c.name, "kind": c.kind, "driver": c.driver, "vulkan": c.api_version,
         "device_memory_bytes": c.device_memory, "unified_memory": c.unified_memory,
@@ -146,19 +162,6 @@ pub fn report(gpu: &Gpu) -> serde_json::Value {
         "validation": gpu.validation().name(), "forced_fallbacks": c.forced,
         "portability_subset": c.portability_subset, "robust_buffer_access": c.robust_buffer_access,
         "vulkan_memory_model": c.vulkan_memory_model, "cpu_kernels": c.cpu_kernels,
-        "variants": {
-            "matmul f32": matmul::matmul_variant(gpu, DType::F32),
-            "matmul f16": matmul::matmul_variant(gpu, DType::F16),
-            "rows (softmax, norms)": velox_engine::ops::rmsnorm::row_variant(gpu),
-            "attention f32": velox_engine::ops::attention::portable_variant(gpu, 32, DType::F32),
-            "attention f16": velox_engine::ops::attention::f16_forward_variant(gpu, 32),
-            "scatter-add": scatter_add::variant(gpu),
-            "fps": velox_engine::ops::fps::variant(gpu).1,
-            "sort": "LSD radix, 4 bits a pass",
-            "scan": "workgroup-memory block scan, multi-level",
-            "raster backward": raster_backward,
-            "raster backward (bench)": raster_backward_bench,
-            "determinism": "training and decoding give the same bits for the same seed on the same device: every reduction sums in a fixed order (scatter-add's atomics add once per row where the models use it)",
-        }
+        "variants": variants,
     })
 }

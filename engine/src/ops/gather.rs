@@ -26,6 +26,15 @@ fn vec4_rows(gpu: &crate::Gpu, width: usize) -> bool {
     gpu.caps().cpu_kernels && width.is_multiple_of(4) && gpu.supports(GATHER_VEC4_MAIN)
 }
 
+/// The gather kernels this device runs, for `velox info`.
+pub fn variant(gpu: &crate::Gpu) -> &'static str {
+    if vec4_rows(gpu, 4) {
+        "a vec4 a step where rows are a multiple of 4 floats, 16 elements an invocation"
+    } else {
+        "an element an invocation"
+    }
+}
+
 /// out[r] = src[idx[r]] for every r (rows are the first axis; idx is u32 of any shape whose
 /// elements count the output rows). An index past src's rows gives a row of zeros.
 pub fn gather(rec: &mut Recorder, src: &Tensor, idx: &Tensor) -> Result<Tensor> {
