@@ -25,7 +25,8 @@ def _as_folder(gaussians):
 def view(path_or_gaussians, html=None, *, compare=None, scene=None, no_compare=False,
          host="127.0.0.1", port=0, open_browser=None):
     """Shows a result in a browser: a folder of per-frame Gaussian PLYs (gaussians_fFF.ply) or
-    surface points (points_fFF.ply), a dataset scene, one Gaussian PLY, or Gaussians in memory
+    surface points (points_fFF.ply), another tool's numbered PLY sequence (frame_0000.ply, ...),
+    a dataset scene, one Gaussian PLY, or Gaussians in memory
     (a dict as `velox.read_gaussians` gives, or a list of them, one a frame).
 
     With `html`, writes the viewer with every frame inside it to that file (it opens offline)

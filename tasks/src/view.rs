@@ -1,8 +1,9 @@
 //! Watching a 4D result in a browser, for every front end (`velox view PATH`, `velox.view` in
 //! Python). PATH is a folder of per-frame Gaussian
 //! PLYs (`decode gaussians`, `generate`: `gaussians_fFF.ply`), of per-frame surface points
-//! (`decode points`: `points_fFF.ply`), a dataset scene (its 4D point cloud, split by frame) or
-//! one Gaussian PLY. [`View::open`] checks every frame's header first (a folder without frames,
+//! (`decode points`: `points_fFF.ply`), another tool's numbered PLY sequence (`frame_0000.ply`,
+//! ...: each frame its number), a dataset scene (its 4D point cloud, split by frame) or one
+//! Gaussian PLY. [`View::open`] checks every frame's header first (a folder without frames,
 //! a file of another layout: an error before anything is served), then [`View::serve`] serves
 //! on the listener its caller bound (the command: 127.0.0.1 unless `--host` says otherwise) a page written in this project
 //! (`tasks/src/view/`: a WebGL2 renderer of 3D Gaussians with the engine's projection,
@@ -47,7 +48,8 @@ pub type ViewResult<T> = Result<T, Box<dyn std::error::Error + Send + Sync>>;
 #[derive(Clone, Debug, Default)]
 pub struct ViewOptions {
     /// A folder of per-frame Gaussian PLYs (gaussians_fFF.ply) or surface points
-    /// (points_fFF.ply), a dataset scene folder, or one Gaussian PLY.
+    /// (points_fFF.ply), another tool's numbered PLY sequence (frame_0000.ply, ...), a dataset
+    /// scene folder, or one Gaussian PLY.
     pub path: PathBuf,
     /// The scene whose cameras the page offers (default: the scene a decode output names in
     /// its decode.json, or PATH itself when it is a scene).
@@ -227,6 +229,15 @@ fn frame_of(name: &str, prefix: &str) -> Option<usize> {
     name.strip_prefix(prefix)?.strip_prefix("_f")?.strip_suffix(".ply")?.parse().ok()
 }
 
+/// Another tool's numbered frame, `PREFIX<digits>.ply` (`frame_0007.ply`, `000123.ply`, as
+/// 4DGaussians-style exports write them): the prefix and the number.
+fn numbered_ply(name: &str) -> Option<(&str, usize)> {
+    let stem = name.strip_suffix(".ply")?;
+    let digits = stem.bytes().rev().take_while(u8::is_ascii_digit).count();
+    let (prefix, number) = stem.split_at(stem.len() - digits);
+    Some((prefix, number.parse().ok()?))
+}
+
 /// The header of a PLY file and its vertex count, reading only the start of the file; the
 /// file's length is checked against the header.
 fn ply_header(path: &Path) -> ViewResult<(Header, usize)> {
@@ -354,13 +365,44 @@ fn discover(path: &Path, scene: Option<&Path>) -> ViewResult<Source> {
         } else if !tracked.is_empty() {
             (Kind::Points, tracked)
         } else {
-            return Err(format!(
-                "{} holds no frames: expected gaussians_fFF.ply (velox decode gaussians, velox generate), \
-                 points_fFF.ply (velox decode points), tracks_fFF.ply (velox track), or a dataset scene \
-                 (points.ply and cameras.json)",
-                path.display()
-            )
-            .into());
+            // Another tool's numbered sequence: its PLYs that end in a number, one prefix to
+            // them all, each frame its number; Gaussians or points by the first one's header.
+            let numbered: Vec<(&str, usize, PathBuf)> = files
+                .iter()
+                .filter_map(|(n, p)| numbered_ply(n).map(|(prefix, f)| (prefix, f, p.clone())))
+                .collect();
+            if let Some(other) = numbered.iter().find(|(prefix, ..)| *prefix != numbered[0].0) {
+                return Err(format!(
+                    "{}: numbered PLYs of two sequences, {} and {}: give the folder of one",
+                    path.display(),
+                    numbered[0].2.file_name().unwrap_or_default().to_string_lossy(),
+                    other.2.file_name().unwrap_or_default().to_string_lossy()
+                )
+                .into());
+            }
+            let mut list: Vec<(usize, PathBuf)> = numbered.into_iter().map(|(_, f, p)| (f, p)).collect();
+            list.sort();
+            if let Some(w) = list.windows(2).find(|w| w[0].0 == w[1].0) {
+                return Err(format!(
+                    "{} and {} are both frame {}",
+                    w[0].1.display(),
+                    w[1].1.display(),
+                    w[0].0
+                )
+                .into());
+            }
+            let Some((_, first)) = list.first() else {
+                return Err(format!(
+                    "{} holds no frames: expected gaussians_fFF.ply (velox decode gaussians, velox generate), \
+                     points_fFF.ply (velox decode points), tracks_fFF.ply (velox track), a numbered PLY \
+                     sequence (frame_0000.ply, frame_0001.ply, ...), or a dataset scene (points.ply and \
+                     cameras.json)",
+                    path.display()
+                )
+                .into());
+            };
+            let kind = if is_gaussian(&ply_header(first)?.0) { Kind::Gaussians } else { Kind::Points };
+            (kind, list)
         };
         let mut frames = Vec::new();
         for (f, file) in list {
@@ -778,5 +820,9 @@ mod tests {
         assert_eq!(frame_of("gaussians_f07.ply", "gaussians"), Some(7));
         assert_eq!(frame_of("points_f23.ply", "gaussians"), None);
         assert_eq!(frame_of("gaussians_fxx.ply", "gaussians"), None);
+        assert_eq!(numbered_ply("frame_0007.ply"), Some(("frame_", 7)));
+        assert_eq!(numbered_ply("000123.ply"), Some(("", 123)));
+        assert_eq!(numbered_ply("point_cloud.ply"), None);
+        assert_eq!(numbered_ply("frame_7.png"), None);
     }
 }

@@ -14,7 +14,8 @@ use crate::CliResult;
 #[derive(clap::Args)]
 pub struct ViewArgs {
     /// A folder of per-frame Gaussian PLYs (gaussians_fFF.ply) or surface points
-    /// (points_fFF.ply), a dataset scene folder, or one Gaussian PLY.
+    /// (points_fFF.ply), another tool's numbered PLY sequence (frame_0000.ply, ...), a dataset
+    /// scene folder, or one Gaussian PLY.
     path: PathBuf,
     /// Port to serve on (default: a free one, printed).
     #[arg(long)]

@@ -360,3 +360,41 @@ fn the_page_draws_a_frame_as_velox_render_does_and_plays() {
     drop(server);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn another_tools_numbered_ply_sequence_opens_frame_by_frame() {
+    // frame_0000.ply, frame_0005.ply, frame_0010.ply as another exporter names them: three
+    // frames, numbered by their files, in number order whatever the names sort to.
+    let dir = temp_dir("numbered");
+    let seq = dir.join("seq");
+    std::fs::create_dir_all(&seq).unwrap();
+    for (f, n) in [(10, 7), (0, 5), (5, 6)] {
+        ply::write(&seq.join(format!("frame_{f:04}.ply")), &gaussians(n, f as u64)).unwrap();
+    }
+    std::fs::write(seq.join("notes.txt"), "not a frame").unwrap();
+    let page = dir.join("seq.html");
+    let out = velox().arg("view").arg(&seq).arg("--html").arg(&page).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let text = std::fs::read_to_string(&page).unwrap();
+    let tag = "<script id=\"velox-manifest\" type=\"application/json\">{";
+    let json = &text[text.find(tag).unwrap() + tag.len() - 1..];
+    let json = &json[..json.find("</script>").unwrap()].replace("<\\/", "</");
+    let manifest: serde_json::Value = serde_json::from_str(json).unwrap();
+    assert_eq!(manifest["kind"], "gaussians");
+    let frames: Vec<(u64, u64)> = manifest["frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| (f["frame"].as_u64().unwrap(), f["count"].as_u64().unwrap()))
+        .collect();
+    assert_eq!(frames, [(0, 5), (5, 6), (10, 7)]);
+    // Two sequences in one folder, or two files of one frame: errors naming them.
+    ply::write(&seq.join("other_0001.ply"), &gaussians(3, 9)).unwrap();
+    let err = fails(velox().arg("view").arg(&seq));
+    assert!(err.contains("two sequences") && err.contains("other_0001.ply"), "{err}");
+    std::fs::remove_file(seq.join("other_0001.ply")).unwrap();
+    ply::write(&seq.join("frame_5.ply"), &gaussians(3, 9)).unwrap();
+    let err = fails(velox().arg("view").arg(&seq));
+    assert!(err.contains("frame_5.ply") && err.contains("both frame 5"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
