@@ -365,6 +365,14 @@ def test_the_viewer_is_the_commands(tmp_path):
     assert manifest["kind"] == "gaussians" and len(manifest["frames"]) == 2
     body = urllib.request.urlopen(url + "frames/1.bin", timeout=30).read()
     assert body[:4] == b"VXG1" and int.from_bytes(body[4:8], "little") == 300
+    # Another tool's numbered sequence opens as the command opens it.
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    for f in (0, 5):
+        velox.write_gaussians(seq / f"frame_{f:04}.ply", random_gaussians(seed=f))
+    velox.view(seq, html=tmp_path / "s.html")
+    cli("view", seq, "--html", tmp_path / "t.html")
+    assert (tmp_path / "s.html").read_bytes() == (tmp_path / "t.html").read_bytes()
     with pytest.raises(FileNotFoundError):
         velox.view(tmp_path / "missing", html=tmp_path / "c.html")
     with pytest.raises(ValueError, match="a dict of Gaussians"):
