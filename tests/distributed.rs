@@ -62,20 +62,9 @@ fn main() -> ExitCode {
 // ---------------------------------------------------------------------------------------------
 // In the test process.
 
-/// Whether the two-process tests can run here: Open MPI's `mpirun` on the PATH. Where it is
-/// missing they say so and pass, unless `VELOX_MPI_TESTS=1` (the test command, tools/test.sh,
-/// sets it, having installed Open MPI), where that is a failure.
-fn mpirun_present() -> bool {
-    let found = Command::new("mpirun").arg("--version").output().is_ok_and(|o| o.status.success());
-    if !found {
-        assert!(
-            std::env::var("VELOX_MPI_TESTS").as_deref() != Ok("1"),
-            "VELOX_MPI_TESTS=1 but mpirun does not run: install Open MPI (Debian: openmpi-bin)"
-        );
-        eprintln!("skipped: no mpirun on the PATH (Debian: apt-get install openmpi-bin)");
-    }
-    found
-}
+#[path = "support/mpi.rs"]
+mod mpi;
+use mpi::mpirun_present;
 
 /// Without mpirun, `Comm::world` is one rank that changes nothing, and starts no MPI.
 fn single_rank_without_mpirun() -> Result<(), String> {

@@ -353,13 +353,6 @@ fn import_checked(path: &Path, animation: Option<usize>) -> DataResult<Imported>
                 Some(c) => c.into_rgb_f32().collect(),
                 None => vec![[1.0; 3]; n],
             };
-            if colours.len() != n {
-                return Err(bad(format!(
-                    "mesh {}: {} colours for {n} vertices",
-                    gmesh.index(),
-                    colours.len()
-                )));
-            }
             if let Some(c) = colours.iter().flatten().find(|c| !(0.0..=1.0).contains(*c)) {
                 return Err(bad(format!(
                     "mesh {}: COLOR_0 holds {c}, outside [0, 1] where the specification keeps colours",

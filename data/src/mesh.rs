@@ -69,10 +69,10 @@ impl AnimatedMesh {
         if !(self.colours.is_empty() && other.colours.is_empty()) {
             // Either side without colours is white.
             self.colours.resize(base as usize, [1.0; 3]);
-            let theirs = other.num_vertices();
-            match other.colours.is_empty() {
-                true => self.colours.resize(base as usize + theirs, [1.0; 3]),
-                false => self.colours.extend_from_slice(&other.colours),
+            if other.colours.is_empty() {
+                self.colours.resize(base as usize + other.num_vertices(), [1.0; 3]);
+            } else {
+                self.colours.extend_from_slice(&other.colours);
             }
         }
         for (mine, theirs) in self.frames.iter_mut().zip(other.frames) {

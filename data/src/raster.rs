@@ -92,9 +92,10 @@ impl MeshRasteriser {
             table.extend([texels.len() as u32, t.width, t.height, 0]);
             texels.extend_from_slice(&t.texels);
         }
-        let colours: Vec<f32> = match mesh.colours.is_empty() {
-            true => vec![1.0; 3 * mesh.num_vertices()],
-            false => mesh.colours.iter().flatten().copied().collect(),
+        let colours: Vec<f32> = if mesh.colours.is_empty() {
+            vec![1.0; 3 * mesh.num_vertices()]
+        } else {
+            mesh.colours.iter().flatten().copied().collect()
         };
         let n_tris = u32::try_from(mesh.triangles.len())
             .map_err(|_| DataError::Invalid("more than 2^32 triangles".into()))?;

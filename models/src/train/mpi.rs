@@ -123,11 +123,10 @@ fn resolve(library: Library, file: &str) -> Result<Mpi> {
     let comm_world = handle("ompi_mpi_comm_world")?;
     macro_rules! function {
         ($name:literal) => {{
-            handle($name)?; // present, or an error naming it
             // SAFETY: the symbol is MPI's function of that name, whose C signature (Open MPI's
             // mpi.h) is the field's type; the library outlives the copy (it is kept beside it).
             let symbol = unsafe { library.get(concat!($name, "\0").as_bytes()) };
-            *symbol.map_err(|e| Error::Mpi(format!("{file}: {}: {e}", $name)))?
+            *symbol.map_err(|_| Error::Mpi(format!("{file} has no {}: is it an MPI library?", $name)))?
         }};
     }
     Ok(Mpi {
