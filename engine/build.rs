@@ -7,6 +7,13 @@
 //! counts it),
 //! the size of its push constants and the device features it needs. A broken shader stops the
 //! build with naga's message, which names the file, line and column.
+//!
+//! Texel buffers: WGSL has no type for them, so a kernel declares a read-only view of a tensor
+//! as vec4s through a storage texel buffer as `var x: texture_storage_1d<rgba32float, read>;`
+//! and reads element `i` with `textureLoad(x, i)`; this step makes every such image a buffer
+//! image (SPIR-V `Dim Buffer`, capability `ImageBuffer`), and the recorder binds the tensor
+//! through a `VkBufferView`. On lavapipe a texel fetch is a branch-free gather where a storage
+//! buffer read is a loop over the lanes with a bounds check each (docs/decisions/kernels.md).
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -88,7 +95,7 @@ fn main() {
                     // The argument struct: one per list of binding names and push-constant type
                     // (the kernels one op chooses between), named after the first kernel that has
                     // it; every other kernel with that list gets an alias.
-                    let names: Vec<String> = k.bindings.iter().map(|(_, _, n)| n.clone()).collect();
+                    let names: Vec<String> = k.bindings.iter().map(|(_, _, n, _)| n.clone()).collect();
                     let own = format!("{}Args", camel(&format!("{stem}_{}", k.entry)));
                     let shared = arg_structs.iter().find(|(_, p, n, _)| *p == params && *n == names);
                     let canonical = match shared {
@@ -122,8 +129,10 @@ fn main() {
                     let bindings: Vec<String> = k
                         .bindings
                         .iter()
-                        .map(|(b, w, name)| {
-                            format!("BindingInfo {{ binding: {b}, writes: {w}, name: {name:?} }}")
+                        .map(|(b, w, name, texel)| {
+                            format!(
+                                "BindingInfo {{ binding: {b}, writes: {w}, name: {name:?}, texel: {texel} }}"
+                            )
                         })
                         .collect();
                     writeln!(
@@ -223,8 +232,9 @@ fn op_tables(flags: &[(String, u32, String)]) -> String {
 struct Kernel {
     entry: String,
     workgroup_size: [u32; 3],
-    /// (binding, written, the variable's name in the shader), in binding order.
-    bindings: Vec<(u32, bool, String)>,
+    /// (binding, written, the variable's name in the shader, read through a texel buffer), in
+    /// binding order.
+    bindings: Vec<(u32, bool, String, bool)>,
     push_bytes: u32,
     shared_bytes: u32,
     needs: CapabilityNeeds,
@@ -359,6 +369,7 @@ fn compile(shader_dir: &Path, path: &Path, source: &str) -> Result<Compiled, Str
     let words = flatten_access_chains(&words);
     let words = strip_layouts_outside_buffers(&words).map_err(|e| format!("{shown}: {e}"))?;
     let words = strip_capabilities(&words, UNUSED_CAPABILITIES);
+    let words = texel_buffers(&words);
     // What the module needs of the device, from the capabilities it declares.
     let needs = capability_needs(&words).map_err(|e| format!("{shown}: {e}"))?;
     // `// @subgroup_size N`: the kernels of the file are written for subgroups of exactly N.
@@ -411,7 +422,23 @@ fn compile(shader_dir: &Path, path: &Path, source: &str) -> Result<Compiled, Str
                             .name
                             .clone()
                             .ok_or_else(|| format!("{shown}: binding {} has no name", b.binding))?;
-                        bindings.push((b.binding, usage.contains(GlobalUse::WRITE) || declared, name));
+                        bindings.push((b.binding, usage.contains(GlobalUse::WRITE) || declared, name, false));
+                    }
+                }
+                naga::AddressSpace::Handle if is_texel_buffer(&module.types[var.ty].inner) => {
+                    let b = var
+                        .binding
+                        .as_ref()
+                        .ok_or_else(|| format!("{shown}: texel buffer without @group/@binding"))?;
+                    if b.group != 0 {
+                        return Err(format!("{shown}: kernels use @group(0) only"));
+                    }
+                    if !usage.is_empty() {
+                        let name = var
+                            .name
+                            .clone()
+                            .ok_or_else(|| format!("{shown}: binding {} has no name", b.binding))?;
+                        bindings.push((b.binding, false, name, true));
                     }
                 }
                 naga::AddressSpace::Immediate if !usage.is_empty() => {
@@ -419,7 +446,8 @@ fn compile(shader_dir: &Path, path: &Path, source: &str) -> Result<Compiled, Str
                 }
                 naga::AddressSpace::Uniform | naga::AddressSpace::Handle => {
                     return Err(format!(
-                        "{shown}: kernels take storage buffers and immediates (push constants) only"
+                        "{shown}: kernels take storage buffers, texel buffers \
+                         (`texture_storage_1d<rgba32float, read>`) and immediates (push constants) only"
                     ));
                 }
                 _ => {}
@@ -743,6 +771,42 @@ fn strip_layouts_outside_buffers(words: &[u32]) -> Result<Vec<u32>, String> {
 
 const OP_CAPABILITY: u32 = 17;
 
+/// Whether a global of this type is a texel buffer (see the module doc): a read-only 1D storage
+/// image of `rgba32float`.
+fn is_texel_buffer(ty: &naga::TypeInner) -> bool {
+    matches!(
+        ty,
+        naga::TypeInner::Image {
+            dim: naga::ImageDimension::D1,
+            arrayed: false,
+            class: naga::ImageClass::Storage { format: naga::StorageFormat::Rgba32Float, access },
+        } if *access == naga::StorageAccess::LOAD
+    )
+}
+
+/// Makes every 1D image of the module a buffer image: `OpTypeImage`'s `Dim 1D` becomes `Dim
+/// Buffer` and the capability `Image1D` becomes `ImageBuffer` (`compile` admits no other 1D
+/// image). Reads keep their form: `OpImageRead` takes one integer coordinate for both.
+fn texel_buffers(words: &[u32]) -> Vec<u32> {
+    const OP_TYPE_IMAGE: u32 = 25;
+    const DIM_1D: u32 = 0;
+    const DIM_BUFFER: u32 = 5;
+    const IMAGE_1D: u32 = 44;
+    const IMAGE_BUFFER: u32 = 47;
+    let mut out = words.to_vec();
+    let mut at = 5;
+    while at < out.len() {
+        let count = ((out[at] >> 16) as usize).max(1);
+        match out[at] & 0xffff {
+            OP_TYPE_IMAGE if count >= 9 && out[at + 3] == DIM_1D => out[at + 3] = DIM_BUFFER,
+            OP_CAPABILITY if count == 2 && out[at + 1] == IMAGE_1D => out[at + 1] = IMAGE_BUFFER,
+            _ => {}
+        }
+        at += count;
+    }
+    out
+}
+
 /// Capabilities naga declares for every `enable f16` module that compute kernels never use:
 /// f16 in uniform buffers (the kernels take none: `compile` refuses them) and f16 shader inputs
 /// and outputs (a compute shader's only inputs are its u32 builtins). The engine enables neither
@@ -789,7 +853,8 @@ fn capability_needs(words: &[u32]) -> Result<CapabilityNeeds, String> {
         let count = ((words[at] >> 16) as usize).max(1);
         if words[at] & 0xffff == OP_CAPABILITY && count == 2 {
             match words[at + 1] {
-                1 => {} // Shader
+                1 => {}  // Shader
+                47 => {} // ImageBuffer (texel buffers; every Vulkan device has it)
                 // Float16 (shaderFloat16) and StorageBuffer16BitAccess (storageBuffer16BitAccess):
                 // the engine enables both together, or neither.
                 9 | 4433 => needs.f16 = true,

@@ -1,63 +1,144 @@
 // @variants LAYOUT: 0 1 2
-// Batched matrix multiply for CPU devices (lavapipe), where every storage access is a loop over
-// the lanes of a SIMD group with a bounds check per lane (about 12 ns for 8 lanes, uniform or
-// not, on lavapipe 25; an FMA costs 0.9 ns, a subgroup broadcast 1.5 ns): so the kernel moves
-// data in vec4 accesses, one per lane, and shares what lanes load by subgroup broadcasts
-// instead of loading it again. A workgroup is one SIMD group of 8 lanes computing 8 rows x 32
-// columns: lane l owns 4 consecutive columns (a vec4 of B per k) and all 8 rows; per 4 k, each
-// lane loads one vec4 of A (together the 8 x 4 block) and 4 of B, and takes each A value from
-// the lane that holds it. On lavapipe 25 this ran 256^3 at 11.9 GFLOP/s and 10000x64x256 at
-// 11.8, against 4.1 and 1.8 for the tiled and row kernels (docs/decisions/kernels.md).
+// @variants COLS: 1 2 4
+// Batched matrix multiply for CPU devices (lavapipe). There a storage-buffer read is a loop over
+// the lanes of a SIMD group with a bounds check and a branch per lane, while a texel-buffer read
+// is a branch-free gather (half the time for a vec4 on lavapipe 25), a subgroup shuffle is one
+// permute, and an update of a variable inside a loop costs a blend with the loop's mask; there
+// is no FMA (a multiply and an add). So the operands are read through texel buffers, a
+// workgroup is one SIMD group of 8 lanes computing 8 rows x 32 COLS columns (lane l owns COLS
+// vec4 groups of 4 columns, for all 8 rows), and per 8 k each lane reads its 8 vec4s of B per
+// group and 2 vec4s of A, takes every A value from the lane that read it by a shuffle, and adds
+// the 8 products into each accumulator in one expression (one write a block, not one a k).
+// On lavapipe 25, one thread: 256^3 in 0.94 ms against 1.9 for the storage-buffer kernel this
+// replaced (8 x 32, a write per 4 k), 10000x64x256 10.8 against 18.5 (docs/decisions/kernels.md).
 //
 // Any shape and layout runs: where an operand's contiguous axis is not a multiple of 4, its
 // values are read one by one at the strides of the push constants (MATMUL_FLAG_A_SCALAR,
 // MATMUL_FLAG_B_SCALAR), and where N is not, the outputs are written one by one. LAYOUT
 // chooses the vec4 reads: 0, A along K ([M, K]) and B along N ([K, N]); 1, A along M ([K, M],
-// transposed); 2, B along K ([N, K], transposed). The same push constants, strides, flags, bias
-// and output layout as matmul.wgsl (matmul_params.wgsl); host side engine/src/ops/matmul.rs.
-// Needs subgroups of at least 8 lanes (one workgroup is then within one subgroup).
+// transposed); 2, B along K ([N, K], transposed). COLS (1, 2, 4) fits the tile to narrow
+// outputs. The same push constants, strides, flags, bias and output layout as matmul.wgsl
+// (matmul_params.wgsl); host side engine/src/ops/matmul.rs. Needs subgroups of at least 8 lanes
+// (one workgroup is then within one subgroup).
 
 // @include matmul_params.wgsl
 
-@group(0) @binding(0) var<storage, read> a: array<vec4<f32>>;
-@group(0) @binding(1) var<storage, read> b: array<vec4<f32>>;
+// A and B as texel buffers of vec4s (engine/build.rs): element i is component i % 4 of texel
+// i / 4.
+@group(0) @binding(0) var a: texture_storage_1d<rgba32float, read>;
+@group(0) @binding(1) var b: texture_storage_1d<rgba32float, read>;
 @group(0) @binding(2) var<storage, read_write> out: array<vec4<f32>>;
 // [N] (or [batch, N] with MATMUL_FLAG_BIAS_PER_ENTRY), added to each row with MATMUL_FLAG_BIAS.
 @group(0) @binding(3) var<storage, read> bias: array<vec4<f32>>;
 var<immediate> pc: Params;
 
 const LAYOUT: u32 = 0u;
+const COLS: u32 = 4u;
 
-// One f32 of a vec4 array, by element index (the scalar paths).
+// One f32 of an operand, by element index (the scalar paths).
 fn a_at(i: u32) -> f32 {
-    return a[i >> 2u][i & 3u];
+    return textureLoad(a, i >> 2u)[i & 3u];
 }
 fn b_at(i: u32) -> f32 {
-    return b[i >> 2u][i & 3u];
+    return textureLoad(b, i >> 2u)[i & 3u];
+}
+
+// The 8 values of a row of A in a block of 8 k, in k order, every lane holding them all.
+struct Row {
+    k0: vec4<f32>,
+    k1: vec4<f32>,
+}
+
+// B in a block of 8 k for one group of 4 columns: j0 at k, ... j7 at k + 7.
+struct Block {
+    j0: vec4<f32>,
+    j1: vec4<f32>,
+    j2: vec4<f32>,
+    j3: vec4<f32>,
+    j4: vec4<f32>,
+    j5: vec4<f32>,
+    j6: vec4<f32>,
+    j7: vec4<f32>,
+}
+
+// Row r of the block from the lanes that read it: in layout 0 (and A's scalar path) lane r
+// holds its row, k 0..3 in `av0` and 4..7 in `av1`; in layout 1 lane j holds k j, rows 0..3 in
+// `av0` and 4..7 in `av1`.
+fn row(av0: vec4<f32>, av1: vec4<f32>, r: u32) -> Row {
+    if LAYOUT == 1u {
+        let v = select(av1[r & 3u], av0[r & 3u], r < 4u);
+        return Row(
+            vec4<f32>(subgroupShuffle(v, 0u), subgroupShuffle(v, 1u), subgroupShuffle(v, 2u), subgroupShuffle(v, 3u)),
+            vec4<f32>(subgroupShuffle(v, 4u), subgroupShuffle(v, 5u), subgroupShuffle(v, 6u), subgroupShuffle(v, 7u)),
+        );
+    }
+    return Row(subgroupShuffle(av0, r), subgroupShuffle(av1, r));
+}
+
+// acc + the 8 products of a row with a block of B, in one expression.
+fn step(acc: vec4<f32>, x: Row, bk: Block) -> vec4<f32> {
+    return acc + x.k0.x * bk.j0 + x.k0.y * bk.j1 + x.k0.z * bk.j2 + x.k0.w * bk.j3
+        + x.k1.x * bk.j4 + x.k1.y * bk.j5 + x.k1.z * bk.j6 + x.k1.w * bk.j7;
+}
+
+// B at k0 .. k0 + 7 for the group of columns 4 g .. 4 g + 3 (clamped: A is zero past K, so a
+// clamped k reads a value that counts for nothing; columns past N are never stored).
+fn block(zb: u32, k0: u32, g: u32) -> Block {
+    var t: array<vec4<f32>, 8>;
+    if LAYOUT == 2u {
+        // b [N, K]: columns 4 g + q of the output are rows of b, 8 k = two texels each.
+        let k4 = pc.k / 4u;
+        let n_last = pc.n - 1u;
+        let lo = min(k0 / 4u, k4 - 1u);
+        let hi = min(k0 / 4u + 1u, k4 - 1u);
+        var c0: array<vec4<f32>, 4>;
+        var c1: array<vec4<f32>, 4>;
+        for (var q = 0u; q < 4u; q++) {
+            let at = zb / 4u + min(g * 4u + q, n_last) * k4;
+            c0[q] = textureLoad(b, at + lo);
+            c1[q] = textureLoad(b, at + hi);
+        }
+        for (var j = 0u; j < 4u; j++) {
+            t[j] = vec4<f32>(c0[0][j], c0[1][j], c0[2][j], c0[3][j]);
+            t[j + 4u] = vec4<f32>(c1[0][j], c1[1][j], c1[2][j], c1[3][j]);
+        }
+    } else if (pc.flags & MATMUL_FLAG_B_SCALAR) != 0u {
+        // One by one at the push constants' strides.
+        for (var j = 0u; j < 8u; j++) {
+            let at = zb + min(k0 + j, pc.k - 1u) * pc.b_row;
+            for (var c = 0u; c < 4u; c++) {
+                t[j][c] = b_at(at + min(g * 4u + c, pc.n - 1u) * pc.b_col);
+            }
+        }
+    } else {
+        // b [K, N]: a texel per k.
+        let n4 = pc.n / 4u;
+        let col = min(g, n4 - 1u);
+        for (var j = 0u; j < 8u; j++) {
+            t[j] = textureLoad(b, zb / 4u + min(k0 + j, pc.k - 1u) * n4 + col);
+        }
+    }
+    return Block(t[0], t[1], t[2], t[3], t[4], t[5], t[6], t[7]);
 }
 
 @compute @workgroup_size(8)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let z = wid.z + pc.batch_base;
-    let m4 = pc.m / 4u;
-    let n4 = pc.n / 4u;
-    let k4 = pc.k / 4u;
-    // Groups of 4 columns (the last one partial where N is not a multiple of 4).
+    // Groups of 4 columns (the last one partial where N is not a multiple of 4): the lane's
+    // first one, g0 .. g0 + COLS - 1 its own.
     let groups = (pc.n + 3u) / 4u;
-    let col4 = wid.x * 8u + lid;
-    // Loads clamp to the last row or column; what they read there is never stored.
-    let cl = min(col4, groups - 1u);
+    let g0 = (wid.x * 8u + lid) * COLS;
     let r0 = wid.y * 8u;
     let a_scalar = (pc.flags & MATMUL_FLAG_A_SCALAR) != 0u;
-    let b_scalar = (pc.flags & MATMUL_FLAG_B_SCALAR) != 0u;
-    var c0 = vec4<f32>(0.0);
-    var c1 = vec4<f32>(0.0);
-    var c2 = vec4<f32>(0.0);
-    var c3 = vec4<f32>(0.0);
-    var c4 = vec4<f32>(0.0);
-    var c5 = vec4<f32>(0.0);
-    var c6 = vec4<f32>(0.0);
-    var c7 = vec4<f32>(0.0);
+    // acc<row>_<column group>
+    var acc0_0 = vec4<f32>(0.0); var acc0_1 = vec4<f32>(0.0); var acc0_2 = vec4<f32>(0.0); var acc0_3 = vec4<f32>(0.0);
+    var acc1_0 = vec4<f32>(0.0); var acc1_1 = vec4<f32>(0.0); var acc1_2 = vec4<f32>(0.0); var acc1_3 = vec4<f32>(0.0);
+    var acc2_0 = vec4<f32>(0.0); var acc2_1 = vec4<f32>(0.0); var acc2_2 = vec4<f32>(0.0); var acc2_3 = vec4<f32>(0.0);
+    var acc3_0 = vec4<f32>(0.0); var acc3_1 = vec4<f32>(0.0); var acc3_2 = vec4<f32>(0.0); var acc3_3 = vec4<f32>(0.0);
+    var acc4_0 = vec4<f32>(0.0); var acc4_1 = vec4<f32>(0.0); var acc4_2 = vec4<f32>(0.0); var acc4_3 = vec4<f32>(0.0);
+    var acc5_0 = vec4<f32>(0.0); var acc5_1 = vec4<f32>(0.0); var acc5_2 = vec4<f32>(0.0); var acc5_3 = vec4<f32>(0.0);
+    var acc6_0 = vec4<f32>(0.0); var acc6_1 = vec4<f32>(0.0); var acc6_2 = vec4<f32>(0.0); var acc6_3 = vec4<f32>(0.0);
+    var acc7_0 = vec4<f32>(0.0); var acc7_1 = vec4<f32>(0.0); var acc7_2 = vec4<f32>(0.0); var acc7_3 = vec4<f32>(0.0);
     // MATMUL_FLAG_SUMMED: every batch entry's product summed into output 0.
     let summed = (pc.flags & MATMUL_FLAG_SUMMED) != 0u;
     let entries = select(1u, pc.batch_base, summed);
@@ -66,113 +147,96 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         // Batch offsets in elements (multiples of 4 on the vec4 paths).
         let za = (first + e) * pc.a_batch;
         let zb = (first + e) * pc.b_batch;
-        for (var kb = 0u; kb < (pc.k + 3u) / 4u; kb++) {
-            // The 8 x 4 block of A (rows r0.., k 4 kb..), a vec4 a lane.
-            var av: vec4<f32>;
+        for (var k0 = 0u; k0 < pc.k; k0 += 8u) {
+            // A's block of 8 rows x 8 k, two vec4s a lane (see `row`); zeros past K.
+            var av0: vec4<f32>;
+            var av1: vec4<f32>;
             if LAYOUT == 1u {
-                // a [K, M]: lane l holds k = 4 kb + l / 2, rows r0 + 4 (l % 2) ..; past K, zeros.
-                let kk = kb * 4u + lid / 2u;
-                av = a[za / 4u + min(kk, pc.k - 1u) * m4 + min(r0 / 4u + lid % 2u, m4 - 1u)];
-                av = select(vec4<f32>(0.0), av, kk < pc.k);
+                // a [K, M]: lane l holds k0 + l, rows r0 .. r0 + 7.
+                let kk = k0 + lid;
+                let m4 = pc.m / 4u;
+                let at = za / 4u + min(kk, pc.k - 1u) * m4;
+                av0 = select(vec4<f32>(0.0), textureLoad(a, at + min(r0 / 4u, m4 - 1u)), kk < pc.k);
+                av1 = select(vec4<f32>(0.0), textureLoad(a, at + min(r0 / 4u + 1u, m4 - 1u)), kk < pc.k);
             } else if a_scalar {
-                // Lane l holds row r0 + l, k 4 kb .. (zeros past K), at the push constants' strides.
+                // Lane l holds row r0 + l, k0 .., at the push constants' strides.
                 let at = za + min(r0 + lid, pc.m - 1u) * pc.a_row;
                 for (var j = 0u; j < 4u; j++) {
-                    let kk = kb * 4u + j;
-                    av[j] = select(0.0, a_at(at + min(kk, pc.k - 1u) * pc.a_col), kk < pc.k);
+                    av0[j] = select(0.0, a_at(at + min(k0 + j, pc.k - 1u) * pc.a_col), k0 + j < pc.k);
+                    av1[j] = select(0.0, a_at(at + min(k0 + 4u + j, pc.k - 1u) * pc.a_col), k0 + 4u + j < pc.k);
                 }
             } else {
-                // a [M, K]: lane l holds row r0 + l, k 4 kb ..
-                av = a[za / 4u + min(r0 + lid, pc.m - 1u) * k4 + kb];
+                // a [M, K], K a multiple of 4: lane l holds row r0 + l, k0 .. k0 + 7.
+                let k4 = pc.k / 4u;
+                let at = za / 4u + min(r0 + lid, pc.m - 1u) * k4;
+                av0 = textureLoad(a, at + k0 / 4u);
+                av1 = select(vec4<f32>(0.0), textureLoad(a, at + min(k0 / 4u + 1u, k4 - 1u)), k0 + 4u < pc.k);
             }
-            // B at k = 4 kb + j, the lane's 4 columns.
-            var b0: vec4<f32>;
-            var b1: vec4<f32>;
-            var b2: vec4<f32>;
-            var b3: vec4<f32>;
-            if LAYOUT == 2u {
-                // b [N, K]: rows 4 cl + j of it hold the 4 k of column j; transpose the 4 x 4.
-                let t0 = b[zb / 4u + min(cl * 4u + 0u, pc.n - 1u) * k4 + kb];
-                let t1 = b[zb / 4u + min(cl * 4u + 1u, pc.n - 1u) * k4 + kb];
-                let t2 = b[zb / 4u + min(cl * 4u + 2u, pc.n - 1u) * k4 + kb];
-                let t3 = b[zb / 4u + min(cl * 4u + 3u, pc.n - 1u) * k4 + kb];
-                b0 = vec4<f32>(t0.x, t1.x, t2.x, t3.x);
-                b1 = vec4<f32>(t0.y, t1.y, t2.y, t3.y);
-                b2 = vec4<f32>(t0.z, t1.z, t2.z, t3.z);
-                b3 = vec4<f32>(t0.w, t1.w, t2.w, t3.w);
-            } else if b_scalar {
-                // One by one at the push constants' strides (A is zero past K, so a clamped k
-                // reads a value that counts for nothing).
-                var t: array<vec4<f32>, 4>;
-                for (var j = 0u; j < 4u; j++) {
-                    let row = zb + min(kb * 4u + j, pc.k - 1u) * pc.b_row;
-                    for (var c = 0u; c < 4u; c++) {
-                        t[j][c] = b_at(row + min(cl * 4u + c, pc.n - 1u) * pc.b_col);
-                    }
-                }
-                b0 = t[0];
-                b1 = t[1];
-                b2 = t[2];
-                b3 = t[3];
-            } else {
-                b0 = b[zb / 4u + min(kb * 4u + 0u, pc.k - 1u) * n4 + cl];
-                b1 = b[zb / 4u + min(kb * 4u + 1u, pc.k - 1u) * n4 + cl];
-                b2 = b[zb / 4u + min(kb * 4u + 2u, pc.k - 1u) * n4 + cl];
-                b3 = b[zb / 4u + min(kb * 4u + 3u, pc.k - 1u) * n4 + cl];
+            let x0 = row(av0, av1, 0u);
+            let x1 = row(av0, av1, 1u);
+            let x2 = row(av0, av1, 2u);
+            let x3 = row(av0, av1, 3u);
+            let x4 = row(av0, av1, 4u);
+            let x5 = row(av0, av1, 5u);
+            let x6 = row(av0, av1, 6u);
+            let x7 = row(av0, av1, 7u);
+            // Every block of B first, then the rows one after another: on lavapipe this order
+            // ran 256^3 in 0.97 ms, a block's 8 rows after each block 1.23.
+            let b0 = block(zb, k0, g0);
+            var b1 = b0;
+            var b2 = b0;
+            var b3 = b0;
+            if COLS >= 2u {
+                b1 = block(zb, k0, g0 + 1u);
             }
-            // A[r0 + i, 4 kb + j] is lane i's component j (layouts 0, 2), or lane 2 j + i / 4's
-            // component i % 4 (layout 1): broadcast from there, one row a line.
-            // k = 4 kb + 0
-            c0 = fma(vec4<f32>(select(subgroupBroadcast(av.x, 0u), subgroupBroadcast(av.x, 0u), LAYOUT == 1u)), b0, c0);
-            c1 = fma(vec4<f32>(select(subgroupBroadcast(av.x, 1u), subgroupBroadcast(av.y, 0u), LAYOUT == 1u)), b0, c1);
-            c2 = fma(vec4<f32>(select(subgroupBroadcast(av.x, 2u), subgroupBroadcast(av.z, 0u), LAYOUT == 1u)), b0, c2);
-            c3 = fma(vec4<f32>(select(subgroupBroadcast(av.x, 3u), subgroupBroadcast(av.w, 0u), LAYOUT == 1u)), b0, c3);
-            c4 = fma(vec4<f32>(select(subgroupBroadcast(av.x, 4u), subgroupBroadcast(av.x, 1u), LAYOUT == 1u)), b0, c4);
-            c5 = fma(vec4<f32>(select(subgroupBroadcast(av.x, 5u), subgroupBroadcast(av.y, 1u), LAYOUT == 1u)), b0, c5);
-            c6 = fma(vec4<f32>(select(subgroupBroadcast(av.x, 6u), subgroupBroadcast(av.z, 1u), LAYOUT == 1u)), b0, c6);
-            c7 = fma(vec4<f32>(select(subgroupBroadcast(av.x, 7u), subgroupBroadcast(av.w, 1u), LAYOUT == 1u)), b0, c7);
-            // k = 4 kb + 1
-            c0 = fma(vec4<f32>(select(subgroupBroadcast(av.y, 0u), subgroupBroadcast(av.x, 2u), LAYOUT == 1u)), b1, c0);
-            c1 = fma(vec4<f32>(select(subgroupBroadcast(av.y, 1u), subgroupBroadcast(av.y, 2u), LAYOUT == 1u)), b1, c1);
-            c2 = fma(vec4<f32>(select(subgroupBroadcast(av.y, 2u), subgroupBroadcast(av.z, 2u), LAYOUT == 1u)), b1, c2);
-            c3 = fma(vec4<f32>(select(subgroupBroadcast(av.y, 3u), subgroupBroadcast(av.w, 2u), LAYOUT == 1u)), b1, c3);
-            c4 = fma(vec4<f32>(select(subgroupBroadcast(av.y, 4u), subgroupBroadcast(av.x, 3u), LAYOUT == 1u)), b1, c4);
-            c5 = fma(vec4<f32>(select(subgroupBroadcast(av.y, 5u), subgroupBroadcast(av.y, 3u), LAYOUT == 1u)), b1, c5);
-            c6 = fma(vec4<f32>(select(subgroupBroadcast(av.y, 6u), subgroupBroadcast(av.z, 3u), LAYOUT == 1u)), b1, c6);
-            c7 = fma(vec4<f32>(select(subgroupBroadcast(av.y, 7u), subgroupBroadcast(av.w, 3u), LAYOUT == 1u)), b1, c7);
-            // k = 4 kb + 2
-            c0 = fma(vec4<f32>(select(subgroupBroadcast(av.z, 0u), subgroupBroadcast(av.x, 4u), LAYOUT == 1u)), b2, c0);
-            c1 = fma(vec4<f32>(select(subgroupBroadcast(av.z, 1u), subgroupBroadcast(av.y, 4u), LAYOUT == 1u)), b2, c1);
-            c2 = fma(vec4<f32>(select(subgroupBroadcast(av.z, 2u), subgroupBroadcast(av.z, 4u), LAYOUT == 1u)), b2, c2);
-            c3 = fma(vec4<f32>(select(subgroupBroadcast(av.z, 3u), subgroupBroadcast(av.w, 4u), LAYOUT == 1u)), b2, c3);
-            c4 = fma(vec4<f32>(select(subgroupBroadcast(av.z, 4u), subgroupBroadcast(av.x, 5u), LAYOUT == 1u)), b2, c4);
-            c5 = fma(vec4<f32>(select(subgroupBroadcast(av.z, 5u), subgroupBroadcast(av.y, 5u), LAYOUT == 1u)), b2, c5);
-            c6 = fma(vec4<f32>(select(subgroupBroadcast(av.z, 6u), subgroupBroadcast(av.z, 5u), LAYOUT == 1u)), b2, c6);
-            c7 = fma(vec4<f32>(select(subgroupBroadcast(av.z, 7u), subgroupBroadcast(av.w, 5u), LAYOUT == 1u)), b2, c7);
-            // k = 4 kb + 3
-            c0 = fma(vec4<f32>(select(subgroupBroadcast(av.w, 0u), subgroupBroadcast(av.x, 6u), LAYOUT == 1u)), b3, c0);
-            c1 = fma(vec4<f32>(select(subgroupBroadcast(av.w, 1u), subgroupBroadcast(av.y, 6u), LAYOUT == 1u)), b3, c1);
-            c2 = fma(vec4<f32>(select(subgroupBroadcast(av.w, 2u), subgroupBroadcast(av.z, 6u), LAYOUT == 1u)), b3, c2);
-            c3 = fma(vec4<f32>(select(subgroupBroadcast(av.w, 3u), subgroupBroadcast(av.w, 6u), LAYOUT == 1u)), b3, c3);
-            c4 = fma(vec4<f32>(select(subgroupBroadcast(av.w, 4u), subgroupBroadcast(av.x, 7u), LAYOUT == 1u)), b3, c4);
-            c5 = fma(vec4<f32>(select(subgroupBroadcast(av.w, 5u), subgroupBroadcast(av.y, 7u), LAYOUT == 1u)), b3, c5);
-            c6 = fma(vec4<f32>(select(subgroupBroadcast(av.w, 6u), subgroupBroadcast(av.z, 7u), LAYOUT == 1u)), b3, c6);
-            c7 = fma(vec4<f32>(select(subgroupBroadcast(av.w, 7u), subgroupBroadcast(av.w, 7u), LAYOUT == 1u)), b3, c7);
+            if COLS >= 4u {
+                b2 = block(zb, k0, g0 + 2u);
+                b3 = block(zb, k0, g0 + 3u);
+            }
+            acc0_0 = step(acc0_0, x0, b0);
+            if COLS >= 2u { acc0_1 = step(acc0_1, x0, b1); }
+            if COLS >= 4u { acc0_2 = step(acc0_2, x0, b2); acc0_3 = step(acc0_3, x0, b3); }
+            acc1_0 = step(acc1_0, x1, b0);
+            if COLS >= 2u { acc1_1 = step(acc1_1, x1, b1); }
+            if COLS >= 4u { acc1_2 = step(acc1_2, x1, b2); acc1_3 = step(acc1_3, x1, b3); }
+            acc2_0 = step(acc2_0, x2, b0);
+            if COLS >= 2u { acc2_1 = step(acc2_1, x2, b1); }
+            if COLS >= 4u { acc2_2 = step(acc2_2, x2, b2); acc2_3 = step(acc2_3, x2, b3); }
+            acc3_0 = step(acc3_0, x3, b0);
+            if COLS >= 2u { acc3_1 = step(acc3_1, x3, b1); }
+            if COLS >= 4u { acc3_2 = step(acc3_2, x3, b2); acc3_3 = step(acc3_3, x3, b3); }
+            acc4_0 = step(acc4_0, x4, b0);
+            if COLS >= 2u { acc4_1 = step(acc4_1, x4, b1); }
+            if COLS >= 4u { acc4_2 = step(acc4_2, x4, b2); acc4_3 = step(acc4_3, x4, b3); }
+            acc5_0 = step(acc5_0, x5, b0);
+            if COLS >= 2u { acc5_1 = step(acc5_1, x5, b1); }
+            if COLS >= 4u { acc5_2 = step(acc5_2, x5, b2); acc5_3 = step(acc5_3, x5, b3); }
+            acc6_0 = step(acc6_0, x6, b0);
+            if COLS >= 2u { acc6_1 = step(acc6_1, x6, b1); }
+            if COLS >= 4u { acc6_2 = step(acc6_2, x6, b2); acc6_3 = step(acc6_3, x6, b3); }
+            acc7_0 = step(acc7_0, x7, b0);
+            if COLS >= 2u { acc7_1 = step(acc7_1, x7, b1); }
+            if COLS >= 4u { acc7_2 = step(acc7_2, x7, b2); acc7_3 = step(acc7_3, x7, b3); }
         }
-    }
-    if col4 >= groups {
-        return;
     }
     let entry = select(z, 0u, summed);
     let bias_row = select(0u, z, (pc.flags & MATMUL_FLAG_BIAS_PER_ENTRY) != 0u);
-    store(r0 + 0u, entry, bias_row, col4, c0);
-    store(r0 + 1u, entry, bias_row, col4, c1);
-    store(r0 + 2u, entry, bias_row, col4, c2);
-    store(r0 + 3u, entry, bias_row, col4, c3);
-    store(r0 + 4u, entry, bias_row, col4, c4);
-    store(r0 + 5u, entry, bias_row, col4, c5);
-    store(r0 + 6u, entry, bias_row, col4, c6);
-    store(r0 + 7u, entry, bias_row, col4, c7);
+    let g = array<u32, 4>(g0, g0 + 1u, g0 + 2u, g0 + 3u);
+    for (var c = 0u; c < COLS; c++) {
+        if g[c] >= groups {
+            break;
+        }
+        var v: array<vec4<f32>, 8>;
+        switch c {
+            case 0u: { v = array(acc0_0, acc1_0, acc2_0, acc3_0, acc4_0, acc5_0, acc6_0, acc7_0); }
+            case 1u: { v = array(acc0_1, acc1_1, acc2_1, acc3_1, acc4_1, acc5_1, acc6_1, acc7_1); }
+            case 2u: { v = array(acc0_2, acc1_2, acc2_2, acc3_2, acc4_2, acc5_2, acc6_2, acc7_2); }
+            default: { v = array(acc0_3, acc1_3, acc2_3, acc3_3, acc4_3, acc5_3, acc6_3, acc7_3); }
+        }
+        for (var r = 0u; r < 8u; r++) {
+            store(r0 + r, entry, bias_row, g[c], v[r]);
+        }
+    }
 }
 
 // Writes row `row`'s 4 outputs from column 4 col4 (skipped past M, and past N one by one), with

@@ -35,6 +35,11 @@ pub struct Caps {
     pub min_storage_buffer_offset_alignment: u64,
     pub max_buffer_size: u64,
     pub max_push_constants: u32,
+    /// Storage texel buffers of `R32G32B32A32_SFLOAT` (a read-only vec4 view of a tensor; every
+    /// Vulkan device has them), the most texels one view holds and the offset alignment of one.
+    pub texel_reads: bool,
+    pub max_texel_buffer_elements: u64,
+    pub min_texel_buffer_offset_alignment: u64,
     /// f16 arithmetic in shaders, and 16-bit storage buffer access.
     pub f16_arithmetic: bool,
     pub f16_storage: bool,
@@ -346,6 +351,11 @@ impl Caps {
                 coop_matrix_f16 = None;
             }
 
+            let texel_reads = instance
+                .get_physical_device_format_properties(pd, vk::Format::R32G32B32A32_SFLOAT)
+                .buffer_features
+                .contains(vk::FormatFeatureFlags::STORAGE_TEXEL_BUFFER);
+
             let families = instance.get_physical_device_queue_family_properties(pd);
             let timestamps = limits.timestamp_compute_and_graphics == vk::TRUE
                 || families[queue_family as usize].timestamp_valid_bits > 0;
@@ -403,6 +413,9 @@ impl Caps {
                 min_storage_buffer_offset_alignment: limits.min_storage_buffer_offset_alignment,
                 max_buffer_size: p13.max_buffer_size,
                 max_push_constants: limits.max_push_constants_size,
+                texel_reads,
+                max_texel_buffer_elements: limits.max_texel_buffer_elements as u64,
+                min_texel_buffer_offset_alignment: limits.min_texel_buffer_offset_alignment,
                 f16_arithmetic,
                 f16_storage,
                 int64: base.shader_int64 == vk::TRUE,
@@ -422,6 +435,13 @@ impl Caps {
                 forced: Vec::new(),
             })
         }
+    }
+
+    /// Whether the CPU kernels read through texel buffers here: they are on, and the device has
+    /// storage texel buffers of vec4s (buffers are made with that usage wherever it has them;
+    /// views then start on its texel offset alignment too).
+    pub fn texel_kernels(&self) -> bool {
+        self.cpu_kernels && self.texel_reads
     }
 
     /// Whether a pipeline can run with subgroups of exactly `size` invocations: the device's

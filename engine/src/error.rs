@@ -99,6 +99,9 @@ pub enum Feature {
     ValidationLayer,
     /// A kernel compiled for the request's sizes (attention's head widths).
     KernelVariant,
+    /// Storage texel buffers of vec4s, or a view of a tensor as one (`maxTexelBufferElements`,
+    /// `minTexelBufferOffsetAlignment`).
+    TexelBuffers,
 }
 
 /// What was done with a file that failed.

@@ -21,6 +21,20 @@ pub struct BindingInfo {
     pub writes: bool,
     /// The variable's name in the shader (and the field's in the kernel's argument struct).
     pub name: &'static str,
+    /// Read as vec4s through a storage texel buffer (`texture_storage_1d<rgba32float, read>` in
+    /// the shader; engine/build.rs), not as a storage buffer.
+    pub texel: bool,
+}
+
+impl BindingInfo {
+    /// The descriptor type the binding takes.
+    pub fn descriptor_type(&self) -> vk::DescriptorType {
+        if self.texel {
+            vk::DescriptorType::STORAGE_TEXEL_BUFFER
+        } else {
+            vk::DescriptorType::STORAGE_BUFFER
+        }
+    }
 }
 
 /// Device features a kernel needs.
@@ -71,6 +85,9 @@ impl KernelInfo {
                 Feature::CooperativeMatrix,
                 "f16 cooperative matrices (VK_KHR_cooperative_matrix)".into(),
             ));
+        }
+        if info.bindings.iter().any(|b| b.texel) && !c.texel_reads {
+            return Some((Feature::TexelBuffers, "storage texel buffers of R32G32B32A32_SFLOAT".into()));
         }
         if n.memory_model && !c.vulkan_memory_model {
             return Some((Feature::MemoryModel, "the Vulkan memory model (vulkanMemoryModel)".into()));
@@ -317,7 +334,7 @@ impl Gpu {
             .map(|b| {
                 vk::DescriptorSetLayoutBinding::default()
                     .binding(b.binding)
-                    .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
+                    .descriptor_type(b.descriptor_type())
                     .descriptor_count(1)
                     .stage_flags(vk::ShaderStageFlags::COMPUTE)
             })

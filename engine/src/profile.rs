@@ -156,7 +156,7 @@ mod tests {
             ("layernorm_wg8::forward", "norm"),
             ("fps_wg1024::fps", "layout"),
             ("fps_order::order", "layout"),
-            ("matmul_cpu_layout1::main", "matmul"),
+            ("matmul_cpu_layout1_cols4::main", "matmul"),
             ("attention_coop8_d16_bq64::forward", "attention"),
             ("norm::sum_squares", "optimiser"),
             ("raster_backward_cas::main", "raster"),

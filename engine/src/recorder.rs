@@ -64,8 +64,8 @@ pub enum NarrowMatmul {
     Tiles,
     /// One row of outputs per invocation, no workgroup memory (`matmul_rows.wgsl`).
     Rows,
-    /// The CPU kernel (`matmul_cpu.wgsl`: vec4 accesses, subgroup broadcasts) wherever its
-    /// layout conditions hold, whatever the device.
+    /// The CPU kernel (`matmul_cpu.wgsl`: texel-buffer reads, subgroup shuffles) wherever the
+    /// device has texel buffers and the operands' views fit one, whatever the device.
     Vec4,
 }
 
@@ -224,6 +224,7 @@ impl Gpu {
 /// on average (kernels bind 1 to 12).
 const SETS_PER_POOL: u32 = 512;
 const BUFFERS_PER_SET: u32 = 8;
+const TEXELS_PER_SET: u32 = 2;
 
 impl Recorder {
     fn with_timestamps_if_possible(mut self) -> Self {
@@ -385,15 +386,25 @@ impl Recorder {
                 [vk::DescriptorBufferInfo::default().buffer(t.buf.raw).offset(offset).range(range)]
             })
             .collect();
+        // Texel buffers take a view of the tensor's bytes (made once per buffer and range).
+        let texel_views: Vec<[vk::BufferView; 1]> = args
+            .iter()
+            .zip(info.bindings)
+            .map(|(t, b)| Ok([if b.texel { t.texel_view(&kernel.name())? } else { vk::BufferView::null() }]))
+            .collect::<Result<_>>()?;
         let writes_desc: Vec<vk::WriteDescriptorSet> = info
             .bindings
             .iter()
-            .zip(&buffer_infos)
-            .map(|(b, bi)| {
-                vk::WriteDescriptorSet::default()
+            .zip(buffer_infos.iter().zip(&texel_views))
+            .map(|(b, (bi, view))| {
+                let w = vk::WriteDescriptorSet::default()
                     .dst_binding(b.binding)
-                    .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
-                    .buffer_info(bi)
+                    .descriptor_type(b.descriptor_type());
+                if b.texel {
+                    w.texel_buffer_view(view)
+                } else {
+                    w.buffer_info(bi)
+                }
             })
             .collect();
         if profile::enabled() && self.timestamps + 2 < self.capacity {
@@ -457,9 +468,14 @@ impl Recorder {
         let device = self.gpu.device();
         for attempt in 0..2 {
             if self.sets_left == 0 || attempt == 1 {
-                let sizes = [vk::DescriptorPoolSize::default()
-                    .ty(vk::DescriptorType::STORAGE_BUFFER)
-                    .descriptor_count(SETS_PER_POOL * BUFFERS_PER_SET)];
+                let sizes = [
+                    vk::DescriptorPoolSize::default()
+                        .ty(vk::DescriptorType::STORAGE_BUFFER)
+                        .descriptor_count(SETS_PER_POOL * BUFFERS_PER_SET),
+                    vk::DescriptorPoolSize::default()
+                        .ty(vk::DescriptorType::STORAGE_TEXEL_BUFFER)
+                        .descriptor_count(SETS_PER_POOL * TEXELS_PER_SET),
+                ];
                 let info = vk::DescriptorPoolCreateInfo::default().max_sets(SETS_PER_POOL).pool_sizes(&sizes);
                 // SAFETY: valid device and create info; the pool is destroyed with the recorder.
                 let pool =

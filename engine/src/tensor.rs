@@ -48,6 +48,9 @@ pub struct Buffer {
     allocation: Option<Allocation>,
     /// Size in bytes the buffer was created with (at least 4).
     pub(crate) size: u64,
+    /// Texel-buffer views made of it, by (offset, range), each made once and destroyed with the
+    /// buffer (recorders keep the buffer alive while their work may read through a view).
+    views: std::sync::Mutex<Vec<(u64, u64, vk::BufferView)>>,
 }
 
 impl Buffer {
@@ -66,14 +69,14 @@ impl Buffer {
             ));
         }
         let device = gpu.device();
-        let info = vk::BufferCreateInfo::default()
-            .size(size)
-            .usage(
-                vk::BufferUsageFlags::STORAGE_BUFFER
-                    | vk::BufferUsageFlags::TRANSFER_SRC
-                    | vk::BufferUsageFlags::TRANSFER_DST,
-            )
-            .sharing_mode(vk::SharingMode::EXCLUSIVE);
+        let mut usage = vk::BufferUsageFlags::STORAGE_BUFFER
+            | vk::BufferUsageFlags::TRANSFER_SRC
+            | vk::BufferUsageFlags::TRANSFER_DST;
+        if caps.texel_reads {
+            usage |= vk::BufferUsageFlags::STORAGE_TEXEL_BUFFER;
+        }
+        let info =
+            vk::BufferCreateInfo::default().size(size).usage(usage).sharing_mode(vk::SharingMode::EXCLUSIVE);
         // SAFETY: valid device and create info.
         let raw = unsafe { device.create_buffer(&info, None) }.vk("vkCreateBuffer")?;
         // SAFETY: `raw` was just created on this device.
@@ -101,7 +104,26 @@ impl Buffer {
             return Err(Error::Vulkan { call: "vkBindBufferMemory", result: e });
         }
         gpu.account_memory(allocation.size(), true);
-        Ok(Buffer { gpu: gpu.clone(), raw, allocation: Some(allocation), size })
+        Ok(Buffer { gpu: gpu.clone(), raw, allocation: Some(allocation), size, views: Default::default() })
+    }
+
+    /// A view of `range` bytes from `offset` as vec4 texels (`R32G32B32A32_SFLOAT`), made on
+    /// first use.
+    fn texel_view(&self, offset: u64, range: u64) -> Result<vk::BufferView> {
+        let mut views = self.views.lock().unwrap();
+        if let Some(&(_, _, v)) = views.iter().find(|(o, r, _)| *o == offset && *r == range) {
+            return Ok(v);
+        }
+        let info = vk::BufferViewCreateInfo::default()
+            .buffer(self.raw)
+            .format(vk::Format::R32G32B32A32_SFLOAT)
+            .offset(offset)
+            .range(range);
+        // SAFETY: buffers are made with STORAGE_TEXEL_BUFFER usage where the device has texel
+        // buffers (Caps::texel_reads), and the caller checked the offset, range and texel count.
+        let view = unsafe { self.gpu.device().create_buffer_view(&info, None) }.vk("vkCreateBufferView")?;
+        views.push((offset, range, view));
+        Ok(view)
     }
 
     /// The mapped bytes, when the buffer lives in host-visible memory.
@@ -113,8 +135,13 @@ impl Buffer {
 impl Drop for Buffer {
     fn drop(&mut self) {
         // SAFETY: recorders keep an `Arc<Buffer>` of every buffer they bind until their work
-        // has finished, so the last drop happens when no command uses the buffer.
-        unsafe { self.gpu.device().destroy_buffer(self.raw, None) };
+        // has finished, so the last drop happens when no command uses the buffer or its views.
+        unsafe {
+            for (_, _, view) in self.views.get_mut().unwrap().drain(..) {
+                self.gpu.device().destroy_buffer_view(view, None);
+            }
+            self.gpu.device().destroy_buffer(self.raw, None)
+        };
         if let Some(a) = self.allocation.take() {
             self.gpu.account_memory(a.size(), false);
             let _ = self.gpu.inner.allocator.lock().unwrap().free(a);
@@ -265,10 +292,46 @@ impl Tensor {
         Ok(Tensor { buf: self.buf.clone(), offset, shape: shape.to_vec(), dtype: self.dtype })
     }
 
-    /// Element multiple at which views of this tensor may start.
+    /// Element multiple at which views of this tensor may start: the device's storage offset
+    /// alignment, and where the CPU kernels read through texel buffers its texel offset alignment.
     pub fn view_alignment(&self) -> usize {
-        let bytes = self.gpu().caps().min_storage_buffer_offset_alignment.max(4) as usize;
+        let caps = self.gpu().caps();
+        let texel = if caps.texel_kernels() { caps.min_texel_buffer_offset_alignment } else { 1 };
+        let bytes = caps.min_storage_buffer_offset_alignment.max(texel).max(4) as usize;
         bytes.div_ceil(self.dtype.size())
+    }
+
+    /// Whether the tensor can be bound as a texel buffer of vec4s ([`Tensor::texel_view`]): the
+    /// device has them, the view's offset is aligned for one and its texels fit one.
+    pub fn texel_bindable(&self) -> bool {
+        let caps = self.gpu().caps();
+        let (offset, range) = self.binding_range();
+        caps.texel_reads
+            && offset.is_multiple_of(caps.min_texel_buffer_offset_alignment.max(1))
+            && range.is_multiple_of(16)
+            && range / 16 <= caps.max_texel_buffer_elements
+    }
+
+    /// The tensor's bytes (its binding range) as a texel buffer of vec4s.
+    pub(crate) fn texel_view(&self, what: &str) -> Result<vk::BufferView> {
+        if !self.texel_bindable() {
+            let caps = self.gpu().caps();
+            return Err(Error::unsupported(
+                Feature::TexelBuffers,
+                format!(
+                    "{what}: tensor {:?} {} at byte {} as a texel buffer of vec4s (the device: texel \
+                     buffers of vec4s {}, at most {} texels, offsets a multiple of {})",
+                    self.shape,
+                    self.dtype.name(),
+                    self.offset,
+                    if caps.texel_reads { "yes" } else { "no" },
+                    caps.max_texel_buffer_elements,
+                    caps.min_texel_buffer_offset_alignment
+                ),
+            ));
+        }
+        let (offset, range) = self.binding_range();
+        self.buf.texel_view(offset, range)
     }
 
     /// The byte range to bind: the tensor's bytes rounded up to whole vec4s (16 bytes, which

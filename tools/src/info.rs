@@ -63,6 +63,16 @@ pub fn run(json_path: Option<&Path>, probe: bool) -> CliResult<()> {
         mib(c.max_buffer_size)
     );
     println!("  push constants    {} bytes", c.max_push_constants);
+    if c.texel_reads {
+        println!(
+            "  texel buffers     vec4 views of tensors, up to {} texels, offsets a multiple of {} bytes{}",
+            c.max_texel_buffer_elements,
+            c.min_texel_buffer_offset_alignment,
+            if c.texel_kernels() { " (the CPU kernels read through them)" } else { "" }
+        );
+    } else {
+        println!("  texel buffers     none of vec4s (the CPU kernels' matmul and softmax are not taken)");
+    }
     println!("  f16               arithmetic {}, storage {}", yes(c.f16_arithmetic), yes(c.f16_storage));
     println!("  f32 atomic add    {}", yes(c.float_atomic_add));
     println!("  timestamps        {} ({} ns per tick)", yes(c.timestamps), c.timestamp_period_ns);
@@ -162,6 +172,7 @@ pub fn report(gpu: &Gpu) -> serde_json::Value {
         "validation": gpu.validation().name(), "forced_fallbacks": c.forced,
         "portability_subset": c.portability_subset, "robust_buffer_access": c.robust_buffer_access,
         "vulkan_memory_model": c.vulkan_memory_model, "cpu_kernels": c.cpu_kernels,
+        "texel_reads": c.texel_reads, "max_texel_buffer_elements": c.max_texel_buffer_elements,
         "variants": variants,
     })
 }

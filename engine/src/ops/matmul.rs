@@ -19,10 +19,13 @@ use crate::device::Gpu;
 use crate::error::{Error, Result};
 use crate::kernels::args;
 use crate::kernels::{
-    Kernel, MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN, MATMUL_CPU_LAYOUT0_MAIN, MATMUL_CPU_LAYOUT1_MAIN,
-    MATMUL_CPU_LAYOUT2_MAIN, MATMUL_FLAG_A_SCALAR, MATMUL_FLAG_BIAS, MATMUL_FLAG_BIAS_PER_ENTRY,
-    MATMUL_FLAG_B_SCALAR, MATMUL_FLAG_SUMMED, MATMUL_FLAG_TRANS_A, MATMUL_FLAG_TRANS_B, MATMUL_MAIN,
-    MATMUL_MAIN_F16, MATMUL_ROWS_MAIN, MATMUL_SMALL_TS32_MAIN, MATMUL_SMALL_TS64_MAIN,
+    Kernel, MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN, MATMUL_CPU_LAYOUT0_COLS1_MAIN,
+    MATMUL_CPU_LAYOUT0_COLS2_MAIN, MATMUL_CPU_LAYOUT0_COLS4_MAIN, MATMUL_CPU_LAYOUT1_COLS1_MAIN,
+    MATMUL_CPU_LAYOUT1_COLS2_MAIN, MATMUL_CPU_LAYOUT1_COLS4_MAIN, MATMUL_CPU_LAYOUT2_COLS1_MAIN,
+    MATMUL_CPU_LAYOUT2_COLS2_MAIN, MATMUL_CPU_LAYOUT2_COLS4_MAIN, MATMUL_FLAG_A_SCALAR, MATMUL_FLAG_BIAS,
+    MATMUL_FLAG_BIAS_PER_ENTRY, MATMUL_FLAG_B_SCALAR, MATMUL_FLAG_SUMMED, MATMUL_FLAG_TRANS_A,
+    MATMUL_FLAG_TRANS_B, MATMUL_MAIN, MATMUL_MAIN_F16, MATMUL_ROWS_MAIN, MATMUL_SMALL_TS32_MAIN,
+    MATMUL_SMALL_TS64_MAIN,
 };
 use crate::ops::binary::{binary_into, Binary};
 use crate::ops::reduce::{reduce_into, Reduce};
@@ -41,9 +44,14 @@ const NARROW: usize = 64;
 const NARROW_32: usize = 32;
 const ROWS_NC: usize = 16;
 const ROWS_WG: usize = 64;
-/// Output tile of the CPU kernel (`matmul_cpu.wgsl`): 8 rows x 32 columns, one SIMD group.
+/// Output tile of the CPU kernel (`matmul_cpu.wgsl`): 8 rows x 32 COLS columns, one SIMD group.
 const CPU_ROWS: usize = 8;
-const CPU_COLS: usize = 32;
+/// The CPU kernel's variants, by layout (see [`cpu_kernel`]) and COLS = 1, 2, 4.
+const CPU_KERNELS: [[TiledKernel; 3]; 3] = [
+    [MATMUL_CPU_LAYOUT0_COLS1_MAIN, MATMUL_CPU_LAYOUT0_COLS2_MAIN, MATMUL_CPU_LAYOUT0_COLS4_MAIN],
+    [MATMUL_CPU_LAYOUT1_COLS1_MAIN, MATMUL_CPU_LAYOUT1_COLS2_MAIN, MATMUL_CPU_LAYOUT1_COLS4_MAIN],
+    [MATMUL_CPU_LAYOUT2_COLS1_MAIN, MATMUL_CPU_LAYOUT2_COLS2_MAIN, MATMUL_CPU_LAYOUT2_COLS4_MAIN],
+];
 /// Workgroup memory the cooperative-matrix kernels declare. 16x16 fragments: two buffers of two
 /// 128x40 f16 tiles (40 KiB) and one 16x16 f32 staging slot per subgroup for edge tiles (8 KiB).
 /// 8x8 fragments: k step 16, so two buffers of two 128x24 tiles (24 KiB), and 8 KiB of slots.
@@ -75,9 +83,15 @@ impl MatmulKernel {
 
     /// The CPU kernel (any layout): it sums a batch itself and splits nothing along K.
     fn is_cpu(self) -> bool {
-        [MATMUL_CPU_LAYOUT0_MAIN, MATMUL_CPU_LAYOUT1_MAIN, MATMUL_CPU_LAYOUT2_MAIN]
-            .into_iter()
-            .any(|k| self.is(k))
+        self.cpu_layout().is_some()
+    }
+
+    /// The CPU kernel's layout and output columns per workgroup, `None` for other kernels.
+    fn cpu_layout(self) -> Option<(usize, usize)> {
+        CPU_KERNELS
+            .iter()
+            .enumerate()
+            .find_map(|(layout, ks)| ks.iter().position(|k| self.is(*k)).map(|c| (layout, 32 << c)))
     }
 
     /// Whether the kernel has a bias binding (read where `MATMUL_FLAG_BIAS` is set).
@@ -222,10 +236,10 @@ pub fn coop_layout_ok(p: &Plan, trans_a: bool, trans_b: bool) -> bool {
 /// Which kernel a product of `dtype` operands runs on this device, for `velox info`.
 pub fn matmul_variant(gpu: &Gpu, dtype: DType) -> &'static str {
     match dtype {
-        DType::F32 if gpu.caps().cpu_kernels && cpu_kernel_fits(gpu.caps()) => {
-            "CPU kernel: 8 rows x 32 columns per SIMD group of 8, A shared by subgroup broadcasts, \
-             operands read in vec4s where their contiguous axis is a multiple of 4, else one value at \
-             a time (CPU device)"
+        DType::F32 if gpu.caps().texel_kernels() && cpu_kernel_fits(gpu.caps()) => {
+            "CPU kernel: 8 rows x 32, 64 or 128 columns per SIMD group of 8, operands read through \
+             texel buffers (vec4s where their contiguous axis is a multiple of 4, else one value at a \
+             time), A shared by subgroup shuffles, 8 k a step (CPU device)"
         }
         DType::F32 if gpu.caps().cpu_kernels => {
             "tiled f32: 128x128 tile per 256 invocations, 8x8 per invocation, k step 8; \
@@ -332,7 +346,7 @@ pub fn matmul_sum_into(
     let p = plan(a.shape(), b.shape(), trans_a, trans_b)?;
     check_dtypes(a, b)?;
     check_out(a, b, out, &[p.m, p.n])?;
-    let kernel = choose_kernel(a.gpu(), a.dtype(), &p, trans_a, trans_b, rec.narrow_matmul());
+    let kernel = choose_kernel(a, b, &p, trans_a, trans_b, rec.narrow_matmul());
     let fits = u32::try_from(p.batch).is_ok() && [a, b].iter().all(|t| t.numel() <= u32::MAX as usize);
     if !(kernel.is(MATMUL_ROWS_MAIN) || kernel.is_cpu()) || !fits || p.m == 0 || p.n == 0 {
         let parts = Tensor::empty(a.gpu(), &p.out_shape, DType::F32)?;
@@ -373,7 +387,7 @@ fn grid(gpu: &Gpu, kernel: MatmulKernel, p: &Plan, z: usize) -> Result<[usize; 3
         k if k.is(MATMUL_SMALL_TS32_MAIN) => (32, 32),
         k if k.is(MATMUL_SMALL_TS64_MAIN) => (64, 64),
         k if k.is(MATMUL_ROWS_MAIN) => (ROWS_WG, ROWS_NC),
-        k if k.is_cpu() => (CPU_ROWS, CPU_COLS),
+        k if k.is_cpu() => (CPU_ROWS, k.cpu_layout().expect("a CPU kernel").1),
         _ => (TILE, TILE),
     };
     let groups = [p.n.div_ceil(tn), p.m.div_ceil(tm), z];
@@ -415,7 +429,7 @@ fn product(
     check_dtypes(a, b)?;
     check_out(a, b, out, &p.out_shape)?;
     let max = a.gpu().caps().max_workgroup_count;
-    let kernel = choose_kernel(a.gpu(), a.dtype(), &p, trans_a, trans_b, rec.narrow_matmul());
+    let kernel = choose_kernel(a, b, &p, trans_a, trans_b, rec.narrow_matmul());
     let groups = grid(a.gpu(), kernel, &p, if p.m == 0 || p.n == 0 { 0 } else { p.batch })?;
     // Every index the kernels form stays below the largest operand, which is bindable and so
     // below 2^32 bytes; check the element counts anyway so an index can never wrap.
@@ -528,23 +542,27 @@ fn split_k_into(
     reduce_into(rec, &partial, 0, Reduce::Sum, out, accumulate)
 }
 
-/// The kernel for one product (`narrow_choice`: the recording's choice for narrow f32 ones).
+/// The kernel for one product of `a` and `b` (`narrow_choice`: the recording's choice for
+/// narrow f32 ones).
 fn choose_kernel(
-    gpu: &Gpu,
-    dtype: DType,
+    a: &Tensor,
+    b: &Tensor,
     p: &Plan,
     trans_a: bool,
     trans_b: bool,
     narrow_choice: NarrowMatmul,
 ) -> MatmulKernel {
-    if dtype == DType::F32 {
+    let gpu = a.gpu();
+    if a.dtype() == DType::F32 {
         let vec4 = match narrow_choice {
             NarrowMatmul::Device => gpu.caps().cpu_kernels,
             NarrowMatmul::Vec4 => true,
             NarrowMatmul::Rows | NarrowMatmul::Tiles => false,
         };
         let k = cpu_kernel(p, trans_a, trans_b);
-        if vec4 && cpu_kernel_fits(gpu.caps()) && gpu.supports(k) {
+        // It reads both operands through texel buffers.
+        let texel = a.texel_bindable() && b.texel_bindable();
+        if vec4 && texel && cpu_kernel_fits(gpu.caps()) && gpu.supports(k) {
             return MatmulKernel::Tiled(k);
         }
         let narrow = p.m.min(p.n);
@@ -573,14 +591,21 @@ fn choose_kernel(
 /// (`shaders/matmul_cpu.wgsl`'s LAYOUT; tensors start on a storage offset alignment, at least 16
 /// bytes, and bind whole vec4s). Every shape and layout has one; [`cpu_flags`] says which
 /// operands it reads one value at a time.
+/// Its output tile is 8 rows by 32, 64 or 128 columns, the narrowest that holds N up to 128.
 fn cpu_kernel(p: &Plan, trans_a: bool, trans_b: bool) -> TiledKernel {
-    if trans_a && p.m.is_multiple_of(4) {
-        MATMUL_CPU_LAYOUT1_MAIN
+    let layout = if trans_a && p.m.is_multiple_of(4) {
+        1
     } else if !trans_a && trans_b && p.k.is_multiple_of(4) {
-        MATMUL_CPU_LAYOUT2_MAIN
+        2
     } else {
-        MATMUL_CPU_LAYOUT0_MAIN
-    }
+        0
+    };
+    let cols = match p.n {
+        0..=32 => 0,
+        33..=64 => 1,
+        _ => 2,
+    };
+    CPU_KERNELS[layout][cols]
 }
 
 /// The flags of the CPU kernel's scalar paths for a product (0 for other kernels): A or B read
@@ -589,11 +614,9 @@ fn cpu_flags(kernel: MatmulKernel, p: &Plan, trans_a: bool, trans_b: bool) -> u3
     let a_vec4 = !trans_a && p.k.is_multiple_of(4);
     let b_vec4 = !trans_b && p.n.is_multiple_of(4);
     let scalar = |vec4: bool, flag: u32| if vec4 { 0 } else { flag };
-    match kernel {
-        k if k.is(MATMUL_CPU_LAYOUT0_MAIN) => {
-            scalar(a_vec4, MATMUL_FLAG_A_SCALAR) | scalar(b_vec4, MATMUL_FLAG_B_SCALAR)
-        }
-        k if k.is(MATMUL_CPU_LAYOUT1_MAIN) => scalar(b_vec4, MATMUL_FLAG_B_SCALAR),
+    match kernel.cpu_layout() {
+        Some((0, _)) => scalar(a_vec4, MATMUL_FLAG_A_SCALAR) | scalar(b_vec4, MATMUL_FLAG_B_SCALAR),
+        Some((1, _)) => scalar(b_vec4, MATMUL_FLAG_B_SCALAR),
         _ => 0,
     }
 }

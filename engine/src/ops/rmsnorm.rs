@@ -78,8 +78,10 @@ impl RowShape {
 /// Which variant the row kernels (softmax, RMSNorm, LayerNorm) run on this device, for `velox
 /// info`.
 pub fn row_variant(gpu: &crate::Gpu) -> &'static str {
-    if gpu.caps().cpu_kernels {
-        "a row per invocation in workgroups of 8 (one SIMD group), no barriers; softmax rows of a multiple of 4 as vec4s, in two passes (CPU kernels)"
+    if gpu.caps().texel_kernels() {
+        "a row per invocation in workgroups of 8 (one SIMD group), no barriers; softmax rows of a multiple of 4 as vec4s read through a texel buffer, in two passes (CPU kernels)"
+    } else if gpu.caps().cpu_kernels {
+        "a row per invocation in workgroups of 8 (one SIMD group), no barriers (CPU kernels)"
     } else {
         "workgroups of 256, a power of two of invocations per row, reductions in workgroup memory"
     }

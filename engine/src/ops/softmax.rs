@@ -1,6 +1,7 @@
 //! Softmax over the last axis. Kernels: `shaders/softmax.wgsl` (rows of any length; its
 //! workgroup of 256 for GPUs, of 8 with a row per invocation for CPU devices) and
-//! `shaders/softmax_cpu.wgsl` (CPU devices, rows of a multiple of 4, as vec4s).
+//! `shaders/softmax_cpu.wgsl` (CPU devices, rows of a multiple of 4, read as vec4s through a
+//! texel buffer).
 //!
 //! Tests: the harness's `softmax` row (`engine/tests/ops/cases.rs`: forward against the f64
 //! reference at awkward shapes); `engine/tests/ops/elementwise.rs` (stability on long and extreme
@@ -28,8 +29,8 @@ pub fn softmax(rec: &mut Recorder, x: &Tensor) -> Result<Tensor> {
     fit(x.numel())?;
     let (rows, len) = (fit(rows)?, fit(len)?);
     let shape = RowShape::of(x.gpu(), len);
-    if shape.cpu && len.is_multiple_of(4) {
-        // Rows of vec4s (`shaders/softmax_cpu.wgsl`).
+    if shape.cpu && len.is_multiple_of(4) && x.texel_bindable() {
+        // Rows of vec4s read through a texel buffer (`shaders/softmax_cpu.wgsl`).
         let p = crate::kernels::params::SoftmaxCpuParams { rows, len, lanes: 1 };
         return rec
             .dispatch_linear(

@@ -720,17 +720,19 @@ fn a_batched_product_takes_a_bias_per_entry() {
 
 /// Would catch: a slip in the CPU kernel's indexing that no other shape reaches: every layout
 /// (a [M, K] or [K, M], b [K, N] or [N, K]) at multiples of 4 (its vec4 paths) and not (its
-/// scalar paths) that leave its 8 x 32 tile and its 4-deep K blocks partly filled, batched and
-/// broadcast operands, a bias (per column and per entry), accumulation and a sum over the
-/// batch.
+/// scalar paths) that leave its 8 x 32, 64 and 128 tiles and its 8-deep K blocks partly filled
+/// (K a multiple of 4 and not of 8 among them), batched and broadcast operands, a bias (per
+/// column and per entry), accumulation and a sum over the batch.
 #[test]
 fn the_cpu_kernel_takes_every_layout_with_partial_tiles() {
     let gpu = gpu();
     let mut rng = Rng::new(33);
     let mut rec = recorder(&gpu, NarrowMatmul::Vec4);
     let mut cases = Vec::new();
-    let list: [Sizes; 9] = [
+    let list: [Sizes; 11] = [
         (4, 4, 4, None, None),
+        (9, 97, 13, None, None),
+        (16, 256, 28, None, Some(2)),
         (12, 36, 20, None, None),
         (68, 132, 36, None, None),
         (9, 40, 6, None, None),
