@@ -26,6 +26,8 @@ struct Params {
 @group(0) @binding(3) var<storage, read_write> grad: array<f32>;
 var<immediate> pc: Params;
 
+// @include elements.wgsl
+
 const LOSS_OP_MSE: u32 = 0u;
 const LOSS_OP_L1: u32 = 1u;
 const LOSS_OP_HUBER: u32 = 2u;
@@ -41,13 +43,8 @@ fn log1p_pos(u: f32) -> f32 {
     return log(v) * (u / (v - 1.0));
 }
 
-@compute @workgroup_size(256)
-fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-        @builtin(local_invocation_index) lid: u32) {
-    let i = (wid.x + wid.y * nwg.x) * 256u + lid;
-    if (i >= pc.n) {
-        return;
-    }
+// One element's loss and gradient, scaled.
+fn element(i: u32) {
     let x = pred[i];
     let t = label[i];
     let r = x - t;
@@ -91,4 +88,13 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
     }
     loss[i] = l * pc.scale;
     grad[i] = g * pc.scale;
+}
+
+// The elements of the dispatch (a workgroup per 256 on GPUs, per 4096 on CPU devices).
+@compute @workgroup_size(256)
+fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+        @builtin(local_invocation_index) lid: u32) {
+    for (var i = first_element(wid, nwg, lid); i < pc.n; i += element_stride(nwg)) {
+        element(i);
+    }
 }

@@ -87,9 +87,9 @@ pub fn loss_into(
     let p = Params { n, kind: code, delta, scale: weight / n.max(1) as f32 };
     let per = Tensor::empty(pred.gpu(), &[n as usize], DType::F32)?;
     let grad = Tensor::empty(pred.gpu(), pred.shape(), DType::F32)?;
-    rec.dispatch_linear(
+    rec.dispatch_elements(
         LOSS_MAIN,
-        (n as u64).div_ceil(256),
+        n as u64,
         args::LossMainArgs { pred, label: target, loss: &per, grad: &grad },
         &p,
     )?;
