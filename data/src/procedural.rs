@@ -21,8 +21,8 @@ use crate::mesh::{AnimatedMesh, Texture};
 use crate::texture::{procedural, ImageFolder};
 use crate::DataResult;
 
-/// Frames in a clip (docs/models.md: tau = frame / 100, 24 frames).
-pub const FRAMES: usize = 24;
+/// Frames in a clip (docs/models.md: tau = frame / 100, 24 frames; `velox_io::frames`).
+pub use velox_io::frames::FRAMES;
 
 /// A primitive in its rest pose.
 #[derive(Clone, Default)]

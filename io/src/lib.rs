@@ -13,6 +13,8 @@
 //! the file and what went wrong.
 
 pub mod cloud;
+pub mod decoded;
+pub mod frames;
 pub mod image;
 pub mod npz;
 pub mod ply;

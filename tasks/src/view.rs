@@ -38,8 +38,8 @@ use std::sync::Arc;
 use serde::Serialize;
 use velox_data::format::{CameraSet, Scene};
 use velox_engine::ops::raster::{Camera, GaussianData};
+use velox_io::frames::{self, frame_of_tau, tau_of, FRAMES};
 use velox_io::ply::{self, Header};
-use velox_models::velox::autoencoder::{frame_of_tau, tau_of, FRAMES};
 
 /// A viewer's errors: a file's, the data's, or what the viewer itself found, in words.
 pub type ViewResult<T> = Result<T, Box<dyn std::error::Error + Send + Sync>>;
@@ -224,20 +224,6 @@ struct ManifestTracks {
     frames: usize,
 }
 
-/// The frame index in a name `PREFIX_fFF.ply`, if it is one.
-fn frame_of(name: &str, prefix: &str) -> Option<usize> {
-    name.strip_prefix(prefix)?.strip_prefix("_f")?.strip_suffix(".ply")?.parse().ok()
-}
-
-/// Another tool's numbered frame, `PREFIX<digits>.ply` (`frame_0007.ply`, `000123.ply`, as
-/// 4DGaussians-style exports write them): the prefix and the number.
-fn numbered_ply(name: &str) -> Option<(&str, usize)> {
-    let stem = name.strip_suffix(".ply")?;
-    let digits = stem.bytes().rev().take_while(u8::is_ascii_digit).count();
-    let (prefix, number) = stem.split_at(stem.len() - digits);
-    Some((prefix, number.parse().ok()?))
-}
-
 /// The header of a PLY file and its vertex count, reading only the start of the file; the
 /// file's length is checked against the header.
 fn ply_header(path: &Path) -> ViewResult<(Header, usize)> {
@@ -285,10 +271,7 @@ fn named_cameras(set: CameraSet) -> Vec<NamedCamera> {
 /// The scene a decode or generate output was made from (decode.json's `cloud`), when it is a
 /// scene folder.
 fn named_scene(dir: &Path) -> Option<PathBuf> {
-    let text = std::fs::read_to_string(dir.join("decode.json")).ok()?;
-    let json: serde_json::Value = serde_json::from_str(&text).ok()?;
-    let cloud = PathBuf::from(json["cloud"].as_str()?);
-    cloud.join("cameras.json").is_file().then_some(cloud)
+    velox_io::decoded::DecodeReport::read(dir).ok()?.scene()
 }
 
 /// The scene a track output was made from (tracks.json's `video`), when it is a scene folder.
@@ -347,17 +330,9 @@ fn discover(path: &Path, scene: Option<&Path>) -> ViewResult<Source> {
         let scene = Some(scene.unwrap_or(path).to_path_buf());
         return Ok(Source { title, kind: Kind::Points, frames, cameras, compare: None, tracks, scene });
     } else {
-        let entries = std::fs::read_dir(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
-        let mut files: Vec<(String, PathBuf)> = entries
-            .filter_map(|e| e.ok())
-            .map(|e| (e.file_name().to_string_lossy().into_owned(), e.path()))
-            .collect();
-        files.sort();
-        let of = |prefix: &str| -> Vec<(usize, PathBuf)> {
-            files.iter().filter_map(|(n, p)| frame_of(n, prefix).map(|f| (f, p.clone()))).collect()
-        };
+        let of = |prefix: &str| frames::frame_files(path, prefix);
         // Gaussians first; else decoded points; else a track output's points.
-        let (gaussians, points, tracked) = (of("gaussians"), of("points"), of("tracks"));
+        let (gaussians, points, tracked) = (of("gaussians")?, of("points")?, of("tracks")?);
         let (kind, list) = if !gaussians.is_empty() {
             (Kind::Gaussians, gaussians)
         } else if !points.is_empty() {
@@ -367,30 +342,7 @@ fn discover(path: &Path, scene: Option<&Path>) -> ViewResult<Source> {
         } else {
             // Another tool's numbered sequence: its PLYs that end in a number, one prefix to
             // them all, each frame its number; Gaussians or points by the first one's header.
-            let numbered: Vec<(&str, usize, PathBuf)> = files
-                .iter()
-                .filter_map(|(n, p)| numbered_ply(n).map(|(prefix, f)| (prefix, f, p.clone())))
-                .collect();
-            if let Some(other) = numbered.iter().find(|(prefix, ..)| *prefix != numbered[0].0) {
-                return Err(format!(
-                    "{}: numbered PLYs of two sequences, {} and {}: give the folder of one",
-                    path.display(),
-                    numbered[0].2.file_name().unwrap_or_default().to_string_lossy(),
-                    other.2.file_name().unwrap_or_default().to_string_lossy()
-                )
-                .into());
-            }
-            let mut list: Vec<(usize, PathBuf)> = numbered.into_iter().map(|(_, f, p)| (f, p)).collect();
-            list.sort();
-            if let Some(w) = list.windows(2).find(|w| w[0].0 == w[1].0) {
-                return Err(format!(
-                    "{} and {} are both frame {}",
-                    w[0].1.display(),
-                    w[1].1.display(),
-                    w[0].0
-                )
-                .into());
-            }
+            let list = frames::numbered_files(path)?;
             let Some((_, first)) = list.first() else {
                 return Err(format!(
                     "{} holds no frames: expected gaussians_fFF.ply (velox decode gaussians, velox generate), \
@@ -813,16 +765,5 @@ mod tests {
         let c = covariance(&[0.0, 2f32.ln(), 0.0], &[3.0 * h.cos(), 0.0, 0.0, 3.0 * h.sin()]);
         let want = [4.0, 0.0, 0.0, 1.0, 0.0, 1.0];
         assert!(c.iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-5), "{c:?}");
-    }
-
-    #[test]
-    fn frame_names_parse() {
-        assert_eq!(frame_of("gaussians_f07.ply", "gaussians"), Some(7));
-        assert_eq!(frame_of("points_f23.ply", "gaussians"), None);
-        assert_eq!(frame_of("gaussians_fxx.ply", "gaussians"), None);
-        assert_eq!(numbered_ply("frame_0007.ply"), Some(("frame_", 7)));
-        assert_eq!(numbered_ply("000123.ply"), Some(("", 123)));
-        assert_eq!(numbered_ply("point_cloud.ply"), None);
-        assert_eq!(numbered_ply("frame_7.png"), None);
     }
 }

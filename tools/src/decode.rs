@@ -25,7 +25,8 @@ use velox_engine::ops::raster::{render, Camera};
 use crate::overlay::clip_gif;
 use velox_engine::{Gpu, Precision};
 use velox_io::cloud::CHANNELS;
-use velox_io::{ply, write_bytes};
+use velox_io::decoded::{DecodeReport, DecodedFrame};
+use velox_io::ply;
 use velox_models::velox::autoencoder::{Autoencoder, FRAMES};
 use velox_models::velox::decode::{
     frame_points, sampler_name, Decoding, FrameOutput, Sampling, VoxelSource, WrittenFrame,
@@ -227,34 +228,6 @@ pub fn progress(len: usize, what: &str) -> ProgressBar {
     bar
 }
 
-#[derive(Serialize)]
-struct FrameFile {
-    frame: usize,
-    tau: f32,
-    file: String,
-    /// Points (decode points) or Gaussians (decode gaussians) in the file.
-    count: usize,
-    /// Occupied voxels the Gaussians were decoded from (decode gaussians).
-    voxels: Option<usize>,
-    seconds: f64,
-}
-
-#[derive(Serialize)]
-struct Report {
-    command: &'static str,
-    checkpoint: String,
-    cloud: String,
-    config: String,
-    precision: &'static str,
-    input_points: usize,
-    voxels: Option<VoxelSource>,
-    sampler: &'static str,
-    steps: usize,
-    points: usize,
-    encode_seconds: f64,
-    frames: Vec<FrameFile>,
-}
-
 /// Frame `f` of the Gaussians a decoding wrote (`written`), read back from its file and
 /// rendered from `camera` on `background` (the scene's): a clip's pane.
 pub fn render_written(
@@ -288,7 +261,7 @@ pub struct DecodeRecord<'a> {
 pub fn write_report(out: &Path, record: &DecodeRecord, written: &[WrittenFrame]) -> CliResult<PathBuf> {
     let frames = written
         .iter()
-        .map(|w| FrameFile {
+        .map(|w| DecodedFrame {
             frame: w.frame,
             tau: w.tau,
             file: name(&w.path),
@@ -297,23 +270,21 @@ pub fn write_report(out: &Path, record: &DecodeRecord, written: &[WrittenFrame])
             seconds: w.seconds,
         })
         .collect();
-    let report = Report {
-        command: if record.voxels.is_some() { "decode gaussians" } else { "decode points" },
+    let report = DecodeReport {
+        command: if record.voxels.is_some() { "decode gaussians" } else { "decode points" }.into(),
         checkpoint: record.checkpoint.display().to_string(),
         cloud: record.cloud.display().to_string(),
         config: record.ae.cfg.name.clone(),
-        precision: record.ae.precision().name(),
+        precision: record.ae.precision().name().into(),
         input_points: record.input_points,
-        voxels: record.voxels,
-        sampler: sampler_name(record.sampling.sampler),
+        voxels: record.voxels.map(|v| v.name().into()),
+        sampler: sampler_name(record.sampling.sampler).into(),
         steps: record.sampling.steps,
         points: record.sampling.points,
         encode_seconds: record.encode_seconds,
         frames,
     };
-    let json = out.join("decode.json");
-    write_bytes(&json, serde_json::to_string_pretty(&report)?.as_bytes())?;
-    Ok(json)
+    Ok(report.write(out)?)
 }
 
 pub fn run(cmd: DecodeCommand) -> CliResult<()> {

@@ -273,7 +273,7 @@ pub fn run(a: &GenerateArgs) -> CliResult<()> {
     for &f in &a.frames.0 {
         let centres = decoding.voxels(f, source, &sampling)?;
         let g = decoding.gaussians(f, &centres)?;
-        let path = a.out.join(format!("gaussians_f{f:02}.ply"));
+        let path = a.out.join(velox_io::frames::frame_file("gaussians", f));
         let host = g.download()?;
         ply::write(&path, &host)?;
         frames.push(FrameReport {

@@ -163,7 +163,7 @@ pub fn run(a: &TrackArgs) -> CliResult<()> {
             let positions: Vec<[f32; 3]> = tracks.iter().map(|t| t[j]).collect();
             let visible: Vec<bool> = hidden.iter().map(|h| !h[j]).collect();
             write_bytes(
-                &a.out.join(format!("tracks_f{i:02}.ply")),
+                &a.out.join(velox_io::frames::frame_file("tracks", i)),
                 &frame_ply(&positions, &colour, &visible),
             )?;
             let mut rgb = video.rgb[j].clone();

@@ -45,18 +45,8 @@ use velox_io::cloud::{self, CHANNELS};
 /// The `model` a checkpoint of the autoencoder names.
 pub const MODEL_KIND: &str = "velox autoencoder";
 
-/// Frames of a clip.
-pub const FRAMES: usize = 24;
-
-/// The frame time of frame `frame`: tau = frame / 100 (the data's convention).
-pub fn tau_of(frame: usize) -> f32 {
-    frame as f32 / 100.0
-}
-
-/// The frame a frame time belongs to: the nearest, clamped to the clip.
-pub fn frame_of_tau(tau: f32) -> usize {
-    ((tau * 100.0).round() as usize).min(FRAMES - 1)
-}
+/// The clip's frames and frame times (tau = frame / 100), defined in `velox_io::frames`.
+pub use velox_io::frames::{frame_of_tau, tau_of, FRAMES};
 
 /// What a training step needs of a scene, on the host and the device.
 pub struct TrainScene {

@@ -44,6 +44,17 @@ pub enum VoxelSource {
     Input,
 }
 
+impl VoxelSource {
+    /// The name it is written under (as serde writes it).
+    pub fn name(self) -> &'static str {
+        match self {
+            VoxelSource::Predicted => "predicted",
+            VoxelSource::Surface => "surface",
+            VoxelSource::Input => "input",
+        }
+    }
+}
+
 /// How surface points are sampled: `points` points, `steps` steps of `sampler`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Sampling {
@@ -238,14 +249,14 @@ impl<'a> Decoding<'a> {
             let (path, count, voxels) = match output {
                 FrameOutput::Points => {
                     let xyz = self.surface_points(frame, sampling)?;
-                    let path = out.join(format!("points_f{frame:02}.ply"));
+                    let path = out.join(velox_io::frames::frame_file("points", frame));
                     write_bytes(&path, &points_ply(&xyz, tau_of(frame)))?;
                     (path, xyz.len() / 3, None)
                 }
                 FrameOutput::Gaussians(source) => {
                     let centres = self.voxels(frame, source, sampling)?;
                     let g = self.gaussians(frame, &centres)?.download()?;
-                    let path = out.join(format!("gaussians_f{frame:02}.ply"));
+                    let path = out.join(velox_io::frames::frame_file("gaussians", frame));
                     ply::write(&path, &g)?;
                     (path, g.len(), Some(centres.len() / 3))
                 }
