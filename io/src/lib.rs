@@ -15,9 +15,12 @@
 pub mod cloud;
 pub mod decoded;
 pub mod frames;
+pub mod glb;
 pub mod image;
 pub mod npz;
 pub mod ply;
+pub mod splatv;
+pub mod spz;
 
 use std::fs::File;
 use std::io::{BufWriter, Write};

@@ -7,6 +7,7 @@ mod decode;
 mod demo;
 mod encode;
 mod eval;
+mod export;
 mod generate;
 mod import;
 mod info;
@@ -82,6 +83,10 @@ enum Command {
     /// generate), decoded points or a dataset scene on 127.0.0.1, with a time slider, orbit
     /// controls and the scene's cameras; or writes it as one HTML file (--html).
     View(view::ViewArgs),
+    /// Write per-frame Gaussians (a decode or generate output) in the formats other viewers
+    /// play: a numbered PLY sequence (SuperSplat), a .splatv flipbook (splaTV, gsplat.js), SPZ
+    /// or glTF with KHR_gaussian_splatting, one file a frame.
+    Export(export::ExportArgs),
     /// Encode every scene of a dataset once with a trained autoencoder's encoder and store the
     /// tokens beside it (k x token_dim per scene, with their query points, the checkpoint's
     /// hash and the dataset's token statistics), for the models that train on them.
@@ -319,6 +324,7 @@ fn dispatch(command: Command) -> CliResult<()> {
         Command::Demo(args) => demo::run(&args),
         Command::Render(args) => render::run(&args),
         Command::View(args) => view::run(&args),
+        Command::Export(args) => export::run(&args),
         Command::Bench { what } => bench::run(what),
         Command::Data { what } => data::run(what),
         Command::Import { what } => import::run(what),

@@ -156,7 +156,7 @@ pub fn run(a: &RenderArgs) -> CliResult<()> {
             image::write_exr_depth(&path, &z, cam.width, cam.height)?;
             Some(name(&path))
         };
-        let eye = camera_position(&cam);
+        let eye = cam.centre();
         frames.push(Frame {
             index: i,
             png: name(&png),
@@ -203,12 +203,6 @@ fn scene_camera(scene: &Path, view: usize) -> CliResult<Camera> {
 
 fn name(p: &Path) -> String {
     p.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default()
-}
-
-/// The camera centre -R^T t.
-fn camera_position(c: &Camera) -> [f32; 3] {
-    let (r, t) = (c.rotation, c.translation);
-    [0, 1, 2].map(|k| -(r[0][k] * t[0] + r[1][k] * t[1] + r[2][k] * t[2]))
 }
 
 #[cfg(test)]

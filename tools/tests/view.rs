@@ -1,6 +1,7 @@
 //! `velox view` as a user meets it: what it refuses before serving, what it serves and what it
 //! does not, the one-file page, and the page itself in a real browser (headless Chromium with
-//! software WebGL2) against `velox render` of the same frame from the same camera.
+//! software WebGL2) against `velox render` of the same frame from the same camera; and
+//! `velox export`, which writes the same frames for other viewers.
 
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
@@ -9,8 +10,10 @@ use std::process::{Child, Command, Stdio};
 
 use velox_engine::ops::raster::GaussianData;
 use velox_engine::rng::Rng;
+use velox_io::decoded::{DecodeReport, DecodedFrame};
 use velox_io::image::read_png;
-use velox_io::ply;
+use velox_io::splatv::SplatvCamera;
+use velox_io::{frames, glb, ply, splatv, spz};
 
 fn velox() -> Command {
     Command::new(env!("CARGO_BIN_EXE_velox"))
@@ -59,8 +62,32 @@ fn fixture(name: &str, res: u32, tracks: u32) -> (PathBuf, PathBuf) {
     for f in [0, 12] {
         ply::write(&decoded.join(format!("gaussians_f{f:02}.ply")), &gaussians(400, 3 + f as u64)).unwrap();
     }
-    let json = serde_json::json!({ "command": "decode gaussians", "cloud": scene.display().to_string() });
-    std::fs::write(decoded.join("decode.json"), json.to_string()).unwrap();
+    let frames = [0, 12]
+        .map(|f| DecodedFrame {
+            frame: f,
+            tau: frames::tau_of(f),
+            file: frames::frame_file("gaussians", f),
+            count: 400,
+            voxels: None,
+            seconds: 0.0,
+        })
+        .to_vec();
+    DecodeReport {
+        command: "decode gaussians".into(),
+        checkpoint: "checkpoint.safetensors".into(),
+        cloud: scene.display().to_string(),
+        config: "tiny".into(),
+        precision: "f32".into(),
+        input_points: 2000,
+        voxels: Some("surface".into()),
+        sampler: "heun".into(),
+        steps: 8,
+        points: 400,
+        encode_seconds: 0.0,
+        frames,
+    }
+    .write(&decoded)
+    .unwrap();
     (scene, decoded)
 }
 
@@ -397,4 +424,56 @@ fn another_tools_numbered_ply_sequence_opens_frame_by_frame() {
     let err = fails(velox().arg("view").arg(&seq));
     assert!(err.contains("frame_5.ply") && err.contains("both frame 5"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn export_writes_every_format_and_each_reads_back() {
+    let (scene, decoded) = fixture("export", 32, 0);
+    let source = |f: usize| decoded.join(frames::frame_file("gaussians", f));
+    let clip = [0, 12].map(|f| ply::read(&source(f)).unwrap());
+    for to in ["ply-seq", "splatv", "spz", "glb"] {
+        let out = velox().arg("export").arg(&decoded).args(["--to", to]).output().unwrap();
+        assert!(out.status.success(), "{to}: {}", String::from_utf8_lossy(&out.stderr));
+    }
+    let export = decoded.join("export");
+    let close = |a: &[f32], b: &[f32], tol: f32, what: &str| {
+        assert_eq!(a.len(), b.len(), "{what}");
+        for (x, y) in a.iter().zip(b) {
+            assert!((x - y).abs() <= tol, "{what}: {x} -> {y}");
+        }
+    };
+    for (k, f) in [0, 12].into_iter().enumerate() {
+        // The PLY sequence: the frames' own bytes, under the names SuperSplat loads.
+        let copied = export.join("ply-seq").join(frames::sequence_file(f, "ply"));
+        assert_eq!(std::fs::read(copied).unwrap(), std::fs::read(source(f)).unwrap());
+        // SPZ (version 3) and glTF: the same Gaussians, to their files' precision.
+        let s = spz::read(&export.join("spz").join(frames::sequence_file(f, "spz"))).unwrap();
+        close(&clip[k].means, &s.means, 1.0 / 8192.0 + 1e-6, "spz means");
+        close(&clip[k].log_scales, &s.log_scales, 1.0 / 32.0 + 1e-6, "spz log scales");
+        let g = glb::read(&export.join("glb").join(frames::sequence_file(f, "glb"))).unwrap();
+        assert_eq!(g.means, clip[k].means);
+        close(&clip[k].colours, &g.colours, 1e-6, "glb colours");
+    }
+    // The flipbook: both frames in order, opening on the scene's first supervision camera.
+    let book = splatv::read(&export.join("clip.splatv")).unwrap();
+    assert_eq!(book.frames.len(), 2);
+    assert_eq!(book.frames[1].means, clip[1].means);
+    let cameras = velox_data::format::read_cameras(&scene).unwrap();
+    assert_eq!(book.camera, SplatvCamera::of(&cameras.supervision[0], "supervision 0"));
+    // --out names the place; SPZ version 2 on request; what cannot be exported is refused.
+    let spz2 = decoded.join("v2");
+    let out = velox()
+        .arg("export")
+        .arg(&decoded)
+        .args(["--to", "spz", "--spz-version", "2", "--out"])
+        .arg(&spz2)
+        .output();
+    assert!(out.unwrap().status.success());
+    let bytes = std::fs::read(spz2.join("frame_0012.spz")).unwrap();
+    assert_eq!(spz::from_bytes(&bytes).unwrap().len(), clip[1].len());
+    let err = fails(velox().arg("export").arg(&scene).args(["--to", "glb"]));
+    assert!(err.contains("holds no frames"), "{err}");
+    let err = fails(velox().arg("export").arg(&decoded).args(["--to", "obj"]));
+    assert!(err.contains("ply-seq"), "{err}");
+    let _ = std::fs::remove_dir_all(decoded.parent().unwrap());
 }

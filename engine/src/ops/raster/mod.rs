@@ -150,6 +150,12 @@ impl Camera {
         }
     }
 
+    /// The camera's centre in the world, -R^T t.
+    pub fn centre(&self) -> [f32; 3] {
+        let (r, t) = (self.rotation, self.translation);
+        std::array::from_fn(|k| -(r[0][k] * t[0] + r[1][k] * t[1] + r[2][k] * t[2]))
+    }
+
     /// A world point in camera space.
     pub fn to_camera(&self, p: [f32; 3]) -> [f32; 3] {
         let r = &self.rotation;

@@ -1,0 +1,301 @@
+//! Gaussians as binary glTF (GLB) with the `KHR_gaussian_splatting` extension: one mesh of one
+//! primitive of mode POINTS, whose attributes are the Gaussians' quantities, all f32:
+//! - `POSITION` (VEC3, with its bounds as glTF requires);
+//! - `KHR_gaussian_splatting:ROTATION` (VEC4): the unit quaternion in glTF's (x, y, z, w);
+//! - `KHR_gaussian_splatting:SCALE` (VEC3): the scales, linear;
+//! - `KHR_gaussian_splatting:OPACITY` (SCALAR): sigmoid(logit), in [0, 1];
+//! - `KHR_gaussian_splatting:SH_DEGREE_0_COEF_0` (VEC3): f_dc (colour = 0.5 + C0 f_dc);
+//! - `COLOR_0` (VEC4): the colour (linear, from the sRGB-coded colour) and opacity, which a
+//!   viewer without the extension draws as points.
+//!
+//! The extension object names the ellipse kernel and the colour space `srgb_rec709_display`
+//! (Velox's colours are display values, as its PNGs). glTF's world is y up and right-handed, as
+//! Velox's; nothing is converted. The extension is listed in `extensionsUsed` only: a viewer
+//! without it still shows the points.
+//!
+//! The file: a 12-byte header (`glTF`, version 2, length), a JSON chunk padded with spaces and a
+//! binary chunk, each attribute one buffer view of it, 4-byte aligned.
+
+use std::path::Path;
+
+use serde_json::{json, Value};
+use velox_engine::ops::raster::GaussianData;
+use velox_engine::{Error, Result};
+
+use crate::ply::SH_C0;
+use crate::{content_error, read_error, write_bytes};
+
+/// `glTF`, read as a little-endian u32.
+const MAGIC: u32 = 0x4654_6c67;
+const JSON_CHUNK: u32 = 0x4e4f_534a;
+const BIN_CHUNK: u32 = 0x004e_4942;
+const FLOAT: u64 = 5126;
+/// The extension's name, and the prefix of its attributes.
+pub const EXTENSION: &str = "KHR_gaussian_splatting";
+
+fn bad(why: impl Into<String>) -> Error {
+    Error::Invalid(why.into())
+}
+
+fn srgb_to_linear(c: f32) -> f32 {
+    let c = c.clamp(0.0, 1.0);
+    if c <= 0.04045 {
+        c / 12.92
+    } else {
+        ((c + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+fn attribute(name: &str) -> String {
+    format!("{EXTENSION}:{name}")
+}
+
+/// The file's bytes for `g` (at least one Gaussian).
+pub fn to_bytes(g: &GaussianData) -> Result<Vec<u8>> {
+    g.check()?;
+    let n = g.len();
+    if n == 0 {
+        return Err(bad("a glTF accessor holds at least one element: there are no Gaussians"));
+    }
+    let mut rotation = Vec::with_capacity(4 * n);
+    for (i, q) in g.quats.chunks_exact(4).enumerate() {
+        let l = q.iter().map(|v| v * v).sum::<f32>().sqrt();
+        if !(l > 0.0) {
+            return Err(bad(format!("Gaussian {i}: its quaternion is zero")));
+        }
+        rotation.extend([q[1] / l, q[2] / l, q[3] / l, q[0] / l]);
+    }
+    let sigmoid = |x: f32| (1.0 / (1.0 + (-x as f64).exp())) as f32;
+    let opacity: Vec<f32> = g.opacities.iter().map(|&o| sigmoid(o)).collect();
+    let scale: Vec<f32> = g.log_scales.iter().map(|s| s.exp()).collect();
+    let dc: Vec<f32> = g.colours.iter().map(|&c| ((c as f64 - 0.5) / SH_C0) as f32).collect();
+    let colour: Vec<f32> = (0..n)
+        .flat_map(|i| [0, 1, 2].map(|k| srgb_to_linear(g.colours[3 * i + k])).into_iter().chain([opacity[i]]))
+        .collect();
+    let columns: [(String, &str, &[f32]); 6] = [
+        ("POSITION".into(), "VEC3", &g.means),
+        ("COLOR_0".into(), "VEC4", &colour),
+        (attribute("ROTATION"), "VEC4", &rotation),
+        (attribute("SCALE"), "VEC3", &scale),
+        (attribute("OPACITY"), "SCALAR", &opacity),
+        (attribute("SH_DEGREE_0_COEF_0"), "VEC3", &dc),
+    ];
+    let mut bin = Vec::new();
+    let (mut views, mut accessors) = (Vec::new(), Vec::new());
+    let mut attributes = serde_json::Map::new();
+    for (k, (name, kind, values)) in columns.iter().enumerate() {
+        let offset = bin.len();
+        for v in values.iter() {
+            bin.extend_from_slice(&v.to_le_bytes());
+        }
+        views.push(json!({ "buffer": 0, "byteOffset": offset, "byteLength": values.len() * 4 }));
+        let mut accessor = json!({ "bufferView": k, "componentType": FLOAT, "count": n, "type": kind });
+        if name == "POSITION" {
+            let bound = |pick: fn(f32, f32) -> f32| -> Vec<f32> {
+                (0..3).map(|a| values.iter().skip(a).step_by(3).copied().reduce(pick).unwrap()).collect()
+            };
+            accessor["min"] = json!(bound(f32::min));
+            accessor["max"] = json!(bound(f32::max));
+        }
+        accessors.push(accessor);
+        attributes.insert(name.clone(), json!(k));
+    }
+    let gltf = json!({
+        "asset": { "version": "2.0", "generator": "Velox" },
+        "extensionsUsed": [EXTENSION],
+        "scene": 0,
+        "scenes": [{ "nodes": [0] }],
+        "nodes": [{ "mesh": 0 }],
+        "meshes": [{ "primitives": [{
+            "attributes": attributes,
+            "mode": 0,
+            "extensions": { EXTENSION: {
+                "kernel": "ellipse",
+                "colorSpace": "srgb_rec709_display",
+                "projection": "perspective",
+                "sortingMethod": "cameraDistance"
+            } }
+        }] }],
+        "buffers": [{ "byteLength": bin.len() }],
+        "bufferViews": views,
+        "accessors": accessors,
+    });
+    let mut text = serde_json::to_vec(&gltf).map_err(|e| bad(e.to_string()))?;
+    while text.len() % 4 != 0 {
+        text.push(b' ');
+    }
+    let total = 12 + 8 + text.len() + 8 + bin.len();
+    let total = u32::try_from(total).map_err(|_| bad(format!("{n} Gaussians make a GLB past 4 GiB")))?;
+    let mut out = Vec::with_capacity(total as usize);
+    for w in [MAGIC, 2, total, text.len() as u32, JSON_CHUNK] {
+        out.extend_from_slice(&w.to_le_bytes());
+    }
+    out.extend_from_slice(&text);
+    out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
+    out.extend_from_slice(&BIN_CHUNK.to_le_bytes());
+    out.extend_from_slice(&bin);
+    Ok(out)
+}
+
+/// Writes `g` to `path` (atomically).
+pub fn write(path: &Path, g: &GaussianData) -> Result<()> {
+    write_bytes(path, &to_bytes(g)?)
+}
+
+/// Reads Gaussians from a GLB file.
+pub fn read(path: &Path) -> Result<GaussianData> {
+    let bytes = std::fs::read(path).map_err(|e| read_error(path, e))?;
+    from_bytes(&bytes).map_err(|e| match e {
+        Error::Invalid(why) => content_error(path, why),
+        other => other,
+    })
+}
+
+/// Parses the Gaussians of a GLB's first primitive with `KHR_gaussian_splatting` whose
+/// attributes are f32 (as [`to_bytes`] writes them); the colour comes from the degree-0
+/// coefficient, higher degrees are skipped.
+pub fn from_bytes(bytes: &[u8]) -> Result<GaussianData> {
+    let word = |at: usize| bytes.get(at..at + 4).map(|b| u32::from_le_bytes(b.try_into().unwrap()));
+    if word(0) != Some(MAGIC) {
+        return Err(bad("not a GLB file: it does not start with `glTF`"));
+    }
+    if word(4) != Some(2) {
+        return Err(bad(format!("glTF version {:?} is not read: 2 is", word(4))));
+    }
+    if word(8) != Some(bytes.len() as u32) {
+        return Err(bad(format!("the header says {:?} bytes, the file has {}", word(8), bytes.len())));
+    }
+    let chunk = |at: usize, kind: u32, name: &str| -> Result<&[u8]> {
+        let len = word(at).ok_or_else(|| bad(format!("the file ends before its {name} chunk")))? as usize;
+        if word(at + 4) != Some(kind) {
+            return Err(bad(format!("the chunk at byte {at} is not the {name} chunk")));
+        }
+        bytes
+            .get(at + 8..at + 8 + len)
+            .ok_or_else(|| bad(format!("the {name} chunk runs past the file's end")))
+    };
+    let text = chunk(12, JSON_CHUNK, "JSON")?;
+    let bin = chunk(12 + 8 + text.len(), BIN_CHUNK, "binary")?;
+    let gltf: Value = serde_json::from_slice(text).map_err(|e| bad(format!("the JSON chunk: {e}")))?;
+    let primitive = gltf["meshes"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .flat_map(|m| m["primitives"].as_array().into_iter().flatten())
+        .find(|p| p["extensions"][EXTENSION].is_object())
+        .ok_or_else(|| bad(format!("no primitive has the {EXTENSION} extension")))?;
+    let column = |name: &str, width: usize| -> Result<Vec<f32>> {
+        let index = primitive["attributes"][name]
+            .as_u64()
+            .ok_or_else(|| bad(format!("the primitive has no {name} attribute")))?;
+        let a = &gltf["accessors"][index as usize];
+        let view = &gltf["bufferViews"][a["bufferView"].as_u64().unwrap_or(u64::MAX) as usize];
+        if a["componentType"].as_u64() != Some(FLOAT) {
+            return Err(bad(format!(
+                "{name}: component type {} is not read: f32 (5126) is",
+                a["componentType"]
+            )));
+        }
+        if view["byteStride"].as_u64().is_some_and(|s| s != 4 * width as u64) {
+            return Err(bad(format!("{name}: interleaved buffer views are not read")));
+        }
+        let count = a["count"].as_u64().unwrap_or(0) as usize;
+        let start =
+            (view["byteOffset"].as_u64().unwrap_or(0) + a["byteOffset"].as_u64().unwrap_or(0)) as usize;
+        let values = bin
+            .get(start..start.saturating_add(4 * width * count))
+            .ok_or_else(|| bad(format!("{name}: {count} values run past the binary chunk")))?;
+        Ok(values.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().unwrap())).collect())
+    };
+    let means = column("POSITION", 3)?;
+    let rotation = column(&attribute("ROTATION"), 4)?;
+    let scale = column(&attribute("SCALE"), 3)?;
+    let opacity = column(&attribute("OPACITY"), 1)?;
+    let dc = column(&attribute("SH_DEGREE_0_COEF_0"), 3)?;
+    let n = opacity.len();
+    if [means.len(), rotation.len(), scale.len(), dc.len()] != [3 * n, 4 * n, 3 * n, 3 * n] {
+        return Err(bad("the attributes' counts differ"));
+    }
+    if let Some(s) = scale.iter().find(|s| !(**s > 0.0)) {
+        return Err(bad(format!("a scale of {s}: the extension's scales are linear and positive")));
+    }
+    if let Some(o) = opacity.iter().find(|o| !(0.0..=1.0).contains(*o)) {
+        return Err(bad(format!("an opacity of {o}: the extension's opacities lie in [0, 1]")));
+    }
+    let logit = |o: f32| {
+        let o = (o as f64).clamp(1e-7, 1.0 - 1e-7);
+        (o / (1.0 - o)).ln() as f32
+    };
+    Ok(GaussianData {
+        means,
+        log_scales: scale.iter().map(|s| s.ln()).collect(),
+        quats: rotation.chunks_exact(4).flat_map(|q| [q[3], q[0], q[1], q[2]]).collect(),
+        opacities: opacity.into_iter().map(logit).collect(),
+        colours: dc.iter().map(|&d| (0.5 + SH_C0 * d as f64) as f32).collect(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use velox_engine::rng::Rng;
+
+    fn scene(n: usize, seed: u64) -> GaussianData {
+        let mut rng = Rng::new(seed);
+        let mut g = GaussianData::default();
+        for _ in 0..n {
+            let mean = [0; 3].map(|_| rng.range(-2.0, 2.0) as f32);
+            let ls = [0; 3].map(|_| rng.range(-6.0, 0.0) as f32);
+            let q = [0; 4].map(|_| rng.normal() as f32);
+            let c = [0; 3].map(|_| rng.uniform() as f32);
+            g.push(mean, ls, q, rng.range(-4.0, 4.0) as f32, c);
+        }
+        g
+    }
+
+    #[test]
+    fn gaussians_round_trip() {
+        let g = scene(301, 4);
+        let bytes = to_bytes(&g).unwrap();
+        assert_eq!(bytes.len() % 4, 0);
+        let r = from_bytes(&bytes).unwrap();
+        assert_eq!(r.means, g.means);
+        let close = |a: &[f32], b: &[f32], tol: f32, what: &str| {
+            for (x, y) in a.iter().zip(b) {
+                assert!((x - y).abs() <= tol * x.abs().max(1.0), "{what}: {x} -> {y}");
+            }
+        };
+        close(&g.log_scales, &r.log_scales, 1e-6, "log scale");
+        close(&g.opacities, &r.opacities, 1e-4, "opacity logit");
+        close(&g.colours, &r.colours, 1e-6, "colour");
+        let unit: Vec<f32> = g
+            .quats
+            .chunks(4)
+            .flat_map(|q| {
+                let l = q.iter().map(|v| v * v).sum::<f32>().sqrt();
+                q.iter().map(move |v| v / l).collect::<Vec<_>>()
+            })
+            .collect();
+        close(&unit, &r.quats, 1e-6, "quaternion");
+        // The JSON says what a viewer needs: the extension, POINTS, the position bounds.
+        let len = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
+        let gltf: Value = serde_json::from_slice(&bytes[20..20 + len]).unwrap();
+        assert_eq!(gltf["extensionsUsed"], json!([EXTENSION]));
+        let p = &gltf["meshes"][0]["primitives"][0];
+        assert_eq!(p["mode"], 0);
+        assert_eq!(p["extensions"][EXTENSION]["kernel"], "ellipse");
+        let position = &gltf["accessors"][p["attributes"]["POSITION"].as_u64().unwrap() as usize];
+        let xs = g.means.iter().step_by(3).copied();
+        assert_eq!(position["min"][0].as_f64().unwrap() as f32, xs.clone().reduce(f32::min).unwrap());
+        assert_eq!(position["max"][0].as_f64().unwrap() as f32, xs.reduce(f32::max).unwrap());
+    }
+
+    #[test]
+    fn bad_files_are_named() {
+        let e = |b: &[u8]| from_bytes(b).unwrap_err().to_string();
+        assert!(e(b"ply\n").contains("not a GLB"));
+        let bytes = to_bytes(&scene(5, 1)).unwrap();
+        assert!(e(&bytes[..bytes.len() - 4]).contains("the header says"));
+        assert!(to_bytes(&GaussianData::default()).unwrap_err().to_string().contains("no Gaussians"));
+    }
+}
