@@ -30,6 +30,8 @@ const MAGIC: u32 = 0x4654_6c67;
 const JSON_CHUNK: u32 = 0x4e4f_534a;
 const BIN_CHUNK: u32 = 0x004e_4942;
 const FLOAT: u64 = 5126;
+/// A buffer view of vertex attributes.
+const ARRAY_BUFFER: u64 = 34962;
 /// The extension's name, and the prefix of its attributes.
 pub const EXTENSION: &str = "KHR_gaussian_splatting";
 
@@ -88,7 +90,7 @@ pub fn to_bytes(g: &GaussianData) -> Result<Vec<u8>> {
         for v in values.iter() {
             bin.extend_from_slice(&v.to_le_bytes());
         }
-        views.push(json!({ "buffer": 0, "byteOffset": offset, "byteLength": values.len() * 4 }));
+        views.push(json!({ "buffer": 0, "byteOffset": offset, "byteLength": values.len() * 4, "target": ARRAY_BUFFER }));
         let mut accessor = json!({ "bufferView": k, "componentType": FLOAT, "count": n, "type": kind });
         if name == "POSITION" {
             let bound = |pick: fn(f32, f32) -> f32| -> Vec<f32> {

@@ -56,20 +56,26 @@ pub struct SplatvCamera {
     pub fy: f32,
 }
 
+/// The image height a header camera's focal lengths are given for: the viewers apply them to
+/// the browser window's pixels, so a camera of a 96-pixel image would open very wide.
+pub const CAMERA_HEIGHT: u32 = 800;
+
 impl SplatvCamera {
-    /// Velox's camera (world-to-camera) in the header's layout.
+    /// Velox's camera (world-to-camera) in the header's layout, scaled to an image
+    /// [`CAMERA_HEIGHT`] pixels tall (the same field of view).
     pub fn of(camera: &Camera, name: &str) -> SplatvCamera {
         let r = camera.rotation;
         let c2w = std::array::from_fn(|i| std::array::from_fn(|j| r[j][i]));
+        let k = CAMERA_HEIGHT as f32 / camera.height as f32;
         SplatvCamera {
             id: 0,
             img_name: name.to_string(),
-            width: camera.width,
-            height: camera.height,
+            width: (camera.width as f32 * k).round() as u32,
+            height: CAMERA_HEIGHT,
             position: camera.centre(),
             rotation: c2w,
-            fx: camera.fx,
-            fy: camera.fy,
+            fx: camera.fx * k,
+            fy: camera.fy * k,
         }
     }
 }
@@ -278,8 +284,12 @@ mod tests {
         );
         let back = from_bytes(&bytes).unwrap();
         assert_eq!(back.camera, header);
-        // The camera's centre is the eye, its rotation the transpose of the world-to-camera one.
+        // The camera's centre is the eye, its rotation the transpose of the world-to-camera one,
+        // its field of view the same at 800 pixels.
         assert!(header.position.iter().zip([0.0, 0.5, 3.0]).all(|(a, b)| (a - b).abs() < 1e-5));
+        assert_eq!(header.rotation[0][2], camera.rotation[2][0]);
+        assert_eq!((header.width, header.height), (1067, 800));
+        assert!((header.fy / 800.0 - camera.fy / 240.0).abs() < 1e-6);
         assert_eq!(back.frames.len(), 3);
         for (g, r) in clip.iter().zip(&back.frames) {
             assert_eq!(g.means, r.means, "positions are f32");
