@@ -6,7 +6,8 @@
 #     (vulkan-validationlayers), Debian's chromium (headless, for the viewer's browser test;
 #     its chromium-common brings SwiftShader and the newer build of the layer whose
 #     GPU-assisted checks one test uses), Open MPI's mpirun for the two-process training
-#     tests, and Python's venv and pip for the Python package's tests.
+#     tests, ffmpeg for the video import's tests, and Python's venv and pip for the Python
+#     package's tests.
 # Does nothing where everything is there. Usage: tools/setup.sh [--tests]
 set -euo pipefail
 
@@ -48,7 +49,7 @@ fi
 
 if [ "${1:-}" = --tests ]; then
   needed=()
-  for p in vulkan-validationlayers chromium chromium-common openmpi-bin; do
+  for p in vulkan-validationlayers chromium chromium-common openmpi-bin ffmpeg; do
     installed "$p" || needed+=("$p")
   done
   # The Python package's tests run in a fresh venv (tools/python-check.sh): Python 3.9 or

@@ -39,6 +39,7 @@ pub mod procedural;
 pub mod raster;
 pub mod rgbd;
 pub mod texture;
+pub mod video;
 
 pub use camera::Camera;
 pub use format::{read_scene, Scene, SceneMeta};

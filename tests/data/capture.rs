@@ -210,3 +210,86 @@ fn windows_are_tracked_as_one_clip_each_from_where_the_last_left_off() {
     assert!(read_windows(&root.join("scene")).unwrap().is_none());
     let _ = std::fs::remove_dir_all(&root);
 }
+
+/// Runs ffmpeg (tools/setup.sh --tests installs it) with `args`.
+fn ffmpeg(args: &[&str], dir: &Path) {
+    let out = std::process::Command::new("ffmpeg")
+        .args(["-v", "error", "-nostdin", "-y"])
+        .args(args)
+        .current_dir(dir)
+        .output()
+        .expect("ffmpeg (tools/setup.sh --tests installs it)");
+    assert!(out.status.success(), "ffmpeg {args:?}: {}", String::from_utf8_lossy(&out.stderr));
+}
+
+#[test]
+fn a_video_with_its_depth_video_imports_as_its_frames_do() {
+    use velox::data::video::{frame_rate, import_video, VideoOptions};
+    let root = temp_dir("capture-video");
+    let (_, mesh) = scene(5, None).unwrap();
+    let opts = SynthOptions { res: 24, points: 500, supersample: 1, tracks: 6, ..Default::default() };
+    write_scene(&gpu(), &mesh, "procedural seed 5", None, 5, &opts, &root.join("scene"), &mut |_| {})
+        .unwrap();
+    let source = read_scene_video(&root.join("scene")).unwrap();
+    // 30 frames as a capture, then as two lossless videos ffmpeg makes of them at 15 fps:
+    // colour as FFV1 RGB, depth as FFV1 16-bit grey (millimetres).
+    let order: Vec<usize> = (0..30).map(|k| k * (FRAMES - 1) / 29).collect();
+    let capture = root.join("capture");
+    write_capture(&capture, &source, &order);
+    ffmpeg(
+        &["-framerate", "15", "-i", "rgb/%06d.png", "-c:v", "ffv1", "-pix_fmt", "bgr0", "colour.mkv"],
+        &capture,
+    );
+    ffmpeg(
+        &["-framerate", "15", "-i", "depth/%06d.png", "-c:v", "ffv1", "-pix_fmt", "gray16le", "depth.mkv"],
+        &capture,
+    );
+    assert_eq!(frame_rate(&capture.join("colour.mkv")).unwrap(), Some(15.0));
+
+    let with_depth = VideoOptions {
+        depth: Some(capture.join("depth.mkv")),
+        intrinsics: Some(capture.join("intrinsics.json")),
+        ..Default::default()
+    };
+    let imported = import_video(&capture.join("colour.mkv"), &root.join("video"), &with_depth).unwrap();
+    assert_eq!((imported.frames, imported.width, imported.height, imported.fps), (30, 24, 24, Some(15.0)));
+    let record = imported.capture.unwrap();
+    assert_eq!(record.fps, Some(15.0));
+    assert_eq!(record.windows[0].times.as_ref().unwrap()[23], 29.0 / 15.0, "the last frame's time");
+    // The same video as the capture's frames make, to the bit (the codecs are lossless).
+    let direct = import_rgbd(&capture, &root.join("direct"), &CaptureOptions::default()).unwrap();
+    assert_eq!(
+        (record.centre, record.scale, &record.windows[0].frames),
+        (direct.centre, direct.scale, &direct.windows[0].frames)
+    );
+    let (a, b) =
+        (read_video_folder(&root.join("video")).unwrap(), read_video_folder(&root.join("direct")).unwrap());
+    assert_eq!((a.camera, &a.rgb, &a.depth), (b.camera, &b.rgb, &b.depth));
+
+    // Colour alone: its frames, at the rate asked for, for the generator's condition.
+    let frames = root.join("frames");
+    let only = VideoOptions { fps: Some(5.0), ..Default::default() };
+    let imported = import_video(&capture.join("colour.mkv"), &frames, &only).unwrap();
+    assert_eq!((imported.frames, imported.fps, imported.capture.is_none()), (10, Some(5.0), true));
+    let (rgb, w, h) = velox::io::image::read_png(&frames.join("frame_00001.png")).unwrap();
+    assert_eq!((w, h), (24, 24));
+    let near = (2..=4).find(|&k| rgb == source.rgb[order[k]]);
+    assert!(near.is_some(), "frame 1 at 5 fps is one of the source's frames 2 to 4 at 15");
+
+    // What cannot be imported is refused, naming why.
+    let e = |o: &VideoOptions, out: &str| {
+        import_video(&capture.join("colour.mkv"), &root.join(out), o).unwrap_err().to_string()
+    };
+    assert!(e(&only, "frames").contains("not empty"));
+    let no_k = VideoOptions { depth: Some(capture.join("depth.mkv")), ..Default::default() };
+    assert!(e(&no_k, "a").contains("needs the camera's intrinsics"));
+    let short = root.join("short.mkv");
+    ffmpeg(&["-i", "depth.mkv", "-frames:v", "20", "-c:v", "ffv1", short.to_str().unwrap()], &capture);
+    let mismatched = VideoOptions { depth: Some(short), ..with_depth.clone() };
+    let err = e(&mismatched, "b");
+    assert!(err.contains("30 frames") && err.contains("has 20"), "{err}");
+    std::fs::write(root.join("not-a-video.mkv"), b"text").unwrap();
+    let err = import_video(&root.join("not-a-video.mkv"), &root.join("c"), &only).unwrap_err().to_string();
+    assert!(err.contains("ffmpeg failed"), "{err}");
+    let _ = std::fs::remove_dir_all(&root);
+}

@@ -35,6 +35,26 @@ fn missing_driver_names_the_packages_to_install() {
 }
 
 #[test]
+fn missing_ffmpeg_names_the_package_to_install() {
+    let dir = std::env::temp_dir().join(format!("velox-no-ffmpeg-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("clip.mp4"), b"not decoded").unwrap();
+    let out = velox()
+        .args(["import", "video"])
+        .arg(dir.join("clip.mp4"))
+        .arg("--out")
+        .arg(dir.join("frames"))
+        .env("PATH", "")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(err.contains("is not on PATH") && err.contains("apt-get install ffmpeg"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
 fn config_prints_json_that_reads_back() {
     let out = velox().args(["config", "tiny"]).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
