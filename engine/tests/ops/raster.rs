@@ -12,7 +12,8 @@
 use crate::common;
 use common::*;
 use velox_engine::ops::raster::{
-    self, reference, render, render_backward_with, BackwardKernel, Camera, GaussianData, Gaussians, Rendered,
+    self, reference, render, render_backward_with, BackwardKernel, Camera, GaussianData, Gaussians, Image,
+    Rendered,
 };
 
 const BG: [f32; 3] = [0.1, 0.2, 0.3];
@@ -74,7 +75,42 @@ fn check_forward_pairs(
     assert_nmse(&format!("{what} rgb"), &rgb, &reference.rgb, bound);
     assert_nmse(&format!("{what} alpha"), &alpha, &reference.alpha, bound);
     assert_nmse(&format!("{what} depth"), &depth, &reference.depth, bound);
+    if pairs_slack == 0 {
+        check_tile_lists(what, g, cam, img);
+    }
     Forward { rendered, gaussians, reference }
+}
+
+/// The sorted pairs are the reference's to the bit: each tile's Gaussians in blending order
+/// (depth, then index), and each pair's slot the place of its tile in its Gaussian's rectangle
+/// (row order) after the Gaussian's offset.
+#[track_caller]
+fn check_tile_lists(what: &str, g: &GaussianData, cam: &Camera, img: &Image) {
+    let (splats, _) = reference::project(&reference::Scene::from_data(g), cam);
+    let lists = reference::tile_lists(&splats, cam);
+    let (ranges, ids, slots): (Vec<u32>, Vec<u32>, Vec<u32>) =
+        (img.ranges.read().unwrap(), img.ids.read().unwrap(), img.slots.read().unwrap());
+    let rect = |i: usize| splats[i].as_ref().map(|s| s.rect).unwrap_or([0; 4]);
+    let mut offsets = Vec::with_capacity(splats.len());
+    let mut at = 0u32;
+    for i in 0..splats.len() {
+        offsets.push(at);
+        let r = rect(i);
+        at += (r[1] - r[0]) * (r[3] - r[2]);
+    }
+    let tx = cam.tiles().0;
+    for (t, list) in lists.iter().enumerate() {
+        let (a, b) =
+            if list.is_empty() { (0, 0) } else { (ranges[2 * t] as usize, ranges[2 * t + 1] as usize) };
+        let got: Vec<usize> = ids[a..b].iter().map(|&i| i as usize).collect();
+        assert_eq!(&got, list, "{what}: tile {t}'s Gaussians in blending order");
+        let (x, y) = (t as u32 % tx, t as u32 / tx);
+        for (k, &i) in list.iter().enumerate() {
+            let r = rect(i);
+            let slot = offsets[i] + (y - r[2]) * (r[1] - r[0]) + (x - r[0]);
+            assert_eq!(slots[a + k], slot, "{what}: tile {t}, pair {k}: the slot of Gaussian {i}");
+        }
+    }
 }
 
 /// Random gradients of the loss with respect to the image.
