@@ -3,13 +3,14 @@
 // Every (tile, Gaussian) pair has a slot: Gaussian g's pairs fill slots offsets[g] ..
 // offsets[g] + counts[g] (the exclusive scan of the tile counts), its rectangle's tiles in row
 // order. The pairs are put in blending order (by tile, front to back within a tile, equal
-// depths in Gaussian order) by two stable radix sorts, the classic way to sort on a key wider
-// than one word:
-// - `emit`: one invocation per Gaussian writes, per slot, the full 32-bit depth (its f32
-//   pattern, which orders like the depth since depths are positive), the tile, the Gaussian
-//   and the slot itself;
-// - the host sorts (depth, slot) on all 32 bits;
-// - `tiles_in_depth_order` reads each depth-sorted slot's tile;
+// depths in Gaussian order) with one sort of the Gaussians and one of the pairs:
+// - `depths`: one invocation per Gaussian writes its full 32-bit depth (its f32 pattern, which
+//   orders like the depth since depths are positive);
+// - the host sorts the Gaussians by depth, stably (N items, not pairs): `order`;
+// - `counts_in_depth_order` lists the tile counts in that order, and the host scans them into
+//   each Gaussian's first place in depth order;
+// - `emit`: one invocation per Gaussian, in depth order, writes its pairs' tiles and slots
+//   from that place on, so the pairs stand in depth order, and each slot's Gaussian;
 // - the host sorts (tile, slot) on the tile bits, stably, so depth order survives within a
 //   tile;
 // - `ranges_of_tiles` marks where each tile's run starts and ends, and names the Gaussian of
@@ -18,7 +19,7 @@
 // so that each Gaussian's lie together and are summed in a fixed order.
 
 struct Params {
-    n: u32,          // Gaussians (emit) or pairs (the others)
+    n: u32,          // Gaussians (depths, counts_in_depth_order, emit) or pairs (ranges_of_tiles)
     tiles_x: u32,
     // emit: pairs the buffers hold (writes past it are dropped, never out of bounds);
     // ranges: the number of tiles (keys of other tiles are ignored).
@@ -30,20 +31,23 @@ struct Params {
 @group(0) @binding(1) var<storage, read> offsets: array<u32>;
 @group(0) @binding(2) var<storage, read> rects: array<vec2<u32>>;
 @group(0) @binding(3) var<storage, read> proj: array<vec4<f32>>;
-// Per slot: depth bits, tile, Gaussian, and the slot's own index (the values the sorts carry).
+// Per Gaussian: its depth bits; the Gaussians in depth order; their counts and first places
+// in that order.
 @group(0) @binding(4) var<storage, read_write> depth_keys: array<u32>;
-@group(0) @binding(5) var<storage, read_write> slot_tiles: array<u32>;
-@group(0) @binding(6) var<storage, read_write> slot_gaussians: array<u32>;
-@group(0) @binding(7) var<storage, read_write> slot_ids: array<u32>;
-// Slots in depth order, and their tiles in that order.
-@group(0) @binding(8) var<storage, read> depth_sorted_slots: array<u32>;
-@group(0) @binding(9) var<storage, read_write> tile_keys: array<u32>;
+@group(0) @binding(5) var<storage, read> order: array<u32>;
+@group(0) @binding(6) var<storage, read_write> ordered_counts: array<u32>;
+@group(0) @binding(7) var<storage, read> ordered_offsets: array<u32>;
+// Per pair in depth order: its tile and slot (the values the tile sort carries); per slot,
+// its Gaussian.
+@group(0) @binding(8) var<storage, read_write> tile_keys: array<u32>;
+@group(0) @binding(9) var<storage, read_write> pair_slots: array<u32>;
+@group(0) @binding(10) var<storage, read_write> slot_gaussians: array<u32>;
 // The final order: each pair's tile and slot; per tile the first pair and one past the last;
 // the Gaussian of each pair.
-@group(0) @binding(10) var<storage, read> sorted_tiles: array<u32>;
-@group(0) @binding(11) var<storage, read> sorted_slots: array<u32>;
-@group(0) @binding(12) var<storage, read_write> ranges: array<u32>;
-@group(0) @binding(13) var<storage, read_write> ids: array<u32>;
+@group(0) @binding(11) var<storage, read> sorted_tiles: array<u32>;
+@group(0) @binding(12) var<storage, read> sorted_slots: array<u32>;
+@group(0) @binding(13) var<storage, read_write> ranges: array<u32>;
+@group(0) @binding(14) var<storage, read_write> ids: array<u32>;
 var<immediate> pc: Params;
 
 fn linear_id(wid: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
@@ -51,40 +55,57 @@ fn linear_id(wid: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
 }
 
 @compute @workgroup_size(256)
-fn emit(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-        @builtin(local_invocation_index) lid: u32) {
+fn depths(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+          @builtin(local_invocation_index) lid: u32) {
     let g = linear_id(wid, nwg, lid);
-    if (g >= pc.n || counts[g] == 0u) {
+    if (g >= pc.n) {
         return;
     }
-    let r = rects[g];
-    let x0 = r.x & 0xffffu;
-    let y0 = r.x >> 16u;
-    let x1 = r.y & 0xffffu;
-    let y1 = r.y >> 16u;
-    let depth = bitcast<u32>(proj[3u * g].z);
-    var at = offsets[g];
-    for (var y = y0; y < y1; y = y + 1u) {
-        for (var x = x0; x < x1; x = x + 1u) {
-            if (at < pc.limit) {
-                depth_keys[at] = depth;
-                slot_tiles[at] = y * pc.tiles_x + x;
-                slot_gaussians[at] = g;
-                slot_ids[at] = at;
-            }
-            at = at + 1u;
-        }
-    }
+    // A Gaussian without tiles emits nothing; it goes last.
+    depth_keys[g] = select(bitcast<u32>(proj[3u * g].z), 0xffffffffu, counts[g] == 0u);
 }
 
 @compute @workgroup_size(256)
-fn tiles_in_depth_order(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
-                        @builtin(local_invocation_index) lid: u32) {
-    let i = linear_id(wid, nwg, lid);
-    if (i >= pc.n) {
+fn counts_in_depth_order(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                         @builtin(local_invocation_index) lid: u32) {
+    let r = linear_id(wid, nwg, lid);
+    if (r >= pc.n) {
         return;
     }
-    tile_keys[i] = slot_tiles[min(depth_sorted_slots[i], pc.n - 1u)];
+    ordered_counts[r] = counts[min(order[r], pc.n - 1u)];
+}
+
+@compute @workgroup_size(256)
+fn emit(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+        @builtin(local_invocation_index) lid: u32) {
+    let r = linear_id(wid, nwg, lid);
+    if (r >= pc.n) {
+        return;
+    }
+    let g = min(order[r], pc.n - 1u);
+    if (counts[g] == 0u) {
+        return;
+    }
+    let rect = rects[g];
+    let x0 = rect.x & 0xffffu;
+    let y0 = rect.x >> 16u;
+    let x1 = rect.y & 0xffffu;
+    let y1 = rect.y >> 16u;
+    var at = ordered_offsets[r];
+    var slot = offsets[g];
+    for (var y = y0; y < y1; y = y + 1u) {
+        for (var x = x0; x < x1; x = x + 1u) {
+            if (at < pc.limit) {
+                tile_keys[at] = y * pc.tiles_x + x;
+                pair_slots[at] = slot;
+            }
+            if (slot < pc.limit) {
+                slot_gaussians[slot] = g;
+            }
+            at = at + 1u;
+            slot = slot + 1u;
+        }
+    }
 }
 
 @compute @workgroup_size(256)

@@ -12,12 +12,12 @@ use super::{
 use crate::error::{Error, Result};
 use crate::kernels::args;
 use crate::kernels::{
-    RASTER_BLEND_BLEND, RASTER_PROJECT_PROJECT, RASTER_TILES_EMIT, RASTER_TILES_RANGES_OF_TILES,
-    RASTER_TILES_TILES_IN_DEPTH_ORDER,
+    RASTER_BLEND_BLEND, RASTER_PROJECT_PROJECT, RASTER_TILES_COUNTS_IN_DEPTH_ORDER, RASTER_TILES_DEPTHS,
+    RASTER_TILES_EMIT, RASTER_TILES_RANGES_OF_TILES,
 };
 use crate::ops::fill::fill_bits;
 use crate::ops::scan::exclusive_scan;
-use crate::ops::sort::sort_pairs;
+use crate::ops::sort::{sort_indices, sort_pairs};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 use crate::Gpu;
@@ -249,49 +249,60 @@ pub fn rasterize(rec: &mut Recorder, p: &Projected, background: [f32; 3]) -> Res
 }
 
 /// Records the tile lists of [`rasterize`] (see `shaders/raster_tiles.wgsl`): the pairs in
-/// blending order, by tile and then by the full 32-bit depth (a stable sort on the depth, then
-/// a stable sort on the tile), with each tile's range filled into `ranges`. Returns the
-/// Gaussian and the slot of every sorted pair.
+/// blending order, by tile and then by the full 32-bit depth (a stable sort of the Gaussians
+/// on the depth, their pairs emitted in that order, then a stable sort of the pairs on the
+/// tile), with each tile's range filled into `ranges`. Returns the Gaussian and the slot of
+/// every sorted pair.
 fn tile_lists(rec: &mut Recorder, p: &Projected, pairs: usize, ranges: &Tensor) -> Result<(Tensor, Tensor)> {
     let gpu = rec.gpu().clone();
     let (tiles_x, tiles_y) = p.camera.tiles();
-    let u32s = || Tensor::empty(&gpu, &[pairs], DType::U32);
-    let (depth_keys, slot_tiles, slot_gaussians, slot_ids) = (u32s()?, u32s()?, u32s()?, u32s()?);
-    let tp = TileParams { n: p.n as u32, tiles_x, limit: pairs as u32, pad: 0 };
+    let n = p.n;
+    let per_gaussian = || Tensor::empty(&gpu, &[n], DType::U32);
+    let per_pair = || Tensor::empty(&gpu, &[pairs], DType::U32);
+    let tp = TileParams { n: n as u32, tiles_x, limit: pairs as u32, pad: 0 };
+    let gaussian_groups = (n as u64).div_ceil(256);
+    let depth_keys = per_gaussian()?;
+    rec.dispatch_linear(
+        RASTER_TILES_DEPTHS,
+        gaussian_groups,
+        args::RasterTilesDepthsArgs { counts: &p.counts, proj: &p.proj, depth_keys: &depth_keys },
+        &tp,
+    )?;
+    let (_, order) = sort_indices(rec, &depth_keys, 32)?;
+    let (ordered_counts, ordered_offsets) = (per_gaussian()?, per_gaussian()?);
+    rec.dispatch_linear(
+        RASTER_TILES_COUNTS_IN_DEPTH_ORDER,
+        gaussian_groups,
+        args::RasterTilesCountsInDepthOrderArgs {
+            counts: &p.counts,
+            order: &order,
+            ordered_counts: &ordered_counts,
+        },
+        &tp,
+    )?;
+    exclusive_scan(rec, &ordered_counts, &ordered_offsets)?;
+    let (tile_keys, pair_slots, slot_gaussians) = (per_pair()?, per_pair()?, per_pair()?);
     rec.dispatch_linear(
         RASTER_TILES_EMIT,
-        (p.n as u64).div_ceil(256),
+        gaussian_groups,
         args::RasterTilesEmitArgs {
             counts: &p.counts,
             offsets: &p.offsets,
             rects: &p.rects,
-            proj: &p.proj,
-            depth_keys: &depth_keys,
-            slot_tiles: &slot_tiles,
-            slot_gaussians: &slot_gaussians,
-            slot_ids: &slot_ids,
-        },
-        &tp,
-    )?;
-    let (_, depth_sorted_slots) = sort_pairs(rec, &depth_keys, &slot_ids, 32)?;
-    let tile_keys = u32s()?;
-    let tp = TileParams { n: pairs as u32, limit: (tiles_x * tiles_y), ..tp };
-    let groups = (pairs as u64).div_ceil(256);
-    rec.dispatch_linear(
-        RASTER_TILES_TILES_IN_DEPTH_ORDER,
-        groups,
-        args::RasterTilesTilesInDepthOrderArgs {
-            slot_tiles: &slot_tiles,
-            depth_sorted_slots: &depth_sorted_slots,
+            order: &order,
+            ordered_offsets: &ordered_offsets,
             tile_keys: &tile_keys,
+            pair_slots: &pair_slots,
+            slot_gaussians: &slot_gaussians,
         },
         &tp,
     )?;
-    let (sorted_tiles, slots) = sort_pairs(rec, &tile_keys, &depth_sorted_slots, p.camera.tile_bits())?;
-    let ids = u32s()?;
+    let (sorted_tiles, slots) = sort_pairs(rec, &tile_keys, &pair_slots, p.camera.tile_bits())?;
+    let ids = per_pair()?;
+    let tp = TileParams { n: pairs as u32, limit: (tiles_x * tiles_y), ..tp };
     rec.dispatch_linear(
         RASTER_TILES_RANGES_OF_TILES,
-        groups,
+        (pairs as u64).div_ceil(256),
         args::RasterTilesRangesOfTilesArgs {
             slot_gaussians: &slot_gaussians,
             sorted_tiles: &sorted_tiles,
