@@ -38,6 +38,7 @@ pub mod pipeline;
 pub mod procedural;
 pub mod raster;
 pub mod rgbd;
+pub mod surface;
 pub mod texture;
 pub mod video;
 

@@ -27,7 +27,12 @@ pub fn frame_of_tau(tau: f32) -> usize {
 
 /// The file of frame `frame` of a per-frame output: `PREFIX_fFF.ply`.
 pub fn frame_file(prefix: &str, frame: usize) -> String {
-    format!("{prefix}_f{frame:02}.ply")
+    frame_file_as(prefix, frame, "ply")
+}
+
+/// [`frame_file`] with another extension: `PREFIX_fFF.EXT`.
+pub fn frame_file_as(prefix: &str, frame: usize, ext: &str) -> String {
+    format!("{prefix}_f{frame:02}.{ext}")
 }
 
 /// The frame in a file name `PREFIX_fFF.ply`, if it is one.

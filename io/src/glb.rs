@@ -29,9 +29,11 @@ use crate::{content_error, read_error, write_bytes};
 const MAGIC: u32 = 0x4654_6c67;
 const JSON_CHUNK: u32 = 0x4e4f_534a;
 const BIN_CHUNK: u32 = 0x004e_4942;
-const FLOAT: u64 = 5126;
-/// A buffer view of vertex attributes.
+pub(crate) const FLOAT: u64 = 5126;
+pub(crate) const UNSIGNED_INT: u64 = 5125;
+/// Buffer views of vertex attributes and of vertex indices.
 const ARRAY_BUFFER: u64 = 34962;
+const ELEMENT_ARRAY_BUFFER: u64 = 34963;
 /// The extension's name, and the prefix of its attributes.
 pub const EXTENSION: &str = "KHR_gaussian_splatting";
 
@@ -82,25 +84,10 @@ pub fn to_bytes(g: &GaussianData) -> Result<Vec<u8>> {
         (attribute("OPACITY"), "SCALAR", &opacity),
         (attribute("SH_DEGREE_0_COEF_0"), "VEC3", &dc),
     ];
-    let mut bin = Vec::new();
-    let (mut views, mut accessors) = (Vec::new(), Vec::new());
+    let mut buffer = Buffer::default();
     let mut attributes = serde_json::Map::new();
-    for (k, (name, kind, values)) in columns.iter().enumerate() {
-        let offset = bin.len();
-        for v in values.iter() {
-            bin.extend_from_slice(&v.to_le_bytes());
-        }
-        views.push(json!({ "buffer": 0, "byteOffset": offset, "byteLength": values.len() * 4, "target": ARRAY_BUFFER }));
-        let mut accessor = json!({ "bufferView": k, "componentType": FLOAT, "count": n, "type": kind });
-        if name == "POSITION" {
-            let bound = |pick: fn(f32, f32) -> f32| -> Vec<f32> {
-                (0..3).map(|a| values.iter().skip(a).step_by(3).copied().reduce(pick).unwrap()).collect()
-            };
-            accessor["min"] = json!(bound(f32::min));
-            accessor["max"] = json!(bound(f32::max));
-        }
-        accessors.push(accessor);
-        attributes.insert(name.clone(), json!(k));
+    for (name, kind, values) in &columns {
+        attributes.insert(name.clone(), json!(buffer.floats(values, kind, name == "POSITION")));
     }
     let gltf = json!({
         "asset": { "version": "2.0", "generator": "Velox" },
@@ -118,16 +105,78 @@ pub fn to_bytes(g: &GaussianData) -> Result<Vec<u8>> {
                 "sortingMethod": "cameraDistance"
             } }
         }] }],
-        "buffers": [{ "byteLength": bin.len() }],
-        "bufferViews": views,
-        "accessors": accessors,
     });
-    let mut text = serde_json::to_vec(&gltf).map_err(|e| bad(e.to_string()))?;
+    buffer.pack(gltf)
+}
+
+/// A glTF's one buffer in the making: each accessor its own tightly packed buffer view.
+#[derive(Default)]
+pub(crate) struct Buffer {
+    bin: Vec<u8>,
+    views: Vec<Value>,
+    accessors: Vec<Value>,
+}
+
+impl Buffer {
+    fn add(&mut self, bytes: impl Iterator<Item = [u8; 4]>, target: u64, accessor: Value) -> usize {
+        let offset = self.bin.len();
+        self.bin.extend(bytes.flatten());
+        let length = self.bin.len() - offset;
+        self.views.push(json!({ "buffer": 0, "byteOffset": offset, "byteLength": length, "target": target }));
+        let mut accessor = accessor;
+        accessor["bufferView"] = json!(self.views.len() - 1);
+        self.accessors.push(accessor);
+        self.accessors.len() - 1
+    }
+
+    /// An accessor of f32 `values` of glTF type `kind` (VEC3: with the bounds, which glTF
+    /// requires of POSITION, when `bounds`); returns its index.
+    pub(crate) fn floats(&mut self, values: &[f32], kind: &str, bounds: bool) -> usize {
+        let width = match kind {
+            "SCALAR" => 1,
+            "VEC3" => 3,
+            _ => 4,
+        };
+        let mut accessor = json!({ "componentType": FLOAT, "count": values.len() / width, "type": kind });
+        if bounds {
+            let bound = |pick: fn(f32, f32) -> f32| -> Vec<f32> {
+                (0..width)
+                    .map(|a| values.iter().skip(a).step_by(width).copied().reduce(pick).unwrap_or(0.0))
+                    .collect()
+            };
+            accessor["min"] = json!(bound(f32::min));
+            accessor["max"] = json!(bound(f32::max));
+        }
+        self.add(values.iter().map(|v| v.to_le_bytes()), ARRAY_BUFFER, accessor)
+    }
+
+    /// An accessor of u32 vertex indices; returns its index.
+    pub(crate) fn indices(&mut self, values: &[u32]) -> usize {
+        let accessor = json!({ "componentType": UNSIGNED_INT, "count": values.len(), "type": "SCALAR" });
+        self.add(values.iter().map(|v| v.to_le_bytes()), ELEMENT_ARRAY_BUFFER, accessor)
+    }
+
+    /// The GLB file of `gltf` (its `buffers`, `bufferViews` and `accessors` set from here).
+    pub(crate) fn pack(self, mut gltf: Value) -> Result<Vec<u8>> {
+        gltf["buffers"] = json!([{ "byteLength": self.bin.len() }]);
+        gltf["bufferViews"] = Value::Array(self.views);
+        gltf["accessors"] = Value::Array(self.accessors);
+        pack(&gltf, &self.bin)
+    }
+}
+
+/// A GLB file of the glTF `gltf` and its binary chunk `bin`.
+fn pack(gltf: &Value, bin: &[u8]) -> Result<Vec<u8>> {
+    let mut text = serde_json::to_vec(gltf).map_err(|e| bad(e.to_string()))?;
     while text.len() % 4 != 0 {
         text.push(b' ');
     }
+    let mut bin = bin.to_vec();
+    while bin.len() % 4 != 0 {
+        bin.push(0);
+    }
     let total = 12 + 8 + text.len() + 8 + bin.len();
-    let total = u32::try_from(total).map_err(|_| bad(format!("{n} Gaussians make a GLB past 4 GiB")))?;
+    let total = u32::try_from(total).map_err(|_| bad("the GLB would pass 4 GiB"))?;
     let mut out = Vec::with_capacity(total as usize);
     for w in [MAGIC, 2, total, text.len() as u32, JSON_CHUNK] {
         out.extend_from_slice(&w.to_le_bytes());
@@ -153,10 +202,8 @@ pub fn read(path: &Path) -> Result<GaussianData> {
     })
 }
 
-/// Parses the Gaussians of a GLB's first primitive with `KHR_gaussian_splatting` whose
-/// attributes are f32 (as [`to_bytes`] writes them); the colour comes from the degree-0
-/// coefficient, higher degrees are skipped.
-pub fn from_bytes(bytes: &[u8]) -> Result<GaussianData> {
+/// The glTF and the binary chunk of a GLB file.
+pub(crate) fn unpack(bytes: &[u8]) -> Result<(Value, &[u8])> {
     let word = |at: usize| bytes.get(at..at + 4).map(|b| u32::from_le_bytes(b.try_into().unwrap()));
     if word(0) != Some(MAGIC) {
         return Err(bad("not a GLB file: it does not start with `glTF`"));
@@ -179,6 +226,41 @@ pub fn from_bytes(bytes: &[u8]) -> Result<GaussianData> {
     let text = chunk(12, JSON_CHUNK, "JSON")?;
     let bin = chunk(12 + 8 + text.len(), BIN_CHUNK, "binary")?;
     let gltf: Value = serde_json::from_slice(text).map_err(|e| bad(format!("the JSON chunk: {e}")))?;
+    Ok((gltf, bin))
+}
+
+/// The bytes of accessor `index` of `gltf` in `bin`: `width` components of 4 bytes of
+/// `component` type each, tightly packed (`name` says which in errors).
+pub(crate) fn accessor<'a>(
+    gltf: &Value,
+    bin: &'a [u8],
+    index: u64,
+    width: usize,
+    component: u64,
+    name: &str,
+) -> Result<&'a [u8]> {
+    let a = &gltf["accessors"][index as usize];
+    let view = &gltf["bufferViews"][a["bufferView"].as_u64().unwrap_or(u64::MAX) as usize];
+    if a["componentType"].as_u64() != Some(component) {
+        return Err(bad(format!(
+            "{name}: component type {} is not read: {component} is",
+            a["componentType"]
+        )));
+    }
+    if view["byteStride"].as_u64().is_some_and(|s| s != 4 * width as u64) {
+        return Err(bad(format!("{name}: interleaved buffer views are not read")));
+    }
+    let count = a["count"].as_u64().unwrap_or(0) as usize;
+    let start = (view["byteOffset"].as_u64().unwrap_or(0) + a["byteOffset"].as_u64().unwrap_or(0)) as usize;
+    bin.get(start..start.saturating_add(4 * width * count))
+        .ok_or_else(|| bad(format!("{name}: {count} values run past the binary chunk")))
+}
+
+/// Parses the Gaussians of a GLB's first primitive with `KHR_gaussian_splatting` whose
+/// attributes are f32 (as [`to_bytes`] writes them); the colour comes from the degree-0
+/// coefficient, higher degrees are skipped.
+pub fn from_bytes(bytes: &[u8]) -> Result<GaussianData> {
+    let (gltf, bin) = unpack(bytes)?;
     let primitive = gltf["meshes"]
         .as_array()
         .into_iter()
@@ -190,24 +272,10 @@ pub fn from_bytes(bytes: &[u8]) -> Result<GaussianData> {
         let index = primitive["attributes"][name]
             .as_u64()
             .ok_or_else(|| bad(format!("the primitive has no {name} attribute")))?;
-        let a = &gltf["accessors"][index as usize];
-        let view = &gltf["bufferViews"][a["bufferView"].as_u64().unwrap_or(u64::MAX) as usize];
-        if a["componentType"].as_u64() != Some(FLOAT) {
-            return Err(bad(format!(
-                "{name}: component type {} is not read: f32 (5126) is",
-                a["componentType"]
-            )));
-        }
-        if view["byteStride"].as_u64().is_some_and(|s| s != 4 * width as u64) {
-            return Err(bad(format!("{name}: interleaved buffer views are not read")));
-        }
-        let count = a["count"].as_u64().unwrap_or(0) as usize;
-        let start =
-            (view["byteOffset"].as_u64().unwrap_or(0) + a["byteOffset"].as_u64().unwrap_or(0)) as usize;
-        let values = bin
-            .get(start..start.saturating_add(4 * width * count))
-            .ok_or_else(|| bad(format!("{name}: {count} values run past the binary chunk")))?;
-        Ok(values.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().unwrap())).collect())
+        accessor(&gltf, bin, index, width, FLOAT, name)?
+            .chunks_exact(4)
+            .map(|b| Ok(f32::from_le_bytes(b.try_into().unwrap())))
+            .collect()
     };
     let means = column("POSITION", 3)?;
     let rotation = column(&attribute("ROTATION"), 4)?;

@@ -1,6 +1,8 @@
 //! velox-io: the files Velox reads and writes, below the models and the data that use them.
 //!
-//! File formats users see: Gaussians as PLY in the 3D Gaussian splatting layout ([`ply`]),
+//! File formats users see: Gaussians as PLY in the 3D Gaussian splatting layout ([`ply`]), and
+//! for other viewers as SPZ ([`spz`]), `.splatv` flipbooks ([`splatv`]) and glTF with
+//! `KHR_gaussian_splatting` ([`glb`]); surface meshes as PLY, OBJ and glTF ([`mesh`]);
 //! images as PNG and depth as EXR ([`image`]), and the colour point cloud every model and
 //! dataset passes around ([`cloud`]: its layout and validation), and numpy's archives
 //! ([`npz`], TAPVid-3D's files). Every reader names what is
@@ -17,6 +19,7 @@ pub mod decoded;
 pub mod frames;
 pub mod glb;
 pub mod image;
+pub mod mesh;
 pub mod npz;
 pub mod ply;
 pub mod splatv;

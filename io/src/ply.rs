@@ -90,7 +90,7 @@ pub enum Scalar {
 }
 
 impl Scalar {
-    fn parse(s: &str) -> Option<Scalar> {
+    pub(crate) fn parse(s: &str) -> Option<Scalar> {
         Some(match s {
             "char" | "int8" => Scalar::I8,
             "uchar" | "uint8" => Scalar::U8,
@@ -134,6 +134,10 @@ pub struct Element {
     pub name: String,
     pub count: usize,
     pub properties: Vec<(String, Scalar)>,
+    /// List properties (a mesh's `face` element): name, count type, item type. An element
+    /// with one has no fixed size: nothing after it can be found, and the file's length is
+    /// checked by its reader ([`crate::mesh`]).
+    pub lists: Vec<(String, Scalar, Scalar)>,
 }
 
 impl Element {
@@ -193,9 +197,17 @@ impl Header {
                         .parse()
                         .map_err(|_| bad(format!("element {name}: count `{count}` is not a number")))?,
                     properties: Vec::new(),
+                    lists: Vec::new(),
                 }),
-                ["property", "list", ..] => {
-                    return Err(bad(format!("list property `{line}` is not supported")))
+                ["property", "list", count, item, name] => {
+                    let e = elements
+                        .last_mut()
+                        .ok_or_else(|| bad(format!("property `{name}` before any element")))?;
+                    let scalar = |t: &str| {
+                        Scalar::parse(t)
+                            .ok_or_else(|| bad(format!("list property {name}: unknown type `{t}`")))
+                    };
+                    e.lists.push((name.to_string(), scalar(count)?, scalar(item)?));
                 }
                 ["property", ty, name] => {
                     let e = elements
@@ -222,6 +234,9 @@ impl Header {
             if e.name == name {
                 return Some((at, e));
             }
+            if !e.lists.is_empty() {
+                return None;
+            }
             at = at.saturating_add(e.count.saturating_mul(e.stride()));
         }
         None
@@ -231,6 +246,12 @@ impl Header {
     /// file with fewer bytes is truncated, one with more does not match its header (a property
     /// declared `uchar` whose data is `float`, say). `bytes` is the whole file.
     pub fn check_length(&self, bytes: &[u8]) -> Result<()> {
+        if let Some(e) = self.elements.iter().find(|e| !e.lists.is_empty()) {
+            return Err(bad(format!(
+                "element {} has list properties (a mesh's faces): this file is a mesh, read as one",
+                e.name
+            )));
+        }
         let have = bytes.len().saturating_sub(self.body_start);
         // In u128, where no count of a header can overflow.
         let need: u128 = self.elements.iter().map(|e| e.count as u128 * e.stride() as u128).sum();

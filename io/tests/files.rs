@@ -78,7 +78,7 @@ fn malformed_ply_files_are_clear_errors() {
     expect(b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nend_header\n", "`y`");
     expect(
         b"ply\nformat binary_little_endian 1.0\nelement face 1\nproperty list uchar int v\nend_header\n",
-        "list",
+        "no `vertex` element",
     );
     expect(b"ply\nformat binary_little_endian 1.0\nelement vertex many\nend_header\n", "not a number");
     assert!(ply::read(&temp("missing.ply")).unwrap_err().to_string().contains("missing.ply"));

@@ -92,6 +92,8 @@ enum FrameData {
     Gaussians(PathBuf),
     /// A PLY of points (x y z, maybe r g b or red green blue).
     Points(PathBuf),
+    /// A surface mesh (`velox decode mesh`: PLY, OBJ or glTF), drawn as its vertices.
+    Mesh(PathBuf),
     /// Frame `frame` of a scene's 4D cloud (rows x y z r g b tau).
     ScenePoints { cloud: Arc<Vec<[f32; 7]>>, frame: usize },
 }
@@ -331,14 +333,17 @@ fn discover(path: &Path, scene: Option<&Path>) -> ViewResult<Source> {
         return Ok(Source { title, kind: Kind::Points, frames, cameras, compare: None, tracks, scene });
     } else {
         let of = |prefix: &str| frames::frame_files(path, prefix);
-        // Gaussians first; else decoded points; else a track output's points.
+        // Gaussians first; else decoded points; else a track output's points; else meshes.
         let (gaussians, points, tracked) = (of("gaussians")?, of("points")?, of("tracks")?);
+        let meshes = of("mesh")?;
         let (kind, list) = if !gaussians.is_empty() {
             (Kind::Gaussians, gaussians)
         } else if !points.is_empty() {
             (Kind::Points, points)
         } else if !tracked.is_empty() {
             (Kind::Points, tracked)
+        } else if !meshes.is_empty() {
+            (Kind::Points, meshes.clone())
         } else {
             // Another tool's numbered sequence: its PLYs that end in a number, one prefix to
             // them all, each frame its number; Gaussians or points by the first one's header.
@@ -358,6 +363,12 @@ fn discover(path: &Path, scene: Option<&Path>) -> ViewResult<Source> {
         };
         let mut frames = Vec::new();
         for (f, file) in list {
+            if meshes.iter().any(|m| m.1 == file) {
+                // A mesh read now: its vertices are the frame's points.
+                let count = velox_io::mesh::read(&file)?.positions.len();
+                frames.push(Frame { frame: f, count, data: FrameData::Mesh(file) });
+                continue;
+            }
             let (header, count) = ply_header(&file)?;
             let data = match kind {
                 Kind::Gaussians if is_gaussian(&header) => FrameData::Gaussians(file),
@@ -382,6 +393,7 @@ fn discover(path: &Path, scene: Option<&Path>) -> ViewResult<Source> {
     };
     let what = match kind {
         Kind::Gaussians => "Gaussians",
+        _ if frames.iter().any(|f| matches!(f.data, FrameData::Mesh(_))) => "mesh vertices",
         Kind::Points => "points",
     };
     let title = format!("{what} of {name}: {} frame(s)", frames.len());
@@ -511,6 +523,9 @@ impl Frame {
         Ok(match &self.data {
             FrameData::Gaussians(path) => gaussian_body(&ply::read(path)?),
             FrameData::Points(path) => points_body(read_points(path)?),
+            FrameData::Mesh(path) => {
+                points_body(velox_io::mesh::read(path)?.positions.into_iter().map(|p| (p, POINT_GREY)))
+            }
             FrameData::ScenePoints { cloud, frame } => {
                 let of_frame = cloud.iter().filter(|p| frame_of_tau(p[6]) == *frame);
                 points_body(of_frame.map(|p| ([p[0], p[1], p[2]], [p[3], p[4], p[5]])))

@@ -26,7 +26,7 @@ use crate::overlay::clip_gif;
 use velox_engine::{Gpu, Precision};
 use velox_io::cloud::CHANNELS;
 use velox_io::decoded::{DecodeReport, DecodedFrame};
-use velox_io::ply;
+use velox_io::{frames, mesh, ply};
 use velox_models::velox::autoencoder::{Autoencoder, FRAMES};
 use velox_models::velox::decode::{
     frame_points, sampler_name, Decoding, FrameOutput, Sampling, VoxelSource, WrittenFrame,
@@ -43,6 +43,41 @@ pub enum DecodeCommand {
     Points(PointsArgs),
     /// 3D Gaussians of each requested frame, as 3D Gaussian splatting PLY.
     Gaussians(GaussiansArgs),
+    /// A triangle mesh of each requested frame's surface, from points sampled by the surface
+    /// decoder (see `velox_data::surface`), as PLY, OBJ and glTF binary.
+    Mesh(MeshArgs),
+}
+
+#[derive(clap::Args)]
+pub struct MeshArgs {
+    #[command(flatten)]
+    common: CommonArgs,
+    /// The surface points the mesh is made from.
+    #[command(flatten)]
+    sampling: SamplingArgs,
+    /// Grid cells along the surface's longest side: the mesh's detail (8 to 256).
+    #[arg(long, default_value_t = 96)]
+    resolution: usize,
+    /// The files written for each frame: any of ply, obj and glb, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "ply,obj,glb")]
+    format: Vec<MeshFormatArg>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum MeshFormatArg {
+    Ply,
+    Obj,
+    Glb,
+}
+
+impl From<MeshFormatArg> for mesh::Format {
+    fn from(f: MeshFormatArg) -> mesh::Format {
+        match f {
+            MeshFormatArg::Ply => mesh::Format::Ply,
+            MeshFormatArg::Obj => mesh::Format::Obj,
+            MeshFormatArg::Glb => mesh::Format::Glb,
+        }
+    }
 }
 
 #[derive(clap::Args)]
@@ -247,6 +282,8 @@ pub fn render_written(
 /// cloud (a scene folder, whose cameras and truth `velox view` then shows beside the frames),
 /// how, and each frame's file.
 pub struct DecodeRecord<'a> {
+    /// `decode points`, `decode gaussians` or `decode mesh`.
+    pub command: &'static str,
     pub checkpoint: &'a Path,
     pub cloud: &'a Path,
     pub ae: &'a Autoencoder,
@@ -256,8 +293,7 @@ pub struct DecodeRecord<'a> {
     pub encode_seconds: f64,
 }
 
-/// Writes `out/decode.json` listing `written` (frames of one kind: points where `voxels` is
-/// `None`, Gaussians otherwise) and returns its path.
+/// Writes `out/decode.json` listing `written` (frames of one kind) and returns its path.
 pub fn write_report(out: &Path, record: &DecodeRecord, written: &[WrittenFrame]) -> CliResult<PathBuf> {
     let frames = written
         .iter()
@@ -271,7 +307,7 @@ pub fn write_report(out: &Path, record: &DecodeRecord, written: &[WrittenFrame])
         })
         .collect();
     let report = DecodeReport {
-        command: if record.voxels.is_some() { "decode gaussians" } else { "decode points" }.into(),
+        command: record.command.into(),
         checkpoint: record.checkpoint.display().to_string(),
         cloud: record.cloud.display().to_string(),
         config: record.ae.cfg.name.clone(),
@@ -290,6 +326,7 @@ pub fn write_report(out: &Path, record: &DecodeRecord, written: &[WrittenFrame])
 pub fn run(cmd: DecodeCommand) -> CliResult<()> {
     let (common, sampling, voxels) = match &cmd {
         DecodeCommand::Points(a) => (&a.common, &a.sampling, None),
+        DecodeCommand::Mesh(a) => (&a.common, &a.sampling, None),
         DecodeCommand::Gaussians(a) => {
             let default = if a.voxel_decoder.is_some() { VoxelArg::Predicted } else { VoxelArg::Surface };
             (&a.common, &a.sampling, Some(VoxelSource::from(a.voxels.unwrap_or(default))))
@@ -297,7 +334,17 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
     };
     let decoder_path = match &cmd {
         DecodeCommand::Gaussians(a) => a.voxel_decoder.clone(),
-        DecodeCommand::Points(_) => None,
+        DecodeCommand::Points(_) | DecodeCommand::Mesh(_) => None,
+    };
+    let command = match &cmd {
+        DecodeCommand::Points(_) => "decode points",
+        DecodeCommand::Gaussians(_) => "decode gaussians",
+        DecodeCommand::Mesh(a) => {
+            if !velox_data::surface::RESOLUTIONS.contains(&a.resolution) {
+                return Err(format!("--resolution {}: give 8 to 256 cells", a.resolution).into());
+            }
+            "decode mesh"
+        }
     };
     let gif = matches!(&cmd, DecodeCommand::Gaussians(a) if a.gif);
     if gif && !common.cloud.join("cameras.json").is_file() {
@@ -322,7 +369,11 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
     let mut ae = Autoencoder::load(&gpu, &common.checkpoint)?;
     ae.set_precision(common.precision.into())?;
     std::fs::create_dir_all(&common.out).map_err(|e| format!("creating {}: {e}", common.out.display()))?;
-    let what = if voxels.is_some() { "Gaussians" } else { "surface points" };
+    let what = match &cmd {
+        DecodeCommand::Points(_) => "surface points",
+        DecodeCommand::Gaussians(_) => "Gaussians",
+        DecodeCommand::Mesh(_) => "surface meshes",
+    };
     println!(
         "decoding {what} of {} frames of {} ({} points) with the {} autoencoder in {} on {}",
         common.frames.0.len(),
@@ -352,10 +403,19 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
         bar.set_message(format!("frame {f}"));
         done += 1;
     };
-    let written =
-        decoding.write_frames(&common.frames.0, output, &sampling.sampling(), &common.out, &mut on_frame)?;
+    let written = match &cmd {
+        DecodeCommand::Mesh(a) => write_meshes(&decoding, a, &mut on_frame)?,
+        _ => decoding.write_frames(
+            &common.frames.0,
+            output,
+            &sampling.sampling(),
+            &common.out,
+            &mut on_frame,
+        )?,
+    };
     bar.finish_and_clear();
     let record = DecodeRecord {
+        command,
         checkpoint: &common.checkpoint,
         cloud: &common.cloud,
         ae: &ae,
@@ -372,13 +432,49 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
         clip_gif(&common.cloud, &common.frames.0, render_frame, &gif, 80, Some(&pngs))?;
         println!("wrote {} and its frames under {} (ground truth | decoded)", gif.display(), pngs.display());
     }
+    let files = match &cmd {
+        DecodeCommand::Mesh(a) => written.len() * a.format.len(),
+        _ => written.len(),
+    };
     println!(
-        "wrote {} files to {} in {:.1} s (decode.json lists them)",
-        written.len(),
+        "wrote {files} files to {} in {:.1} s (decode.json lists them)",
         common.out.display(),
         start.elapsed().as_secs_f64()
     );
     Ok(())
+}
+
+/// Samples each requested frame's surface, meshes it and writes `mesh_fFF.EXT` in every
+/// format asked for; the frames listed name the first format's file and count triangles.
+fn write_meshes(
+    decoding: &Decoding,
+    a: &MeshArgs,
+    on_frame: &mut dyn FnMut(usize),
+) -> CliResult<Vec<WrittenFrame>> {
+    let mut written = Vec::new();
+    for &frame in &a.common.frames.0 {
+        on_frame(frame);
+        let start = Instant::now();
+        let xyz = decoding.surface_points(frame, &a.sampling.sampling())?;
+        let m = velox_data::surface::mesh_of_points(&xyz, a.resolution)?;
+        let mut first = None;
+        for &format in &a.format {
+            let format = mesh::Format::from(format);
+            let path = a.common.out.join(frames::frame_file_as("mesh", frame, format.extension()));
+            mesh::write(&path, &m, format)?;
+            first.get_or_insert(path);
+        }
+        let path = first.ok_or("--format names no format")?;
+        written.push(WrittenFrame {
+            frame,
+            tau: frames::tau_of(frame),
+            path,
+            count: m.triangles.len(),
+            voxels: None,
+            seconds: start.elapsed().as_secs_f64(),
+        });
+    }
+    Ok(written)
 }
 
 pub fn name(p: &Path) -> String {

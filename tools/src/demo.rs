@@ -185,6 +185,7 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
     let written = decoding.write_frames(&all, gaussians, &decoded_points, &decoded, &mut on_frame)?;
     // decode.json names the scene, so the viewer shows its truth and cameras beside the frames.
     let record = DecodeRecord {
+        command: "decode gaussians",
         checkpoint: &summary.checkpoint,
         cloud: &scene_dir,
         ae: &ae,

@@ -98,6 +98,43 @@ fn decode_points_writes_a_cloud_per_frame() {
 }
 
 #[test]
+fn decode_mesh_writes_a_surface_per_frame_in_every_format() {
+    let dir = fixture();
+    let out = dir.join("mesh");
+    let (scene, ckpt) = (dir.join("data/scene_00000"), dir.join("ae.safetensors"));
+    let args = ["decode", "mesh", "--checkpoint", arg(&ckpt), "--cloud", arg(&scene), "--out", arg(&out)];
+    let rest = ["--frames", "0,5", "--points", "2000", "--steps", "3", "--resolution", "24"];
+    let text = ok(&velox(&[&args[..], &rest[..]].concat()));
+    assert!(text.contains("wrote 6 files"), "{text}");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("decode.json")).unwrap()).unwrap();
+    assert_eq!(report["command"], "decode mesh");
+    for (k, f) in [0, 5].into_iter().enumerate() {
+        let ply = velox_io::mesh::read(&out.join(format!("mesh_f{f:02}.ply"))).unwrap();
+        assert!(!ply.triangles.is_empty());
+        assert_eq!(report["frames"][k]["count"].as_u64().unwrap() as usize, ply.triangles.len());
+        // The same mesh in every format: OBJ's decimals give back the f32s.
+        for ext in ["obj", "glb"] {
+            assert_eq!(velox_io::mesh::read(&out.join(format!("mesh_f{f:02}.{ext}"))).unwrap(), ply, "{ext}");
+        }
+    }
+    // One format on request; a resolution out of range is refused before any work.
+    let obj = dir.join("mesh_obj");
+    let rest = ["--frames", "2", "--points", "500", "--steps", "2", "--format", "obj", "--out", arg(&obj)];
+    ok(&velox(&[&args[..6], &rest[..]].concat()));
+    let names: Vec<String> = std::fs::read_dir(&obj)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert!(
+        names.contains(&"mesh_f02.obj".to_string()) && !names.iter().any(|n| n.ends_with(".ply")),
+        "{names:?}"
+    );
+    let err = fails(&velox(&[&args[..], &["--resolution", "4"][..]].concat()));
+    assert!(err.contains("--resolution 4"), "{err}");
+}
+
+#[test]
 fn decode_gaussians_writes_splat_files_from_surface_or_cloud_voxels() {
     let dir = fixture();
     let ckpt = dir.join("ae.safetensors");

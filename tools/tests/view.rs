@@ -135,6 +135,25 @@ fn get(address: &str, path: &str) -> (u32, Vec<u8>) {
     request(address, &format!("GET {path} HTTP/1.1"))
 }
 
+/// The manifest a one-file page holds (the comments show its tag too: the manifest is the one
+/// that holds an object).
+fn manifest(page: &str) -> serde_json::Value {
+    let tag = "<script id=\"velox-manifest\" type=\"application/json\">{";
+    let json = &page[page.find(tag).unwrap() + tag.len() - 1..];
+    let json = &json[..json.find("</script>").unwrap()].replace("<\\/", "</");
+    serde_json::from_str(json).unwrap()
+}
+
+/// Each frame of a manifest and its count.
+fn frame_counts(manifest: &serde_json::Value) -> Vec<(u64, u64)> {
+    manifest["frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| (f["frame"].as_u64().unwrap(), f["count"].as_u64().unwrap()))
+        .collect()
+}
+
 fn fails(cmd: &mut Command) -> String {
     let out = cmd.output().unwrap();
     assert!(!out.status.success(), "succeeded: {}", String::from_utf8_lossy(&out.stdout));
@@ -260,11 +279,7 @@ fn html_writes_one_page_that_holds_every_frame() {
     assert!(!text.contains("http://") && !text.contains("https://"), "nothing fetched from outside");
     // Every frame the manifest names is in the page under the id its URL gives. Would catch:
     // the manifest naming `#frames-K` where the page holds `frame-K` (nothing drawn).
-    // (The page's comments show the tag too: the manifest is the one that holds an object.)
-    let tag = "<script id=\"velox-manifest\" type=\"application/json\">{";
-    let json = &text[text.find(tag).unwrap() + tag.len() - 1..];
-    let json = &json[..json.find("</script>").unwrap()].replace("<\\/", "</");
-    let manifest: serde_json::Value = serde_json::from_str(json).unwrap();
+    let manifest = manifest(&text);
     let urls: Vec<String> = manifest["frames"]
         .as_array()
         .unwrap()
@@ -403,18 +418,9 @@ fn another_tools_numbered_ply_sequence_opens_frame_by_frame() {
     let out = velox().arg("view").arg(&seq).arg("--html").arg(&page).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let text = std::fs::read_to_string(&page).unwrap();
-    let tag = "<script id=\"velox-manifest\" type=\"application/json\">{";
-    let json = &text[text.find(tag).unwrap() + tag.len() - 1..];
-    let json = &json[..json.find("</script>").unwrap()].replace("<\\/", "</");
-    let manifest: serde_json::Value = serde_json::from_str(json).unwrap();
+    let manifest = manifest(&text);
     assert_eq!(manifest["kind"], "gaussians");
-    let frames: Vec<(u64, u64)> = manifest["frames"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|f| (f["frame"].as_u64().unwrap(), f["count"].as_u64().unwrap()))
-        .collect();
-    assert_eq!(frames, [(0, 5), (5, 6), (10, 7)]);
+    assert_eq!(frame_counts(&manifest), [(0, 5), (5, 6), (10, 7)]);
     // Two sequences in one folder, or two files of one frame: errors naming them.
     ply::write(&seq.join("other_0001.ply"), &gaussians(3, 9)).unwrap();
     let err = fails(velox().arg("view").arg(&seq));
@@ -476,4 +482,28 @@ fn export_writes_every_format_and_each_reads_back() {
     let err = fails(velox().arg("export").arg(&decoded).args(["--to", "obj"]));
     assert!(err.contains("ply-seq"), "{err}");
     let _ = std::fs::remove_dir_all(decoded.parent().unwrap());
+}
+
+#[test]
+fn a_mesh_sequence_opens_as_its_vertices() {
+    // decode mesh's files: mesh_fFF.ply, drawn as their vertices, a frame each.
+    let dir = temp_dir("meshes");
+    let seq = dir.join("mesh");
+    std::fs::create_dir_all(&seq).unwrap();
+    for (f, n) in [(0usize, 4u32), (7, 5)] {
+        let positions = (0..n).map(|i| [i as f32 * 0.1, (i % 2) as f32 * 0.1, 0.0]).collect();
+        let triangles = (1..n - 1).map(|i| [0, i, i + 1]).collect();
+        let m = velox_io::mesh::Mesh { positions, triangles };
+        velox_io::mesh::write(&seq.join(frames::frame_file("mesh", f)), &m, velox_io::mesh::Format::Ply)
+            .unwrap();
+    }
+    let page = dir.join("mesh.html");
+    let out = velox().arg("view").arg(&seq).arg("--html").arg(&page).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(String::from_utf8_lossy(&out.stdout).contains("mesh vertices"));
+    let text = std::fs::read_to_string(&page).unwrap();
+    let manifest = manifest(&text);
+    assert_eq!(manifest["kind"], "points");
+    assert_eq!(frame_counts(&manifest), [(0, 4), (7, 5)]);
+    let _ = std::fs::remove_dir_all(&dir);
 }
