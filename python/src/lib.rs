@@ -9,7 +9,8 @@
 //! - [`models`]: the trained models (the autoencoder, the tracker);
 //! - [`run`]: training through the library's run API (`velox_tasks::run`), and the data;
 //! - [`metrics`]: the paper's metrics on arrays;
-//! - [`view`]: the browser viewer of `velox view`.
+//! - [`view`]: the browser viewer of `velox view`;
+//! - [`files`]: meshes, exports for other viewers, video files in.
 //!
 //! Tests: `python/tests/test_velox.py` (pytest, in a fresh venv: `tools/test.sh`).
 
@@ -18,6 +19,7 @@ use pyo3::prelude::*;
 mod arrays;
 mod device;
 mod errors;
+mod files;
 mod gaussians;
 mod metrics;
 mod models;
@@ -33,5 +35,6 @@ fn _velox(m: &Bound<'_, PyModule>) -> PyResult<()> {
     run::register(m)?;
     metrics::register(m)?;
     view::register(m)?;
+    files::register(m)?;
     Ok(())
 }

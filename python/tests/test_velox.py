@@ -518,3 +518,62 @@ def test_a_background_is_the_commands(tmp_path):
     assert json.loads((Path(scene) / "meta.json").read_text())["background"] == [1.0, 1.0, 1.0]
     with pytest.raises(ValueError, match="each channel must lie in"):
         velox.data.synth(tmp_path / "bad", background=(2.0, 0.0, 0.0), progress=False, **options)
+
+
+def test_meshes_exports_and_videos_are_the_commands(tmp_path):
+    # A mesh of points on a sphere: closed, facing out, through every file format.
+    rng = np.random.default_rng(4)
+    v = rng.standard_normal((20000, 3))
+    points = (0.5 * v / np.linalg.norm(v, axis=1, keepdims=True)).astype(np.float32)
+    mesh = velox.mesh_of_points(points, resolution=40)
+    p, t = mesh["positions"], mesh["triangles"]
+    assert p.dtype == np.float32 and t.dtype == np.uint32 and t.shape[1] == 3
+    radius = np.linalg.norm(p, axis=1)
+    assert np.abs(radius - 0.5).max() < 0.25 * 1.0 / 40
+    a, b, c = p[t[:, 0]], p[t[:, 1]], p[t[:, 2]]
+    volume = np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6
+    assert abs(volume / (4 / 3 * np.pi * 0.125) - 1) < 0.05
+    for ext in ["ply", "obj", "glb"]:
+        velox.write_mesh(tmp_path / f"sphere.{ext}", mesh)
+        back = velox.read_mesh(tmp_path / f"sphere.{ext}")
+        assert np.array_equal(back["positions"], p) and np.array_equal(back["triangles"], t), ext
+    with pytest.raises(ValueError, match="uint32"):
+        velox.write_mesh(tmp_path / "x.ply", {"positions": p, "triangles": t.astype(np.int64)})
+    with pytest.raises(ValueError, match=".ply, .obj or .glb"):
+        velox.write_mesh(tmp_path / "x.stl", mesh)
+
+    # Per-frame Gaussians exported as the command exports them, byte for byte.
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for f in [0, 5]:
+        velox.write_gaussians(frames / f"gaussians_f{f:02}.ply", random_gaussians(200, seed=f))
+    for to in ["ply-seq", "splatv", "spz", "glb"]:
+        # A folder, or the .splatv file.
+        place = "clip.splatv" if to == "splatv" else to
+        files = velox.export(frames, to, out=tmp_path / "py" / place)
+        cli("export", frames, "--to", to, "--out", tmp_path / "cli" / place)
+        assert len(files) == (1 if to == "splatv" else 2)
+        for f in files:
+            twin = Path(str(f).replace(str(tmp_path / "py"), str(tmp_path / "cli")))
+            assert Path(f).read_bytes() == twin.read_bytes(), f
+    with pytest.raises(ValueError, match="`to`"):
+        velox.export(frames, "obj")
+
+    # A video file's frames through ffmpeg, as the command imports them.
+    video = tmp_path / "video"
+    video.mkdir()
+    for k in range(6):
+        velox.write_image(video / f"f{k:02}.png", rng.random((16, 24, 3)).astype(np.float32))
+    subprocess.run(["ffmpeg", "-v", "error", "-framerate", "12", "-i", video / "f%02d.png", "-c:v", "ffv1",
+                    "-pix_fmt", "bgr0", tmp_path / "clip.mkv"], check=True)
+    r = velox.data.import_video(tmp_path / "clip.mkv", tmp_path / "py-frames")
+    assert (r["frames"], r["width"], r["height"], r["fps"], r["capture"]) == (6, 24, 16, 12.0, None)
+    cli("import", "video", tmp_path / "clip.mkv", "--out", tmp_path / "cli-frames")
+    for k in range(6):
+        name = f"frame_{k:05}.png"
+        ours = (tmp_path / "py-frames" / name).read_bytes()
+        assert ours == (tmp_path / "cli-frames" / name).read_bytes()
+        assert np.array_equal(velox.read_image(tmp_path / "py-frames" / name),
+                              velox.read_image(video / f"f{k:02}.png")), "lossless"
+    with pytest.raises(ValueError, match="not empty"):
+        velox.data.import_video(tmp_path / "clip.mkv", tmp_path / "py-frames")

@@ -22,11 +22,15 @@ from ._velox import (
     __version__,
     devices,
     encode_dataset,
+    export,
+    mesh_of_points,
     read_gaussians,
     read_image,
+    read_mesh,
     render,
     write_gaussians,
     write_image,
+    write_mesh,
 )
 from . import data, metrics
 from .viewer import view
@@ -40,14 +44,18 @@ __all__ = [
     "data",
     "devices",
     "encode_dataset",
+    "export",
+    "mesh_of_points",
     "metrics",
     "read_gaussians",
     "read_image",
+    "read_mesh",
     "render",
     "train",
     "view",
     "write_gaussians",
     "write_image",
+    "write_mesh",
 ]
 
 

@@ -2,9 +2,9 @@
 writes them."""
 
 from . import _velox
-from ._velox import import_rgbd, read_cloud
+from ._velox import import_rgbd, import_video, read_cloud
 
-__all__ = ["gltf", "import_rgbd", "read_cloud", "synth"]
+__all__ = ["gltf", "import_rgbd", "import_video", "read_cloud", "synth"]
 
 
 def synth(out, *, scenes=8, seed=0, res=128, points=200_000, tracks=1024, supersample=2,

@@ -12,6 +12,7 @@
 //!   makes tokens from them;
 //! - [`run`] starts a training run (new, resumed, or from another run's parameters) and
 //!   trains it: the one way every front end trains a model;
+//! - [`export`] writes per-frame Gaussians in the files other viewers play;
 //! - [`tapvid3d`] scores any tracker's predictions on TAPVid-3D's own files;
 //! - [`track`] follows query points through an RGBD video with a trained tracker;
 //! - [`view`] shows a 4D result in a browser (the page, its frames, a small server);
@@ -21,6 +22,7 @@
 pub mod condition;
 pub mod encode;
 pub mod evaluate;
+pub mod export;
 pub mod generate;
 pub mod loader;
 pub mod run;
