@@ -73,7 +73,7 @@ pub fn mesh_of_points(xyz: &[f32], resolution: usize) -> DataResult<Mesh> {
             RESOLUTIONS.end()
         )));
     }
-    if xyz.len() % 3 != 0 || xyz.len() < 12 {
+    if !xyz.len().is_multiple_of(3) || xyz.len() < 12 {
         return Err(DataError::Invalid(format!("{} values are not 4 or more points of x, y, z", xyz.len())));
     }
     if let Some(i) = xyz.iter().position(|v| !v.is_finite()) {
@@ -93,7 +93,7 @@ pub fn mesh_of_points(xyz: &[f32], resolution: usize) -> DataResult<Mesh> {
     let points: Vec<[f64; 3]> =
         all.into_iter().filter(|p| (0..3).all(|a| p[a] >= lo[a] && p[a] <= hi[a])).collect();
     let extent = (0..3).map(|a| hi[a] - lo[a]).fold(0.0, f64::max);
-    if !(extent > 0.0) {
+    if extent <= 0.0 {
         return Err(DataError::Invalid("the points are all at one place: they span no surface".into()));
     }
     let cell = extent / resolution as f64;

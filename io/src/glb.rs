@@ -64,7 +64,7 @@ pub fn to_bytes(g: &GaussianData) -> Result<Vec<u8>> {
     let mut rotation = Vec::with_capacity(4 * n);
     for (i, q) in g.quats.chunks_exact(4).enumerate() {
         let l = q.iter().map(|v| v * v).sum::<f32>().sqrt();
-        if !(l > 0.0) {
+        if l.is_nan() || l <= 0.0 {
             return Err(bad(format!("Gaussian {i}: its quaternion is zero")));
         }
         rotation.extend([q[1] / l, q[2] / l, q[3] / l, q[0] / l]);
@@ -168,11 +168,11 @@ impl Buffer {
 /// A GLB file of the glTF `gltf` and its binary chunk `bin`.
 fn pack(gltf: &Value, bin: &[u8]) -> Result<Vec<u8>> {
     let mut text = serde_json::to_vec(gltf).map_err(|e| bad(e.to_string()))?;
-    while text.len() % 4 != 0 {
+    while !text.len().is_multiple_of(4) {
         text.push(b' ');
     }
     let mut bin = bin.to_vec();
-    while bin.len() % 4 != 0 {
+    while !bin.len().is_multiple_of(4) {
         bin.push(0);
     }
     let total = 12 + 8 + text.len() + 8 + bin.len();
@@ -286,7 +286,7 @@ pub fn from_bytes(bytes: &[u8]) -> Result<GaussianData> {
     if [means.len(), rotation.len(), scale.len(), dc.len()] != [3 * n, 4 * n, 3 * n, 3 * n] {
         return Err(bad("the attributes' counts differ"));
     }
-    if let Some(s) = scale.iter().find(|s| !(**s > 0.0)) {
+    if let Some(s) = scale.iter().find(|s| s.is_nan() || **s <= 0.0) {
         return Err(bad(format!("a scale of {s}: the extension's scales are linear and positive")));
     }
     if let Some(o) = opacity.iter().find(|o| !(0.0..=1.0).contains(*o)) {

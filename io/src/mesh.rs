@@ -268,7 +268,7 @@ fn from_ply(bytes: &[u8]) -> Result<Mesh> {
         let truncated = || bad(format!("the file is truncated in face {f}"));
         let n = bytes.get(at..at + count_type.size()).map(|b| count_type.read(b)).ok_or_else(truncated)?;
         at += count_type.size();
-        if !(n >= 3.0 && n <= 255.0) {
+        if !(3.0..=255.0).contains(&n) {
             return Err(bad(format!("face {f} has {n} corners")));
         }
         corners.clear();

@@ -124,7 +124,7 @@ pub fn to_bytes(frames: &[GaussianData], camera: &SplatvCamera) -> Result<Vec<u8
             let s = &g.log_scales[3 * i..3 * i + 3];
             let c = &g.colours[3 * i..3 * i + 3];
             let l = q.iter().map(|v| v * v).sum::<f32>().sqrt();
-            if !(l > 0.0) {
+            if l.is_nan() || l <= 0.0 {
                 return Err(bad(format!("frame {k}, Gaussian {i}: its quaternion is zero")));
             }
             let scale = s.iter().map(|v| v.exp()).collect::<Vec<_>>();

@@ -118,7 +118,7 @@ pub fn to_bytes(g: &GaussianData, version: u32) -> Result<Vec<u8>> {
     raw.extend_from_slice(&[0, FRACTIONAL_BITS, 0, 0]);
     for (i, &p) in g.means.iter().enumerate() {
         let p = p as f64;
-        if !(p.abs() < limit) {
+        if p.is_nan() || p.abs() >= limit {
             return Err(bad(format!(
                 "Gaussian {}: coordinate {p} is outside the +-{limit} SPZ's positions hold",
                 i / 3

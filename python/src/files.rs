@@ -32,16 +32,15 @@ fn mesh_of_dict(mesh: &Bound<'_, PyAny>) -> PyResult<Mesh> {
         .cast::<PyUntypedArray>()
         .map_err(|_| invalid("mesh[\"triangles\"] must be a numpy array"))?;
     let shape = untyped.shape().to_vec();
-    let typed = triangles
-        .cast::<PyArrayDyn<u32>>()
-        .ok()
-        .filter(|_| shape.len() == 2 && shape[1] == 3)
-        .ok_or_else(|| {
-            let dtype = untyped.dtype().str().map(|s| s.to_string()).unwrap_or_default();
-            invalid(format!(
+    let typed =
+        triangles.cast::<PyArrayDyn<u32>>().ok().filter(|_| shape.len() == 2 && shape[1] == 3).ok_or_else(
+            || {
+                let dtype = untyped.dtype().str().map(|s| s.to_string()).unwrap_or_default();
+                invalid(format!(
                 "mesh[\"triangles\"] must be a uint32 array of shape [N, 3], got {dtype} of shape {shape:?}"
             ))
-        })?;
+            },
+        )?;
     let t: Vec<u32> = typed.readonly().as_array().iter().copied().collect();
     let m = Mesh {
         positions: p.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect(),
