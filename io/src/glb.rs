@@ -23,7 +23,7 @@ use velox_engine::ops::raster::GaussianData;
 use velox_engine::{Error, Result};
 
 use crate::ply::SH_C0;
-use crate::{content_error, read_error, write_bytes};
+use crate::{read_parsed, write_bytes};
 
 /// `glTF`, read as a little-endian u32.
 const MAGIC: u32 = 0x4654_6c67;
@@ -195,11 +195,7 @@ pub fn write(path: &Path, g: &GaussianData) -> Result<()> {
 
 /// Reads Gaussians from a GLB file.
 pub fn read(path: &Path) -> Result<GaussianData> {
-    let bytes = std::fs::read(path).map_err(|e| read_error(path, e))?;
-    from_bytes(&bytes).map_err(|e| match e {
-        Error::Invalid(why) => content_error(path, why),
-        other => other,
-    })
+    read_parsed(path, from_bytes)
 }
 
 /// The glTF and the binary chunk of a GLB file.
@@ -308,19 +304,9 @@ pub fn from_bytes(bytes: &[u8]) -> Result<GaussianData> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use velox_engine::rng::Rng;
 
     fn scene(n: usize, seed: u64) -> GaussianData {
-        let mut rng = Rng::new(seed);
-        let mut g = GaussianData::default();
-        for _ in 0..n {
-            let mean = [0; 3].map(|_| rng.range(-2.0, 2.0) as f32);
-            let ls = [0; 3].map(|_| rng.range(-6.0, 0.0) as f32);
-            let q = [0; 4].map(|_| rng.normal() as f32);
-            let c = [0; 3].map(|_| rng.uniform() as f32);
-            g.push(mean, ls, q, rng.range(-4.0, 4.0) as f32, c);
-        }
-        g
+        crate::test_gaussians(n, seed, 2.0, (-6.0, 0.0))
     }
 
     #[test]

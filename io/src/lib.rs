@@ -29,6 +29,8 @@ use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
+#[cfg(test)]
+use velox_engine::ops::raster::GaussianData;
 use velox_engine::{Error, FileOp, Result};
 
 /// The temporary file a write of `path` goes through before it is renamed over `path`.
@@ -90,9 +92,35 @@ pub(crate) fn content_error(path: &Path, e: impl std::fmt::Display) -> Error {
     Error::file(path, FileOp::Content, e)
 }
 
+/// The file at `path` parsed by `parse`, whose complaints about the bytes become errors naming
+/// the file (as [`content_error`]); a file that cannot be read is a [`read_error`].
+pub(crate) fn read_parsed<T>(path: &Path, parse: impl FnOnce(&[u8]) -> Result<T>) -> Result<T> {
+    let bytes = std::fs::read(path).map_err(|e| read_error(path, e))?;
+    parse(&bytes).map_err(|e| match e {
+        Error::Invalid(why) => content_error(path, why),
+        other => other,
+    })
+}
+
 /// A file that could not be opened or read.
 pub(crate) fn read_error(path: &Path, e: std::io::Error) -> Error {
     Error::file(path, FileOp::Read, e)
+}
+
+/// Random Gaussians for the format tests: means uniform in +-`spread`, log-scales in
+/// `log_scales`, random quaternions (unnormalised), opacity logits in +-4, colours in [0, 1).
+#[cfg(test)]
+pub(crate) fn test_gaussians(n: usize, seed: u64, spread: f64, log_scales: (f64, f64)) -> GaussianData {
+    let mut rng = velox_engine::rng::Rng::new(seed);
+    let mut g = GaussianData::default();
+    for _ in 0..n {
+        let mean = [0; 3].map(|_| rng.range(-spread, spread) as f32);
+        let ls = [0; 3].map(|_| rng.range(log_scales.0, log_scales.1) as f32);
+        let q = [0; 4].map(|_| rng.normal() as f32);
+        let c = [0; 3].map(|_| rng.uniform() as f32);
+        g.push(mean, ls, q, rng.range(-4.0, 4.0) as f32, c);
+    }
+    g
 }
 
 #[cfg(test)]

@@ -18,7 +18,7 @@ use velox_engine::{Error, Result};
 
 use crate::glb::{self, Buffer, FLOAT, UNSIGNED_INT};
 use crate::ply::{Header, Scalar};
-use crate::{content_error, read_error, write_bytes};
+use crate::{content_error, read_parsed, write_bytes};
 
 /// A triangle mesh: vertex positions and triangles (counter-clockwise seen from outside).
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -195,11 +195,7 @@ pub fn read(path: &Path) -> Result<Mesh> {
         .into_iter()
         .find(|f| f.extension() == ext)
         .ok_or_else(|| content_error(path, "a mesh is read from .ply, .obj or .glb"))?;
-    let bytes = std::fs::read(path).map_err(|e| read_error(path, e))?;
-    from_bytes(&bytes, format).map_err(|e| match e {
-        Error::Invalid(why) => content_error(path, why),
-        other => other,
-    })
+    read_parsed(path, |bytes| from_bytes(bytes, format))
 }
 
 /// Parses a mesh file's bytes.

@@ -14,7 +14,7 @@ use std::path::Path;
 use velox_engine::ops::raster::GaussianData;
 use velox_engine::{Error, Result};
 
-use crate::{content_error, read_error, write_bytes};
+use crate::{read_parsed, write_bytes};
 
 /// The degree-0 spherical harmonic, 1 / (2 sqrt(pi)).
 pub const SH_C0: f64 = 0.28209479177387814;
@@ -69,11 +69,7 @@ pub fn write(path: &Path, g: &GaussianData) -> Result<()> {
 
 /// Reads Gaussians from `path`.
 pub fn read(path: &Path) -> Result<GaussianData> {
-    let bytes = std::fs::read(path).map_err(|e| read_error(path, e))?;
-    from_bytes(&bytes).map_err(|e| match e {
-        Error::Invalid(why) => content_error(path, why),
-        other => other,
-    })
+    read_parsed(path, from_bytes)
 }
 
 /// The scalar types of PLY properties.

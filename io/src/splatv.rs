@@ -26,7 +26,7 @@ use serde::{Deserialize, Serialize};
 use velox_engine::ops::raster::{Camera, GaussianData};
 use velox_engine::{Error, Result};
 
-use crate::{content_error, read_error, write_bytes};
+use crate::{read_parsed, write_bytes};
 
 /// The file's first u32.
 pub const MAGIC: u32 = 0x674b;
@@ -181,11 +181,7 @@ pub struct Flipbook {
 
 /// Reads a flipbook from `path`.
 pub fn read(path: &Path) -> Result<Flipbook> {
-    let bytes = std::fs::read(path).map_err(|e| read_error(path, e))?;
-    from_bytes(&bytes).map_err(|e| match e {
-        Error::Invalid(why) => content_error(path, why),
-        other => other,
-    })
+    read_parsed(path, from_bytes)
 }
 
 /// Parses a flipbook: Gaussians that move are refused (a splatv with motion is not a
@@ -256,19 +252,9 @@ pub fn from_bytes(bytes: &[u8]) -> Result<Flipbook> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use velox_engine::rng::Rng;
 
     fn frame(n: usize, seed: u64) -> GaussianData {
-        let mut rng = Rng::new(seed);
-        let mut g = GaussianData::default();
-        for _ in 0..n {
-            let mean = [0; 3].map(|_| rng.range(-1.0, 1.0) as f32);
-            let ls = [0; 3].map(|_| rng.range(-6.0, -1.0) as f32);
-            let q = [0; 4].map(|_| rng.normal() as f32);
-            let c = [0; 3].map(|_| rng.uniform() as f32);
-            g.push(mean, ls, q, rng.range(-4.0, 4.0) as f32, c);
-        }
-        g
+        crate::test_gaussians(n, seed, 1.0, (-6.0, -1.0))
     }
 
     #[test]
