@@ -24,6 +24,7 @@ pub mod npz;
 pub mod ply;
 pub mod splatv;
 pub mod spz;
+pub mod tracks;
 
 use std::fs::File;
 use std::io::{BufWriter, Write};

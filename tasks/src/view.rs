@@ -40,6 +40,7 @@ use velox_data::format::{CameraSet, Scene};
 use velox_engine::ops::raster::{Camera, GaussianData};
 use velox_io::frames::{self, frame_of_tau, tau_of, FRAMES};
 use velox_io::ply::{self, Header};
+use velox_io::tracks::{self, TrackReport};
 
 /// A viewer's errors: a file's, the data's, or what the viewer itself found, in words.
 pub type ViewResult<T> = Result<T, Box<dyn std::error::Error + Send + Sync>>;
@@ -158,28 +159,12 @@ impl Tracks {
     }
 }
 
-/// The tracks `velox track` wrote (`tracks.json`).
-fn read_track_json(path: &Path) -> ViewResult<Tracks> {
-    let text = std::fs::read_to_string(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
-    let json: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| format!("{}: not JSON: {e}", path.display()))?;
-    let bad = |why: &str| format!("{}: {why}", path.display());
-    let queries = json["queries"].as_array().ok_or_else(|| bad("no queries"))?;
-    let (mut positions, mut visible) = (Vec::new(), Vec::new());
-    for (t, q) in queries.iter().enumerate() {
-        let p: Vec<[f32; 3]> = serde_json::from_value(q["positions"].clone())
-            .map_err(|e| bad(&format!("query {t}: positions: {e}")))?;
-        let v: Vec<bool> = serde_json::from_value(q["visible"].clone())
-            .map_err(|e| bad(&format!("query {t}: visible: {e}")))?;
-        if p.len() != FRAMES || v.len() != FRAMES || p.iter().flatten().any(|x| !x.is_finite()) {
-            return Err(
-                bad(&format!("query {t}: expected {FRAMES} finite positions and visibilities")).into()
-            );
-        }
-        positions.extend(p.iter().flatten());
-        visible.extend(v.iter().map(|&b| b as u8));
-    }
-    Ok(Tracks { count: queries.len(), frames: FRAMES, positions, visible })
+/// The tracks `velox track` wrote (`tracks.json`), over the clip's frames.
+fn read_track_json(dir: &Path) -> ViewResult<Tracks> {
+    let report = TrackReport::read(dir)?;
+    let positions = report.queries.iter().flat_map(|q| q.positions.iter().flatten().copied()).collect();
+    let visible = report.queries.iter().flat_map(|q| q.visible.iter().map(|&b| b as u8)).collect();
+    Ok(Tracks { count: report.queries.len(), frames: report.frames, positions, visible })
 }
 
 /// A dataset scene's ground-truth surface tracks, seen where any input camera sees them;
@@ -278,10 +263,7 @@ fn named_scene(dir: &Path) -> Option<PathBuf> {
 
 /// The scene a track output was made from (tracks.json's `video`), when it is a scene folder.
 fn tracked_scene(dir: &Path) -> Option<PathBuf> {
-    let text = std::fs::read_to_string(dir.join("tracks.json")).ok()?;
-    let json: serde_json::Value = serde_json::from_str(&text).ok()?;
-    let video = PathBuf::from(json["video"].as_str()?);
-    video.join("cameras.json").is_file().then_some(video)
+    TrackReport::read(dir).ok()?.scene()
 }
 
 /// Reads and checks what PATH holds.
@@ -399,8 +381,7 @@ fn discover(path: &Path, scene: Option<&Path>) -> ViewResult<Source> {
     let title = format!("{what} of {name}: {} frame(s)", frames.len());
     // A track output's own tracks; a decode output's scene's come with it (see
     // `discover_with_compare`, which reads that scene once).
-    let track_json = path.join("tracks.json");
-    let tracks = if track_json.is_file() { Some(read_track_json(&track_json)?) } else { None };
+    let tracks = if path.join(tracks::FILE).is_file() { Some(read_track_json(path)?) } else { None };
     Ok(Source { title, kind, frames, cameras, compare: None, tracks, scene })
 }
 

@@ -12,9 +12,9 @@
 
 use std::path::{Path, PathBuf};
 
-use serde::Serialize;
 use velox_engine::Gpu;
 use velox_io::image::{write_gif, write_png};
+use velox_io::tracks::{TrackReport, TrackedQuery};
 use velox_io::write_bytes;
 use velox_models::velox::autoencoder::{Autoencoder, FRAMES};
 use velox_models::velox::tracker::{Track, Tracker};
@@ -54,24 +54,6 @@ pub struct TrackArgs {
     /// Most points of the back-projected cloud.
     #[arg(long, default_value_t = velox_data::rgbd::DEFAULT_POINTS as u64, value_parser = clap::value_parser!(u64).range(1..=16_777_216))]
     points: u64,
-}
-
-#[derive(Serialize)]
-struct TrackJson {
-    video: String,
-    autoencoder: String,
-    checkpoint: String,
-    frames: usize,
-    /// The capture's frame of each frame (0 to 23 for a scene's or a video folder's video).
-    source_frames: Vec<usize>,
-    queries: Vec<QueryJson>,
-}
-
-#[derive(Serialize)]
-struct QueryJson {
-    query: [f32; 3],
-    positions: Vec<[f32; 3]>,
-    visible: Vec<bool>,
 }
 
 /// Queries from a JSON file of [x, y, z] points.
@@ -173,7 +155,7 @@ pub fn run(a: &TrackArgs) -> CliResult<()> {
         }
     }
     write_gif(&a.out.join("overlay.gif"), &clip, cam.width, cam.height, 100)?;
-    let json = TrackJson {
+    let report = TrackReport {
         video: a.video.display().to_string(),
         autoencoder: a.autoencoder.display().to_string(),
         checkpoint: a.checkpoint.display().to_string(),
@@ -183,15 +165,15 @@ pub fn run(a: &TrackArgs) -> CliResult<()> {
             .iter()
             .zip(&stitched.tracks)
             .zip(&stitched.visible)
-            .map(|((q, t), v)| QueryJson { query: *q, positions: t.clone(), visible: v.clone() })
+            .map(|((q, t), v)| TrackedQuery { query: *q, positions: t.clone(), visible: v.clone() })
             .collect(),
     };
-    write_bytes(&a.out.join("tracks.json"), serde_json::to_string_pretty(&json)?.as_bytes())?;
+    let written = report.write(&a.out)?;
     let shown = stitched.visible.iter().flatten().filter(|&&v| v).count();
     println!(
         "wrote {} (tracks of {} queries, visible at {:.0} % of their frames), {clip_frames} PLY files and the \
          overlay frames under {} (and as overlay.gif)",
-        a.out.join("tracks.json").display(),
+        written.display(),
         queries.len(),
         100.0 * shown as f64 / (queries.len() * clip_frames) as f64,
         overlay.display()

@@ -507,3 +507,42 @@ fn a_mesh_sequence_opens_as_its_vertices() {
     assert_eq!(frame_counts(&manifest), [(0, 4), (7, 5)]);
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_track_output_of_a_long_clip_shows_every_frames_tracks() {
+    // velox track over a capture imported in windows: 30 frames, the tracks over all of them.
+    let dir = temp_dir("long-tracks");
+    let out = dir.join("tracks");
+    std::fs::create_dir_all(&out).unwrap();
+    for f in 0..30 {
+        let mut g = gaussians(2, f as u64);
+        g.means[1] = f as f32 * 0.01;
+        // Points as velox track writes them: x y z (the viewer takes any PLY of points).
+        let mut ply = b"ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n".to_vec();
+        for v in &g.means {
+            ply.extend_from_slice(&v.to_le_bytes());
+        }
+        std::fs::write(out.join(frames::frame_file("tracks", f)), ply).unwrap();
+    }
+    let query = |k: f32| velox_io::tracks::TrackedQuery {
+        query: [k, 0.0, 0.0],
+        positions: (0..30).map(|f| [k, f as f32 * 0.01, 0.0]).collect(),
+        visible: vec![true; 30],
+    };
+    let report = velox_io::tracks::TrackReport {
+        video: dir.join("video").display().to_string(),
+        autoencoder: "ae.safetensors".into(),
+        checkpoint: "tracker.safetensors".into(),
+        frames: 30,
+        source_frames: (0..30).collect(),
+        queries: vec![query(0.1), query(0.2)],
+    };
+    report.write(&out).unwrap();
+    let page = dir.join("tracks.html");
+    let run = velox().arg("view").arg(&out).arg("--html").arg(&page).output().unwrap();
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let m = manifest(&std::fs::read_to_string(&page).unwrap());
+    assert_eq!(frame_counts(&m).len(), 30);
+    assert_eq!((m["tracks"]["count"].as_u64(), m["tracks"]["frames"].as_u64()), (Some(2), Some(30)));
+    let _ = std::fs::remove_dir_all(&dir);
+}
