@@ -4,10 +4,14 @@
 //! scale_0..2 (log), rot_0..3 (w, x, y, z).
 //!
 //! The reader takes any property order, float or double (and integer) properties, and ignores
-//! properties it does not use (higher spherical harmonics f_rest_*, for instance: only the
-//! degree-0 colour is kept) and elements after the vertices. The body must hold exactly the
+//! properties it does not use and elements after the vertices. The body must hold exactly the
 //! items the header declares, and every value read must be finite. [`Header`] is the one PLY
 //! header parser of the project (the data crate's point clouds use it too).
+//!
+//! Higher spherical harmonics (`f_rest_0..`, degree 1 to 3: 9, 24 or 45 of them, after
+//! f_dc_2 as 3D Gaussian splatting writes them) are read and written by [`read_sh`] and
+//! [`to_bytes_sh`] as an [`Sh`] beside the Gaussians (the renderer draws degree 0, the viewer
+//! every degree); [`read`] keeps the degree-0 colour alone.
 
 use std::path::Path;
 
@@ -26,26 +30,46 @@ const PROPERTIES: [&str; 17] = [
 
 /// The file's bytes for `g`.
 pub fn to_bytes(g: &GaussianData) -> Result<Vec<u8>> {
+    to_bytes_sh(g, None)
+}
+
+/// The file's bytes for `g` with its higher spherical harmonics `sh` (`f_rest_*` after
+/// f_dc_2, as 3D Gaussian splatting writes them).
+pub fn to_bytes_sh(g: &GaussianData, sh: Option<&Sh>) -> Result<Vec<u8>> {
     g.check()?;
     let n = g.len();
+    let rest = match sh {
+        Some(sh) => {
+            if !(1..=3).contains(&sh.degree) || sh.coeffs.len() != n * sh.stride() {
+                return Err(Error::Shape(format!(
+                    "spherical harmonics of degree {} for {n} Gaussians need {} coefficients, got {}",
+                    sh.degree,
+                    n * sh.stride(),
+                    sh.coeffs.len()
+                )));
+            }
+            sh.stride()
+        }
+        None => 0,
+    };
     let mut out = format!("ply\nformat binary_little_endian 1.0\nelement vertex {n}\n").into_bytes();
-    for p in PROPERTIES {
+    for p in &PROPERTIES[..9] {
+        out.extend_from_slice(format!("property float {p}\n").as_bytes());
+    }
+    for k in 0..rest {
+        out.extend_from_slice(format!("property float f_rest_{k}\n").as_bytes());
+    }
+    for p in &PROPERTIES[9..] {
         out.extend_from_slice(format!("property float {p}\n").as_bytes());
     }
     out.extend_from_slice(b"end_header\n");
-    out.reserve(n * PROPERTIES.len() * 4);
+    out.reserve(n * (PROPERTIES.len() + rest) * 4);
     for i in 0..n {
         let dc = |k: usize| ((g.colours[3 * i + k] as f64 - 0.5) / SH_C0) as f32;
-        let row = [
-            g.means[3 * i],
-            g.means[3 * i + 1],
-            g.means[3 * i + 2],
-            0.0,
-            0.0,
-            0.0,
-            dc(0),
-            dc(1),
-            dc(2),
+        let head =
+            [g.means[3 * i], g.means[3 * i + 1], g.means[3 * i + 2], 0.0, 0.0, 0.0, dc(0), dc(1), dc(2)];
+        let coeffs = sh.map(|sh| &sh.coeffs[i * rest..(i + 1) * rest]).unwrap_or(&[]);
+        let tail = [
             g.opacities[i],
             g.log_scales[3 * i],
             g.log_scales[3 * i + 1],
@@ -55,7 +79,7 @@ pub fn to_bytes(g: &GaussianData) -> Result<Vec<u8>> {
             g.quats[4 * i + 2],
             g.quats[4 * i + 3],
         ];
-        for v in row {
+        for v in head.iter().chain(coeffs).chain(&tail) {
             out.extend_from_slice(&v.to_le_bytes());
         }
     }
@@ -65,6 +89,78 @@ pub fn to_bytes(g: &GaussianData) -> Result<Vec<u8>> {
 /// Writes `g` to `path` (atomically).
 pub fn write(path: &Path, g: &GaussianData) -> Result<()> {
     write_bytes(path, &to_bytes(g)?)
+}
+
+/// Spherical-harmonic coefficients of degrees 1 to `degree` of N Gaussians, in the PLY's
+/// order: per Gaussian, `3 K` values (K = (degree + 1)^2 - 1), all K of red, then green, then
+/// blue; coefficient k of a channel is the (k + 1)-th basis function, m = -l..l by degree.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Sh {
+    pub degree: usize,
+    pub coeffs: Vec<f32>,
+}
+
+impl Sh {
+    /// Coefficients per channel of a Gaussian (degree 0 excluded).
+    pub fn per_channel(degree: usize) -> usize {
+        (degree + 1) * (degree + 1) - 1
+    }
+    /// Values per Gaussian.
+    pub fn stride(&self) -> usize {
+        3 * Sh::per_channel(self.degree)
+    }
+}
+
+/// The SH basis' constants (3D Gaussian splatting's `sh_utils`).
+const SH_C1: f64 = 0.4886025119029199;
+const SH_C2: [f64; 5] =
+    [1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396];
+const SH_C3: [f64; 7] = [
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+];
+
+/// The colour a Gaussian shows along the unit direction `dir` (from the camera to its mean):
+/// its degree-0 colour `base` (0.5 + C0 f_dc) plus the higher degrees of `rest` (its `3 K`
+/// coefficients in the PLY's order), clamped below at 0 as 3D Gaussian splatting clamps it.
+/// `velox view` evaluates the same sum on the GPU.
+pub fn sh_colour(base: [f32; 3], rest: &[f32], degree: usize, dir: [f64; 3]) -> [f64; 3] {
+    let k = Sh::per_channel(degree);
+    let [x, y, z] = dir;
+    let (xx, yy, zz) = (x * x, y * y, z * z);
+    let mut basis = Vec::with_capacity(k);
+    if degree >= 1 {
+        basis.extend([-SH_C1 * y, SH_C1 * z, -SH_C1 * x]);
+    }
+    if degree >= 2 {
+        basis.extend([
+            SH_C2[0] * x * y,
+            SH_C2[1] * y * z,
+            SH_C2[2] * (2.0 * zz - xx - yy),
+            SH_C2[3] * x * z,
+            SH_C2[4] * (xx - yy),
+        ]);
+    }
+    if degree >= 3 {
+        basis.extend([
+            SH_C3[0] * y * (3.0 * xx - yy),
+            SH_C3[1] * x * y * z,
+            SH_C3[2] * y * (4.0 * zz - xx - yy),
+            SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
+            SH_C3[4] * x * (4.0 * zz - xx - yy),
+            SH_C3[5] * z * (xx - yy),
+            SH_C3[6] * x * (xx - 3.0 * yy),
+        ]);
+    }
+    std::array::from_fn(|c| {
+        let sum: f64 = basis.iter().enumerate().map(|(j, b)| b * rest[c * k + j] as f64).sum();
+        (base[c] as f64 + sum).max(0.0)
+    })
 }
 
 /// Reads Gaussians from `path`.
@@ -272,6 +368,53 @@ impl Header {
         }
         Ok(())
     }
+}
+
+/// Reads Gaussians and their higher spherical harmonics (when the file has any) from `path`.
+pub fn read_sh(path: &Path) -> Result<(GaussianData, Option<Sh>)> {
+    read_parsed(path, from_bytes_sh)
+}
+
+/// Parses a PLY file's bytes with their higher spherical harmonics: `f_rest_0..` as 9, 24 or
+/// 45 properties (degree 1, 2 or 3), or none.
+pub fn from_bytes_sh(bytes: &[u8]) -> Result<(GaussianData, Option<Sh>)> {
+    let g = from_bytes(bytes)?;
+    let header = Header::parse(bytes)?;
+    let (at, e) = header.find("vertex").expect("from_bytes found it");
+    let mut rest = Vec::new();
+    let mut offset = 0;
+    for (name, scalar) in &e.properties {
+        if let Some(k) = name.strip_prefix("f_rest_").and_then(|k| k.parse::<usize>().ok()) {
+            rest.push((k, offset, *scalar));
+        }
+        offset += scalar.size();
+    }
+    if rest.is_empty() {
+        return Ok((g, None));
+    }
+    rest.sort_by_key(|r| r.0);
+    let degree = match rest.len() {
+        9 => 1,
+        24 => 2,
+        45 => 3,
+        n => return Err(bad(format!("{n} f_rest properties: degrees 1, 2 and 3 have 9, 24 and 45"))),
+    };
+    if let Some(k) = rest.iter().enumerate().find(|(i, r)| r.0 != *i) {
+        return Err(bad(format!("f_rest_{} is missing: the f_rest properties must be numbered from 0", k.0)));
+    }
+    let stride = e.stride();
+    let mut coeffs = Vec::with_capacity(e.count * rest.len());
+    for i in 0..e.count {
+        let row = &bytes[at + i * stride..at + (i + 1) * stride];
+        for (k, o, s) in &rest {
+            let v = s.read(&row[*o..]) as f32;
+            if !v.is_finite() {
+                return Err(bad(format!("vertex {i}: f_rest_{k} is not a finite f32")));
+            }
+            coeffs.push(v);
+        }
+    }
+    Ok((g, Some(Sh { degree, coeffs })))
 }
 
 /// Parses a PLY file's bytes. Every value must be finite.

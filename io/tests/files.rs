@@ -191,3 +191,39 @@ fn gif_frames_round_trip_within_their_palette() {
     assert!(image::write_gif(&path, &[], w, h, 100).is_err(), "no frames");
     assert!(image::write_gif(&path, &[flat[1..].to_vec()], w, h, 100).is_err(), "wrong length");
 }
+
+#[test]
+fn higher_spherical_harmonics_pass_through_and_evaluate_as_3dgs_does() {
+    let g = random_gaussians(5, 17, (-3.0, -1.0), (0.0, 1.0));
+    for degree in 1..=3 {
+        let k = ply::Sh::per_channel(degree);
+        let coeffs: Vec<f32> = (0..5 * 3 * k).map(|i| (i as f32 * 0.37).sin() * 0.3).collect();
+        let sh = ply::Sh { degree, coeffs };
+        let bytes = ply::to_bytes_sh(&g, Some(&sh)).unwrap();
+        let (back, back_sh) = ply::from_bytes_sh(&bytes).unwrap();
+        assert_eq!(back_sh.as_ref(), Some(&sh), "degree {degree}");
+        assert_eq!(back, ply::from_bytes(&bytes).unwrap(), "the plain reader takes the same Gaussians");
+        let text =
+            String::from_utf8_lossy(&bytes[..bytes.windows(10).position(|w| w == b"end_header").unwrap()])
+                .to_string();
+        let names: Vec<&str> = text.lines().filter_map(|l| l.strip_prefix("property float ")).collect();
+        assert_eq!(names[9], "f_rest_0", "after f_dc_2, as 3D Gaussian splatting writes them");
+        assert_eq!(names[9 + 3 * k], "opacity");
+    }
+    assert_eq!(ply::from_bytes_sh(&ply::to_bytes(&g).unwrap()).unwrap().1, None);
+    // Degree 1 along +y is -C1 times the first coefficient of each channel; along +x the third.
+    let c1 = 0.4886025119029199;
+    let rest = [0.2, 0.0, 0.1, /* green */ -0.3, 0.0, 0.0, /* blue */ 0.0, 0.5, 0.0];
+    let up = ply::sh_colour([0.5; 3], &rest, 1, [0.0, 1.0, 0.0]);
+    let want = [0.5 - c1 * 0.2, 0.5 + c1 * 0.3, 0.5];
+    assert!(up.iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-7), "{up:?}");
+    let right = ply::sh_colour([0.5; 3], &rest, 1, [1.0, 0.0, 0.0]);
+    assert!((right[0] - (0.5 - c1 * 0.1)).abs() < 1e-7 && right[2] == 0.5, "{right:?}");
+    // Clamped below at 0.
+    assert_eq!(ply::sh_colour([0.0; 3], &[-1.0; 9], 1, [0.0, 0.0, 1.0])[1], 0.0);
+    // A count that is no degree is refused.
+    let mut odd = ply::to_bytes_sh(&g, Some(&ply::Sh { degree: 1, coeffs: vec![0.0; 45] })).unwrap();
+    let at = odd.windows(9).position(|w| w == b"f_rest_8\n").unwrap();
+    odd.splice(at..at + 9, b"f_rest_9\n".iter().copied());
+    assert!(ply::from_bytes_sh(&odd).unwrap_err().to_string().contains("f_rest_8 is missing"));
+}

@@ -437,15 +437,31 @@ fn covariance(log_scale: &[f32], q: &[f32]) -> [f32; 6] {
 
 /// The frame's body for the page (see the module docs).
 fn gaussian_body(g: &GaussianData) -> Vec<u8> {
+    gaussian_body_sh(g, None)
+}
+
+/// [`gaussian_body`] with the Gaussians' higher spherical harmonics after the records
+/// (`VXS1`, the degree, the coefficients as the PLY holds them): the page adds them to the
+/// colour along each view direction and clamps the sum, so the colour is sent unclamped.
+fn gaussian_body_sh(g: &GaussianData, sh: Option<&ply::Sh>) -> Vec<u8> {
     let n = g.means.len() / 3;
-    let mut out = Vec::with_capacity(8 + n * RECORD * 4);
+    let mut out = Vec::with_capacity(8 + n * RECORD * 4 + sh.map_or(0, |s| 8 + 4 * s.coeffs.len()));
     out.extend_from_slice(b"VXG1");
     out.extend_from_slice(&(n as u32).to_le_bytes());
     for i in 0..n {
         let cov = covariance(&g.log_scales[3 * i..3 * i + 3], &g.quats[4 * i..4 * i + 4]);
         let opacity = 1.0 / (1.0 + (-g.opacities[i] as f64).exp()) as f32;
-        let colour = [0, 1, 2].map(|k| g.colours[3 * i + k].max(0.0));
+        let colour =
+            [0, 1, 2]
+                .map(|k| if sh.is_some() { g.colours[3 * i + k] } else { g.colours[3 * i + k].max(0.0) });
         for v in g.means[3 * i..3 * i + 3].iter().chain(&cov).chain([&opacity]).chain(&colour) {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    if let Some(sh) = sh {
+        out.extend_from_slice(b"VXS1");
+        out.extend_from_slice(&(sh.degree as u32).to_le_bytes());
+        for v in &sh.coeffs {
             out.extend_from_slice(&v.to_le_bytes());
         }
     }
@@ -502,7 +518,10 @@ impl Frame {
     /// The frame's body for the page, read and converted now.
     fn body(&self) -> ViewResult<Vec<u8>> {
         Ok(match &self.data {
-            FrameData::Gaussians(path) => gaussian_body(&ply::read(path)?),
+            FrameData::Gaussians(path) => {
+                let (g, sh) = ply::read_sh(path)?;
+                gaussian_body_sh(&g, sh.as_ref())
+            }
             FrameData::Points(path) => points_body(read_points(path)?),
             FrameData::Mesh(path) => {
                 points_body(velox_io::mesh::read(path)?.positions.into_iter().map(|p| (p, POINT_GREY)))

@@ -546,3 +546,53 @@ fn a_track_output_of_a_long_clip_shows_every_frames_tracks() {
     assert_eq!((m["tracks"]["count"].as_u64(), m["tracks"]["frames"].as_u64()), (Some(2), Some(30)));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn higher_spherical_harmonics_are_drawn_along_each_view() {
+    let (scene, decoded) = fixture("sh", 64, 0);
+    let dir = decoded.parent().unwrap().to_path_buf();
+    // Frame 12 with degree-3 harmonics strong enough to change its colours with the view.
+    let path = decoded.join("gaussians_f12.ply");
+    let g = ply::read(&path).unwrap();
+    let k = ply::Sh::per_channel(3);
+    let mut rng = Rng::new(5);
+    let sh =
+        ply::Sh { degree: 3, coeffs: (0..g.len() * 3 * k).map(|_| rng.range(-0.4, 0.4) as f32).collect() };
+    std::fs::write(&path, ply::to_bytes_sh(&g, Some(&sh)).unwrap()).unwrap();
+    // The colours scene camera 0 sees, baked into a PLY that velox render draws; and the
+    // degree-0 colours alone.
+    let eye = velox_tasks::view::scene_cameras(&scene).unwrap()[0].camera.centre();
+    let mut baked = g.clone();
+    for i in 0..g.len() {
+        let d: [f64; 3] = std::array::from_fn(|a| (g.means[3 * i + a] - eye[a]) as f64);
+        let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        let base = [0, 1, 2].map(|c| g.colours[3 * i + c]);
+        let c = ply::sh_colour(base, &sh.coeffs[i * 3 * k..(i + 1) * 3 * k], 3, d.map(|v| v / l));
+        for (to, v) in baked.colours[3 * i..3 * i + 3].iter_mut().zip(c) {
+            *to = v as f32;
+        }
+    }
+    let (baked_dir, plain_dir) = (dir.join("baked"), dir.join("plain"));
+    for (folder, gaussians) in [(&baked_dir, &baked), (&plain_dir, &g)] {
+        std::fs::create_dir_all(folder).unwrap();
+        ply::write(&folder.join("gaussians_f12.ply"), gaussians).unwrap();
+    }
+    let window = (64, 64);
+    let server = serve(&decoded);
+    let page = screenshot(
+        &format!("http://{}/index.html#camera=0&frame=1&ui=0", server.address),
+        window,
+        &dir,
+        "sh.png",
+    );
+    let (want, plain) =
+        (rendered_f12(&baked_dir, &scene, &dir, window), rendered_f12(&plain_dir, &scene, &dir, window));
+    let (p, without) = (psnr(&page, &want), psnr(&page, &plain));
+    eprintln!(
+        "page with SH against the baked render: PSNR {p:.1} dB; against degree 0 alone: {without:.1} dB"
+    );
+    assert!(p >= 30.0, "PSNR {p:.1} dB");
+    assert!(without < p - 6.0, "the harmonics barely change the picture: {without:.1} dB without them");
+    drop(server);
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -46,7 +46,10 @@
   const DILATION = 0.3; // added to the 2D covariance's diagonal, in px^2
   const MIN_DET = 1e-6; // 2D covariances with a smaller determinant are dropped
 
-  /** A frame body: "VXG1", u32 count, then count records of 13 float32. */
+  /** A frame body: "VXG1", u32 count, then count records of 13 float32; then, for Gaussians
+   * with higher spherical harmonics, "VXS1", u32 degree (1 to 3) and count x 3K float32 (K =
+   * (degree + 1)^2 - 1: each Gaussian's K red, K green and K blue coefficients, as the PLY
+   * stores them). */
   const MAGIC = 'VXG1';
   const HEADER_BYTES = 8;
   const FLOATS_PER_GAUSSIAN = 13; // mean xyz, covariance xx xy xz yy yz zz, opacity, rgb
@@ -359,17 +362,34 @@
     return out;
   }
 
-  /** A frame body as its records (count x 13 float32), or an Error saying what is wrong. */
+  /** A frame body as its records (count x 13 float32, with `.sh = {degree, coeffs}` when it
+   * holds higher spherical harmonics), or an Error saying what is wrong. */
   function parseFrame(buffer) {
     const view = checkedHeader(buffer, MAGIC, HEADER_BYTES);
     const count = view.getUint32(4, true);
     const expected = HEADER_BYTES + RECORD_BYTES * count;
-    if (buffer.byteLength !== expected) {
+    const sh = buffer.byteLength > expected ? parseSh(buffer, expected, count) : null;
+    if (!sh && buffer.byteLength !== expected) {
       throw new Error(
         `${buffer.byteLength} bytes, but ${count} Gaussians take ${expected} (8 + 52 x ${count}): truncated or corrupt`,
       );
     }
-    return floatsAt(view, HEADER_BYTES, FLOATS_PER_GAUSSIAN * count);
+    const records = floatsAt(view, HEADER_BYTES, FLOATS_PER_GAUSSIAN * count);
+    records.sh = sh;
+    return records;
+  }
+
+  /** The spherical harmonics after a frame's records at byte `at`. */
+  function parseSh(buffer, at, count) {
+    const found = buffer.byteLength >= at + 8 ? String.fromCharCode(...new Uint8Array(buffer, at, 4)) : '';
+    if (found !== 'VXS1') throw new Error(`${buffer.byteLength - at} bytes after the records, not spherical harmonics`);
+    const view = new DataView(buffer);
+    const degree = view.getUint32(at + 4, true);
+    const stride = 3 * ((degree + 1) * (degree + 1) - 1);
+    if (degree < 1 || degree > 3 || buffer.byteLength !== at + 8 + 4 * stride * count) {
+      throw new Error(`spherical harmonics of degree ${degree} for ${count} Gaussians: truncated or corrupt`);
+    }
+    return { degree, coeffs: floatsAt(view, at + 8, stride * count) };
   }
 
   /** The clip frame number of a manifest frame entry (its position when it has none). */
@@ -573,6 +593,9 @@ uniform vec3 u_translation;
 uniform vec4 u_focal;     // fx, fy, cx, cy
 uniform vec4 u_limits;    // min and max of x/z, min and max of y/z
 uniform vec2 u_size;      // width, height in pixels
+uniform highp sampler2D u_sh;  // higher spherical harmonics: 12 texels a Gaussian, k-major
+uniform int u_shPerRow;   // Gaussians per row of it
+uniform int u_shDegree;   // 0: the colour alone
 
 // The quad's corners, as two triangles, in units of its half-sides.
 const vec2 CORNERS[6] = vec2[6](vec2(-1, -1), vec2(1, -1), vec2(-1, 1),
@@ -582,6 +605,45 @@ flat out vec2 v_centre;   // (u, v) in pixels, v down
 flat out vec3 v_conic;    // inverse 2D covariance: xx, xy, yy
 flat out float v_opacity;
 flat out vec3 v_colour;
+
+// The SH basis' constants (3D Gaussian splatting's; velox_io::ply::sh_colour is the same sum).
+const float C1 = 0.4886025119029199;
+const float C2[5] = float[5](1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
+                            -1.0925484305920792, 0.5462742152960396);
+const float C3[7] = float[7](-0.5900435899266435, 2.890611442640554, -0.4570457994644658,
+                            0.3731763325901154, -0.4570457994644658, 1.445305721320277,
+                            -0.5900435899266435);
+vec4 shTexels[12];
+
+// Coefficient k (of the K past degree 0) of the three channels.
+vec3 shc(int k) {
+  int j = 3 * k;
+  return vec3(shTexels[j / 4][j % 4], shTexels[(j + 1) / 4][(j + 1) % 4], shTexels[(j + 2) / 4][(j + 2) % 4]);
+}
+
+// The colour along the unit direction d from the camera: the degree-0 colour plus degrees 1
+// to u_shDegree, clamped below at 0.
+vec3 viewColour(int i, vec3 base, vec3 d) {
+  ivec2 at = ivec2((i % u_shPerRow) * 12, i / u_shPerRow);
+  int texels = (3 * ((u_shDegree + 1) * (u_shDegree + 1) - 1) + 3) / 4;
+  for (int k = 0; k < 12; k++) {
+    if (k < texels) shTexels[k] = texelFetch(u_sh, at + ivec2(k, 0), 0);
+  }
+  float x = d.x, y = d.y, z = d.z;
+  vec3 c = base - C1 * y * shc(0) + C1 * z * shc(1) - C1 * x * shc(2);
+  if (u_shDegree > 1) {
+    float xx = x * x, yy = y * y, zz = z * z;
+    c += C2[0] * x * y * shc(3) + C2[1] * y * z * shc(4) + C2[2] * (2.0 * zz - xx - yy) * shc(5)
+       + C2[3] * x * z * shc(6) + C2[4] * (xx - yy) * shc(7);
+    if (u_shDegree > 2) {
+      c += C3[0] * y * (3.0 * xx - yy) * shc(8) + C3[1] * x * y * z * shc(9)
+         + C3[2] * y * (4.0 * zz - xx - yy) * shc(10) + C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * shc(11)
+         + C3[4] * x * (4.0 * zz - xx - yy) * shc(12) + C3[5] * z * (xx - yy) * shc(13)
+         + C3[6] * x * (xx - 3.0 * yy) * shc(14);
+    }
+  }
+  return max(c, vec3(0.0));
+}
 
 const float MIN_ALPHA = ${MIN_ALPHA};
 const float DILATION = ${DILATION};
@@ -606,6 +668,10 @@ void main() {
                     t1.y, t1.w, t2.x);
   float opacity = t2.y;
   vec3 colour = vec3(t2.zw, t3.x);
+  if (u_shDegree > 0) {
+    vec3 eye = -(transpose(u_rotation) * u_translation);
+    colour = viewColour(i, colour, normalize(mean - eye));
+  }
 
   vec3 t = u_rotation * mean + u_translation;
   float fx = u_focal.x, fy = u_focal.y;
@@ -771,6 +837,9 @@ void main() {
       this.maxTexture = gl.getParameter(gl.MAX_TEXTURE_SIZE);
       this.perRow = Math.min(1024, Math.floor(this.maxTexture / 4));
       this.dataTexture = gl.createTexture();
+      this.shPerRow = Math.min(1024, Math.floor(this.maxTexture / 12));
+      this.shTexture = gl.createTexture();
+      this.shDegree = 0;
       this.orderTexture = gl.createTexture();
       this.orderWidth = Math.min(4096, this.maxTexture);
       this.orderData = new Uint32Array(0);
@@ -795,7 +864,30 @@ void main() {
       gl.bindTexture(gl.TEXTURE_2D, this.dataTexture);
       gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, this.perRow * 4, rows, 0, gl.RGBA, gl.FLOAT, packed);
       setNearest(gl);
+      this.setSh(records.sh, n);
       this.count = 0;
+    }
+
+    /** Uploads a frame's higher spherical harmonics (`sh` of parseFrame, or none): per
+     * Gaussian 12 texels of its coefficients, coefficient-major (k, then red green blue). */
+    setSh(sh, n) {
+      const gl = this.gl;
+      this.shDegree = sh ? sh.degree : 0;
+      const per = sh ? (sh.degree + 1) * (sh.degree + 1) - 1 : 0;
+      const rows = sh ? Math.max(1, Math.ceil(n / this.shPerRow)) : 1;
+      if (rows > this.maxTexture) {
+        throw new Error(`${n} Gaussians' spherical harmonics are more than this GPU's textures hold`);
+      }
+      const width = sh ? this.shPerRow * 12 : 1;
+      const packed = new Float32Array(width * rows * 4);
+      for (let i = 0; sh && i < n; i++) {
+        for (let k = 0; k < per; k++) {
+          for (let c = 0; c < 3; c++) packed[i * 48 + 3 * k + c] = sh.coeffs[i * 3 * per + c * per + k];
+        }
+      }
+      gl.bindTexture(gl.TEXTURE_2D, this.shTexture);
+      gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, width, rows, 0, gl.RGBA, gl.FLOAT, packed);
+      setNearest(gl);
     }
 
     /** The Gaussians to draw, in blending order (nearest first), to the order texture. */
@@ -888,6 +980,11 @@ void main() {
       gl.bindTexture(gl.TEXTURE_2D, this.orderTexture);
       gl.uniform1i(u.u_order, 1);
       gl.uniform1i(u.u_orderWidth, this.orderWidth);
+      gl.activeTexture(gl.TEXTURE2);
+      gl.bindTexture(gl.TEXTURE_2D, this.shTexture);
+      gl.uniform1i(u.u_sh, 2);
+      gl.uniform1i(u.u_shPerRow, this.shPerRow);
+      gl.uniform1i(u.u_shDegree, this.shDegree);
       // Column-major: the columns of R.
       gl.uniformMatrix3fv(u.u_rotation, false, [0, 1, 2].flatMap((c) => [r[0][c], r[1][c], r[2][c]]));
       gl.uniform3fv(u.u_translation, cam.translation);
