@@ -22,7 +22,7 @@ use serde_json::{json, Value};
 use velox_engine::ops::raster::GaussianData;
 use velox_engine::{Error, Result};
 
-use crate::ply::SH_C0;
+use crate::ply::{Sh, SH_C0};
 use crate::{read_parsed, write_bytes};
 
 /// `glTF`, read as a little-endian u32.
@@ -56,6 +56,19 @@ fn attribute(name: &str) -> String {
 
 /// The file's bytes for `g` (at least one Gaussian).
 pub fn to_bytes(g: &GaussianData) -> Result<Vec<u8>> {
+    to_bytes_sh(g, None)
+}
+
+/// The degree and index within it of higher coefficient `k` (0 for degree 1's first).
+fn degree_of(k: usize) -> (usize, usize) {
+    let degree = ((k + 1) as f64).sqrt().floor() as usize;
+    let degree = if (degree + 1) * (degree + 1) - 1 <= k { degree + 1 } else { degree };
+    (degree, k + 1 - degree * degree)
+}
+
+/// [`to_bytes`] with the Gaussians' higher spherical harmonics: coefficient n of degree l as
+/// `KHR_gaussian_splatting:SH_DEGREE_l_COEF_n` (VEC3, red green blue).
+pub fn to_bytes_sh(g: &GaussianData, sh: Option<&Sh>) -> Result<Vec<u8>> {
     g.check()?;
     let n = g.len();
     if n == 0 {
@@ -88,6 +101,27 @@ pub fn to_bytes(g: &GaussianData) -> Result<Vec<u8>> {
     let mut attributes = serde_json::Map::new();
     for (name, kind, values) in &columns {
         attributes.insert(name.clone(), json!(buffer.floats(values, kind, name == "POSITION")));
+    }
+    if let Some(sh) = sh {
+        if sh.coeffs.len() != n * sh.stride() {
+            return Err(bad(format!(
+                "spherical harmonics: {} coefficients for {n} Gaussians",
+                sh.coeffs.len()
+            )));
+        }
+        let k = Sh::per_channel(sh.degree);
+        for j in 0..k {
+            let values: Vec<f32> = sh
+                .coeffs
+                .chunks_exact(3 * k)
+                .flat_map(|rest| [rest[j], rest[k + j], rest[2 * k + j]])
+                .collect();
+            let (l, m) = degree_of(j);
+            attributes.insert(
+                attribute(&format!("SH_DEGREE_{l}_COEF_{m}")),
+                json!(buffer.floats(&values, "VEC3", false)),
+            );
+        }
     }
     let gltf = json!({
         "asset": { "version": "2.0", "generator": "Velox" },
@@ -256,6 +290,12 @@ pub(crate) fn accessor<'a>(
 /// attributes are f32 (as [`to_bytes`] writes them); the colour comes from the degree-0
 /// coefficient, higher degrees are skipped.
 pub fn from_bytes(bytes: &[u8]) -> Result<GaussianData> {
+    Ok(from_bytes_sh(bytes)?.0)
+}
+
+/// [`from_bytes`] with the higher spherical harmonics the primitive holds (every degree up to
+/// the highest whole one, 3 at most), in the PLY's order.
+pub fn from_bytes_sh(bytes: &[u8]) -> Result<(GaussianData, Option<Sh>)> {
     let (gltf, bin) = unpack(bytes)?;
     let primitive = gltf["meshes"]
         .as_array()
@@ -292,13 +332,43 @@ pub fn from_bytes(bytes: &[u8]) -> Result<GaussianData> {
         let o = (o as f64).clamp(1e-7, 1.0 - 1e-7);
         (o / (1.0 - o)).ln() as f32
     };
-    Ok(GaussianData {
+    let mut higher = Vec::new();
+    for j in 0..Sh::per_channel(3) {
+        let (l, m) = degree_of(j);
+        let name = attribute(&format!("SH_DEGREE_{l}_COEF_{m}"));
+        if primitive["attributes"][&name].is_null() {
+            break;
+        }
+        let values = column(&name, 3)?;
+        if values.len() != 3 * n {
+            return Err(bad(format!("{name}: its count differs from the other attributes'")));
+        }
+        higher.push(values);
+    }
+    let sh = match higher.len() {
+        0 => None,
+        k if [3, 8, 15].contains(&k) => {
+            let degree = [3, 8, 15].iter().position(|&c| c == k).unwrap() + 1;
+            let mut coeffs = vec![0.0f32; n * 3 * k];
+            for (j, values) in higher.iter().enumerate() {
+                for i in 0..n {
+                    for c in 0..3 {
+                        coeffs[i * 3 * k + c * k + j] = values[3 * i + c];
+                    }
+                }
+            }
+            Some(Sh { degree, coeffs })
+        }
+        k => return Err(bad(format!("{k} higher SH coefficients: a degree must be whole (3, 8 or 15)"))),
+    };
+    let g = GaussianData {
         means,
         log_scales: scale.iter().map(|s| s.ln()).collect(),
         quats: rotation.chunks_exact(4).flat_map(|q| [q[3], q[0], q[1], q[2]]).collect(),
         opacities: opacity.into_iter().map(logit).collect(),
         colours: dc.iter().map(|&d| (0.5 + SH_C0 * d as f64) as f32).collect(),
-    })
+    };
+    Ok((g, sh))
 }
 
 #[cfg(test)]
@@ -344,6 +414,26 @@ mod tests {
         let xs = g.means.iter().step_by(3).copied();
         assert_eq!(position["min"][0].as_f64().unwrap() as f32, xs.clone().reduce(f32::min).unwrap());
         assert_eq!(position["max"][0].as_f64().unwrap() as f32, xs.reduce(f32::max).unwrap());
+    }
+
+    #[test]
+    fn spherical_harmonics_round_trip_by_degree_and_coefficient() {
+        assert_eq!((0..15).map(degree_of).collect::<Vec<_>>()[..4], [(1, 0), (1, 1), (1, 2), (2, 0)]);
+        assert_eq!(degree_of(7), (2, 4));
+        assert_eq!(degree_of(8), (3, 0));
+        assert_eq!(degree_of(14), (3, 6));
+        let g = scene(20, 6);
+        for degree in 1..=3 {
+            let k = Sh::per_channel(degree);
+            let sh = Sh { degree, coeffs: (0..20 * 3 * k).map(|i| i as f32 * 0.01 - 0.3).collect() };
+            let bytes = to_bytes_sh(&g, Some(&sh)).unwrap();
+            assert_eq!(from_bytes_sh(&bytes).unwrap().1, Some(sh.clone()));
+            let len = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
+            let gltf: Value = serde_json::from_slice(&bytes[20..20 + len]).unwrap();
+            let attributes = &gltf["meshes"][0]["primitives"][0]["attributes"];
+            let last = format!("{EXTENSION}:SH_DEGREE_{degree}_COEF_{}", 2 * degree);
+            assert!(attributes[&last].is_u64(), "{last}");
+        }
     }
 
     #[test]

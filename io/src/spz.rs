@@ -29,7 +29,7 @@ use flate2::Compression;
 use velox_engine::ops::raster::GaussianData;
 use velox_engine::{Error, Result};
 
-use crate::ply::SH_C0;
+use crate::ply::{Sh, SH_C0};
 use crate::{read_parsed, write_bytes};
 
 /// `NGSP`, read as a little-endian u32.
@@ -99,7 +99,27 @@ fn unpack_smallest_three(mut packed: u32) -> [f64; 4] {
 /// The file's bytes for `g` in SPZ `version` 2 or 3. Positions must lie within +-2048 (the
 /// fixed point's range); every quaternion must have a length.
 pub fn to_bytes(g: &GaussianData, version: u32) -> Result<Vec<u8>> {
+    to_bytes_sh(g, None, version)
+}
+
+/// One higher spherical-harmonic coefficient as SPZ stores it: x 128 + 128, in steps of
+/// `bucket` (8 for degree 1, 16 above: 5 and 4 bits, as the reference writer keeps them).
+fn sh_byte(x: f32, bucket: i32) -> u8 {
+    let q = (x as f64 * 128.0).round() as i32 + 128;
+    ((q + bucket / 2) / bucket * bucket).clamp(0, 255) as u8
+}
+
+/// [`to_bytes`] with the Gaussians' higher spherical harmonics (degree 1 to 3), each
+/// coefficient's three channels together as SPZ orders them.
+pub fn to_bytes_sh(g: &GaussianData, sh: Option<&Sh>, version: u32) -> Result<Vec<u8>> {
     g.check()?;
+    if let Some(sh) = sh.filter(|sh| sh.coeffs.len() != g.len() * sh.stride()) {
+        return Err(Error::Shape(format!(
+            "spherical harmonics: {} coefficients for {} Gaussians",
+            sh.coeffs.len(),
+            g.len()
+        )));
+    }
     if !(2..=3).contains(&version) {
         return Err(bad(format!("SPZ version {version} is not written: 2 or 3")));
     }
@@ -115,7 +135,7 @@ pub fn to_bytes(g: &GaussianData, version: u32) -> Result<Vec<u8>> {
     raw.extend_from_slice(&MAGIC.to_le_bytes());
     raw.extend_from_slice(&version.to_le_bytes());
     raw.extend_from_slice(&count.to_le_bytes());
-    raw.extend_from_slice(&[0, FRACTIONAL_BITS, 0, 0]);
+    raw.extend_from_slice(&[sh.map_or(0, |sh| sh.degree as u8), FRACTIONAL_BITS, 0, 0]);
     for (i, &p) in g.means.iter().enumerate() {
         let p = p as f64;
         if p.is_nan() || p.abs() >= limit {
@@ -145,6 +165,15 @@ pub fn to_bytes(g: &GaussianData, version: u32) -> Result<Vec<u8>> {
             raw.extend_from_slice(&pack_smallest_three(q).to_le_bytes());
         }
     }
+    if let Some(sh) = sh {
+        let k = Sh::per_channel(sh.degree);
+        for rest in sh.coeffs.chunks_exact(3 * k) {
+            for j in 0..k {
+                let bucket = if j < 3 { 8 } else { 16 };
+                raw.extend((0..3).map(|c| sh_byte(rest[c * k + j], bucket)));
+            }
+        }
+    }
     let mut gz = GzEncoder::new(Vec::new(), Compression::default());
     gz.write_all(&raw).and_then(|_| gz.finish()).map_err(|e| bad(format!("compressing: {e}")))
 }
@@ -162,6 +191,12 @@ pub fn read(path: &Path) -> Result<GaussianData> {
 /// Parses an SPZ file's bytes (versions 2 and 3, any spherical-harmonic degree: the degrees
 /// above 0 are skipped, as the PLY reader skips them).
 pub fn from_bytes(bytes: &[u8]) -> Result<GaussianData> {
+    Ok(from_bytes_sh(bytes)?.0)
+}
+
+/// [`from_bytes`] with the higher spherical harmonics (degrees 1 to 3; degree 4 is refused),
+/// in the PLY's order, each coefficient (byte - 128) / 128.
+pub fn from_bytes_sh(bytes: &[u8]) -> Result<(GaussianData, Option<Sh>)> {
     if bytes.starts_with(&MAGIC.to_le_bytes()) {
         return Err(bad("an SPZ file of version 4 (zstd streams) is not read: versions 2 and 3 (gzip) are"));
     }
@@ -215,6 +250,7 @@ pub fn from_bytes(bytes: &[u8]) -> Result<GaussianData> {
     };
     let (positions, alphas, colours, scales, rotations) =
         (block(9 * n), block(n), block(3 * n), block(3 * n), block(rotation_bytes * n));
+    let sh_bytes = block(sh * n);
     let scale = (1u32 << fractional) as f64;
     let mut g = GaussianData::default();
     for i in 0..n {
@@ -240,7 +276,20 @@ pub fn from_bytes(bytes: &[u8]) -> Result<GaussianData> {
         };
         g.push(mean, log_scale, [w, x, y, z].map(|v| v as f32), logit, colour);
     }
-    Ok(g)
+    let sh = match degree {
+        0 => None,
+        4 => return Err(bad("spherical harmonics of degree 4 are not read: 0 to 3 are")),
+        d => {
+            let k = Sh::per_channel(d as usize);
+            let mut coeffs = vec![0.0f32; n * 3 * k];
+            for (i, b) in sh_bytes.iter().enumerate() {
+                let (point, j, c) = (i / (3 * k), (i / 3) % k, i % 3);
+                coeffs[point * 3 * k + c * k + j] = (*b as f32 - 128.0) / 128.0;
+            }
+            Some(Sh { degree: d as usize, coeffs })
+        }
+    };
+    Ok((g, sh))
 }
 
 #[cfg(test)]
@@ -302,6 +351,37 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn spherical_harmonics_round_trip_in_spz_order() {
+        let g = scene(50, 3);
+        for degree in 1..=3 {
+            let k = Sh::per_channel(degree);
+            let coeffs: Vec<f32> = (0..50 * 3 * k).map(|i| ((i * 7919) % 200) as f32 / 100.0 - 1.0).collect();
+            let sh = Sh { degree, coeffs };
+            let (back, back_sh) = from_bytes_sh(&to_bytes_sh(&g, Some(&sh), 3).unwrap()).unwrap();
+            assert_eq!(back, from_bytes(&to_bytes(&g, 3).unwrap()).unwrap(), "the rest is the same");
+            let back_sh = back_sh.unwrap();
+            assert_eq!(back_sh.degree, degree);
+            // Degree 1 in steps of 8/128, the rest of 16/128, after a first rounding to 1/128:
+            // within half a step and half of 1/128 (or clamped at 127/128).
+            for (i, (a, b)) in sh.coeffs.iter().zip(&back_sh.coeffs).enumerate() {
+                let step = if i % k < 3 { 8.0 } else { 16.0 } / 128.0;
+                let bound = step / 2.0 + 0.5 / 128.0 + 1e-6;
+                assert!((a - b).abs() <= bound || (*a > 0.99 && *b >= 0.99 - step), "{i}: {a} -> {b}");
+            }
+        }
+        // The bytes: coefficient 0's red, green, blue, then coefficient 1's.
+        let mut one = GaussianData::default();
+        one.push([0.0; 3], [0.0; 3], [1.0, 0.0, 0.0, 0.0], 0.0, [0.5; 3]);
+        let rest = [0.5, 0.0, 0.0, /* green */ -0.5, 0.0, 0.0, /* blue */ 0.25, 0.0, 0.0];
+        let mut raw = Vec::new();
+        GzDecoder::new(&to_bytes_sh(&one, Some(&Sh { degree: 1, coeffs: rest.to_vec() }), 3).unwrap()[..])
+            .read_to_end(&mut raw)
+            .unwrap();
+        assert_eq!(raw[12], 1, "the degree");
+        assert_eq!(&raw[raw.len() - 9..], &[192, 64, 160, 128, 128, 128, 128, 128, 128]);
     }
 
     #[test]

@@ -4,9 +4,13 @@
 //! - [`Format::PlySeq`]: `frame_FFFF.ply`, the frames' own 3D Gaussian splatting PLYs (their
 //!   bytes, higher spherical harmonics kept), named as SuperSplat loads a sequence;
 //! - [`Format::Splatv`]: one `clip.splatv`, a flipbook for splaTV's viewer and gsplat.js
-//!   (`velox_io::splatv`), first seen from the scene's first supervision camera;
+//!   (`velox_io::splatv`), first seen from the scene's first supervision camera (the format
+//!   holds the colour alone);
 //! - [`Format::Spz`]: `frame_FFFF.spz`, Niantic's compressed format (`velox_io::spz`);
 //! - [`Format::Glb`]: `frame_FFFF.glb`, glTF with `KHR_gaussian_splatting` (`velox_io::glb`).
+//!
+//! Higher spherical harmonics in the frames (degrees 1 to 3) go into the PLY sequence, SPZ and
+//! glTF with them.
 //!
 //! Every frame is read and checked before anything is written.
 
@@ -16,6 +20,7 @@ use velox_engine::ops::raster::{Camera, GaussianData};
 use velox_engine::{Error, FileOp, Result};
 use velox_io::decoded::DecodeReport;
 use velox_io::frames::{self, sequence_file};
+use velox_io::ply::Sh;
 use velox_io::splatv::SplatvCamera;
 use velox_io::{glb, ply, splatv, spz, write_bytes};
 
@@ -122,9 +127,10 @@ pub fn export(dir: &Path, o: &ExportOptions) -> Result<Exported> {
         ));
     }
     let list = frame_list(dir)?;
-    let mut clip: Vec<(usize, GaussianData, &Path)> = Vec::with_capacity(list.len());
+    let mut clip: Vec<(usize, GaussianData, Option<Sh>, &Path)> = Vec::with_capacity(list.len());
     for (f, path) in &list {
-        clip.push((*f, ply::read(path)?, path));
+        let (g, sh) = ply::read_sh(path)?;
+        clip.push((*f, g, sh, path));
     }
     let out = o.out.clone().unwrap_or_else(|| {
         let export = dir.join("export");
@@ -138,11 +144,11 @@ pub fn export(dir: &Path, o: &ExportOptions) -> Result<Exported> {
     if let Some(folder) = folder.filter(|f| !f.as_os_str().is_empty()) {
         std::fs::create_dir_all(&folder).map_err(|e| Error::file(&folder, FileOp::Write, e))?;
     }
-    let gaussians = clip.iter().map(|(_, g, _)| g.len()).sum();
+    let gaussians = clip.iter().map(|(_, g, ..)| g.len()).sum();
     let frames = clip.len();
     if o.format == Format::Splatv {
         let camera = splatv_camera(dir, o.scene.as_deref())?;
-        let clip: Vec<GaussianData> = clip.into_iter().map(|(_, g, _)| g).collect();
+        let clip: Vec<GaussianData> = clip.into_iter().map(|(_, g, ..)| g).collect();
         splatv::write(&out, &clip, &camera)?;
         return Ok(Exported { files: vec![out], frames, gaussians, camera: Some(camera.img_name) });
     }
@@ -152,15 +158,17 @@ pub fn export(dir: &Path, o: &ExportOptions) -> Result<Exported> {
         _ => "glb",
     };
     let mut files = Vec::with_capacity(frames);
-    for (f, g, source) in &clip {
+    for (f, g, sh, source) in &clip {
         let path = out.join(sequence_file(*f, ext));
         let written = match o.format {
             // The frame's own bytes.
             Format::PlySeq => std::fs::read(source)
                 .map_err(|e| Error::file(source, FileOp::Read, e))
                 .and_then(|bytes| write_bytes(&path, &bytes)),
-            Format::Spz => spz::write(&path, g, o.spz_version),
-            _ => glb::write(&path, g),
+            Format::Spz => {
+                spz::to_bytes_sh(g, sh.as_ref(), o.spz_version).and_then(|b| write_bytes(&path, &b))
+            }
+            _ => glb::to_bytes_sh(g, sh.as_ref()).and_then(|b| write_bytes(&path, &b)),
         };
         written.map_err(|e| Error::Invalid(format!("frame {f}: {e}")))?;
         files.push(path);

@@ -437,6 +437,10 @@ fn export_writes_every_format_and_each_reads_back() {
     let (scene, decoded) = fixture("export", 32, 0);
     let source = |f: usize| decoded.join(frames::frame_file("gaussians", f));
     let clip = [0, 12].map(|f| ply::read(&source(f)).unwrap());
+    // Frame 12 with spherical harmonics of degree 2, which SPZ and glTF carry.
+    let sh =
+        ply::Sh { degree: 2, coeffs: (0..clip[1].len() * 24).map(|i| (i % 7) as f32 * 0.1 - 0.3).collect() };
+    std::fs::write(source(12), ply::to_bytes_sh(&clip[1], Some(&sh)).unwrap()).unwrap();
     for to in ["ply-seq", "splatv", "spz", "glb"] {
         let out = velox().arg("export").arg(&decoded).args(["--to", to]).output().unwrap();
         assert!(out.status.success(), "{to}: {}", String::from_utf8_lossy(&out.stderr));
@@ -456,9 +460,19 @@ fn export_writes_every_format_and_each_reads_back() {
         let s = spz::read(&export.join("spz").join(frames::sequence_file(f, "spz"))).unwrap();
         close(&clip[k].means, &s.means, 1.0 / 8192.0 + 1e-6, "spz means");
         close(&clip[k].log_scales, &s.log_scales, 1.0 / 32.0 + 1e-6, "spz log scales");
-        let g = glb::read(&export.join("glb").join(frames::sequence_file(f, "glb"))).unwrap();
+        let glb_bytes = std::fs::read(export.join("glb").join(frames::sequence_file(f, "glb"))).unwrap();
+        let (g, glb_sh) = glb::from_bytes_sh(&glb_bytes).unwrap();
         assert_eq!(g.means, clip[k].means);
         close(&clip[k].colours, &g.colours, 1e-6, "glb colours");
+        let spz_bytes = std::fs::read(export.join("spz").join(frames::sequence_file(f, "spz"))).unwrap();
+        let spz_sh = spz::from_bytes_sh(&spz_bytes).unwrap().1;
+        if f == 12 {
+            assert_eq!(glb_sh.as_ref(), Some(&sh), "glTF keeps the harmonics as they are");
+            let spz_sh = spz_sh.expect("SPZ keeps the harmonics");
+            close(&sh.coeffs, &spz_sh.coeffs, 16.0 / 256.0 + 1.0 / 256.0, "spz harmonics");
+        } else {
+            assert!(glb_sh.is_none() && spz_sh.is_none());
+        }
     }
     // The flipbook: both frames in order, opening on the scene's first supervision camera.
     let book = splatv::read(&export.join("clip.splatv")).unwrap();
