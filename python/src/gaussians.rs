@@ -5,6 +5,9 @@
 //! (0, 1)), the default, or as the PLY stores them (`log_scales`, `opacity_logits`), with
 //! `raw=True`: these pass through a file unchanged to the bit, where the values' exp/log
 //! round trip may move the last bit. A dict given to a function holds one pair or the other.
+//! Gaussians with higher spherical harmonics (degrees 1 to 3) also hold `sh` [N, 3, K]
+//! (K = 3, 8 or 15 coefficients past degree 0 per channel, as the PLY's f_rest orders them),
+//! which `read_gaussians` gives and `write_gaussians` writes; `render` draws degree 0.
 
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -105,20 +108,46 @@ pub fn to_dict<'py>(py: Python<'py>, g: GaussianData, raw: bool) -> PyResult<Bou
     Ok(d)
 }
 
-/// `velox.read_gaussians(path, raw=False)`: the Gaussians of a 3D Gaussian splatting PLY.
+/// `velox.read_gaussians(path, raw=False)`: the Gaussians of a 3D Gaussian splatting PLY, with
+/// `sh` when it holds higher spherical harmonics.
 #[pyfunction]
 #[pyo3(signature = (path, *, raw = false))]
 fn read_gaussians(py: Python<'_>, path: std::path::PathBuf, raw: bool) -> PyResult<Bound<'_, PyDict>> {
-    let g = py.detach(|| velox_io::ply::read(&path)).map_err(errors::engine)?;
-    to_dict(py, g, raw)
+    let (g, sh) = py.detach(|| velox_io::ply::read_sh(&path)).map_err(errors::engine)?;
+    let n = g.len();
+    let d = to_dict(py, g, raw)?;
+    if let Some(sh) = sh {
+        let k = velox_io::ply::Sh::per_channel(sh.degree);
+        d.set_item("sh", to_array(py, sh.coeffs, &[n, 3, k])?)?;
+    }
+    Ok(d)
+}
+
+/// The higher spherical harmonics a dict holds (`sh` [N, 3, K], K = 3, 8 or 15), if any.
+fn sh_of_dict(gaussians: &Bound<'_, PyAny>, n: usize) -> PyResult<Option<velox_io::ply::Sh>> {
+    let Ok(d) = gaussians.cast::<PyDict>() else { return Ok(None) };
+    let Some(value) = d.get_item("sh")? else { return Ok(None) };
+    let (coeffs, shape) = f32_array(&value, "gaussians[\"sh\"]", &[Some(n), Some(3), None])?;
+    let degree = [3, 8, 15].iter().position(|&k| k == shape[2]).map(|d| d + 1).ok_or_else(|| {
+        invalid(format!(
+            "gaussians[\"sh\"] has {} coefficients a channel: degrees 1, 2 and 3 have 3, 8 and 15",
+            shape[2]
+        ))
+    })?;
+    Ok(Some(velox_io::ply::Sh { degree, coeffs }))
 }
 
 /// `velox.write_gaussians(path, gaussians)`: the 3D Gaussian splatting PLY `velox render` and
-/// splat viewers read (written atomically).
+/// splat viewers read (written atomically), with `sh` as f_rest_* when the dict holds it.
 #[pyfunction]
 fn write_gaussians(py: Python<'_>, path: std::path::PathBuf, gaussians: &Bound<'_, PyAny>) -> PyResult<()> {
     let g = from_dict(gaussians)?;
-    py.detach(|| velox_io::ply::write(&path, &g)).map_err(errors::engine)
+    let sh = sh_of_dict(gaussians, g.len())?;
+    py.detach(|| {
+        let bytes = velox_io::ply::to_bytes_sh(&g, sh.as_ref())?;
+        velox_io::write_bytes(&path, &bytes)
+    })
+    .map_err(errors::engine)
 }
 
 /// A camera from its dict: `world_to_camera` [4, 4] (x_c = R x_w + t; camera x right, y down,

@@ -577,3 +577,20 @@ def test_meshes_exports_and_videos_are_the_commands(tmp_path):
                               velox.read_image(video / f"f{k:02}.png")), "lossless"
     with pytest.raises(ValueError, match="not empty"):
         velox.data.import_video(tmp_path / "clip.mkv", tmp_path / "py-frames")
+
+
+def test_spherical_harmonics_pass_through_and_export(tmp_path):
+    g = random_gaussians(50, seed=3)
+    g["sh"] = np.random.default_rng(1).uniform(-0.3, 0.3, (50, 3, 8)).astype(np.float32)
+    velox.write_gaussians(tmp_path / "sh.ply", g)
+    back = velox.read_gaussians(tmp_path / "sh.ply")
+    assert np.array_equal(back["sh"], g["sh"])
+    # The command's viewer and exports take the same file: the PLY sequence keeps its bytes.
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (frames / "gaussians_f00.ply").write_bytes((tmp_path / "sh.ply").read_bytes())
+    (seq,) = velox.export(frames, "ply-seq")
+    assert Path(seq).read_bytes() == (tmp_path / "sh.ply").read_bytes()
+    assert np.array_equal(velox.read_gaussians(seq)["sh"], g["sh"])
+    with pytest.raises(ValueError, match="degrees 1, 2 and 3"):
+        velox.write_gaussians(tmp_path / "x.ply", {**g, "sh": np.zeros((50, 3, 5), np.float32)})
