@@ -93,7 +93,7 @@ enum FrameData {
     Gaussians(PathBuf),
     /// A PLY of points (x y z, maybe r g b or red green blue).
     Points(PathBuf),
-    /// A surface mesh (`velox decode mesh`: PLY, OBJ or glTF), drawn as its vertices.
+    /// A surface mesh (`velox decode mesh`), drawn as a flat Gaussian a triangle.
     Mesh(PathBuf),
     /// Frame `frame` of a scene's 4D cloud (rows x y z r g b tau).
     ScenePoints { cloud: Arc<Vec<[f32; 7]>>, frame: usize },
@@ -325,7 +325,7 @@ fn discover(path: &Path, scene: Option<&Path>) -> ViewResult<Source> {
         } else if !tracked.is_empty() {
             (Kind::Points, tracked)
         } else if !meshes.is_empty() {
-            (Kind::Points, meshes.clone())
+            (Kind::Gaussians, meshes.clone())
         } else {
             // Another tool's numbered sequence: its PLYs that end in a number, one prefix to
             // them all, each frame its number; Gaussians or points by the first one's header.
@@ -346,8 +346,8 @@ fn discover(path: &Path, scene: Option<&Path>) -> ViewResult<Source> {
         let mut frames = Vec::new();
         for (f, file) in list {
             if meshes.iter().any(|m| m.1 == file) {
-                // A mesh read now: its vertices are the frame's points.
-                let count = velox_io::mesh::read(&file)?.positions.len();
+                // A mesh read now: a Gaussian a triangle.
+                let count = velox_io::mesh::read(&file)?.triangles.len();
                 frames.push(Frame { frame: f, count, data: FrameData::Mesh(file) });
                 continue;
             }
@@ -374,8 +374,8 @@ fn discover(path: &Path, scene: Option<&Path>) -> ViewResult<Source> {
         None => Vec::new(),
     };
     let what = match kind {
+        _ if frames.iter().any(|f| matches!(f.data, FrameData::Mesh(_))) => "mesh triangles",
         Kind::Gaussians => "Gaussians",
-        _ if frames.iter().any(|f| matches!(f.data, FrameData::Mesh(_))) => "mesh vertices",
         Kind::Points => "points",
     };
     let title = format!("{what} of {name}: {} frame(s)", frames.len());
@@ -468,6 +468,54 @@ fn gaussian_body_sh(g: &GaussianData, sh: Option<&ply::Sh>) -> Vec<u8> {
     out
 }
 
+/// A mesh as a frame's body: each triangle a flat, nearly opaque Gaussian with the triangle's
+/// second moment (doubled, so that neighbours overlap into a closed surface; a hair's
+/// thickness along the normal), grey lit from a fixed direction on both faces.
+fn mesh_body(m: &velox_io::mesh::Mesh) -> Vec<u8> {
+    const LIGHT: [f64; 3] = [0.29, 0.82, 0.49];
+    let mut out = Vec::with_capacity(8 + m.triangles.len() * RECORD * 4);
+    out.extend_from_slice(b"VXG1");
+    out.extend_from_slice(&(m.triangles.len() as u32).to_le_bytes());
+    for t in &m.triangles {
+        let p = t.map(|i| m.positions[i as usize].map(f64::from));
+        let centre: [f64; 3] = std::array::from_fn(|a| (p[0][a] + p[1][a] + p[2][a]) / 3.0);
+        let d = p.map(|v| std::array::from_fn::<f64, 3, _>(|a| v[a] - centre[a]));
+        let (e1, e2) = (
+            std::array::from_fn::<f64, 3, _>(|a| p[1][a] - p[0][a]),
+            std::array::from_fn::<f64, 3, _>(|a| p[2][a] - p[0][a]),
+        );
+        let n = [e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]];
+        let twice_area = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+        let n = n.map(|v| v / twice_area.max(1e-30));
+        let thickness = 1e-3 * twice_area.sqrt();
+        // The uniform triangle's covariance is the sum of d d^T over its corners / 12.
+        let cov = |a: usize, b: usize| {
+            (2.0 * d.iter().map(|v| v[a] * v[b]).sum::<f64>() / 12.0 + thickness * thickness * n[a] * n[b])
+                as f32
+        };
+        let lit = (0.3 + 0.7 * (n[0] * LIGHT[0] + n[1] * LIGHT[1] + n[2] * LIGHT[2]).abs()) as f32;
+        let record = [
+            centre[0] as f32,
+            centre[1] as f32,
+            centre[2] as f32,
+            cov(0, 0),
+            cov(0, 1),
+            cov(0, 2),
+            cov(1, 1),
+            cov(1, 2),
+            cov(2, 2),
+            0.98,
+            lit,
+            lit,
+            lit,
+        ];
+        for v in record {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    out
+}
+
 /// Points (xyz and colour) as small round opaque Gaussians, as a frame's body.
 fn points_body(points: impl IntoIterator<Item = ([f32; 3], [f32; 3])>) -> Vec<u8> {
     gaussian_body(&points_as_gaussians(points, POINT_SIGMA, OPAQUE_LOGIT))
@@ -523,9 +571,7 @@ impl Frame {
                 gaussian_body_sh(&g, sh.as_ref())
             }
             FrameData::Points(path) => points_body(read_points(path)?),
-            FrameData::Mesh(path) => {
-                points_body(velox_io::mesh::read(path)?.positions.into_iter().map(|p| (p, POINT_GREY)))
-            }
+            FrameData::Mesh(path) => mesh_body(&velox_io::mesh::read(path)?),
             FrameData::ScenePoints { cloud, frame } => {
                 let of_frame = cloud.iter().filter(|p| frame_of_tau(p[6]) == *frame);
                 points_body(of_frame.map(|p| ([p[0], p[1], p[2]], [p[3], p[4], p[5]])))

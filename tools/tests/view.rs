@@ -499,8 +499,8 @@ fn export_writes_every_format_and_each_reads_back() {
 }
 
 #[test]
-fn a_mesh_sequence_opens_as_its_vertices() {
-    // decode mesh's files: mesh_fFF.ply, drawn as their vertices, a frame each.
+fn a_mesh_sequence_opens_a_flat_gaussian_a_triangle() {
+    // decode mesh's files: mesh_fFF.ply, a frame each, each triangle a flat Gaussian.
     let dir = temp_dir("meshes");
     let seq = dir.join("mesh");
     std::fs::create_dir_all(&seq).unwrap();
@@ -514,11 +514,11 @@ fn a_mesh_sequence_opens_as_its_vertices() {
     let page = dir.join("mesh.html");
     let out = velox().arg("view").arg(&seq).arg("--html").arg(&page).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    assert!(String::from_utf8_lossy(&out.stdout).contains("mesh vertices"));
+    assert!(String::from_utf8_lossy(&out.stdout).contains("mesh triangles"));
     let text = std::fs::read_to_string(&page).unwrap();
     let manifest = manifest(&text);
-    assert_eq!(manifest["kind"], "points");
-    assert_eq!(frame_counts(&manifest), [(0, 4), (7, 5)]);
+    assert_eq!(manifest["kind"], "gaussians");
+    assert_eq!(frame_counts(&manifest), [(0, 2), (7, 3)]);
     let _ = std::fs::remove_dir_all(&dir);
 }
 
