@@ -776,6 +776,45 @@ fn tracker_trains_evaluates_and_tracks_a_video() {
     assert!(said.contains("24 frame(s)"), "{said}");
     let html = std::fs::read_to_string(&page).unwrap();
     assert!(html.contains("id=\"tracks\"") && html.contains("\"kind\":\"points\""));
+    // The scene's video as two video files ffmpeg makes (colour, and millimetres of depth as
+    // 16-bit grey), imported and tracked as a user's own clip would be.
+    let clip = work.join("clip");
+    std::fs::create_dir_all(clip.join("depth")).unwrap();
+    for f in 0..24 {
+        let (z, w, h) =
+            velox_io::image::read_exr_depth(&scene.join(format!("video/f{f:02}_depth.exr"))).unwrap();
+        let mm: Vec<u16> = z.iter().map(|&d| (d as f64 * 1000.0).round() as u16).collect();
+        image::ImageBuffer::<image::Luma<u16>, _>::from_raw(w, h, mm)
+            .unwrap()
+            .save(clip.join(format!("depth/{f:02}.png")))
+            .unwrap();
+    }
+    let ffmpeg = |args: &[&str]| {
+        let out = std::process::Command::new("ffmpeg")
+            .args(["-v", "error", "-nostdin", "-y", "-framerate", "24"])
+            .args(args)
+            .output()
+            .expect("ffmpeg (tools/setup.sh --tests installs it)");
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    };
+    let (colour, depth) = (clip.join("colour.mp4"), clip.join("depth.mkv"));
+    ffmpeg(&["-i", arg(&scene.join("video/f%02d.png")), "-pix_fmt", "yuv420p", arg(&colour)]);
+    ffmpeg(&["-i", arg(&clip.join("depth/%02d.png")), "-c:v", "ffv1", "-pix_fmt", "gray16le", arg(&depth)]);
+    let cam = velox_data::format::read_cameras(&scene).unwrap().video.unwrap();
+    let k = serde_json::json!({"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "width": cam.width, "height": cam.height});
+    let intrinsics = clip.join("k.json");
+    std::fs::write(&intrinsics, k.to_string()).unwrap();
+    let imported = work.join("imported");
+    let args = ["import", "video", arg(&colour), "--depth", arg(&depth), "--intrinsics", arg(&intrinsics)];
+    let said = ok(&velox(&[&args[..], &["--out", arg(&imported)]].concat()));
+    assert!(said.contains("24 frames") && said.contains("track one with"), "{said}");
+    let tracked = work.join("tracked");
+    let args =
+        ["track", "--video", arg(&imported), "--autoencoder", arg(&ckpt), "--checkpoint", arg(&tracker)];
+    ok(&velox(&[&args[..], &["--out", arg(&tracked), "--grid", "8"]].concat()));
+    let report = velox_io::tracks::TrackReport::read(&tracked).unwrap();
+    assert_eq!((report.frames, report.source_frames.len()), (24, 24));
+    assert!(!report.queries.is_empty());
     // A query outside the scene's box is named.
     let file = work.join("queries.json");
     std::fs::write(&file, "[[0.1, 0.2, 0.3], [0.0, 2.5, 0.0]]").unwrap();
