@@ -35,6 +35,16 @@ fn write_capture(dir: &Path, video: &RgbdVideo, order: &[usize]) {
     std::fs::write(dir.join("intrinsics.json"), k.to_string()).unwrap();
 }
 
+/// A procedural scene of `seed` (24 px, as the tests here need) written under `root/scene`, and
+/// its RGBD video.
+fn scene_video(root: &Path, seed: u64) -> RgbdVideo {
+    let (_, mesh) = scene(seed, None).unwrap();
+    let opts = SynthOptions { res: 24, points: 500, supersample: 1, tracks: 6, ..Default::default() };
+    let name = format!("procedural seed {seed}");
+    write_scene(&gpu(), &mesh, &name, None, seed, &opts, &root.join("scene"), &mut |_| {}).unwrap();
+    read_scene_video(&root.join("scene")).unwrap()
+}
+
 /// The camera-frame points (metres) of a frame's depth under `video`'s intrinsics.
 fn camera_points(video: &RgbdVideo, f: usize) -> Vec<[f64; 3]> {
     let c = &video.camera;
@@ -53,11 +63,7 @@ fn camera_points(video: &RgbdVideo, f: usize) -> Vec<[f64; 3]> {
 #[test]
 fn a_capture_becomes_the_trackers_video_in_the_box() {
     let root = temp_dir("capture");
-    let (_, mesh) = scene(4, None).unwrap();
-    let opts = SynthOptions { res: 24, points: 500, supersample: 1, tracks: 6, ..Default::default() };
-    write_scene(&gpu(), &mesh, "procedural seed 4", None, 4, &opts, &root.join("scene"), &mut |_| {})
-        .unwrap();
-    let source = read_scene_video(&root.join("scene")).unwrap();
+    let source = scene_video(&root, 4);
     write_capture(&root.join("capture"), &source, &(0..FRAMES).collect::<Vec<_>>());
 
     let record = import_rgbd(&root.join("capture"), &root.join("video"), &CaptureOptions::default()).unwrap();
@@ -173,11 +179,7 @@ fn windows_are_tracked_as_one_clip_each_from_where_the_last_left_off() {
     use velox::tasks::track::{grid_queries, read_windows, track, track_windows};
 
     let root = temp_dir("capture-windows");
-    let (_, mesh) = scene(6, None).unwrap();
-    let opts = SynthOptions { res: 24, points: 500, supersample: 1, tracks: 6, ..Default::default() };
-    write_scene(&gpu(), &mesh, "procedural seed 6", None, 6, &opts, &root.join("scene"), &mut |_| {})
-        .unwrap();
-    let source = read_scene_video(&root.join("scene")).unwrap();
+    let source = scene_video(&root, 6);
     let order: Vec<usize> = (0..40).map(|k| k * (FRAMES - 1) / 39).collect();
     write_capture(&root.join("capture"), &source, &order);
     let options = CaptureOptions { windows: Some(4), ..Default::default() };
@@ -226,11 +228,7 @@ fn ffmpeg(args: &[&str], dir: &Path) {
 fn a_video_with_its_depth_video_imports_as_its_frames_do() {
     use velox::data::video::{frame_rate, import_video, VideoOptions};
     let root = temp_dir("capture-video");
-    let (_, mesh) = scene(5, None).unwrap();
-    let opts = SynthOptions { res: 24, points: 500, supersample: 1, tracks: 6, ..Default::default() };
-    write_scene(&gpu(), &mesh, "procedural seed 5", None, 5, &opts, &root.join("scene"), &mut |_| {})
-        .unwrap();
-    let source = read_scene_video(&root.join("scene")).unwrap();
+    let source = scene_video(&root, 5);
     // 30 frames as a capture, then as two lossless videos ffmpeg makes of them at 15 fps:
     // colour as FFV1 RGB, depth as FFV1 16-bit grey (millimetres).
     let order: Vec<usize> = (0..30).map(|k| k * (FRAMES - 1) / 29).collect();

@@ -47,27 +47,16 @@ pub struct VideoArgs {
     /// Resample the clip to this many frames a second (default: every frame of the file).
     #[arg(long)]
     fps: Option<f64>,
-    /// Metres per unit of the depth video (0.001: millimetres).
-    #[arg(long, default_value_t = 0.001)]
-    depth_scale: f64,
-    /// Depths beyond this many metres are the background: dropped before the fit.
-    #[arg(long)]
-    max_depth: Option<f64>,
-    /// Cut the clip into videos of 24 consecutive frames overlapping by this many frames (4
-    /// when given without a number) instead of resampling it to 24.
-    #[arg(long, value_name = "OVERLAP", num_args = 0..=1, default_missing_value = "4")]
-    windows: Option<usize>,
+    #[command(flatten)]
+    capture: CaptureArgs,
 }
 
+/// How a capture's depth is read and its clip cut (`import rgbd`, and `import video` with a
+/// depth video).
 #[derive(clap::Args)]
-pub struct RgbdArgs {
-    /// The capture's folder.
-    dir: PathBuf,
-    /// The video folder to write.
-    #[arg(long)]
-    out: PathBuf,
-    /// Metres per unit of a 16-bit depth PNG (0.001: millimetres, as phones and most depth
-    /// cameras store them).
+pub struct CaptureArgs {
+    /// Metres per unit of a 16-bit depth PNG or depth video (0.001: millimetres, as phones and
+    /// most depth cameras store them).
     #[arg(long, default_value_t = 0.001)]
     depth_scale: f64,
     /// Depths beyond this many metres are the background: dropped before the fit.
@@ -77,6 +66,28 @@ pub struct RgbdArgs {
     /// (OUT/window_000, ...; 4 when given without a number) instead of resampling it to 24.
     #[arg(long, value_name = "OVERLAP", num_args = 0..=1, default_missing_value = "4")]
     windows: Option<usize>,
+}
+
+impl CaptureArgs {
+    fn options(&self, fps: Option<f64>) -> CaptureOptions {
+        CaptureOptions {
+            depth_scale: self.depth_scale,
+            max_depth: self.max_depth,
+            windows: self.windows,
+            fps,
+        }
+    }
+}
+
+#[derive(clap::Args)]
+pub struct RgbdArgs {
+    /// The capture's folder.
+    dir: PathBuf,
+    /// The video folder to write.
+    #[arg(long)]
+    out: PathBuf,
+    #[command(flatten)]
+    capture: CaptureArgs,
     /// The capture's frame rate: capture.json then gives each frame's time.
     #[arg(long)]
     fps: Option<f64>,
@@ -106,13 +117,7 @@ fn report(r: &CaptureRecord, source: &std::path::Path, out: &std::path::Path) {
 pub fn run(cmd: ImportCommand) -> CliResult<()> {
     match cmd {
         ImportCommand::Rgbd(a) => {
-            let options = CaptureOptions {
-                depth_scale: a.depth_scale,
-                max_depth: a.max_depth,
-                windows: a.windows,
-                fps: a.fps,
-            };
-            let r = import_rgbd(&a.dir, &a.out, &options)?;
+            let r = import_rgbd(&a.dir, &a.out, &a.capture.options(a.fps))?;
             report(&r, &a.dir, &a.out);
             Ok(())
         }
@@ -122,12 +127,7 @@ pub fn run(cmd: ImportCommand) -> CliResult<()> {
                 intrinsics: a.intrinsics.clone(),
                 fov_y: a.fov,
                 fps: a.fps,
-                capture: CaptureOptions {
-                    depth_scale: a.depth_scale,
-                    max_depth: a.max_depth,
-                    windows: a.windows,
-                    fps: None,
-                },
+                capture: a.capture.options(None),
             };
             println!("decoding {} through ffmpeg", a.file.display());
             let r = import_video(&a.file, &a.out, &options)?;
