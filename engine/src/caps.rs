@@ -351,14 +351,15 @@ impl Caps {
                 coop_matrix_f16 = None;
             }
 
-            // lavapipe's image reads hold at most 16 lanes (512 bits): run wider (subgroups of
-            // 32, LP_NATIVE_VECTOR_WIDTH=1024) a texel fetch overruns its stack and aborts the
-            // process, so a CPU device with subgroups over 16 reads storage buffers instead.
+            // lavapipe's image reads hold at most 8 lanes (its default 256 bits): run wider
+            // (subgroups of 16 or 32, LP_NATIVE_VECTOR_WIDTH=512 or 1024) a texel fetch
+            // overruns its stack and aborts the process, so a CPU device with subgroups over 8
+            // reads storage buffers instead.
             let texel_reads = instance
                 .get_physical_device_format_properties(pd, vk::Format::R32G32B32A32_SFLOAT)
                 .buffer_features
                 .contains(vk::FormatFeatureFlags::STORAGE_TEXEL_BUFFER)
-                && !(p.device_type == vk::PhysicalDeviceType::CPU && p11.subgroup_size > 16);
+                && !(p.device_type == vk::PhysicalDeviceType::CPU && p11.subgroup_size > 8);
 
             let families = instance.get_physical_device_queue_family_properties(pd);
             let timestamps = limits.timestamp_compute_and_graphics == vk::TRUE
