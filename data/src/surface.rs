@@ -114,11 +114,11 @@ pub fn mesh_of_points(xyz: &[f32], resolution: usize) -> DataResult<Mesh> {
     let grid = Grid { n, origin, cell };
 
     // 1. Occupied cells, grown; the points listed by cell for step 4.
-    let cells: Vec<usize> = points.iter().map(|p| grid.index(grid.cell_of(*p))).collect();
+    let coords: Vec<[usize; 3]> = points.iter().map(|p| grid.cell_of(*p)).collect();
+    let cells: Vec<usize> = coords.iter().map(|&c| grid.index(c)).collect();
     let mut occupied = vec![false; grid.len()];
     let side = 2 * grow + 1;
-    for p in &points {
-        let c = grid.cell_of(*p);
+    for c in &coords {
         for dz in 0..side {
             for dy in 0..side {
                 for dx in 0..side {

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use velox_engine::Result;
 
-use crate::{content_error, read_error, write_bytes};
+use crate::{read_json, write_json};
 
 /// The report's file name in a decode output folder.
 pub const FILE: &str = "decode.json";
@@ -50,17 +50,12 @@ pub struct DecodedFrame {
 impl DecodeReport {
     /// Writes `dir/decode.json` and returns its path.
     pub fn write(&self, dir: &Path) -> Result<PathBuf> {
-        let path = dir.join(FILE);
-        let json = serde_json::to_string_pretty(self).map_err(|e| content_error(&path, e))?;
-        write_bytes(&path, json.as_bytes())?;
-        Ok(path)
+        write_json(dir.join(FILE), self)
     }
 
     /// Reads `dir/decode.json`.
     pub fn read(dir: &Path) -> Result<DecodeReport> {
-        let path = dir.join(FILE);
-        let text = std::fs::read_to_string(&path).map_err(|e| read_error(&path, e))?;
-        serde_json::from_str(&text).map_err(|e| content_error(&path, e))
+        read_json(&dir.join(FILE))
     }
 
     /// The scene folder the cloud was, when it is one (it holds `cameras.json`).

@@ -95,12 +95,29 @@ pub(crate) fn content_error(path: &Path, e: impl std::fmt::Display) -> Error {
 
 /// The file at `path` parsed by `parse`, whose complaints about the bytes become errors naming
 /// the file (as [`content_error`]); a file that cannot be read is a [`read_error`].
-pub(crate) fn read_parsed<T>(path: &Path, parse: impl FnOnce(&[u8]) -> Result<T>) -> Result<T> {
+pub fn read_parsed<T>(path: &Path, parse: impl FnOnce(&[u8]) -> Result<T>) -> Result<T> {
     let bytes = std::fs::read(path).map_err(|e| read_error(path, e))?;
     parse(&bytes).map_err(|e| match e {
         Error::Invalid(why) => content_error(path, why),
         other => other,
     })
+}
+
+/// Writes `value` as pretty JSON to `path` (atomically) and returns the path.
+pub(crate) fn write_json<T: serde::Serialize>(path: PathBuf, value: &T) -> Result<PathBuf> {
+    let json = serde_json::to_string_pretty(value).map_err(|e| content_error(&path, e))?;
+    write_bytes(&path, json.as_bytes())?;
+    Ok(path)
+}
+
+/// JSON bytes as a `T`.
+pub(crate) fn parse_json<T: serde::de::DeserializeOwned>(bytes: &[u8]) -> Result<T> {
+    serde_json::from_slice(bytes).map_err(|e| Error::Invalid(e.to_string()))
+}
+
+/// Reads the JSON file at `path` as a `T`; a file that is not one is an error naming it.
+pub(crate) fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T> {
+    read_parsed(path, parse_json)
 }
 
 /// A file that could not be opened or read.

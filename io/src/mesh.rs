@@ -18,7 +18,7 @@ use velox_engine::{Error, Result};
 
 use crate::glb::{self, Buffer, FLOAT, UNSIGNED_INT};
 use crate::ply::{Header, Scalar};
-use crate::{content_error, read_parsed, write_bytes};
+use crate::{read_parsed, write_bytes};
 
 /// A triangle mesh: vertex positions and triangles (counter-clockwise seen from outside).
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -53,14 +53,20 @@ impl Mesh {
         Ok(())
     }
 
+    /// Triangle `t`'s corners (f64) and its edges' cross product (its normal times twice its
+    /// area: counter-clockwise seen from where it points).
+    pub fn face(&self, t: [u32; 3]) -> ([[f64; 3]; 3], [f64; 3]) {
+        let p = t.map(|i| self.positions[i as usize].map(f64::from));
+        (p, cross(sub(p[1], p[0]), sub(p[2], p[0])))
+    }
+
     /// Per-vertex normals: the area-weighted sum of the triangles' normals around each vertex,
     /// normalised (zero where no triangle has an area).
     pub fn normals(&self) -> Vec<[f32; 3]> {
         let mut n = vec![[0.0f64; 3]; self.positions.len()];
-        for t in &self.triangles {
-            let p = t.map(|i| self.positions[i as usize].map(f64::from));
-            let c = cross(sub(p[1], p[0]), sub(p[2], p[0]));
-            for &i in t {
+        for &t in &self.triangles {
+            let (_, c) = self.face(t);
+            for i in t {
                 for k in 0..3 {
                     n[i as usize][k] += c[k];
                 }
@@ -82,9 +88,8 @@ impl Mesh {
     /// triangles face out).
     pub fn area_and_volume(&self) -> (f64, f64) {
         let (mut area, mut volume) = (0.0, 0.0);
-        for t in &self.triangles {
-            let p = t.map(|i| self.positions[i as usize].map(f64::from));
-            let c = cross(sub(p[1], p[0]), sub(p[2], p[0]));
+        for &t in &self.triangles {
+            let (p, c) = self.face(t);
             area += 0.5 * (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt();
             let d = cross(p[1], p[2]);
             volume += (p[0][0] * d[0] + p[0][1] * d[1] + p[0][2] * d[2]) / 6.0;
@@ -103,6 +108,15 @@ pub enum Format {
 
 impl Format {
     pub const ALL: [Format; 3] = [Format::Ply, Format::Obj, Format::Glb];
+
+    /// The format a path's extension names (.ply, .obj, .glb, any case).
+    pub fn of_path(path: &Path) -> Result<Format> {
+        let ext = path.extension().map(|e| e.to_string_lossy().to_lowercase()).unwrap_or_default();
+        Format::ALL
+            .into_iter()
+            .find(|f| f.extension() == ext)
+            .ok_or_else(|| bad(format!("{}: a mesh is a .ply, .obj or .glb file", path.display())))
+    }
 
     /// The file extension.
     pub fn extension(self) -> &'static str {
@@ -190,11 +204,7 @@ pub fn write(path: &Path, m: &Mesh, format: Format) -> Result<()> {
 
 /// Reads a mesh from `path`, in the format its extension names.
 pub fn read(path: &Path) -> Result<Mesh> {
-    let ext = path.extension().map(|e| e.to_string_lossy().to_lowercase()).unwrap_or_default();
-    let format = Format::ALL
-        .into_iter()
-        .find(|f| f.extension() == ext)
-        .ok_or_else(|| content_error(path, "a mesh is read from .ply, .obj or .glb"))?;
+    let format = Format::of_path(path)?;
     read_parsed(path, |bytes| from_bytes(bytes, format))
 }
 

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use velox_engine::{Error, Result};
 
-use crate::{read_parsed, write_bytes};
+use crate::{parse_json, read_parsed, write_json};
 
 /// The report's file name in a track output folder.
 pub const FILE: &str = "tracks.json";
@@ -64,17 +64,13 @@ impl TrackReport {
     /// Writes `dir/tracks.json` and returns its path.
     pub fn write(&self, dir: &Path) -> Result<PathBuf> {
         self.check()?;
-        let path = dir.join(FILE);
-        let json = serde_json::to_string_pretty(self).map_err(|e| Error::Invalid(e.to_string()))?;
-        write_bytes(&path, json.as_bytes())?;
-        Ok(path)
+        write_json(dir.join(FILE), self)
     }
 
     /// Reads and checks `dir/tracks.json`.
     pub fn read(dir: &Path) -> Result<TrackReport> {
         read_parsed(&dir.join(FILE), |bytes| {
-            let report: TrackReport =
-                serde_json::from_slice(bytes).map_err(|e| Error::Invalid(e.to_string()))?;
+            let report: TrackReport = parse_json(bytes)?;
             report.check()?;
             Ok(report)
         })

@@ -76,11 +76,7 @@ fn read_mesh(py: Python<'_>, path: PathBuf) -> PyResult<Bound<'_, PyDict>> {
 #[pyfunction]
 fn write_mesh(py: Python<'_>, path: PathBuf, mesh: &Bound<'_, PyAny>) -> PyResult<()> {
     let m = mesh_of_dict(mesh)?;
-    let ext = path.extension().map(|e| e.to_string_lossy().to_lowercase()).unwrap_or_default();
-    let format = mesh::Format::ALL
-        .into_iter()
-        .find(|f| f.extension() == ext)
-        .ok_or_else(|| invalid(format!("{}: a mesh is written as .ply, .obj or .glb", path.display())))?;
+    let format = mesh::Format::of_path(&path).map_err(errors::engine)?;
     py.detach(|| mesh::write(&path, &m, format)).map_err(errors::engine)
 }
 

@@ -22,7 +22,7 @@ use velox_io::decoded::DecodeReport;
 use velox_io::frames::{self, sequence_file};
 use velox_io::ply::Sh;
 use velox_io::splatv::SplatvCamera;
-use velox_io::{glb, ply, splatv, spz, write_bytes};
+use velox_io::{glb, ply, read_parsed, splatv, spz, write_bytes};
 
 /// The formats written.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -127,10 +127,14 @@ pub fn export(dir: &Path, o: &ExportOptions) -> Result<Exported> {
         ));
     }
     let list = frame_list(dir)?;
-    let mut clip: Vec<(usize, GaussianData, Option<Sh>, &Path)> = Vec::with_capacity(list.len());
+    let mut clip: Vec<(usize, GaussianData, Option<Sh>, Vec<u8>)> = Vec::with_capacity(list.len());
     for (f, path) in &list {
-        let (g, sh) = ply::read_sh(path)?;
-        clip.push((*f, g, sh, path));
+        // Read once: a PLY sequence writes these bytes.
+        let (g, sh, bytes) = read_parsed(path, |bytes| {
+            let (g, sh) = ply::from_bytes_sh(bytes)?;
+            Ok((g, sh, bytes.to_vec()))
+        })?;
+        clip.push((*f, g, sh, bytes));
     }
     let out = o.out.clone().unwrap_or_else(|| {
         let export = dir.join("export");
@@ -158,13 +162,11 @@ pub fn export(dir: &Path, o: &ExportOptions) -> Result<Exported> {
         _ => "glb",
     };
     let mut files = Vec::with_capacity(frames);
-    for (f, g, sh, source) in &clip {
+    for (f, g, sh, bytes) in &clip {
         let path = out.join(sequence_file(*f, ext));
         let written = match o.format {
             // The frame's own bytes.
-            Format::PlySeq => std::fs::read(source)
-                .map_err(|e| Error::file(source, FileOp::Read, e))
-                .and_then(|bytes| write_bytes(&path, &bytes)),
+            Format::PlySeq => write_bytes(&path, bytes),
             Format::Spz => {
                 spz::to_bytes_sh(g, sh.as_ref(), o.spz_version).and_then(|b| write_bytes(&path, &b))
             }

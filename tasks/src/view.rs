@@ -214,13 +214,7 @@ struct ManifestTracks {
 /// The header of a PLY file and its vertex count, reading only the start of the file; the
 /// file's length is checked against the header.
 fn ply_header(path: &Path) -> ViewResult<(Header, usize)> {
-    let file = std::fs::File::open(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
-    let mut start = Vec::new();
-    (&file)
-        .take(64 * 1024)
-        .read_to_end(&mut start)
-        .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
-    let header = Header::parse(&start).map_err(|e| format!("{}: {e}", path.display()))?;
+    let (header, file) = header_only(path)?;
     let (_, vertex) =
         header.find("vertex").ok_or_else(|| format!("{}: the PLY has no vertex element", path.display()))?;
     let count = vertex.count;
@@ -234,6 +228,26 @@ fn ply_header(path: &Path) -> ViewResult<(Header, usize)> {
         .into());
     }
     Ok((header, count))
+}
+
+/// The header of a PLY file, reading only the start of it, and the file.
+fn header_only(path: &Path) -> ViewResult<(Header, std::fs::File)> {
+    let file = std::fs::File::open(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    let mut start = Vec::new();
+    (&file)
+        .take(64 * 1024)
+        .read_to_end(&mut start)
+        .map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+    let header = Header::parse(&start).map_err(|e| format!("{}: {e}", path.display()))?;
+    Ok((header, file))
+}
+
+/// The triangles a mesh PLY's header declares (its faces; the page checks the rest when it
+/// reads the frame).
+fn mesh_triangles(path: &Path) -> ViewResult<usize> {
+    let (header, _) = header_only(path)?;
+    let faces = header.elements.iter().find(|e| e.name == "face");
+    Ok(faces.ok_or_else(|| format!("{}: a mesh PLY without a face element", path.display()))?.count)
 }
 
 /// Whether a PLY header has every property of the Gaussian layout.
@@ -318,14 +332,15 @@ fn discover(path: &Path, scene: Option<&Path>) -> ViewResult<Source> {
         // Gaussians first; else decoded points; else a track output's points; else meshes.
         let (gaussians, points, tracked) = (of("gaussians")?, of("points")?, of("tracks")?);
         let meshes = of("mesh")?;
+        let is_mesh = gaussians.is_empty() && points.is_empty() && tracked.is_empty() && !meshes.is_empty();
         let (kind, list) = if !gaussians.is_empty() {
             (Kind::Gaussians, gaussians)
         } else if !points.is_empty() {
             (Kind::Points, points)
         } else if !tracked.is_empty() {
             (Kind::Points, tracked)
-        } else if !meshes.is_empty() {
-            (Kind::Gaussians, meshes.clone())
+        } else if is_mesh {
+            (Kind::Gaussians, meshes)
         } else {
             // Another tool's numbered sequence: its PLYs that end in a number, one prefix to
             // them all, each frame its number; Gaussians or points by the first one's header.
@@ -345,10 +360,9 @@ fn discover(path: &Path, scene: Option<&Path>) -> ViewResult<Source> {
         };
         let mut frames = Vec::new();
         for (f, file) in list {
-            if meshes.iter().any(|m| m.1 == file) {
-                // A mesh read now: a Gaussian a triangle.
-                let count = velox_io::mesh::read(&file)?.triangles.len();
-                frames.push(Frame { frame: f, count, data: FrameData::Mesh(file) });
+            if is_mesh {
+                // A Gaussian a triangle.
+                frames.push(Frame { frame: f, count: mesh_triangles(&file)?, data: FrameData::Mesh(file) });
                 continue;
             }
             let (header, count) = ply_header(&file)?;
@@ -374,7 +388,7 @@ fn discover(path: &Path, scene: Option<&Path>) -> ViewResult<Source> {
         None => Vec::new(),
     };
     let what = match kind {
-        _ if frames.iter().any(|f| matches!(f.data, FrameData::Mesh(_))) => "mesh triangles",
+        _ if frames.first().is_some_and(|f| matches!(f.data, FrameData::Mesh(_))) => "mesh triangles",
         Kind::Gaussians => "Gaussians",
         Kind::Points => "points",
     };
@@ -476,15 +490,10 @@ fn mesh_body(m: &velox_io::mesh::Mesh) -> Vec<u8> {
     let mut out = Vec::with_capacity(8 + m.triangles.len() * RECORD * 4);
     out.extend_from_slice(b"VXG1");
     out.extend_from_slice(&(m.triangles.len() as u32).to_le_bytes());
-    for t in &m.triangles {
-        let p = t.map(|i| m.positions[i as usize].map(f64::from));
+    for &t in &m.triangles {
+        let (p, n) = m.face(t);
         let centre: [f64; 3] = std::array::from_fn(|a| (p[0][a] + p[1][a] + p[2][a]) / 3.0);
         let d = p.map(|v| std::array::from_fn::<f64, 3, _>(|a| v[a] - centre[a]));
-        let (e1, e2) = (
-            std::array::from_fn::<f64, 3, _>(|a| p[1][a] - p[0][a]),
-            std::array::from_fn::<f64, 3, _>(|a| p[2][a] - p[0][a]),
-        );
-        let n = [e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]];
         let twice_area = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
         let n = n.map(|v| v / twice_area.max(1e-30));
         let thickness = 1e-3 * twice_area.sqrt();
