@@ -309,7 +309,11 @@ pub fn write_report(out: &Path, record: &DecodeRecord, written: &[WrittenFrame])
     let report = DecodeReport {
         command: record.command.into(),
         checkpoint: record.checkpoint.display().to_string(),
-        cloud: record.cloud.display().to_string(),
+        // Absolute, so that the viewer finds the scene from any folder.
+        cloud: std::path::absolute(record.cloud)
+            .unwrap_or_else(|_| record.cloud.to_path_buf())
+            .display()
+            .to_string(),
         config: record.ae.cfg.name.clone(),
         precision: record.ae.precision().name().into(),
         input_points: record.input_points,

@@ -156,7 +156,8 @@ pub fn run(a: &TrackArgs) -> CliResult<()> {
     }
     write_gif(&a.out.join("overlay.gif"), &clip, cam.width, cam.height, 100)?;
     let report = TrackReport {
-        video: a.video.display().to_string(),
+        // Absolute, so that the viewer finds the scene from any folder.
+        video: std::path::absolute(&a.video).unwrap_or_else(|_| a.video.clone()).display().to_string(),
         autoencoder: a.autoencoder.display().to_string(),
         checkpoint: a.checkpoint.display().to_string(),
         frames: clip_frames,

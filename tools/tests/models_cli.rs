@@ -118,6 +118,25 @@ fn decode_mesh_writes_a_surface_per_frame_in_every_format() {
             assert_eq!(velox_io::mesh::read(&out.join(format!("mesh_f{f:02}.{ext}"))).unwrap(), ply, "{ext}");
         }
     }
+    // A scene named from another folder is recorded absolutely: the viewer finds it anywhere.
+    let relative = std::process::Command::new(env!("CARGO_BIN_EXE_velox"))
+        .current_dir(&dir)
+        .args([
+            "decode",
+            "mesh",
+            "--checkpoint",
+            arg(&ckpt),
+            "--cloud",
+            "data/scene_00000",
+            "--out",
+            "mesh_rel",
+        ])
+        .args(["--frames", "1", "--points", "500", "--steps", "2", "--format", "ply"])
+        .output()
+        .unwrap();
+    ok(&relative);
+    let report = velox_io::decoded::DecodeReport::read(&dir.join("mesh_rel")).unwrap();
+    assert_eq!(report.scene(), Some(scene.clone()), "{}", report.cloud);
     // One format on request; a resolution out of range is refused before any work.
     let obj = dir.join("mesh_obj");
     let rest = ["--frames", "2", "--points", "500", "--steps", "2", "--format", "obj", "--out", arg(&obj)];
