@@ -120,7 +120,7 @@ fn decode_mesh_writes_a_surface_per_frame_in_every_format() {
     }
     // A scene named from another folder is recorded absolutely: the viewer finds it anywhere.
     let relative = std::process::Command::new(env!("CARGO_BIN_EXE_velox"))
-        .current_dir(&dir)
+        .current_dir(dir)
         .args([
             "decode",
             "mesh",
