@@ -60,8 +60,7 @@ impl DecodeReport {
 
     /// The scene folder the cloud was, when it is one (it holds `cameras.json`).
     pub fn scene(&self) -> Option<PathBuf> {
-        let cloud = PathBuf::from(&self.cloud);
-        cloud.join("cameras.json").is_file().then_some(cloud)
+        crate::scene_folder(&self.cloud)
     }
 }
 

@@ -110,6 +110,13 @@ pub(crate) fn write_json<T: serde::Serialize>(path: PathBuf, value: &T) -> Resul
     Ok(path)
 }
 
+/// `path` when it is a dataset scene folder (it holds `cameras.json`): the scene a decode or
+/// track output names.
+pub fn scene_folder(path: &str) -> Option<PathBuf> {
+    let folder = PathBuf::from(path);
+    folder.join("cameras.json").is_file().then_some(folder)
+}
+
 /// JSON bytes as a `T`.
 pub(crate) fn parse_json<T: serde::de::DeserializeOwned>(bytes: &[u8]) -> Result<T> {
     serde_json::from_slice(bytes).map_err(|e| Error::Invalid(e.to_string()))

@@ -78,8 +78,7 @@ impl TrackReport {
 
     /// The video folder tracked, when it is a scene folder (it holds `cameras.json`).
     pub fn scene(&self) -> Option<PathBuf> {
-        let video = PathBuf::from(&self.video);
-        video.join("cameras.json").is_file().then_some(video)
+        crate::scene_folder(&self.video)
     }
 }
 
