@@ -9,7 +9,8 @@
 #      asks for other features or another package's feature set, which would rebuild it;
 #   2. on lavapipe, the op-level tests at NVIDIA's subgroup width (LP_NATIVE_VECTOR_WIDTH=1024),
 #      with the GPU kernel variants (VELOX_CPU_KERNELS=0) and with the CPU ones; attention's
-#      with the GPU variants at the default width.
+#      with the GPU variants at the default width;
+#   3. the cooperative-matrix kernels on Mesa 26 lavapipe in a Debian sid tree (tools/coop-check.sh).
 # tools/portability-check.sh runs the rest of the matrix (every width, poisoned memory, staging,
 # each fallback, SwiftShader).
 set -euo pipefail
@@ -43,4 +44,19 @@ if cargo run --release -q -- info 2>/dev/null | grep 'llvmpipe' >/dev/null; then
   cargo test --release --test ops -- --skip attention::
   unset LP_NATIVE_VECTOR_WIDTH
   VELOX_CPU_KERNELS=0 cargo test --release --test ops -- attention::
+fi
+
+# 3. The cooperative-matrix kernels (the f16 matmul, attention forward and backward), which
+# bookworm's lavapipe lacks, on Mesa 26's lavapipe in a Debian sid tree (tools/coop-check.sh,
+# built once, about a minute): the op tests and the f16 layer and model tests under sid's
+# validation layer, which knows cooperative matrices, and f16 training (resumed runs
+# bit-exact) on them. A machine that cannot build or enter the tree (no root or sudo, no
+# network, bind mounts refused) says so and goes on; a failing test fails the suite.
+coop_status=0
+VELOX_VALIDATE=1 tools/coop-check.sh ops models:attention_layer models:f16 || coop_status=$?
+[ $coop_status = 2 ] || [ $coop_status = 0 ] || exit $coop_status
+if [ $coop_status = 0 ]; then
+  tools/coop-check.sh training train_cli || exit $?
+else
+  echo "test.sh: the cooperative-matrix check could not run on this machine (see above); skipped"
 fi

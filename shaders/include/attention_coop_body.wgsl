@@ -36,39 +36,14 @@
 // as in the portable kernels.
 
 // @include attention_common.wgsl
+// @include attention_coop_common.wgsl
 
-@group(0) @binding(0) var<storage, read> q: array<vec2<u32>>;
-@group(0) @binding(1) var<storage, read> k: array<vec2<u32>>;
-@group(0) @binding(2) var<storage, read> v: array<vec2<u32>>;
 @group(0) @binding(6) var<storage, read_write> o: array<f32>;
 @group(0) @binding(7) var<storage, read_write> lse: array<f32>;
 
-const D4: u32 = D / 4u;
-// D rounded up to whole fragments; the features past D are zero in every staged tile.
-const DP: u32 = (D + F - 1u) / F * F;
-// Fragments across a head (DF) and across a tile of keys (KF).
-const DF: u32 = DP / F;
-const KF: u32 = BK / F;
-// Row strides: staged queries, keys and values (halves), a subgroup's S (floats) and P
-// (halves).
-const RQ: u32 = DP + PAD_H;
-const RS: u32 = BK + PAD_F;
-const RP: u32 = BK + PAD_H;
-// Invocations per subgroup, subgroups (one per F query rows) and invocations per workgroup.
-const SG: u32 = F * F / 8u;
-const NSG: u32 = BQ / F;
-const WG: u32 = NSG * SG;
-// Lanes per query row in the softmax, and the keys of a tile each of them takes.
-const LPR: u32 = SG / F;
-const KPL: u32 = BK / LPR;
-// One staged tile of keys or of values, in halves. `kv` holds K0, V0, K1, V1 (the double
-// buffer); the queries are staged through it once, before the first tile.
-const KV_TILE: u32 = BK * RQ;
+// The queries are staged through kv, four tiles' worth.
 const_assert BQ <= 4u * BK;
 
-var<workgroup> kv: array<f16, 4u * KV_TILE>;
-var<workgroup> so: array<f32, NSG * F * RS>;
-var<workgroup> ps: array<f16, NSG * F * RP>;
 // Per tile parity: bit 0, some row wants to move the running maxima; bit 1, first tile.
 var<workgroup> vote: array<atomic<u32>, 2>;
 
@@ -76,58 +51,14 @@ var<workgroup> vote: array<atomic<u32>, 2>;
 // e^8 (about 3000), far inside f16's range, with f16's relative precision.
 const RESCALE_MARGIN: f32 = 8.0;
 
-fn unpack4(w: vec2<u32>) -> vec4<f16> {
-    return vec4<f16>(vec2<f16>(unpack2x16float(w.x)), vec2<f16>(unpack2x16float(w.y)));
-}
-
-// Chunk i (4 features) of the staged tile of rows starting at row `first`, head h, of the
-// tensor `which` (0 q, 1 k, 2 v): zero past `count` rows or past D features.
-fn chunk(which: u32, first: u32, count: u32, h: u32, i: u32) -> vec4<f16> {
-    let r = i / (DP / 4u);
-    let c4 = i % (DP / 4u);
-    if r < count && c4 < D4 {
-        let src = ((first + r) * pc.heads + h) * D4 + c4;
-        if which == 0u {
-            return unpack4(q[src]);
-        } else if which == 1u {
-            return unpack4(k[src]);
-        }
-        return unpack4(v[src]);
+// Element `src` (4 features) of tensor `which` (0 q, 1 k, 2 v), for `chunk`.
+fn load_rows(which: u32, src: u32) -> vec4<f16> {
+    if which == 0u {
+        return unpack4(q[src]);
+    } else if which == 1u {
+        return unpack4(k[src]);
     }
-    return vec4<f16>(0.0h);
-}
-
-// Stages `rows` rows of tensor `which` from row `first` (`count` of them real) into kv at `at`.
-fn stage(which: u32, first: u32, count: u32, h: u32, at: u32, rows: u32, t: u32) {
-    for (var i = t; i < rows * DP / 4u; i += WG) {
-        let x = chunk(which, first, count, h, i);
-        let o0 = at + (i / (DP / 4u)) * RQ + (i % (DP / 4u)) * 4u;
-        kv[o0] = x.x;
-        kv[o0 + 1u] = x.y;
-        kv[o0 + 2u] = x.z;
-        kv[o0 + 3u] = x.w;
-    }
-}
-
-// Stages the keys and values of the tile starting at key `kt` into half `half` of kv.
-fn stage_kv(kt: u32, k_end: u32, h: u32, half: u32, t: u32) {
-    let count = min(BK, k_end - kt);
-    stage(1u, kt, count, h, half * 2u * KV_TILE, BK, t);
-    stage(2u, kt, count, h, half * 2u * KV_TILE + KV_TILE, BK, t);
-}
-
-// Stores output fragments d0 .. d0 + KF - 1 side by side into the subgroup's S at `s_at` (row
-// stride RS), for a pass over their elements. Past DF it stores the last fragment again: a
-// spare copy, which is scaled and read back alike, instead of a branch around a cooperative
-// operation. naga 30 lowers coopStore without first emitting the expressions in its
-// arguments, so each argument is bound by an earlier `let`.
-fn store_round(oacc: ptr<function, array<FragC, DF>>, d0: u32, s_at: u32) {
-    for (var x = 0u; x < KF; x++) {
-        let value = (*oacc)[min(d0 + x, DF - 1u)];
-        let dst = &so[s_at + x * F];
-        let stride = RS;
-        coopStoreT(value, dst, stride);
-    }
+    return unpack4(v[src]);
 }
 
 @compute @workgroup_size(WG)
@@ -180,7 +111,7 @@ fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     // Every Q fragment is loaded before the first tile overwrites kv.
     workgroupBarrier();
     if k_begin < k_end {
-        stage_kv(k_begin, k_end, h, 0u, t);
+        stage_pair(1u, 2u, k_begin, k_end, h, 0u, t);
     }
     workgroupBarrier();
 
@@ -236,7 +167,7 @@ fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
         // The next tile's keys and values go to the other half of kv, last read by the previous
         // tile's P V, before barrier 1.
         if kt + BK < k_end {
-            stage_kv(kt + BK, k_end, h, parity ^ 1u, t);
+            stage_pair(1u, 2u, kt + BK, k_end, h, parity ^ 1u, t);
         }
         let decided = workgroupUniformLoad(&vote[parity]);
         let rescale = (decided & 1u) != 0u;
@@ -295,10 +226,7 @@ fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     let mine = row0 + r < nrows;
     let row = q0 + row0 + r;
     for (var d0 = 0u; d0 < DF; d0 += KF) {
-        // The previous round's reads (or the last tile's P V) are done before the stores.
-        workgroupBarrier();
-        store_round(&oacc, d0, s_at);
-        workgroupBarrier();
+        spill(&oacc, d0, s_at);
         for (var c = j; c < KF * F; c += LPR) {
             let feature = d0 * F + c;
             if mine && feature < D {

@@ -148,6 +148,7 @@ pub fn report(gpu: &Gpu) -> serde_json::Value {
         "rows (softmax, norms)": velox_engine::ops::rmsnorm::row_variant(gpu),
         "attention f32": velox_engine::ops::attention::portable_variant(gpu, 32, DType::F32),
         "attention f16": velox_engine::ops::attention::f16_forward_variant(gpu, 32),
+        "attention f16 backward": velox_engine::ops::attention::f16_backward_variant(gpu, 32),
         "scatter-add": scatter_add::variant(gpu),
         "gather": velox_engine::ops::gather::variant(gpu),
         "fps": velox_engine::ops::fps::variant(gpu).1,

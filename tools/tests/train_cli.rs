@@ -348,7 +348,11 @@ fn accumulated_micro_batches_train_as_one_larger_micro_batch() {
     let dir = temp_dir("accumulate");
     // Two scenes a step, two steps on each pair: as 2 micro-batches of 1 scene, and as one
     // micro-batch of 2. Same samples, same generators, same weights.
-    let settings = ["--steps", "5", "--steps-per-scene", "2", "--seed", "3"];
+    // In f32: f16 training's kernels are chosen by shape where the device has cooperative
+    // matrices (the cooperative attention's block height follows the rows per segment, and its
+    // lazily moved maxima round P per block), so there a micro-batch of 2 and two of 1 round
+    // differently from the first forward pass on (nmse 6e-10 after 5 steps on lavapipe 26).
+    let settings = ["--steps", "5", "--steps-per-scene", "2", "--seed", "3", "--precision", "f32"];
     let accumulated = dir.join("accumulated");
     train(&accumulated, &[&settings[..], &["--accumulate", "2"]].concat());
     let batch2 = tiny_config(&dir, "batch2.json", |c| c["batch"] = 2.into());

@@ -166,6 +166,9 @@ struct Kernels {
     fwd_coop8: [ForwardKernel; 2],
     dq: DqKernel,
     dkv: DkvKernel,
+    /// The backward pass on cooperative matrices, 16x16x16 and 8x8x8 fragments: (dq, dkv).
+    bwd_coop16: (DqKernel, DkvKernel),
+    bwd_coop8: (DqKernel, DkvKernel),
     /// The backward pass on f16 q, k, v (everything else f32).
     dq_f16: DqKernel,
     dkv_f16: DkvKernel,
@@ -192,6 +195,8 @@ fn kernels_for(d: usize) -> Option<Kernels> {
             fwd_coop8: [ATTENTION_COOP8_D16_BQ32_FWD, ATTENTION_COOP8_D16_BQ64_FWD],
             dq: ATTENTION_D16_BWD_DQ,
             dkv: ATTENTION_D16_BWD_DKV,
+            bwd_coop16: (ATTENTION_COOP_BWD_D16_DQ_COOP, ATTENTION_COOP_BWD_D16_DKV_COOP),
+            bwd_coop8: (ATTENTION_COOP8_BWD_D16_DQ_COOP, ATTENTION_COOP8_BWD_D16_DKV_COOP),
             dq_f16: ATTENTION_F16_D16_BWD_DQ,
             dkv_f16: ATTENTION_F16_D16_BWD_DKV,
             cpu: CpuKernels {
@@ -212,6 +217,8 @@ fn kernels_for(d: usize) -> Option<Kernels> {
             fwd_coop8: [ATTENTION_COOP8_D32_BQ32_FWD, ATTENTION_COOP8_D32_BQ64_FWD],
             dq: ATTENTION_D32_BWD_DQ,
             dkv: ATTENTION_D32_BWD_DKV,
+            bwd_coop16: (ATTENTION_COOP_BWD_D32_DQ_COOP, ATTENTION_COOP_BWD_D32_DKV_COOP),
+            bwd_coop8: (ATTENTION_COOP8_BWD_D32_DQ_COOP, ATTENTION_COOP8_BWD_D32_DKV_COOP),
             dq_f16: ATTENTION_F16_D32_BWD_DQ,
             dkv_f16: ATTENTION_F16_D32_BWD_DKV,
             cpu: CpuKernels {
@@ -232,6 +239,8 @@ fn kernels_for(d: usize) -> Option<Kernels> {
             fwd_coop8: [ATTENTION_COOP8_D64_BQ32_FWD, ATTENTION_COOP8_D64_BQ64_FWD],
             dq: ATTENTION_D64_BWD_DQ,
             dkv: ATTENTION_D64_BWD_DKV,
+            bwd_coop16: (ATTENTION_COOP_BWD_D64_DQ_COOP, ATTENTION_COOP_BWD_D64_DKV_COOP),
+            bwd_coop8: (ATTENTION_COOP8_BWD_D64_DQ_COOP, ATTENTION_COOP8_BWD_D64_DKV_COOP),
             dq_f16: ATTENTION_F16_D64_BWD_DQ,
             dkv_f16: ATTENTION_F16_D64_BWD_DKV,
             cpu: CpuKernels {
@@ -252,6 +261,8 @@ fn kernels_for(d: usize) -> Option<Kernels> {
             fwd_coop8: [ATTENTION_COOP8_D72_BQ32_FWD, ATTENTION_COOP8_D72_BQ64_FWD],
             dq: ATTENTION_D72_BWD_DQ,
             dkv: ATTENTION_D72_BWD_DKV,
+            bwd_coop16: (ATTENTION_COOP_BWD_D72_DQ_COOP, ATTENTION_COOP_BWD_D72_DKV_COOP),
+            bwd_coop8: (ATTENTION_COOP8_BWD_D72_DQ_COOP, ATTENTION_COOP8_BWD_D72_DKV_COOP),
             dq_f16: ATTENTION_F16_D72_BWD_DQ,
             dkv_f16: ATTENTION_F16_D72_BWD_DKV,
             cpu: CpuKernels {
@@ -363,6 +374,49 @@ pub fn coop_forward_kernel(gpu: &Gpu, d: usize, tall: bool) -> Option<(ForwardKe
     }
     let order: &[usize] = if tall { &[1, 0] } else { &[0] };
     order.iter().map(|&i| (kernels[i], blocks[i])).find(|&(k, _)| gpu.supports(k))
+}
+
+/// Rows per work item of the cooperative-matrix backward kernels, on either side: query rows
+/// for dq, key rows for dk and dv (`BQ` in `attention_coop_bwd.wgsl`).
+pub const COOP_BWD_BLOCK: usize = 32;
+
+/// The cooperative-matrix backward kernels (dq, then dk and dv) for f16 inputs of head width
+/// `d` on this device, if it has them: the forward kernels' conditions (F = 16 or 8, subgroups
+/// of F*F/8 invocations, shuffles), and the kernels' workgroup memory.
+fn coop_backward_kernels(gpu: &Gpu, d: usize) -> Option<(DqKernel, DkvKernel)> {
+    let caps = gpu.caps();
+    let kern = kernels_for(d)?;
+    let [f, _, _] = caps.coop_matrix_f16?;
+    let kernels = match f {
+        16 => kern.bwd_coop16,
+        8 => kern.bwd_coop8,
+        _ => return None,
+    };
+    let fits = caps.subgroup_size_fits(f * f / 8) && caps.subgroup_shuffle;
+    (fits && gpu.supports(kernels.0) && gpu.supports(kernels.1)).then_some(kernels)
+}
+
+/// Whether f16 inputs of head width `d`, `nq` query and `nk` key rows over `segments`
+/// segments, take the cooperative-matrix backward kernels on this device: where it has them
+/// and both sides average at least [`COOP_MIN_ROWS_PER_SEGMENT`] rows per segment (each
+/// kernel owns blocks of 32 rows of one side and stages tiles of 32 of the other).
+pub fn coop_backward_chosen(gpu: &Gpu, d: usize, nq: usize, nk: usize, segments: usize) -> bool {
+    let enough = COOP_MIN_ROWS_PER_SEGMENT * segments;
+    nq >= enough && nk >= enough && coop_backward_kernels(gpu, d).is_some()
+}
+
+/// Which backward kernels f16 inputs of head width `d` run on this device, for `velox info`
+/// and the benchmarks (segments of at least [`COOP_MIN_ROWS_PER_SEGMENT`] rows on average).
+pub fn f16_backward_variant(gpu: &Gpu, d: usize) -> String {
+    if coop_backward_kernels(gpu, d).is_some() {
+        format!(
+            "cooperative-matrix: S, dP = dO V^T, dV += P^T dO, dK += dS^T Q and dQ += dS K on f16 \
+             fragments, f32 row statistics, dO, P and dS rounded to f16; blocks of \
+             {COOP_BWD_BLOCK} rows, no atomics"
+        )
+    } else {
+        format!("{}; f16 inputs widened to f32, f32 arithmetic", portable_variant(gpu, d, DType::F16))
+    }
 }
 
 /// Segments averaging fewer query rows than this (the encoder's per-cell cross-attention has
@@ -564,7 +618,12 @@ pub fn attention_backward_into(
     }
     let delta = Tensor::empty(&gpu, &[nq, h], DType::F32)?;
     let kern = kernels_for(d).expect("checked");
+    let coop = q.dtype() == DType::F16 && coop_backward_chosen(&gpu, d, nq, nk, seg.count());
     let (dq_kernel, dkv_kernel, block) = match cpu_kernels(&gpu, d, q.dtype()) {
+        _ if coop => {
+            let (dq, dkv) = coop_backward_kernels(&gpu, d).expect("chosen");
+            (dq, dkv, COOP_BWD_BLOCK)
+        }
         Some(cpu) => (cpu.dq, cpu.dkv, CPU_BLOCK),
         None if q.dtype() == DType::F16 => (kern.dq_f16, kern.dkv_f16, BLOCK),
         None => (kern.dq, kern.dkv, BLOCK),

@@ -196,6 +196,14 @@ pub fn run(gpu: &Gpu, sizes: SizeSet, repeats: u32) -> Result<Vec<Record>> {
         let bwd_bytes = |elem: f64| {
             elem * (2.0 * q_vals + 2.0 * kv_vals) + 4.0 * q_vals + lse + 4.0 * (q_vals + 2.0 * kv_vals)
         };
+        let coop_bwd = attention::coop_backward_chosen(gpu, d, nq, nk, case.q_lens.len());
+        let f16_bwd_name =
+            if coop_bwd { format!("f16 coop{}", attention::COOP_BWD_BLOCK) } else { "f16".to_string() };
+        let f16_bwd_kernel = if coop_bwd {
+            attention::f16_backward_variant(gpu, d)
+        } else {
+            attention::portable_variant(gpu, d, DType::F16).to_string()
+        };
         let portable = attention::portable_variant(gpu, d, DType::F32);
         let f16_fwd_kernel = attention::f16_forward_variant(gpu, d);
         for (pass, precision, ms, min, f, got, want, bytes, kernel) in [
@@ -224,14 +232,14 @@ pub fn run(gpu: &Gpu, sizes: SizeSet, repeats: u32) -> Result<Vec<Record>> {
             ),
             (
                 "bwd",
-                "f16",
+                f16_bwd_name.as_str(),
                 bwd16_ms,
                 bwd16_min,
                 2.5 * flops,
                 &bwd16_got,
                 &bwd_want,
                 bwd_bytes(2.0),
-                attention::portable_variant(gpu, d, DType::F16).to_string(),
+                f16_bwd_kernel,
             ),
         ] {
             let tflops = f / (ms * 1e-3) / 1e12;
