@@ -444,7 +444,7 @@ fn product(
     // The CPU kernel has tiles enough for a CPU's threads, and K pieces would break its
     // multiples of 4.
     let splits = if kernel.is_cpu() { 1 } else { split_k(p.batch, tiles, p.k) };
-    if splits > 1 && kernel.takes_bias() {
+    if splits > 1 {
         let grid = [groups[0] as u32, groups[1] as u32];
         split_k_into(rec, kernel, grid, [a, b, out], &p, params, splits, accumulate)?;
         return add_bias(rec, out, bias);
@@ -506,8 +506,8 @@ fn split_k(batch: usize, tiles: usize, k: usize) -> usize {
     (SPLIT_TARGET_GROUPS / tiles).min(k / SPLIT_MIN_K).clamp(1, SPLIT_MAX)
 }
 
-/// A product split along K: piece z of `chunk = K / splits` (the last piece also takes the
-/// remainder, in a second dispatch) is a batch entry whose operands start z * chunk along K,
+/// A product split along K: piece z of `chunk = K / splits` (a multiple of 8 on the
+/// cooperative-matrix kernels; the last piece also takes the remainder, in a second dispatch) is a batch entry whose operands start z * chunk along K,
 /// written to its own slice of a `[pieces, M, N]` buffer; the pieces are then summed into
 /// `out` (added to it when accumulating).
 #[allow(clippy::too_many_arguments)]
@@ -521,7 +521,12 @@ fn split_k_into(
     splits: usize,
     accumulate: bool,
 ) -> Result<()> {
-    let chunk = p.k / splits;
+    // The cooperative-matrix kernels read 8 halves at a time from offsets that are multiples
+    // of 8: their pieces start at multiples of 8 along K.
+    let chunk = match kernel {
+        MatmulKernel::Coop(_) => p.k / splits / 8 * 8,
+        MatmulKernel::Tiled(_) => p.k / splits,
+    };
     let rem = p.k - chunk * splits;
     let pieces = splits + (rem > 0) as usize;
     let partial = Tensor::empty(a.gpu(), &[pieces, p.m, p.n], DType::F32)?;

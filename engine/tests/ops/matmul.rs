@@ -382,6 +382,31 @@ fn long_k_products_are_split_along_k_with(narrow: NarrowMatmul) {
 }
 
 #[test]
+fn a_weight_gradient_on_cooperative_matrices_is_split_along_k() {
+    // The weight gradient of f16 training (x^T dy, one 128x128 tile over K = 10000 rows) runs on
+    // the cooperative-matrix kernel where the device has one, cut into pieces along K like the
+    // tiled kernels' products: pieces starting at multiples of 8 (its 16-byte reads), a tail
+    // piece, and the sum. Elsewhere the tiled f16 kernel splits it the same way.
+    let gpu = gpu();
+    let (m, n, k) = (64, 96, 10_000);
+    let mut rng = Rng::new(12);
+    let x = round_f16(&rng.normal_vec(k * m));
+    let dy = round_f16(&rng.normal_vec(k * n));
+    let tx = Tensor::from_slice(&gpu, &[k, m], &x).unwrap();
+    let tdy = Tensor::from_slice(&gpu, &[k, n], &dy).unwrap();
+    let mut rec = gpu.recorder().unwrap();
+    let before = rec.dispatch_count();
+    let got = matmul(&mut rec, &tx, &tdy, true, false).unwrap();
+    let dispatches = rec.dispatch_count() - before;
+    rec.submit().unwrap();
+    // 39 pieces of 256 rows (10000 / 39, rounded down to a multiple of 8), a tail of 16, a sum.
+    assert!(dispatches >= 3, "{dispatches} dispatches: the product was not split");
+    let wide = |v: &[f16]| v.iter().map(|h| h.to_f64()).collect::<Vec<_>>();
+    let (want, _) = reference::matmul(&wide(&x), &[k, m], &wide(&dy), &[k, n], true, false).unwrap();
+    assert_nmse("split weight gradient", &got.read::<f32>().unwrap(), &want, F16_ROUNDED_BOUND);
+}
+
+#[test]
 fn empty_products() {
     for narrow in NARROW_CHOICES {
         eprintln!("narrow f32 products on the {narrow:?} kernels");
