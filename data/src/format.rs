@@ -238,9 +238,34 @@ pub fn write_ply(path: &Path, points: &[[f32; 7]]) -> DataResult<()> {
     w.flush().map_err(|e| write_error(path, e))
 }
 
-/// The 4D colour cloud of a scene folder (its `points.ply`) or of a PLY file of float `x y z r
-/// g b tau` ([`read_ply`] validates it), as host rows of 7.
+/// The 4D colour cloud of a scene folder (its `points.ply`), of a PLY file of float `x y z r
+/// g b tau` ([`read_ply`] validates it), or of a video folder (`camera.json` and RGBD frames,
+/// as `velox import rgbd` and `velox import video` write them: back-projected by
+/// [`crate::rgbd::rgbd_cloud`], at most [`crate::rgbd::DEFAULT_POINTS`] of its pixels, seed 0),
+/// as host rows of 7. A capture imported in windows is refused with the windows' names: each
+/// is a 24-frame clip of its own.
 pub fn read_cloud(path: &Path) -> DataResult<Vec<f32>> {
+    if path.is_dir() && !path.join("points.ply").exists() {
+        if path.join("camera.json").exists() {
+            let video = crate::rgbd::read_video_folder(path)?;
+            let cloud = crate::rgbd::rgbd_cloud(&video, crate::rgbd::DEFAULT_POINTS, 0)?;
+            return Ok(cloud.iter().flatten().copied().collect());
+        }
+        if path.join("window_000").is_dir() {
+            let windows = std::fs::read_dir(path)
+                .map_err(|e| io(path, e))?
+                .filter_map(|e| e.ok()?.file_name().into_string().ok())
+                .filter(|n| n.starts_with("window_"))
+                .count();
+            return Err(DataError::Invalid(format!(
+                "{} holds a capture imported in {windows} windows of 24 frames: give one window \
+                 ({}/window_000 to window_{:03}), each a clip of its own",
+                path.display(),
+                path.display(),
+                windows.saturating_sub(1)
+            )));
+        }
+    }
     let file = if path.is_dir() { path.join("points.ply") } else { path.to_path_buf() };
     Ok(read_ply(&file)?.iter().flatten().copied().collect())
 }

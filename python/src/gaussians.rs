@@ -273,7 +273,8 @@ fn write_image(py: Python<'_>, path: std::path::PathBuf, rgb: &Bound<'_, PyAny>)
 }
 
 /// `velox.data.read_cloud(path)`: the 4D colour point cloud [N, 7] (x, y, z, r, g, b, tau) of
-/// a scene folder (its points.ply) or of a PLY file, validated.
+/// a scene folder (its points.ply), of a PLY file, or of an imported video folder (its RGBD
+/// frames back-projected), validated.
 #[pyfunction]
 fn read_cloud<'py>(py: Python<'py>, path: std::path::PathBuf) -> PyResult<Bound<'py, PyAny>> {
     let rows = py.detach(|| velox_data::format::read_cloud(&path)).map_err(errors::data)?;

@@ -85,7 +85,9 @@ pub struct CommonArgs {
     /// Autoencoder checkpoint (safetensors, as `Autoencoder::save` writes it).
     #[arg(long)]
     checkpoint: PathBuf,
-    /// The input 4D cloud: a scene folder (its points.ply) or a PLY of float x y z r g b tau.
+    /// The input 4D cloud: a scene folder (its points.ply), a PLY of float x y z r g b tau, or
+    /// a video folder from `velox import rgbd` or `velox import video` (its RGBD frames
+    /// back-projected: at most 100000 of their pixels).
     #[arg(long)]
     cloud: PathBuf,
     /// Output folder.
@@ -249,8 +251,8 @@ pub fn parse_frames(s: &str) -> Result<Frames, String> {
     Ok(Frames(frames))
 }
 
-/// The cloud of a scene folder (its points.ply) or of a PLY file, as host rows (`read_ply`
-/// validates them).
+/// The cloud of a scene folder (its points.ply), a PLY file or a video folder, as host rows
+/// (`velox_data::format::read_cloud` validates them).
 pub fn read_cloud(path: &Path) -> CliResult<Vec<f32>> {
     Ok(velox_data::format::read_cloud(path).map_err(|e| format!("reading the cloud: {e}"))?)
 }

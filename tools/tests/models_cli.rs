@@ -95,6 +95,34 @@ fn decode_points_writes_a_cloud_per_frame() {
         ["--out", arg(&euler), "--frames", "23", "--points", "64", "--steps", "2", "--sampler", "euler"];
     ok(&velox(&[&args[..], &rest[..]].concat()));
     assert_eq!(ply_vertices(&euler.join("points_f23.ply")).1, 64);
+
+    // A video folder as `velox import rgbd` writes it (RGBD frames and camera.json): its
+    // frames are back-projected into the cloud that is encoded. The scene's own video, with
+    // its camera beside it, is one.
+    let video = dir.join("video_folder");
+    std::fs::create_dir_all(&video).unwrap();
+    for entry in std::fs::read_dir(scene.join("video")).unwrap() {
+        let entry = entry.unwrap();
+        std::fs::copy(entry.path(), video.join(entry.file_name())).unwrap();
+    }
+    let cameras: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(scene.join("cameras.json")).unwrap()).unwrap();
+    std::fs::write(video.join("camera.json"), cameras["video"].to_string()).unwrap();
+    let from_video = dir.join("points_video");
+    let args = ["decode", "points", "--checkpoint", arg(&ckpt), "--cloud", arg(&video)];
+    let rest = ["--out", arg(&from_video), "--frames", "3", "--points", "64", "--steps", "2"];
+    let text = ok(&velox(&[&args[..], &rest[..]].concat()));
+    assert!(text.contains("wrote 1 file"), "{text}");
+    assert_eq!(ply_vertices(&from_video.join("points_f03.ply")).1, 64);
+    // A capture imported in windows names them: each is a clip of its own.
+    let windowed = dir.join("windowed");
+    for w in ["window_000", "window_001"] {
+        std::fs::create_dir_all(windowed.join(w)).unwrap();
+    }
+    let args = ["decode", "points", "--checkpoint", arg(&ckpt), "--cloud", arg(&windowed)];
+    let out = velox(&[&args[..], &["--out", arg(&dir.join("points_windowed"))][..]].concat());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("2 windows") && err.contains("window_001"), "{err}");
 }
 
 #[test]
