@@ -231,6 +231,7 @@ impl ParamBuilder {
             half_views,
             training: Precision::F32,
             loss_scale: LossScale::default(),
+            zero_pending: std::sync::atomic::AtomicBool::new(false),
         };
         let mut rec = gpu.recorder()?;
         store.sync_half(&mut rec)?;
@@ -373,6 +374,9 @@ pub struct ParamStore {
     training: Precision,
     /// The loss scale of f16 training.
     loss_scale: LossScale,
+    /// Set by [`ParamStore::zero_grads_first`]: the next [`ParamStore::recorder`] records the
+    /// zeroing of the gradients first.
+    zero_pending: std::sync::atomic::AtomicBool,
 }
 
 /// Dynamic loss scaling for f16 training (Micikevicius et al., "Mixed Precision Training"):
@@ -482,7 +486,29 @@ impl ParamStore {
     pub fn recorder(&self) -> Result<Recorder> {
         let mut rec = self.params.gpu().recorder()?;
         rec.set_precision(self.training);
+        if self.zero_pending.swap(false, std::sync::atomic::Ordering::Relaxed) {
+            self.zero_grads(&mut rec)?;
+        }
         Ok(rec)
+    }
+
+    /// Has the next training recording ([`ParamStore::recorder`]) zero the gradients before
+    /// anything else it records: a step's first pass then needs no submit of its own for it.
+    /// Every model's passes start from that recorder; [`ParamStore::settle_zero`] zeroes them
+    /// at once where none was made (a step that ran no micro-batch).
+    pub fn zero_grads_first(&self) {
+        self.zero_pending.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// Zeroes the gradients now if [`ParamStore::zero_grads_first`] asked for it and no
+    /// recorder has done it since.
+    pub fn settle_zero(&self) -> Result<()> {
+        if self.zero_pending.swap(false, std::sync::atomic::Ordering::Relaxed) {
+            let mut rec = self.params.gpu().recorder()?;
+            self.zero_grads(&mut rec)?;
+            rec.submit()?;
+        }
+        Ok(())
     }
 
     /// The loss scale of f16 training (its state; f32 training does not use it).

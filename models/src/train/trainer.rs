@@ -199,8 +199,8 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
         first..first + b
     }
 
-    /// Starts step `step` (or runs it again after [`Finished::Overflowed`]): zeroes the
-    /// gradients. The parameters must be at step `step - 1`.
+    /// Starts step `step` (or runs it again after [`Finished::Overflowed`]): the gradients
+    /// are zeroed by the step's first recording. The parameters must be at step `step - 1`.
     pub fn begin_step(&mut self, step: u64) -> Result<()> {
         let at = self.model.store().step();
         if at + 1 != step {
@@ -212,10 +212,8 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
         self.losses = Losses::default();
         self.time = TimeSplit::default();
         self.failed = None;
-        let gpu = self.model.store().flat_grads().gpu().clone();
-        let mut rec = gpu.recorder()?;
-        self.model.store().zero_grads(&mut rec)?;
-        rec.submit()?;
+        // Recorded first by the step's first pass (no submit of its own).
+        self.model.store().zero_grads_first();
         Ok(())
     }
 
@@ -296,6 +294,8 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
         for term in terms.iter_mut().skip(1) {
             term.1 = self.collective.all_gather_f64(term.1)?.iter().fold(0.0, |a, b| a + b);
         }
+        // A process whose micro-batches recorded nothing still brings zeros.
+        self.model.store().settle_zero()?;
         self.collective.all_reduce_sum(self.model.store().flat_grads())?;
         self.time.all_reduce = t.elapsed().as_secs_f64();
 

@@ -29,9 +29,9 @@ use velox_engine::ops::adamw::AdamWConfig;
 use velox_engine::ops::attention::Segments;
 use velox_engine::ops::binary::{binary, binary_into, Binary};
 use velox_engine::ops::fill::fill;
-use velox_engine::ops::raster::{render, render_backward, Camera, Gaussians};
+use velox_engine::ops::raster::{project, rasterize, render_backward, Camera, Gaussians, Rendered};
 use velox_engine::rng::Rng;
-use velox_engine::{DType, Error, Gpu, Precision, Result, Tensor};
+use velox_engine::{DType, Error, Gpu, Precision, Recorder, Result, Tensor};
 
 use crate::config::AutoencoderConfig;
 use crate::layers::Loss;
@@ -364,10 +364,11 @@ impl Autoencoder {
             segments: Segments::from_lengths(&gpu, &voxel_counts, &token_counts)?,
         };
         let (gaussians, g_cache) = self.gaussians.forward_frames(&mut rec, &s_noisy, &c, &voxel_frames)?;
-        rec.submit()?;
 
-        // Each frame rendered from `views_per_step` supervision views (spread evenly from the
-        // drawn one) and compared: a scene's image loss is the mean over its frames and views.
+        // Each frame seen from `views_per_step` supervision views (spread evenly from the
+        // drawn one), projected in this recording: its one submit gives the projections' tile
+        // pairs, which size the rasterisation, recorded with the backward pass. A scene's image
+        // loss is the mean over its frames and views.
         let per_voxel = self.cfg.gaussians.gaussians_per_voxel;
         let mut frame_gaussians = Vec::with_capacity(groups.len());
         let mut first = 0;
@@ -375,32 +376,43 @@ impl Autoencoder {
             frame_gaussians.push((first * per_voxel, count * per_voxel));
             first += count;
         }
-        let mut rendered = Vec::new();
+        let mut projected = Vec::new();
         let mut group = 0;
         for (scene, (frames, view)) in scenes.iter().zip(&plans) {
             let cams = scene.cameras.len();
             let nv = self.cfg.views_per_step.clamp(1, cams);
             for &frame in frames {
                 let (start, len) = frame_gaussians[group];
-                let g = slice_gaussians(&gpu, &gaussians, start, len)?;
+                let g = slice_gaussians(&mut rec, &gaussians, start, len)?;
                 let mut views = Vec::with_capacity(nv);
                 for i in 0..nv {
                     let v = (view + i * cams / nv) % cams;
                     let cam = &scene.cameras[v];
                     let (h, w) = (cam.height as usize, cam.width as usize);
                     let gt = Tensor::from_slice(&gpu, &[h, w, 3], &scene.images[frame * cams + v])?;
-                    views.push((render(&gpu, &g, cam, scene.background)?, gt));
+                    views.push((project(&mut rec, &g, cam)?, gt, scene.background));
                 }
-                rendered.push((g, views, weight / (frames.len() * nv) as f32));
+                projected.push((g, views, weight / (frames.len() * nv) as f32));
                 group += 1;
             }
         }
+        rec.submit()?;
 
-        // Backward: image losses and the rasteriser per frame into the Gaussians' gradient,
-        // the Gaussian decoder, the surface decoder, then the encoder.
+        // The views' rasterisation (the forward pass's last step, sized by the projections),
+        // then backward: image losses and the rasteriser per frame into the Gaussians'
+        // gradient, the Gaussian decoder, the surface decoder, then the encoder.
         let forward_done = Instant::now();
         self.pass_seconds.forward += (forward_done - started).as_secs_f64();
         let mut rec = self.store.recorder()?;
+        let mut rendered = Vec::with_capacity(projected.len());
+        for (g, views, image_weight) in projected {
+            let mut images = Vec::with_capacity(views.len());
+            for (projected, gt, background) in views {
+                let image = rasterize(&mut rec, &projected, background)?;
+                images.push((Rendered { projected, image }, gt));
+            }
+            rendered.push((g, images, image_weight));
+        }
         let image_loss = Tensor::empty(&gpu, &[1], DType::F32)?;
         let mut image_loss_started = false;
         // The alpha and depth gradients are zero: one zero image per size, for every view.
@@ -515,15 +527,13 @@ crate::model::model!(Autoencoder, AutoencoderConfig, "autoencoder");
 
 /// Gaussians `start .. start + len` of a set, as a set of their own (the whole set when it is
 /// all of it).
-fn slice_gaussians(gpu: &Gpu, g: &Gaussians, start: usize, len: usize) -> Result<Gaussians> {
+fn slice_gaussians(rec: &mut Recorder, g: &Gaussians, start: usize, len: usize) -> Result<Gaussians> {
     if start == 0 && len == g.len() {
         return Ok(g.clone());
     }
-    let out = Gaussians::empty(gpu, len)?;
-    let mut rec = gpu.recorder()?;
+    let out = Gaussians::empty(rec.gpu(), len)?;
     for (src, dst) in g.fields().into_iter().zip(out.fields()) {
         rec.copy_rows(src, start, dst, 0, len)?;
     }
-    rec.submit()?;
     Ok(out)
 }
