@@ -251,11 +251,13 @@ pub fn matmul_variant(gpu: &Gpu, dtype: DType) -> &'static str {
         }
         DType::F16 if coop_kernel(gpu.caps()).is_some_and(|k| gpu.supports(k)) => {
             if coop_kernel(gpu.caps()) == Some(MATMUL_COOP_MAIN) {
-                "cooperative-matrix f16 x f16 -> f32: 128x128 tile, 16x16x16 fragments, k step 32 \
-                 (tiled f16 fallback where an operand's contiguous axis is not a multiple of 8)"
+                "cooperative-matrix f16 x f16 -> f32: 128x128 tile, 16x16x16 fragments, k step 32, \
+                 split along K where few tiles walk a long K (tiled f16 fallback where an operand's \
+                 contiguous axis is not a multiple of 8)"
             } else {
-                "cooperative-matrix f16 x f16 -> f32: 128x128 tile, 8x8x8 fragments, k step 16 \
-                 (tiled f16 fallback where an operand's contiguous axis is not a multiple of 8)"
+                "cooperative-matrix f16 x f16 -> f32: 128x128 tile, 8x8x8 fragments, k step 16, \
+                 split along K where few tiles walk a long K (tiled f16 fallback where an operand's \
+                 contiguous axis is not a multiple of 8)"
             }
         }
         DType::F16 => "tiled f16 x f16 -> f32 (f16 read as packed words, f32 accumulation)",
