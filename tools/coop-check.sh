@@ -8,8 +8,10 @@
 # $CHROOT (default /opt/velox-sid) with mesa-vulkan-drivers, spirv-tools and the validation
 # layers, then bind-mounts the repository into it and, inside it, checks every SPIR-V module with
 # sid's spirv-val (tools/spirv-check.sh: the only one here that knows cooperative matrices) and
-# runs the test binaries built here (`cargo test --release --no-run`). VELOX_VALIDATE=1 runs them
-# under sid's validation layer, which knows VK_KHR_cooperative_matrix (Debian 12's does not).
+# runs the test binaries built here (`cargo test --release --no-run`) with the GPU kernel
+# variants (VELOX_CPU_KERNELS=0: on a CPU device the engine otherwise keeps its CPU kernels,
+# faster there than emulated fragments). VELOX_VALIDATE=1 runs them under sid's validation
+# layer, which knows VK_KHR_cooperative_matrix (Debian 12's does not).
 #
 #   tools/coop-check.sh                  # every test binary
 #   tools/coop-check.sh ops training     # only the binaries of these names
@@ -62,7 +64,7 @@ cd "$repo"
 mapfile -t bins < <(cargo test --release --no-run 2>&1 | grep -o 'target/release/deps/[A-Za-z0-9_-]*' | sort -u)
 [ ${#bins[@]} -gt 0 ] || { echo "coop-check: cargo test --no-run built no test binaries" >&2; exit 1; }
 echo "device inside the chroot:"
-$SUDO chroot "$chroot_dir" sh -c "cd '$repo' && ./target/release/velox info | grep -E 'Chosen|coop matrices|  (attention|matmul) f16'"
+$SUDO chroot "$chroot_dir" env VELOX_CPU_KERNELS=0 sh -c "cd '$repo' && ./target/release/velox info | grep -E 'Chosen|coop matrices|  (attention|matmul) f16'"
 failed=0
 $SUDO chroot "$chroot_dir" sh -c "cd '$repo' && tools/spirv-check.sh" || failed=1
 export VK_LAYER_SETTINGS_PATH=$repo/vk_layer_settings.txt
@@ -71,7 +73,7 @@ trap 'rm -f "$log"' EXIT
 run_bin() { # binary, test filter (may be empty)
     echo "== $(basename "$1") $2"
     local rc=0
-    $SUDO chroot "$chroot_dir" env VELOX_VALIDATE="${VELOX_VALIDATE:-}" \
+    $SUDO chroot "$chroot_dir" env VELOX_CPU_KERNELS=0 VELOX_VALIDATE="${VELOX_VALIDATE:-}" \
         VK_LAYER_SETTINGS_PATH="$VK_LAYER_SETTINGS_PATH" sh -c "cd '$repo' && ./$1 -q $2" 2>&1 |
         tee "$log" || rc=${PIPESTATUS[0]}
     # sid's validation layer sometimes crashes in its own teardown at exit (abort or segfault

@@ -106,8 +106,9 @@ pub struct TokenData {
     pub checkpoint: Option<PathBuf>,
 }
 
-/// f16 where the device multiplies f16 on cooperative matrices (tensor cores), else f32: the
-/// portable f16 kernels save memory but not time.
+/// f16 where the device multiplies f16 on cooperative matrices (a GPU's tensor cores; not a
+/// CPU device's emulated ones, see `matmul::coop_wanted`), else f32: the portable f16 kernels
+/// save memory but not time.
 pub fn default_training_precision(gpu: &Gpu) -> Precision {
     match velox_engine::ops::matmul::coop_kernel(gpu.caps()) {
         Some(k) if gpu.supports(k) => Precision::F16,

@@ -360,6 +360,9 @@ pub const COOP_BLOCKS_8: [usize; 2] = [32, 64];
 /// does not fit in workgroup memory gives way to the short one.
 pub fn coop_forward_kernel(gpu: &Gpu, d: usize, tall: bool) -> Option<(ForwardKernel, usize)> {
     let caps = gpu.caps();
+    if !crate::ops::matmul::coop_wanted(caps) {
+        return None;
+    }
     let kern = kernels_for(d)?;
     let [f, _, _] = caps.coop_matrix_f16?;
     let (kernels, blocks) = match f {
@@ -382,9 +385,13 @@ pub const COOP_BWD_BLOCK: usize = 32;
 
 /// The cooperative-matrix backward kernels (dq, then dk and dv) for f16 inputs of head width
 /// `d` on this device, if it has them: the forward kernels' conditions (F = 16 or 8, subgroups
-/// of F*F/8 invocations, shuffles), and the kernels' workgroup memory.
+/// of F*F/8 invocations, shuffles, not a CPU device's kernels), and the kernels' workgroup
+/// memory.
 fn coop_backward_kernels(gpu: &Gpu, d: usize) -> Option<(DqKernel, DkvKernel)> {
     let caps = gpu.caps();
+    if !crate::ops::matmul::coop_wanted(caps) {
+        return None;
+    }
     let kern = kernels_for(d)?;
     let [f, _, _] = caps.coop_matrix_f16?;
     let kernels = match f {

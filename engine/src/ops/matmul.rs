@@ -209,6 +209,9 @@ pub fn plan(a: &[usize], b: &[usize], trans_a: bool, trans_b: bool) -> Result<Pl
 /// fragments of the 128x128 tile, so it is chosen only where a pipeline can have that size: the
 /// device's only one, or one it can be asked for (the pipeline then requests it).
 pub fn coop_kernel(caps: &Caps) -> Option<CoopKernel> {
+    if !coop_wanted(caps) {
+        return None;
+    }
     let [f, _, _] = caps.coop_matrix_f16?;
     let (kernel, shared) = match f {
         16 => (MATMUL_COOP_MAIN, COOP_SHARED_BYTES_16),
@@ -218,6 +221,17 @@ pub fn coop_kernel(caps: &Caps) -> Option<CoopKernel> {
     let sg = f * f / 8;
     let fits = caps.subgroup_size_fits(sg) && caps.max_shared_memory >= shared;
     fits.then_some(kernel)
+}
+
+/// Whether the cooperative-matrix kernels (matmul, attention) may be chosen on this device at
+/// all: not where the CPU kernel variants run (`Caps::cpu_kernels`, a CPU device unless
+/// `VELOX_CPU_KERNELS=0`). lavapipe from Mesa 26 offers 8x8x8 fragments, emulated: there the
+/// cooperative f16 matmul takes 2.9 ms at 256^3 where the tiled f16 kernel takes 1.9 and the
+/// CPU f32 kernel 0.72, and the cooperative attention 3 to 10 times the CPU kernels' time
+/// (docs/decisions/kernels.md). `VELOX_CPU_KERNELS=0` runs them there, which is how
+/// `tools/coop-check.sh` tests them.
+pub fn coop_wanted(caps: &Caps) -> bool {
+    !caps.cpu_kernels
 }
 
 /// Whether the device can run a cooperative-matrix matmul kernel at all.

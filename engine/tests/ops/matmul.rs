@@ -598,12 +598,18 @@ fn kernel_choice_follows_the_device() {
     }
     // A device like the H100: 16x16x16 f16 shapes, subgroups of exactly 32, 48 KiB shared.
     let mut h100 = caps.clone();
+    h100.cpu_kernels = false;
     h100.subgroup_size_control = false;
     h100.coop_matrix_f16 = Some([16, 16, 16]);
     h100.min_subgroup_size = 32;
     h100.max_subgroup_size = 32;
     h100.max_shared_memory = 49152;
     assert!(coop_eligible(&h100));
+    // The same fragments on a CPU device that runs the CPU kernel variants (lavapipe 26
+    // emulates them, slower than its portable kernels): not chosen.
+    let mut emulated = h100.clone();
+    emulated.cpu_kernels = true;
+    assert!(!coop_eligible(&emulated));
     // Subgroups of 64 (AMD) or a variable size: the kernel's layout needs exactly 32.
     let mut amd = h100.clone();
     amd.min_subgroup_size = 64;
@@ -625,8 +631,10 @@ fn kernel_choice_follows_the_device() {
     no_coop.coop_matrix_f16 = None;
     assert!(!coop_eligible(&no_coop));
     assert_eq!(coop_kernel(&h100), Some(MATMUL_COOP_MAIN));
-    // A device like lavapipe from Mesa 26: 8x8x8 shapes, subgroups of 8, 32 KiB shared.
+    // A device like lavapipe from Mesa 26: 8x8x8 shapes, subgroups of 8, 32 KiB shared, with
+    // the GPU kernel variants (VELOX_CPU_KERNELS=0, as tools/coop-check.sh runs it).
     let mut lvp = caps.clone();
+    lvp.cpu_kernels = false;
     lvp.coop_matrix_f16 = Some([8, 8, 8]);
     lvp.min_subgroup_size = 8;
     lvp.max_subgroup_size = 8;
