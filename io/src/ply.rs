@@ -10,8 +10,9 @@
 //!
 //! Higher spherical harmonics (`f_rest_0..`, degree 1 to 3: 9, 24 or 45 of them, after
 //! f_dc_2 as 3D Gaussian splatting writes them) are read and written by [`read_sh`] and
-//! [`to_bytes_sh`] as an [`Sh`] beside the Gaussians (the renderer draws degree 0, the viewer
-//! every degree); [`read`] keeps the degree-0 colour alone.
+//! [`to_bytes_sh`] as an [`Sh`] beside the Gaussians (the renderer colours each Gaussian along
+//! the view from them, `raster::sh_colours`, and so does the viewer); [`read`] keeps the
+//! degree-0 colour alone.
 
 use std::path::Path;
 
@@ -103,7 +104,7 @@ pub struct Sh {
 impl Sh {
     /// Coefficients per channel of a Gaussian (degree 0 excluded).
     pub fn per_channel(degree: usize) -> usize {
-        (degree + 1) * (degree + 1) - 1
+        velox_engine::ops::raster::sh::per_channel(degree)
     }
     /// Values per Gaussian.
     pub fn stride(&self) -> usize {
@@ -111,57 +112,9 @@ impl Sh {
     }
 }
 
-/// The SH basis' constants (3D Gaussian splatting's `sh_utils`).
-const SH_C1: f64 = 0.4886025119029199;
-const SH_C2: [f64; 5] =
-    [1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396];
-const SH_C3: [f64; 7] = [
-    -0.5900435899266435,
-    2.890611442640554,
-    -0.4570457994644658,
-    0.3731763325901154,
-    -0.4570457994644658,
-    1.445305721320277,
-    -0.5900435899266435,
-];
-
-/// The colour a Gaussian shows along the unit direction `dir` (from the camera to its mean):
-/// its degree-0 colour `base` (0.5 + C0 f_dc) plus the higher degrees of `rest` (its `3 K`
-/// coefficients in the PLY's order), clamped below at 0 as 3D Gaussian splatting clamps it.
-/// `velox view` evaluates the same sum on the GPU.
-pub fn sh_colour(base: [f32; 3], rest: &[f32], degree: usize, dir: [f64; 3]) -> [f64; 3] {
-    let k = Sh::per_channel(degree);
-    let [x, y, z] = dir;
-    let (xx, yy, zz) = (x * x, y * y, z * z);
-    let mut basis = Vec::with_capacity(k);
-    if degree >= 1 {
-        basis.extend([-SH_C1 * y, SH_C1 * z, -SH_C1 * x]);
-    }
-    if degree >= 2 {
-        basis.extend([
-            SH_C2[0] * x * y,
-            SH_C2[1] * y * z,
-            SH_C2[2] * (2.0 * zz - xx - yy),
-            SH_C2[3] * x * z,
-            SH_C2[4] * (xx - yy),
-        ]);
-    }
-    if degree >= 3 {
-        basis.extend([
-            SH_C3[0] * y * (3.0 * xx - yy),
-            SH_C3[1] * x * y * z,
-            SH_C3[2] * y * (4.0 * zz - xx - yy),
-            SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
-            SH_C3[4] * x * (4.0 * zz - xx - yy),
-            SH_C3[5] * z * (xx - yy),
-            SH_C3[6] * x * (xx - 3.0 * yy),
-        ]);
-    }
-    std::array::from_fn(|c| {
-        let sum: f64 = basis.iter().enumerate().map(|(j, b)| b * rest[c * k + j] as f64).sum();
-        (base[c] as f64 + sum).max(0.0)
-    })
-}
+/// The colour a Gaussian shows along a unit direction, its higher harmonics in this order:
+/// the engine's f64 reference, which its kernel and `velox view`'s shader are tested against.
+pub use velox_engine::ops::raster::reference::sh_colour;
 
 /// Reads Gaussians from `path`.
 pub fn read(path: &Path) -> Result<GaussianData> {

@@ -7,11 +7,12 @@
 //! round trip may move the last bit. A dict given to a function holds one pair or the other.
 //! Gaussians with higher spherical harmonics (degrees 1 to 3) also hold `sh` [N, 3, K]
 //! (K = 3, 8 or 15 coefficients past degree 0 per channel, as the PLY's f_rest orders them),
-//! which `read_gaussians` gives and `write_gaussians` writes; `render` draws degree 0.
+//! which `read_gaussians` gives and `write_gaussians` writes and `render` draws along the view.
 
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
-use velox_engine::ops::raster::{render as raster, Camera, GaussianData};
+use velox_engine::ops::raster::{render_view, Camera, GaussianData};
+use velox_engine::Tensor;
 
 use crate::arrays::{f32_array, to_array};
 use crate::device::{gpu_of, Device};
@@ -202,7 +203,7 @@ pub fn camera_of(camera: &Bound<'_, PyAny>, width: u32, height: u32) -> PyResult
 
 /// `velox.render(gaussians, camera, width, height, background=(0, 0, 0), alpha=False,
 /// depth=False, device=None)`: RGB [H, W, 3] float32, the pixels `velox render` writes (before
-/// they are rounded to 8 bits); with `alpha` or `depth`, a tuple that adds the coverage [H, W]
+/// they are rounded to 8 bits; `sh` in the dict colours each Gaussian along the view); with `alpha` or `depth`, a tuple that adds the coverage [H, W]
 /// and the depth [H, W] (blended depth over coverage, 0 where nothing is drawn), in that
 /// order.
 #[pyfunction]
@@ -220,6 +221,7 @@ fn render<'py>(
     device: Option<&Bound<'py, Device>>,
 ) -> PyResult<Bound<'py, PyAny>> {
     let g = from_dict(gaussians)?;
+    let sh = sh_of_dict(gaussians, g.len())?;
     let cam = camera_of(camera, width, height)?;
     let bg = [background.0, background.1, background.2];
     if bg.iter().any(|v| !v.is_finite()) {
@@ -228,7 +230,12 @@ fn render<'py>(
     let gpu = gpu_of(py, device)?;
     let (rgb, a, z) = py
         .detach(|| -> velox_engine::Result<_> {
-            let r = raster(&gpu, &g.upload(&gpu)?, &cam, bg)?;
+            let rest = match &sh {
+                Some(sh) => Some(Tensor::from_slice(&gpu, &[g.len(), sh.stride()], &sh.coeffs)?),
+                None => None,
+            };
+            let harmonics = rest.as_ref().zip(sh.as_ref().map(|sh| sh.degree));
+            let r = render_view(&gpu, &g.upload(&gpu)?, harmonics, &cam, bg)?;
             let rgb: Vec<f32> = r.image.rgb.read()?;
             let a: Vec<f32> = r.image.alpha.read()?;
             let d: Vec<f32> = r.image.depth.read()?;

@@ -98,7 +98,10 @@ def test_gaussians_pass_through_a_ply_to_the_bit(tmp_path):
 
 
 def test_a_render_has_the_pixels_of_velox_render(tmp_path):
-    velox.write_gaussians(tmp_path / "g.ply", random_gaussians())
+    # With spherical harmonics of degree 2: both draw them along each view.
+    g = random_gaussians()
+    g["sh"] = np.random.default_rng(4).uniform(-0.3, 0.3, (300, 3, 8)).astype(np.float32)
+    velox.write_gaussians(tmp_path / "g.ply", g)
     cli("render", tmp_path / "g.ply", "--out", tmp_path / "r", "--frames", 2, "--width", 40,
         "--height", 24, "--radius", 3, "--background", "0.2,0.3,0.4")
     frames = json.loads((tmp_path / "r" / "render.json").read_text())
@@ -115,6 +118,9 @@ def test_a_render_has_the_pixels_of_velox_render(tmp_path):
         png = velox.read_image(tmp_path / "r" / frame["png"])
         assert np.array_equal(to_rgb8(rgb), to_rgb8(png)), frame["png"]
         assert alpha.max() > 0.5 and 2.0 < depth[alpha > 0.5].mean() < 4.0
+        plain = velox.render({k: v for k, v in g.items() if k != "sh"}, cam, c["width"], c["height"],
+                             background=(0.2, 0.3, 0.4))
+        assert np.abs(plain - rgb).max() > 0.05, "the harmonics were drawn"
 
 
 def test_the_data_is_the_commands_byte_for_byte(dataset):

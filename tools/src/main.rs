@@ -76,8 +76,8 @@ enum Command {
         #[command(subcommand)]
         what: train::TrainCommand,
     },
-    /// Render Gaussians (a 3D Gaussian splatting PLY) from a camera orbit to PNG frames and
-    /// depth EXRs.
+    /// Render Gaussians (a 3D Gaussian splatting PLY, its spherical harmonics of degree 0 to 3
+    /// along each view) from a camera orbit to PNG frames and depth EXRs.
     Render(render::RenderArgs),
     /// Watch a 4D result in a browser: serves a WebGL2 viewer of per-frame Gaussians (decode,
     /// generate), decoded points or a dataset scene on 127.0.0.1, with a time slider, orbit

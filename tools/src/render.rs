@@ -5,8 +5,8 @@ use std::path::{Path, PathBuf};
 
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
-use velox_engine::ops::raster::{render, Camera};
-use velox_engine::Gpu;
+use velox_engine::ops::raster::{render_view, Camera};
+use velox_engine::{Gpu, Tensor};
 use velox_io::{image, ply, write_bytes};
 
 use crate::CliResult;
@@ -115,14 +115,20 @@ pub fn run(a: &RenderArgs) -> CliResult<()> {
         Some(scene) => vec![scene_camera(scene, a.view)?],
         None => (0..a.frames).map(|i| orbit_camera(a, i)).collect::<CliResult<_>>()?,
     };
-    let data = ply::read(&a.ply)?;
+    let (data, sh) = ply::read_sh(&a.ply)?;
     std::fs::create_dir_all(&a.out).map_err(|e| format!("creating {}: {e}", a.out.display()))?;
     let gpu = Gpu::new()?;
     let gaussians = data.upload(&gpu)?;
+    // Higher spherical harmonics (f_rest_*) colour each Gaussian along each view.
+    let harmonics = match &sh {
+        Some(sh) => Some((Tensor::from_slice(&gpu, &[data.len(), sh.stride()], &sh.coeffs)?, sh.degree)),
+        None => None,
+    };
     println!(
-        "rendering {} Gaussians from {} to {} frames of {}x{} on {}",
+        "rendering {} Gaussians from {}{} to {} frames of {}x{} on {}",
         data.len(),
         a.ply.display(),
+        sh.as_ref().map_or(String::new(), |sh| format!(" (spherical harmonics of degree {})", sh.degree)),
         cameras.len(),
         cameras[0].width,
         cameras[0].height,
@@ -136,7 +142,7 @@ pub fn run(a: &RenderArgs) -> CliResult<()> {
     let mut frames = Vec::new();
     let mut images = Vec::new();
     for (i, &cam) in (0u32..).zip(&cameras) {
-        let r = render(&gpu, &gaussians, &cam, a.background)?;
+        let r = render_view(&gpu, &gaussians, harmonics.as_ref().map(|(t, d)| (t, *d)), &cam, a.background)?;
         let stats = r.stats()?;
         let rgb: Vec<f32> = r.image.rgb.read()?;
         let png = a.out.join(format!("frame_{i:04}.png"));

@@ -465,3 +465,76 @@ fn gltf_batches_import_folders_and_lists_report_failures_and_resume() {
     assert!(String::from_utf8_lossy(&e.stderr).contains("no such file or folder"));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn render_draws_spherical_harmonics_along_each_view() {
+    // A 3D Gaussian splatting PLY with harmonics of degree 3: each frame equals the render of
+    // the same Gaussians with the colours baked for that frame's camera centre (the f64
+    // reference, on the host), to the 8-bit level; without the harmonics it does not.
+    use std::path::Path;
+    use velox_engine::ops::raster::GaussianData;
+    use velox_engine::rng::Rng;
+    use velox_io::ply;
+    let dir = std::env::temp_dir().join(format!("velox-render-sh-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let mut rng = Rng::new(17);
+    let n = 400;
+    let g = GaussianData {
+        means: rng.uniform_vec(3 * n, -0.6, 0.6),
+        log_scales: rng.uniform_vec(3 * n, -3.5, -2.5),
+        quats: rng.normal_vec(4 * n),
+        opacities: rng.uniform_vec(n, 0.0, 3.0),
+        colours: rng.uniform_vec(3 * n, 0.2, 0.8),
+    };
+    let k = ply::Sh::per_channel(3);
+    let sh = ply::Sh { degree: 3, coeffs: rng.uniform_vec(3 * k * n, -0.4, 0.4) };
+    let with_sh = dir.join("sh.ply");
+    std::fs::write(&with_sh, ply::to_bytes_sh(&g, Some(&sh)).unwrap()).unwrap();
+    let render = |ply: &Path, out: &Path| {
+        let run = velox()
+            .arg("render")
+            .arg(ply)
+            .arg("--out")
+            .arg(out)
+            .args(["--frames", "2", "--width", "48", "--height", "32", "--no-depth"])
+            .output()
+            .unwrap();
+        assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+        String::from_utf8_lossy(&run.stdout).into_owned()
+    };
+    let drawn = dir.join("drawn");
+    assert!(render(&with_sh, &drawn).contains("spherical harmonics of degree 3"));
+    let listing: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(drawn.join("render.json")).unwrap()).unwrap();
+    let frame = |folder: &Path, i: usize| {
+        velox_io::image::read_png(&folder.join(format!("frame_{i:04}.png"))).unwrap().0
+    };
+    let worst = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+    for i in 0..2 {
+        let eye: Vec<f32> =
+            listing[i]["eye"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap() as f32).collect();
+        let mut baked = g.clone();
+        for j in 0..n {
+            let d: [f64; 3] = std::array::from_fn(|a| (g.means[3 * j + a] - eye[a]) as f64);
+            let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            let base = [0, 1, 2].map(|c| g.colours[3 * j + c]);
+            let c = ply::sh_colour(base, &sh.coeffs[j * 3 * k..(j + 1) * 3 * k], 3, d.map(|v| v / l));
+            for (to, v) in baked.colours[3 * j..3 * j + 3].iter_mut().zip(c) {
+                *to = v as f32;
+            }
+        }
+        let (baked_ply, baked_out) = (dir.join(format!("baked{i}.ply")), dir.join(format!("baked{i}")));
+        ply::write(&baked_ply, &baked).unwrap();
+        render(&baked_ply, &baked_out);
+        let e = worst(&frame(&drawn, i), &frame(&baked_out, i));
+        assert!(e <= 1.5 / 255.0, "frame {i}: {e} from the baked colours");
+    }
+    let plain = dir.join("plain.ply");
+    ply::write(&plain, &g).unwrap();
+    render(&plain, &dir.join("plain"));
+    assert!(
+        worst(&frame(&drawn, 0), &frame(&dir.join("plain"), 0)) > 10.0 / 255.0,
+        "the harmonics were not drawn"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -521,3 +521,59 @@ fn bad_shapes_and_cameras_are_errors() {
     assert!(e.contains("fx"), "{e}");
     let _ = raster::TILE;
 }
+
+#[test]
+fn spherical_harmonics_colour_each_gaussian_along_its_view() {
+    // The colour each Gaussian shows from a camera centre, degrees 1 to 3, against the f64
+    // reference (which velox view's shader and velox_io share), before the rasteriser's clamp;
+    // a mean at the centre keeps its degree-0 colour.
+    let gpu = gpu();
+    let mut rng = Rng::new(31);
+    let n = 300;
+    let eye = [1.5f32, -0.5, 2.5];
+    let mut means = rng.uniform_vec(3 * n, -1.0, 1.0);
+    means[..3].copy_from_slice(&eye);
+    let colours = rng.uniform_vec(3 * n, -0.2, 1.2);
+    let t = |x: &[f32], w: usize| Tensor::from_slice(&gpu, &[x.len() / w, w], x).unwrap();
+    let ones = vec![0.0; 3 * n];
+    let g = Gaussians {
+        means: t(&means, 3),
+        log_scales: t(&ones, 3),
+        quats: t(&vec![1.0; 4 * n], 4),
+        opacities: t(&vec![0.0; n], 1),
+        colours: t(&colours, 3),
+    };
+    for degree in 1..=3 {
+        let k = raster::sh::per_channel(degree);
+        let rest = rng.uniform_vec(3 * k * n, -0.5, 0.5);
+        let mut rec = gpu.recorder().unwrap();
+        let got = raster::sh_colours(&mut rec, &g, &t(&rest, 3 * k), degree, eye).unwrap();
+        rec.submit().unwrap();
+        let got: Vec<f32> = got.read().unwrap();
+        let mut worst = 0.0f64;
+        for i in 0..n {
+            let d: [f64; 3] = std::array::from_fn(|a| (means[3 * i + a] - eye[a]) as f64);
+            let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            let base = [0, 1, 2].map(|c| colours[3 * i + c]);
+            let want = if l == 0.0 {
+                base.map(|c| (c as f64).max(0.0))
+            } else {
+                reference::sh_colour(base, &rest[i * 3 * k..(i + 1) * 3 * k], degree, d.map(|v| v / l))
+            };
+            for c in 0..3 {
+                worst = worst.max(((got[3 * i + c] as f64).max(0.0) - want[c]).abs());
+            }
+        }
+        eprintln!("degree {degree}: max abs err {worst:.2e}");
+        assert!(worst <= 1e-5, "degree {degree}: max abs err {worst:.3e}");
+    }
+    // Bad requests are refused with what is wrong.
+    let mut rec = gpu.recorder().unwrap();
+    let rest = t(&vec![0.0; 9 * n], 9);
+    let err = raster::sh_colours(&mut rec, &g, &rest, 4, eye).unwrap_err().to_string();
+    assert!(err.contains("degree 4"), "{err}");
+    let err = raster::sh_colours(&mut rec, &g, &rest, 2, eye).unwrap_err().to_string();
+    assert!(err.contains("harmonics") && err.contains("24"), "{err}");
+    let err = raster::sh_colours(&mut rec, &g, &rest, 1, [f32::NAN, 0.0, 0.0]).unwrap_err().to_string();
+    assert!(err.contains("not finite"), "{err}");
+}
