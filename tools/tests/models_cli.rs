@@ -862,6 +862,13 @@ fn tracker_trains_evaluates_and_tracks_a_video() {
     let report = velox_io::tracks::TrackReport::read(&tracked).unwrap();
     assert_eq!((report.frames, report.source_frames.len()), (24, 24));
     assert!(!report.queries.is_empty());
+    // The same import is a 4D cloud for the autoencoder: encoded and decoded to Gaussians.
+    let decoded = work.join("decoded-video");
+    let args = ["decode", "gaussians", "--checkpoint", arg(&ckpt), "--cloud", arg(&imported)];
+    ok(&velox(&[&args[..], &["--out", arg(&decoded), "--frames", "0,23"]].concat()));
+    for f in [0, 23] {
+        assert!(ply_vertices(&decoded.join(format!("gaussians_f{f:02}.ply"))).1 > 0);
+    }
     // A query outside the scene's box is named.
     let file = work.join("queries.json");
     std::fs::write(&file, "[[0.1, 0.2, 0.3], [0.0, 2.5, 0.0]]").unwrap();
