@@ -13,8 +13,8 @@
 // `dq`: one workgroup per block of query rows. Each subgroup keeps its rows' Q and dO as
 // fragments (dO rounded to f16 as it is staged, as the f16 products of the linear layers round
 // their gradients) and its rows' dQ accumulator, and first computes its rows'
-// delta = rowsum(dO * O) in f32 from that f16 dO and the f32 o (written out for `dkv`). For each tile
-// of keys:
+// delta = rowsum(dO * O) in f32 from that f16 dO and the f32 o (written out for `dkv`). For
+// each tile of keys:
 // 1. S = Q K^T and dP = dO V^T, stored row-major as f32 (barrier 1);
 // 2. row-wise, in f32: P = exp(S*scale - lse), dS = P (dP - delta), stored as f16 (zero for
 //    keys past the tile's end); the next tile is staged meanwhile (barrier 2);
@@ -96,6 +96,34 @@ fn half(x: f32) -> f16 {
     return f16(select(x, x * pos_inf(), abs(x) >= 65520.0));
 }
 
+// The subgroup's two score products against the staged tile pair at x_at, y_at: S = A X^T
+// into its rows of `so` and dP = B Y^T into its rows of `sd`, f32, row-major (A, B its own
+// fragments: Q and dO in dq, K and V in dk/dv; X, Y the tile's K and V, or Q and dO). X^T's
+// and Y^T's fragments (k = feature, n = tile row) are X and Y read column-major. naga 30 lowers
+// coopStore without first emitting the expressions in its arguments, so each argument is
+// bound by an earlier `let`.
+fn scores(a: ptr<function, array<FragA, DF>>, b: ptr<function, array<FragA, DF>>,
+          x_at: u32, y_at: u32, s_at: u32) {
+    var zero: FragC;
+    for (var c = 0u; c < KF; c++) {
+        var s = zero;
+        var dp = zero;
+        for (var d = 0u; d < DF; d++) {
+            let bx = coopLoad<FragB>(&kv[x_at + c * F * RQ + d * F], RQ);
+            s = coopMultiplyAdd((*a)[d], bx, s);
+            let by = coopLoad<FragB>(&kv[y_at + c * F * RQ + d * F], RQ);
+            dp = coopMultiplyAdd((*b)[d], by, dp);
+        }
+        let sv = s;
+        let s_dst = &so[s_at + c * F];
+        let dpv = dp;
+        let dp_dst = &sd[s_at + c * F];
+        let stride = RS;
+        coopStoreT(sv, s_dst, stride);
+        coopStoreT(dpv, dp_dst, stride);
+    }
+}
+
 @compute @workgroup_size(WG)
 fn dq_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
            @builtin(local_invocation_index) t: u32, @builtin(subgroup_id) sg: u32,
@@ -164,25 +192,8 @@ fn dq_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
         let k_at = parity * 2u * KV_TILE;
         let v_at = k_at + KV_TILE;
 
-        // 1. S = Q K^T and dP = dO V^T: K^T's and V^T's fragments (k = feature, n = key) are K
-        // and V read column-major.
-        for (var c = 0u; c < KF; c++) {
-            var s = zero;
-            var dp = zero;
-            for (var d = 0u; d < DF; d++) {
-                let bk = coopLoad<FragB>(&kv[k_at + c * F * RQ + d * F], RQ);
-                s = coopMultiplyAdd(qf[d], bk, s);
-                let bv = coopLoad<FragB>(&kv[v_at + c * F * RQ + d * F], RQ);
-                dp = coopMultiplyAdd(gf[d], bv, dp);
-            }
-            let sv = s;
-            let s_dst = &so[s_at + c * F];
-            let dpv = dp;
-            let dp_dst = &sd[s_at + c * F];
-            let stride = RS;
-            coopStoreT(sv, s_dst, stride);
-            coopStoreT(dpv, dp_dst, stride);
-        }
+        // 1. S = Q K^T and dP = dO V^T.
+        scores(&qf, &gf, k_at, v_at, s_at);
         workgroupBarrier();
 
         // 2. dS = P (dP - delta), row-wise in f32, rounded to f16 for the product.
@@ -267,25 +278,8 @@ fn dkv_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
         let g_at = q_at + KV_TILE;
         let st = parity * 2u * BK;
 
-        // 1. S^T = K Q^T and dP^T = V dO^T: Q^T's and dO^T's fragments (k = feature,
-        // n = query) are Q and dO read column-major.
-        for (var c = 0u; c < KF; c++) {
-            var s = zero;
-            var dp = zero;
-            for (var d = 0u; d < DF; d++) {
-                let bq = coopLoad<FragB>(&kv[q_at + c * F * RQ + d * F], RQ);
-                s = coopMultiplyAdd(kf[d], bq, s);
-                let bg = coopLoad<FragB>(&kv[g_at + c * F * RQ + d * F], RQ);
-                dp = coopMultiplyAdd(vf[d], bg, dp);
-            }
-            let sv = s;
-            let s_dst = &so[s_at + c * F];
-            let dpv = dp;
-            let dp_dst = &sd[s_at + c * F];
-            let stride = RS;
-            coopStoreT(sv, s_dst, stride);
-            coopStoreT(dpv, dp_dst, stride);
-        }
+        // 1. S^T = K Q^T and dP^T = V dO^T.
+        scores(&kf, &vf, q_at, g_at, s_at);
         workgroupBarrier();
 
         // 2. P^T and dS^T = P^T (dP^T - delta), key-wise in f32, both rounded to f16.
