@@ -454,11 +454,17 @@ impl Autoencoder {
         self.gaussians.backward_into(&mut rec, &g_cache, &d_gaussians, &ds, true)?;
         self.surface.backward_into(&mut rec, &surface_cache, &dv, &ds, true)?;
         self.encoder.backward(&mut rec, &enc_cache, &ds)?;
+        // The three terms side by side, read back at once: on a GPU, whose memory the host does
+        // not map, each read is a copy and a wait.
+        let terms = Tensor::empty(&gpu, &[3], DType::F32)?;
+        for (i, t) in [&surface_loss, &image_loss, &token_loss].into_iter().enumerate() {
+            rec.copy_rows(t, 0, &terms, i, 1)?;
+        }
         rec.submit()?;
         self.pass_seconds.backward += forward_done.elapsed().as_secs_f64();
 
-        let read = |t: &Tensor| -> Result<f64> { Ok(t.read::<f32>()?[0] as f64) };
-        let (surface, image, tokens) = (read(&surface_loss)?, read(&image_loss)?, read(&token_loss)?);
+        let terms = terms.read::<f32>()?;
+        let (surface, image, tokens) = (terms[0] as f64, terms[1] as f64, terms[2] as f64);
         let total = surface + image + tokens;
         if !total.is_finite() {
             return Err(Error::Invalid(format!(
