@@ -485,6 +485,10 @@ def test_an_rgbd_capture_is_imported_as_the_command_does_and_tracked(trained, da
     tracked = velox.Tracker.load(out["checkpoint"], ae).track(tmp_path / "py", grid=8, points=2000)
     assert tracked["tracks"].shape[1:] == (24, 3) and np.isfinite(tracked["tracks"]).all()
     assert tracked["frames"] == list(range(24))
+    # The import is a 4D cloud too: its frames back-projected, every time of the clip.
+    cloud = velox.data.read_cloud(tmp_path / "py")
+    assert cloud.shape[1] == 7 and np.abs(cloud[:, :3]).max() <= 1.0
+    assert np.array_equal(np.unique(cloud[:, 6]), np.arange(24, dtype=np.float32) / np.float32(100))
     # A longer capture in windows is tracked over all its frames.
     longer = tmp_path / "longer"
     (longer / "rgb").mkdir(parents=True)
@@ -500,6 +504,8 @@ def test_an_rgbd_capture_is_imported_as_the_command_does_and_tracked(trained, da
     tracker = velox.Tracker.load(out["checkpoint"], ae)
     clip = tracker.track(tmp_path / "windows", grid=8, points=2000)
     assert clip["frames"] == list(range(30)) and clip["tracks"].shape[1:] == (30, 3)
+    with pytest.raises(ValueError, match="2 windows"):
+        velox.data.read_cloud(tmp_path / "windows")
     cli("track", "--video", tmp_path / "windows", "--autoencoder", ae, "--checkpoint", out["checkpoint"],
         "--out", tmp_path / "t", "--grid", 8, "--points", 2000)
     written = json.loads((tmp_path / "t" / "tracks.json").read_text())
