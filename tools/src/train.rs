@@ -162,8 +162,8 @@ pub struct RunArgs {
     /// Precision of the training passes: f32, or f16 (the products of linear layers and
     /// attention read f16 operands and accumulate in f32, forward and backward; f32 master
     /// weights and optimiser moments; the loss scaled dynamically, a step that overflows skipped
-    /// and run again at half the scale) [default: f16 where the device has cooperative
-    /// matrices, else f32; a resumed run keeps its own].
+    /// and run again at half the scale) [default: f16 where a GPU has cooperative matrices,
+    /// else f32 (lavapipe's are emulated); a resumed run keeps its own].
     #[arg(long, value_enum)]
     pub precision: Option<PrecisionArg>,
 }
