@@ -359,22 +359,12 @@ pub const COOP_BLOCKS_8: [usize; 2] = [32, 64];
 /// subgroup), subgroup shuffles and votes, and the kernel's workgroup memory. A tall block that
 /// does not fit in workgroup memory gives way to the short one.
 pub fn coop_forward_kernel(gpu: &Gpu, d: usize, tall: bool) -> Option<(ForwardKernel, usize)> {
-    let caps = gpu.caps();
-    if !crate::ops::matmul::coop_wanted(caps) {
-        return None;
-    }
     let kern = kernels_for(d)?;
-    let [f, _, _] = caps.coop_matrix_f16?;
-    let (kernels, blocks) = match f {
+    // The forward pass also votes (subgroupAny) on moving the running maxima.
+    let (kernels, blocks) = match coop_fragment(gpu).filter(|_| gpu.caps().subgroup_arithmetic)? {
         16 => (kern.fwd_coop16, COOP_BLOCKS_16),
-        8 => (kern.fwd_coop8, COOP_BLOCKS_8),
-        _ => return None,
+        _ => (kern.fwd_coop8, COOP_BLOCKS_8),
     };
-    let sg = f * f / 8;
-    let fits = caps.subgroup_size_fits(sg) && caps.subgroup_shuffle && caps.subgroup_arithmetic;
-    if !fits {
-        return None;
-    }
     let order: &[usize] = if tall { &[1, 0] } else { &[0] };
     order.iter().map(|&i| (kernels[i], blocks[i])).find(|&(k, _)| gpu.supports(k))
 }
@@ -388,19 +378,26 @@ pub const COOP_BWD_BLOCK: usize = 32;
 /// of F*F/8 invocations, shuffles, not a CPU device's kernels), and the kernels' workgroup
 /// memory.
 fn coop_backward_kernels(gpu: &Gpu, d: usize) -> Option<(DqKernel, DkvKernel)> {
+    let kern = kernels_for(d)?;
+    let kernels = match coop_fragment(gpu)? {
+        16 => kern.bwd_coop16,
+        _ => kern.bwd_coop8,
+    };
+    (gpu.supports(kernels.0) && gpu.supports(kernels.1)).then_some(kernels)
+}
+
+/// The fragment size F (16 or 8) of the cooperative-matrix attention kernels on this device,
+/// if they may run there: cooperative matrices wanted (`matmul::coop_wanted`), FxFxF f16
+/// fragments, subgroups of exactly F*F/8 invocations (each row belongs to F/8 lanes of one
+/// subgroup) and subgroup shuffles.
+fn coop_fragment(gpu: &Gpu) -> Option<u32> {
     let caps = gpu.caps();
     if !crate::ops::matmul::coop_wanted(caps) {
         return None;
     }
-    let kern = kernels_for(d)?;
     let [f, _, _] = caps.coop_matrix_f16?;
-    let kernels = match f {
-        16 => kern.bwd_coop16,
-        8 => kern.bwd_coop8,
-        _ => return None,
-    };
-    let fits = caps.subgroup_size_fits(f * f / 8) && caps.subgroup_shuffle;
-    (fits && gpu.supports(kernels.0) && gpu.supports(kernels.1)).then_some(kernels)
+    let fits = matches!(f, 16 | 8) && caps.subgroup_size_fits(f * f / 8) && caps.subgroup_shuffle;
+    fits.then_some(f)
 }
 
 /// Whether f16 inputs of head width `d`, `nq` query and `nk` key rows over `segments`

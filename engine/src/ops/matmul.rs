@@ -523,9 +523,10 @@ fn split_k(batch: usize, tiles: usize, k: usize) -> usize {
 }
 
 /// A product split along K: piece z of `chunk = K / splits` (a multiple of 8 on the
-/// cooperative-matrix kernels; the last piece also takes the remainder, in a second dispatch) is a batch entry whose operands start z * chunk along K,
-/// written to its own slice of a `[pieces, M, N]` buffer; the pieces are then summed into
-/// `out` (added to it when accumulating).
+/// cooperative-matrix kernels; the last piece also takes the remainder, in a second dispatch)
+/// is a batch entry whose operands start z * chunk along K, written to its own slice of a
+/// `[pieces, M, N]` buffer; the pieces are then summed into `out` (added to it when
+/// accumulating).
 #[allow(clippy::too_many_arguments)]
 fn split_k_into(
     rec: &mut Recorder,

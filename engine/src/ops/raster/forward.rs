@@ -330,8 +330,26 @@ impl Rendered {
 
 /// Renders `g` from `cam` over `background`: [`project`], submit, [`rasterize`], submit.
 pub fn render(gpu: &Gpu, g: &Gaussians, cam: &Camera, background: [f32; 3]) -> Result<Rendered> {
+    render_view(gpu, g, None, cam, background)
+}
+
+/// [`render`], the colours seen along the view from the spherical harmonics `(rest, degree)`
+/// where given ([`sh_colours`](super::sh_colours), recorded with the projection), else `g`'s own.
+pub fn render_view(
+    gpu: &Gpu,
+    g: &Gaussians,
+    harmonics: Option<(&Tensor, usize)>,
+    cam: &Camera,
+    background: [f32; 3],
+) -> Result<Rendered> {
     let mut rec = gpu.recorder()?;
-    let projected = project(&mut rec, g, cam)?;
+    let projected = match harmonics {
+        Some((rest, degree)) => {
+            let colours = super::sh_colours(&mut rec, g, rest, degree, cam.centre())?;
+            project(&mut rec, &Gaussians { colours, ..g.clone() }, cam)?
+        }
+        None => project(&mut rec, g, cam)?,
+    };
     rec.submit()?;
     let mut rec = gpu.recorder()?;
     let image = rasterize(&mut rec, &projected, background)?;

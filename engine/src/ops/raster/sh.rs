@@ -60,21 +60,3 @@ pub fn sh_colours(
     rec.dispatch_linear(SH_COLOUR_MAIN, (n as u64).div_ceil(256), args, &p)?;
     Ok(colours)
 }
-
-/// [`render`](super::render) of `g` from `cam`, its colours along the view from the harmonics
-/// `(rest, degree)` where given ([`sh_colours`]), else its own.
-pub fn render_view(
-    gpu: &crate::Gpu,
-    g: &Gaussians,
-    harmonics: Option<(&Tensor, usize)>,
-    cam: &super::Camera,
-    background: [f32; 3],
-) -> Result<super::Rendered> {
-    let Some((rest, degree)) = harmonics else {
-        return super::render(gpu, g, cam, background);
-    };
-    let mut rec = gpu.recorder()?;
-    let colours = sh_colours(&mut rec, g, rest, degree, cam.centre())?;
-    rec.submit()?;
-    super::render(gpu, &Gaussians { colours, ..g.clone() }, cam, background)
-}
