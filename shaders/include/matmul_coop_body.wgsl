@@ -5,17 +5,22 @@
 //
 // Two front files set the fragment size and the shapes that follow from it, then include this
 // body:
-//   matmul_coop.wgsl   F = 16, subgroups of 32 (NVIDIA), k step BK = 32, 48 KiB shared;
-//   matmul_coop8.wgsl  F = 8, subgroups of 8 (lavapipe 26 and later), BK = 16, 32 KiB shared.
-// Each defines FragA, FragB, FragC (the fragment types), F, BK, RS_K, RS_R and REGION.
+//   matmul_coop.wgsl   F = 16, subgroups of 32 (NVIDIA), k step BK = 32;
+//   matmul_coop8.wgsl  F = 8, subgroups of 8 (lavapipe 26 and later), BK = 16.
+// Each defines FragA, FragB, FragC (the fragment types), F and BK, and is compiled in four
+// variants of the output tile, ROWS x COLS with each 64 or 128: 128 x 128 for large outputs,
+// 128 x 64 for outputs 64 columns wide or narrower, 64 x 128 for 64 rows or fewer, 64 x 64 for
+// both (the host's rule and its reasoning: docs/decisions/kernels.md, "cooperative tiles").
 //
 // Requirements the host checks before choosing it:
-// - subgroups of exactly F*F/8 invocations (32 for F = 16, 8 for F = 8): the 256-invocation
-//   workgroup is 2048/(F*F) subgroups, each owning one 4F x 2F block of the 128x128 output tile
-//   (4 x 2 fragments), and each lane holds 8 elements of a fragment;
+// - subgroups of exactly F*F/8 invocations (32 for F = 16, 8 for F = 8): subgroup sg owns one
+//   4F x 2F block of the ROWS x COLS tile (4 x 2 fragments), and each lane holds 8 elements of
+//   a fragment; the workgroup is as many subgroups as the tile has blocks (WG invocations:
+//   256 for 128 x 128, 128 for the half tiles, 64 for 64 x 64);
 // - the contiguous axis of each operand (K, or M for a transposed A; N, or K for a transposed
 //   B) a multiple of 8, so every 16-byte read of 8 halves lies inside one row;
-// - the workgroup memory the front file declares.
+// - the workgroup memory the variant declares (48 KiB at F = 16 for 128 x 128, 32 KiB at F = 8;
+//   the half tiles take less).
 // naga requires every cooperative operation to sit in control flow it can prove uniform, which
 // rules out branching on function arguments or on the subgroup id: hence one entry point with
 // the body inline, the transposes as push-constant flags, and one staging slot per subgroup.
@@ -26,29 +31,30 @@
 //   out[z, i, j] = out[(z * m + i) * n + j]
 //
 // Data flow per workgroup (output tile rows row0.., columns col0..):
-// 1. K advances BK at a time. Each step, the 256 invocations copy the 128xBK op(A) tile and the
-//    BKx128 op(B) tile from memory into workgroup memory, 16 bytes (8 halves) per read, BK/16
-//    reads per operand per invocation; chunks past the matrix edge are zero.
+// 1. K advances BK at a time. Each step, the WG invocations copy the ROWSxBK op(A) tile and the
+//    BKxCOLS op(B) tile from memory into workgroup memory, 16 bytes (8 halves) per read,
+//    CPI_A and CPI_B reads per invocation; chunks past the matrix edge are zero.
 // 2. Each operand tile keeps the layout it has in memory, so the copy never transposes: the
 //    contiguous axis stays contiguous. The fragment loads absorb the transposes instead, with
 //    row-major (coopLoadT) or column-major (coopLoad) addressing:
-//      "along-k" layout  (A not transposed, B transposed): tile[r * RS_K + kk], r < 128, kk < BK
-//      "along-r" layout  (A transposed, B not transposed): tile[kk * RS_R + r]
-//    where r is the row of op(A) or the column of op(B) within the tile. Rows are padded by 8
-//    halves (RS_K = BK + 8, RS_R = 136), so consecutive rows start at different 16-byte offsets
-//    modulo 128 bytes and a fragment read spreads over the banks. Both strides are multiples of
-//    16 bytes and every fragment origin is 16-byte aligned, as cooperative loads want.
+//      "along-k" layout  (A not transposed, B transposed): tile[r * RS_K + kk], r < width, kk < BK
+//      "along-r" layout  (A transposed, B not transposed): tile[kk * (width + 8) + r]
+//    where r is the row of op(A) or the column of op(B) within the tile and width is ROWS for A,
+//    COLS for B. Rows are padded by 8 halves (RS_K = BK + 8; width + 8), so consecutive rows
+//    start at different 16-byte offsets modulo 128 bytes and a fragment read spreads over the
+//    banks. Every stride is a multiple of 16 bytes and every fragment origin 16-byte aligned, as
+//    cooperative loads want.
 // 3. Subgroup sg owns tile rows wr + [0, 4F) and columns wc + [0, 2F), with
-//    wr = (sg / (64 / F)) * 4F and wc = (sg % (64 / F)) * 2F (subgroup_id, not the invocation
-//    index, so nothing assumes how the driver groups invocations): 4x2 accumulators of FxF.
-//    Per F-wide k slice it loads 4 A and 2 B fragments and issues 8 multiply-adds, so each
-//    fragment load feeds 2 or 4 products.
+//    wr = (sg / BLOCKS_PER_ROW) * 4F and wc = (sg % BLOCKS_PER_ROW) * 2F, BLOCKS_PER_ROW =
+//    COLS / 2F (subgroup_id, not the invocation index, so nothing assumes how the driver groups
+//    invocations): 4x2 accumulators of FxF. Per F-wide k slice it loads 4 A and 2 B fragments
+//    and issues 8 multiply-adds, so each fragment load feeds 2 or 4 products.
 // 4. Two workgroup-memory buffers alternate: while step s is multiplied out of one, step s+1 is
 //    read from memory into registers and then written to the other; one barrier per step.
 // 5. Output: a tile entirely inside the matrix, with n a multiple of 4 (16-byte row stride),
 //    stores its accumulators straight to memory (coopStoreT, row stride n), adding what is there
 //    when accumulating. An edge tile stages each FxF fragment through workgroup memory (one slot
-//    per subgroup, 8 KiB in all) and writes only the elements inside the matrix.
+//    per subgroup, WG * 8 floats in all) and writes only the elements inside the matrix.
 
 // @include matmul_params.wgsl
 
@@ -57,40 +63,50 @@
 @group(0) @binding(2) var<storage, read_write> out: array<f32>;
 var<immediate> pc: Params;
 
-const TILE: u32 = 128u;
-// Chunks of 8 halves per invocation and operand tile (128 * BK / 8 chunks over 256 invocations).
-const CPI: u32 = BK / 16u;
-// Invocations per subgroup, and subgroups per row of blocks.
+// Invocations per subgroup, blocks of 4F x 2F per row of the tile, and invocations.
 const SG: u32 = F * F / 8u;
-const BLOCKS_PER_ROW: u32 = 64u / F;
+const BLOCKS_PER_ROW: u32 = COLS / (2u * F);
+const WG: u32 = (ROWS / (4u * F)) * BLOCKS_PER_ROW * SG;
+// Row strides (halves) of the "along-k" layout and of the "along-r" layouts of A and B.
+const RS_K: u32 = BK + 8u;
+const RS_RA: u32 = ROWS + 8u;
+const RS_RB: u32 = COLS + 8u;
+// Halves per operand tile, the larger of its two layouts.
+const REGION_A: u32 = max(ROWS * RS_K, BK * RS_RA);
+const REGION_B: u32 = max(COLS * RS_K, BK * RS_RB);
+const REGIONS: u32 = REGION_A + REGION_B;
+// Chunks of 8 halves per invocation and operand tile (ROWS * BK / 8 chunks over WG invocations).
+const CPI_A: u32 = ROWS * BK / 8u / WG;
+const CPI_B: u32 = COLS * BK / 8u / WG;
 
-// [buffer 0..1][operand A = 0, B = 1][REGION halves].
-var<workgroup> tiles: array<f16, 4u * REGION>;
-// One FxF f32 fragment per subgroup for the edge epilogue: 8 KiB.
-var<workgroup> stage: array<f32, 2048>;
+// [buffer 0..1][operand A, then B].
+var<workgroup> tiles: array<f16, 2u * REGIONS>;
+// One FxF f32 fragment per subgroup for the edge epilogue.
+var<workgroup> stage: array<f32, WG * 8u>;
 
-// Position (r, kk) in the tile of the first half of chunk c. Along-k: BK/8 chunks per row of BK
-// k, so neighbouring invocations read one row's 2*BK bytes. Along-r: 16 chunks per k row of 128,
-// so 16 neighbouring invocations read 256 consecutive bytes.
-fn chunk_pos(c: u32, along_k: bool) -> vec2<u32> {
+// Position (r, kk) of the first half of chunk c in a tile `width` rows of op(A) (columns of
+// op(B)) wide. Along-k: BK/8 chunks per row of BK k, so neighbouring invocations read one row's
+// 2*BK bytes. Along-r: width/8 chunks per k row, so that many neighbouring invocations read
+// 2*width consecutive bytes.
+fn chunk_pos(c: u32, along_k: bool, width: u32) -> vec2<u32> {
     if along_k {
         return vec2<u32>(c / (BK / 8u), (c % (BK / 8u)) * 8u);
     }
-    return vec2<u32>((c % 16u) * 8u, c / 16u);
+    return vec2<u32>((c % (width / 8u)) * 8u, c / (width / 8u));
 }
 
-fn tile_offset(pos: vec2<u32>, along_k: bool) -> u32 {
+fn tile_offset(pos: vec2<u32>, along_k: bool, width: u32) -> u32 {
     if along_k {
         return pos.x * RS_K + pos.y;
     }
-    return pos.y * RS_R + pos.x;
+    return pos.y * (width + 8u) + pos.x;
 }
 
 // Chunk c of the op(A) tile at rows row0.., k k0.. (zero outside the matrix). A chunk is either
 // wholly inside or wholly outside, because the contiguous axis is a multiple of 8; its first
 // element index is a multiple of 8 for the same reason, so index / 8 addresses it exactly.
 fn load_a(z: u32, row0: u32, k0: u32, c: u32, ta: bool) -> vec4<u32> {
-    let pos = chunk_pos(c, !ta);
+    let pos = chunk_pos(c, !ta, ROWS);
     let i = row0 + pos.x;
     let kk = k0 + pos.y;
     if i < pc.m && kk < pc.k {
@@ -101,7 +117,7 @@ fn load_a(z: u32, row0: u32, k0: u32, c: u32, ta: bool) -> vec4<u32> {
 
 // Chunk c of the op(B) tile at columns col0.., k k0...
 fn load_b(z: u32, col0: u32, k0: u32, c: u32, tb: bool) -> vec4<u32> {
-    let pos = chunk_pos(c, tb);
+    let pos = chunk_pos(c, tb, COLS);
     let j = col0 + pos.x;
     let kk = k0 + pos.y;
     if j < pc.n && kk < pc.k {
@@ -128,51 +144,55 @@ fn put(o: u32, v: vec4<u32>) {
     tiles[o + 7u] = h3.y;
 }
 
-// The chunks one invocation moves per step: chunk t + 256q of each operand, q < CPI.
+// The chunks one invocation moves per step: chunks t + WG q of each operand, q < CPI_A, CPI_B.
 struct Chunks {
-    a: array<vec4<u32>, CPI>,
-    b: array<vec4<u32>, CPI>,
+    a: array<vec4<u32>, CPI_A>,
+    b: array<vec4<u32>, CPI_B>,
 }
 
 // Reads this invocation's chunks of the step at k k0.
 fn load_chunks(z: u32, row0: u32, col0: u32, k0: u32, t: u32, ta: bool, tb: bool) -> Chunks {
     var c: Chunks;
-    for (var q = 0u; q < CPI; q++) {
-        c.a[q] = load_a(z, row0, k0, t + 256u * q, ta);
-        c.b[q] = load_b(z, col0, k0, t + 256u * q, tb);
+    for (var q = 0u; q < CPI_A; q++) {
+        c.a[q] = load_a(z, row0, k0, t + WG * q, ta);
+    }
+    for (var q = 0u; q < CPI_B; q++) {
+        c.b[q] = load_b(z, col0, k0, t + WG * q, tb);
     }
     return c;
 }
 
 // Stores this invocation's chunks into buffer buf.
 fn put_chunks(buf: u32, t: u32, ta: bool, tb: bool, c: Chunks) {
-    let base_a = buf * 2u * REGION;
-    let base_b = base_a + REGION;
-    for (var q = 0u; q < CPI; q++) {
-        put(base_a + tile_offset(chunk_pos(t + 256u * q, !ta), !ta), c.a[q]);
-        put(base_b + tile_offset(chunk_pos(t + 256u * q, tb), tb), c.b[q]);
+    let base_a = buf * REGIONS;
+    let base_b = base_a + REGION_A;
+    for (var q = 0u; q < CPI_A; q++) {
+        put(base_a + tile_offset(chunk_pos(t + WG * q, !ta, ROWS), !ta, ROWS), c.a[q]);
+    }
+    for (var q = 0u; q < CPI_B; q++) {
+        put(base_b + tile_offset(chunk_pos(t + WG * q, tb, COLS), tb, COLS), c.b[q]);
     }
 }
 
 // The FxF op(A) fragment at tile rows r.., k kk.. from the A tile at `base`.
 // Along-k (A not transposed): element (row x, col y) at base + (r + x) * RS_K + kk + y:
-// row-major. Along-r (A transposed): element (x, y) at base + (kk + y) * RS_R + r + x:
+// row-major. Along-r (A transposed): element (x, y) at base + (kk + y) * RS_RA + r + x:
 // column-major.
 fn frag_a(base: u32, r: u32, kk: u32) -> FragA {
     if (pc.flags & MATMUL_FLAG_TRANS_A) != 0u {
-        return coopLoad<FragA>(&tiles[base + kk * RS_R + r], RS_R);
+        return coopLoad<FragA>(&tiles[base + kk * RS_RA + r], RS_RA);
     }
     return coopLoadT<FragA>(&tiles[base + r * RS_K + kk], RS_K);
 }
 
 // The FxF op(B) fragment at k kk.., tile columns c.. from the B tile at `base`.
-// Along-r (B not transposed): element (row x = k, col y = n) at base + (kk + x) * RS_R + c + y:
+// Along-r (B not transposed): element (row x = k, col y = n) at base + (kk + x) * RS_RB + c + y:
 // row-major. Along-k (B transposed): at base + (c + y) * RS_K + kk + x: column-major.
 fn frag_b(base: u32, c: u32, kk: u32) -> FragB {
     if (pc.flags & MATMUL_FLAG_TRANS_B) != 0u {
         return coopLoad<FragB>(&tiles[base + c * RS_K + kk], RS_K);
     }
-    return coopLoadT<FragB>(&tiles[base + kk * RS_R + c], RS_R);
+    return coopLoadT<FragB>(&tiles[base + kk * RS_RB + c], RS_RB);
 }
 
 // Stores one accumulator of an interior tile straight to out at element o (row stride n).
@@ -217,14 +237,14 @@ fn emit_staged(v: FragC, i0: u32, j0: u32, c_base: u32, sg: u32, lane: u32) {
     workgroupBarrier();
 }
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WG)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) t: u32,
         @builtin(subgroup_id) sg: u32, @builtin(subgroup_invocation_id) lane: u32) {
     let ta = (pc.flags & MATMUL_FLAG_TRANS_A) != 0u;
     let tb = (pc.flags & MATMUL_FLAG_TRANS_B) != 0u;
     let z = wid.z + pc.batch_base;
-    let row0 = wid.y * TILE;
-    let col0 = wid.x * TILE;
+    let row0 = wid.y * ROWS;
+    let col0 = wid.x * COLS;
     // This subgroup's 4F x 2F block of the tile.
     let wr = (sg / BLOCKS_PER_ROW) * 4u * F;
     let wc = (sg % BLOCKS_PER_ROW) * 2u * F;
@@ -251,8 +271,8 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         if more {
             next = load_chunks(z, row0, col0, (s + 1u) * BK, t, ta, tb);
         }
-        let base_a = cur * 2u * REGION;
-        let base_b = base_a + REGION;
+        let base_a = cur * REGIONS;
+        let base_b = base_a + REGION_A;
         for (var kk = 0u; kk < BK; kk += F) {
             let f0 = frag_a(base_a, wr, kk);
             let f1 = frag_a(base_a, wr + F, kk);
@@ -280,7 +300,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     let i0 = row0 + wr;
     let j0 = col0 + wc;
     // Workgroup-uniform: depends only on the tile position and the push constants.
-    let interior = row0 + TILE <= pc.m && col0 + TILE <= pc.n && pc.n % 4u == 0u;
+    let interior = row0 + ROWS <= pc.m && col0 + COLS <= pc.n && pc.n % 4u == 0u;
     if interior {
         let n = pc.n;
         emit_direct(acc00, c_base + i0 * n + j0);

@@ -19,13 +19,15 @@ use crate::device::Gpu;
 use crate::error::{Error, Result};
 use crate::kernels::args;
 use crate::kernels::{
-    Kernel, MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN, MATMUL_CPU_LAYOUT0_COLS1_MAIN,
-    MATMUL_CPU_LAYOUT0_COLS2_MAIN, MATMUL_CPU_LAYOUT0_COLS4_MAIN, MATMUL_CPU_LAYOUT1_COLS1_MAIN,
-    MATMUL_CPU_LAYOUT1_COLS2_MAIN, MATMUL_CPU_LAYOUT1_COLS4_MAIN, MATMUL_CPU_LAYOUT2_COLS1_MAIN,
-    MATMUL_CPU_LAYOUT2_COLS2_MAIN, MATMUL_CPU_LAYOUT2_COLS4_MAIN, MATMUL_FLAG_A_SCALAR, MATMUL_FLAG_BIAS,
-    MATMUL_FLAG_BIAS_PER_ENTRY, MATMUL_FLAG_B_SCALAR, MATMUL_FLAG_SUMMED, MATMUL_FLAG_TRANS_A,
-    MATMUL_FLAG_TRANS_B, MATMUL_MAIN, MATMUL_MAIN_F16, MATMUL_ROWS_MAIN, MATMUL_SMALL_TS32_MAIN,
-    MATMUL_SMALL_TS64_MAIN,
+    Kernel, MATMUL_COOP8_ROWS128_COLS128_MAIN, MATMUL_COOP8_ROWS128_COLS64_MAIN,
+    MATMUL_COOP8_ROWS64_COLS128_MAIN, MATMUL_COOP8_ROWS64_COLS64_MAIN, MATMUL_COOP_ROWS128_COLS128_MAIN,
+    MATMUL_COOP_ROWS128_COLS64_MAIN, MATMUL_COOP_ROWS64_COLS128_MAIN, MATMUL_COOP_ROWS64_COLS64_MAIN,
+    MATMUL_CPU_LAYOUT0_COLS1_MAIN, MATMUL_CPU_LAYOUT0_COLS2_MAIN, MATMUL_CPU_LAYOUT0_COLS4_MAIN,
+    MATMUL_CPU_LAYOUT1_COLS1_MAIN, MATMUL_CPU_LAYOUT1_COLS2_MAIN, MATMUL_CPU_LAYOUT1_COLS4_MAIN,
+    MATMUL_CPU_LAYOUT2_COLS1_MAIN, MATMUL_CPU_LAYOUT2_COLS2_MAIN, MATMUL_CPU_LAYOUT2_COLS4_MAIN,
+    MATMUL_FLAG_A_SCALAR, MATMUL_FLAG_BIAS, MATMUL_FLAG_BIAS_PER_ENTRY, MATMUL_FLAG_B_SCALAR,
+    MATMUL_FLAG_SUMMED, MATMUL_FLAG_TRANS_A, MATMUL_FLAG_TRANS_B, MATMUL_MAIN, MATMUL_MAIN_F16,
+    MATMUL_ROWS_MAIN, MATMUL_SMALL_TS32_MAIN, MATMUL_SMALL_TS64_MAIN,
 };
 use crate::ops::binary::{binary_into, Binary};
 use crate::ops::reduce::{reduce_into, Reduce};
@@ -52,11 +54,27 @@ const CPU_KERNELS: [[TiledKernel; 3]; 3] = [
     [MATMUL_CPU_LAYOUT1_COLS1_MAIN, MATMUL_CPU_LAYOUT1_COLS2_MAIN, MATMUL_CPU_LAYOUT1_COLS4_MAIN],
     [MATMUL_CPU_LAYOUT2_COLS1_MAIN, MATMUL_CPU_LAYOUT2_COLS2_MAIN, MATMUL_CPU_LAYOUT2_COLS4_MAIN],
 ];
-/// Workgroup memory the cooperative-matrix kernels declare. 16x16 fragments: two buffers of two
-/// 128x40 f16 tiles (40 KiB) and one 16x16 f32 staging slot per subgroup for edge tiles (8 KiB).
-/// 8x8 fragments: k step 16, so two buffers of two 128x24 tiles (24 KiB), and 8 KiB of slots.
-const COOP_SHARED_BYTES_16: u32 = 49152;
-const COOP_SHARED_BYTES_8: u32 = 32768;
+/// The cooperative-matrix kernels, by fragment size F and output tile:
+/// `[rows == 128][cols == 128]`, each side 64 or 128 (`shaders/matmul_coop.wgsl`'s variants).
+const COOP_KERNELS: [(u32, [[CoopKernel; 2]; 2]); 2] = [
+    (
+        16,
+        [
+            [MATMUL_COOP_ROWS64_COLS64_MAIN, MATMUL_COOP_ROWS64_COLS128_MAIN],
+            [MATMUL_COOP_ROWS128_COLS64_MAIN, MATMUL_COOP_ROWS128_COLS128_MAIN],
+        ],
+    ),
+    (
+        8,
+        [
+            [MATMUL_COOP8_ROWS64_COLS64_MAIN, MATMUL_COOP8_ROWS64_COLS128_MAIN],
+            [MATMUL_COOP8_ROWS128_COLS64_MAIN, MATMUL_COOP8_ROWS128_COLS128_MAIN],
+        ],
+    ),
+];
+/// A product with at most this many output rows (columns) takes a cooperative tile of 64 rows
+/// (columns): a 128-wide side would be at least half empty (docs/decisions/kernels.md).
+const COOP_HALF: usize = 64;
 /// The cooperative-matrix kernel reads its operands 8 halves (16 bytes) at a time.
 const COOP_VECTOR: usize = 8;
 
@@ -65,8 +83,9 @@ use crate::kernels::params::MatmulParams as Params;
 
 /// The tiled kernels: operands, output and a bias binding.
 type TiledKernel = Kernel<Params, args::MatmulMainArgs<'static>>;
-/// The cooperative-matrix kernels: operands and output (they take no bias).
-pub type CoopKernel = Kernel<Params, args::MatmulCoopMainArgs<'static>>;
+/// The cooperative-matrix kernels: operands and output (they take no bias; every tile variant
+/// shares the first variant's binding struct).
+pub type CoopKernel = Kernel<Params, args::MatmulCoopRows64Cols64MainArgs<'static>>;
 
 /// A matmul kernel, by interface. Every one takes the push constants of
 /// `shaders/include/matmul_params.wgsl`.
@@ -111,7 +130,9 @@ impl MatmulKernel {
             MatmulKernel::Tiled(k) => {
                 rec.dispatch(k, groups, args::MatmulMainArgs { a, b, out, bias }, params)
             }
-            MatmulKernel::Coop(k) => rec.dispatch(k, groups, args::MatmulCoopMainArgs { a, b, out }, params),
+            MatmulKernel::Coop(k) => {
+                rec.dispatch(k, groups, args::MatmulCoopRows64Cols64MainArgs { a, b, out }, params)
+            }
         }
     }
 }
@@ -203,24 +224,42 @@ pub fn plan(a: &[usize], b: &[usize], trans_a: bool, trans_b: bool) -> Result<Pl
     })
 }
 
-/// The cooperative-matrix kernel this device can run, if any. The kernels exist for FxFxF
-/// fragments with F = 16 (`matmul_coop.wgsl`) and F = 8 (`matmul_coop8.wgsl`). Each splits its
-/// 256 invocations into subgroups of exactly F*F/8 (32 or 8), each subgroup owning 4x2
-/// fragments of the 128x128 tile, so it is chosen only where a pipeline can have that size: the
-/// device's only one, or one it can be asked for (the pipeline then requests it).
-pub fn coop_kernel(caps: &Caps) -> Option<CoopKernel> {
+/// The cooperative-matrix kernels this device can run, by tile (see [`COOP_KERNELS`]), if
+/// any. The kernels exist for FxFxF fragments with F = 16 (`matmul_coop.wgsl`) and F = 8
+/// (`matmul_coop8.wgsl`). Each splits its workgroup into subgroups of exactly F*F/8 (32 or 8),
+/// each subgroup owning 4x2 fragments of the tile, so they are chosen only where a pipeline
+/// can have that size: the device's only one, or one it can be asked for (the pipeline then
+/// requests it). The 128x128 tile declares the most workgroup memory: the others fit where it
+/// does.
+fn coop_kernels(caps: &Caps) -> Option<&'static [[CoopKernel; 2]; 2]> {
     if !coop_wanted(caps) {
         return None;
     }
     let [f, _, _] = caps.coop_matrix_f16?;
-    let (kernel, shared) = match f {
-        16 => (MATMUL_COOP_MAIN, COOP_SHARED_BYTES_16),
-        8 => (MATMUL_COOP8_MAIN, COOP_SHARED_BYTES_8),
-        _ => return None,
-    };
-    let sg = f * f / 8;
-    let fits = caps.subgroup_size_fits(sg) && caps.max_shared_memory >= shared;
-    fits.then_some(kernel)
+    let (_, kernels) = COOP_KERNELS.iter().find(|(g, _)| *g == f)?;
+    let fits =
+        caps.subgroup_size_fits(f * f / 8) && caps.max_shared_memory >= kernels[1][1].info().shared_bytes;
+    fits.then_some(kernels)
+}
+
+/// The cooperative-matrix kernel this device runs large products on (its 128x128 tile), if any.
+pub fn coop_kernel(caps: &Caps) -> Option<CoopKernel> {
+    coop_kernels(caps).map(|k| k[1][1])
+}
+
+/// The cooperative-matrix kernel for an output of `m` rows and `n` columns: a side of at most
+/// [`COOP_HALF`] takes the 64-wide tile.
+pub fn coop_kernel_for(caps: &Caps, m: usize, n: usize) -> Option<CoopKernel> {
+    coop_kernels(caps).map(|k| k[(m > COOP_HALF) as usize][(n > COOP_HALF) as usize])
+}
+
+/// Output rows and columns of one workgroup of a cooperative-matrix kernel.
+fn coop_tile(kernel: CoopKernel) -> (usize, usize) {
+    COOP_KERNELS
+        .iter()
+        .flat_map(|(_, k)| k.iter().enumerate())
+        .find_map(|(rows, ks)| ks.iter().position(|&k| k == kernel).map(|cols| (64 << rows, 64 << cols)))
+        .expect("a cooperative-matrix kernel")
 }
 
 /// Whether the cooperative-matrix kernels (matmul, attention) may be chosen on this device at
@@ -264,14 +303,16 @@ pub fn matmul_variant(gpu: &Gpu, dtype: DType) -> &'static str {
              (32x32 tiles when M or N <= 32, 64x64 when <= 64)"
         }
         DType::F16 if coop_kernel(gpu.caps()).is_some_and(|k| gpu.supports(k)) => {
-            if coop_kernel(gpu.caps()) == Some(MATMUL_COOP_MAIN) {
-                "cooperative-matrix f16 x f16 -> f32: 128x128 tile, 16x16x16 fragments, k step 32, \
-                 split along K where few tiles walk a long K (tiled f16 fallback where an operand's \
-                 contiguous axis is not a multiple of 8)"
+            if coop_kernel(gpu.caps()) == Some(MATMUL_COOP_ROWS128_COLS128_MAIN) {
+                "cooperative-matrix f16 x f16 -> f32: 128x128 tile (128x64, 64x128 or 64x64 where \
+                 N or M is at most 64), 16x16x16 fragments, k step 32, split along K where few \
+                 tiles walk a long K (tiled f16 fallback where an operand's contiguous axis is not \
+                 a multiple of 8)"
             } else {
-                "cooperative-matrix f16 x f16 -> f32: 128x128 tile, 8x8x8 fragments, k step 16, \
-                 split along K where few tiles walk a long K (tiled f16 fallback where an operand's \
-                 contiguous axis is not a multiple of 8)"
+                "cooperative-matrix f16 x f16 -> f32: 128x128 tile (128x64, 64x128 or 64x64 where \
+                 N or M is at most 64), 8x8x8 fragments, k step 16, split along K where few tiles \
+                 walk a long K (tiled f16 fallback where an operand's contiguous axis is not a \
+                 multiple of 8)"
             }
         }
         DType::F16 => "tiled f16 x f16 -> f32 (f16 read as packed words, f32 accumulation)",
@@ -404,6 +445,7 @@ fn grid(gpu: &Gpu, kernel: MatmulKernel, p: &Plan, z: usize) -> Result<[usize; 3
         k if k.is(MATMUL_SMALL_TS64_MAIN) => (64, 64),
         k if k.is(MATMUL_ROWS_MAIN) => (ROWS_WG, ROWS_NC),
         k if k.is_cpu() => (CPU_ROWS, k.cpu_layout().expect("a CPU kernel").1),
+        MatmulKernel::Coop(k) => coop_tile(k),
         _ => (TILE, TILE),
     };
     let groups = [p.n.div_ceil(tn), p.m.div_ceil(tm), z];
@@ -445,8 +487,7 @@ fn product(
     check_dtypes(a, b)?;
     check_out(a, b, out, &p.out_shape)?;
     let max = a.gpu().caps().max_workgroup_count;
-    let kernel = choose_kernel(a, b, &p, trans_a, trans_b, rec.narrow_matmul());
-    let groups = grid(a.gpu(), kernel, &p, if p.m == 0 || p.n == 0 { 0 } else { p.batch })?;
+    let (kernel, groups, splits) = layout(rec, a, b, &p, trans_a, trans_b)?;
     // Every index the kernels form stays below the largest operand, which is bindable and so
     // below 2^32 bytes; check the element counts anyway so an index can never wrap.
     for t in [a, b, out] {
@@ -456,10 +497,6 @@ fn product(
     }
     let params = Params::of(&p, trans_a, trans_b, accumulate);
     let params = Params { flags: params.flags | cpu_flags(kernel, &p, trans_a, trans_b), ..params };
-    let tiles = groups[0] * groups[1];
-    // The CPU kernel has tiles enough for a CPU's threads, and K pieces would break its
-    // multiples of 4.
-    let splits = if kernel.is_cpu() { 1 } else { split_k(p.batch, tiles, p.k) };
     if splits > 1 {
         let grid = [groups[0] as u32, groups[1] as u32];
         split_k_into(rec, kernel, grid, [a, b, out], &p, params, splits, accumulate)?;
@@ -489,6 +526,43 @@ fn product(
         add_bias(rec, out, bias)?;
     }
     Ok(())
+}
+
+/// The kernel a product of plan `p` runs on in this recording, its workgroups and the pieces K
+/// is cut into (1: none).
+fn layout(
+    rec: &Recorder,
+    a: &Tensor,
+    b: &Tensor,
+    p: &Plan,
+    trans_a: bool,
+    trans_b: bool,
+) -> Result<(MatmulKernel, [usize; 3], usize)> {
+    let kernel = choose_kernel(a, b, p, trans_a, trans_b, rec.narrow_matmul());
+    let groups = grid(a.gpu(), kernel, p, if p.m == 0 || p.n == 0 { 0 } else { p.batch })?;
+    // The CPU kernel has tiles enough for a CPU's threads, and K pieces would break its
+    // multiples of 4.
+    let splits = if kernel.is_cpu() { 1 } else { split_k(p.batch, groups[0] * groups[1], p.k) };
+    Ok((kernel, groups, splits))
+}
+
+/// The kernel `op(a) @ op(b)` runs on in `rec`, and the pieces K is cut into where it is: what a
+/// benchmark row names (`matmul_coop_rows128_cols64::main, K in 39 pieces`).
+pub fn product_kernel(
+    rec: &Recorder,
+    a: &Tensor,
+    b: &Tensor,
+    trans_a: bool,
+    trans_b: bool,
+) -> Result<String> {
+    let p = plan(a.shape(), b.shape(), trans_a, trans_b)?;
+    check_dtypes(a, b)?;
+    let (kernel, _, splits) = layout(rec, a, b, &p, trans_a, trans_b)?;
+    let name = match kernel {
+        MatmulKernel::Tiled(k) => k.name(),
+        MatmulKernel::Coop(k) => k.name(),
+    };
+    Ok(if splits > 1 { format!("{name}, K in {splits} pieces") } else { name })
 }
 
 /// `out += bias` along its rows, for the kernels that cannot add it themselves.
@@ -603,7 +677,7 @@ fn choose_kernel(
             MATMUL_MAIN
         });
     }
-    match coop_kernel(gpu.caps()) {
+    match coop_kernel_for(gpu.caps(), p.m, p.n) {
         Some(k) if gpu.supports(k) && coop_layout_ok(p, trans_a, trans_b) => MatmulKernel::Coop(k),
         _ => MatmulKernel::Tiled(MATMUL_MAIN_F16),
     }

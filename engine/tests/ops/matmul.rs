@@ -4,10 +4,13 @@
 use crate::common;
 use common::*;
 use half::f16;
-use velox_engine::kernels::{MATMUL_COOP8_MAIN, MATMUL_COOP_MAIN};
+use velox_engine::kernels::{
+    MATMUL_COOP8_ROWS128_COLS128_MAIN, MATMUL_COOP8_ROWS64_COLS64_MAIN, MATMUL_COOP_ROWS128_COLS128_MAIN,
+    MATMUL_COOP_ROWS128_COLS64_MAIN, MATMUL_COOP_ROWS64_COLS128_MAIN, MATMUL_COOP_ROWS64_COLS64_MAIN,
+};
 use velox_engine::ops::matmul::{
-    coop_eligible, coop_kernel, coop_layout_ok, matmul, matmul_bias, matmul_into, matmul_sum_into,
-    matmul_variant, plan, reference,
+    coop_eligible, coop_kernel, coop_kernel_for, coop_layout_ok, matmul, matmul_bias, matmul_into,
+    matmul_sum_into, matmul_variant, plan, reference,
 };
 use velox_engine::{Error, Gpu, NarrowMatmul, Recorder};
 
@@ -333,6 +336,45 @@ fn f16_accumulate_on_interior_and_edge_tiles() {
 }
 
 #[test]
+fn f16_products_on_every_cooperative_tile() {
+    // The four output tiles of the cooperative kernels (128x128, 128x64 for outputs at most 64
+    // wide, 64x128 for at most 64 rows, 64x64), each whole (stored straight to memory) and with
+    // edges (staged), plain and accumulating, every transpose, a batch with a broadcast
+    // operand. Where the device has no cooperative matrices this runs the portable f16 kernel.
+    let gpu = gpu();
+    let mut rng = Rng::new(14);
+    for (m, n, k) in
+        [(256, 64, 40), (200, 40, 24), (64, 256, 48), (40, 136, 16), (64, 64, 64), (24, 48, 8), (136, 72, 32)]
+    {
+        for (ta, tb) in [(false, false), (false, true), (true, false), (true, true)] {
+            let (sa, sb) = shapes(m, n, k, ta, tb, Some(2), Some(1));
+            let (ah, bh) = (round_f16(&rng.normal_vec(numel(&sa))), round_f16(&rng.normal_vec(numel(&sb))));
+            let old = rng.normal_vec(2 * m * n);
+            let a = Tensor::from_slice(&gpu, &sa, &ah).unwrap();
+            let b = Tensor::from_slice(&gpu, &sb, &bh).unwrap();
+            let acc = Tensor::from_slice(&gpu, &[2, m, n], &old).unwrap();
+            let plain = Tensor::from_slice(&gpu, &[2, m, n], &vec![f32::NAN; 2 * m * n]).unwrap();
+            let mut rec = gpu.recorder().unwrap();
+            matmul_into(&mut rec, &a, &b, ta, tb, &acc, true).unwrap();
+            matmul_into(&mut rec, &a, &b, ta, tb, &plain, false).unwrap();
+            rec.submit().unwrap();
+            let widen = |h: &[f16]| h.iter().map(|v| v.to_f64()).collect::<Vec<_>>();
+            let (r, _) = reference::matmul(&widen(&ah), &sa, &widen(&bh), &sb, ta, tb).unwrap();
+            let summed: Vec<f64> = r.iter().zip(&old).map(|(x, &o)| x + o as f64).collect();
+            let kernel = coop_kernel_for(gpu.caps(), m, n).filter(|&k| gpu.supports(k));
+            let what = format!("[{m}, {n}] k {k} ta={ta} tb={tb} on {kernel:?}");
+            assert_nmse(
+                &format!("{what} accumulate"),
+                &acc.read::<f32>().unwrap(),
+                &summed,
+                F16_ROUNDED_BOUND,
+            );
+            assert_nmse(&format!("{what} overwrite"), &plain.read::<f32>().unwrap(), &r, F16_ROUNDED_BOUND);
+        }
+    }
+}
+
+#[test]
 fn long_k_products_are_split_along_k() {
     for narrow in NARROW_CHOICES {
         eprintln!("narrow f32 products on the {narrow:?} kernels");
@@ -630,7 +672,14 @@ fn kernel_choice_follows_the_device() {
     let mut no_coop = h100.clone();
     no_coop.coop_matrix_f16 = None;
     assert!(!coop_eligible(&no_coop));
-    assert_eq!(coop_kernel(&h100), Some(MATMUL_COOP_MAIN));
+    assert_eq!(coop_kernel(&h100), Some(MATMUL_COOP_ROWS128_COLS128_MAIN));
+    // The tile follows the output: a side of at most 64 takes the 64-wide tile.
+    assert_eq!(coop_kernel_for(&h100, 65, 65), Some(MATMUL_COOP_ROWS128_COLS128_MAIN));
+    assert_eq!(coop_kernel_for(&h100, 10_000, 64), Some(MATMUL_COOP_ROWS128_COLS64_MAIN));
+    assert_eq!(coop_kernel_for(&h100, 10_000, 32), Some(MATMUL_COOP_ROWS128_COLS64_MAIN));
+    assert_eq!(coop_kernel_for(&h100, 64, 512), Some(MATMUL_COOP_ROWS64_COLS128_MAIN));
+    assert_eq!(coop_kernel_for(&h100, 1, 1), Some(MATMUL_COOP_ROWS64_COLS64_MAIN));
+    assert_eq!(coop_kernel_for(&emulated, 64, 64), None);
     // A device like lavapipe from Mesa 26: 8x8x8 shapes, subgroups of 8, 32 KiB shared, with
     // the GPU kernel variants (VELOX_CPU_KERNELS=0, as tools/coop-check.sh runs it).
     let mut lvp = caps.clone();
@@ -639,7 +688,8 @@ fn kernel_choice_follows_the_device() {
     lvp.min_subgroup_size = 8;
     lvp.max_subgroup_size = 8;
     lvp.max_shared_memory = 32768;
-    assert_eq!(coop_kernel(&lvp), Some(MATMUL_COOP8_MAIN));
+    assert_eq!(coop_kernel(&lvp), Some(MATMUL_COOP8_ROWS128_COLS128_MAIN));
+    assert_eq!(coop_kernel_for(&lvp, 40, 64), Some(MATMUL_COOP8_ROWS64_COLS64_MAIN));
     let mut wide = lvp.clone();
     wide.min_subgroup_size = 32;
     wide.max_subgroup_size = 32;

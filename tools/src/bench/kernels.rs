@@ -146,32 +146,60 @@ pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
         let a = rng.normal_vec(m * k);
         let b = rng.normal_vec(k * n);
         let a_shape = if trans_a { [k, m] } else { [m, k] };
-        let ta = Tensor::from_slice(gpu, &a_shape, &a)?;
-        let tb = Tensor::from_slice(gpu, &[k, n], &b)?;
-        let c_out = Tensor::empty(gpu, &[m, n], DType::F32)?;
-        let timing =
-            time_gpu(gpu, repeats, |rec| matmul::matmul_into(rec, &ta, &tb, trans_a, false, &c_out, false))?;
-        let got: Vec<f32> = c_out.read()?;
         let samples: Vec<(usize, usize)> =
             (0..1024).map(|_| (rng.below(m as u32) as usize, rng.below(n as u32) as usize)).collect();
-        let a_at = |i: usize, kk: usize| if trans_a { a[kk * m + i] } else { a[i * k + kk] } as f64;
-        let want: Vec<f64> =
-            samples.iter().map(|&(i, j)| (0..k).map(|kk| a_at(i, kk) * b[kk * n + j] as f64).sum()).collect();
-        let have: Vec<f32> = samples.iter().map(|&(i, j)| got[i * n + j]).collect();
-        let tflops = 2.0 * (m * n * k) as f64 / (timing.0 * 1e-3) / 1e12;
-        let shape = format!("{m}x{n}x{k}{}", if trans_a { " (a^T)" } else { "" });
-        let r = Record::timed(
-            format!("matmul {what}"),
-            shape,
-            "f32",
-            &device,
-            timing,
-            repeats,
-            tflops,
-            "TFLOP/s",
-        );
-        let r = r.work(2.0 * (m * n * k) as f64, 4.0 * (m * k + k * n + m * n) as f64, roof32);
-        push(r.peak(peaks.map(|p| tflops / p.1)).against(&have, &want, "1024 sampled outputs"));
+        // f32, and f16 as training in f16 multiplies (the cooperative tiles where the device has
+        // them); the reference multiplies the inputs as the kernel reads them.
+        for precision in [DType::F32, DType::F16] {
+            let (a, b): (Vec<f32>, Vec<f32>) = match precision {
+                DType::F16 => {
+                    let round = |v: &[f32]| v.iter().map(|&x| half::f16::from_f32(x).to_f32()).collect();
+                    (round(&a), round(&b))
+                }
+                _ => (a.clone(), b.clone()),
+            };
+            let ta = Tensor::from_slice(gpu, &a_shape, &a)?;
+            let tb = Tensor::from_slice(gpu, &[k, n], &b)?;
+            let (ta, tb) = if precision == DType::F16 {
+                let mut rec = gpu.recorder()?;
+                let pair = (cast(&mut rec, &ta, DType::F16)?, cast(&mut rec, &tb, DType::F16)?);
+                rec.submit()?;
+                pair
+            } else {
+                (ta, tb)
+            };
+            let kernel = matmul::product_kernel(&gpu.recorder()?, &ta, &tb, trans_a, false)?;
+            let c_out = Tensor::empty(gpu, &[m, n], DType::F32)?;
+            let timing = time_gpu(gpu, repeats, |rec| {
+                matmul::matmul_into(rec, &ta, &tb, trans_a, false, &c_out, false)
+            })?;
+            let got: Vec<f32> = c_out.read()?;
+            let a_at = |i: usize, kk: usize| if trans_a { a[kk * m + i] } else { a[i * k + kk] } as f64;
+            let want: Vec<f64> = samples
+                .iter()
+                .map(|&(i, j)| (0..k).map(|kk| a_at(i, kk) * b[kk * n + j] as f64).sum())
+                .collect();
+            let have: Vec<f32> = samples.iter().map(|&(i, j)| got[i * n + j]).collect();
+            let tflops = 2.0 * (m * n * k) as f64 / (timing.0 * 1e-3) / 1e12;
+            let shape = format!("{m}x{n}x{k}{}", if trans_a { " (a^T)" } else { "" });
+            let (label, elem, roof, peak) = match precision {
+                DType::F16 => ("f16->f32", 2.0, roof16, peaks.map(|p| tflops / p.0)),
+                _ => ("f32", 4.0, roof32, peaks.map(|p| tflops / p.1)),
+            };
+            let r = Record::timed(
+                format!("matmul {what}"),
+                shape,
+                label,
+                &device,
+                timing,
+                repeats,
+                tflops,
+                "TFLOP/s",
+            );
+            let bytes = elem * (m * k + k * n) as f64 + 4.0 * (m * n) as f64;
+            let r = r.work(2.0 * (m * n * k) as f64, bytes, roof);
+            push(r.peak(peak).against(&have, &want, "1024 sampled outputs").kernel(&kernel));
+        }
     }
 
     let gbs = |bytes: f64, ms: f64| bytes / (ms * 1e-3) / 1e9;
