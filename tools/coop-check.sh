@@ -61,10 +61,31 @@ mountpoint -q "$chroot_dir/proc" || $SUDO mount -t proc proc "$chroot_dir/proc" 
 mountpoint -q "$chroot_dir/dev" || $SUDO mount --bind /dev "$chroot_dir/dev" || cannot "bind mount refused"
 
 cd "$repo"
-mapfile -t bins < <(cargo test --release --no-run 2>&1 | grep -o 'target/release/deps/[A-Za-z0-9_-]*' | sort -u)
+# The executables' paths as cargo names them (absolute), wherever the target directory is:
+# CARGO_TARGET_DIR, a build target or a symlinked target/ may put it outside the repository.
+mapfile -t exes < <(cargo test --release --no-run --message-format=json 2>/dev/null |
+    grep -o '"executable":"[^"]*"' | sed 's/^"executable":"//; s/"$//' | sort -u)
+bins=() velox=""
+for e in "${exes[@]}"; do
+    case $e in
+    */deps/*) bins+=("$e") ;;
+    */velox) velox=$e ;;
+    esac
+done
 [ ${#bins[@]} -gt 0 ] || { echo "coop-check: cargo test --no-run built no test binaries" >&2; exit 1; }
+[ -n "$velox" ] || { echo "coop-check: cargo test --no-run built no velox command" >&2; exit 1; }
+# A target directory outside the repository is mounted into the tree at its own path too (the
+# real path: a symlink to it, in the repository, then resolves inside the tree as well).
+target=$(realpath "$(dirname "$velox")")
+case $target/ in
+"$(realpath "$repo")"/*) ;;
+*)
+    $SUDO mkdir -p "$chroot_dir$target"
+    mountpoint -q "$chroot_dir$target" || $SUDO mount --bind "$target" "$chroot_dir$target" || cannot "bind mount refused"
+    ;;
+esac
 echo "device inside the chroot:"
-$SUDO chroot "$chroot_dir" env VELOX_CPU_KERNELS=0 sh -c "cd '$repo' && ./target/release/velox info | grep -E 'Chosen|coop matrices|  (attention|matmul) f16'"
+$SUDO chroot "$chroot_dir" env VELOX_CPU_KERNELS=0 sh -c "cd '$repo' && '$velox' info | grep -E 'Chosen|coop matrices|  (attention|matmul) f16'"
 failed=0
 $SUDO chroot "$chroot_dir" sh -c "cd '$repo' && tools/spirv-check.sh" || failed=1
 export VK_LAYER_SETTINGS_PATH=$repo/vk_layer_settings.txt
@@ -74,7 +95,7 @@ run_bin() { # binary, test filter (may be empty)
     echo "== $(basename "$1") $2"
     local rc=0
     $SUDO chroot "$chroot_dir" env VELOX_CPU_KERNELS=0 VELOX_VALIDATE="${VELOX_VALIDATE:-}" \
-        VK_LAYER_SETTINGS_PATH="$VK_LAYER_SETTINGS_PATH" sh -c "cd '$repo' && ./$1 -q $2" 2>&1 |
+        VK_LAYER_SETTINGS_PATH="$VK_LAYER_SETTINGS_PATH" sh -c "cd '$repo' && '$1' -q $2" 2>&1 |
         tee "$log" || rc=${PIPESTATUS[0]}
     # sid's validation layer sometimes crashes in its own teardown at exit (abort or segfault
     # in vkDestroyDevice's layer code, after the last test): with every test passed, and any
