@@ -54,6 +54,10 @@ pub(crate) struct GpuInner {
     /// A recording never finished (see the recorder's drop): the device is left as it is at
     /// drop, since waiting for it to go idle would never return.
     pub hung: std::sync::atomic::AtomicBool,
+    /// Uploads through staging buffers not yet copied to their tensors: the next submission
+    /// copies them before its own work, in the same `vkQueueSubmit` (see
+    /// [`crate::tensor::PendingUpload`]).
+    pub pending_uploads: Mutex<Vec<crate::tensor::PendingUpload>>,
 }
 
 /// One line of the device list shown by `velox info`.
@@ -394,6 +398,7 @@ impl Gpu {
                 staged_bytes: AtomicU64::new(0),
                 wait_timeout,
                 hung: std::sync::atomic::AtomicBool::new(false),
+                pending_uploads: Mutex::new(Vec::new()),
             }),
         })
     }
@@ -521,6 +526,11 @@ impl Drop for GpuInner {
         unsafe {
             let _ = self.device.device_wait_idle();
             self.pipelines.destroy(&self.device);
+            // Uploads no submission took: their tensors are gone with the last handle.
+            for u in self.pending_uploads.get_mut().unwrap().drain(..) {
+                self.device.destroy_buffer(u.staging, None);
+                let _ = self.allocator.lock().unwrap().free(u.allocation);
+            }
             ManuallyDrop::drop(&mut self.allocator);
             self.device.destroy_device(None);
             if let Some(m) = &self.messenger {

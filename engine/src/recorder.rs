@@ -666,10 +666,14 @@ impl Recorder {
         unsafe {
             device.cmd_pipeline_barrier2(self.cmd, &vk::DependencyInfo::default().memory_barriers(&to_host));
             device.end_command_buffer(self.cmd).vk("vkEndCommandBuffer")?;
-            let cmds = [self.cmd];
-            let submit = [vk::SubmitInfo::default().command_buffers(&cmds)];
             {
-                let queue = self.gpu.inner.queue.lock().unwrap();
+                // Taken under the queue's lock, so that no other thread's submission that reads
+                // an upload can reach the queue before the copy does.
+                let gpu = self.gpu.clone();
+                let queue = gpu.inner.queue.lock().unwrap();
+                let uploads = self.record_uploads()?;
+                let cmds: Vec<vk::CommandBuffer> = uploads.into_iter().chain([self.cmd]).collect();
+                let submit = [vk::SubmitInfo::default().command_buffers(&cmds)];
                 device.queue_submit(*queue, &submit, self.fence).vk("vkQueueSubmit")?;
             }
             self.submitted = true;
@@ -710,6 +714,77 @@ impl Recorder {
             }
         }
         Ok(Finished { timestamps_ns, dispatches: self.dispatches, barriers: self.barriers })
+    }
+}
+
+impl Recorder {
+    /// A command buffer that copies the device's pending uploads into their tensors and ends
+    /// with a barrier before any later work (this recording's, submitted right after it), or
+    /// `None` when nothing is pending. The staging buffers, and the tensors copied into, are
+    /// kept until this recording's work has finished. The caller holds the queue's lock.
+    fn record_uploads(&mut self) -> Result<Option<vk::CommandBuffer>> {
+        let pending = std::mem::take(&mut *self.gpu.inner.pending_uploads.lock().unwrap());
+        if pending.is_empty() {
+            return Ok(None);
+        }
+        let device = self.gpu.device().clone();
+        let mut copies = Vec::with_capacity(pending.len());
+        for u in pending {
+            let staging = Arc::new(Buffer::from_raw(&self.gpu, u.staging, u.allocation, u.size));
+            // A tensor dropped before this submission needs no copy.
+            if let Some(dst) = u.dst.upgrade() {
+                copies.push((staging.raw, dst.raw, u.offset, u.bytes));
+                self.keep.push(dst);
+            }
+            self.keep.push(staging);
+        }
+        let info = vk::CommandBufferAllocateInfo::default()
+            .command_pool(self.pool)
+            .level(vk::CommandBufferLevel::PRIMARY)
+            .command_buffer_count(1);
+        // SAFETY: the pool is this recorder's own and the queue's lock is held, so no other
+        // thread records into it; the buffers copied are alive (kept above) until the fence.
+        unsafe {
+            let cmd = device.allocate_command_buffers(&info).vk("vkAllocateCommandBuffers")?[0];
+            let begin =
+                vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT);
+            device.begin_command_buffer(cmd, &begin).vk("vkBeginCommandBuffer")?;
+            // A tensor written twice before this submission gets its copies in the order they
+            // were written, the later after a barrier.
+            let mut written = std::collections::HashSet::new();
+            for (src, dst, offset, bytes) in copies {
+                if !written.insert(dst) {
+                    let after = [vk::MemoryBarrier2::default()
+                        .src_stage_mask(vk::PipelineStageFlags2::TRANSFER)
+                        .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
+                        .dst_stage_mask(vk::PipelineStageFlags2::TRANSFER)
+                        .dst_access_mask(vk::AccessFlags2::TRANSFER_WRITE)];
+                    device.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().memory_barriers(&after));
+                    written.clear();
+                    written.insert(dst);
+                }
+                let region = [vk::BufferCopy::default().src_offset(0).dst_offset(offset).size(bytes)];
+                device.cmd_copy_buffer(cmd, src, dst, &region);
+            }
+            let done = [vk::MemoryBarrier2::default()
+                .src_stage_mask(vk::PipelineStageFlags2::TRANSFER)
+                .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
+                .dst_stage_mask(
+                    vk::PipelineStageFlags2::COMPUTE_SHADER
+                        | vk::PipelineStageFlags2::TRANSFER
+                        | vk::PipelineStageFlags2::HOST,
+                )
+                .dst_access_mask(
+                    vk::AccessFlags2::SHADER_READ
+                        | vk::AccessFlags2::SHADER_WRITE
+                        | vk::AccessFlags2::TRANSFER_READ
+                        | vk::AccessFlags2::TRANSFER_WRITE
+                        | vk::AccessFlags2::HOST_READ,
+                )];
+            device.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().memory_barriers(&done));
+            device.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
+            Ok(Some(cmd))
+        }
     }
 }
 

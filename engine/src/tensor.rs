@@ -5,8 +5,13 @@
 //! model can live in one buffer that one fused optimiser kernel updates. Memory comes from gpu-allocator: mapped host-visible memory on unified-memory devices
 //! (CPU and most integrated GPUs: reads and writes are plain copies), device-local memory on
 //! discrete GPUs (reads and writes go through a staging buffer).
+//!
+//! A write through a staging buffer does not wait: the bytes go to the staging buffer at once,
+//! and the copy into the tensor is made by the next submission, before its own work and in the
+//! same `vkQueueSubmit` ([`PendingUpload`]). So a training step's inputs, uploaded as it
+//! records, cost no host wait each, as they would if every upload were its own submission.
 
-use std::sync::Arc;
+use std::sync::{Arc, Weak};
 
 use ash::vk;
 use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
@@ -126,6 +131,20 @@ impl Buffer {
         Ok(view)
     }
 
+    /// The buffer's handle, memory and size, given up by this value (which then frees
+    /// nothing): an upload's staging buffer waiting for a submission, which must not hold a
+    /// `Gpu` (the device holds the pending uploads).
+    fn into_raw(mut self) -> (vk::Buffer, Allocation, u64) {
+        let allocation = self.allocation.take().expect("a buffer with memory");
+        let raw = std::mem::replace(&mut self.raw, vk::Buffer::null());
+        (raw, allocation, self.size)
+    }
+
+    /// A buffer of the handle and memory [`Buffer::into_raw`] gave up.
+    pub(crate) fn from_raw(gpu: &Gpu, raw: vk::Buffer, allocation: Allocation, size: u64) -> Buffer {
+        Buffer { gpu: gpu.clone(), raw, allocation: Some(allocation), size, views: Default::default() }
+    }
+
     /// The mapped bytes, when the buffer lives in host-visible memory.
     pub(crate) fn mapped(&self) -> Option<*mut u8> {
         self.allocation.as_ref().and_then(|a| a.mapped_ptr()).map(|p| p.as_ptr() as *mut u8)
@@ -140,6 +159,7 @@ impl Drop for Buffer {
             for (_, _, view) in self.views.get_mut().unwrap().drain(..) {
                 self.gpu.device().destroy_buffer_view(view, None);
             }
+            // A null handle (given up by `into_raw`) is ignored.
             self.gpu.device().destroy_buffer(self.raw, None)
         };
         if let Some(a) = self.allocation.take() {
@@ -364,8 +384,21 @@ impl Tensor {
     }
 }
 
+/// A write waiting in its staging buffer for the next submission to copy it into `dst` (see
+/// the module docs). The destination is held weakly: a tensor dropped before any submission
+/// is not copied into. The staging buffer is held as its raw parts, since the device holds the
+/// list and a `Buffer` holds the device.
+pub(crate) struct PendingUpload {
+    pub staging: vk::Buffer,
+    pub allocation: Allocation,
+    pub size: u64,
+    pub dst: Weak<Buffer>,
+    pub offset: u64,
+    pub bytes: u64,
+}
+
 impl Gpu {
-    pub(crate) fn write_buffer(&self, buf: &Buffer, offset: u64, bytes: &[u8]) -> Result<()> {
+    pub(crate) fn write_buffer(&self, buf: &Arc<Buffer>, offset: u64, bytes: &[u8]) -> Result<()> {
         if bytes.is_empty() {
             return Ok(());
         }
@@ -383,7 +416,16 @@ impl Gpu {
         // SAFETY: the staging mapping holds at least `bytes.len()` bytes.
         unsafe { std::ptr::copy_nonoverlapping(bytes.as_ptr(), ptr, bytes.len()) };
         self.inner.staged_bytes.fetch_add(bytes.len() as u64, std::sync::atomic::Ordering::Relaxed);
-        self.copy_now(&staging, 0, buf, offset, bytes.len() as u64)
+        let (staging, allocation, size) = staging.into_raw();
+        self.inner.pending_uploads.lock().unwrap().push(PendingUpload {
+            staging,
+            allocation,
+            size,
+            dst: Arc::downgrade(buf),
+            offset,
+            bytes: bytes.len() as u64,
+        });
+        Ok(())
     }
 
     pub(crate) fn read_buffer(&self, buf: &Buffer, offset: u64, out: &mut [u8]) -> Result<()> {

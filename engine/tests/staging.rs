@@ -6,8 +6,12 @@ mod common;
 use common::*;
 use velox_engine::ops::binary::{binary, Binary};
 
+/// The tests count the process's submissions: one at a time.
+static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 #[test]
 fn staging_round_trips_tensors_views_and_op_results() {
+    let _one = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     std::env::set_var("VELOX_FORCE_STAGING", "1");
     let gpu = Gpu::new().unwrap();
     let mut rng = Rng::new(1);
@@ -41,4 +45,37 @@ fn staging_round_trips_tensors_views_and_op_results() {
         let inside = (2 * al..2 * al + 5).contains(&i);
         assert_eq!(g, if inside { 7 } else { i as u32 }, "element {i}");
     }
+}
+
+/// Would catch: an upload that waits for a submission of its own (a host wait per input on a
+/// discrete GPU: 22 a small training step, where 3 are the step's), a pending copy that lands
+/// after the work that reads it, or one made into a tensor already dropped.
+#[test]
+fn uploads_ride_with_the_next_submission() {
+    let _one = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    std::env::set_var("VELOX_FORCE_STAGING", "1");
+    let gpu = Gpu::new().unwrap();
+    let mut rng = Rng::new(2);
+    let (a, b) = (rng.normal_vec(1000), rng.normal_vec(1000));
+    let submits = velox_engine::profile::submits();
+    // A recording made before its inputs are written reads what they hold at submission.
+    let mut rec = gpu.recorder().unwrap();
+    let ta = Tensor::from_slice(&gpu, &[1000], &vec![0.0f32; 1000]).unwrap();
+    let tb = Tensor::from_slice(&gpu, &[1000], &b).unwrap();
+    let c = binary(&mut rec, &ta, &tb, Binary::Add).unwrap();
+    // Written twice before any submission: the second write wins.
+    ta.write(&a).unwrap();
+    // Uploaded and dropped unread: nothing to copy into.
+    drop(Tensor::from_slice(&gpu, &[4096], &rng.normal_vec(4096)).unwrap());
+    assert_eq!(velox_engine::profile::submits(), submits, "an upload submitted work of its own");
+    rec.submit().unwrap();
+    assert_eq!(velox_engine::profile::submits(), submits + 1);
+    let want: Vec<f32> = a.iter().zip(&b).map(|(x, y)| x + y).collect();
+    assert_eq!(c.read::<f32>().unwrap(), want);
+    // A tensor written and read with no recording between: the read's copy takes the upload.
+    let t = Tensor::from_slice(&gpu, &[7], &[1u32, 2, 3, 4, 5, 6, 7]).unwrap();
+    assert_eq!(t.read::<u32>().unwrap(), vec![1, 2, 3, 4, 5, 6, 7]);
+    // A device dropped with an upload no submission took frees it.
+    let other = Gpu::new().unwrap();
+    let _left = Tensor::from_slice(&other, &[3], &[1.0f32, 2.0, 3.0]).unwrap();
 }
