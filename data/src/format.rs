@@ -259,7 +259,8 @@ pub fn read_cloud(path: &Path) -> DataResult<Vec<f32>> {
                 .count();
             return Err(DataError::Invalid(format!(
                 "{} holds a capture imported in {windows} windows of 24 frames: give one window \
-                 ({}/window_000 to window_{:03}), each a clip of its own",
+                 ({}/window_000 to window_{:03}), each a clip of its own (velox decode takes the \
+                 whole folder, window by window)",
                 path.display(),
                 path.display(),
                 windows.saturating_sub(1)

@@ -103,11 +103,45 @@ pub struct StitchedTracks {
     pub visible: Vec<Vec<bool>>,
 }
 
+/// For each window of a clip (the capture's frame of each of its frames, as [`read_windows`]
+/// gives them), how many of its first frames the windows before it cover already: the frames
+/// after those are its own. Each window must be 24 consecutive frames, start inside the frames
+/// covered before it and end after them. What [`track_windows`] and `velox decode` stitch by.
+pub fn window_shares(windows: &[&[usize]]) -> DataResult<Vec<usize>> {
+    let mut shares = Vec::with_capacity(windows.len());
+    let mut covered: Option<(usize, usize)> = None;
+    for frames in windows {
+        if frames.len() != FRAMES || frames.windows(2).any(|w| w[1] != w[0] + 1) {
+            return Err(DataError::Invalid(format!(
+                "a window's frames {frames:?} are not {FRAMES} consecutive frames"
+            )));
+        }
+        let (start, end) = (frames[0], frames[FRAMES - 1]);
+        let shared = match covered {
+            None => 0,
+            Some((first, last)) if (first..=last).contains(&start) && end > last => last + 1 - start,
+            Some((_, last)) if end <= last => {
+                return Err(DataError::Invalid(format!(
+                "the window from frame {start} ends on {end}, inside the one before (which ends on {last})"
+            )))
+            }
+            Some((_, last)) => {
+                return Err(DataError::Invalid(format!(
+                "the window from frame {start} does not start inside the one before (which ends on {last})"
+            )))
+            }
+        };
+        shares.push(shared);
+        covered = Some((covered.map_or(start, |c| c.0), end));
+    }
+    Ok(shares)
+}
+
 /// Follows `queries` (on the first window's first frame) through `windows` (each video with
-/// the capture's frame of each of its frames, consecutive, in order, each window starting
-/// inside the one before): each window after the first is tracked from where the one before
-/// puts the queries on its first frame, and takes over from the frame after the last one the
-/// windows share. Every window is encoded and tracked as [`track`] does it.
+/// the capture's frame of each of its frames, as [`window_shares`] takes them): each window
+/// after the first is tracked from where the one before puts the queries on its first frame,
+/// and takes over from the frame after the last one the windows share. Every window is encoded
+/// and tracked as [`track`] does it.
 pub fn track_windows(
     ae: &Autoencoder,
     tracker: &Tracker,
@@ -116,34 +150,22 @@ pub fn track_windows(
     points: usize,
     seed: u64,
 ) -> DataResult<StitchedTracks> {
+    let frames: Vec<&[usize]> = windows.iter().map(|w| &w.1[..]).collect();
+    let shares = window_shares(&frames)?;
     let Some(((first_video, first_frames), rest)) = windows.split_first() else {
         return Err(DataError::Invalid("no window to track".into()));
     };
-    for (_, frames) in windows {
-        if frames.len() != FRAMES || frames.windows(2).any(|w| w[1] != w[0] + 1) {
-            return Err(DataError::Invalid(format!(
-                "a window's frames {frames:?} are not {FRAMES} consecutive frames"
-            )));
-        }
-    }
     let first = track(ae, tracker, first_video, queries, points, seed)?;
     let mut out = StitchedTracks {
         frames: first_frames.clone(),
         tracks: first.tracks.iter().map(|t| t.to_vec()).collect(),
         visible: first.visible.iter().map(|v| v.to_vec()).collect(),
     };
-    for (video, frames) in rest {
-        let start = frames[0];
-        let last = *out.frames.last().expect("a window's frames");
-        let at = out.frames.iter().position(|&f| f == start).ok_or_else(|| {
-            DataError::Invalid(format!(
-                "the window from frame {start} does not start inside the one before (which ends on {last})"
-            ))
-        })?;
+    for ((video, frames), &shared) in rest.iter().zip(&shares[1..]) {
+        // Where the queries stand on this window's first frame.
+        let at = frames[0] - out.frames[0];
         let from: Vec<[f32; 3]> = out.tracks.iter().map(|t| t[at]).collect();
         let next = track(ae, tracker, video, &from, points, seed)?;
-        // The frames after the last shared one come from this window.
-        let shared = last + 1 - start;
         out.frames.extend_from_slice(&frames[shared..]);
         for (q, (t, v)) in next.tracks.iter().zip(&next.visible).enumerate() {
             out.tracks[q].extend_from_slice(&t[shared..]);
@@ -173,4 +195,25 @@ pub fn read_windows(dir: &Path) -> DataResult<Option<Vec<Window>>> {
         .map(|w| Ok((rgbd::read_video_folder(&dir.join(&w.dir))?, w.frames)))
         .collect::<DataResult<Vec<_>>>()
         .map(Some)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn windows_share_the_frames_the_ones_before_cover() {
+        let w = |first: usize| (first..first + FRAMES).collect::<Vec<usize>>();
+        let (a, b, c) = (w(0), w(16), w(30));
+        assert_eq!(window_shares(&[&a, &b, &c]).unwrap(), [0, 8, 10]);
+        assert_eq!(window_shares(&[&a]).unwrap(), [0]);
+        let err = |ws: &[&[usize]]| window_shares(ws).unwrap_err().to_string();
+        assert!(
+            err(&[&a, &c]).contains("from frame 30 does not start inside the one before (which ends on 23)")
+        );
+        assert!(err(&[&a, &b, &w(10)]).contains("ends on 33, inside the one before (which ends on 39)"));
+        assert!(err(&[&a, &a[..10]]).contains("are not 24 consecutive frames"));
+        let skipping: Vec<usize> = (0..FRAMES).map(|f| 2 * f).collect();
+        assert!(err(&[&skipping]).contains("are not 24 consecutive frames"));
+    }
 }

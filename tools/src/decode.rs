@@ -13,7 +13,8 @@
 //!
 //! Both write `decode.json` beside the files: the checkpoint, the frames, each file and its
 //! count. The input is a scene folder (its `points.ply`) or a PLY of float `x y z r g b tau`
-//! (`velox_data::format::write_ply`'s layout), checked by `velox_data::format::read_ply`.
+//! (`velox_data::format::write_ply`'s layout), checked by `velox_data::format::read_ply`, or a
+//! video folder; a capture imported in windows is decoded window by window ([`clips`]).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -87,13 +88,15 @@ pub struct CommonArgs {
     checkpoint: PathBuf,
     /// The input 4D cloud: a scene folder (its points.ply), a PLY of float x y z r g b tau, or
     /// a video folder from `velox import rgbd` or `velox import video` (its RGBD frames
-    /// back-projected: at most 100000 of their pixels).
+    /// back-projected: at most 100000 of their pixels). A capture imported in windows is
+    /// decoded window by window, its frames named by the capture's.
     #[arg(long)]
     cloud: PathBuf,
     /// Output folder.
     #[arg(long)]
     out: PathBuf,
-    /// Frames to decode: comma-separated indices in 0..=23, or `all`.
+    /// Frames to decode: comma-separated indices in 0..=23 (of a capture imported in windows,
+    /// the capture's frames they cover), or `all`.
     #[arg(long, default_value = "all", value_parser = parse_frames)]
     frames: Frames,
     /// Seed of the encoder's queries and of the sampler's noise.
@@ -228,27 +231,73 @@ pub fn voxel_decoder(
     Ok(Some(d))
 }
 
-/// Requested frames, checked against the clip length when parsed.
+/// Requested frames: `None` for all of them. Checked against the input's frames once it is
+/// read (a clip has 24; a capture imported in windows, every frame its windows cover).
 #[derive(Clone, Debug)]
-pub struct Frames(pub Vec<usize>);
+pub struct Frames(pub Option<Vec<usize>>);
 
 pub fn parse_frames(s: &str) -> Result<Frames, String> {
     if s.trim() == "all" {
-        return Ok(Frames((0..FRAMES).collect()));
+        return Ok(Frames(None));
     }
     let mut frames = Vec::new();
     for part in s.split(',') {
         let f: usize = part.trim().parse().map_err(|_| {
             format!("`{}` is not a frame index (use numbers like 0,5,10 or `all`)", part.trim())
         })?;
-        if f >= FRAMES {
-            return Err(format!("frame {f} is out of range: a clip has frames 0 to {}", FRAMES - 1));
-        }
         if !frames.contains(&f) {
             frames.push(f);
         }
     }
-    Ok(Frames(frames))
+    Ok(Frames(Some(frames)))
+}
+
+impl Frames {
+    /// The frames asked for among `available` (in their order for `all`), or an error naming
+    /// the first that is not one of them.
+    pub fn among(&self, available: &[usize]) -> CliResult<Vec<usize>> {
+        let Some(list) = &self.0 else { return Ok(available.to_vec()) };
+        if let Some(f) = list.iter().find(|f| !available.contains(f)) {
+            let (first, last) = (available.first().unwrap_or(&0), available.last().unwrap_or(&0));
+            return Err(format!("frame {f} is out of range: the clip has frames {first} to {last}").into());
+        }
+        Ok(list.clone())
+    }
+}
+
+/// One clip to decode: its cloud (host rows), and each frame to write with its name. A
+/// capture imported in windows (`velox import rgbd --windows`) is a clip per window, each
+/// writing the frames after those the windows before it cover (`window_shares`), named by the
+/// capture's frames.
+pub struct Clip {
+    pub cloud: Vec<f32>,
+    pub frames: Vec<(usize, usize)>,
+}
+
+/// The clips of `--cloud`, with the frames `frames` picks of them (windows none of whose
+/// frames are asked for are left out); and the number of windows (0: not a windowed capture).
+pub fn clips(cloud: &Path, frames: &Frames) -> CliResult<(Vec<Clip>, usize)> {
+    let Some(windows) = velox_tasks::track::read_windows(cloud)? else {
+        let wanted = frames.among(&(0..FRAMES).collect::<Vec<_>>())?;
+        let frames = wanted.into_iter().map(|f| (f, f)).collect();
+        return Ok((vec![Clip { cloud: read_cloud(cloud)?, frames }], 0));
+    };
+    let lists: Vec<&[usize]> = windows.iter().map(|w| &w.1[..]).collect();
+    let shares = velox_tasks::track::window_shares(&lists)?;
+    let own: Vec<&[usize]> = lists.iter().zip(&shares).map(|(f, &s)| &f[s..]).collect();
+    let wanted = frames.among(&own.concat())?;
+    let mut clips = Vec::new();
+    for ((video, list), &shared) in windows.iter().zip(&shares) {
+        let frames: Vec<(usize, usize)> =
+            (shared..FRAMES).filter(|&j| wanted.contains(&list[j])).map(|j| (j, list[j])).collect();
+        if frames.is_empty() {
+            continue;
+        }
+        let rows = velox_data::rgbd::rgbd_cloud(video, velox_data::rgbd::DEFAULT_POINTS, 0)
+            .map_err(|e| format!("reading the cloud of the window from frame {}: {e}", list[0]))?;
+        clips.push(Clip { cloud: rows.iter().flatten().copied().collect(), frames });
+    }
+    Ok((clips, windows.len()))
 }
 
 /// The cloud of a scene folder (its points.ply), a PLY file or a video folder, as host rows
@@ -360,17 +409,21 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
         )
         .into());
     }
-    let cloud_host = read_cloud(&common.cloud)?;
+    let (clips, windows) = clips(&common.cloud, &common.frames)?;
     if voxels == Some(VoxelSource::Input) {
-        let per_frame = frame_points(&cloud_host);
-        if let Some(f) = common.frames.0.iter().find(|&&f| per_frame[f].is_empty()) {
-            return Err(format!(
-                "frame {f} has no points in {}, so it has no voxels: choose other frames or --voxels surface",
-                common.cloud.display()
-            )
-            .into());
+        for clip in &clips {
+            let per_frame = frame_points(&clip.cloud);
+            if let Some(&(_, f)) = clip.frames.iter().find(|&&(j, _)| per_frame[j].is_empty()) {
+                return Err(format!(
+                    "frame {f} has no points in {}, so it has no voxels: choose other frames or --voxels surface",
+                    common.cloud.display()
+                )
+                .into());
+            }
         }
     }
+    let input_points: usize = clips.iter().map(|c| c.cloud.len() / CHANNELS).sum();
+    let frame_count: usize = clips.iter().map(|c| c.frames.len()).sum();
     let gpu = Gpu::new()?;
     let mut ae = Autoencoder::load(&gpu, &common.checkpoint)?;
     ae.set_precision(common.precision.into())?;
@@ -380,11 +433,14 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
         DecodeCommand::Gaussians(_) => "Gaussians",
         DecodeCommand::Mesh(_) => "surface meshes",
     };
+    let windowed = match windows {
+        0 => String::new(),
+        n => format!(", a capture in {n} windows of {FRAMES} frames, {} of them encoded", clips.len()),
+    };
     println!(
-        "decoding {what} of {} frames of {} ({} points) with the {} autoencoder in {} on {}",
-        common.frames.0.len(),
+        "decoding {what} of {frame_count} frames of {} ({input_points} points{windowed}) with the {} autoencoder \
+         in {} on {}",
         common.cloud.display(),
-        cloud_host.len() / CHANNELS,
         ae.cfg.name,
         ae.precision().name(),
         gpu.caps().name
@@ -392,12 +448,7 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
     let start = Instant::now();
     let sources: Vec<VoxelSource> = voxels.into_iter().collect();
     let decoder = voxel_decoder(&gpu, decoder_path.as_deref(), &common.checkpoint, &sources)?;
-    let mut decoding = Decoding::encode(&ae, &cloud_host, common.seed)?;
-    if let Some(d) = &decoder {
-        decoding = decoding.with_voxel_decoder(d)?;
-    }
-    let encode_seconds = start.elapsed().as_secs_f64();
-    let bar = progress(common.frames.0.len(), "frames");
+    let bar = progress(frame_count, "frames");
     let output = match voxels {
         None => FrameOutput::Points,
         Some(source) => FrameOutput::Gaussians(source),
@@ -409,23 +460,33 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
         bar.set_message(format!("frame {f}"));
         done += 1;
     };
-    let written = match &cmd {
-        DecodeCommand::Mesh(a) => write_meshes(&decoding, a, &mut on_frame)?,
-        _ => decoding.write_frames(
-            &common.frames.0,
-            output,
-            &sampling.sampling(),
-            &common.out,
-            &mut on_frame,
-        )?,
-    };
+    let mut written = Vec::with_capacity(frame_count);
+    let mut encode_seconds = 0.0;
+    for clip in &clips {
+        let encoding = Instant::now();
+        let mut decoding = Decoding::encode(&ae, &clip.cloud, common.seed)?;
+        if let Some(d) = &decoder {
+            decoding = decoding.with_voxel_decoder(d)?;
+        }
+        encode_seconds += encoding.elapsed().as_secs_f64();
+        written.extend(match &cmd {
+            DecodeCommand::Mesh(a) => write_meshes(&decoding, a, &clip.frames, &mut on_frame)?,
+            _ => decoding.write_frames_named(
+                &clip.frames,
+                output,
+                &sampling.sampling(),
+                &common.out,
+                &mut on_frame,
+            )?,
+        });
+    }
     bar.finish_and_clear();
     let record = DecodeRecord {
         command,
         checkpoint: &common.checkpoint,
         cloud: &common.cloud,
         ae: &ae,
-        input_points: cloud_host.len() / CHANNELS,
+        input_points,
         voxels,
         sampling: &sampling.sampling(),
         encode_seconds,
@@ -435,7 +496,8 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
         // The frames as written, read back from their files.
         let (gif, pngs) = (common.out.join("clip.gif"), common.out.join("clip"));
         let render_frame = |f: usize, camera: &Camera, bg| render_written(&gpu, &written, f, camera, bg);
-        clip_gif(&common.cloud, &common.frames.0, render_frame, &gif, 80, Some(&pngs))?;
+        let frames: Vec<usize> = written.iter().map(|w| w.frame).collect();
+        clip_gif(&common.cloud, &frames, render_frame, &gif, 80, Some(&pngs))?;
         println!("wrote {} and its frames under {} (ground truth | decoded)", gif.display(), pngs.display());
     }
     let files = match &cmd {
@@ -455,24 +517,25 @@ pub fn run(cmd: DecodeCommand) -> CliResult<()> {
 fn write_meshes(
     decoding: &Decoding,
     a: &MeshArgs,
+    frames: &[(usize, usize)],
     on_frame: &mut dyn FnMut(usize),
 ) -> CliResult<Vec<WrittenFrame>> {
     let mut written = Vec::new();
-    for &frame in &a.common.frames.0 {
-        on_frame(frame);
+    for &(frame, name) in frames {
+        on_frame(name);
         let start = Instant::now();
         let xyz = decoding.surface_points(frame, &a.sampling.sampling())?;
         let m = velox_data::surface::mesh_of_points(&xyz, a.resolution)?;
         let mut first = None;
         for &format in &a.format {
             let format = mesh::Format::from(format);
-            let path = a.common.out.join(frames::frame_file_as("mesh", frame, format.extension()));
+            let path = a.common.out.join(frames::frame_file_as("mesh", name, format.extension()));
             mesh::write(&path, &m, format)?;
             first.get_or_insert(path);
         }
         let path = first.ok_or("--format names no format")?;
         written.push(WrittenFrame {
-            frame,
+            frame: name,
             tau: frames::tau_of(frame),
             path,
             count: m.triangles.len(),
@@ -493,9 +556,11 @@ mod tests {
 
     #[test]
     fn frames_parse_with_clear_errors() {
-        assert_eq!(parse_frames("all").unwrap().0.len(), FRAMES);
-        assert_eq!(parse_frames("0, 5,10,5").unwrap().0, vec![0, 5, 10]);
-        assert!(parse_frames("99").unwrap_err().contains("frame 99 is out of range"));
+        let clip: Vec<usize> = (0..FRAMES).collect();
+        assert_eq!(parse_frames("all").unwrap().among(&clip).unwrap(), clip);
+        assert_eq!(parse_frames("0, 5,10,5").unwrap().among(&clip).unwrap(), vec![0, 5, 10]);
+        let e = parse_frames("99").unwrap().among(&clip).unwrap_err().to_string();
+        assert!(e.contains("frame 99 is out of range: the clip has frames 0 to 23"), "{e}");
         assert!(parse_frames("x").unwrap_err().contains("not a frame index"));
     }
 }

@@ -203,6 +203,8 @@ fn write_tokens(path: &Path, tokens: &[f32], shape: &[usize]) -> CliResult<()> {
 }
 
 pub fn run(a: &GenerateArgs) -> CliResult<()> {
+    let clip: Vec<usize> = (0..velox_models::velox::autoencoder::FRAMES).collect();
+    let wanted = a.frames.among(&clip)?;
     let gpu = Gpu::new()?;
     let mut m = GeneratorModels::load(&gpu, &a.checkpoint, &a.autoencoder, a.dinov2.as_deref())?;
     m.ae.set_precision(a.precision.into())?;
@@ -265,12 +267,12 @@ pub fn run(a: &GenerateArgs) -> CliResult<()> {
         std::iter::once(input_cam).chain(ring_cameras(r, a.views as usize, res)).collect();
     let (w, h) = (cams[0].width as usize, cams[0].height as usize);
     let sampling = Sampling { points: a.points as usize, steps: 20, sampler: SamplerArg::Heun.into() };
-    let sheet_at = sheet_frames(&a.frames.0);
+    let sheet_at = sheet_frames(&wanted);
     let mut sheet: Vec<Vec<Vec<f32>>> = vec![Vec::new(); cams.len() + 1];
-    let bar = progress(a.frames.0.len(), "frames decoded and rendered");
+    let bar = progress(wanted.len(), "frames decoded and rendered");
     let mut frames = Vec::new();
     let mut clip = Vec::new();
-    for &f in &a.frames.0 {
+    for &f in &wanted {
         let centres = decoding.voxels(f, source, &sampling)?;
         let g = decoding.gaussians(f, &centres)?;
         let path = a.out.join(velox_io::frames::frame_file("gaussians", f));

@@ -114,15 +114,70 @@ fn decode_points_writes_a_cloud_per_frame() {
     let text = ok(&velox(&[&args[..], &rest[..]].concat()));
     assert!(text.contains("wrote 1 file"), "{text}");
     assert_eq!(ply_vertices(&from_video.join("points_f03.ply")).1, 64);
-    // A capture imported in windows names them: each is a clip of its own.
+    // A capture imported in windows (frames 0 to 23 and 16 to 39, the same video in both
+    // here) is decoded window by window, its frames named by the capture's: frame 30 is the
+    // second window's frame 14, as that window alone decodes it.
     let windowed = dir.join("windowed");
-    for w in ["window_000", "window_001"] {
-        std::fs::create_dir_all(windowed.join(w)).unwrap();
+    let mut record = velox_data::capture::CaptureRecord {
+        source: arg(&video).into(),
+        source_frames: 40,
+        fps: None,
+        windows: Vec::new(),
+        centre: [0.0; 3],
+        scale: 1.0,
+        depth_pixels: 1,
+        dropped_beyond_max_depth: 0,
+    };
+    for (k, first) in [0usize, 16].into_iter().enumerate() {
+        let w = format!("window_{k:03}");
+        std::fs::create_dir_all(windowed.join(&w)).unwrap();
+        for entry in std::fs::read_dir(&video).unwrap() {
+            let entry = entry.unwrap();
+            std::fs::copy(entry.path(), windowed.join(&w).join(entry.file_name())).unwrap();
+        }
+        let frames: Vec<usize> = (first..first + 24).collect();
+        let files = |kind: &str| frames.iter().map(|f| format!("{kind}{f}")).collect();
+        record.windows.push(velox_data::capture::CaptureWindow {
+            dir: w,
+            frames: frames.clone(),
+            colour_files: files("colour"),
+            depth_files: files("depth"),
+            times: None,
+        });
     }
+    std::fs::write(windowed.join("capture.json"), serde_json::to_string(&record).unwrap()).unwrap();
+    let stitched = dir.join("points_windowed");
     let args = ["decode", "points", "--checkpoint", arg(&ckpt), "--cloud", arg(&windowed)];
-    let out = velox(&[&args[..], &["--out", arg(&dir.join("points_windowed"))][..]].concat());
+    let rest = ["--out", arg(&stitched), "--frames", "3,30", "--points", "64", "--steps", "2"];
+    let text = ok(&velox(&[&args[..], &rest[..]].concat()));
+    assert!(
+        text.contains("2 windows of 24 frames, 2 of them encoded") && text.contains("wrote 2 files"),
+        "{text}"
+    );
+    assert_eq!(
+        std::fs::read(stitched.join("points_f03.ply")).unwrap(),
+        std::fs::read(from_video.join("points_f03.ply")).unwrap()
+    );
+    let alone = dir.join("points_window_001");
+    let second = windowed.join("window_001");
+    let args = ["decode", "points", "--checkpoint", arg(&ckpt), "--cloud", arg(&second)];
+    let rest = ["--out", arg(&alone), "--frames", "14", "--points", "64", "--steps", "2"];
+    ok(&velox(&[&args[..], &rest[..]].concat()));
+    assert_eq!(
+        std::fs::read(stitched.join("points_f30.ply")).unwrap(),
+        std::fs::read(alone.join("points_f14.ply")).unwrap()
+    );
+    let report = velox_io::decoded::DecodeReport::read(&stitched).unwrap();
+    let frames: Vec<(usize, &str)> = report.frames.iter().map(|f| (f.frame, f.file.as_str())).collect();
+    assert_eq!(frames, [(3, "points_f03.ply"), (30, "points_f30.ply")]);
+    // Frames past the capture's are refused naming its range.
+    let args = ["decode", "points", "--checkpoint", arg(&ckpt), "--cloud", arg(&windowed)];
+    let out = velox(&[&args[..], &["--out", arg(&stitched), "--frames", "40"][..]].concat());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success() && err.contains("2 windows") && err.contains("window_001"), "{err}");
+    assert!(
+        !out.status.success() && err.contains("frame 40 is out of range: the clip has frames 0 to 39"),
+        "{err}"
+    );
 }
 
 #[test]

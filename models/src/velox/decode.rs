@@ -242,27 +242,43 @@ impl<'a> Decoding<'a> {
         out: &Path,
         on_frame: &mut dyn FnMut(usize),
     ) -> Result<Vec<WrittenFrame>> {
+        let named: Vec<(usize, usize)> = frames.iter().map(|&f| (f, f)).collect();
+        self.write_frames_named(&named, output, sampling, out, on_frame)
+    }
+
+    /// [`Decoding::write_frames`] of the frames `(frame, name)`: frame `frame` of this clip
+    /// written as frame `name` (its file, and the frame of its [`WrittenFrame`]; `on_frame`
+    /// is given the name). A clip that is a window of a longer capture names its frames by the
+    /// capture's.
+    pub fn write_frames_named(
+        &self,
+        frames: &[(usize, usize)],
+        output: FrameOutput,
+        sampling: &Sampling,
+        out: &Path,
+        on_frame: &mut dyn FnMut(usize),
+    ) -> Result<Vec<WrittenFrame>> {
         let mut written = Vec::with_capacity(frames.len());
-        for &frame in frames {
-            on_frame(frame);
+        for &(frame, name) in frames {
+            on_frame(name);
             let start = Instant::now();
             let (path, count, voxels) = match output {
                 FrameOutput::Points => {
                     let xyz = self.surface_points(frame, sampling)?;
-                    let path = out.join(velox_io::frames::frame_file("points", frame));
+                    let path = out.join(velox_io::frames::frame_file("points", name));
                     write_bytes(&path, &points_ply(&xyz, tau_of(frame)))?;
                     (path, xyz.len() / 3, None)
                 }
                 FrameOutput::Gaussians(source) => {
                     let centres = self.voxels(frame, source, sampling)?;
                     let g = self.gaussians(frame, &centres)?.download()?;
-                    let path = out.join(velox_io::frames::frame_file("gaussians", frame));
+                    let path = out.join(velox_io::frames::frame_file("gaussians", name));
                     ply::write(&path, &g)?;
                     (path, g.len(), Some(centres.len() / 3))
                 }
             };
             let seconds = start.elapsed().as_secs_f64();
-            written.push(WrittenFrame { frame, tau: tau_of(frame), path, count, voxels, seconds });
+            written.push(WrittenFrame { frame: name, tau: tau_of(frame), path, count, voxels, seconds });
         }
         Ok(written)
     }
@@ -280,7 +296,9 @@ pub enum FrameOutput {
 /// One file [`Decoding::write_frames`] wrote.
 #[derive(Clone, Debug)]
 pub struct WrittenFrame {
+    /// The frame's name: its frame in the clip, or in the capture of which the clip is a window.
     pub frame: usize,
+    /// The decoder's frame time (of the frame in its clip).
     pub tau: f32,
     pub path: PathBuf,
     /// Points or Gaussians in the file.
