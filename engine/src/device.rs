@@ -49,6 +49,8 @@ pub(crate) struct GpuInner {
     pub memory_peak: AtomicU64,
     /// Bytes uploaded and downloaded through staging buffers since the device was opened.
     pub staged_bytes: AtomicU64,
+    /// Submissions to the queue since the device was opened (each a host wait).
+    pub submits: AtomicU64,
     /// How long a submit waits for its recording ([`crate::recorder::wait_timeout`]).
     pub wait_timeout: std::time::Duration,
     /// A recording never finished (see the recorder's drop): the device is left as it is at
@@ -396,6 +398,7 @@ impl Gpu {
                 memory_live: AtomicU64::new(0),
                 memory_peak: AtomicU64::new(0),
                 staged_bytes: AtomicU64::new(0),
+                submits: AtomicU64::new(0),
                 wait_timeout,
                 hung: std::sync::atomic::AtomicBool::new(false),
                 pending_uploads: Mutex::new(Vec::new()),
@@ -488,6 +491,12 @@ impl Gpu {
     /// `VELOX_FORCE_STAGING=1` sends the transfers through staging as a discrete GPU's do.
     pub fn staged_bytes(&self) -> u64 {
         self.inner.staged_bytes.load(Ordering::Relaxed)
+    }
+
+    /// Recordings submitted to this device since it was opened, each waited for by the host
+    /// (`profile::submits` counts the process's, over every device).
+    pub fn submits(&self) -> u64 {
+        self.inner.submits.load(Ordering::Relaxed)
     }
 
     /// Starts a new peak from what is held now.

@@ -25,4 +25,4 @@ pub use caps::{Caps, Switches};
 pub use device::{list_devices, DeviceSummary, Gpu};
 pub use error::{fit_u32, Error, Feature, FileOp, Limit, Result};
 pub use recorder::{Completion, Finished, NarrowMatmul, Precision, Recorder};
-pub use tensor::{DType, Element, Tensor};
+pub use tensor::{DType, Element, Readback, Tensor};

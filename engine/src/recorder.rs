@@ -19,12 +19,13 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use ash::vk;
+use gpu_allocator::MemoryLocation;
 
 use crate::device::Gpu;
 use crate::error::{Error, Result, VkCheck};
 use crate::kernels::{ArgList, Binds, Kernel, KernelId};
 use crate::profile;
-use crate::tensor::{Buffer, Tensor};
+use crate::tensor::{Buffer, Readback, Tensor};
 use crate::validation;
 use crate::Limit;
 
@@ -548,6 +549,22 @@ impl Recorder {
         unsafe { self.gpu.device().cmd_copy_buffer(self.cmd, src.raw, dst.raw, &region) };
     }
 
+    /// `t` as this recording leaves it here, for the host to read once the recording has been
+    /// submitted, with no submission of its own ([`Readback`]): on a device whose memory the
+    /// host does not map, the recording copies `t` into a host-visible buffer here.
+    pub fn read_back(&mut self, t: &Tensor) -> Result<Readback> {
+        let staging = if t.staged() && t.bytes() > 0 {
+            let staging = Arc::new(Buffer::new(&self.gpu, t.bytes(), MemoryLocation::GpuToCpu, "readback")?);
+            self.copy_raw(&t.buf, t.offset, &staging, 0, t.bytes());
+            self.keep.push(t.buf.clone());
+            self.keep.push(staging.clone());
+            Some(staging)
+        } else {
+            None
+        };
+        Ok(Readback::new(t.clone(), staging, self.done.clone()))
+    }
+
     /// Copies the whole of `src` into `dst` (same byte size).
     pub fn copy(&mut self, src: &Tensor, dst: &Tensor) -> Result<()> {
         if src.bytes() != dst.bytes() {
@@ -678,6 +695,7 @@ impl Recorder {
             }
             self.submitted = true;
             profile::count_submit();
+            self.gpu.inner.submits.fetch_add(1, Ordering::Relaxed);
             let start = std::time::Instant::now();
             let nanos = u64::try_from(self.wait.as_nanos()).unwrap_or(u64::MAX);
             match device.wait_for_fences(&[self.fence], true, nanos) {

@@ -384,6 +384,72 @@ impl Tensor {
     }
 }
 
+/// A tensor's value as a recording left it where [`crate::Recorder::read_back`] was called,
+/// for the host to read once that recording has been submitted, without a submission or a
+/// wait of its own: on a device whose memory the host maps, the tensor itself, read in place
+/// (so read it before later work rewrites it); elsewhere a host-visible buffer the recording
+/// copies the tensor into. A [`Tensor::read`] on such a device is a copy submitted and waited
+/// for: a training step reads its tile-pair counts, its losses and its gradient norm so instead.
+#[derive(Clone)]
+pub struct Readback {
+    tensor: Tensor,
+    staging: Option<Arc<Buffer>>,
+    done: crate::Completion,
+}
+
+impl std::fmt::Debug for Readback {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "Readback({:?}, {})",
+            self.tensor,
+            if self.staging.is_some() { "staged" } else { "in place" }
+        )
+    }
+}
+
+impl Readback {
+    pub(crate) fn new(tensor: Tensor, staging: Option<Arc<Buffer>>, done: crate::Completion) -> Readback {
+        Readback { tensor, staging, done }
+    }
+
+    /// The values, once the recording that reads them back has run (an error before).
+    pub fn read<T: Element>(&self) -> Result<Vec<T>> {
+        if !self.done.is_done() {
+            return Err(Error::Invalid(format!(
+                "{:?} read back before the recording that copies it was submitted",
+                self.tensor
+            )));
+        }
+        let Some(staging) = &self.staging else { return self.tensor.read() };
+        self.tensor.check_host_type::<T>(self.tensor.numel())?;
+        let mut out = vec![T::zeroed(); self.tensor.numel()];
+        let bytes: &mut [u8] = bytemuck::cast_slice_mut(&mut out);
+        let ptr = staging.mapped().ok_or_else(|| {
+            Error::unsupported(Feature::HostVisibleMemory, "staging memory is not host-visible")
+        })?;
+        // SAFETY: the recording's copy into the staging buffer has completed (`done`); the
+        // mapping holds the tensor's bytes.
+        unsafe { std::ptr::copy_nonoverlapping(ptr, bytes.as_mut_ptr(), bytes.len()) };
+        let gpu = self.tensor.gpu();
+        gpu.inner.staged_bytes.fetch_add(bytes.len() as u64, std::sync::atomic::Ordering::Relaxed);
+        Ok(out)
+    }
+
+    /// The tensor read back.
+    pub fn tensor(&self) -> &Tensor {
+        &self.tensor
+    }
+}
+
+impl Tensor {
+    /// Whether the host reads this tensor through a staging copy (its memory is not mapped,
+    /// or `VELOX_FORCE_STAGING=1`).
+    pub(crate) fn staged(&self) -> bool {
+        self.buf.mapped().is_none() || self.gpu().inner.force_staging
+    }
+}
+
 /// A write waiting in its staging buffer for the next submission to copy it into `dst` (see
 /// the module docs). The destination is held weakly: a tensor dropped before any submission
 /// is not copied into. The staging buffer is held as its raw parts, since the device holds the

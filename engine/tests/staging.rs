@@ -79,3 +79,34 @@ fn uploads_ride_with_the_next_submission() {
     let other = Gpu::new().unwrap();
     let _left = Tensor::from_slice(&other, &[3], &[1.0f32, 2.0, 3.0]).unwrap();
 }
+
+/// Would catch: a read back that submits and waits on its own (a training step's losses,
+/// gradient norm and tile-pair counts were each a copy and a host wait on a discrete GPU), one
+/// that takes a later value of the tensor than where it was asked for, or one readable before
+/// its recording ran.
+#[test]
+fn a_read_back_comes_with_its_recording() {
+    let _one = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    std::env::set_var("VELOX_FORCE_STAGING", "1");
+    let gpu = Gpu::new().unwrap();
+    let mut rng = Rng::new(3);
+    let (a, b) = (rng.normal_vec(300), rng.normal_vec(300));
+    let ta = Tensor::from_slice(&gpu, &[300], &a).unwrap();
+    let tb = Tensor::from_slice(&gpu, &[300], &b).unwrap();
+    let mut rec = gpu.recorder().unwrap();
+    let c = binary(&mut rec, &ta, &tb, Binary::Add).unwrap();
+    let sum = rec.read_back(&c).unwrap();
+    // Rewritten later in the same recording: the read back keeps the value it was asked for.
+    velox_engine::ops::binary::binary_into(&mut rec, &c, &tb, &c, Binary::Add).unwrap();
+    let twice = rec.read_back(&c.view(0, &[7]).unwrap()).unwrap();
+    let err = sum.read::<f32>().unwrap_err().to_string();
+    assert!(err.contains("before the recording that copies it was submitted"), "{err}");
+    let submits = velox_engine::profile::submits();
+    rec.submit().unwrap();
+    let want: Vec<f32> = a.iter().zip(&b).map(|(x, y)| x + y).collect();
+    assert_eq!(sum.read::<f32>().unwrap(), want);
+    let want: Vec<f32> = want.iter().zip(&b).take(7).map(|(x, y)| x + y).collect();
+    assert_eq!(twice.read::<f32>().unwrap(), want);
+    assert!(sum.read::<u32>().is_err(), "a read back of another type");
+    assert_eq!(velox_engine::profile::submits(), submits + 1, "a read back submitted work of its own");
+}

@@ -27,13 +27,14 @@
 //! `tests/models/slips.rs` (every model's weight-decay layout) and `tests/data/fuzz.rs`.
 
 use std::collections::HashMap;
+use std::sync::Mutex;
 
 use velox_engine::ops::adamw::{adamw, AdamWConfig, AdamWStep, AdamWTensors};
 use velox_engine::ops::cast::cast_into;
 use velox_engine::ops::fill::fill;
-use velox_engine::ops::norm::{check_finite, chunk_len, global_norm_into, NormScratch};
+use velox_engine::ops::norm::{check_finite_values, chunk_len, global_norm_into, NormScratch};
 use velox_engine::rng::Rng;
-use velox_engine::{DType, Error, Gpu, Precision, Recorder, Result, Tensor};
+use velox_engine::{DType, Error, Gpu, Precision, Readback, Recorder, Result, Tensor};
 
 use crate::layers::Param;
 use velox_engine::Limit;
@@ -226,6 +227,7 @@ impl ParamBuilder {
             v,
             decay_len,
             norm,
+            norm_read: Mutex::new(None),
             step: 0,
             half,
             half_views,
@@ -364,6 +366,9 @@ pub struct ParamStore {
     v: Tensor,
     decay_len: usize,
     norm: NormScratch,
+    /// The norm's result as the last recording of [`ParamStore::record_grad_norm`] reads it
+    /// back (with that recording: no copy and wait of its own on a GPU).
+    norm_read: Mutex<Option<Readback>>,
     step: u64,
     /// An f16 copy of `params` at the same offsets, for the f16 inference path; it follows
     /// `params` only through [`ParamStore::sync_half`].
@@ -618,7 +623,9 @@ impl ParamStore {
 
     /// Records the global norm of all gradients; [`ParamStore::grad_norm`] reads it after submit.
     pub fn record_grad_norm(&self, rec: &mut Recorder) -> Result<()> {
-        global_norm_into(rec, &self.grads, &self.norm)
+        global_norm_into(rec, &self.grads, &self.norm)?;
+        *self.norm_read.lock().unwrap() = Some(rec.read_back(self.norm.result())?);
+        Ok(())
     }
 
     /// Records one AdamW step over every parameter: the global gradient norm, then the fused
@@ -666,7 +673,11 @@ impl ParamStore {
     /// norm means the gradients hold NaN or Inf: the AdamW kernel then left everything as it
     /// was, so the step counter goes back by one and the error says what happened.
     pub fn grad_norm(&mut self) -> Result<f32> {
-        match check_finite(self.norm.result(), "gradients") {
+        let values = match self.norm_read.lock().unwrap().as_ref() {
+            Some(read) => read.read::<f32>()?,
+            None => self.norm.result().read::<f32>()?,
+        };
+        match check_finite_values(&values, "gradients") {
             Ok(n) => Ok(n),
             Err(e) => {
                 self.step = self.step.saturating_sub(1);

@@ -62,6 +62,30 @@ fn losses(gpu: &Gpu, scene: &TrainScene, precision: Precision, steps: u64) -> Ve
     reports.iter().map(|r| r.losses.total()).collect()
 }
 
+/// Would catch: a host wait added to a training step (each submission is one: a read of a
+/// result submitted on its own, an upload waited for, a pass split in two).
+#[test]
+fn a_training_step_is_three_submissions_in_either_precision() {
+    // Its own device, so that no other test's submissions are counted.
+    let gpu = Gpu::new().unwrap();
+    let dir = temp_dir("submits");
+    let scene = upload(&gpu, &host_scene(&gpu, &dir));
+    for precision in [Precision::F32, Precision::F16] {
+        let mut model = Autoencoder::new(&gpu, &AutoencoderConfig::tiny(), 3).unwrap();
+        let request = RunRequest { steps: Some(3), precision: Some(precision), ..Default::default() };
+        let settings = RunSettings::new(&request, vec!["scene".into()], 1, 1).unwrap();
+        let mut trainer = Trainer::new(&mut model, &SingleProcess, settings).unwrap();
+        trainer.repeat_steps(&[&scene], 1..2).unwrap();
+        let before = gpu.submits();
+        trainer.repeat_steps(&[&scene], 2..4).unwrap();
+        // The forward pass (its tile-pair counts size the rasterisation), the backward pass
+        // (the losses, read for the log and the NaN check) and the optimiser (the gradient
+        // norm, read for f16's overflow decision).
+        assert_eq!(gpu.submits() - before, 6, "{precision:?}: submissions in two steps");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn f16_training_follows_f32_for_100_steps() {
     // The tolerance: every step's loss within 1 % of the f32 run's, and 0.1 % on average over

@@ -154,7 +154,11 @@ pub fn global_norm_chunked(
 /// is NaN or Inf, which means the gradients hold NaN or Inf (or squares past f32's range).
 /// Returns the norm.
 pub fn check_finite(result: &Tensor, what: &str) -> Result<f32> {
-    let v: Vec<f32> = result.read()?;
+    check_finite_values(&result.read()?, what)
+}
+
+/// [`check_finite`] of a result already read back (a [`crate::Readback`]'s values).
+pub fn check_finite_values(v: &[f32], what: &str) -> Result<f32> {
     let norm = v.first().copied().ok_or_else(|| Error::Shape(format!("{what}: empty norm result")))?;
     if !norm.is_finite() {
         return Err(Error::Invalid(format!(

@@ -454,12 +454,13 @@ impl Autoencoder {
         self.gaussians.backward_into(&mut rec, &g_cache, &d_gaussians, &ds, true)?;
         self.surface.backward_into(&mut rec, &surface_cache, &dv, &ds, true)?;
         self.encoder.backward(&mut rec, &enc_cache, &ds)?;
-        // The three terms side by side, read back at once: on a GPU, whose memory the host does
-        // not map, each read is a copy and a wait.
+        // The three terms side by side, read back with this recording: on a GPU, whose memory
+        // the host does not map, a read of its own would be a copy and a wait.
         let terms = Tensor::empty(&gpu, &[3], DType::F32)?;
         for (i, t) in [&surface_loss, &image_loss, &token_loss].into_iter().enumerate() {
             rec.copy_rows(t, 0, &terms, i, 1)?;
         }
+        let terms = rec.read_back(&terms)?;
         rec.submit()?;
         self.pass_seconds.backward += forward_done.elapsed().as_secs_f64();
 

@@ -622,6 +622,8 @@ impl Generator {
         self.pass_seconds.forward += (forward_done - started).as_secs_f64();
         let mut rec = self.store.recorder()?;
         self.backward(&mut rec, &cache, &dv)?;
+        // Read back with this recording: no copy and wait of its own on a GPU.
+        let loss = rec.read_back(&loss)?;
         rec.submit()?;
         self.pass_seconds.backward += forward_done.elapsed().as_secs_f64();
         let total = loss.read::<f32>()?[0] as f64;

@@ -13,7 +13,7 @@ use velox_engine::ops::reduce::{reduce, Reduce};
 use velox_engine::ops::voxel_head;
 use velox_engine::rng::Rng;
 use velox_engine::Recorder;
-use velox_engine::{DType, Error, Gpu, Result, Tensor};
+use velox_engine::{DType, Error, Gpu, Readback, Result, Tensor};
 
 use crate::config::{OccupancyLoss, VoxelConfig, VoxelStageConfig};
 use crate::layers::linear::LinearCache;
@@ -415,13 +415,16 @@ impl VoxelDecoder {
             let d_features = self.head.backward(&mut rec, head, d)?;
             self.fine.backward(&mut rec, cache, &d_features)?;
         }
+        // The losses come back with this recording (no copy and wait of their own on a GPU).
+        let coarse = rec.read_back(&coarse_loss)?;
+        let fine = fine.as_ref().map(|(l, ..)| rec.read_back(l)).transpose()?;
         rec.submit()?;
         self.pass_seconds.backward += forward_done.elapsed().as_secs_f64();
 
-        let read = |t: &Tensor| -> Result<f64> { Ok(t.read::<f32>()?[0] as f64) };
-        let coarse = read(&coarse_loss)?;
+        let read = |t: &Readback| -> Result<f64> { Ok(t.read::<f32>()?[0] as f64) };
+        let coarse = read(&coarse)?;
         let fine = match &fine {
-            Some((l, ..)) => read(l)?,
+            Some(l) => read(l)?,
             None => 0.0,
         };
         let total = coarse + fine;

@@ -19,7 +19,7 @@ use crate::ops::fill::fill_bits;
 use crate::ops::scan::exclusive_scan;
 use crate::ops::sort::{sort_indices, sort_pairs};
 use crate::recorder::Recorder;
-use crate::tensor::{DType, Tensor};
+use crate::tensor::{DType, Readback, Tensor};
 use crate::Gpu;
 use crate::Limit;
 
@@ -89,7 +89,9 @@ pub struct Projected {
     offsets: Tensor,
     /// `[8]` u32: drawn, invalid, behind, faint, outside, too many tiles.
     pub stats: Tensor,
-    total: Tensor,
+    /// `[1]` u32: the (tile, Gaussian) pairs, read back with the projection's recording (no
+    /// copy and wait of its own where the host does not map device memory).
+    total: Readback,
 }
 
 /// How many Gaussians were drawn and why the others were dropped.
@@ -164,6 +166,7 @@ pub fn project(rec: &mut Recorder, g: &Gaussians, cam: &Camera) -> Result<Projec
         &p,
     )?;
     let total = exclusive_scan(rec, &counts, &offsets)?;
+    let total = rec.read_back(&total)?;
     Ok(Projected { n, camera: *cam, proj, counts, rects, offsets, stats, total })
 }
 
