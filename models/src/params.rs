@@ -234,6 +234,8 @@ impl ParamBuilder {
             training: Precision::F32,
             loss_scale: LossScale::default(),
             zero_pending: std::sync::atomic::AtomicBool::new(false),
+            update_pending: None,
+            update_recorded: false,
         };
         let mut rec = gpu.recorder()?;
         store.sync_half(&mut rec)?;
@@ -382,6 +384,21 @@ pub struct ParamStore {
     /// Set by [`ParamStore::zero_grads_first`]: the next [`ParamStore::recorder`] records the
     /// zeroing of the gradients first.
     zero_pending: std::sync::atomic::AtomicBool,
+    /// The optimiser step the step's last pass records at its end ([`ParamStore::update_last`]),
+    /// and whether it has been recorded.
+    update_pending: Option<Update>,
+    update_recorded: bool,
+}
+
+/// An AdamW step over the whole store, as [`ParamStore::adamw_step_scaled`] records it, then
+/// the f16 copies refreshed from the updated masters where the passes read them.
+#[derive(Clone, Copy, Debug)]
+pub struct Update {
+    pub adamw: AdamWConfig,
+    pub lr: f64,
+    pub max_norm: Option<f64>,
+    pub loss_scale: f64,
+    pub sync_half: bool,
 }
 
 /// Dynamic loss scaling for f16 training (Micikevicius et al., "Mixed Precision Training"):
@@ -503,6 +520,42 @@ impl ParamStore {
     /// at once where none was made (a step that ran no micro-batch).
     pub fn zero_grads_first(&self) {
         self.zero_pending.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// Asks the step's last pass to record `update` at the end of its recording
+    /// ([`ParamStore::record_update`]), so that the update needs no submission of its own: one
+    /// host wait a step fewer. The trainer asks where nothing comes between the last pass and
+    /// the update (one process, the last micro-batch); it records the update itself when the
+    /// pass did not ([`ParamStore::take_update`]).
+    pub fn update_last(&mut self, update: Update) {
+        self.update_pending = Some(update);
+        self.update_recorded = false;
+    }
+
+    /// Records the update [`ParamStore::update_last`] asked for, if any: a model's training
+    /// pass calls it at the end of its last recording, after the gradients are complete.
+    pub fn record_update(&mut self, rec: &mut Recorder) -> Result<()> {
+        if let Some(u) = self.update_pending.take() {
+            self.record(rec, &u)?;
+            self.update_recorded = true;
+        }
+        Ok(())
+    }
+
+    /// Records `u` into `rec`.
+    pub fn record(&mut self, rec: &mut Recorder, u: &Update) -> Result<()> {
+        self.adamw_step_scaled(rec, &u.adamw, u.lr, u.max_norm, u.loss_scale)?;
+        if u.sync_half {
+            self.sync_half(rec)?;
+        }
+        Ok(())
+    }
+
+    /// Whether the last pass recorded the update asked for (it has then been submitted with
+    /// that pass); either way nothing is left asked for.
+    pub fn take_update(&mut self) -> bool {
+        self.update_pending = None;
+        std::mem::take(&mut self.update_recorded)
     }
 
     /// Zeroes the gradients now if [`ParamStore::zero_grads_first`] asked for it and no

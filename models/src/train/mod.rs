@@ -96,7 +96,9 @@ pub trait Trainable {
     /// the trainer zeroed at the start of the step). `rngs` holds one generator per sample,
     /// drawn from the seed, the step and the sample's place in the step's batch, so a sample
     /// draws the same randomness whatever batch it is in. Returns the samples' loss terms
-    /// summed, times `weight`.
+    /// summed, times `weight`. The pass's last recording should end with
+    /// [`ParamStore::record_update`] (the step's update, where the trainer asked for it with
+    /// this micro-batch), which saves the update a submission of its own.
     fn accumulate(&mut self, samples: &[&Self::Sample], rngs: &mut [Rng], weight: f64) -> Result<Losses>;
 
     /// The seconds the forward and the backward passes of the micro-batches accumulated since

@@ -47,6 +47,7 @@ use super::plot::plot_log;
 use super::source::{prefetch, SampleSource};
 use super::{Losses, Trainable};
 use crate::checkpoint;
+use crate::params::Update;
 use crate::run::{RunRequest, RunSettings};
 use crate::schedule::cooldown;
 
@@ -214,7 +215,22 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
         self.failed = None;
         // Recorded first by the step's first pass (no submit of its own).
         self.model.store().zero_grads_first();
+        self.model.store_mut().take_update();
         Ok(())
+    }
+
+    /// The optimiser step that ends step `step`.
+    fn update(&self, step: u64) -> Update {
+        let s = &self.settings;
+        let opt = self.model.optimisation();
+        Update {
+            adamw: opt.adamw,
+            lr: opt.learning_rate(step) * cooldown(s.steps, s.cooldown, step),
+            max_norm: opt.max_grad_norm,
+            loss_scale: self.loss_scale(),
+            // The f16 copies the next passes read (unchanged when the update was skipped).
+            sync_half: s.precision == Precision::F16,
+        }
     }
 
     /// Adds seconds spent getting samples to the step's time split.
@@ -250,6 +266,12 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
             return Ok(());
         }
         let mut rngs: Vec<_> = slots.map(|g| slot_rng(self.settings.seed, step, g)).collect();
+        // With one process, nothing comes between the last micro-batch's backward pass and the
+        // update: the pass records it at its end, one submission and one host wait fewer.
+        if m + 1 == self.settings.accumulate && self.collective.size() == 1 {
+            let update = self.update(step);
+            self.model.store_mut().update_last(update);
+        }
         let scale = self.loss_scale();
         let weight = scale / self.settings.global_batch as f64;
         let t = Instant::now();
@@ -265,10 +287,13 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
     }
 
     /// Ends step `step`: gathers the losses and sums the gradients over the processes, then
-    /// updates the parameters. Fails, on every process, if any process's share failed or its
-    /// loss is not finite, and when the gradient norm is NaN or Inf (the parameters then stay
-    /// as they were) in f32 training; in f16 training such a step comes back as
-    /// [`Finished::Overflowed`], to be run again at the halved loss scale.
+    /// updates the parameters (with one process, the last micro-batch's pass has recorded the
+    /// update already, see [`ParamStore::update_last`](crate::params::ParamStore::update_last)).
+    /// Fails, on every process, if any process's share failed or its loss is not finite (the
+    /// run stops there: no checkpoint is written of the step), and when the gradient norm is
+    /// NaN or Inf (the parameters then stay as they were) in f32 training; in f16 training
+    /// such a step comes back as [`Finished::Overflowed`], to be run again at the halved loss
+    /// scale.
     pub fn finish_step(&mut self, step: u64) -> Result<Finished> {
         if let Some(p) = self.model.take_pass_seconds() {
             self.time.forward = Some(p.forward);
@@ -300,21 +325,17 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
         self.time.all_reduce = t.elapsed().as_secs_f64();
 
         let t = Instant::now();
-        let s = &self.settings;
-        let opt = self.model.optimisation();
-        let lr = opt.learning_rate(step) * cooldown(s.steps, s.cooldown, step);
-        let (adamw, max_norm) = (opt.adamw, opt.max_grad_norm);
-        let gpu = self.model.store().flat_params().gpu().clone();
-        let scale = self.loss_scale();
+        let update = self.update(step);
+        let (lr, scale) = (update.lr, update.loss_scale);
         let half = self.settings.precision == Precision::F16;
-        let mut rec = gpu.recorder()?;
+        let gpu = self.model.store().flat_params().gpu().clone();
         let store = self.model.store_mut();
-        store.adamw_step_scaled(&mut rec, &adamw, lr, max_norm, scale)?;
-        if half {
-            // The f16 copies the next passes read (unchanged when the update was skipped).
-            store.sync_half(&mut rec)?;
+        // Unless the last pass recorded the update (and submitted it with itself).
+        if !store.take_update() {
+            let mut rec = gpu.recorder()?;
+            store.record(&mut rec, &update)?;
+            rec.submit()?;
         }
-        rec.submit()?;
         let grad_norm = match store.grad_norm() {
             Ok(norm) => norm as f64 / scale,
             Err(_) if half => {

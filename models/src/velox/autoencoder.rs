@@ -461,6 +461,8 @@ impl Autoencoder {
             rec.copy_rows(t, 0, &terms, i, 1)?;
         }
         let terms = rec.read_back(&terms)?;
+        // The step's update, where the trainer asked for it with this pass (ParamStore::update_last).
+        self.store.record_update(&mut rec)?;
         rec.submit()?;
         self.pass_seconds.backward += forward_done.elapsed().as_secs_f64();
 

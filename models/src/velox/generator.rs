@@ -624,6 +624,8 @@ impl Generator {
         self.backward(&mut rec, &cache, &dv)?;
         // Read back with this recording: no copy and wait of its own on a GPU.
         let loss = rec.read_back(&loss)?;
+        // The step's update, where the trainer asked for it with this pass (ParamStore::update_last).
+        self.store.record_update(&mut rec)?;
         rec.submit()?;
         self.pass_seconds.backward += forward_done.elapsed().as_secs_f64();
         let total = loss.read::<f32>()?[0] as f64;

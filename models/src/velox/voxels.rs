@@ -418,6 +418,8 @@ impl VoxelDecoder {
         // The losses come back with this recording (no copy and wait of their own on a GPU).
         let coarse = rec.read_back(&coarse_loss)?;
         let fine = fine.as_ref().map(|(l, ..)| rec.read_back(l)).transpose()?;
+        // The step's update, where the trainer asked for it with this pass (ParamStore::update_last).
+        self.store.record_update(&mut rec)?;
         rec.submit()?;
         self.pass_seconds.backward += forward_done.elapsed().as_secs_f64();
 

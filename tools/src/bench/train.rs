@@ -177,9 +177,10 @@ pub fn run(
         }
     }
     println!(
-        "compute is the model's forward (to the end of its renders) and backward passes; all-reduce \
-         is nothing on one process; the family split comes from one more step with a timestamp per \
-         dispatch"
+        "compute is the model's forward (to the end of its renders) and backward passes; on one \
+         process the backward pass records the optimiser's update too (optimiser ms is what is left \
+         outside the passes; its GPU time is the family split's 'optimiser'), and all-reduce is \
+         nothing; the family split comes from one more step with a timestamp per dispatch"
     );
     Ok(out)
 }
