@@ -304,3 +304,18 @@ fn f16_training_follows_f32() {
     assert!(end_half < 1.1 * end_full, "f16 ends at {end_half:.3e} against f32's {end_full:.3e}");
     assert!(end_full < 0.2 * full[0], "the run must learn: {full:?}");
 }
+
+/// Would catch: a host wait added to the tracker's training step (a pass submitted on its own,
+/// a result read with a copy of its own).
+#[test]
+fn a_training_step_is_one_submission() {
+    // Its own device, so that no other test's submissions are counted.
+    let gpu = Gpu::new().unwrap();
+    let s = sample(&gpu, 6, 100);
+    let mut t = Tracker::new(&gpu, &TrackerConfig::tiny(), 3).unwrap();
+    let before = gpu.submits();
+    // The forward and backward passes and the update in one recording: the loss and the
+    // gradient norm come back with it.
+    trainer_losses(&mut t, &[&s], 3, Precision::F32);
+    assert_eq!(gpu.submits() - before, 3);
+}

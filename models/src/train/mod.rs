@@ -52,6 +52,41 @@ impl Losses {
 pub struct PassSeconds {
     pub forward: f64,
     pub backward: f64,
+    /// A pass went untimed ([`PassTimer`] on a device without timestamps): the split is not
+    /// reported.
+    pub untimed: bool,
+}
+
+/// The GPU time of a micro-batch's forward and backward passes recorded as one recording (no
+/// host wait between them), from timestamps: [`PassTimer::start`] before the forward pass,
+/// [`PassTimer::backward`] between the two, [`PassTimer::end`] after the backward pass. On a
+/// device without timestamps the split goes unreported (the trainer reports the passes' sum).
+pub(crate) struct PassTimer([Option<usize>; 3]);
+
+impl PassTimer {
+    pub fn start(rec: &mut velox_engine::Recorder) -> PassTimer {
+        PassTimer([rec.timestamp(), None, None])
+    }
+
+    pub fn backward(&mut self, rec: &mut velox_engine::Recorder) {
+        self.0[1] = rec.timestamp();
+    }
+
+    pub fn end(&mut self, rec: &mut velox_engine::Recorder) {
+        self.0[2] = rec.timestamp();
+    }
+
+    /// Adds the two passes' times in the submitted recording (`finished`) to `into`.
+    pub fn add(&self, finished: &velox_engine::Finished, into: &mut PassSeconds) {
+        let t = &finished.timestamps_ns;
+        match self.0 {
+            [Some(a), Some(b), Some(c)] if c < t.len() => {
+                into.forward += (t[b] - t[a]) / 1e9;
+                into.backward += (t[c] - t[b]) / 1e9;
+            }
+            _ => into.untimed = true,
+        }
+    }
 }
 
 /// What the trainer reads from a model's config to optimise it.
@@ -162,7 +197,8 @@ macro_rules! trainable {
             }
 
             fn take_pass_seconds(&mut self) -> Option<$crate::train::PassSeconds> {
-                Some(std::mem::take(&mut self.pass_seconds))
+                let p = std::mem::take(&mut self.pass_seconds);
+                (!p.untimed).then_some(p)
             }
         }
     };

@@ -36,8 +36,6 @@
 //! `tests/models/slips.rs` (one guided step is the guided combination; condition dropout; the flow
 //! noise).
 
-use std::time::Instant;
-
 use velox_engine::ops::adamw::AdamWConfig;
 use velox_engine::ops::attention::Segments;
 use velox_engine::ops::binary::{binary, binary_into, Binary};
@@ -57,7 +55,7 @@ use crate::layers::{
     Fourier, GatedResidual, GeluMlp, Linear, Loss, Modulate, MultiHeadAttention, Param, RmsNorm,
 };
 use crate::params::{build, declare, Init, ParamBuilder, ParamStore, Params};
-use crate::train::{Losses, PassSeconds};
+use crate::train::{Losses, PassSeconds, PassTimer};
 use crate::velox::blocks::{mlp, norm, TimeEmbedding, TimeEmbeddingCache};
 use crate::velox::dinov2::{PATCH, PATCH_VALUES};
 use crate::velox::surface::{integrate, Sampler};
@@ -607,7 +605,6 @@ impl Generator {
     /// flow time and condition dropout from its generator.
     pub fn accumulate(&mut self, samples: &[&GenSample], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
         crate::train::check_micro_batch(samples.len(), rngs.len())?;
-        let started = Instant::now();
         let n = self.cfg.tokens * self.cfg.token_dim;
         let (mut eps, mut t, mut keep) = (Vec::new(), Vec::new(), Vec::new());
         for rng in rngs.iter_mut() {
@@ -616,18 +613,18 @@ impl Generator {
             keep.push(rng.uniform() >= self.cfg.cond_dropout);
         }
         let mut rec = self.store.recorder()?;
+        let mut timer = PassTimer::start(&mut rec);
         let (loss, cache, dv) = self.flow_loss(&mut rec, samples, &eps, &t, &keep, weight as f32)?;
-        rec.submit()?;
-        let forward_done = Instant::now();
-        self.pass_seconds.forward += (forward_done - started).as_secs_f64();
-        let mut rec = self.store.recorder()?;
+        // The backward pass follows in the same recording: no host wait between the two.
+        timer.backward(&mut rec);
         self.backward(&mut rec, &cache, &dv)?;
         // Read back with this recording: no copy and wait of its own on a GPU.
         let loss = rec.read_back(&loss)?;
+        timer.end(&mut rec);
         // The step's update, where the trainer asked for it with this pass (ParamStore::update_last).
         self.store.record_update(&mut rec)?;
-        rec.submit()?;
-        self.pass_seconds.backward += forward_done.elapsed().as_secs_f64();
+        let finished = rec.submit()?;
+        timer.add(&finished, &mut self.pass_seconds);
         let total = loss.read::<f32>()?[0] as f64;
         if !total.is_finite() {
             return Err(Error::Invalid(format!("the loss became non-finite ({total})")));

@@ -16,8 +16,6 @@
 //! Tests: `tests/models/tracker.rs` (the step against finite differences, learning against the
 //! static baseline), `tests/models/slips.rs` (training reads the tokens prediction reads).
 
-use std::time::Instant;
-
 use velox_engine::ops::adamw::AdamWConfig;
 use velox_engine::ops::attention::Segments;
 use velox_engine::ops::binary::{binary, Binary};
@@ -28,7 +26,7 @@ use velox_engine::{DType, Error, Gpu, Recorder, Result, Tensor};
 use crate::config::{TrackLoss, TrackerConfig};
 use crate::layers::{Fourier, Loss};
 use crate::params::{build, declare, ParamBuilder, ParamStore, Params};
-use crate::train::{Losses, PassSeconds};
+use crate::train::{Losses, PassSeconds, PassTimer};
 use crate::velox::autoencoder::FRAMES;
 use crate::velox::perceiver::{PerceiverShape, VoxelFrames, VoxelPerceiver};
 use velox_engine::ops::fourier::fourier_width;
@@ -196,7 +194,6 @@ impl Tracker {
     /// `queries_per_sample` of its tracks (all when it has fewer) from its generator.
     pub fn accumulate(&mut self, samples: &[&TrackSample], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
         crate::train::check_micro_batch(samples.len(), rngs.len())?;
-        let started = Instant::now();
         let gpu = samples[0].tokens.gpu().clone();
         let counts = samples.iter().map(|s| self.check_tokens(&s.tokens)).collect::<Result<Vec<_>>>()?;
         let all = counts.iter().sum();
@@ -208,6 +205,7 @@ impl Tracker {
             None
         };
         let mut rec = self.store.recorder()?;
+        let mut timer = PassTimer::start(&mut rec);
         let mut at = 0;
         for (s, &k) in samples.iter().zip(&counts) {
             rec.copy_rows(&s.tokens, 0, &tokens, at, k)?;
@@ -249,17 +247,16 @@ impl Tracker {
             .loss()
             .weighted(weight as f32)
             .forward_backward_segments(&mut rec, &offsets, &target, &rows)?;
-        rec.submit()?;
-        let forward_done = Instant::now();
-        self.pass_seconds.forward += (forward_done - started).as_secs_f64();
-        let mut rec = self.store.recorder()?;
+        // The backward pass follows in the same recording: no host wait between the two.
+        timer.backward(&mut rec);
         self.trunk.backward(&mut rec, &cache, &d_offsets)?;
         // Read back with this recording: no copy and wait of its own on a GPU.
         let loss = rec.read_back(&loss)?;
+        timer.end(&mut rec);
         // The step's update, where the trainer asked for it with this pass (ParamStore::update_last).
         self.store.record_update(&mut rec)?;
-        rec.submit()?;
-        self.pass_seconds.backward += forward_done.elapsed().as_secs_f64();
+        let finished = rec.submit()?;
+        timer.add(&finished, &mut self.pass_seconds);
         let total = loss.read::<f32>()?[0] as f64;
         if !total.is_finite() {
             return Err(Error::Invalid(format!("the loss became non-finite ({total})")));

@@ -4,8 +4,6 @@
 //! Tests: `tests/models/voxel_decoder.rs` (both stages, learning against the trivial model, other
 //! scenes' tokens), `tests/models/slips.rs` (the dilation reaching the fine stage alone).
 
-use std::time::Instant;
-
 use velox_engine::ops::adamw::AdamWConfig;
 use velox_engine::ops::attention::Segments;
 use velox_engine::ops::gelu::gelu_backward;
@@ -19,7 +17,7 @@ use crate::config::{OccupancyLoss, VoxelConfig, VoxelStageConfig};
 use crate::layers::linear::LinearCache;
 use crate::layers::{Fourier, Linear, Loss};
 use crate::params::{build, declare, ParamBuilder, ParamStore, Params};
-use crate::train::{Losses, PassSeconds};
+use crate::train::{Losses, PassSeconds, PassTimer};
 use crate::velox::autoencoder::tau_of;
 use crate::velox::blocks::linear;
 use crate::velox::perceiver::{PerceiverShape, VoxelFrames, VoxelPerceiver};
@@ -331,7 +329,6 @@ impl VoxelDecoder {
     /// scenes, times `weight`.
     pub fn accumulate(&mut self, samples: &[&VoxelSample], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
         crate::train::check_micro_batch(samples.len(), rngs.len())?;
-        let started = Instant::now();
         let gpu = samples[0].tokens.gpu().clone();
         let (cells, weight) = (self.cfg.cells, weight as f32);
         let n_cells = cells.pow(3);
@@ -343,6 +340,7 @@ impl VoxelDecoder {
             samples.iter().map(|s| self.check_tokens(&s.tokens)).collect::<Result<Vec<_>>>()?;
         let tokens = Tensor::empty(&gpu, &[token_counts.iter().sum(), self.cfg.token_dim], DType::F32)?;
         let mut rec = self.store.recorder()?;
+        let mut timer = PassTimer::start(&mut rec);
         let mut at = 0;
         for (s, &k) in samples.iter().zip(&token_counts) {
             rec.copy_rows(&s.tokens, 0, &tokens, at, k)?;
@@ -405,11 +403,8 @@ impl VoxelDecoder {
                 loss.weighted(weight).forward_backward_segments(&mut rec, &logits, &labels, &fine_rows)?;
             Some((l, d, cache, head))
         };
-        rec.submit()?;
-        let forward_done = Instant::now();
-        self.pass_seconds.forward += (forward_done - started).as_secs_f64();
-
-        let mut rec = self.store.recorder()?;
+        // The backward pass follows in the same recording: no host wait between the two.
+        timer.backward(&mut rec);
         self.coarse.backward(&mut rec, &coarse_cache, &d_coarse)?;
         if let Some((_, d, cache, head)) = &fine {
             let d_features = self.head.backward(&mut rec, head, d)?;
@@ -418,10 +413,11 @@ impl VoxelDecoder {
         // The losses come back with this recording (no copy and wait of their own on a GPU).
         let coarse = rec.read_back(&coarse_loss)?;
         let fine = fine.as_ref().map(|(l, ..)| rec.read_back(l)).transpose()?;
+        timer.end(&mut rec);
         // The step's update, where the trainer asked for it with this pass (ParamStore::update_last).
         self.store.record_update(&mut rec)?;
-        rec.submit()?;
-        self.pass_seconds.backward += forward_done.elapsed().as_secs_f64();
+        let finished = rec.submit()?;
+        timer.add(&finished, &mut self.pass_seconds);
 
         let read = |t: &Readback| -> Result<f64> { Ok(t.read::<f32>()?[0] as f64) };
         let coarse = read(&coarse)?;
