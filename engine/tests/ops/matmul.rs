@@ -315,23 +315,8 @@ fn f16_accumulate_on_interior_and_edge_tiles() {
     let mut rng = Rng::new(9);
     let (m, n, k) = (256, 136, 48);
     for (ta, tb) in [(false, false), (false, true), (true, false), (true, true)] {
-        let (sa, sb) = shapes(m, n, k, ta, tb, Some(2), None);
-        let (ah, bh) = (round_f16(&rng.normal_vec(numel(&sa))), round_f16(&rng.normal_vec(numel(&sb))));
-        let old = rng.normal_vec(2 * m * n);
-        let a = Tensor::from_slice(&gpu, &sa, &ah).unwrap();
-        let b = Tensor::from_slice(&gpu, &sb, &bh).unwrap();
-        let acc = Tensor::from_slice(&gpu, &[2, m, n], &old).unwrap();
-        let plain = Tensor::from_slice(&gpu, &[2, m, n], &vec![f32::NAN; 2 * m * n]).unwrap();
-        let mut rec = gpu.recorder().unwrap();
-        matmul_into(&mut rec, &a, &b, ta, tb, &acc, true).unwrap();
-        matmul_into(&mut rec, &a, &b, ta, tb, &plain, false).unwrap();
-        rec.submit().unwrap();
-        let widen = |h: &[f16]| h.iter().map(|v| v.to_f64()).collect::<Vec<_>>();
-        let (r, _) = reference::matmul(&widen(&ah), &sa, &widen(&bh), &sb, ta, tb).unwrap();
-        let summed: Vec<f64> = r.iter().zip(&old).map(|(x, &o)| x + o as f64).collect();
         let what = format!("f16 ta={ta} tb={tb} ({})", matmul_variant(&gpu, DType::F16));
-        assert_nmse(&format!("{what} accumulate"), &acc.read::<f32>().unwrap(), &summed, F16_ROUNDED_BOUND);
-        assert_nmse(&format!("{what} overwrite"), &plain.read::<f32>().unwrap(), &r, F16_ROUNDED_BOUND);
+        check_f16_product(&gpu, &mut rng, (m, n, k), (ta, tb), None, &what);
     }
 }
 
@@ -347,31 +332,40 @@ fn f16_products_on_every_cooperative_tile() {
         [(256, 64, 40), (200, 40, 24), (64, 256, 48), (40, 136, 16), (64, 64, 64), (24, 48, 8), (136, 72, 32)]
     {
         for (ta, tb) in [(false, false), (false, true), (true, false), (true, true)] {
-            let (sa, sb) = shapes(m, n, k, ta, tb, Some(2), Some(1));
-            let (ah, bh) = (round_f16(&rng.normal_vec(numel(&sa))), round_f16(&rng.normal_vec(numel(&sb))));
-            let old = rng.normal_vec(2 * m * n);
-            let a = Tensor::from_slice(&gpu, &sa, &ah).unwrap();
-            let b = Tensor::from_slice(&gpu, &sb, &bh).unwrap();
-            let acc = Tensor::from_slice(&gpu, &[2, m, n], &old).unwrap();
-            let plain = Tensor::from_slice(&gpu, &[2, m, n], &vec![f32::NAN; 2 * m * n]).unwrap();
-            let mut rec = gpu.recorder().unwrap();
-            matmul_into(&mut rec, &a, &b, ta, tb, &acc, true).unwrap();
-            matmul_into(&mut rec, &a, &b, ta, tb, &plain, false).unwrap();
-            rec.submit().unwrap();
-            let widen = |h: &[f16]| h.iter().map(|v| v.to_f64()).collect::<Vec<_>>();
-            let (r, _) = reference::matmul(&widen(&ah), &sa, &widen(&bh), &sb, ta, tb).unwrap();
-            let summed: Vec<f64> = r.iter().zip(&old).map(|(x, &o)| x + o as f64).collect();
             let kernel = coop_kernel_for(gpu.caps(), m, n).filter(|&k| gpu.supports(k));
             let what = format!("[{m}, {n}] k {k} ta={ta} tb={tb} on {kernel:?}");
-            assert_nmse(
-                &format!("{what} accumulate"),
-                &acc.read::<f32>().unwrap(),
-                &summed,
-                F16_ROUNDED_BOUND,
-            );
-            assert_nmse(&format!("{what} overwrite"), &plain.read::<f32>().unwrap(), &r, F16_ROUNDED_BOUND);
+            check_f16_product(&gpu, &mut rng, (m, n, k), (ta, tb), Some(1), &what);
         }
     }
+}
+
+/// A batch of two f16 products `[m, k] x [k, n]` (transposed as `trans`; the second operand
+/// batched, or broadcast with `b_batch` Some(1)) into f32, accumulated onto random values and
+/// written over NaN, against the f64 reference of the rounded inputs.
+fn check_f16_product(
+    gpu: &Gpu,
+    rng: &mut Rng,
+    (m, n, k): (usize, usize, usize),
+    (ta, tb): (bool, bool),
+    b_batch: Option<usize>,
+    what: &str,
+) {
+    let (sa, sb) = shapes(m, n, k, ta, tb, Some(2), b_batch);
+    let (ah, bh) = (round_f16(&rng.normal_vec(numel(&sa))), round_f16(&rng.normal_vec(numel(&sb))));
+    let old = rng.normal_vec(2 * m * n);
+    let a = Tensor::from_slice(gpu, &sa, &ah).unwrap();
+    let b = Tensor::from_slice(gpu, &sb, &bh).unwrap();
+    let acc = Tensor::from_slice(gpu, &[2, m, n], &old).unwrap();
+    let plain = Tensor::from_slice(gpu, &[2, m, n], &vec![f32::NAN; 2 * m * n]).unwrap();
+    let mut rec = gpu.recorder().unwrap();
+    matmul_into(&mut rec, &a, &b, ta, tb, &acc, true).unwrap();
+    matmul_into(&mut rec, &a, &b, ta, tb, &plain, false).unwrap();
+    rec.submit().unwrap();
+    let widen = |h: &[f16]| h.iter().map(|v| v.to_f64()).collect::<Vec<_>>();
+    let (r, _) = reference::matmul(&widen(&ah), &sa, &widen(&bh), &sb, ta, tb).unwrap();
+    let summed: Vec<f64> = r.iter().zip(&old).map(|(x, &o)| x + o as f64).collect();
+    assert_nmse(&format!("{what} accumulate"), &acc.read::<f32>().unwrap(), &summed, F16_ROUNDED_BOUND);
+    assert_nmse(&format!("{what} overwrite"), &plain.read::<f32>().unwrap(), &r, F16_ROUNDED_BOUND);
 }
 
 #[test]

@@ -125,19 +125,9 @@ pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
             } else {
                 format!("{} sampled outputs", samples.len())
             };
-            let r = Record::timed(
-                "matmul",
-                format!("{n}x{n}x{n}"),
-                label,
-                &device,
-                timing,
-                repeats,
-                tflops,
-                "TFLOP/s",
-            );
             let (elem, roof) = if precision == DType::F16 { (2.0, roof16) } else { (4.0, roof32) };
-            let nn = (n * n) as f64;
-            let r = r.work(2.0 * nn * n as f64, 2.0 * nn * elem + 4.0 * nn, roof);
+            let what = ("matmul".to_string(), format!("{n}x{n}x{n}"), label);
+            let r = product_record(what, &device, timing, repeats, (n, n, n), elem, roof);
             push(r.peak(peak).against(&have, &want, over).kernel(matmul::matmul_variant(gpu, precision)));
         }
     }
@@ -186,18 +176,8 @@ pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
                 DType::F16 => ("f16->f32", 2.0, roof16, peaks.map(|p| tflops / p.0)),
                 _ => ("f32", 4.0, roof32, peaks.map(|p| tflops / p.1)),
             };
-            let r = Record::timed(
-                format!("matmul {what}"),
-                shape,
-                label,
-                &device,
-                timing,
-                repeats,
-                tflops,
-                "TFLOP/s",
-            );
-            let bytes = elem * (m * k + k * n) as f64 + 4.0 * (m * n) as f64;
-            let r = r.work(2.0 * (m * n * k) as f64, bytes, roof);
+            let what = (format!("matmul {what}"), shape, label);
+            let r = product_record(what, &device, timing, repeats, (m, n, k), elem, roof);
             push(r.peak(peak).against(&have, &want, "1024 sampled outputs").kernel(&kernel));
         }
     }
@@ -444,4 +424,22 @@ fn surface_cloud(n: usize, rng: &mut Rng) -> Vec<f32> {
         out.extend(row.iter().map(|&x| x as f32));
     }
     out
+}
+
+/// The record of a timed product `[m, k] x [k, n]` into f32 of `elem`-byte operands, named
+/// (name, shape, precision) by `what`: its TFLOP/s, and its work (each operand read once, the
+/// output written once) against the roofline `roof`.
+fn product_record(
+    (name, shape, label): (String, String, &str),
+    device: &str,
+    timing: (f64, f64, bool),
+    repeats: u32,
+    (m, n, k): (usize, usize, usize),
+    elem: f64,
+    roof: Option<super::Roof>,
+) -> Record {
+    let flops = 2.0 * (m * n * k) as f64;
+    let bytes = elem * (m * k + k * n) as f64 + 4.0 * (m * n) as f64;
+    let tflops = flops / (timing.0 * 1e-3) / 1e12;
+    Record::timed(name, shape, label, device, timing, repeats, tflops, "TFLOP/s").work(flops, bytes, roof)
 }
