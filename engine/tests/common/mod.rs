@@ -27,15 +27,10 @@ pub fn gpu() -> Gpu {
             }
             // GPU-assisted validation and SwiftShader crash at exit once a second device has
             // been open: there every test shares the first.
-            let gpu_assisted = velox_engine::validation::Mode::from_env()
-                .is_ok_and(|m| m == velox_engine::validation::Mode::GpuAssisted);
-            let swiftshader = pool
-                .first()
-                .and_then(|(g, _)| g.as_ref())
-                .is_some_and(|g| g.caps().name.contains("SwiftShader"));
+            let shared = pool.first().and_then(|(g, _)| g.as_ref()).is_some_and(devices_shared);
             let slot = match pool.iter().position(|(_, holders)| *holders == 0) {
                 Some(i) => i,
-                None if (gpu_assisted || swiftshader) && !pool.is_empty() => 0,
+                None if shared => 0,
                 None => {
                     pool.push((None, 0));
                     pool.len() - 1
@@ -50,6 +45,16 @@ pub fn gpu() -> Gpu {
         }
         lease.as_ref().expect("leased above").gpu.clone()
     })
+}
+
+/// Whether the tests share `gpu`, the binary's one device (GPU-assisted validation and
+/// SwiftShader, see [`gpu`]); elsewhere a test's device is its own while it runs, so that a
+/// count of the device's submissions (`Gpu::submits`) is the test's alone. A test never opens
+/// a device of its own for that: one more device crashes those two at exit, and Debian 12's
+/// validation layer too when it is the process's first.
+pub fn devices_shared(gpu: &Gpu) -> bool {
+    velox_engine::validation::Mode::from_env().is_ok_and(|m| m == velox_engine::validation::Mode::GpuAssisted)
+        || gpu.caps().name.contains("SwiftShader")
 }
 
 /// The binary's devices, each with the number of running tests' threads that hold it.
