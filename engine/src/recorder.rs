@@ -312,20 +312,8 @@ impl Recorder {
 
     /// Makes every earlier shader or transfer write visible to every later access.
     pub fn full_barrier(&mut self) {
-        let barrier = vk::MemoryBarrier2::default()
-            .src_stage_mask(vk::PipelineStageFlags2::COMPUTE_SHADER | vk::PipelineStageFlags2::TRANSFER)
-            .src_access_mask(vk::AccessFlags2::SHADER_WRITE | vk::AccessFlags2::TRANSFER_WRITE)
-            .dst_stage_mask(vk::PipelineStageFlags2::COMPUTE_SHADER | vk::PipelineStageFlags2::TRANSFER)
-            .dst_access_mask(
-                vk::AccessFlags2::SHADER_READ
-                    | vk::AccessFlags2::SHADER_WRITE
-                    | vk::AccessFlags2::TRANSFER_READ
-                    | vk::AccessFlags2::TRANSFER_WRITE,
-            );
-        let barriers = [barrier];
-        let dep = vk::DependencyInfo::default().memory_barriers(&barriers);
         // SAFETY: recording state.
-        unsafe { self.gpu.device().cmd_pipeline_barrier2(self.cmd, &dep) };
+        unsafe { memory_barrier(self.gpu.device(), self.cmd, writes(), device_access()) };
         self.written.clear();
         self.read.clear();
         self.barriers += 1;
@@ -663,25 +651,10 @@ impl Recorder {
         // on a fence orders nothing on the device, and a later recording that reads or rewrites
         // a buffer this one wrote (a gradient, a parameter) would otherwise race with it, as the
         // validation layer's submit-time checks report.
-        let to_host = [vk::MemoryBarrier2::default()
-            .src_stage_mask(vk::PipelineStageFlags2::COMPUTE_SHADER | vk::PipelineStageFlags2::TRANSFER)
-            .src_access_mask(vk::AccessFlags2::SHADER_WRITE | vk::AccessFlags2::TRANSFER_WRITE)
-            .dst_stage_mask(
-                vk::PipelineStageFlags2::HOST
-                    | vk::PipelineStageFlags2::COMPUTE_SHADER
-                    | vk::PipelineStageFlags2::TRANSFER,
-            )
-            .dst_access_mask(
-                vk::AccessFlags2::HOST_READ
-                    | vk::AccessFlags2::SHADER_READ
-                    | vk::AccessFlags2::SHADER_WRITE
-                    | vk::AccessFlags2::TRANSFER_READ
-                    | vk::AccessFlags2::TRANSFER_WRITE,
-            )];
         // SAFETY: recording state; the fence is unsignalled; the queue is externally
         // synchronised by its mutex.
         unsafe {
-            device.cmd_pipeline_barrier2(self.cmd, &vk::DependencyInfo::default().memory_barriers(&to_host));
+            memory_barrier(&device, self.cmd, writes(), device_and_host());
             device.end_command_buffer(self.cmd).vk("vkEndCommandBuffer")?;
             {
                 // Taken under the queue's lock, so that no other thread's submission that reads
@@ -772,38 +745,64 @@ impl Recorder {
             let mut written = std::collections::HashSet::new();
             for (src, dst, offset, bytes) in copies {
                 if !written.insert(dst) {
-                    let after = [vk::MemoryBarrier2::default()
-                        .src_stage_mask(vk::PipelineStageFlags2::TRANSFER)
-                        .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
-                        .dst_stage_mask(vk::PipelineStageFlags2::TRANSFER)
-                        .dst_access_mask(vk::AccessFlags2::TRANSFER_WRITE)];
-                    device.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().memory_barriers(&after));
+                    memory_barrier(&device, cmd, transfer_writes(), transfer_writes());
                     written.clear();
                     written.insert(dst);
                 }
                 let region = [vk::BufferCopy::default().src_offset(0).dst_offset(offset).size(bytes)];
                 device.cmd_copy_buffer(cmd, src, dst, &region);
             }
-            let done = [vk::MemoryBarrier2::default()
-                .src_stage_mask(vk::PipelineStageFlags2::TRANSFER)
-                .src_access_mask(vk::AccessFlags2::TRANSFER_WRITE)
-                .dst_stage_mask(
-                    vk::PipelineStageFlags2::COMPUTE_SHADER
-                        | vk::PipelineStageFlags2::TRANSFER
-                        | vk::PipelineStageFlags2::HOST,
-                )
-                .dst_access_mask(
-                    vk::AccessFlags2::SHADER_READ
-                        | vk::AccessFlags2::SHADER_WRITE
-                        | vk::AccessFlags2::TRANSFER_READ
-                        | vk::AccessFlags2::TRANSFER_WRITE
-                        | vk::AccessFlags2::HOST_READ,
-                )];
-            device.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().memory_barriers(&done));
+            memory_barrier(&device, cmd, transfer_writes(), device_and_host());
             device.end_command_buffer(cmd).vk("vkEndCommandBuffer")?;
             Ok(Some(cmd))
         }
     }
+}
+
+/// One side of a memory barrier: pipeline stages, and the accesses at them.
+type Scope = (vk::PipelineStageFlags2, vk::AccessFlags2);
+
+/// Every shader and transfer write.
+fn writes() -> Scope {
+    (
+        vk::PipelineStageFlags2::COMPUTE_SHADER | vk::PipelineStageFlags2::TRANSFER,
+        vk::AccessFlags2::SHADER_WRITE | vk::AccessFlags2::TRANSFER_WRITE,
+    )
+}
+
+/// Every shader and transfer access.
+fn device_access() -> Scope {
+    (
+        vk::PipelineStageFlags2::COMPUTE_SHADER | vk::PipelineStageFlags2::TRANSFER,
+        vk::AccessFlags2::SHADER_READ
+            | vk::AccessFlags2::SHADER_WRITE
+            | vk::AccessFlags2::TRANSFER_READ
+            | vk::AccessFlags2::TRANSFER_WRITE,
+    )
+}
+
+/// Every shader and transfer access, and the host's reads.
+fn device_and_host() -> Scope {
+    let (stages, access) = device_access();
+    (stages | vk::PipelineStageFlags2::HOST, access | vk::AccessFlags2::HOST_READ)
+}
+
+/// The copies of uploads: transfer writes.
+fn transfer_writes() -> Scope {
+    (vk::PipelineStageFlags2::TRANSFER, vk::AccessFlags2::TRANSFER_WRITE)
+}
+
+/// Records into `cmd` a barrier from the accesses `src` to `dst`.
+///
+/// # Safety
+/// `cmd` is in the recording state and only this thread records into it.
+unsafe fn memory_barrier(device: &ash::Device, cmd: vk::CommandBuffer, src: Scope, dst: Scope) {
+    let barrier = [vk::MemoryBarrier2::default()
+        .src_stage_mask(src.0)
+        .src_access_mask(src.1)
+        .dst_stage_mask(dst.0)
+        .dst_access_mask(dst.1)];
+    device.cmd_pipeline_barrier2(cmd, &vk::DependencyInfo::default().memory_barriers(&barrier));
 }
 
 impl Drop for Recorder {
