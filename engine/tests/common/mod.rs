@@ -57,6 +57,17 @@ pub fn devices_shared(gpu: &Gpu) -> bool {
         || gpu.caps().name.contains("SwiftShader")
 }
 
+/// This test's device while it runs, for a test that counts its submissions; `None`, saying
+/// so, where the tests share one device ([`devices_shared`]).
+pub fn counting_gpu() -> Option<Gpu> {
+    let gpu = gpu();
+    if devices_shared(&gpu) {
+        eprintln!("the tests share one device here: its submissions are not this test's alone, not counted");
+        return None;
+    }
+    Some(gpu)
+}
+
 /// The binary's devices, each with the number of running tests' threads that hold it.
 static POOL: std::sync::Mutex<Vec<(Option<Gpu>, usize)>> = std::sync::Mutex::new(Vec::new());
 
