@@ -35,7 +35,7 @@ use velox_engine::{DType, Error, Gpu, Precision, Recorder, Result, Tensor};
 
 use crate::config::AutoencoderConfig;
 use crate::layers::Loss;
-use crate::params::{build, declare, ParamBuilder, ParamStore, Params};
+use crate::params::{build, declare, ParamBuilder, ParamStore, Params, Update};
 use crate::train::{Losses, PassSeconds, Trainable};
 use crate::velox::encoder::Encoder;
 use crate::velox::gaussians::{occupied_voxels, GaussianDecoder, VoxelFrames};
@@ -243,20 +243,25 @@ impl Autoencoder {
     /// gradients, [`Autoencoder::accumulate`], AdamW. `step` counts from 1. The passes run in
     /// the store's training precision, without the trainer's loss scaling.
     pub fn train_step(&mut self, scene: &TrainScene, step: u64, rng: &mut Rng) -> Result<StepLosses> {
-        let gpu = scene.cloud.gpu().clone();
-        let mut rec = gpu.recorder()?;
-        self.store.zero_grads(&mut rec)?;
-        rec.submit()?;
-        let losses = self.accumulate(&[scene], std::slice::from_mut(rng), 1.0)?;
         let opt = self.optimisation();
         let lr = opt.learning_rate(step) * self.lr_scale;
-        let mut rec = gpu.recorder()?;
-        self.store.adamw_step(&mut rec, &opt.adamw, lr, opt.max_grad_norm)?;
-        if self.store.training_precision() == Precision::F16 {
+        // The gradients zeroed by the forward pass's recording and the update recorded by the
+        // backward pass's, as the trainer has them: two submissions a step.
+        self.store.zero_grads_first();
+        self.store.update_last(Update {
+            adamw: opt.adamw,
+            lr,
+            max_norm: opt.max_grad_norm,
+            loss_scale: 1.0,
             // The f16 passes read the copies: refresh them from the updated masters.
-            self.store.sync_half(&mut rec)?;
+            sync_half: self.store.training_precision() == Precision::F16,
+        });
+        let losses = self.accumulate(&[scene], std::slice::from_mut(rng), 1.0);
+        let recorded = self.store.take_update();
+        let losses = losses?;
+        if !recorded {
+            return Err(Error::Invalid("the backward pass did not record the step's update".into()));
         }
-        rec.submit()?;
         let grad_norm = self.store.grad_norm()? as f64;
         let term = |name: &str| losses.terms.iter().find(|t| t.0 == name).map_or(0.0, |t| t.1);
         Ok(StepLosses {
