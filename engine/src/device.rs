@@ -60,6 +60,9 @@ pub(crate) struct GpuInner {
     /// copies them before its own work, in the same `vkQueueSubmit` (see
     /// [`crate::tensor::PendingUpload`]).
     pub pending_uploads: Mutex<Vec<crate::tensor::PendingUpload>>,
+    /// Staging buffers whose transfer has finished, kept for the next transfer of their size
+    /// class and memory location (`Buffer::staging`).
+    pub staging_pool: Mutex<crate::tensor::StagingPool>,
 }
 
 /// One line of the device list shown by `velox info`.
@@ -402,6 +405,7 @@ impl Gpu {
                 wait_timeout,
                 hung: std::sync::atomic::AtomicBool::new(false),
                 pending_uploads: Mutex::new(Vec::new()),
+                staging_pool: Mutex::new(Default::default()),
             }),
         })
     }
@@ -493,6 +497,12 @@ impl Gpu {
         self.inner.staged_bytes.load(Ordering::Relaxed)
     }
 
+    /// Bytes of staging buffers the device keeps for later transfers (at most 64 MiB; not in
+    /// [`Gpu::memory_live`]).
+    pub fn staging_pool_bytes(&self) -> u64 {
+        self.inner.staging_pool.lock().unwrap().bytes()
+    }
+
     /// Recordings submitted to this device since it was opened, each waited for by the host
     /// (`profile::submits` counts the process's, over every device).
     pub fn submits(&self) -> u64 {
@@ -537,8 +547,12 @@ impl Drop for GpuInner {
             self.pipelines.destroy(&self.device);
             // Uploads no submission took: their tensors are gone with the last handle.
             for u in self.pending_uploads.get_mut().unwrap().drain(..) {
-                self.device.destroy_buffer(u.staging, None);
-                let _ = self.allocator.lock().unwrap().free(u.allocation);
+                self.device.destroy_buffer(u.staging.raw, None);
+                let _ = self.allocator.lock().unwrap().free(u.staging.allocation);
+            }
+            for (raw, allocation) in self.staging_pool.get_mut().unwrap().drain() {
+                self.device.destroy_buffer(raw, None);
+                let _ = self.allocator.lock().unwrap().free(allocation);
             }
             ManuallyDrop::drop(&mut self.allocator);
             self.device.destroy_device(None);

@@ -542,7 +542,8 @@ impl Recorder {
     /// host does not map, the recording copies `t` into a host-visible buffer here.
     pub fn read_back(&mut self, t: &Tensor) -> Result<Readback> {
         let staging = if t.staged() && t.bytes() > 0 {
-            let staging = Arc::new(Buffer::new(&self.gpu, t.bytes(), MemoryLocation::GpuToCpu, "readback")?);
+            let staging =
+                Arc::new(Buffer::staging(&self.gpu, t.bytes(), MemoryLocation::GpuToCpu, "readback")?);
             self.copy_raw(&t.buf, t.offset, &staging, 0, t.bytes());
             self.keep.push(t.buf.clone());
             self.keep.push(staging.clone());
@@ -721,7 +722,7 @@ impl Recorder {
         let device = self.gpu.device().clone();
         let mut copies = Vec::with_capacity(pending.len());
         for u in pending {
-            let staging = Arc::new(Buffer::from_raw(&self.gpu, u.staging, u.allocation, u.size));
+            let staging = Arc::new(Buffer::from_raw(&self.gpu, u.staging));
             // A tensor dropped before this submission needs no copy.
             if let Some(dst) = u.dst.upgrade() {
                 copies.push((staging.raw, dst.raw, u.offset, u.bytes));

@@ -6,6 +6,10 @@
 //! (CPU and most integrated GPUs: reads and writes are plain copies), device-local memory on
 //! discrete GPUs (reads and writes go through a staging buffer).
 //!
+//! Staging buffers come from a pool the device keeps ([`Buffer::staging`]): a transfer takes
+//! one of its size class where one has finished its last transfer, instead of creating a
+//! buffer and allocating its memory each time.
+//!
 //! A write through a staging buffer does not wait: the bytes go to the staging buffer at once,
 //! and the copy into the tensor is made by the next submission, before its own work and in the
 //! same `vkQueueSubmit` ([`PendingUpload`]). So a training step's inputs, uploaded as it
@@ -56,6 +60,41 @@ pub struct Buffer {
     /// Texel-buffer views made of it, by (offset, range), each made once and destroyed with the
     /// buffer (recorders keep the buffer alive while their work may read through a view).
     views: std::sync::Mutex<Vec<(u64, u64, vk::BufferView)>>,
+    /// A staging buffer of the device's pool ([`Buffer::staging`]), given back to it when
+    /// dropped: its memory location.
+    pooled: Option<MemoryLocation>,
+}
+
+/// The device's staging buffers whose transfers have finished, by memory location and size
+/// (a power of two from 4 KiB), at most [`StagingPool::MAX_BYTES`] in all: a transfer takes
+/// one of its size where there is one instead of creating a buffer and allocating its memory.
+#[derive(Default)]
+pub struct StagingPool {
+    free: Vec<(MemoryLocation, u64, vk::Buffer, Allocation)>,
+    bytes: u64,
+}
+
+/// A buffer's handle, memory, size and pool, given up by [`Buffer::into_raw`]: held where a
+/// `Buffer` (which holds the device) cannot be, in the device's own lists.
+pub(crate) struct RawBuffer {
+    pub raw: vk::Buffer,
+    pub allocation: Allocation,
+    pub size: u64,
+    pooled: Option<MemoryLocation>,
+}
+
+impl StagingPool {
+    pub const MAX_BYTES: u64 = 64 << 20;
+
+    pub(crate) fn bytes(&self) -> u64 {
+        self.bytes
+    }
+
+    /// Every pooled buffer's handle and memory, for the device to free.
+    pub(crate) fn drain(&mut self) -> impl Iterator<Item = (vk::Buffer, Allocation)> + '_ {
+        self.bytes = 0;
+        self.free.drain(..).map(|(_, _, raw, a)| (raw, a))
+    }
 }
 
 impl Buffer {
@@ -109,7 +148,46 @@ impl Buffer {
             return Err(Error::Vulkan { call: "vkBindBufferMemory", result: e });
         }
         gpu.account_memory(allocation.size(), true);
-        Ok(Buffer { gpu: gpu.clone(), raw, allocation: Some(allocation), size, views: Default::default() })
+        Ok(Buffer {
+            gpu: gpu.clone(),
+            raw,
+            allocation: Some(allocation),
+            size,
+            views: Default::default(),
+            pooled: None,
+        })
+    }
+
+    /// A host-visible buffer of at least `size` bytes at `location` for one transfer, from the
+    /// device's pool where it holds one of the size class (a power of two from 4 KiB), else made;
+    /// it goes back to the pool when dropped (after its transfer has finished: recorders keep
+    /// the buffers they use until then).
+    pub(crate) fn staging(gpu: &Gpu, size: u64, location: MemoryLocation, name: &str) -> Result<Buffer> {
+        let class = size.max(4096).next_power_of_two();
+        let taken = {
+            let mut pool = gpu.inner.staging_pool.lock().unwrap();
+            let at = pool.free.iter().position(|(l, s, ..)| *l == location && *s == class);
+            at.map(|i| {
+                pool.bytes -= class;
+                pool.free.swap_remove(i)
+            })
+        };
+        let mut buffer = match taken {
+            Some((_, _, raw, allocation)) => {
+                gpu.account_memory(allocation.size(), true);
+                Buffer {
+                    gpu: gpu.clone(),
+                    raw,
+                    allocation: Some(allocation),
+                    size: class,
+                    views: Default::default(),
+                    pooled: None,
+                }
+            }
+            None => Buffer::new(gpu, class, location, name)?,
+        };
+        buffer.pooled = Some(location);
+        Ok(buffer)
     }
 
     /// A view of `range` bytes from `offset` as vec4 texels (`R32G32B32A32_SFLOAT`), made on
@@ -134,15 +212,23 @@ impl Buffer {
     /// The buffer's handle, memory and size, given up by this value (which then frees
     /// nothing): an upload's staging buffer waiting for a submission, which must not hold a
     /// `Gpu` (the device holds the pending uploads).
-    fn into_raw(mut self) -> (vk::Buffer, Allocation, u64) {
+    fn into_raw(mut self) -> RawBuffer {
         let allocation = self.allocation.take().expect("a buffer with memory");
         let raw = std::mem::replace(&mut self.raw, vk::Buffer::null());
-        (raw, allocation, self.size)
+        RawBuffer { raw, allocation, size: self.size, pooled: self.pooled.take() }
     }
 
     /// A buffer of the handle and memory [`Buffer::into_raw`] gave up.
-    pub(crate) fn from_raw(gpu: &Gpu, raw: vk::Buffer, allocation: Allocation, size: u64) -> Buffer {
-        Buffer { gpu: gpu.clone(), raw, allocation: Some(allocation), size, views: Default::default() }
+    pub(crate) fn from_raw(gpu: &Gpu, b: RawBuffer) -> Buffer {
+        let RawBuffer { raw, allocation, size, pooled } = b;
+        Buffer {
+            gpu: gpu.clone(),
+            raw,
+            allocation: Some(allocation),
+            size,
+            views: Default::default(),
+            pooled,
+        }
     }
 
     /// The mapped bytes, when the buffer lives in host-visible memory.
@@ -153,6 +239,17 @@ impl Buffer {
 
 impl Drop for Buffer {
     fn drop(&mut self) {
+        // A staging buffer goes back to the device's pool while it has room.
+        if let (Some(location), Some(a)) = (self.pooled, self.allocation.take()) {
+            let mut pool = self.gpu.inner.staging_pool.lock().unwrap();
+            if pool.bytes + self.size <= StagingPool::MAX_BYTES && self.views.get_mut().unwrap().is_empty() {
+                self.gpu.account_memory(a.size(), false);
+                pool.bytes += self.size;
+                pool.free.push((location, self.size, self.raw, a));
+                return;
+            }
+            self.allocation = Some(a);
+        }
         // SAFETY: recorders keep an `Arc<Buffer>` of every buffer they bind until their work
         // has finished, so the last drop happens when no command uses the buffer or its views.
         unsafe {
@@ -455,9 +552,7 @@ impl Tensor {
 /// is not copied into. The staging buffer is held as its raw parts, since the device holds the
 /// list and a `Buffer` holds the device.
 pub(crate) struct PendingUpload {
-    pub staging: vk::Buffer,
-    pub allocation: Allocation,
-    pub size: u64,
+    pub staging: RawBuffer,
     pub dst: Weak<Buffer>,
     pub offset: u64,
     pub bytes: u64,
@@ -475,18 +570,16 @@ impl Gpu {
             unsafe { std::ptr::copy_nonoverlapping(bytes.as_ptr(), ptr.add(offset as usize), bytes.len()) };
             return Ok(());
         }
-        let staging = Buffer::new(self, bytes.len() as u64, MemoryLocation::CpuToGpu, "upload staging")?;
+        let staging = Buffer::staging(self, bytes.len() as u64, MemoryLocation::CpuToGpu, "upload staging")?;
         let ptr = staging.mapped().ok_or_else(|| {
             Error::unsupported(Feature::HostVisibleMemory, "staging memory is not host-visible")
         })?;
         // SAFETY: the staging mapping holds at least `bytes.len()` bytes.
         unsafe { std::ptr::copy_nonoverlapping(bytes.as_ptr(), ptr, bytes.len()) };
         self.inner.staged_bytes.fetch_add(bytes.len() as u64, std::sync::atomic::Ordering::Relaxed);
-        let (staging, allocation, size) = staging.into_raw();
+        let staging = staging.into_raw();
         self.inner.pending_uploads.lock().unwrap().push(PendingUpload {
             staging,
-            allocation,
-            size,
             dst: Arc::downgrade(buf),
             offset,
             bytes: bytes.len() as u64,
@@ -503,7 +596,7 @@ impl Gpu {
             unsafe { std::ptr::copy_nonoverlapping(ptr.add(offset as usize), out.as_mut_ptr(), out.len()) };
             return Ok(());
         }
-        let staging = Buffer::new(self, out.len() as u64, MemoryLocation::GpuToCpu, "download staging")?;
+        let staging = Buffer::staging(self, out.len() as u64, MemoryLocation::GpuToCpu, "download staging")?;
         self.copy_now(buf, offset, &staging, 0, out.len() as u64)?;
         let ptr = staging.mapped().ok_or_else(|| {
             Error::unsupported(Feature::HostVisibleMemory, "staging memory is not host-visible")

@@ -110,3 +110,21 @@ fn a_read_back_comes_with_its_recording() {
     assert!(sum.read::<u32>().is_err(), "a read back of another type");
     assert_eq!(velox_engine::profile::submits(), submits + 1, "a read back submitted work of its own");
 }
+
+/// Would catch: a staging buffer made and freed for every transfer (the pool unused), or one
+/// kept forever (the pool growing with every transfer).
+#[test]
+fn staging_buffers_are_reused() {
+    let _one = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    std::env::set_var("VELOX_FORCE_STAGING", "1");
+    let gpu = Gpu::new().unwrap();
+    let mut rng = Rng::new(4);
+    let t = Tensor::empty(&gpu, &[1000], DType::F32).unwrap();
+    for _ in 0..50 {
+        let v = rng.normal_vec(1000);
+        t.write(&v).unwrap();
+        assert_eq!(t.read::<f32>().unwrap(), v);
+    }
+    // One 4 KiB buffer for the upload and one for the download, taken back each time.
+    assert_eq!(gpu.staging_pool_bytes(), 2 * 4096);
+}
