@@ -9,11 +9,16 @@ use velox_engine::ops::binary::{binary, Binary};
 /// The tests count the process's submissions: one at a time.
 static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
+/// A device that stages every transfer, and the hold that keeps this file's tests one at a time.
+fn staged_device() -> (std::sync::MutexGuard<'static, ()>, Gpu) {
+    let one = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    std::env::set_var("VELOX_FORCE_STAGING", "1");
+    (one, Gpu::new().unwrap())
+}
+
 #[test]
 fn staging_round_trips_tensors_views_and_op_results() {
-    let _one = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    std::env::set_var("VELOX_FORCE_STAGING", "1");
-    let gpu = Gpu::new().unwrap();
+    let (_one, gpu) = staged_device();
     let mut rng = Rng::new(1);
     let staged = gpu.staged_bytes();
     for &n in &[0usize, 1, 3, 1000, 100_003] {
@@ -52,9 +57,7 @@ fn staging_round_trips_tensors_views_and_op_results() {
 /// after the work that reads it, or one made into a tensor already dropped.
 #[test]
 fn uploads_ride_with_the_next_submission() {
-    let _one = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    std::env::set_var("VELOX_FORCE_STAGING", "1");
-    let gpu = Gpu::new().unwrap();
+    let (_one, gpu) = staged_device();
     let mut rng = Rng::new(2);
     let (a, b) = (rng.normal_vec(1000), rng.normal_vec(1000));
     let submits = velox_engine::profile::submits();
@@ -86,9 +89,7 @@ fn uploads_ride_with_the_next_submission() {
 /// its recording ran.
 #[test]
 fn a_read_back_comes_with_its_recording() {
-    let _one = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    std::env::set_var("VELOX_FORCE_STAGING", "1");
-    let gpu = Gpu::new().unwrap();
+    let (_one, gpu) = staged_device();
     let mut rng = Rng::new(3);
     let (a, b) = (rng.normal_vec(300), rng.normal_vec(300));
     let ta = Tensor::from_slice(&gpu, &[300], &a).unwrap();
@@ -115,9 +116,7 @@ fn a_read_back_comes_with_its_recording() {
 /// kept forever (the pool growing with every transfer).
 #[test]
 fn staging_buffers_are_reused() {
-    let _one = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    std::env::set_var("VELOX_FORCE_STAGING", "1");
-    let gpu = Gpu::new().unwrap();
+    let (_one, gpu) = staged_device();
     let mut rng = Rng::new(4);
     let t = Tensor::empty(&gpu, &[1000], DType::F32).unwrap();
     for _ in 0..50 {
