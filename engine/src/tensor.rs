@@ -239,16 +239,17 @@ impl Buffer {
 
 impl Drop for Buffer {
     fn drop(&mut self) {
-        // A staging buffer goes back to the device's pool while it has room.
-        if let (Some(location), Some(a)) = (self.pooled, self.allocation.take()) {
+        // A staging buffer goes back to the device's pool while it has room (only such a
+        // buffer's memory is taken here: any other's is freed below).
+        if let Some(location) = self.pooled {
             let mut pool = self.gpu.inner.staging_pool.lock().unwrap();
-            if pool.bytes + self.size <= StagingPool::MAX_BYTES && self.views.get_mut().unwrap().is_empty() {
+            let room = pool.bytes + self.size <= StagingPool::MAX_BYTES;
+            if let Some(a) = self.allocation.take_if(|_| room && self.views.get_mut().unwrap().is_empty()) {
                 self.gpu.account_memory(a.size(), false);
                 pool.bytes += self.size;
                 pool.free.push((location, self.size, self.raw, a));
                 return;
             }
-            self.allocation = Some(a);
         }
         // SAFETY: recorders keep an `Arc<Buffer>` of every buffer they bind until their work
         // has finished, so the last drop happens when no command uses the buffer or its views.

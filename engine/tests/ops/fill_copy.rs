@@ -146,10 +146,16 @@ fn the_device_counts_the_memory_its_buffers_hold() {
     let gpu = gpu();
     let bytes = 64 << 20;
     gpu.reset_peak_memory();
+    let (before, _) = gpu.memory();
     let t = Tensor::empty(&gpu, &[bytes / 4], DType::F32).unwrap();
     let (live, peak) = gpu.memory();
     assert!(live >= bytes as u64 && peak >= live, "live {live}, peak {peak}");
     drop(t);
-    let (_, peak_after) = gpu.memory();
+    let (after, peak_after) = gpu.memory();
     assert!(peak_after >= bytes as u64, "the peak remembers the buffer: {peak_after}");
+    // Where the device is this test's alone while it runs, dropping the tensor gives back
+    // exactly what it held (a buffer whose memory is never freed would keep it).
+    if !devices_shared(&gpu) {
+        assert_eq!(after, before, "live bytes after the tensor went");
+    }
 }
