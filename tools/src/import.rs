@@ -100,17 +100,18 @@ fn report(r: &CaptureRecord, source: &std::path::Path, out: &std::path::Path) {
     } else {
         String::new()
     };
-    let first = out.join(&r.windows[0].dir);
     println!(
         "wrote {} video(s) of {} ({} frames, {} depth pixels{dropped}) to {}: 1 m is {:.3} scene units \
-         (capture.json); track one with `velox track --video {}`",
+         (capture.json); track the whole clip with `velox track --video {}`, decode it with \
+         `velox decode gaussians --cloud {}`",
         r.windows.len(),
         source.display(),
         r.source_frames,
         r.depth_pixels,
         out.display(),
         r.scale,
-        first.display()
+        out.display(),
+        out.display()
     );
 }
 

@@ -909,7 +909,7 @@ fn tracker_trains_evaluates_and_tracks_a_video() {
     let imported = work.join("imported");
     let args = ["import", "video", arg(&colour), "--depth", arg(&depth), "--intrinsics", arg(&intrinsics)];
     let said = ok(&velox(&[&args[..], &["--out", arg(&imported)]].concat()));
-    assert!(said.contains("24 frames") && said.contains("track one with"), "{said}");
+    assert!(said.contains("24 frames") && said.contains("track the whole clip with"), "{said}");
     let tracked = work.join("tracked");
     let args =
         ["track", "--video", arg(&imported), "--autoencoder", arg(&ckpt), "--checkpoint", arg(&tracker)];
