@@ -231,6 +231,19 @@ impl Buffer {
         }
     }
 
+    /// The first `out.len()` bytes of a staging buffer whose copy into it has completed,
+    /// counted as staged.
+    fn read_staged(&self, out: &mut [u8]) -> Result<()> {
+        let ptr = self.mapped().ok_or_else(|| {
+            Error::unsupported(Feature::HostVisibleMemory, "staging memory is not host-visible")
+        })?;
+        // SAFETY: the caller's copy into the buffer has completed; the mapping holds at least
+        // `out.len()` bytes (a staging buffer is made for its transfer's size or larger).
+        unsafe { std::ptr::copy_nonoverlapping(ptr, out.as_mut_ptr(), out.len()) };
+        self.gpu.inner.staged_bytes.fetch_add(out.len() as u64, std::sync::atomic::Ordering::Relaxed);
+        Ok(())
+    }
+
     /// The mapped bytes, when the buffer lives in host-visible memory.
     pub(crate) fn mapped(&self) -> Option<*mut u8> {
         self.allocation.as_ref().and_then(|a| a.mapped_ptr()).map(|p| p.as_ptr() as *mut u8)
@@ -522,15 +535,8 @@ impl Readback {
         let Some(staging) = &self.staging else { return self.tensor.read() };
         self.tensor.check_host_type::<T>(self.tensor.numel())?;
         let mut out = vec![T::zeroed(); self.tensor.numel()];
-        let bytes: &mut [u8] = bytemuck::cast_slice_mut(&mut out);
-        let ptr = staging.mapped().ok_or_else(|| {
-            Error::unsupported(Feature::HostVisibleMemory, "staging memory is not host-visible")
-        })?;
-        // SAFETY: the recording's copy into the staging buffer has completed (`done`); the
-        // mapping holds the tensor's bytes.
-        unsafe { std::ptr::copy_nonoverlapping(ptr, bytes.as_mut_ptr(), bytes.len()) };
-        let gpu = self.tensor.gpu();
-        gpu.inner.staged_bytes.fetch_add(bytes.len() as u64, std::sync::atomic::Ordering::Relaxed);
+        // The recording's copy into the staging buffer has completed (`done`).
+        staging.read_staged(bytemuck::cast_slice_mut(&mut out))?;
         Ok(out)
     }
 
@@ -599,13 +605,7 @@ impl Gpu {
         }
         let staging = Buffer::staging(self, out.len() as u64, MemoryLocation::GpuToCpu, "download staging")?;
         self.copy_now(buf, offset, &staging, 0, out.len() as u64)?;
-        let ptr = staging.mapped().ok_or_else(|| {
-            Error::unsupported(Feature::HostVisibleMemory, "staging memory is not host-visible")
-        })?;
-        // SAFETY: the copy has completed; the mapping holds `out.len()` bytes.
-        unsafe { std::ptr::copy_nonoverlapping(ptr, out.as_mut_ptr(), out.len()) };
-        self.inner.staged_bytes.fetch_add(out.len() as u64, std::sync::atomic::Ordering::Relaxed);
-        Ok(())
+        staging.read_staged(out)
     }
 
     fn copy_now(

@@ -27,7 +27,6 @@
 //! `tests/models/slips.rs` (every model's weight-decay layout) and `tests/data/fuzz.rs`.
 
 use std::collections::HashMap;
-use std::sync::Mutex;
 
 use velox_engine::ops::adamw::{adamw, AdamWConfig, AdamWStep, AdamWTensors};
 use velox_engine::ops::cast::cast_into;
@@ -227,7 +226,7 @@ impl ParamBuilder {
             v,
             decay_len,
             norm,
-            norm_read: Mutex::new(None),
+            norm_read: None,
             step: 0,
             half,
             half_views,
@@ -370,7 +369,7 @@ pub struct ParamStore {
     norm: NormScratch,
     /// The norm's result as the last recording of [`ParamStore::record_grad_norm`] reads it
     /// back (with that recording: no copy and wait of its own on a GPU).
-    norm_read: Mutex<Option<Readback>>,
+    norm_read: Option<Readback>,
     step: u64,
     /// An f16 copy of `params` at the same offsets, for the f16 inference path; it follows
     /// `params` only through [`ParamStore::sync_half`].
@@ -675,9 +674,9 @@ impl ParamStore {
     }
 
     /// Records the global norm of all gradients; [`ParamStore::grad_norm`] reads it after submit.
-    pub fn record_grad_norm(&self, rec: &mut Recorder) -> Result<()> {
+    pub fn record_grad_norm(&mut self, rec: &mut Recorder) -> Result<()> {
         global_norm_into(rec, &self.grads, &self.norm)?;
-        *self.norm_read.lock().unwrap() = Some(rec.read_back(self.norm.result())?);
+        self.norm_read = Some(rec.read_back(self.norm.result())?);
         Ok(())
     }
 
@@ -726,7 +725,7 @@ impl ParamStore {
     /// norm means the gradients hold NaN or Inf: the AdamW kernel then left everything as it
     /// was, so the step counter goes back by one and the error says what happened.
     pub fn grad_norm(&mut self) -> Result<f32> {
-        let values = match self.norm_read.lock().unwrap().as_ref() {
+        let values = match &self.norm_read {
             Some(read) => read.read::<f32>()?,
             None => self.norm.result().read::<f32>()?,
         };
