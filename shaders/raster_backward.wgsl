@@ -75,8 +75,10 @@ fn sum_pairs(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg
         return;
     }
     var acc = array<f32, 10>(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+    // Slots past the lists' room belong to pairs that were dropped (a step sized ahead that
+    // overflowed, whose update the device vetoes): never read out of bounds.
     let first = offsets[g];
-    let end = first + counts[g];
+    let end = min(first + counts[g], pc.pairs);
     for (var s = first; s < end; s = s + 1u) {
         for (var c = 0u; c < 10u; c = c + 1u) {
             acc[c] = acc[c] + pair_grads[10u * s + c];

@@ -21,7 +21,7 @@
 struct Params {
     n: u32,          // Gaussians (depths, counts_in_depth_order, emit) or pairs (ranges_of_tiles)
     tiles_x: u32,
-    // emit: pairs the buffers hold (writes past it are dropped, never out of bounds);
+    // emit: pairs the buffers hold (pairs past it are dropped, never written out of bounds);
     // ranges: the number of tiles (keys of other tiles are ignored).
     limit: u32,
     pad: u32,
@@ -95,7 +95,9 @@ fn emit(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
     var slot = offsets[g];
     for (var y = y0; y < y1; y = y + 1u) {
         for (var x = x0; x < x1; x = x + 1u) {
-            if (at < pc.limit) {
+            // Past the room (lists sized ahead of the count) a pair is dropped whole: a listed
+            // pair's slot is always within the room, where the backward pass writes by slot.
+            if (at < pc.limit && slot < pc.limit) {
                 tile_keys[at] = y * pc.tiles_x + x;
                 pair_slots[at] = slot;
             }
@@ -115,11 +117,12 @@ fn ranges_of_tiles(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroup
     if (i >= pc.n) {
         return;
     }
-    ids[i] = slot_gaussians[min(sorted_slots[i], pc.n - 1u)];
+    // Entries past the pairs (lists sized ahead) hold a key past every tile and sort last.
     let tile = sorted_tiles[i];
     if (tile >= pc.limit) {
         return;
     }
+    ids[i] = slot_gaussians[min(sorted_slots[i], pc.n - 1u)];
     if (i == 0u || sorted_tiles[i - 1u] != tile) {
         ranges[2u * tile] = i;
     }

@@ -31,7 +31,7 @@ use std::collections::HashMap;
 use velox_engine::ops::adamw::{adamw, AdamWConfig, AdamWStep, AdamWTensors};
 use velox_engine::ops::cast::cast_into;
 use velox_engine::ops::fill::fill;
-use velox_engine::ops::norm::{check_finite_values, chunk_len, global_norm_into, NormScratch};
+use velox_engine::ops::norm::{check_finite_values, chunk_len, global_norm_into, veto_if_over, NormScratch};
 use velox_engine::rng::Rng;
 use velox_engine::{DType, Error, Gpu, Precision, Readback, Recorder, Result, Tensor};
 
@@ -235,6 +235,7 @@ impl ParamBuilder {
             zero_pending: std::sync::atomic::AtomicBool::new(false),
             update_pending: None,
             update_recorded: false,
+            vetoes: Vec::new(),
         };
         let mut rec = gpu.recorder()?;
         store.sync_half(&mut rec)?;
@@ -387,6 +388,9 @@ pub struct ParamStore {
     /// and whether it has been recorded.
     update_pending: Option<Update>,
     update_recorded: bool,
+    /// Counts made on the device this step, each with the limit it must stay within for the
+    /// next recorded update to go ahead ([`ParamStore::veto_update_if_over`]).
+    vetoes: Vec<(Tensor, u32)>,
 }
 
 /// An AdamW step over the whole store, as [`ParamStore::adamw_step_scaled`] records it, then
@@ -517,8 +521,18 @@ impl ParamStore {
     /// anything else it records: a step's first pass then needs no submit of its own for it.
     /// Every model's passes start from that recorder; [`ParamStore::settle_zero`] zeroes them
     /// at once where none was made (a step that ran no micro-batch).
-    pub fn zero_grads_first(&self) {
+    pub fn zero_grads_first(&mut self) {
         self.zero_pending.store(true, std::sync::atomic::Ordering::Relaxed);
+        self.vetoes.clear();
+    }
+
+    /// Has the next recorded update skipped on the device when `count[0]` (u32, made by the
+    /// step's recordings) exceeds `limit`: for a pass that sized work ahead of a count it
+    /// records with the update, and learns the count only after the submission. A vetoed
+    /// step leaves the parameters, the moments and the step counter as they were (its
+    /// [`ParamStore::grad_norm`] fails, as for an overflow); the caller runs it again.
+    pub fn veto_update_if_over(&mut self, count: &Tensor, limit: u32) {
+        self.vetoes.push((count.clone(), limit));
     }
 
     /// Asks the step's last pass to record `update` at the end of its recording
@@ -674,8 +688,13 @@ impl ParamStore {
     }
 
     /// Records the global norm of all gradients; [`ParamStore::grad_norm`] reads it after submit.
+    /// The vetoes asked for ([`ParamStore::veto_update_if_over`]) are recorded onto it before
+    /// it is read back, so that the host reads the norm the update saw.
     pub fn record_grad_norm(&mut self, rec: &mut Recorder) -> Result<()> {
         global_norm_into(rec, &self.grads, &self.norm)?;
+        for (count, limit) in std::mem::take(&mut self.vetoes) {
+            veto_if_over(rec, &count, limit, self.norm.result())?;
+        }
         self.norm_read = Some(rec.read_back(self.norm.result())?);
         Ok(())
     }

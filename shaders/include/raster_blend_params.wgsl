@@ -9,5 +9,5 @@ struct Params {
     alpha_max: f32,
     min_alpha: f32,
     t_stop: f32,
-    _pad: f32,
+    pairs: u32, // `sum_pairs`: the slots `pair_grads` holds (the tile lists' room)
 }

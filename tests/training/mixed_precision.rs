@@ -19,7 +19,7 @@ use velox::models::params::{Init, LossScale, ParamStore};
 use velox::models::run::{RunRequest, RunSettings};
 use velox::models::train::collective::SingleProcess;
 use velox::models::train::source::SampleSource;
-use velox::models::train::trainer::{train, Begin, Quiet, TrainOptions, Trainer};
+use velox::models::train::trainer::{train, Begin, Finished, Quiet, StepReport, TrainOptions, Trainer};
 use velox::models::train::{Losses, Optimisation, Trainable};
 use velox::models::velox::autoencoder::{Autoencoder, TrainScene};
 use velox::tasks::training::HostScene;
@@ -65,7 +65,7 @@ fn losses(gpu: &Gpu, scene: &TrainScene, precision: Precision, steps: u64) -> Ve
 /// Would catch: a host wait added to a training step (each submission is one: a read of a
 /// result submitted on its own, an upload waited for, a pass split in two).
 #[test]
-fn a_training_step_is_two_submissions_in_either_precision() {
+fn a_training_step_is_one_submission_in_either_precision() {
     // This test's device while it runs, so that no other test's submissions are counted.
     let Some(gpu) = counting_gpu() else { return };
     let dir = temp_dir("submits");
@@ -75,13 +75,83 @@ fn a_training_step_is_two_submissions_in_either_precision() {
         let request = RunRequest { steps: Some(3), precision: Some(precision), ..Default::default() };
         let settings = RunSettings::new(&request, vec!["scene".into()], 1, 1).unwrap();
         let mut trainer = Trainer::new(&mut model, &SingleProcess, settings).unwrap();
+        let before = gpu.submits();
         trainer.repeat_steps(&[&scene], 1..2).unwrap();
+        // The first step sizes the tile lists by its projections' counts: two submissions.
+        assert_eq!(gpu.submits() - before, 2, "{precision:?}: submissions in the first step");
         let before = gpu.submits();
         trainer.repeat_steps(&[&scene], 2..4).unwrap();
-        // The forward pass (its tile-pair counts size the rasterisation), and the backward
-        // pass with the update (the losses, read for the log and the NaN check, and the
-        // gradient norm, read for f16's overflow decision).
-        assert_eq!(gpu.submits() - before, 4, "{precision:?}: submissions in two steps");
+        // Then one a step: forward, rasterisation in lists sized from before, backward and
+        // the update (the losses, read for the log and the NaN check, and the gradient norm,
+        // read for f16's overflow decision, come back with it).
+        assert_eq!(gpu.submits() - before, 2, "{precision:?}: submissions in two steps");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Would catch: a step trained on tile lists that dropped pairs, an update that went ahead
+/// when they did, a rerun that draws anew or halves the loss scale, a room that changes bits.
+#[test]
+fn a_step_that_outgrows_its_tile_lists_is_vetoed_and_run_again() {
+    let gpu = gpu();
+    let dir = temp_dir("rerun");
+    let scene = upload(&gpu, &host_scene(&gpu, &dir));
+    for precision in [Precision::F32, Precision::F16] {
+        let run = |room: usize| {
+            let mut model = Autoencoder::new(&gpu, &AutoencoderConfig::tiny(), 3).unwrap();
+            model.set_pair_room(room);
+            let initial = model.store.flat_params().read::<f32>().unwrap();
+            let request = RunRequest { steps: Some(3), precision: Some(precision), ..Default::default() };
+            let settings = RunSettings::new(&request, vec!["scene".into()], 1, 1).unwrap();
+            let mut trainer = Trainer::new(&mut model, &SingleProcess, settings).unwrap();
+            let mut reruns = Vec::new();
+            let mut reports = Vec::new();
+            for step in 1..4 {
+                loop {
+                    trainer.begin_step(step).unwrap();
+                    trainer.micro_batch(step, 0, &[&scene]).unwrap();
+                    match trainer.finish_step(step).unwrap() {
+                        Finished::Done(r) => break reports.push(r),
+                        Finished::Rerun { why } => {
+                            let store = trainer.model().store();
+                            assert_eq!(store.step(), step - 1, "{precision:?}: a vetoed step counted");
+                            if step == 1 {
+                                let now = store.flat_params().read::<f32>().unwrap();
+                                assert!(
+                                    now == initial,
+                                    "{precision:?}: a vetoed update moved the parameters"
+                                );
+                            }
+                            reruns.push((step, why));
+                        }
+                        other => panic!("{precision:?}: step {step} ended {other:?}"),
+                    }
+                }
+            }
+            let room = model.pair_room();
+            (
+                model.store.flat_params().read::<f32>().unwrap(),
+                reports,
+                reruns,
+                room,
+                model.store.loss_scale(),
+            )
+        };
+        let (want, want_reports, none, room, scale) = run(0);
+        assert!(none.is_empty(), "{precision:?}: lists sized by the first step were outgrown: {none:?}");
+        // Room for 16 pairs: the first step outgrows it and runs again with room enough.
+        let (got, reports, reruns, grown, got_scale) = run(16);
+        assert_eq!(reruns.len(), 1, "{precision:?}: {reruns:?}");
+        assert!(reruns[0].0 == 1 && reruns[0].1.contains("outgrew the room for 16"), "{reruns:?}");
+        assert!(grown > 16 && grown <= room, "{precision:?}: room {grown}, sized by the first step {room}");
+        assert!(got == want, "{precision:?}: the parameters after a rerun differ from an unbroken run");
+        let key = |r: &StepReport| (r.losses.total().to_bits(), r.grad_norm.to_bits());
+        assert_eq!(
+            reports.iter().map(key).collect::<Vec<_>>(),
+            want_reports.iter().map(key).collect::<Vec<_>>()
+        );
+        assert_eq!(got_scale, scale, "{precision:?}: a rerun changed the loss scale");
+        assert_eq!(reports[0].overflows, 0);
     }
     let _ = std::fs::remove_dir_all(&dir);
 }

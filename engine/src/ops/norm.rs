@@ -12,7 +12,7 @@
 
 use crate::error::{Error, Result};
 use crate::kernels::args;
-use crate::kernels::{NORM_FINISH, NORM_SUMSQ_PARTIAL};
+use crate::kernels::{NORM_FINISH, NORM_SUMSQ_PARTIAL, VETO_MAIN};
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
@@ -148,6 +148,24 @@ pub fn global_norm_chunked(
         args::NormFinishArgs { partials: &scratch.partials, out: &scratch.out },
         &p,
     )
+}
+
+/// Records a veto of the step that reads `norm` (a `[norm, ...]` result of [`global_norm_into`],
+/// written earlier in the recording): when `count[0]` (u32) exceeds `limit`, the norm becomes
+/// +Inf, and the AdamW kernel, which skips its step on a non-finite norm, leaves the parameters
+/// and moments as they were. For work sized ahead of a count the device makes in the same
+/// recording (`shaders/veto.wgsl`); the host reads the count after the submission and runs the
+/// step again with room enough. [`check_finite`] of a vetoed norm fails, as it does for an
+/// overflow.
+pub fn veto_if_over(rec: &mut Recorder, count: &Tensor, limit: u32, norm: &Tensor) -> Result<()> {
+    if count.dtype() != DType::U32 || count.numel() == 0 {
+        return Err(Error::Shape(format!("veto: the count {count:?} must be u32 with an element")));
+    }
+    if norm.dtype() != DType::F32 || norm.numel() == 0 {
+        return Err(Error::Shape(format!("veto: the norm {norm:?} must be f32 with an element")));
+    }
+    let p = crate::kernels::params::VetoParams { limit, pad: 0 };
+    rec.dispatch(VETO_MAIN, [1, 1, 1], args::VetoMainArgs { count, norm }, &p)
 }
 
 /// Reads a `[norm, sum of squares]` result back and fails with a clear message when the norm

@@ -11,6 +11,7 @@
 
 use crate::common;
 use common::*;
+use velox_engine::ops::norm::veto_if_over;
 use velox_engine::ops::raster::{
     self, reference, render, render_backward_with, BackwardKernel, Camera, GaussianData, Gaussians, Image,
     Rendered,
@@ -500,6 +501,91 @@ fn two_gaussians_blend_front_to_back_by_depth() {
             "depth at ({px}, {py})"
         );
         assert!(a1 > 0.0 && a2 > 0.0, "both Gaussians reach ({px}, {py})");
+    }
+}
+
+/// Every buffer of a forward pass, as bits, the tile lists up to `pairs` entries.
+fn forward_bits(img: &Image, pairs: usize) -> Vec<Vec<u32>> {
+    let bits = |t: &Tensor| -> Vec<u32> { t.read::<f32>().unwrap().iter().map(|v| v.to_bits()).collect() };
+    let words = |t: &Tensor, n: usize| -> Vec<u32> { t.read::<u32>().unwrap()[..n].to_vec() };
+    vec![
+        bits(&img.rgb),
+        bits(&img.alpha),
+        bits(&img.depth),
+        bits(&img.final_t),
+        words(&img.last, img.last.numel()),
+        words(&img.ranges, img.ranges.numel()),
+        words(&img.ids, pairs),
+        words(&img.slots, pairs),
+    ]
+}
+
+#[test]
+fn lists_sized_ahead_give_the_same_bits_and_drop_what_overflows() {
+    // A training step records the rasterisation with the projection, into tile lists sized
+    // from earlier steps: within that room, every bit of the forward and backward passes is
+    // the exactly sized pass's; past it, pairs are dropped without a write out of bounds, and
+    // the step's update is vetoed on the device. 64x64 has 16 tiles, whose last one's masked
+    // key is the unused entries' (they stay behind it by the sort's stability); 64x48 has 12.
+    let gpu = gpu();
+    for (w, h, n) in [(64, 48, 300), (64, 64, 400)] {
+        let cam = camera(w, h);
+        let what = format!("{n} Gaussians {w}x{h}");
+        let g = random_gaussians(n, 7 + n as u64, (-3.5, -1.5), (-2.0, 2.0));
+        let gaussians = g.upload(&gpu).unwrap();
+        let exact = render(&gpu, &gaussians, &cam, BG).unwrap();
+        let pairs = exact.projected.intersections().unwrap();
+        assert!(pairs > 300, "{what}: {pairs} pairs");
+        let (dr, da, dd) = image_grads(&cam, 5);
+        let (hh, ww) = (h as usize, w as usize);
+        let t_dr = Tensor::from_slice(&gpu, &[hh, ww, 3], &dr).unwrap();
+        let t_da = Tensor::from_slice(&gpu, &[hh, ww], &da).unwrap();
+        let t_dd = Tensor::from_slice(&gpu, &[hh, ww], &dd).unwrap();
+        let backward = |r: &Rendered| -> Vec<Vec<f32>> {
+            let mut rec = gpu.recorder().unwrap();
+            let d =
+                render_backward_with(&mut rec, BackwardKernel::Ordered, &gaussians, r, &t_dr, &t_da, &t_dd)
+                    .unwrap();
+            rec.submit().unwrap();
+            read_grads(&d).to_vec()
+        };
+        let want = (forward_bits(&exact.image, pairs), backward(&exact));
+        // Room just enough, and room past one sort block (4096 pairs): several blocks of
+        // unused entries behind the pairs.
+        for room in [pairs, pairs + 5000] {
+            let mut rec = gpu.recorder().unwrap();
+            let projected = raster::project(&mut rec, &gaussians, &cam).unwrap();
+            let image = raster::rasterize_within(&mut rec, &projected, room, BG).unwrap();
+            rec.submit().unwrap();
+            assert_eq!(projected.intersections().unwrap(), pairs);
+            assert_eq!(image.room, room);
+            let r = Rendered { projected, image };
+            assert!(forward_bits(&r.image, pairs) == want.0, "{what}, room {room}: the forward pass's bits");
+            let got = backward(&r);
+            let same = got
+                .iter()
+                .zip(&want.1)
+                .all(|(a, b)| a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits()));
+            assert!(same, "{what}, room {room}: the backward pass's bits");
+        }
+
+        // Half the room: the pass runs and stays finite, the count says it overflowed, and the
+        // veto turns a norm to +Inf only where the count is past the limit.
+        let room = pairs / 2;
+        let mut rec = gpu.recorder().unwrap();
+        let projected = raster::project(&mut rec, &gaussians, &cam).unwrap();
+        let image = raster::rasterize_within(&mut rec, &projected, room, BG).unwrap();
+        let norms = [[1.5f32, 2.25], [3.0, 9.0]].map(|v| Tensor::from_slice(&gpu, &[2], &v).unwrap());
+        veto_if_over(&mut rec, projected.pairs(), room as u32, &norms[0]).unwrap();
+        veto_if_over(&mut rec, projected.pairs(), pairs as u32, &norms[1]).unwrap();
+        rec.submit().unwrap();
+        assert_eq!(projected.intersections().unwrap(), pairs);
+        let r = Rendered { projected, image };
+        let rgb: Vec<f32> = r.image.rgb.read().unwrap();
+        assert!(rgb.iter().all(|v| v.is_finite()), "{what}: an overflowed pass drew a non-finite pixel");
+        assert!(backward(&r).iter().flatten().all(|v| v.is_finite()), "{what}: overflowed backward");
+        assert_eq!(norms[0].read::<f32>().unwrap(), vec![f32::INFINITY, 2.25], "{what}: vetoed");
+        assert_eq!(norms[1].read::<f32>().unwrap(), vec![3.0, 9.0], "{what}: within the limit");
     }
 }
 

@@ -143,6 +143,17 @@ pub trait Trainable {
     fn take_pass_seconds(&mut self) -> Option<PassSeconds> {
         None
     }
+
+    /// Whether the micro-batch just run outgrew work the model sized ahead of counts the device
+    /// made in the same recording (the autoencoder's tile lists, sized from earlier steps), and
+    /// must run again: its losses and gradients are wrong and the update, where its recording
+    /// held it, was vetoed on the device ([`ParamStore::veto_update_if_over`]). The model has
+    /// grown the room; the trainer runs the whole step again with the same draws. Returns what
+    /// outgrew what, for the log; taking it clears it. `None` (the default) for a model that
+    /// sizes nothing ahead.
+    fn take_rerun(&mut self) -> Option<String> {
+        None
+    }
 }
 
 /// Fails unless a micro-batch of `samples` scenes has one random generator each (and at
@@ -161,7 +172,7 @@ pub(crate) fn check_micro_batch(samples: usize, rngs: usize) -> velox_engine::Re
 /// `pass_seconds`, and an inherent `accumulate`; its checkpoints describe it as
 /// `{"model": MODEL_KIND, "config": cfg}` (the `MODEL_KIND` of the model's module).
 macro_rules! trainable {
-    ($model:ty, $sample:ty) => {
+    ($model:ty, $sample:ty $(; $($more:tt)*)?) => {
         impl $crate::train::Trainable for $model {
             type Sample = $sample;
 
@@ -200,6 +211,8 @@ macro_rules! trainable {
                 let p = std::mem::take(&mut self.pass_seconds);
                 (!p.untimed).then_some(p)
             }
+
+            $($($more)*)?
         }
     };
 }

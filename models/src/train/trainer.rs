@@ -132,6 +132,9 @@ pub enum Finished {
     /// f16 training: the gradients overflowed at loss scale `scale`; the update was skipped
     /// and the scale halved. Run the step again ([`Trainer::begin_step`] with the same step).
     Overflowed { scale: f64 },
+    /// The model outgrew work it sized ahead ([`Trainable::take_rerun`]: `why`); nothing was
+    /// updated and the model has grown the room. Run the step again, as after an overflow.
+    Rerun { why: String },
 }
 
 /// Optimiser steps of a model, one at a time: [`Trainer::begin_step`], then
@@ -149,6 +152,8 @@ pub struct Trainer<'a, M: Trainable, C: Collective> {
     /// Tries of the step under way that overflowed, and which step that is.
     overflows: u32,
     retry_of: Option<u64>,
+    /// This process's micro-batches outgrew what the model sized ahead: why.
+    rerun: Option<String>,
 }
 
 impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
@@ -174,6 +179,7 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
             failed: None,
             overflows: 0,
             retry_of: None,
+            rerun: None,
         })
     }
 
@@ -213,8 +219,9 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
         self.losses = Losses::default();
         self.time = TimeSplit::default();
         self.failed = None;
+        self.rerun = None;
         // Recorded first by the step's first pass (no submit of its own).
-        self.model.store().zero_grads_first();
+        self.model.store_mut().zero_grads_first();
         self.model.store_mut().take_update();
         Ok(())
     }
@@ -262,7 +269,7 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
                 slots.end - slots.start
             )));
         }
-        if self.failed.is_some() {
+        if self.failed.is_some() || self.rerun.is_some() {
             return Ok(());
         }
         let mut rngs: Vec<_> = slots.map(|g| slot_rng(self.settings.seed, step, g)).collect();
@@ -282,6 +289,7 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
             }
             Err(e) => self.fail(e),
         }
+        self.rerun = self.model.take_rerun();
         self.time.compute += t.elapsed().as_secs_f64();
         Ok(())
     }
@@ -300,6 +308,22 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
             self.time.backward = Some(p.backward);
         }
         let t = Instant::now();
+        // Every process runs the step again if any outgrew what its model sized ahead.
+        let reruns = self.collective.all_gather_f64(self.rerun.is_some() as u8 as f64)?;
+        if let Some(r) = reruns.iter().position(|&r| r != 0.0) {
+            let store = self.model.store_mut();
+            // With one process the update rode with the pass, and the device vetoed it.
+            if store.take_update() && store.grad_norm().is_ok() {
+                return Err(Error::Invalid("a step whose pass outgrew its room was not vetoed".into()));
+            }
+            self.retry_of = Some(step);
+            let why = match self.rerun.take() {
+                Some(why) if self.collective.size() == 1 => why,
+                Some(why) => format!("process {}: {why}", self.collective.rank()),
+                None => format!("process {r} outgrew what its model sized ahead"),
+            };
+            return Ok(Finished::Rerun { why });
+        }
         let local = if self.failed.is_some() { f64::NAN } else { self.losses.total() };
         let totals = self.collective.all_gather_f64(local)?;
         if let Some(e) = self.failed.take() {
@@ -742,10 +766,9 @@ where
                 .map(|g| names[order.at(slot_position(step, per_scene, global, g))].clone())
                 .collect();
         }
-        // The group's last step lets its samples go after each micro-batch (after the step in
-        // f16 training, which may have to run it again).
+        // The group's last step lets its samples go once it is done (not before: an f16
+        // overflow, or a model outgrowing what it sized ahead, runs the step again).
         let keep = !step.is_multiple_of(per_scene) && step < settings.steps;
-        let retry = settings.precision == Precision::F16;
         let report = loop {
             trainer.begin_step(step)?;
             for m in 0..acc {
@@ -769,9 +792,6 @@ where
                         held[range.clone()].iter().map(|s| s.as_ref().expect("read above")).collect();
                     trainer.micro_batch(step, m, &batch)?;
                 }
-                if !keep && !retry {
-                    held[range].iter_mut().for_each(|s| *s = None);
-                }
             }
             let finished = trainer.finish_step(step).map_err(|e| {
                 Error::Invalid(format!(
@@ -788,6 +808,7 @@ where
                         "step {step}: the f16 gradients overflowed at loss scale {scale}; run again at {again}"
                     ))
                 }
+                Finished::Rerun { why } => observer.note(&format!("step {step}: {why}; run again")),
             }
         };
         if !keep {

@@ -29,14 +29,16 @@ use velox_engine::ops::adamw::AdamWConfig;
 use velox_engine::ops::attention::Segments;
 use velox_engine::ops::binary::{binary, binary_into, Binary};
 use velox_engine::ops::fill::fill;
-use velox_engine::ops::raster::{project, rasterize, render_backward, Camera, Gaussians, Rendered};
+use velox_engine::ops::raster::{
+    project, rasterize_within, render_backward, Camera, Gaussians, Projected, Rendered,
+};
 use velox_engine::rng::Rng;
 use velox_engine::{DType, Error, Gpu, Precision, Recorder, Result, Tensor};
 
 use crate::config::AutoencoderConfig;
 use crate::layers::Loss;
 use crate::params::{build, declare, ParamBuilder, ParamStore, Params, Update};
-use crate::train::{Losses, PassSeconds, Trainable};
+use crate::train::{Losses, PassSeconds, PassTimer, Trainable};
 use crate::velox::encoder::Encoder;
 use crate::velox::gaussians::{occupied_voxels, GaussianDecoder, VoxelFrames};
 use crate::velox::surface::{FlowNoise, PointFrames, SampleSpec, Sampler, SurfaceDecoder};
@@ -141,9 +143,14 @@ pub struct Autoencoder {
     /// A factor on the scheduled learning rate (a cooldown at the end of a run); 1 by default,
     /// not saved with the model.
     pub lr_scale: f64,
-    /// Wall seconds of the forward passes (encoder, decoders, renders) and of the backward
-    /// passes of the micro-batches since [`Trainable::take_pass_seconds`] last took them.
+    /// Seconds of the forward passes (encoder, decoders, renders) and of the backward passes
+    /// of the micro-batches since [`Trainable::take_pass_seconds`] last took them.
     pass_seconds: PassSeconds,
+    /// The (tile, Gaussian) pairs a training view's tile lists hold room for, from the steps
+    /// before (0 before the first): with it, a micro-batch is one recording, renders included.
+    pair_room: usize,
+    /// The last micro-batch's views outgrew `pair_room`: how ([`Trainable::take_rerun`]).
+    rerun: Option<String>,
 }
 
 impl Autoencoder {
@@ -175,7 +182,21 @@ impl Autoencoder {
             precision: Precision::F32,
             lr_scale: 1.0,
             pass_seconds: PassSeconds::default(),
+            pair_room: 0,
+            rerun: None,
         })
+    }
+
+    /// The (tile, Gaussian) pairs each training view's tile lists hold room for (0 before the
+    /// first step, which sizes them by its own counts).
+    pub fn pair_room(&self) -> usize {
+        self.pair_room
+    }
+
+    /// Sets that room (grown again by any step that outgrows it, which then runs again; the
+    /// room changes no result, only memory and the work of the sort).
+    pub fn set_pair_room(&mut self, pairs: usize) {
+        self.pair_room = pairs;
     }
 
     /// Makes `encode`, `decode_points` and `decode_gaussians` run in `precision`. Choosing f16
@@ -247,22 +268,34 @@ impl Autoencoder {
         let lr = opt.learning_rate(step) * self.lr_scale;
         // The gradients zeroed by the forward pass's recording and the update recorded by the
         // backward pass's, as the trainer has them: two submissions a step.
-        self.store.zero_grads_first();
-        self.store.update_last(Update {
-            adamw: opt.adamw,
-            lr,
-            max_norm: opt.max_grad_norm,
-            loss_scale: 1.0,
-            // The f16 passes read the copies: refresh them from the updated masters.
-            sync_half: self.store.training_precision() == Precision::F16,
-        });
-        let losses = self.accumulate(&[scene], std::slice::from_mut(rng), 1.0);
-        let recorded = self.store.take_update();
-        let losses = losses?;
-        if !recorded {
-            return Err(Error::Invalid("the backward pass did not record the step's update".into()));
-        }
-        let grad_norm = self.store.grad_norm()? as f64;
+        let drawn = rng.clone();
+        let (losses, grad_norm) = loop {
+            self.store.zero_grads_first();
+            self.store.update_last(Update {
+                adamw: opt.adamw,
+                lr,
+                max_norm: opt.max_grad_norm,
+                loss_scale: 1.0,
+                // The f16 passes read the copies: refresh them from the updated masters.
+                sync_half: self.store.training_precision() == Precision::F16,
+            });
+            let losses = self.accumulate(&[scene], std::slice::from_mut(rng), 1.0);
+            let recorded = self.store.take_update();
+            let losses = losses?;
+            if !recorded {
+                return Err(Error::Invalid("the backward pass did not record the step's update".into()));
+            }
+            let norm = self.store.grad_norm();
+            if self.take_rerun().is_none() {
+                break (losses, norm? as f64);
+            }
+            // The views outgrew the room their tile lists were given; the device vetoed the
+            // update. Again with the same draws and the room grown.
+            if norm.is_ok() {
+                return Err(Error::Invalid("a step whose tile lists overflowed was not vetoed".into()));
+            }
+            *rng = drawn.clone();
+        };
         let term = |name: &str| losses.terms.iter().find(|t| t.0 == name).map_or(0.0, |t| t.1);
         Ok(StepLosses {
             total: losses.total(),
@@ -310,6 +343,7 @@ impl Autoencoder {
         // Forward: the encoder and the token loss, then per scene its token noise, then the
         // surface decoder's points and flow noise and the Gaussian decoder's voxels per frame.
         let mut rec = self.store.recorder()?;
+        let mut timer = PassTimer::start(&mut rec);
         let (s, enc_cache) = self.encoder.forward_batch(&mut rec, &clouds, rngs)?;
         let zeros = Tensor::empty(&gpu, &[nb * k, dim], DType::F32)?;
         fill(&mut rec, &zeros, 0.0)?;
@@ -371,9 +405,10 @@ impl Autoencoder {
         let (gaussians, g_cache) = self.gaussians.forward_frames(&mut rec, &s_noisy, &c, &voxel_frames)?;
 
         // Each frame seen from `views_per_step` supervision views (spread evenly from the
-        // drawn one), projected in this recording: its one submit gives the projections' tile
-        // pairs, which size the rasterisation, recorded with the backward pass. A scene's image
-        // loss is the mean over its frames and views.
+        // drawn one), projected and rasterised in this recording, into tile lists with room
+        // for the most pairs the steps before have seen (and a margin). The first step has no
+        // such figure: it submits the projections and sizes the lists by their counts. A
+        // scene's image loss is the mean over its frames and views.
         let per_voxel = self.cfg.gaussians.gaussians_per_voxel;
         let mut frame_gaussians = Vec::with_capacity(groups.len());
         let mut first = 0;
@@ -401,23 +436,34 @@ impl Autoencoder {
                 group += 1;
             }
         }
-        rec.submit()?;
+        // Without a room from earlier steps: submit, and size it by this step's counts. The
+        // forward and backward times are then the host's clock around each recording.
+        let sized_ahead = self.pair_room > 0;
+        let mut forward_done = None;
+        if !sized_ahead {
+            rec.submit()?;
+            let most = most_pairs(projected.iter().flat_map(|(_, views, _)| views.iter().map(|v| &v.0)))?;
+            self.pair_room = room_for(most);
+            forward_done = Some(Instant::now());
+            rec = self.store.recorder()?;
+        }
+        let room = self.pair_room;
 
-        // The views' rasterisation (the forward pass's last step, sized by the projections),
-        // then backward: image losses and the rasteriser per frame into the Gaussians'
-        // gradient, the Gaussian decoder, the surface decoder, then the encoder.
-        let forward_done = Instant::now();
-        self.pass_seconds.forward += (forward_done - started).as_secs_f64();
-        let mut rec = self.store.recorder()?;
+        // The views' rasterisation (the forward pass's last step), then backward: image losses
+        // and the rasteriser per frame into the Gaussians' gradient, the Gaussian decoder, the
+        // surface decoder, then the encoder. A view whose pairs outgrow the room vetoes the
+        // step's update on the device (the step then runs again, see below).
         let mut rendered = Vec::with_capacity(projected.len());
         for (g, views, image_weight) in projected {
             let mut images = Vec::with_capacity(views.len());
             for (projected, gt, background) in views {
-                let image = rasterize(&mut rec, &projected, background)?;
+                let image = rasterize_within(&mut rec, &projected, room, background)?;
+                self.store.veto_update_if_over(projected.pairs(), room as u32);
                 images.push((Rendered { projected, image }, gt));
             }
             rendered.push((g, images, image_weight));
         }
+        timer.backward(&mut rec);
         let image_loss = Tensor::empty(&gpu, &[1], DType::F32)?;
         let mut image_loss_started = false;
         // The alpha and depth gradients are zero: one zero image per size, for every view.
@@ -466,10 +512,28 @@ impl Autoencoder {
             rec.copy_rows(t, 0, &terms, i, 1)?;
         }
         let terms = rec.read_back(&terms)?;
+        timer.end(&mut rec);
         // The step's update, where the trainer asked for it with this pass (ParamStore::update_last).
         self.store.record_update(&mut rec)?;
-        rec.submit()?;
-        self.pass_seconds.backward += forward_done.elapsed().as_secs_f64();
+        let finished = rec.submit()?;
+        match forward_done {
+            None => timer.add(&finished, &mut self.pass_seconds),
+            Some(done) => {
+                self.pass_seconds.forward += (done - started).as_secs_f64();
+                self.pass_seconds.backward += done.elapsed().as_secs_f64();
+            }
+        }
+        let most =
+            most_pairs(rendered.iter().flat_map(|(_, views, _)| views.iter().map(|(r, _)| &r.projected)))?;
+        if most > room {
+            // Pairs were dropped: the images are wrong and the update (if recorded) vetoed.
+            self.pair_room = room_for(most);
+            self.rerun = Some(format!(
+                "a view's {most} (tile, Gaussian) pairs outgrew the room for {room}; the lists now hold {}",
+                self.pair_room
+            ));
+            return Ok(Losses::default());
+        }
 
         let terms = terms.read::<f32>()?;
         let (surface, image, tokens) = (terms[0] as f64, terms[1] as f64, terms[2] as f64);
@@ -536,11 +600,27 @@ impl Autoencoder {
     }
 }
 
-crate::train::trainable!(Autoencoder, TrainScene);
+crate::train::trainable!(Autoencoder, TrainScene;
+    fn take_rerun(&mut self) -> Option<String> {
+        self.rerun.take()
+    }
+);
 crate::model::model!(Autoencoder, AutoencoderConfig, "autoencoder");
 
 /// Gaussians `start .. start + len` of a set, as a set of their own (the whole set when it is
 /// all of it).
+/// The most (tile, Gaussian) pairs among projections whose recording has run.
+fn most_pairs<'a>(projected: impl Iterator<Item = &'a Projected>) -> Result<usize> {
+    projected.map(Projected::intersections).try_fold(0, |most, n| Ok(most.max(n?)))
+}
+
+/// The tile lists' room for views that have needed up to `pairs` pairs: a quarter more, in
+/// whole blocks of the sort (4096), so that a step's views rarely outgrow it as training moves
+/// the Gaussians; each view's lists are that long.
+fn room_for(pairs: usize) -> usize {
+    (pairs + pairs / 4 + 1).next_multiple_of(velox_engine::ops::sort::BLOCK)
+}
+
 fn slice_gaussians(rec: &mut Recorder, g: &Gaussians, start: usize, len: usize) -> Result<Gaussians> {
     if start == 0 && len == g.len() {
         return Ok(g.clone());

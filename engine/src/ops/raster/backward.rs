@@ -141,10 +141,10 @@ pub fn render_backward_with(
     let gpu = rec.gpu().clone();
     let grad2d = Tensor::empty(&gpu, &[n, 10], DType::F32)?;
     let (tiles_x, tiles_y) = cam.tiles();
-    let params = BlendParams::new(cam, img.background).with_gaussians(n as u32);
+    let params = BlendParams::new(cam, img.background).for_backward(n as u32, img.room as u32);
     let (ranges, ids, proj, final_t, last_in) = (&img.ranges, &img.ids, &p.proj, &img.final_t, &img.last);
     if kernel == BackwardKernel::Ordered {
-        let pairs = img.intersections;
+        let pairs = img.room;
         let pair_grads = Tensor::empty(&gpu, &[pairs, 10], DType::F32).map_err(|e| match e {
             Error::TooLarge { limit, what: why } => Error::too_large(limit, format!(
                 "the deterministic rasteriser backward keeps 10 floats for each of {pairs} (tile, Gaussian) pairs: \

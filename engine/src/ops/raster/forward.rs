@@ -5,6 +5,9 @@
 //! It runs in two recordings: [`project`] (projection, tile counts and their exclusive scan),
 //! then, once the number of (tile, Gaussian) pairs is known on the host, [`rasterize`] (key
 //! emission into buffers of exactly that size, sort, ranges, blend). [`render`] does both.
+//! Where the pairs can be bounded ahead (a training step, from the steps before it),
+//! [`rasterize_within`] records the second part into the first's recording, into lists with
+//! room for that many pairs: one submission, the count checked once it has run.
 
 use super::{
     Camera, Gaussians, ALPHA_MAX, DILATION, MAX_TILES_PER_GAUSSIAN, MIN_ALPHA, MIN_DET, NEAR, T_STOP,
@@ -54,8 +57,10 @@ impl ProjectParams {
 pub(crate) use crate::kernels::params::RasterBlendParams as BlendParams;
 
 impl BlendParams {
-    pub(crate) fn with_gaussians(self, gaussians: u32) -> BlendParams {
-        BlendParams { gaussians, ..self }
+    /// The backward kernels' parameters: the Gaussians rendered and the slots the tile lists
+    /// hold room for.
+    pub(crate) fn for_backward(self, gaussians: u32, pairs: u32) -> BlendParams {
+        BlendParams { gaussians, pairs, ..self }
     }
 
     pub(crate) fn new(cam: &Camera, background: [f32; 3]) -> BlendParams {
@@ -68,7 +73,7 @@ impl BlendParams {
             alpha_max: ALPHA_MAX,
             min_alpha: MIN_ALPHA,
             t_stop: T_STOP,
-            _pad: 0.0,
+            pairs: 0,
         }
     }
 }
@@ -89,8 +94,10 @@ pub struct Projected {
     offsets: Tensor,
     /// `[8]` u32: drawn, invalid, behind, faint, outside, too many tiles.
     pub stats: Tensor,
-    /// `[1]` u32: the (tile, Gaussian) pairs, read back with the projection's recording (no
-    /// copy and wait of its own where the host does not map device memory).
+    /// `[1]` u32: the (tile, Gaussian) pairs, on the device.
+    pairs: Tensor,
+    /// The same, read back with the projection's recording (no copy and wait of its own where
+    /// the host does not map device memory).
     total: Readback,
 }
 
@@ -113,6 +120,13 @@ impl Projected {
     /// counts).
     pub(crate) fn offsets(&self) -> &Tensor {
         &self.offsets
+    }
+
+    /// `[1]` u32: the number of (tile, Gaussian) pairs, on the device (what
+    /// [`veto_if_over`](crate::ops::norm::veto_if_over) compares with the room
+    /// [`rasterize_within`] was given).
+    pub fn pairs(&self) -> &Tensor {
+        &self.pairs
     }
 
     /// The number of (tile, Gaussian) pairs; valid once the recording of [`project`] has been
@@ -165,9 +179,9 @@ pub fn project(rec: &mut Recorder, g: &Gaussians, cam: &Camera) -> Result<Projec
         },
         &p,
     )?;
-    let total = exclusive_scan(rec, &counts, &offsets)?;
-    let total = rec.read_back(&total)?;
-    Ok(Projected { n, camera: *cam, proj, counts, rects, offsets, stats, total })
+    let pairs = exclusive_scan(rec, &counts, &offsets)?;
+    let total = rec.read_back(&pairs)?;
+    Ok(Projected { n, camera: *cam, proj, counts, rects, offsets, stats, pairs, total })
 }
 
 /// The forward pass's outputs, and what the backward pass needs.
@@ -191,24 +205,57 @@ pub struct Image {
     /// `offsets[g]..offsets[g] + counts[g]` (the backward pass sums its gradients by slot).
     pub slots: Tensor,
     pub background: [f32; 3],
-    pub intersections: usize,
+    /// The pairs the tile lists hold room for: the number of pairs where [`rasterize`] sized
+    /// them, the room given to [`rasterize_within`] (its last entries unused).
+    pub room: usize,
 }
 
 /// Records key emission, the sort, the tile ranges and the blending. The recording of
 /// [`project`] must have been submitted: the number of (tile, Gaussian) pairs it counted sizes
 /// the buffers here.
 pub fn rasterize(rec: &mut Recorder, p: &Projected, background: [f32; 3]) -> Result<Image> {
-    let intersections = p.intersections()?;
+    let pairs = p.intersections()?;
+    rasterize_lists(rec, p, Room::Exact(pairs), background)
+}
+
+/// [`rasterize`] into tile lists with room for `room` pairs, recorded without the number of
+/// pairs on the host: into the recording of [`project`] itself, or any after it. The pairs
+/// past the room are dropped (never written out of bounds), so the image is only right where
+/// [`Projected::intersections`], read once the recording has run, is at most `room`; a step
+/// that records an update after this vetoes it on the device otherwise
+/// ([`veto_if_over`](crate::ops::norm::veto_if_over) with [`Projected::pairs`]). Within the
+/// room the result has the bits of [`rasterize`]'s: the unused entries sort last, behind
+/// every tile.
+pub fn rasterize_within(
+    rec: &mut Recorder,
+    p: &Projected,
+    room: usize,
+    background: [f32; 3],
+) -> Result<Image> {
+    rasterize_lists(rec, p, Room::Ahead(room), background)
+}
+
+/// How the tile lists are sized.
+#[derive(Clone, Copy)]
+enum Room {
+    /// To the number of pairs, read on the host.
+    Exact(usize),
+    /// Ahead of the count: the entries past the pairs keep a key past every tile.
+    Ahead(usize),
+}
+
+fn rasterize_lists(rec: &mut Recorder, p: &Projected, room: Room, background: [f32; 3]) -> Result<Image> {
+    let (Room::Exact(pairs) | Room::Ahead(pairs)) = room;
     let gpu = rec.gpu().clone();
     let cam = &p.camera;
     let max_pairs = gpu.caps().max_storage_buffer_range / 4;
-    if intersections as u64 > max_pairs.min(u32::MAX as u64) {
+    if pairs as u64 > max_pairs.min(u32::MAX as u64) {
         return Err(Error::too_large(
             Limit::Binding,
             format!(
-            "{intersections} (tile, Gaussian) pairs: this device sorts at most {max_pairs} in one buffer; \
-             render at a lower resolution or with fewer or smaller Gaussians"
-        ),
+                "{pairs} (tile, Gaussian) pairs: this device sorts at most {max_pairs} in one buffer; \
+                 render at a lower resolution or with fewer or smaller Gaussians"
+            ),
         ));
     }
     let (tiles_x, tiles_y) = cam.tiles();
@@ -216,8 +263,8 @@ pub fn rasterize(rec: &mut Recorder, p: &Projected, background: [f32; 3]) -> Res
     let (h, w) = (cam.height as usize, cam.width as usize);
     let ranges = Tensor::empty(&gpu, &[tiles, 2], DType::U32)?;
     fill_bits(rec, &ranges, 0)?;
-    let (ids, slots) = if intersections > 0 {
-        tile_lists(rec, p, intersections, &ranges)?
+    let (ids, slots) = if pairs > 0 {
+        tile_lists(rec, p, room, &ranges)?
     } else {
         (Tensor::empty(&gpu, &[0], DType::U32)?, Tensor::empty(&gpu, &[0], DType::U32)?)
     };
@@ -231,7 +278,7 @@ pub fn rasterize(rec: &mut Recorder, p: &Projected, background: [f32; 3]) -> Res
         ids,
         slots,
         background,
-        intersections,
+        room: pairs,
     };
     rec.dispatch(
         RASTER_BLEND_BLEND,
@@ -255,8 +302,10 @@ pub fn rasterize(rec: &mut Recorder, p: &Projected, background: [f32; 3]) -> Res
 /// blending order, by tile and then by the full 32-bit depth (a stable sort of the Gaussians
 /// on the depth, their pairs emitted in that order, then a stable sort of the pairs on the
 /// tile), with each tile's range filled into `ranges`. Returns the Gaussian and the slot of
-/// every sorted pair.
-fn tile_lists(rec: &mut Recorder, p: &Projected, pairs: usize, ranges: &Tensor) -> Result<(Tensor, Tensor)> {
+/// every sorted pair. With room ahead of the count, the tile keys start as a key past every
+/// tile, which the stable sort keeps last and the ranges skip.
+fn tile_lists(rec: &mut Recorder, p: &Projected, room: Room, ranges: &Tensor) -> Result<(Tensor, Tensor)> {
+    let (Room::Exact(pairs) | Room::Ahead(pairs)) = room;
     let gpu = rec.gpu().clone();
     let (tiles_x, tiles_y) = p.camera.tiles();
     let n = p.n;
@@ -285,6 +334,11 @@ fn tile_lists(rec: &mut Recorder, p: &Projected, pairs: usize, ranges: &Tensor) 
     )?;
     exclusive_scan(rec, &ordered_counts, &ordered_offsets)?;
     let (tile_keys, pair_slots, slot_gaussians) = (per_pair()?, per_pair()?, per_pair()?);
+    if let Room::Ahead(_) = room {
+        // The unused entries follow every pair, and the sort is stable: with all their key
+        // bits set they stay behind the last tile's pairs, which the ranges then skip.
+        fill_bits(rec, &tile_keys, u32::MAX)?;
+    }
     rec.dispatch_linear(
         RASTER_TILES_EMIT,
         gaussian_groups,
@@ -302,7 +356,7 @@ fn tile_lists(rec: &mut Recorder, p: &Projected, pairs: usize, ranges: &Tensor) 
     )?;
     let (sorted_tiles, slots) = sort_pairs(rec, &tile_keys, &pair_slots, p.camera.tile_bits())?;
     let ids = per_pair()?;
-    let tp = TileParams { n: pairs as u32, limit: (tiles_x * tiles_y), ..tp };
+    let tp = TileParams { n: pairs as u32, limit: tiles_x * tiles_y, ..tp };
     rec.dispatch_linear(
         RASTER_TILES_RANGES_OF_TILES,
         (pairs as u64).div_ceil(256),

@@ -33,7 +33,9 @@ pub mod reference;
 pub mod sh;
 
 pub use backward::{render_backward, render_backward_cas, render_backward_with, BackwardKernel};
-pub use forward::{project, rasterize, render, render_view, Image, Projected, RenderStats, Rendered};
+pub use forward::{
+    project, rasterize, rasterize_within, render, render_view, Image, Projected, RenderStats, Rendered,
+};
 pub use sh::sh_colours;
 
 use crate::error::{Error, Result};
