@@ -1,10 +1,14 @@
 // @variants D: 16 32 64 72
 // @variants BQ: 32 128
+// @variants BK: 32 64
 // Fused segment attention, forward, on f16 q, k, v with cooperative matrices: 16x16x16
-// fragments and subgroups of 32 (NVIDIA), 32 keys per tile, blocks of 32 or 128 query rows
-// (one subgroup per 16). Workgroup memory at BQ = 128: 38 KiB at D = 32, 46 KiB at D = 64;
-// 50 KiB at D = 72, over the 48 KiB NVIDIA offers, so D = 72 runs blocks of 32. The kernel and
-// its description: include/attention_coop_body.wgsl.
+// fragments and subgroups of 32 (NVIDIA), tiles of 32 or 64 keys, blocks of 32 or 128 query
+// rows (one subgroup per 16). Workgroup memory with 32-key tiles at BQ = 128: 38 KiB at
+// D = 32, 46 KiB at D = 64; 50 KiB at D = 72, over the 48 KiB NVIDIA offers, so D = 72 runs
+// blocks of 32. 64-key tiles take 52 KiB at BQ = 128 before any key (the scores and weights
+// of 8 subgroups), so on 48 KiB they run in blocks of 32 at D = 16 and 32 (33 KiB at D = 32);
+// a device with more workgroup memory takes them in tall blocks too. The kernel and its
+// description: include/attention_coop_body.wgsl.
 
 // @subgroup_size 32
 enable f16;

@@ -1,9 +1,11 @@
 // @variants D: 16 32 64 72
 // @variants BQ: 32 64
+// @variants BK: 32 64
 // Fused segment attention, forward, on f16 q, k, v with cooperative matrices: 8x8x8 fragments
-// and subgroups of 8 (lavapipe from Mesa 26 on), 32 keys per tile, blocks of 32 or 64 query
-// rows (one subgroup per 8), no row padding: at most 30 KiB of workgroup memory (D = 72, 64
-// rows), within lavapipe's 32 KiB. The kernel and its description:
+// and subgroups of 8 (lavapipe from Mesa 26 on), tiles of 32 or 64 keys, blocks of 32 or 64
+// query rows (one subgroup per 8), no row padding: with 32-key tiles at most 30 KiB of
+// workgroup memory (D = 72, 64 rows), within lavapipe's 32 KiB; 64-key tiles fit there in
+// blocks of 32 at D = 16 and 32 (28 KiB). The kernel and its description:
 // include/attention_coop_body.wgsl.
 
 // @subgroup_size 8

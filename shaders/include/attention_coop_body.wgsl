@@ -5,9 +5,11 @@
 // Two front files set the fragment size and the shapes that follow from it, then include this
 // body (each compiled once per head width D and block height BQ):
 //   attention_coop.wgsl   F = 16, subgroups of 32 (NVIDIA), BQ = 32 or 128 query rows;
-//   attention_coop8.wgsl  F = 8, subgroups of 8 (lavapipe from Mesa 26), BQ = 32 or 64.
-// Each defines FragA, FragB, FragC, F, BK (keys per tile), BQ, D, and PAD_H, PAD_F (row
-// padding of the f16 and f32 tiles, in elements, which spreads rows over the banks).
+//   attention_coop8.wgsl  F = 8, subgroups of 8 (lavapipe from Mesa 26), BQ = 32 or 64;
+// both with tiles of BK = 32 or 64 keys (fewer barriers per key for long segments, where the
+// workgroup memory holds them). Each defines FragA, FragB, FragC, F, BK, BQ, D, and PAD_H,
+// PAD_F (row padding of the f16 and f32 tiles, in elements, which spreads rows over the
+// banks).
 //
 // One workgroup takes one work item: BQ query rows of one segment and one head. It has one
 // subgroup per F query rows, and each subgroup owns its rows from start to end, as in

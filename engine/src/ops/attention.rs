@@ -161,9 +161,10 @@ struct Kernels {
     /// The forward pass on f16 q, k, v.
     fwd_f16: ForwardKernel,
     /// The same on cooperative matrices, 16x16x16 and 8x8x8 fragments, each in blocks of
-    /// [`COOP_BLOCKS_16`] and [`COOP_BLOCKS_8`] query rows.
-    fwd_coop16: [ForwardKernel; 2],
-    fwd_coop8: [ForwardKernel; 2],
+    /// [`COOP_BLOCKS_16`] and [`COOP_BLOCKS_8`] query rows (the first index) and tiles of
+    /// [`COOP_KEY_TILES`] keys (the second).
+    fwd_coop16: [[ForwardKernel; 2]; 2],
+    fwd_coop8: [[ForwardKernel; 2]; 2],
     dq: DqKernel,
     dkv: DkvKernel,
     /// The backward pass on cooperative matrices, 16x16x16 and 8x8x8 fragments: (dq, dkv).
@@ -191,8 +192,14 @@ fn kernels_for(d: usize) -> Option<Kernels> {
         16 => Kernels {
             fwd: ATTENTION_D16_FWD,
             fwd_f16: ATTENTION_F16_D16_FWD,
-            fwd_coop16: [ATTENTION_COOP_D16_BQ32_FWD, ATTENTION_COOP_D16_BQ128_FWD],
-            fwd_coop8: [ATTENTION_COOP8_D16_BQ32_FWD, ATTENTION_COOP8_D16_BQ64_FWD],
+            fwd_coop16: [
+                [ATTENTION_COOP_D16_BQ32_BK32_FWD, ATTENTION_COOP_D16_BQ32_BK64_FWD],
+                [ATTENTION_COOP_D16_BQ128_BK32_FWD, ATTENTION_COOP_D16_BQ128_BK64_FWD],
+            ],
+            fwd_coop8: [
+                [ATTENTION_COOP8_D16_BQ32_BK32_FWD, ATTENTION_COOP8_D16_BQ32_BK64_FWD],
+                [ATTENTION_COOP8_D16_BQ64_BK32_FWD, ATTENTION_COOP8_D16_BQ64_BK64_FWD],
+            ],
             dq: ATTENTION_D16_BWD_DQ,
             dkv: ATTENTION_D16_BWD_DKV,
             bwd_coop16: (ATTENTION_COOP_BWD_D16_DQ_COOP, ATTENTION_COOP_BWD_D16_DKV_COOP),
@@ -213,8 +220,14 @@ fn kernels_for(d: usize) -> Option<Kernels> {
         32 => Kernels {
             fwd: ATTENTION_D32_FWD,
             fwd_f16: ATTENTION_F16_D32_FWD,
-            fwd_coop16: [ATTENTION_COOP_D32_BQ32_FWD, ATTENTION_COOP_D32_BQ128_FWD],
-            fwd_coop8: [ATTENTION_COOP8_D32_BQ32_FWD, ATTENTION_COOP8_D32_BQ64_FWD],
+            fwd_coop16: [
+                [ATTENTION_COOP_D32_BQ32_BK32_FWD, ATTENTION_COOP_D32_BQ32_BK64_FWD],
+                [ATTENTION_COOP_D32_BQ128_BK32_FWD, ATTENTION_COOP_D32_BQ128_BK64_FWD],
+            ],
+            fwd_coop8: [
+                [ATTENTION_COOP8_D32_BQ32_BK32_FWD, ATTENTION_COOP8_D32_BQ32_BK64_FWD],
+                [ATTENTION_COOP8_D32_BQ64_BK32_FWD, ATTENTION_COOP8_D32_BQ64_BK64_FWD],
+            ],
             dq: ATTENTION_D32_BWD_DQ,
             dkv: ATTENTION_D32_BWD_DKV,
             bwd_coop16: (ATTENTION_COOP_BWD_D32_DQ_COOP, ATTENTION_COOP_BWD_D32_DKV_COOP),
@@ -235,8 +248,14 @@ fn kernels_for(d: usize) -> Option<Kernels> {
         64 => Kernels {
             fwd: ATTENTION_D64_FWD,
             fwd_f16: ATTENTION_F16_D64_FWD,
-            fwd_coop16: [ATTENTION_COOP_D64_BQ32_FWD, ATTENTION_COOP_D64_BQ128_FWD],
-            fwd_coop8: [ATTENTION_COOP8_D64_BQ32_FWD, ATTENTION_COOP8_D64_BQ64_FWD],
+            fwd_coop16: [
+                [ATTENTION_COOP_D64_BQ32_BK32_FWD, ATTENTION_COOP_D64_BQ32_BK64_FWD],
+                [ATTENTION_COOP_D64_BQ128_BK32_FWD, ATTENTION_COOP_D64_BQ128_BK64_FWD],
+            ],
+            fwd_coop8: [
+                [ATTENTION_COOP8_D64_BQ32_BK32_FWD, ATTENTION_COOP8_D64_BQ32_BK64_FWD],
+                [ATTENTION_COOP8_D64_BQ64_BK32_FWD, ATTENTION_COOP8_D64_BQ64_BK64_FWD],
+            ],
             dq: ATTENTION_D64_BWD_DQ,
             dkv: ATTENTION_D64_BWD_DKV,
             bwd_coop16: (ATTENTION_COOP_BWD_D64_DQ_COOP, ATTENTION_COOP_BWD_D64_DKV_COOP),
@@ -257,8 +276,14 @@ fn kernels_for(d: usize) -> Option<Kernels> {
         72 => Kernels {
             fwd: ATTENTION_D72_FWD,
             fwd_f16: ATTENTION_F16_D72_FWD,
-            fwd_coop16: [ATTENTION_COOP_D72_BQ32_FWD, ATTENTION_COOP_D72_BQ128_FWD],
-            fwd_coop8: [ATTENTION_COOP8_D72_BQ32_FWD, ATTENTION_COOP8_D72_BQ64_FWD],
+            fwd_coop16: [
+                [ATTENTION_COOP_D72_BQ32_BK32_FWD, ATTENTION_COOP_D72_BQ32_BK64_FWD],
+                [ATTENTION_COOP_D72_BQ128_BK32_FWD, ATTENTION_COOP_D72_BQ128_BK64_FWD],
+            ],
+            fwd_coop8: [
+                [ATTENTION_COOP8_D72_BQ32_BK32_FWD, ATTENTION_COOP8_D72_BQ32_BK64_FWD],
+                [ATTENTION_COOP8_D72_BQ64_BK32_FWD, ATTENTION_COOP8_D72_BQ64_BK64_FWD],
+            ],
             dq: ATTENTION_D72_BWD_DQ,
             dkv: ATTENTION_D72_BWD_DKV,
             bwd_coop16: (ATTENTION_COOP_BWD_D72_DQ_COOP, ATTENTION_COOP_BWD_D72_DKV_COOP),
@@ -352,21 +377,40 @@ fn check(q: &Tensor, k: &Tensor, v: &Tensor, seg: &Segments) -> Result<(usize, u
 pub const COOP_BLOCKS_16: [usize; 2] = [32, 128];
 pub const COOP_BLOCKS_8: [usize; 2] = [32, 64];
 
-/// The cooperative-matrix forward kernel for f16 inputs of head width `d` on this device in
-/// blocks of `tall` or short height (see [`COOP_BLOCKS_16`] and [`COOP_BLOCKS_8`]), with its block height, if the
-/// device has it: FxFxF f16 fragments with F = 16 or 8 (see `Caps::coop_matrix_f16`),
-/// subgroups of exactly F*F/8 invocations (each query row belongs to F/8 lanes of one
-/// subgroup), subgroup shuffles and votes, and the kernel's workgroup memory. A tall block that
-/// does not fit in workgroup memory gives way to the short one.
-pub fn coop_forward_kernel(gpu: &Gpu, d: usize, tall: bool) -> Option<(ForwardKernel, usize)> {
+/// Keys per staged tile of the cooperative-matrix forward kernels: 64 halves the barriers and
+/// the softmax's votes per key where segments are long enough to fill the tiles, and the
+/// workgroup memory holds them (see `attention_coop.wgsl`).
+pub const COOP_KEY_TILES: [usize; 2] = [32, 64];
+
+/// A cooperative-matrix forward kernel, with its block of query rows and tile of keys.
+#[derive(Clone, Copy, Debug)]
+pub struct CoopForward {
+    pub kernel: ForwardKernel,
+    pub rows: usize,
+    pub keys: usize,
+}
+
+/// The cooperative-matrix forward kernel for f16 inputs of head width `d` on this device, in
+/// `tall` or short blocks of query rows (see [`COOP_BLOCKS_16`] and [`COOP_BLOCKS_8`]) and tiles
+/// of 64 keys where `long_keys` asks for them, if the device has it: FxFxF f16 fragments with
+/// F = 16 or 8 (see `Caps::coop_matrix_f16`), subgroups of exactly F*F/8 invocations (each query
+/// row belongs to F/8 lanes of one subgroup), subgroup shuffles and votes, and the kernel's
+/// workgroup memory. What does not fit in workgroup memory gives way: the wide key tile first
+/// (a tall block reads each key for four times the rows, which outweighs half the barriers),
+/// then the tall block.
+pub fn coop_forward_kernel(gpu: &Gpu, d: usize, tall: bool, long_keys: bool) -> Option<CoopForward> {
     let kern = kernels_for(d)?;
     // The forward pass also votes (subgroupAny) on moving the running maxima.
     let (kernels, blocks) = match coop_fragment(gpu).filter(|_| gpu.caps().subgroup_arithmetic)? {
         16 => (kern.fwd_coop16, COOP_BLOCKS_16),
         _ => (kern.fwd_coop8, COOP_BLOCKS_8),
     };
-    let order: &[usize] = if tall { &[1, 0] } else { &[0] };
-    order.iter().map(|&i| (kernels[i], blocks[i])).find(|&(k, _)| gpu.supports(k))
+    let rows: &[usize] = if tall { &[1, 0] } else { &[0] };
+    let keys: &[usize] = if long_keys { &[1, 0] } else { &[0] };
+    rows.iter()
+        .flat_map(|&r| keys.iter().map(move |&k| (r, k)))
+        .map(|(r, k)| CoopForward { kernel: kernels[r][k], rows: blocks[r], keys: COOP_KEY_TILES[k] })
+        .find(|c| gpu.supports(c.kernel))
 }
 
 /// Rows per work item of the cooperative-matrix backward kernels, on either side: query rows
@@ -429,36 +473,48 @@ pub fn f16_backward_variant(gpu: &Gpu, d: usize) -> String {
 pub const COOP_MIN_ROWS_PER_SEGMENT: usize = 8;
 /// Segments averaging at least this many query rows take the tall blocks.
 pub const COOP_TALL_ROWS_PER_SEGMENT: usize = 64;
+/// Segments averaging at least this many keys take the 64-key tiles (shorter ones would leave
+/// most of a wide tile's scores masked).
+pub const COOP_WIDE_KEYS_PER_SEGMENT: usize = 64;
 
-/// The cooperative-matrix forward kernel and its block height that f16 inputs of head width
-/// `d`, `nq` query rows over `segments` segments, run on this device; `None` where they run
-/// the portable kernel.
+/// The cooperative-matrix forward kernel that f16 inputs of head width `d`, `nq` query rows
+/// and `nk` keys over `segments` segments, run on this device; `None` where they run the
+/// portable kernel.
 pub fn coop_forward_chosen(
     gpu: &Gpu,
     d: usize,
     nq: usize,
+    nk: usize,
     segments: usize,
-) -> Option<(ForwardKernel, usize)> {
+) -> Option<CoopForward> {
     if nq < COOP_MIN_ROWS_PER_SEGMENT * segments {
         return None;
     }
-    coop_forward_kernel(gpu, d, nq >= COOP_TALL_ROWS_PER_SEGMENT * segments)
+    let tall = nq >= COOP_TALL_ROWS_PER_SEGMENT * segments;
+    coop_forward_kernel(gpu, d, tall, nk >= COOP_WIDE_KEYS_PER_SEGMENT * segments)
 }
 
 /// Which forward kernel f16 inputs of head width `d` run on this device, for `velox info` and
 /// the benchmarks (segments of at least [`COOP_MIN_ROWS_PER_SEGMENT`] rows on average).
 pub fn f16_forward_variant(gpu: &Gpu, d: usize) -> String {
-    let Some((_, short)) = coop_forward_kernel(gpu, d, false) else {
+    let Some(short) = coop_forward_kernel(gpu, d, false, false) else {
         return format!(
             "{}; f16 inputs widened to f32, f32 arithmetic",
             portable_variant(gpu, d, DType::F16)
         );
     };
-    // A tall block that does not fit gives way to the short one.
-    let tall = coop_forward_kernel(gpu, d, true).map_or(short, |(_, rows)| rows);
+    // What does not fit gives way to what does.
+    let tall = coop_forward_kernel(gpu, d, true, false).map_or(short.rows, |c| c.rows);
+    let wide = |tall| coop_forward_kernel(gpu, d, tall, true).map_or(short.keys, |c| c.keys);
     format!(
         "cooperative-matrix: S = QK^T and PV on f16 fragments, f32 softmax, P rounded to f16; \
-         blocks of {short} query rows, {tall} for segments of {COOP_TALL_ROWS_PER_SEGMENT} or more"
+         blocks of {} query rows, {tall} for segments of {COOP_TALL_ROWS_PER_SEGMENT} or more; \
+         tiles of {} keys, {} in short and {} in tall blocks for segments of {COOP_WIDE_KEYS_PER_SEGMENT} \
+         keys or more",
+        short.rows,
+        short.keys,
+        wide(false),
+        wide(true)
     )
 }
 
@@ -534,7 +590,9 @@ pub fn attention(
         None => (kern.fwd, BLOCK),
     };
     let (kernel, block) = match q.dtype() {
-        DType::F16 => coop_forward_chosen(&gpu, d, nq, seg.count()).unwrap_or(portable),
+        DType::F16 => {
+            coop_forward_chosen(&gpu, d, nq, nk, seg.count()).map_or(portable, |c| (c.kernel, c.rows))
+        }
         _ => portable,
     };
     let (list, capacity) = seg.work_list(rec, false, nq, block)?;

@@ -200,10 +200,11 @@ fn check_f16(case: &Case, q: &[f32], k: &[f32], v: &[f32], bwd_bound: Option<f64
     // scores; huge scores give 0, the softmax being one-hot). The cooperative-matrix kernel
     // also rounds the softmax weights P to f16 (11 significant bits) before P V; measured on
     // lavapipe 26 (8x8x8 fragments): <= 3.2e-8.
-    let coop = attention::coop_forward_chosen(&gpu, d, nq, case.q_lens.len());
+    let nk: usize = case.k_lens.iter().sum();
+    let coop = attention::coop_forward_chosen(&gpu, d, nq, nk, case.q_lens.len());
     let bound = if coop.is_some() { 1e-6 } else { 1e-9 };
     let kernel = match coop {
-        Some((_, block)) => format!("cooperative-matrix kernel, blocks of {block} rows"),
+        Some(c) => format!("cooperative-matrix kernel, blocks of {} rows, tiles of {} keys", c.rows, c.keys),
         None => "portable kernel".to_string(),
     };
     let what = format!("{what} ({kernel})");
@@ -378,6 +379,15 @@ fn f16_inputs_forward() {
             Case { q_lens: vec![130, 0, 70, 60], k_lens: vec![75, 3, 129, 0], heads: 2, d, magnitude: 1.0 };
         run_f16(&case, 80 + i as u64);
     }
+    // Short blocks of queries against segments averaging 64 keys or more: the cooperative-matrix
+    // kernel's 64-key tiles where the workgroup memory holds them (D = 16 and 32 on lavapipe
+    // and NVIDIA), with partial tiles (65, 130), several tiles through both halves of the double
+    // buffer (200), and a segment of fewer keys than a tile.
+    for (i, &d) in attention::HEAD_DIMS.iter().enumerate() {
+        let case =
+            Case { q_lens: vec![40, 9, 33, 20], k_lens: vec![130, 65, 200, 20], heads: 2, d, magnitude: 1.0 };
+        run_f16(&case, 84 + i as u64);
+    }
     // The per-cell layout (one query row against many keys) among longer segments, so that the
     // cooperative backward kernels take it (rows average at least 8 per segment): blocks of
     // one real row, and key blocks with a single query in each of their tiles.
@@ -420,7 +430,8 @@ fn f16_forward_with_scores_that_keep_rising() {
     // Scores that grow along the keys by about 150 over a segment (and fall in a second one):
     // the running maximum must move many times after the first tile, which the
     // cooperative-matrix kernel does lazily, for the whole block at once.
-    // Segments of 40 and of 140 query rows: the short and the tall blocks.
+    // Segments of 40 and of 140 query rows: the short and the tall blocks (the short ones, with
+    // 300 keys a segment, in 64-key tiles where the device holds them).
     for rows in [40, 140] {
         scores_that_keep_rising(rows);
     }

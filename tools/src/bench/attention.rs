@@ -182,9 +182,9 @@ pub fn run(gpu: &Gpu, sizes: SizeSet, repeats: u32) -> Result<Vec<Record>> {
             "all outputs of sampled segments".to_string()
         };
         let flops = attention::forward_flops(&case.q_lens, &k_lens, h, d);
-        let coop = attention::coop_forward_chosen(gpu, d, nq, case.q_lens.len());
+        let coop = attention::coop_forward_chosen(gpu, d, nq, nk, case.q_lens.len());
         let f16_name = match coop {
-            Some((_, block)) => format!("f16 coop{block}"),
+            Some(c) => format!("f16 coop{}x{}", c.rows, c.keys),
             None => "f16".to_string(),
         };
         let shape = format!("{nq}x{nk} h{h} d{d} ({segments} seg)");
