@@ -2,7 +2,8 @@
 // 4 bits: digit = (key >> shift) & mask.
 //
 // Each workgroup owns a block of 4096 elements (256 invocations x 16 items).
-// `histogram`: counts the digits of the block into counts[digit * num_blocks + block]. The host
+// `histogram`: counts the digits of the block into counts[digit * num_blocks + block] (by
+// workgroup atomics; `histogram_subgroups`, below, where subgroup adds are offered). The host
 // then takes the exclusive scan of `counts` (ops::scan), which, thanks to that digit-major
 // order, is where the block's first element of each digit goes: after every smaller digit, and
 // after the same digit in every earlier block. That is what makes the pass stable.
@@ -64,6 +65,53 @@ fn histogram(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg
         let i = start + c * WG + lid;
         if (i < pc.n) {
             atomicAdd(&hist[(keys_in[i] >> pc.shift) & pc.mask], 1u);
+        }
+    }
+    workgroupBarrier();
+    if (lid < 16u) {
+        counts[lid * pc.num_blocks + block] = atomicLoad(&hist[lid]);
+    }
+}
+
+// `histogram_subgroups`: the same counts without an atomic add per element, where the device
+// has subgroup arithmetic. Each invocation counts its 16 elements' digits in packed one-hot
+// counters (as `scatter` does: 16-bit fields, which a block's at most 4096 of a digit never
+// overflow), the subgroup adds its lanes' counters (two subgroupAdds of vec4<u32>), and one
+// lane a subgroup adds the 16 totals into workgroup memory: 16 atomic adds a subgroup, not one
+// an element all contending for 16 counters. Works at any subgroup size.
+@compute @workgroup_size(256)
+fn histogram_subgroups(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                       @builtin(local_invocation_index) lid: u32,
+                       @builtin(subgroup_invocation_id) lane: u32) {
+    // Uniform over the workgroup: the subgroup adds below see every lane.
+    let block = wid.x + wid.y * nwg.x;
+    if (block >= pc.num_blocks) {
+        return;
+    }
+    if (lid < 16u) {
+        atomicStore(&hist[lid], 0u);
+    }
+    workgroupBarrier();
+    let start = block * BLOCK;
+    var lo = vec4<u32>(0u);
+    var hi = vec4<u32>(0u);
+    // Strided so that neighbouring invocations read neighbouring keys.
+    for (var c = 0u; c < ITEMS; c = c + 1u) {
+        let i = start + c * WG + lid;
+        if (i < pc.n) {
+            let h = one_hot((keys_in[i] >> pc.shift) & pc.mask);
+            lo = lo + h.lo;
+            hi = hi + h.hi;
+        }
+    }
+    lo = subgroupAdd(lo);
+    hi = subgroupAdd(hi);
+    if (lane == 0u) {
+        for (var d = 0u; d < 16u; d = d + 1u) {
+            let count = field(lo, hi, d);
+            if (count != 0u) {
+                atomicAdd(&hist[d], count);
+            }
         }
     }
     workgroupBarrier();

@@ -1,7 +1,7 @@
 use crate::common;
 use common::*;
 use velox_engine::ops::scan::{self, exclusive_scan, exclusive_scan_items};
-use velox_engine::ops::sort::{self, sort_pairs};
+use velox_engine::ops::sort::{self, sort_pairs, Histogram};
 
 const SIZES: [usize; 9] = [0, 1, 2, 255, 256, 257, 4095, 4097, 100_003];
 
@@ -166,6 +166,36 @@ fn sort_moves_f32_values_and_keeps_shapes() {
     let got: Vec<u32> = sv.read::<f32>().unwrap().iter().map(|x| x.to_bits()).collect();
     let want: Vec<u32> = [7.0f32, -1.0, f32::INFINITY, 2.25, 0.5, -0.0].iter().map(|x| x.to_bits()).collect();
     assert_eq!(got, want);
+}
+
+#[test]
+fn sort_histograms_by_atomics_and_by_subgroups_sort_alike() {
+    // The two ways of counting a block's digits, on one device: both sorts are the reference's,
+    // over several blocks with a partial last one, on full and on narrow keys. Where the device
+    // has no subgroup adds, asking for them is an error that names the kernel.
+    let gpu = gpu();
+    let mut rng = Rng::new(12);
+    for (n, bits) in [(3 * sort::BLOCK + 77, 32), (5 * sort::BLOCK, 13), (sort::BLOCK + 1, 4)] {
+        let keys: Vec<u32> = (0..n).map(|_| rng.below(1 << (bits - 1)) * 2 + rng.below(2)).collect();
+        let values: Vec<u32> = (0..n as u32).collect();
+        let want = sort::reference::sort_pairs(&keys, &values, bits);
+        let k = Tensor::from_slice(&gpu, &[n], &keys).unwrap();
+        let v = Tensor::from_slice(&gpu, &[n], &values).unwrap();
+        for histogram in [Histogram::Atomics, Histogram::Subgroups] {
+            let mut rec = gpu.recorder().unwrap();
+            let (sk, sv) = match sort::sort_pairs_with(&mut rec, &k, &v, bits, histogram) {
+                Ok(out) => out,
+                Err(e) if histogram == Histogram::Subgroups && !gpu.caps().subgroup_arithmetic => {
+                    assert!(e.to_string().contains("histogram_subgroups"), "{e}");
+                    continue;
+                }
+                Err(e) => panic!("{histogram:?}: {e}"),
+            };
+            rec.submit().unwrap();
+            let got = (sk.read::<u32>().unwrap(), sv.read::<u32>().unwrap());
+            assert!(got == want, "{histogram:?}, {n} keys of {bits} bits: not the reference's order");
+        }
+    }
 }
 
 #[test]
