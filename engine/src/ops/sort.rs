@@ -47,8 +47,9 @@ pub fn sort_pairs(
 /// subgroup adds, one atomic a subgroup and digit (`histogram_subgroups` in
 /// `shaders/sort.wgsl`). [`Histogram::Fastest`] takes subgroup adds on a GPU that has them,
 /// where an element's atomic contends with the workgroup's for 16 counters; a CPU device keeps
-/// the atomics (lavapipe, 262144 pairs of 32-bit keys: 26.9 ms with atomics, 44.5 ms with
-/// subgroup adds at 8 lanes; 24.0 and 26.4 ms at 32). The tests run both on one device.
+/// the atomics, which cost it nothing more (lavapipe, 262144 pairs of 32-bit keys: 28 ms with
+/// either, within its noise). The tests run both on one device; `velox bench kernels` times
+/// both.
 #[doc(hidden)]
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Histogram {
@@ -57,7 +58,31 @@ pub enum Histogram {
     Subgroups,
 }
 
-/// [`sort_pairs`] with a chosen histogram kernel (for the tests).
+impl Histogram {
+    /// What [`Histogram::Fastest`] takes on `gpu`: subgroup adds on a GPU that has them.
+    pub fn chosen(gpu: &crate::Gpu) -> Histogram {
+        if !gpu.caps().cpu_kernels && gpu.supports(SORT_HISTOGRAM_SUBGROUPS) {
+            Histogram::Subgroups
+        } else {
+            Histogram::Atomics
+        }
+    }
+
+    /// Whether `gpu` can count this way.
+    pub fn runs_on(self, gpu: &crate::Gpu) -> bool {
+        self != Histogram::Subgroups || gpu.supports(SORT_HISTOGRAM_SUBGROUPS)
+    }
+
+    pub fn describe(self) -> &'static str {
+        match self {
+            Histogram::Fastest => "the device's fastest histograms",
+            Histogram::Atomics => "histograms by workgroup atomics",
+            Histogram::Subgroups => "histograms by subgroup adds",
+        }
+    }
+}
+
+/// [`sort_pairs`] with a chosen histogram kernel (for the tests and the benchmarks).
 #[doc(hidden)]
 pub fn sort_pairs_with(
     rec: &mut Recorder,
@@ -128,9 +153,10 @@ fn sort_with(
         return Ok(out);
     }
     let histogram = match histogram {
-        Histogram::Fastest if !gpu.caps().cpu_kernels && gpu.supports(SORT_HISTOGRAM_SUBGROUPS) => {
-            SORT_HISTOGRAM_SUBGROUPS
-        }
+        Histogram::Fastest => Histogram::chosen(gpu),
+        other => other,
+    };
+    let histogram = match histogram {
         Histogram::Subgroups => {
             gpu.check_supported(SORT_HISTOGRAM_SUBGROUPS)?;
             SORT_HISTOGRAM_SUBGROUPS

@@ -227,31 +227,43 @@ pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
         let vals: Vec<u32> = (0..n as u32).collect();
         let tk = Tensor::from_slice(gpu, &[n], &keys)?;
         let tv = Tensor::from_slice(gpu, &[n], &vals)?;
-        let mut res = None;
-        let timing = time_gpu(gpu, repeats, |rec| {
-            res = Some(sort::sort_pairs(rec, &tk, &tv, bits)?);
-            Ok(())
-        })?;
-        let (sk, sv) = res.unwrap();
-        let (gk, gv): (Vec<u32>, Vec<u32>) = (sk.read()?, sv.read()?);
         let mut order: Vec<u32> = vals.clone();
         order.sort_by_key(|&i| keys[i as usize]);
-        let wrong = (0..n).filter(|&i| gv[i] != order[i] || gk[i] != keys[order[i] as usize]).count();
-        let mkeys = n as f64 / (timing.0 * 1e-3) / 1e6;
-        let r = Record::timed(
-            "radix sort pairs",
-            format!("{n} x {bits} bits"),
-            "u32",
-            &device,
-            timing,
-            repeats,
-            mkeys,
-            "Mkey/s",
-        );
-        let over = "exact and stable: nmse = fraction wrong, max abs = count wrong";
-        // Keys and values read once and written once.
-        let r = r.work(0.0, (n * 16) as f64, roof32);
-        push(r.error(wrong as f64 / n as f64, wrong as f64, over));
+        // The device's histograms ("radix sort pairs"), and the other way of counting beside
+        // them where the device has it, so that a run says what the choice is worth.
+        let chosen = sort::Histogram::chosen(gpu);
+        let other = match chosen {
+            sort::Histogram::Subgroups => sort::Histogram::Atomics,
+            _ => sort::Histogram::Subgroups,
+        };
+        for (name, histogram) in [("radix sort pairs", chosen), ("radix sort, other hist", other)] {
+            if !histogram.runs_on(gpu) {
+                continue;
+            }
+            let mut res = None;
+            let timing = time_gpu(gpu, repeats, |rec| {
+                res = Some(sort::sort_pairs_with(rec, &tk, &tv, bits, histogram)?);
+                Ok(())
+            })?;
+            let (sk, sv) = res.unwrap();
+            let (gk, gv): (Vec<u32>, Vec<u32>) = (sk.read()?, sv.read()?);
+            let wrong = (0..n).filter(|&i| gv[i] != order[i] || gk[i] != keys[order[i] as usize]).count();
+            let mkeys = n as f64 / (timing.0 * 1e-3) / 1e6;
+            let r = Record::timed(
+                name,
+                format!("{n} x {bits} bits"),
+                "u32",
+                &device,
+                timing,
+                repeats,
+                mkeys,
+                "Mkey/s",
+            );
+            let over = "exact and stable: nmse = fraction wrong, max abs = count wrong";
+            // Keys and values read once and written once.
+            let r = r.work(0.0, (n * 16) as f64, roof32).kernel(histogram.describe());
+            push(r.error(wrong as f64 / n as f64, wrong as f64, over));
+        }
     }
 
     for &(rows, width, dst_rows) in &s.scatter {
