@@ -493,6 +493,7 @@ def case_for(record, dev):
     if name == "matmul" or name.startswith("matmul "):
         return matmul_case(record, dev)
     builders = {"softmax": softmax_case, "exclusive scan": scan_case, "radix sort pairs": sort_case,
+                "radix sort, other hist": sort_case,
                 "window matmuls alone": window_matmuls_case, "encoder": encoder_case}
     if name in builders:
         return builders[name](record, dev)
