@@ -513,13 +513,15 @@ fn two_small_autoencoder_steps_record_at_most_half_the_dispatches_they_once_did(
     // NVIDIA, 4 on AMD, 64 on Intel), the stacked products whose outputs do not split into
     // aligned views run as separate linears: 1044 measured on SwiftShader.
     // The GPU kernel variants (a GPU's, or VELOX_CPU_KERNELS=0) split the small config's
-    // few-tile products along K, each split summed by one more dispatch: 964 measured on
-    // lavapipe with them (64 more sums and 6 bias additions than the CPU kernels' 892).
+    // few-tile products along K, each split summed by one more dispatch: 972 measured on
+    // lavapipe with them (64 more sums and 6 bias additions than the CPU kernels' 900). Both
+    // counts took 8 more when the rasterisation joined the step's one recording: per view and
+    // step, the fill of its tile lists' keys and the veto of the update.
     let caps = velox_engine::Gpu::new().unwrap().caps().clone();
     let align = caps.min_storage_buffer_offset_alignment;
     let bound = match (align <= 64, caps.cpu_kernels) {
         (true, true) => 923,
-        (true, false) => 971,
+        (true, false) => 979,
         (false, _) => 1100,
     };
     assert!(counts[0] <= bound, "{} dispatches for two f32 steps (offset alignment {align})", counts[0]);
