@@ -63,7 +63,8 @@ fn losses(gpu: &Gpu, scene: &TrainScene, precision: Precision, steps: u64) -> Ve
 }
 
 /// Would catch: a host wait added to a training step (each submission is one: a read of a
-/// result submitted on its own, an upload waited for, a pass split in two).
+/// result submitted on its own, an upload waited for, a pass split in two), and a first step
+/// whose way of sizing the tile lists changes what it computes.
 #[test]
 fn a_training_step_is_one_submission_in_either_precision() {
     // This test's device while it runs, so that no other test's submissions are counted.
@@ -71,20 +72,34 @@ fn a_training_step_is_one_submission_in_either_precision() {
     let dir = temp_dir("submits");
     let scene = upload(&gpu, &host_scene(&gpu, &dir));
     for precision in [Precision::F32, Precision::F16] {
-        let mut model = Autoencoder::new(&gpu, &AutoencoderConfig::tiny(), 3).unwrap();
-        let request = RunRequest { steps: Some(3), precision: Some(precision), ..Default::default() };
-        let settings = RunSettings::new(&request, vec!["scene".into()], 1, 1).unwrap();
-        let mut trainer = Trainer::new(&mut model, &SingleProcess, settings).unwrap();
-        let before = gpu.submits();
-        trainer.repeat_steps(&[&scene], 1..2).unwrap();
-        // The first step sizes the tile lists by its projections' counts: two submissions.
-        assert_eq!(gpu.submits() - before, 2, "{precision:?}: submissions in the first step");
-        let before = gpu.submits();
-        trainer.repeat_steps(&[&scene], 2..4).unwrap();
-        // Then one a step: forward, rasterisation in lists sized from before, backward and
-        // the update (the losses, read for the log and the NaN check, and the gradient norm,
-        // read for f16's overflow decision, come back with it).
-        assert_eq!(gpu.submits() - before, 2, "{precision:?}: submissions in two steps");
+        // Each step's submissions, and the parameters after three steps: with the first step's
+        // tile lists sized by the bound no count can pass (24-pixel views: 4 tiles), and with
+        // that bound refused, so that the first step submits its projections to size them by
+        // their counts, as configs with large views do.
+        let run = |bound: bool| {
+            let mut model = Autoencoder::new(&gpu, &AutoencoderConfig::tiny(), 3).unwrap();
+            if !bound {
+                model.set_first_step_pairs(0);
+            }
+            let request = RunRequest { steps: Some(3), precision: Some(precision), ..Default::default() };
+            let settings = RunSettings::new(&request, vec!["scene".into()], 1, 1).unwrap();
+            let mut trainer = Trainer::new(&mut model, &SingleProcess, settings).unwrap();
+            let mut submits = Vec::new();
+            for step in 1..4 {
+                let before = gpu.submits();
+                trainer.repeat_steps(&[&scene], step..step + 1).unwrap();
+                submits.push(gpu.submits() - before);
+            }
+            (submits, model.store.flat_params().read::<f32>().unwrap())
+        };
+        // One a step: forward, rasterisation, backward and the update (the losses, read for
+        // the log and the NaN check, and the gradient norm, read for f16's overflow decision,
+        // come back with it).
+        let (submits, bound) = run(true);
+        assert_eq!(submits, [1, 1, 1], "{precision:?}: submissions a step");
+        let (submits, counted) = run(false);
+        assert_eq!(submits, [2, 1, 1], "{precision:?}: submissions a step, the first sized by its counts");
+        assert!(bound == counted, "{precision:?}: the first step's room changed the parameters");
     }
     let _ = std::fs::remove_dir_all(&dir);
 }

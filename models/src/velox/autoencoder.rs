@@ -31,6 +31,7 @@ use velox_engine::ops::binary::{binary, binary_into, Binary};
 use velox_engine::ops::fill::fill;
 use velox_engine::ops::raster::{
     project, rasterize_within, render_backward, Camera, Gaussians, Projected, Rendered,
+    MAX_TILES_PER_GAUSSIAN,
 };
 use velox_engine::rng::Rng;
 use velox_engine::{DType, Error, Gpu, Precision, Recorder, Result, Tensor};
@@ -149,6 +150,9 @@ pub struct Autoencoder {
     /// The (tile, Gaussian) pairs a training view's tile lists hold room for, from the steps
     /// before (0 before the first): with it, a micro-batch is one recording, renders included.
     pair_room: usize,
+    /// The most pairs a first step's views may hold in all when their lists are sized by the
+    /// bound no count can pass ([`first_room`]); [`FIRST_STEP_PAIRS`] unless a test lowers it.
+    first_step_pairs: usize,
     /// The last micro-batch's views outgrew `pair_room`: how ([`Trainable::take_rerun`]).
     rerun: Option<String>,
 }
@@ -183,14 +187,22 @@ impl Autoencoder {
             lr_scale: 1.0,
             pass_seconds: PassSeconds::default(),
             pair_room: 0,
+            first_step_pairs: FIRST_STEP_PAIRS,
             rerun: None,
         })
     }
 
     /// The (tile, Gaussian) pairs each training view's tile lists hold room for (0 before the
-    /// first step, which sizes them by its own counts).
+    /// first step, which sizes them by a bound or by its own counts, see [`first_room`]).
     pub fn pair_room(&self) -> usize {
         self.pair_room
+    }
+
+    /// Lowers the pairs a first step may hold by the bound (for the tests of the sizing
+    /// submission that larger configs take).
+    #[doc(hidden)]
+    pub fn set_first_step_pairs(&mut self, pairs: usize) {
+        self.first_step_pairs = pairs;
     }
 
     /// Sets that room (grown again by any step that outgrows it, which then runs again; the
@@ -436,18 +448,31 @@ impl Autoencoder {
                 group += 1;
             }
         }
-        // Without a room from earlier steps: submit, and size it by this step's counts. The
-        // forward and backward times are then the host's clock around each recording.
-        let sized_ahead = self.pair_room > 0;
+        // Without a room from earlier steps (a run's first step): the bound no count can pass
+        // where the views' lists so sized stay small, else submit and size the room by this
+        // step's counts (the forward and backward times are then the host's clock around each
+        // recording). Either way the room after the step is sized by its counts.
+        let first = self.pair_room == 0;
         let mut forward_done = None;
-        if !sized_ahead {
-            rec.submit()?;
-            let most = most_pairs(projected.iter().flat_map(|(_, views, _)| views.iter().map(|v| &v.0)))?;
-            self.pair_room = room_for(most);
-            forward_done = Some(Instant::now());
-            rec = self.store.recorder()?;
+        let mut room = self.pair_room;
+        if first {
+            let views: Vec<(usize, u32)> = projected
+                .iter()
+                .flat_map(|(_, views, _)| views.iter().map(|v| (v.0.n, v.0.camera.tiles())))
+                .map(|(n, (tx, ty))| (n, tx * ty))
+                .collect();
+            room = match first_room(&views, self.first_step_pairs) {
+                Some(bound) => bound,
+                None => {
+                    rec.submit()?;
+                    let most =
+                        most_pairs(projected.iter().flat_map(|(_, views, _)| views.iter().map(|v| &v.0)))?;
+                    forward_done = Some(Instant::now());
+                    rec = self.store.recorder()?;
+                    room_for(most)
+                }
+            };
         }
-        let room = self.pair_room;
 
         // The views' rasterisation (the forward pass's last step), then backward: image losses
         // and the rasteriser per frame into the Gaussians' gradient, the Gaussian decoder, the
@@ -525,6 +550,9 @@ impl Autoencoder {
         }
         let most =
             most_pairs(rendered.iter().flat_map(|(_, views, _)| views.iter().map(|(r, _)| &r.projected)))?;
+        if first {
+            self.pair_room = room_for(most);
+        }
         if most > room {
             // Pairs were dropped: the images are wrong and the update (if recorded) vetoed.
             self.pair_room = room_for(most);
@@ -614,6 +642,25 @@ fn most_pairs<'a>(projected: impl Iterator<Item = &'a Projected>) -> Result<usiz
     projected.map(Projected::intersections).try_fold(0, |most, n| Ok(most.max(n?)))
 }
 
+/// How many pairs a first step's views may hold in all when their lists are sized by the
+/// bound (about 70 MiB of lists, sort and gradients at 17 words a pair): past it, the step
+/// submits its projections and sizes the lists by their counts, one host wait more.
+pub const FIRST_STEP_PAIRS: usize = 1 << 20;
+
+/// The room for a first step's views, `(Gaussians, tiles of the image)` each, that no count
+/// can pass: a Gaussian touches at most every tile (and at most
+/// [`MAX_TILES_PER_GAUSSIAN`]), so the most Gaussians times the most tiles any view has, in
+/// whole sort blocks; `None` where the views' lists would hold more than `limit` pairs in all.
+/// Small images make it small: a 96-pixel view has 36 tiles.
+pub fn first_room(views: &[(usize, u32)], limit: usize) -> Option<usize> {
+    let most = views
+        .iter()
+        .map(|&(n, tiles)| n.checked_mul(tiles.min(MAX_TILES_PER_GAUSSIAN) as usize))
+        .try_fold(0usize, |most, v| Some(most.max(v?)))?;
+    let room = most.max(1).checked_next_multiple_of(velox_engine::ops::sort::BLOCK)?;
+    (room.checked_mul(views.len())? <= limit).then_some(room)
+}
+
 /// The tile lists' room for views that have needed up to `pairs` pairs: a quarter more, in
 /// whole blocks of the sort (4096), so that a step's views rarely outgrow it as training moves
 /// the Gaussians; each view's lists are that long.
@@ -630,4 +677,29 @@ fn slice_gaussians(rec: &mut Recorder, g: &Gaussians, start: usize, len: usize) 
         rec.copy_rows(src, start, dst, 0, len)?;
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_first_step_is_sized_by_a_bound_only_where_it_is_small() {
+        let block = velox_engine::ops::sort::BLOCK;
+        // The most Gaussians times the most tiles, in whole sort blocks, for every view.
+        assert_eq!(first_room(&[(1000, 36), (3000, 4)], 1 << 20), Some(36_864));
+        assert_eq!(first_room(&[(1000, 36)], 36_864), Some(36_864));
+        assert_eq!(first_room(&[(1000, 36), (10, 9)], 36_864), None, "two views of 36864 past the limit");
+        // A Gaussian touches at most MAX_TILES_PER_GAUSSIAN tiles, however many the image has.
+        let huge = MAX_TILES_PER_GAUSSIAN * 4;
+        assert_eq!(first_room(&[(2, huge)], usize::MAX), Some(2 * MAX_TILES_PER_GAUSSIAN as usize));
+        // No Gaussians still gets a block; products past usize are refused, not wrapped.
+        assert_eq!(first_room(&[(0, 4)], 1 << 20), Some(block));
+        assert_eq!(first_room(&[(usize::MAX, 4)], usize::MAX), None);
+        assert_eq!(first_room(&[], 0), Some(block), "no views hold nothing");
+        // The room after a step: a quarter more than the most pairs seen, in whole blocks.
+        assert_eq!(room_for(0), block);
+        assert_eq!(room_for(4000), 8192);
+        assert_eq!(room_for(10_000), 16_384);
+    }
 }
