@@ -48,6 +48,28 @@ var<immediate> pc: Params;
 
 var<workgroup> hist: array<atomic<u32>, 16>;
 
+// The histogram kernels' start: the block's counters zeroed, and the zeros visible.
+fn clear_hist(lid: u32) {
+    if (lid < 16u) {
+        atomicStore(&hist[lid], 0u);
+    }
+    workgroupBarrier();
+}
+
+// Their end: once every invocation has added its share, the block's counts to `counts`.
+fn write_hist(lid: u32, block: u32) {
+    workgroupBarrier();
+    if (lid < 16u) {
+        counts[lid * pc.num_blocks + block] = atomicLoad(&hist[lid]);
+    }
+}
+
+// Element c of invocation lid's share of the block, strided so that neighbouring invocations
+// read neighbouring keys.
+fn strided(block: u32, c: u32, lid: u32) -> u32 {
+    return block * BLOCK + c * WG + lid;
+}
+
 @compute @workgroup_size(256)
 fn histogram(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
              @builtin(local_invocation_index) lid: u32) {
@@ -55,22 +77,14 @@ fn histogram(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg
     if (block >= pc.num_blocks) {
         return;
     }
-    if (lid < 16u) {
-        atomicStore(&hist[lid], 0u);
-    }
-    workgroupBarrier();
-    let start = block * BLOCK;
-    // Strided so that neighbouring invocations read neighbouring keys.
+    clear_hist(lid);
     for (var c = 0u; c < ITEMS; c = c + 1u) {
-        let i = start + c * WG + lid;
+        let i = strided(block, c, lid);
         if (i < pc.n) {
             atomicAdd(&hist[(keys_in[i] >> pc.shift) & pc.mask], 1u);
         }
     }
-    workgroupBarrier();
-    if (lid < 16u) {
-        counts[lid * pc.num_blocks + block] = atomicLoad(&hist[lid]);
-    }
+    write_hist(lid, block);
 }
 
 // `histogram_subgroups`: the same counts without an atomic add per element, where the device
@@ -88,16 +102,11 @@ fn histogram_subgroups(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workg
     if (block >= pc.num_blocks) {
         return;
     }
-    if (lid < 16u) {
-        atomicStore(&hist[lid], 0u);
-    }
-    workgroupBarrier();
-    let start = block * BLOCK;
+    clear_hist(lid);
     var lo = vec4<u32>(0u);
     var hi = vec4<u32>(0u);
-    // Strided so that neighbouring invocations read neighbouring keys.
     for (var c = 0u; c < ITEMS; c = c + 1u) {
-        let i = start + c * WG + lid;
+        let i = strided(block, c, lid);
         if (i < pc.n) {
             let h = one_hot((keys_in[i] >> pc.shift) & pc.mask);
             lo = lo + h.lo;
@@ -114,10 +123,7 @@ fn histogram_subgroups(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workg
             }
         }
     }
-    workgroupBarrier();
-    if (lid < 16u) {
-        counts[lid * pc.num_blocks + block] = atomicLoad(&hist[lid]);
-    }
+    write_hist(lid, block);
 }
 
 // Packed per-digit counters: word w = digit / 2 of lo (w < 4) or hi (w >= 4), 16 bits at

@@ -44,12 +44,16 @@ fn upload(gpu: &Gpu, s: &HostScene) -> TrainScene {
     TrainScene::new(gpu, s.cloud.clone(), s.cameras.clone(), s.images.clone()).unwrap()
 }
 
+/// The settings of a one-process run of `steps` steps in `precision` over one sample.
+fn settings(precision: Precision, steps: u64) -> RunSettings {
+    let request = RunRequest { steps: Some(steps), precision: Some(precision), ..Default::default() };
+    RunSettings::new(&request, vec!["sample".into()], 1, 1).unwrap()
+}
+
 /// The tiny autoencoder's losses over `steps` steps on one scene in `precision`.
 fn losses(gpu: &Gpu, scene: &TrainScene, precision: Precision, steps: u64) -> Vec<f64> {
     let mut model = Autoencoder::new(gpu, &AutoencoderConfig::tiny(), 3).unwrap();
-    let request = RunRequest { steps: Some(steps), precision: Some(precision), ..Default::default() };
-    let settings = RunSettings::new(&request, vec!["scene".into()], 1, 1).unwrap();
-    let mut trainer = Trainer::new(&mut model, &SingleProcess, settings).unwrap();
+    let mut trainer = Trainer::new(&mut model, &SingleProcess, settings(precision, steps)).unwrap();
     let reports = trainer.repeat_steps(&[scene], 1..steps + 1).unwrap();
     for r in &reports {
         assert_eq!(
@@ -81,9 +85,7 @@ fn a_training_step_is_one_submission_in_either_precision() {
             if !bound {
                 model.set_first_step_pairs(0);
             }
-            let request = RunRequest { steps: Some(3), precision: Some(precision), ..Default::default() };
-            let settings = RunSettings::new(&request, vec!["scene".into()], 1, 1).unwrap();
-            let mut trainer = Trainer::new(&mut model, &SingleProcess, settings).unwrap();
+            let mut trainer = Trainer::new(&mut model, &SingleProcess, settings(precision, 3)).unwrap();
             let mut submits = Vec::new();
             for step in 1..4 {
                 let before = gpu.submits();
@@ -116,9 +118,7 @@ fn a_step_that_outgrows_its_tile_lists_is_vetoed_and_run_again() {
             let mut model = Autoencoder::new(&gpu, &AutoencoderConfig::tiny(), 3).unwrap();
             model.set_pair_room(room);
             let initial = model.store.flat_params().read::<f32>().unwrap();
-            let request = RunRequest { steps: Some(3), precision: Some(precision), ..Default::default() };
-            let settings = RunSettings::new(&request, vec!["scene".into()], 1, 1).unwrap();
-            let mut trainer = Trainer::new(&mut model, &SingleProcess, settings).unwrap();
+            let mut trainer = Trainer::new(&mut model, &SingleProcess, settings(precision, 3)).unwrap();
             let mut reruns = Vec::new();
             let mut reports = Vec::new();
             for step in 1..4 {
@@ -270,9 +270,7 @@ fn a_step_whose_gradients_overflow_f16_is_run_again_at_half_the_scale() {
     let sample = (x, y);
     let run = |precision| {
         let mut toy = Toy::new(&gpu);
-        let request = RunRequest { steps: Some(3), precision: Some(precision), ..Default::default() };
-        let settings = RunSettings::new(&request, vec!["toy".into()], 1, 1).unwrap();
-        let mut trainer = Trainer::new(&mut toy, &SingleProcess, settings).unwrap();
+        let mut trainer = Trainer::new(&mut toy, &SingleProcess, settings(precision, 3)).unwrap();
         let reports = trainer.repeat_steps(&[&sample], 1..4).unwrap();
         (toy.store.flat_params().read::<f32>().unwrap(), reports, toy)
     };
