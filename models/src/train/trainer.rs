@@ -308,9 +308,16 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
             self.time.backward = Some(p.backward);
         }
         let t = Instant::now();
-        // Every process runs the step again if any outgrew what its model sized ahead.
-        let reruns = self.collective.all_gather_f64(self.rerun.is_some() as u8 as f64)?;
-        if let Some(r) = reruns.iter().position(|&r| r != 0.0) {
+        // Every process runs the step again if any outgrew what its model sized ahead, unless
+        // one failed (2 below): the failure ends the run, as it would have.
+        let state = match (&self.failed, &self.rerun) {
+            (Some(_), _) => 2.0,
+            (None, Some(_)) => 1.0,
+            (None, None) => 0.0,
+        };
+        let states = self.collective.all_gather_f64(state)?;
+        let failed_anywhere = states.contains(&2.0);
+        if let Some(r) = states.iter().position(|&s| s == 1.0).filter(|_| !failed_anywhere) {
             let store = self.model.store_mut();
             // With one process the update rode with the pass, and the device vetoed it.
             if store.take_update() && store.grad_norm().is_ok() {

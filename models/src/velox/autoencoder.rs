@@ -278,8 +278,8 @@ impl Autoencoder {
     pub fn train_step(&mut self, scene: &TrainScene, step: u64, rng: &mut Rng) -> Result<StepLosses> {
         let opt = self.optimisation();
         let lr = opt.learning_rate(step) * self.lr_scale;
-        // The gradients zeroed by the forward pass's recording and the update recorded by the
-        // backward pass's, as the trainer has them: two submissions a step.
+        // The gradients zeroed and the update recorded by the step's one recording, as the
+        // trainer has them: one submission a step (see `accumulate` for a first step's).
         let drawn = rng.clone();
         let (losses, grad_norm) = loop {
             self.store.zero_grads_first();
@@ -418,9 +418,8 @@ impl Autoencoder {
 
         // Each frame seen from `views_per_step` supervision views (spread evenly from the
         // drawn one), projected and rasterised in this recording, into tile lists with room
-        // for the most pairs the steps before have seen (and a margin). The first step has no
-        // such figure: it submits the projections and sizes the lists by their counts. A
-        // scene's image loss is the mean over its frames and views.
+        // for the most pairs the steps before have seen (and a margin; a first step's, below).
+        // A scene's image loss is the mean over its frames and views.
         let per_voxel = self.cfg.gaussians.gaussians_per_voxel;
         let mut frame_gaussians = Vec::with_capacity(groups.len());
         let mut first = 0;
@@ -452,10 +451,10 @@ impl Autoencoder {
         // where the views' lists so sized stay small, else submit and size the room by this
         // step's counts (the forward and backward times are then the host's clock around each
         // recording). Either way the room after the step is sized by its counts.
-        let first = self.pair_room == 0;
+        let first_step = self.pair_room == 0;
         let mut forward_done = None;
         let mut room = self.pair_room;
-        if first {
+        if first_step {
             let views: Vec<(usize, u32)> = projected
                 .iter()
                 .flat_map(|(_, views, _)| views.iter().map(|v| (v.0.n, v.0.camera.tiles())))
@@ -550,7 +549,7 @@ impl Autoencoder {
         }
         let most =
             most_pairs(rendered.iter().flat_map(|(_, views, _)| views.iter().map(|(r, _)| &r.projected)))?;
-        if first {
+        if first_step {
             self.pair_room = room_for(most);
         }
         if most > room {
