@@ -152,7 +152,10 @@ pub fn report(gpu: &Gpu) -> serde_json::Value {
         "scatter-add": scatter_add::variant(gpu),
         "gather": velox_engine::ops::gather::variant(gpu),
         "fps": velox_engine::ops::fps::variant(gpu).1,
-        "sort": "LSD radix, 4 bits a pass",
+        "sort": format!(
+            "LSD radix, 4 bits a pass, {}",
+            velox_engine::ops::sort::Histogram::chosen(gpu).describe()
+        ),
         "scan": "workgroup-memory block scan, multi-level",
         "raster backward": raster_backward,
         "raster backward (bench)": raster_backward_bench,
