@@ -92,6 +92,9 @@ pub struct Recorder {
     submitted: bool,
     precision: Precision,
     narrow_matmul: NarrowMatmul,
+    /// Whether the cooperative attention forward may take its 64-key tiles
+    /// ([`Recorder::set_wide_key_tiles`]).
+    wide_key_tiles: bool,
     /// Queries in the pool.
     capacity: u32,
     /// With `VELOX_PROFILE`: the query written before each dispatch, and its kernel.
@@ -207,6 +210,7 @@ impl Gpu {
             submitted: false,
             precision: Precision::F32,
             narrow_matmul: NarrowMatmul::Device,
+            wide_key_tiles: true,
             capacity: 0,
             profiled: Vec::new(),
             done: Completion::default(),
@@ -260,6 +264,17 @@ impl Recorder {
 
     pub fn set_narrow_matmul(&mut self, choice: NarrowMatmul) {
         self.narrow_matmul = choice;
+    }
+
+    /// Whether the cooperative-matrix attention forward recorded from now on may take 64-key
+    /// tiles where the device and the segments suit them (the default); off, it keeps to
+    /// 32-key tiles, so that the benchmarks time both on one device.
+    pub fn wide_key_tiles(&self) -> bool {
+        self.wide_key_tiles
+    }
+
+    pub fn set_wide_key_tiles(&mut self, on: bool) {
+        self.wide_key_tiles = on;
     }
 
     /// Names the recording in the messages about it (a timeout, a lost device): "training step

@@ -478,7 +478,8 @@ pub const COOP_TALL_ROWS_PER_SEGMENT: usize = 64;
 pub const COOP_WIDE_KEYS_PER_SEGMENT: usize = 64;
 
 /// The cooperative-matrix forward kernel that f16 inputs of head width `d`, `nq` query rows
-/// and `nk` keys over `segments` segments, run on this device; `None` where they run the
+/// and `nk` keys over `segments` segments, run on this device (with 64-key tiles only where
+/// `wide` allows them: a recording's [`Recorder::wide_key_tiles`]); `None` where they run the
 /// portable kernel.
 pub fn coop_forward_chosen(
     gpu: &Gpu,
@@ -486,12 +487,13 @@ pub fn coop_forward_chosen(
     nq: usize,
     nk: usize,
     segments: usize,
+    wide: bool,
 ) -> Option<CoopForward> {
     if nq < COOP_MIN_ROWS_PER_SEGMENT * segments {
         return None;
     }
     let tall = nq >= COOP_TALL_ROWS_PER_SEGMENT * segments;
-    coop_forward_kernel(gpu, d, tall, nk >= COOP_WIDE_KEYS_PER_SEGMENT * segments)
+    coop_forward_kernel(gpu, d, tall, wide && nk >= COOP_WIDE_KEYS_PER_SEGMENT * segments)
 }
 
 /// Which forward kernel f16 inputs of head width `d` run on this device, for `velox info` and
@@ -591,7 +593,8 @@ pub fn attention(
     };
     let (kernel, block) = match q.dtype() {
         DType::F16 => {
-            coop_forward_chosen(&gpu, d, nq, nk, seg.count()).map_or(portable, |c| (c.kernel, c.rows))
+            let wide = rec.wide_key_tiles();
+            coop_forward_chosen(&gpu, d, nq, nk, seg.count(), wide).map_or(portable, |c| (c.kernel, c.rows))
         }
         _ => portable,
     };

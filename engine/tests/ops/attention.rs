@@ -201,7 +201,7 @@ fn check_f16(case: &Case, q: &[f32], k: &[f32], v: &[f32], bwd_bound: Option<f64
     // also rounds the softmax weights P to f16 (11 significant bits) before P V; measured on
     // lavapipe 26 (8x8x8 fragments): <= 3.2e-8.
     let nk: usize = case.k_lens.iter().sum();
-    let coop = attention::coop_forward_chosen(&gpu, d, nq, nk, case.q_lens.len());
+    let coop = attention::coop_forward_chosen(&gpu, d, nq, nk, case.q_lens.len(), true);
     let bound = if coop.is_some() { 1e-6 } else { 1e-9 };
     let kernel = match coop {
         Some(c) => format!("cooperative-matrix kernel, blocks of {} rows, tiles of {} keys", c.rows, c.keys),

@@ -111,6 +111,24 @@ pub fn run(gpu: &Gpu, sizes: SizeSet, repeats: u32) -> Result<Vec<Record>> {
         })?;
         let out16 = out16.unwrap();
         let o16: Vec<f32> = out16.o.read()?;
+        // Where the device takes 64-key tiles here, the 32-key tiles timed beside them, so that
+        // a run says what the wider tile is worth.
+        let coop = attention::coop_forward_chosen(gpu, d, nq, nk, case.q_lens.len(), true);
+        let narrow = match coop {
+            Some(c) if c.keys > attention::COOP_KEY_TILES[0] => {
+                let mut out = None;
+                let timing = time_gpu(gpu, repeats, |rec| {
+                    rec.set_wide_key_tiles(false);
+                    out = Some(attention(rec, &q16, &k16, &v16, &seg, scale)?);
+                    Ok(())
+                })?;
+                let narrow = attention::coop_forward_chosen(gpu, d, nq, nk, case.q_lens.len(), false);
+                let name = narrow.map_or("f16".to_string(), |c| format!("f16 coop{}x{}", c.rows, c.keys));
+                Some((name, timing, out.unwrap().o.read::<f32>()?))
+            }
+            _ => None,
+        };
+        let mut narrow_got = Vec::new();
         let mut grads = None;
         let (bwd_ms, bwd_min, _) = time_gpu(gpu, repeats, |rec| {
             grads = Some(attention_backward(rec, &tq, &tk, &tv, &out, &tg, &seg, scale)?);
@@ -163,6 +181,9 @@ pub fn run(gpu: &Gpu, sizes: SizeSet, repeats: u32) -> Result<Vec<Record>> {
             };
             fwd_got.extend(as32(&o, &rows));
             f16_got.extend(as32(&o16, &rows));
+            if let Some((_, _, o)) = &narrow {
+                narrow_got.extend(as32(o, &rows));
+            }
             fwd_want.extend(o_ref);
             bwd_got.extend(as32(&dq, &rows));
             bwd16_got.extend(as32(&dq16, &rows));
@@ -182,7 +203,6 @@ pub fn run(gpu: &Gpu, sizes: SizeSet, repeats: u32) -> Result<Vec<Record>> {
             "all outputs of sampled segments".to_string()
         };
         let flops = attention::forward_flops(&case.q_lens, &k_lens, h, d);
-        let coop = attention::coop_forward_chosen(gpu, d, nq, nk, case.q_lens.len());
         let f16_name = match coop {
             Some(c) => format!("f16 coop{}x{}", c.rows, c.keys),
             None => "f16".to_string(),
@@ -206,7 +226,7 @@ pub fn run(gpu: &Gpu, sizes: SizeSet, repeats: u32) -> Result<Vec<Record>> {
         };
         let portable = attention::portable_variant(gpu, d, DType::F32);
         let f16_fwd_kernel = attention::f16_forward_variant(gpu, d);
-        for (pass, precision, ms, min, f, got, want, bytes, kernel) in [
+        let mut rows = vec![
             ("fwd", "f32", fwd_ms, fwd_min, flops, &fwd_got, &fwd_want, fwd_bytes(4.0), portable.to_string()),
             (
                 "fwd",
@@ -241,7 +261,22 @@ pub fn run(gpu: &Gpu, sizes: SizeSet, repeats: u32) -> Result<Vec<Record>> {
                 bwd_bytes(2.0),
                 f16_bwd_kernel,
             ),
-        ] {
+        ];
+        if let Some((name, (ms, min, _), _)) = &narrow {
+            let kernel = format!("{f16_fwd_kernel} (32-key tiles, beside the 64-key row)");
+            rows.push((
+                "fwd",
+                name.as_str(),
+                *ms,
+                *min,
+                flops,
+                &narrow_got,
+                &fwd_want,
+                fwd_bytes(2.0),
+                kernel,
+            ));
+        }
+        for (pass, precision, ms, min, f, got, want, bytes, kernel) in rows {
             let tflops = f / (ms * 1e-3) / 1e12;
             let name = format!("attn {} {pass}", case.name);
             let peak = if precision.starts_with("f16") { f16_peak } else { f32_peak };
