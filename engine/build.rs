@@ -367,6 +367,7 @@ fn compile(shader_dir: &Path, path: &Path, source: &str) -> Result<Compiled, Str
     let words = spv::write_vec(&module, &info, &options, None)
         .map_err(|e| format!("{shown}: SPIR-V generation failed: {e}"))?;
     let words = flatten_access_chains(&words);
+    let words = bitcast_unpacked_halves(&words);
     let words = strip_layouts_outside_buffers(&words).map_err(|e| format!("{shown}: {e}"))?;
     let words = strip_capabilities(&words, UNUSED_CAPABILITIES);
     let words = texel_buffers(&words);
@@ -686,6 +687,61 @@ fn flatten_access_chains(words: &[u32]) -> Vec<u32> {
             out.extend_from_slice(inst);
         }
         at += count.max(1);
+    }
+    out
+}
+
+/// Turns `vec2<f16>(unpack2x16float(w))` into a bitcast of `w`. WGSL (naga 30) has no
+/// size-changing bitcast, so the kernels that stage packed f16 words as halves (the
+/// cooperative matmul's `put`, the cooperative attention's `unpack4`) write the round trip
+/// through f32: UnpackHalf2x16, then FConvert to a vector of two 16-bit floats. Each such
+/// FConvert of an UnpackHalf2x16 becomes an OpBitcast of the packed word (the same length, so
+/// in place; the unpack is left dead for the driver to drop): the same bits for every half,
+/// NaN payloads included, and no conversion instructions. Every other conversion is untouched.
+fn bitcast_unpacked_halves(words: &[u32]) -> Vec<u32> {
+    const OP_EXT_INST_IMPORT: u32 = 11;
+    const OP_EXT_INST: u32 = 12;
+    const OP_TYPE_FLOAT: u32 = 22;
+    const OP_TYPE_VECTOR: u32 = 23;
+    const OP_FCONVERT: u32 = 115;
+    const OP_BITCAST: u32 = 124;
+    const UNPACK_HALF_2X16: u32 = 62;
+    let mut glsl = None;
+    let mut half = None;
+    let mut half2 = Vec::new();
+    let mut unpacked: std::collections::HashMap<u32, u32> = Default::default(); // result -> word
+    let mut at = 5;
+    while at < words.len() {
+        let count = ((words[at] >> 16) as usize).max(1);
+        let inst = &words[at..at + count];
+        match inst[0] & 0xffff {
+            OP_EXT_INST_IMPORT if count >= 3 => {
+                let name: Vec<u8> =
+                    inst[2..].iter().flat_map(|w| w.to_le_bytes()).take_while(|&b| b != 0).collect();
+                if name == b"GLSL.std.450" {
+                    glsl = Some(inst[1]);
+                }
+            }
+            OP_TYPE_FLOAT if count >= 3 && inst[2] == 16 => half = Some(inst[1]),
+            OP_TYPE_VECTOR if count == 4 && Some(inst[2]) == half && inst[3] == 2 => half2.push(inst[1]),
+            OP_EXT_INST if count == 6 && Some(inst[3]) == glsl && inst[4] == UNPACK_HALF_2X16 => {
+                unpacked.insert(inst[2], inst[5]);
+            }
+            _ => {}
+        }
+        at += count;
+    }
+    let mut out = words.to_vec();
+    let mut at = 5;
+    while at < out.len() {
+        let count = ((out[at] >> 16) as usize).max(1);
+        if out[at] & 0xffff == OP_FCONVERT && count == 4 && half2.contains(&out[at + 1]) {
+            if let Some(&word) = unpacked.get(&out[at + 3]) {
+                out[at] = (4 << 16) | OP_BITCAST;
+                out[at + 3] = word;
+            }
+        }
+        at += count;
     }
     out
 }

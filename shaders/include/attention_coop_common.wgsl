@@ -40,6 +40,8 @@ var<workgroup> so: array<f32, NSG * F * RS>;
 // Each subgroup's F rows of f16 weights: P (forward), dS (dq), P^T (dk/dv).
 var<workgroup> ps: array<f16, NSG * F * RP>;
 
+// Four halves of two packed words (the f32 round trip is a bitcast in the SPIR-V: see
+// `bitcast_unpacked_halves` in engine/build.rs).
 fn unpack4(w: vec2<u32>) -> vec4<f16> {
     return vec4<f16>(vec2<f16>(unpack2x16float(w.x)), vec2<f16>(unpack2x16float(w.y)));
 }

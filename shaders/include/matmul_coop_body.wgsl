@@ -128,7 +128,8 @@ fn load_b(z: u32, col0: u32, k0: u32, c: u32, tb: bool) -> vec4<u32> {
 
 // Writes the 8 halves of a chunk at tiles[o..o+8]; the lower half of each word comes first in
 // memory, and unpack2x16float returns it as component 0. (naga 30 does not accept the
-// size-changing bitcast<vec2<f16>>(u32); the round trip through f32 is exact for every half.)
+// size-changing bitcast<vec2<f16>>(u32), so this is written as a round trip through f32, which
+// engine/build.rs turns back into that bitcast in the SPIR-V: no conversion is executed.)
 fn put(o: u32, v: vec4<u32>) {
     let h0 = vec2<f16>(unpack2x16float(v.x));
     let h1 = vec2<f16>(unpack2x16float(v.y));
