@@ -651,6 +651,18 @@ fn rust_struct(l: &PushLayout) -> String {
     out
 }
 
+/// The instructions of a SPIR-V module after its 5-word header: each one's offset in `words`
+/// and its words (the opcode in the low half of the first, the word count in the high half).
+fn instructions(words: &[u32]) -> impl Iterator<Item = (usize, &[u32])> {
+    let mut at = 5;
+    std::iter::from_fn(move || {
+        let count = ((*words.get(at)? >> 16) as usize).max(1);
+        let inst = &words[at..(at + count).min(words.len())];
+        at += count;
+        Some((at - count, inst))
+    })
+}
+
 /// Rewrites every access chain whose base is another access chain as one chain from the root,
 /// its indices the base's followed by its own. naga hoists `&buffer.data` into a chain at the top
 /// of a function and indexes that chain later; the Khronos validation layer (1.3.239, Debian 12's)
@@ -663,11 +675,8 @@ fn flatten_access_chains(words: &[u32]) -> Vec<u32> {
     let mut out = words[..5].to_vec();
     // Result id of a chain -> (root base, all indices, in bounds).
     let mut chains: std::collections::HashMap<u32, (u32, Vec<u32>, bool)> = Default::default();
-    let mut at = 5;
-    while at < words.len() {
-        let count = (words[at] >> 16) as usize;
-        let opcode = words[at] & 0xffff;
-        let inst = &words[at..at + count.max(1)];
+    for (_, inst) in instructions(words) {
+        let (count, opcode) = (inst.len(), inst[0] & 0xffff);
         if (opcode == ACCESS_CHAIN || opcode == IN_BOUNDS_ACCESS_CHAIN) && count >= 4 {
             let (ty, id, base) = (inst[1], inst[2], inst[3]);
             let own = &inst[4..];
@@ -686,7 +695,6 @@ fn flatten_access_chains(words: &[u32]) -> Vec<u32> {
         } else {
             out.extend_from_slice(inst);
         }
-        at += count.max(1);
     }
     out
 }
@@ -710,10 +718,8 @@ fn bitcast_unpacked_halves(words: &[u32]) -> Vec<u32> {
     let mut half = None;
     let mut half2 = Vec::new();
     let mut unpacked: std::collections::HashMap<u32, u32> = Default::default(); // result -> word
-    let mut at = 5;
-    while at < words.len() {
-        let count = ((words[at] >> 16) as usize).max(1);
-        let inst = &words[at..at + count];
+    for (_, inst) in instructions(words) {
+        let count = inst.len();
         match inst[0] & 0xffff {
             OP_EXT_INST_IMPORT if count >= 3 => {
                 let name: Vec<u8> =
@@ -729,19 +735,15 @@ fn bitcast_unpacked_halves(words: &[u32]) -> Vec<u32> {
             }
             _ => {}
         }
-        at += count;
     }
     let mut out = words.to_vec();
-    let mut at = 5;
-    while at < out.len() {
-        let count = ((out[at] >> 16) as usize).max(1);
-        if out[at] & 0xffff == OP_FCONVERT && count == 4 && half2.contains(&out[at + 1]) {
-            if let Some(&word) = unpacked.get(&out[at + 3]) {
+    for (at, inst) in instructions(words) {
+        if inst[0] & 0xffff == OP_FCONVERT && inst.len() == 4 && half2.contains(&inst[1]) {
+            if let Some(&word) = unpacked.get(&inst[3]) {
                 out[at] = (4 << 16) | OP_BITCAST;
                 out[at + 3] = word;
             }
         }
-        at += count;
     }
     out
 }
@@ -768,10 +770,8 @@ fn strip_layouts_outside_buffers(words: &[u32]) -> Result<Vec<u32>, String> {
     const EXPLICIT: [u32; 4] = [2, 9, 12, 5349];
     let mut children: std::collections::HashMap<u32, Vec<u32>> = Default::default();
     let mut pointers = Vec::new(); // (storage class, pointee)
-    let mut at = 5;
-    while at < words.len() {
-        let count = ((words[at] >> 16) as usize).max(1);
-        let inst = &words[at..at + count];
+    for (_, inst) in instructions(words) {
+        let count = inst.len();
         match inst[0] & 0xffff {
             OP_TYPE_ARRAY | OP_TYPE_RUNTIME_ARRAY | OP_TYPE_MATRIX if count >= 3 => {
                 children.insert(inst[1], vec![inst[2]]);
@@ -782,7 +782,6 @@ fn strip_layouts_outside_buffers(words: &[u32]) -> Result<Vec<u32>, String> {
             OP_TYPE_POINTER if count == 4 => pointers.push((inst[2], inst[3])),
             _ => {}
         }
-        at += count;
     }
     let reach = |roots: &mut dyn Iterator<Item = u32>| {
         let mut seen = std::collections::HashSet::new();
@@ -798,12 +797,9 @@ fn strip_layouts_outside_buffers(words: &[u32]) -> Result<Vec<u32>, String> {
     let plain = reach(&mut pointers.iter().filter(|(c, _)| !EXPLICIT.contains(c)).map(|&(_, t)| t));
     let strip: std::collections::HashSet<u32> = plain.difference(&laid_out).copied().collect();
     let mut out = words[..5].to_vec();
-    let mut at = 5;
-    while at < words.len() {
-        let count = ((words[at] >> 16) as usize).max(1);
-        let inst = &words[at..at + count];
-        let op = inst[0] & 0xffff;
-        let layout = match op {
+    for (_, inst) in instructions(words) {
+        let count = inst.len();
+        let layout = match inst[0] & 0xffff {
             OP_DECORATE if count >= 3 => {
                 [ARRAY_STRIDE, MATRIX_STRIDE, OFFSET].contains(&inst[2]).then_some(inst[1])
             }
@@ -820,7 +816,6 @@ fn strip_layouts_outside_buffers(words: &[u32]) -> Result<Vec<u32>, String> {
             }
             _ => out.extend_from_slice(inst),
         }
-        at += count;
     }
     Ok(out)
 }
@@ -850,15 +845,12 @@ fn texel_buffers(words: &[u32]) -> Vec<u32> {
     const IMAGE_1D: u32 = 44;
     const IMAGE_BUFFER: u32 = 47;
     let mut out = words.to_vec();
-    let mut at = 5;
-    while at < out.len() {
-        let count = ((out[at] >> 16) as usize).max(1);
-        match out[at] & 0xffff {
-            OP_TYPE_IMAGE if count >= 9 && out[at + 3] == DIM_1D => out[at + 3] = DIM_BUFFER,
-            OP_CAPABILITY if count == 2 && out[at + 1] == IMAGE_1D => out[at + 1] = IMAGE_BUFFER,
+    for (at, inst) in instructions(words) {
+        match inst[0] & 0xffff {
+            OP_TYPE_IMAGE if inst.len() >= 9 && inst[3] == DIM_1D => out[at + 3] = DIM_BUFFER,
+            OP_CAPABILITY if inst.len() == 2 && inst[1] == IMAGE_1D => out[at + 1] = IMAGE_BUFFER,
             _ => {}
         }
-        at += count;
     }
     out
 }
@@ -876,14 +868,10 @@ const UNUSED_CAPABILITIES: &[u32] = &[
 /// The module without the `OpCapability` instructions of `drop`.
 fn strip_capabilities(words: &[u32], drop: &[u32]) -> Vec<u32> {
     let mut out = words[..5].to_vec();
-    let mut at = 5;
-    while at < words.len() {
-        let count = ((words[at] >> 16) as usize).max(1);
-        let inst = &words[at..at + count];
-        if !(inst[0] & 0xffff == OP_CAPABILITY && count == 2 && drop.contains(&inst[1])) {
+    for (_, inst) in instructions(words) {
+        if !(inst[0] & 0xffff == OP_CAPABILITY && inst.len() == 2 && drop.contains(&inst[1])) {
             out.extend_from_slice(inst);
         }
-        at += count;
     }
     out
 }
@@ -904,11 +892,9 @@ struct CapabilityNeeds {
 
 fn capability_needs(words: &[u32]) -> Result<CapabilityNeeds, String> {
     let mut needs = CapabilityNeeds::default();
-    let mut at = 5;
-    while at < words.len() {
-        let count = ((words[at] >> 16) as usize).max(1);
-        if words[at] & 0xffff == OP_CAPABILITY && count == 2 {
-            match words[at + 1] {
+    for (_, inst) in instructions(words) {
+        if inst[0] & 0xffff == OP_CAPABILITY && inst.len() == 2 {
+            match inst[1] {
                 1 => {}  // Shader
                 47 => {} // ImageBuffer (texel buffers; every Vulkan device has it)
                 // Float16 (shaderFloat16) and StorageBuffer16BitAccess (storageBuffer16BitAccess):
@@ -929,7 +915,6 @@ fn capability_needs(words: &[u32]) -> Result<CapabilityNeeds, String> {
                 }
             }
         }
-        at += count;
     }
     Ok(needs)
 }

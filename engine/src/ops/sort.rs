@@ -31,6 +31,9 @@ pub const BLOCK: usize = 4096;
 
 use crate::kernels::params::SortParams as Params;
 
+/// Both histogram kernels: one set of bindings and parameters.
+type HistogramKernel = crate::kernels::Kernel<Params, args::SortHistogramArgs<'static>>;
+
 /// Sorts `keys` (u32) with their `values` (u32, i32 or f32, moved as raw bits) by the low
 /// `key_bits` bits of each key (1..=32), stably. Returns new tensors, shaped like the inputs,
 /// holding the whole original keys and their values in sorted order; the inputs are untouched.
@@ -70,7 +73,20 @@ impl Histogram {
 
     /// Whether `gpu` can count this way.
     pub fn runs_on(self, gpu: &crate::Gpu) -> bool {
-        self != Histogram::Subgroups || gpu.supports(SORT_HISTOGRAM_SUBGROUPS)
+        self.kernel(gpu).is_ok()
+    }
+
+    /// The histogram kernel this way of counting takes on `gpu`; an error where the device
+    /// cannot run it.
+    fn kernel(self, gpu: &crate::Gpu) -> Result<HistogramKernel> {
+        match self {
+            Histogram::Fastest => Histogram::chosen(gpu).kernel(gpu),
+            Histogram::Atomics => Ok(SORT_HISTOGRAM),
+            Histogram::Subgroups => {
+                gpu.check_supported(SORT_HISTOGRAM_SUBGROUPS)?;
+                Ok(SORT_HISTOGRAM_SUBGROUPS)
+            }
+        }
     }
 
     pub fn describe(self) -> &'static str {
@@ -152,17 +168,7 @@ fn sort_with(
         rec.dispatch(SORT_BLOCK, [1, 1, 1], args, &params)?;
         return Ok(out);
     }
-    let histogram = match histogram {
-        Histogram::Fastest => Histogram::chosen(gpu),
-        other => other,
-    };
-    let histogram = match histogram {
-        Histogram::Subgroups => {
-            gpu.check_supported(SORT_HISTOGRAM_SUBGROUPS)?;
-            SORT_HISTOGRAM_SUBGROUPS
-        }
-        _ => SORT_HISTOGRAM,
-    };
+    let histogram = histogram.kernel(gpu)?;
     let counts = Tensor::empty(gpu, &[16 * num_blocks], DType::U32)?;
     let offsets = Tensor::empty(gpu, &[16 * num_blocks], DType::U32)?;
     // A second pair is allocated only when there is a second pass.

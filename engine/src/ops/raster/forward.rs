@@ -244,8 +244,16 @@ enum Room {
     Ahead(usize),
 }
 
+impl Room {
+    /// The entries the lists hold.
+    fn pairs(self) -> usize {
+        let (Room::Exact(pairs) | Room::Ahead(pairs)) = self;
+        pairs
+    }
+}
+
 fn rasterize_lists(rec: &mut Recorder, p: &Projected, room: Room, background: [f32; 3]) -> Result<Image> {
-    let (Room::Exact(pairs) | Room::Ahead(pairs)) = room;
+    let pairs = room.pairs();
     let gpu = rec.gpu().clone();
     let cam = &p.camera;
     let max_pairs = gpu.caps().max_storage_buffer_range / 4;
@@ -305,7 +313,7 @@ fn rasterize_lists(rec: &mut Recorder, p: &Projected, room: Room, background: [f
 /// every sorted pair. With room ahead of the count, the tile keys start as a key past every
 /// tile, which the stable sort keeps last and the ranges skip.
 fn tile_lists(rec: &mut Recorder, p: &Projected, room: Room, ranges: &Tensor) -> Result<(Tensor, Tensor)> {
-    let (Room::Exact(pairs) | Room::Ahead(pairs)) = room;
+    let pairs = room.pairs();
     let gpu = rec.gpu().clone();
     let (tiles_x, tiles_y) = p.camera.tiles();
     let n = p.n;
