@@ -109,9 +109,9 @@ fn scores(a: ptr<function, array<FragA, DF>>, b: ptr<function, array<FragA, DF>>
         var s = zero;
         var dp = zero;
         for (var d = 0u; d < DF; d++) {
-            let bx = coopLoad<FragB>(&kv[x_at + c * F * RQ + d * F], RQ);
+            let bx = coopLoad<FragB>(&kv[(x_at + c * F * RQ + d * F) / 4u], RQ / 4u);
             s = coopMultiplyAdd((*a)[d], bx, s);
-            let by = coopLoad<FragB>(&kv[y_at + c * F * RQ + d * F], RQ);
+            let by = coopLoad<FragB>(&kv[(y_at + c * F * RQ + d * F) / 4u], RQ / 4u);
             dp = coopMultiplyAdd((*b)[d], by, dp);
         }
         let sv = s;
@@ -175,8 +175,8 @@ fn dq_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
     var gf: array<FragA, DF>;
     var acc: array<FragC, DF>;
     for (var d = 0u; d < DF; d++) {
-        qf[d] = coopLoadT<FragA>(&kv[row0 * RQ + d * F], RQ);
-        gf[d] = coopLoadT<FragA>(&kv[(BQ + row0) * RQ + d * F], RQ);
+        qf[d] = coopLoadT<FragA>(&kv[(row0 * RQ + d * F) / 4u], RQ / 4u);
+        gf[d] = coopLoadT<FragA>(&kv[((BQ + row0) * RQ + d * F) / 4u], RQ / 4u);
         acc[d] = zero;
     }
     // Every fragment is loaded before the first tile overwrites kv.
@@ -217,7 +217,7 @@ fn dq_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
         }
         for (var d = 0u; d < DF; d++) {
             for (var c = 0u; c < KF; c++) {
-                let b = coopLoadT<FragB>(&kv[k_at + c * F * RQ + d * F], RQ);
+                let b = coopLoadT<FragB>(&kv[(k_at + c * F * RQ + d * F) / 4u], RQ / 4u);
                 acc[d] = coopMultiplyAdd(sf[c], b, acc[d]);
             }
         }
@@ -260,8 +260,8 @@ fn dkv_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
     var gk: array<FragC, DF>;
     var gv: array<FragC, DF>;
     for (var d = 0u; d < DF; d++) {
-        kf[d] = coopLoadT<FragA>(&kv[row0 * RQ + d * F], RQ);
-        vf[d] = coopLoadT<FragA>(&kv[(BQ + row0) * RQ + d * F], RQ);
+        kf[d] = coopLoadT<FragA>(&kv[(row0 * RQ + d * F) / 4u], RQ / 4u);
+        vf[d] = coopLoadT<FragA>(&kv[((BQ + row0) * RQ + d * F) / 4u], RQ / 4u);
         gk[d] = zero;
         gv[d] = zero;
     }
@@ -306,9 +306,9 @@ fn dkv_coop(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
         }
         for (var d = 0u; d < DF; d++) {
             for (var c = 0u; c < KF; c++) {
-                let bg = coopLoadT<FragB>(&kv[g_at + c * F * RQ + d * F], RQ);
+                let bg = coopLoadT<FragB>(&kv[(g_at + c * F * RQ + d * F) / 4u], RQ / 4u);
                 gv[d] = coopMultiplyAdd(pf[c], bg, gv[d]);
-                let bq = coopLoadT<FragB>(&kv[q_at + c * F * RQ + d * F], RQ);
+                let bq = coopLoadT<FragB>(&kv[(q_at + c * F * RQ + d * F) / 4u], RQ / 4u);
                 gk[d] = coopMultiplyAdd(sf[c], bq, gk[d]);
             }
         }

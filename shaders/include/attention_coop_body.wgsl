@@ -104,7 +104,7 @@ fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     workgroupBarrier();
     var qf: array<FragA, DF>;
     for (var d = 0u; d < DF; d++) {
-        qf[d] = coopLoadT<FragA>(&kv[row0 * RQ + d * F], RQ);
+        qf[d] = coopLoadT<FragA>(&kv[(row0 * RQ + d * F) / 4u], RQ / 4u);
     }
     var oacc: array<FragC, DF>;
     for (var d = 0u; d < DF; d++) {
@@ -129,7 +129,7 @@ fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
         for (var c = 0u; c < KF; c++) {
             var s = zero;
             for (var d = 0u; d < DF; d++) {
-                let b = coopLoad<FragB>(&kv[k_at + c * F * RQ + d * F], RQ);
+                let b = coopLoad<FragB>(&kv[(k_at + c * F * RQ + d * F) / 4u], RQ / 4u);
                 s = coopMultiplyAdd(qf[d], b, s);
             }
             let value = s;
@@ -208,7 +208,7 @@ fn fwd(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
         }
         for (var d = 0u; d < DF; d++) {
             for (var c = 0u; c < KF; c++) {
-                let b = coopLoadT<FragB>(&kv[v_at + c * F * RQ + d * F], RQ);
+                let b = coopLoadT<FragB>(&kv[(v_at + c * F * RQ + d * F) / 4u], RQ / 4u);
                 oacc[d] = coopMultiplyAdd(pf[c], b, oacc[d]);
             }
         }

@@ -34,7 +34,11 @@ const KPL: u32 = BK / LPR;
 // A1, B1: a double buffer); the owned rows are staged through it once, before the first tile.
 const KV_TILE: u32 = BK * RQ;
 
-var<workgroup> kv: array<f16, 4u * KV_TILE>;
+// Four halves an element, so that a chunk of four features is one store. Offsets into it are
+// reckoned in halves and divided by 4 at each access: every row stride (RQ) and fragment
+// origin is a multiple of 8 halves, and cooperative loads read the vec4<f16> elements with
+// strides in their units.
+var<workgroup> kv: array<vec4<f16>, KV_TILE>;
 // Each subgroup's F rows of f32 scores, S (or S^T), and the output on its way out.
 var<workgroup> so: array<f32, NSG * F * RS>;
 // Each subgroup's F rows of f16 weights: P (forward), dS (dq), P^T (dk/dv).
@@ -61,11 +65,7 @@ fn chunk(which: u32, first: u32, count: u32, h: u32, i: u32) -> vec4<f16> {
 fn stage(which: u32, first: u32, count: u32, h: u32, at: u32, rows: u32, t: u32) {
     for (var i = t; i < rows * DP / 4u; i += WG) {
         let x = chunk(which, first, count, h, i);
-        let o0 = at + (i / (DP / 4u)) * RQ + (i % (DP / 4u)) * 4u;
-        kv[o0] = x.x;
-        kv[o0 + 1u] = x.y;
-        kv[o0 + 2u] = x.z;
-        kv[o0 + 3u] = x.w;
+        kv[(at + (i / (DP / 4u)) * RQ) / 4u + i % (DP / 4u)] = x;
     }
 }
 

@@ -79,8 +79,11 @@ const REGIONS: u32 = REGION_A + REGION_B;
 const CPI_A: u32 = ROWS * BK / 8u / WG;
 const CPI_B: u32 = COLS * BK / 8u / WG;
 
-// [buffer 0..1][operand A, then B].
-var<workgroup> tiles: array<f16, 2u * REGIONS>;
+// [buffer 0..1][operand A, then B], four halves an element: every offset and stride in the tiles
+// is a multiple of 8 halves, so the kernel addresses halves and divides by 4 at each access
+// (fragment loads read the vec4<f16> elements with strides in their units, as cooperative loads
+// allow).
+var<workgroup> tiles: array<vec4<f16>, 2u * REGIONS / 4u>;
 // One FxF f32 fragment per subgroup for the edge epilogue.
 var<workgroup> stage: array<f32, WG * 8u>;
 
@@ -126,23 +129,15 @@ fn load_b(z: u32, col0: u32, k0: u32, c: u32, tb: bool) -> vec4<u32> {
     return vec4<u32>(0u);
 }
 
-// Writes the 8 halves of a chunk at tiles[o..o+8]; the lower half of each word comes first in
-// memory, and unpack2x16float returns it as component 0. (naga 30 does not accept the
-// size-changing bitcast<vec2<f16>>(u32), so this is written as a round trip through f32, which
-// engine/build.rs turns back into that bitcast in the SPIR-V: no conversion is executed.)
+// Writes the 8 halves of a chunk at halves o..o+8 of the tiles (o a multiple of 8): two
+// 8-byte stores of four halves each, the lower half of each word first in memory as in the
+// buffer. (naga 30 has no size-changing bitcast, so the words are written as a round trip
+// through f32, vec2<f16>(unpack2x16float(w)), which engine/build.rs turns back into a bitcast
+// in the SPIR-V: no conversion is executed.)
 fn put(o: u32, v: vec4<u32>) {
-    let h0 = vec2<f16>(unpack2x16float(v.x));
-    let h1 = vec2<f16>(unpack2x16float(v.y));
-    let h2 = vec2<f16>(unpack2x16float(v.z));
-    let h3 = vec2<f16>(unpack2x16float(v.w));
-    tiles[o] = h0.x;
-    tiles[o + 1u] = h0.y;
-    tiles[o + 2u] = h1.x;
-    tiles[o + 3u] = h1.y;
-    tiles[o + 4u] = h2.x;
-    tiles[o + 5u] = h2.y;
-    tiles[o + 6u] = h3.x;
-    tiles[o + 7u] = h3.y;
+    let q = o / 4u;
+    tiles[q] = vec4<f16>(vec2<f16>(unpack2x16float(v.x)), vec2<f16>(unpack2x16float(v.y)));
+    tiles[q + 1u] = vec4<f16>(vec2<f16>(unpack2x16float(v.z)), vec2<f16>(unpack2x16float(v.w)));
 }
 
 // The chunks one invocation moves per step: chunks t + WG q of each operand, q < CPI_A, CPI_B.
@@ -181,9 +176,9 @@ fn put_chunks(buf: u32, t: u32, ta: bool, tb: bool, c: Chunks) {
 // column-major.
 fn frag_a(base: u32, r: u32, kk: u32) -> FragA {
     if (pc.flags & MATMUL_FLAG_TRANS_A) != 0u {
-        return coopLoad<FragA>(&tiles[base + kk * RS_RA + r], RS_RA);
+        return coopLoad<FragA>(&tiles[(base + kk * RS_RA + r) / 4u], RS_RA / 4u);
     }
-    return coopLoadT<FragA>(&tiles[base + r * RS_K + kk], RS_K);
+    return coopLoadT<FragA>(&tiles[(base + r * RS_K + kk) / 4u], RS_K / 4u);
 }
 
 // The FxF op(B) fragment at k kk.., tile columns c.. from the B tile at `base`.
@@ -191,9 +186,9 @@ fn frag_a(base: u32, r: u32, kk: u32) -> FragA {
 // row-major. Along-k (B transposed): at base + (c + y) * RS_K + kk + x: column-major.
 fn frag_b(base: u32, c: u32, kk: u32) -> FragB {
     if (pc.flags & MATMUL_FLAG_TRANS_B) != 0u {
-        return coopLoad<FragB>(&tiles[base + c * RS_K + kk], RS_K);
+        return coopLoad<FragB>(&tiles[(base + c * RS_K + kk) / 4u], RS_K / 4u);
     }
-    return coopLoadT<FragB>(&tiles[base + kk * RS_RB + c], RS_RB);
+    return coopLoadT<FragB>(&tiles[(base + kk * RS_RB + c) / 4u], RS_RB / 4u);
 }
 
 // Stores one accumulator of an interior tile straight to out at element o (row stride n).
