@@ -289,27 +289,54 @@ fn expand_includes_at(shader_dir: &Path, path: &Path, source: &str, depth: usize
 /// `// @variants NAME: 16 32 64` is compiled once per value (per combination of values, with
 /// several such lines), with its line `const NAME: u32 = ...;` set to that value, as module
 /// `<stem>_<name><value>...` in the order of the lines (naga's SPIR-V writer has no
-/// specialisation constants, so each variant is its own module).
+/// specialisation constants, so each variant is its own module). Where only some combinations
+/// are wanted, one line names several constants and lists the combinations, comma-separated:
+/// `// @variants ROWS, COLS: 64 64, 128 128` gives `<stem>_rows64_cols64` and
+/// `<stem>_rows128_cols128`.
 fn variants(path: &Path, source: &str) -> Result<Vec<(PathBuf, String, String)>, String> {
     let stem = path.file_stem().unwrap().to_str().unwrap().to_string();
+    let shown = path.display();
     let mut out = vec![(path.to_path_buf(), stem, source.to_string())];
     for spec in source.lines().map_while(|l| l.strip_prefix("// @variants ")) {
-        let (name, values) = spec
-            .split_once(':')
-            .ok_or_else(|| format!("{}: expected `// @variants NAME: v1 v2`", path.display()))?;
-        let name = name.trim();
-        let decl = format!("const {name}: u32 = ");
-        let line = source
-            .lines()
-            .find(|l| l.starts_with(&decl))
-            .ok_or_else(|| format!("{}: variants of {name} need a line `{decl}...;`", path.display()))?;
+        let (names, values) =
+            spec.split_once(':').ok_or_else(|| format!("{shown}: expected `// @variants NAME: v1 v2`"))?;
+        let names: Vec<&str> = names.split(',').map(str::trim).collect();
+        // The combinations: one value each, or (several names) one comma-separated group each.
+        let combinations: Vec<Vec<&str>> = if names.len() == 1 {
+            values.split_whitespace().map(|v| vec![v]).collect()
+        } else {
+            values.split(',').map(|group| group.split_whitespace().collect()).collect()
+        };
+        // Each constant's declaration line, found once.
+        let mut lines = Vec::new();
+        for name in &names {
+            let decl = format!("const {name}: u32 = ");
+            let line = source
+                .lines()
+                .find(|l| l.starts_with(&decl))
+                .ok_or_else(|| format!("{shown}: variants of {name} need a line `{decl}...;`"))?;
+            lines.push((decl, line));
+        }
         let mut next = Vec::new();
-        for v in values.split_whitespace() {
-            let value: u32 =
-                v.parse().map_err(|_| format!("{}: variant value {v:?} is not a u32", path.display()))?;
+        for combination in &combinations {
+            if combination.len() != names.len() {
+                return Err(format!(
+                    "{shown}: variant `{}` gives {} values for the {} constants {}",
+                    combination.join(" "),
+                    combination.len(),
+                    names.len(),
+                    names.join(", ")
+                ));
+            }
             for (p, module, text) in &out {
-                let text = text.replacen(line, &format!("{decl}{value}u;"), 1);
-                next.push((p.clone(), format!("{module}_{}{value}", name.to_lowercase()), text));
+                let (mut module, mut text) = (module.clone(), text.clone());
+                for ((name, (decl, line)), v) in names.iter().zip(&lines).zip(combination) {
+                    let value: u32 =
+                        v.parse().map_err(|_| format!("{shown}: variant value {v:?} is not a u32"))?;
+                    text = text.replacen(line, &format!("{decl}{value}u;"), 1);
+                    module = format!("{module}_{}{value}", name.to_lowercase());
+                }
+                next.push((p.clone(), module, text));
             }
         }
         out = next;

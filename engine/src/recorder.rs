@@ -95,6 +95,9 @@ pub struct Recorder {
     /// Whether the cooperative attention forward may take its 64-key tiles
     /// ([`Recorder::set_wide_key_tiles`]).
     wide_key_tiles: bool,
+    /// Whether large cooperative-matrix products take 4 x 4 fragments a subgroup
+    /// ([`Recorder::set_wide_matmul_blocks`]).
+    wide_matmul_blocks: bool,
     /// Queries in the pool.
     capacity: u32,
     /// With `VELOX_PROFILE`: the query written before each dispatch, and its kernel.
@@ -211,6 +214,7 @@ impl Gpu {
             precision: Precision::F32,
             narrow_matmul: NarrowMatmul::Device,
             wide_key_tiles: true,
+            wide_matmul_blocks: true,
             capacity: 0,
             profiled: Vec::new(),
             done: Completion::default(),
@@ -275,6 +279,17 @@ impl Recorder {
 
     pub fn set_wide_key_tiles(&mut self, on: bool) {
         self.wide_key_tiles = on;
+    }
+
+    /// Whether the cooperative-matrix products recorded from now on take their 128 x 128 tile
+    /// in 4 x 4 fragments a subgroup (the default); off, in 4 x 2, so that the benchmarks time
+    /// both on one device and the tests run both.
+    pub fn wide_matmul_blocks(&self) -> bool {
+        self.wide_matmul_blocks
+    }
+
+    pub fn set_wide_matmul_blocks(&mut self, on: bool) {
+        self.wide_matmul_blocks = on;
     }
 
     /// Names the recording in the messages about it (a timeout, a lost device): "training step

@@ -7,16 +7,20 @@
 // body:
 //   matmul_coop.wgsl   F = 16, subgroups of 32 (NVIDIA), k step BK = 32;
 //   matmul_coop8.wgsl  F = 8, subgroups of 8 (lavapipe 26 and later), BK = 16.
-// Each defines FragA, FragB, FragC (the fragment types), F and BK, and is compiled in four
-// variants of the output tile, ROWS x COLS with each 64 or 128: 128 x 128 for large outputs,
-// 128 x 64 for outputs 64 columns wide or narrower, 64 x 128 for 64 rows or fewer, 64 x 64 for
-// both (the host's rule and its reasoning: docs/decisions/kernels.md, "cooperative tiles").
+// Each defines FragA, FragB, FragC (the fragment types), F and BK, and is compiled in five
+// variants of the output tile, ROWS x COLS with each 64 or 128, and of the block of 4 x
+// FRAG_COLS fragments each subgroup owns: 128 x 128 for large outputs, in blocks of 4 x 4
+// (FRAG_COLS = 4: 64 x 64 a subgroup at F = 16) or 4 x 2; 128 x 64 for outputs 64 columns wide
+// or narrower, 64 x 128 for 64 rows or fewer, 64 x 64 for both, in blocks of 4 x 2 (the host's
+// rule and its reasoning: docs/decisions/kernels.md, "cooperative tiles" and "subgroup
+// blocks").
 //
 // Requirements the host checks before choosing it:
 // - subgroups of exactly F*F/8 invocations (32 for F = 16, 8 for F = 8): subgroup sg owns one
-//   4F x 2F block of the ROWS x COLS tile (4 x 2 fragments), and each lane holds 8 elements of
-//   a fragment; the workgroup is as many subgroups as the tile has blocks (WG invocations:
-//   256 for 128 x 128, 128 for the half tiles, 64 for 64 x 64);
+//   4F x FRAG_COLS*F block of the ROWS x COLS tile (4 x FRAG_COLS fragments), and each lane
+//   holds 8 elements of a fragment; the workgroup is as many subgroups as the tile has blocks
+//   (WG invocations in 4 x 2 blocks: 256 for 128 x 128, 128 for the half tiles, 64 for 64 x 64;
+//   128 for 128 x 128 in 4 x 4 blocks);
 // - the contiguous axis of each operand (K, or M for a transposed A; N, or K for a transposed
 //   B) a multiple of 8, so every 16-byte read of 8 halves lies inside one row;
 // - the workgroup memory the variant declares (48 KiB at F = 16 for 128 x 128, 32 KiB at F = 8;
@@ -44,11 +48,12 @@
 //    start at different 16-byte offsets modulo 128 bytes and a fragment read spreads over the
 //    banks. Every stride is a multiple of 16 bytes and every fragment origin 16-byte aligned, as
 //    cooperative loads want.
-// 3. Subgroup sg owns tile rows wr + [0, 4F) and columns wc + [0, 2F), with
-//    wr = (sg / BLOCKS_PER_ROW) * 4F and wc = (sg % BLOCKS_PER_ROW) * 2F, BLOCKS_PER_ROW =
-//    COLS / 2F (subgroup_id, not the invocation index, so nothing assumes how the driver groups
-//    invocations): 4x2 accumulators of FxF. Per F-wide k slice it loads 4 A and 2 B fragments
-//    and issues 8 multiply-adds, so each fragment load feeds 2 or 4 products.
+// 3. Subgroup sg owns tile rows wr + [0, 4F) and columns wc + [0, FRAG_COLS*F), with
+//    wr = (sg / BLOCKS_PER_ROW) * 4F and wc = (sg % BLOCKS_PER_ROW) * FRAG_COLS*F,
+//    BLOCKS_PER_ROW = COLS / (FRAG_COLS*F) (subgroup_id, not the invocation index, so nothing
+//    assumes how the driver groups invocations): 4 x FRAG_COLS accumulators of FxF. Per F-wide
+//    k slice it loads 4 A and FRAG_COLS B fragments and issues 4 * FRAG_COLS multiply-adds:
+//    each fragment load feeds 1.33 products in 4 x 2 blocks, 2 in 4 x 4 blocks.
 // 4. Two workgroup-memory buffers alternate: while step s is multiplied out of one, step s+1 is
 //    read from memory into registers and then written to the other; one barrier per step.
 // 5. Output: a tile entirely inside the matrix, with n a multiple of 4 (16-byte row stride),
@@ -63,9 +68,9 @@
 @group(0) @binding(2) var<storage, read_write> out: array<f32>;
 var<immediate> pc: Params;
 
-// Invocations per subgroup, blocks of 4F x 2F per row of the tile, and invocations.
+// Invocations per subgroup, blocks of 4F x FRAG_COLS*F per row of the tile, and invocations.
 const SG: u32 = F * F / 8u;
-const BLOCKS_PER_ROW: u32 = COLS / (2u * F);
+const BLOCKS_PER_ROW: u32 = COLS / (FRAG_COLS * F);
 const WG: u32 = (ROWS / (4u * F)) * BLOCKS_PER_ROW * SG;
 // Row strides (halves) of the "along-k" layout and of the "along-r" layouts of A and B.
 const RS_K: u32 = BK + 8u;
@@ -241,19 +246,14 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     let z = wid.z + pc.batch_base;
     let row0 = wid.y * ROWS;
     let col0 = wid.x * COLS;
-    // This subgroup's 4F x 2F block of the tile.
+    // This subgroup's 4F x FRAG_COLS*F block of the tile.
     let wr = (sg / BLOCKS_PER_ROW) * 4u * F;
-    let wc = (sg % BLOCKS_PER_ROW) * 2u * F;
+    let wc = (sg % BLOCKS_PER_ROW) * FRAG_COLS * F;
 
-    // acc<i><j>: rows wr + F*i.., columns wc + F*j... Declared without initialiser: zero.
-    var acc00: FragC;
-    var acc01: FragC;
-    var acc10: FragC;
-    var acc11: FragC;
-    var acc20: FragC;
-    var acc21: FragC;
-    var acc30: FragC;
-    var acc31: FragC;
+    // acc[FRAG_COLS * i + j]: rows wr + F*i.., columns wc + F*j... Declared without an
+    // initialiser: zero. The loops over i and j have constant bounds, so a compiler unrolls them
+    // and keeps every fragment in registers.
+    var acc: array<FragC, 4u * FRAG_COLS>;
 
     let steps = (pc.k + BK - 1u) / BK;
     put_chunks(0u, t, ta, tb, load_chunks(z, row0, col0, 0u, t, ta, tb));
@@ -270,20 +270,16 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         let base_a = cur * REGIONS;
         let base_b = base_a + REGION_A;
         for (var kk = 0u; kk < BK; kk += F) {
-            let f0 = frag_a(base_a, wr, kk);
-            let f1 = frag_a(base_a, wr + F, kk);
-            let f2 = frag_a(base_a, wr + 2u * F, kk);
-            let f3 = frag_a(base_a, wr + 3u * F, kk);
-            let g0 = frag_b(base_b, wc, kk);
-            let g1 = frag_b(base_b, wc + F, kk);
-            acc00 = coopMultiplyAdd(f0, g0, acc00);
-            acc01 = coopMultiplyAdd(f0, g1, acc01);
-            acc10 = coopMultiplyAdd(f1, g0, acc10);
-            acc11 = coopMultiplyAdd(f1, g1, acc11);
-            acc20 = coopMultiplyAdd(f2, g0, acc20);
-            acc21 = coopMultiplyAdd(f2, g1, acc21);
-            acc30 = coopMultiplyAdd(f3, g0, acc30);
-            acc31 = coopMultiplyAdd(f3, g1, acc31);
+            var fa: array<FragA, 4>;
+            for (var i = 0u; i < 4u; i++) {
+                fa[i] = frag_a(base_a, wr + i * F, kk);
+            }
+            for (var j = 0u; j < FRAG_COLS; j++) {
+                let g = frag_b(base_b, wc + j * F, kk);
+                for (var i = 0u; i < 4u; i++) {
+                    acc[FRAG_COLS * i + j] = coopMultiplyAdd(fa[i], g, acc[FRAG_COLS * i + j]);
+                }
+            }
         }
         // The other buffer was last read in step s-1, before the barrier that ended it.
         if more {
@@ -297,24 +293,13 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     let j0 = col0 + wc;
     // Workgroup-uniform: depends only on the tile position and the push constants.
     let interior = row0 + ROWS <= pc.m && col0 + COLS <= pc.n && pc.n % 4u == 0u;
-    if interior {
-        let n = pc.n;
-        emit_direct(acc00, c_base + i0 * n + j0);
-        emit_direct(acc01, c_base + i0 * n + j0 + F);
-        emit_direct(acc10, c_base + (i0 + F) * n + j0);
-        emit_direct(acc11, c_base + (i0 + F) * n + j0 + F);
-        emit_direct(acc20, c_base + (i0 + 2u * F) * n + j0);
-        emit_direct(acc21, c_base + (i0 + 2u * F) * n + j0 + F);
-        emit_direct(acc30, c_base + (i0 + 3u * F) * n + j0);
-        emit_direct(acc31, c_base + (i0 + 3u * F) * n + j0 + F);
-    } else {
-        emit_staged(acc00, i0, j0, c_base, sg, lane);
-        emit_staged(acc01, i0, j0 + F, c_base, sg, lane);
-        emit_staged(acc10, i0 + F, j0, c_base, sg, lane);
-        emit_staged(acc11, i0 + F, j0 + F, c_base, sg, lane);
-        emit_staged(acc20, i0 + 2u * F, j0, c_base, sg, lane);
-        emit_staged(acc21, i0 + 2u * F, j0 + F, c_base, sg, lane);
-        emit_staged(acc30, i0 + 3u * F, j0, c_base, sg, lane);
-        emit_staged(acc31, i0 + 3u * F, j0 + F, c_base, sg, lane);
+    for (var i = 0u; i < 4u; i++) {
+        for (var j = 0u; j < FRAG_COLS; j++) {
+            if interior {
+                emit_direct(acc[FRAG_COLS * i + j], c_base + (i0 + i * F) * pc.n + j0 + j * F);
+            } else {
+                emit_staged(acc[FRAG_COLS * i + j], i0 + i * F, j0 + j * F, c_base, sg, lane);
+            }
+        }
     }
 }

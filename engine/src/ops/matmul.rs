@@ -19,9 +19,11 @@ use crate::device::Gpu;
 use crate::error::{Error, Result};
 use crate::kernels::args;
 use crate::kernels::{
-    Kernel, MATMUL_COOP8_ROWS128_COLS128_MAIN, MATMUL_COOP8_ROWS128_COLS64_MAIN,
-    MATMUL_COOP8_ROWS64_COLS128_MAIN, MATMUL_COOP8_ROWS64_COLS64_MAIN, MATMUL_COOP_ROWS128_COLS128_MAIN,
-    MATMUL_COOP_ROWS128_COLS64_MAIN, MATMUL_COOP_ROWS64_COLS128_MAIN, MATMUL_COOP_ROWS64_COLS64_MAIN,
+    Kernel, MATMUL_COOP8_ROWS128_COLS128_FRAG_COLS2_MAIN, MATMUL_COOP8_ROWS128_COLS128_FRAG_COLS4_MAIN,
+    MATMUL_COOP8_ROWS128_COLS64_FRAG_COLS2_MAIN, MATMUL_COOP8_ROWS64_COLS128_FRAG_COLS2_MAIN,
+    MATMUL_COOP8_ROWS64_COLS64_FRAG_COLS2_MAIN, MATMUL_COOP_ROWS128_COLS128_FRAG_COLS2_MAIN,
+    MATMUL_COOP_ROWS128_COLS128_FRAG_COLS4_MAIN, MATMUL_COOP_ROWS128_COLS64_FRAG_COLS2_MAIN,
+    MATMUL_COOP_ROWS64_COLS128_FRAG_COLS2_MAIN, MATMUL_COOP_ROWS64_COLS64_FRAG_COLS2_MAIN,
     MATMUL_CPU_LAYOUT0_COLS1_MAIN, MATMUL_CPU_LAYOUT0_COLS2_MAIN, MATMUL_CPU_LAYOUT0_COLS4_MAIN,
     MATMUL_CPU_LAYOUT1_COLS1_MAIN, MATMUL_CPU_LAYOUT1_COLS2_MAIN, MATMUL_CPU_LAYOUT1_COLS4_MAIN,
     MATMUL_CPU_LAYOUT2_COLS1_MAIN, MATMUL_CPU_LAYOUT2_COLS2_MAIN, MATMUL_CPU_LAYOUT2_COLS4_MAIN,
@@ -54,23 +56,36 @@ const CPU_KERNELS: [[TiledKernel; 3]; 3] = [
     [MATMUL_CPU_LAYOUT1_COLS1_MAIN, MATMUL_CPU_LAYOUT1_COLS2_MAIN, MATMUL_CPU_LAYOUT1_COLS4_MAIN],
     [MATMUL_CPU_LAYOUT2_COLS1_MAIN, MATMUL_CPU_LAYOUT2_COLS2_MAIN, MATMUL_CPU_LAYOUT2_COLS4_MAIN],
 ];
-/// The cooperative-matrix kernels, by fragment size F and output tile:
-/// `[rows == 128][cols == 128]`, each side 64 or 128 (`shaders/matmul_coop.wgsl`'s variants).
-const COOP_KERNELS: [(u32, [[CoopKernel; 2]; 2]); 2] = [
-    (
-        16,
-        [
-            [MATMUL_COOP_ROWS64_COLS64_MAIN, MATMUL_COOP_ROWS64_COLS128_MAIN],
-            [MATMUL_COOP_ROWS128_COLS64_MAIN, MATMUL_COOP_ROWS128_COLS128_MAIN],
+/// The cooperative-matrix kernels for one fragment size (`shaders/matmul_coop.wgsl`'s and
+/// `matmul_coop8.wgsl`'s variants).
+struct CoopKernels {
+    /// F of the FxFxF fragments.
+    fragment: u32,
+    /// By output tile, `[rows == 128][cols == 128]`, each side 64 or 128; every subgroup owns
+    /// 4 x 2 fragments of its tile.
+    tiles: [[CoopKernel; 2]; 2],
+    /// The 128 x 128 tile with 4 x 4 fragments a subgroup (64 x 64 at F = 16), which large
+    /// products take (docs/decisions/kernels.md, "subgroup blocks").
+    wide_blocks: CoopKernel,
+}
+
+const COOP_KERNELS: [CoopKernels; 2] = [
+    CoopKernels {
+        fragment: 16,
+        tiles: [
+            [MATMUL_COOP_ROWS64_COLS64_FRAG_COLS2_MAIN, MATMUL_COOP_ROWS64_COLS128_FRAG_COLS2_MAIN],
+            [MATMUL_COOP_ROWS128_COLS64_FRAG_COLS2_MAIN, MATMUL_COOP_ROWS128_COLS128_FRAG_COLS2_MAIN],
         ],
-    ),
-    (
-        8,
-        [
-            [MATMUL_COOP8_ROWS64_COLS64_MAIN, MATMUL_COOP8_ROWS64_COLS128_MAIN],
-            [MATMUL_COOP8_ROWS128_COLS64_MAIN, MATMUL_COOP8_ROWS128_COLS128_MAIN],
+        wide_blocks: MATMUL_COOP_ROWS128_COLS128_FRAG_COLS4_MAIN,
+    },
+    CoopKernels {
+        fragment: 8,
+        tiles: [
+            [MATMUL_COOP8_ROWS64_COLS64_FRAG_COLS2_MAIN, MATMUL_COOP8_ROWS64_COLS128_FRAG_COLS2_MAIN],
+            [MATMUL_COOP8_ROWS128_COLS64_FRAG_COLS2_MAIN, MATMUL_COOP8_ROWS128_COLS128_FRAG_COLS2_MAIN],
         ],
-    ),
+        wide_blocks: MATMUL_COOP8_ROWS128_COLS128_FRAG_COLS4_MAIN,
+    },
 ];
 /// A product with at most this many output rows (columns) takes a cooperative tile of 64 rows
 /// (columns): a 128-wide side would be at least half empty (docs/decisions/kernels.md).
@@ -85,7 +100,7 @@ use crate::kernels::params::MatmulParams as Params;
 type TiledKernel = Kernel<Params, args::MatmulMainArgs<'static>>;
 /// The cooperative-matrix kernels: operands and output (they take no bias; every tile variant
 /// shares the first variant's binding struct).
-pub type CoopKernel = Kernel<Params, args::MatmulCoopRows64Cols64MainArgs<'static>>;
+pub type CoopKernel = Kernel<Params, args::MatmulCoopRows64Cols64FragCols2MainArgs<'static>>;
 
 /// A matmul kernel, by interface. Every one takes the push constants of
 /// `shaders/include/matmul_params.wgsl`.
@@ -131,7 +146,7 @@ impl MatmulKernel {
                 rec.dispatch(k, groups, args::MatmulMainArgs { a, b, out, bias }, params)
             }
             MatmulKernel::Coop(k) => {
-                rec.dispatch(k, groups, args::MatmulCoopRows64Cols64MainArgs { a, b, out }, params)
+                rec.dispatch(k, groups, args::MatmulCoopRows64Cols64FragCols2MainArgs { a, b, out }, params)
             }
         }
     }
@@ -224,41 +239,50 @@ pub fn plan(a: &[usize], b: &[usize], trans_a: bool, trans_b: bool) -> Result<Pl
     })
 }
 
-/// The cooperative-matrix kernels this device can run, by tile (see [`COOP_KERNELS`]), if
-/// any. The kernels exist for FxFxF fragments with F = 16 (`matmul_coop.wgsl`) and F = 8
+/// The cooperative-matrix kernels this device can run (see [`COOP_KERNELS`]), if any. The
+/// kernels exist for FxFxF fragments with F = 16 (`matmul_coop.wgsl`) and F = 8
 /// (`matmul_coop8.wgsl`). Each splits its workgroup into subgroups of exactly F*F/8 (32 or 8),
-/// each subgroup owning 4x2 fragments of the tile, so they are chosen only where a pipeline
-/// can have that size: the device's only one, or one it can be asked for (the pipeline then
-/// requests it). The 128x128 tile declares the most workgroup memory: the others fit where it
-/// does.
-fn coop_kernels(caps: &Caps) -> Option<&'static [[CoopKernel; 2]; 2]> {
+/// each subgroup owning a block of fragments of the tile, so they are chosen only where a
+/// pipeline can have that size: the device's only one, or one it can be asked for (the pipeline
+/// then requests it). The 128x128 tile in 4 x 2 blocks declares the most workgroup memory: the
+/// others fit where it does.
+fn coop_kernels(caps: &Caps) -> Option<&'static CoopKernels> {
     if !coop_wanted(caps) {
         return None;
     }
     let [f, _, _] = caps.coop_matrix_f16?;
-    let (_, kernels) = COOP_KERNELS.iter().find(|(g, _)| *g == f)?;
-    let fits =
-        caps.subgroup_size_fits(f * f / 8) && caps.max_shared_memory >= kernels[1][1].info().shared_bytes;
+    let kernels = COOP_KERNELS.iter().find(|k| k.fragment == f)?;
+    let most = kernels.tiles[1][1].info().shared_bytes.max(kernels.wide_blocks.info().shared_bytes);
+    let fits = caps.subgroup_size_fits(f * f / 8) && caps.max_shared_memory >= most;
     fits.then_some(kernels)
 }
 
-/// The cooperative-matrix kernel this device runs large products on (its 128x128 tile), if any.
+/// The cooperative-matrix kernel this device runs large products on (its 128x128 tile, in
+/// 4 x 4 blocks), if any.
 pub fn coop_kernel(caps: &Caps) -> Option<CoopKernel> {
-    coop_kernels(caps).map(|k| k[1][1])
+    coop_kernels(caps).map(|k| k.wide_blocks)
 }
 
 /// The cooperative-matrix kernel for an output of `m` rows and `n` columns: a side of at most
-/// [`COOP_HALF`] takes the 64-wide tile.
-pub fn coop_kernel_for(caps: &Caps, m: usize, n: usize) -> Option<CoopKernel> {
-    coop_kernels(caps).map(|k| k[(m > COOP_HALF) as usize][(n > COOP_HALF) as usize])
+/// [`COOP_HALF`] takes the 64-wide tile; the 128 x 128 tile takes 4 x 4 fragments a subgroup
+/// where `wide_blocks` (a recording's [`Recorder::wide_matmul_blocks`]), else 4 x 2.
+pub fn coop_kernel_for(caps: &Caps, m: usize, n: usize, wide_blocks: bool) -> Option<CoopKernel> {
+    coop_kernels(caps).map(|k| match (m > COOP_HALF, n > COOP_HALF) {
+        (true, true) if wide_blocks => k.wide_blocks,
+        (tall, wide) => k.tiles[tall as usize][wide as usize],
+    })
 }
 
 /// Output rows and columns of one workgroup of a cooperative-matrix kernel.
 fn coop_tile(kernel: CoopKernel) -> (usize, usize) {
     COOP_KERNELS
         .iter()
-        .flat_map(|(_, k)| k.iter().enumerate())
-        .find_map(|(rows, ks)| ks.iter().position(|&k| k == kernel).map(|cols| (64 << rows, 64 << cols)))
+        .find_map(|k| {
+            let tile = k.tiles.iter().enumerate().find_map(|(rows, ks)| {
+                ks.iter().position(|&x| x == kernel).map(|cols| (64 << rows, 64 << cols))
+            });
+            tile.or((k.wide_blocks == kernel).then_some((128, 128)))
+        })
         .expect("a cooperative-matrix kernel")
 }
 
@@ -303,16 +327,16 @@ pub fn matmul_variant(gpu: &Gpu, dtype: DType) -> &'static str {
              (32x32 tiles when M or N <= 32, 64x64 when <= 64)"
         }
         DType::F16 if coop_kernel(gpu.caps()).is_some_and(|k| gpu.supports(k)) => {
-            if coop_kernel(gpu.caps()) == Some(MATMUL_COOP_ROWS128_COLS128_MAIN) {
-                "cooperative-matrix f16 x f16 -> f32: 128x128 tile (128x64, 64x128 or 64x64 where \
-                 N or M is at most 64), 16x16x16 fragments, k step 32, split along K where few \
-                 tiles walk a long K (tiled f16 fallback where an operand's contiguous axis is not \
-                 a multiple of 8)"
+            if coop_kernel(gpu.caps()) == Some(MATMUL_COOP_ROWS128_COLS128_FRAG_COLS4_MAIN) {
+                "cooperative-matrix f16 x f16 -> f32: 128x128 tile in 64x64 a subgroup (128x64, \
+                 64x128 or 64x64 tiles in 64x32 a subgroup where N or M is at most 64), 16x16x16 \
+                 fragments, k step 32, split along K where few tiles walk a long K (tiled f16 \
+                 fallback where an operand's contiguous axis is not a multiple of 8)"
             } else {
-                "cooperative-matrix f16 x f16 -> f32: 128x128 tile (128x64, 64x128 or 64x64 where \
-                 N or M is at most 64), 8x8x8 fragments, k step 16, split along K where few tiles \
-                 walk a long K (tiled f16 fallback where an operand's contiguous axis is not a \
-                 multiple of 8)"
+                "cooperative-matrix f16 x f16 -> f32: 128x128 tile in 32x32 a subgroup (128x64, \
+                 64x128 or 64x64 tiles in 32x16 a subgroup where N or M is at most 64), 8x8x8 \
+                 fragments, k step 16, split along K where few tiles walk a long K (tiled f16 \
+                 fallback where an operand's contiguous axis is not a multiple of 8)"
             }
         }
         DType::F16 => "tiled f16 x f16 -> f32 (f16 read as packed words, f32 accumulation)",
@@ -403,7 +427,7 @@ pub fn matmul_sum_into(
     let p = plan(a.shape(), b.shape(), trans_a, trans_b)?;
     check_dtypes(a, b)?;
     check_out(a, b, out, &[p.m, p.n])?;
-    let kernel = choose_kernel(a, b, &p, trans_a, trans_b, rec.narrow_matmul());
+    let kernel = choose_kernel(a, b, &p, trans_a, trans_b, rec);
     let fits = u32::try_from(p.batch).is_ok() && [a, b].iter().all(|t| t.numel() <= u32::MAX as usize);
     if !(kernel.is(MATMUL_ROWS_MAIN) || kernel.is_cpu()) || !fits || p.m == 0 || p.n == 0 {
         let parts = Tensor::empty(a.gpu(), &p.out_shape, DType::F32)?;
@@ -538,7 +562,7 @@ fn layout(
     trans_a: bool,
     trans_b: bool,
 ) -> Result<(MatmulKernel, [usize; 3], usize)> {
-    let kernel = choose_kernel(a, b, p, trans_a, trans_b, rec.narrow_matmul());
+    let kernel = choose_kernel(a, b, p, trans_a, trans_b, rec);
     let groups = grid(a.gpu(), kernel, p, if p.m == 0 || p.n == 0 { 0 } else { p.batch })?;
     // The CPU kernel has tiles enough for a CPU's threads, and K pieces would break its
     // multiples of 4.
@@ -547,7 +571,7 @@ fn layout(
 }
 
 /// The kernel `op(a) @ op(b)` runs on in `rec`, and the pieces K is cut into where it is: what a
-/// benchmark row names (`matmul_coop_rows128_cols64::main, K in 39 pieces`).
+/// benchmark row names (`matmul_coop_rows128_cols64_frag_cols2::main, K in 39 pieces`).
 pub fn product_kernel(
     rec: &Recorder,
     a: &Tensor,
@@ -638,17 +662,18 @@ fn split_k_into(
     reduce_into(rec, &partial, 0, Reduce::Sum, out, accumulate)
 }
 
-/// The kernel for one product of `a` and `b` (`narrow_choice`: the recording's choice for
-/// narrow f32 ones).
+/// The kernel for one product of `a` and `b` in `rec` (which says how narrow f32 products and
+/// large cooperative ones are to be tiled).
 fn choose_kernel(
     a: &Tensor,
     b: &Tensor,
     p: &Plan,
     trans_a: bool,
     trans_b: bool,
-    narrow_choice: NarrowMatmul,
+    rec: &Recorder,
 ) -> MatmulKernel {
     let gpu = a.gpu();
+    let narrow_choice = rec.narrow_matmul();
     if a.dtype() == DType::F32 {
         let vec4 = match narrow_choice {
             NarrowMatmul::Device => gpu.caps().cpu_kernels,
@@ -677,7 +702,7 @@ fn choose_kernel(
             MATMUL_MAIN
         });
     }
-    match coop_kernel_for(gpu.caps(), p.m, p.n) {
+    match coop_kernel_for(gpu.caps(), p.m, p.n, rec.wide_matmul_blocks()) {
         Some(k) if gpu.supports(k) && coop_layout_ok(p, trans_a, trans_b) => MatmulKernel::Coop(k),
         _ => MatmulKernel::Tiled(MATMUL_MAIN_F16),
     }

@@ -76,7 +76,7 @@ fn kernels_over_a_limit_are_refused_by_name() {
     assert_eq!(refused(&|c| c.max_push_constants = push), Some(Feature::PushConstants));
     assert_eq!(refused(&|c| c.subgroup_arithmetic = false), Some(Feature::Subgroups));
     // A kernel written for subgroups of 32 on a device of 64, and on one that can be asked for 32.
-    let coop = velox_engine::kernels::MATMUL_COOP_ROWS128_COLS128_MAIN.info();
+    let coop = velox_engine::kernels::MATMUL_COOP_ROWS128_COLS128_FRAG_COLS2_MAIN.info();
     assert_eq!(coop.needs.subgroup_size, Some(32));
     let mut amd = roomy.clone();
     amd.coop_matrix_f16 = Some([16, 16, 16]);

@@ -5,8 +5,10 @@ use crate::common;
 use common::*;
 use half::f16;
 use velox_engine::kernels::{
-    MATMUL_COOP8_ROWS128_COLS128_MAIN, MATMUL_COOP8_ROWS64_COLS64_MAIN, MATMUL_COOP_ROWS128_COLS128_MAIN,
-    MATMUL_COOP_ROWS128_COLS64_MAIN, MATMUL_COOP_ROWS64_COLS128_MAIN, MATMUL_COOP_ROWS64_COLS64_MAIN,
+    MATMUL_COOP8_ROWS128_COLS128_FRAG_COLS4_MAIN, MATMUL_COOP8_ROWS64_COLS64_FRAG_COLS2_MAIN,
+    MATMUL_COOP_ROWS128_COLS128_FRAG_COLS2_MAIN, MATMUL_COOP_ROWS128_COLS128_FRAG_COLS4_MAIN,
+    MATMUL_COOP_ROWS128_COLS64_FRAG_COLS2_MAIN, MATMUL_COOP_ROWS64_COLS128_FRAG_COLS2_MAIN,
+    MATMUL_COOP_ROWS64_COLS64_FRAG_COLS2_MAIN,
 };
 use velox_engine::ops::matmul::{
     coop_eligible, coop_kernel, coop_kernel_for, coop_layout_ok, matmul, matmul_bias, matmul_into,
@@ -316,38 +318,54 @@ fn f16_accumulate_on_interior_and_edge_tiles() {
     let (m, n, k) = (256, 136, 48);
     for (ta, tb) in [(false, false), (false, true), (true, false), (true, true)] {
         let what = format!("f16 ta={ta} tb={tb} ({})", matmul_variant(&gpu, DType::F16));
-        check_f16_product(&gpu, &mut rng, (m, n, k), (ta, tb), None, &what);
+        check_f16_product(&gpu, &mut rng, (m, n, k), (ta, tb), None, true, &what);
     }
 }
 
 #[test]
 fn f16_products_on_every_cooperative_tile() {
-    // The four output tiles of the cooperative kernels (128x128, 128x64 for outputs at most 64
-    // wide, 64x128 for at most 64 rows, 64x64), each whole (stored straight to memory) and with
-    // edges (staged), plain and accumulating, every transpose, a batch with a broadcast
-    // operand. Where the device has no cooperative matrices this runs the portable f16 kernel.
+    // The five kernels of the cooperative tiles (128x128 in 4 x 4 and in 4 x 2 fragments a
+    // subgroup, 128x64 for outputs at most 64 wide, 64x128 for at most 64 rows, 64x64), each
+    // whole (stored straight to memory) and with edges (staged), plain and accumulating, every
+    // transpose, a batch with a broadcast operand. Where the device has no cooperative
+    // matrices this runs the portable f16 kernel.
     let gpu = gpu();
     let mut rng = Rng::new(14);
-    for (m, n, k) in
-        [(256, 64, 40), (200, 40, 24), (64, 256, 48), (40, 136, 16), (64, 64, 64), (24, 48, 8), (136, 72, 32)]
-    {
-        for (ta, tb) in [(false, false), (false, true), (true, false), (true, true)] {
-            let kernel = coop_kernel_for(gpu.caps(), m, n).filter(|&k| gpu.supports(k));
-            let what = format!("[{m}, {n}] k {k} ta={ta} tb={tb} on {kernel:?}");
-            check_f16_product(&gpu, &mut rng, (m, n, k), (ta, tb), Some(1), &what);
+    for (m, n, k) in [
+        (256, 64, 40),
+        (200, 40, 24),
+        (64, 256, 48),
+        (40, 136, 16),
+        (64, 64, 64),
+        (24, 48, 8),
+        (136, 72, 32),
+        (256, 128, 48),
+        (200, 136, 24),
+    ] {
+        for wide in [true, false] {
+            let kernel = coop_kernel_for(gpu.caps(), m, n, wide).filter(|&k| gpu.supports(k));
+            if !wide && kernel == coop_kernel_for(gpu.caps(), m, n, true).filter(|&k| gpu.supports(k)) {
+                continue;
+            }
+            for (ta, tb) in [(false, false), (false, true), (true, false), (true, true)] {
+                let what = format!("[{m}, {n}] k {k} ta={ta} tb={tb} on {kernel:?}");
+                check_f16_product(&gpu, &mut rng, (m, n, k), (ta, tb), Some(1), wide, &what);
+            }
         }
     }
 }
 
 /// A batch of two f16 products `[m, k] x [k, n]` (transposed as `trans`; the second operand
 /// batched, or broadcast with `b_batch` Some(1)) into f32, accumulated onto random values and
-/// written over NaN, against the f64 reference of the rounded inputs.
+/// written over NaN, against the f64 reference of the rounded inputs; `wide_blocks` as the
+/// recording's [`velox_engine::Recorder::set_wide_matmul_blocks`].
 fn check_f16_product(
     gpu: &Gpu,
     rng: &mut Rng,
     (m, n, k): (usize, usize, usize),
     (ta, tb): (bool, bool),
     b_batch: Option<usize>,
+    wide_blocks: bool,
     what: &str,
 ) {
     let (sa, sb) = shapes(m, n, k, ta, tb, Some(2), b_batch);
@@ -358,6 +376,7 @@ fn check_f16_product(
     let acc = Tensor::from_slice(gpu, &[2, m, n], &old).unwrap();
     let plain = Tensor::from_slice(gpu, &[2, m, n], &vec![f32::NAN; 2 * m * n]).unwrap();
     let mut rec = gpu.recorder().unwrap();
+    rec.set_wide_matmul_blocks(wide_blocks);
     matmul_into(&mut rec, &a, &b, ta, tb, &acc, true).unwrap();
     matmul_into(&mut rec, &a, &b, ta, tb, &plain, false).unwrap();
     rec.submit().unwrap();
@@ -666,14 +685,24 @@ fn kernel_choice_follows_the_device() {
     let mut no_coop = h100.clone();
     no_coop.coop_matrix_f16 = None;
     assert!(!coop_eligible(&no_coop));
-    assert_eq!(coop_kernel(&h100), Some(MATMUL_COOP_ROWS128_COLS128_MAIN));
-    // The tile follows the output: a side of at most 64 takes the 64-wide tile.
-    assert_eq!(coop_kernel_for(&h100, 65, 65), Some(MATMUL_COOP_ROWS128_COLS128_MAIN));
-    assert_eq!(coop_kernel_for(&h100, 10_000, 64), Some(MATMUL_COOP_ROWS128_COLS64_MAIN));
-    assert_eq!(coop_kernel_for(&h100, 10_000, 32), Some(MATMUL_COOP_ROWS128_COLS64_MAIN));
-    assert_eq!(coop_kernel_for(&h100, 64, 512), Some(MATMUL_COOP_ROWS64_COLS128_MAIN));
-    assert_eq!(coop_kernel_for(&h100, 1, 1), Some(MATMUL_COOP_ROWS64_COLS64_MAIN));
-    assert_eq!(coop_kernel_for(&emulated, 64, 64), None);
+    assert_eq!(coop_kernel(&h100), Some(MATMUL_COOP_ROWS128_COLS128_FRAG_COLS4_MAIN));
+    // The tile follows the output: a side of at most 64 takes the 64-wide tile. The 128x128
+    // tile takes 4 x 4 fragments a subgroup unless the recording asks for 4 x 2.
+    assert_eq!(coop_kernel_for(&h100, 65, 65, true), Some(MATMUL_COOP_ROWS128_COLS128_FRAG_COLS4_MAIN));
+    assert_eq!(coop_kernel_for(&h100, 65, 65, false), Some(MATMUL_COOP_ROWS128_COLS128_FRAG_COLS2_MAIN));
+    for wide in [true, false] {
+        assert_eq!(
+            coop_kernel_for(&h100, 10_000, 64, wide),
+            Some(MATMUL_COOP_ROWS128_COLS64_FRAG_COLS2_MAIN)
+        );
+        assert_eq!(
+            coop_kernel_for(&h100, 10_000, 32, wide),
+            Some(MATMUL_COOP_ROWS128_COLS64_FRAG_COLS2_MAIN)
+        );
+        assert_eq!(coop_kernel_for(&h100, 64, 512, wide), Some(MATMUL_COOP_ROWS64_COLS128_FRAG_COLS2_MAIN));
+        assert_eq!(coop_kernel_for(&h100, 1, 1, wide), Some(MATMUL_COOP_ROWS64_COLS64_FRAG_COLS2_MAIN));
+        assert_eq!(coop_kernel_for(&emulated, 64, 64, wide), None);
+    }
     // A device like lavapipe from Mesa 26: 8x8x8 shapes, subgroups of 8, 32 KiB shared, with
     // the GPU kernel variants (VELOX_CPU_KERNELS=0, as tools/coop-check.sh runs it).
     let mut lvp = caps.clone();
@@ -682,8 +711,8 @@ fn kernel_choice_follows_the_device() {
     lvp.min_subgroup_size = 8;
     lvp.max_subgroup_size = 8;
     lvp.max_shared_memory = 32768;
-    assert_eq!(coop_kernel(&lvp), Some(MATMUL_COOP8_ROWS128_COLS128_MAIN));
-    assert_eq!(coop_kernel_for(&lvp, 40, 64), Some(MATMUL_COOP8_ROWS64_COLS64_MAIN));
+    assert_eq!(coop_kernel(&lvp), Some(MATMUL_COOP8_ROWS128_COLS128_FRAG_COLS4_MAIN));
+    assert_eq!(coop_kernel_for(&lvp, 40, 64, true), Some(MATMUL_COOP8_ROWS64_COLS64_FRAG_COLS2_MAIN));
     let mut wide = lvp.clone();
     wide.min_subgroup_size = 32;
     wide.max_subgroup_size = 32;

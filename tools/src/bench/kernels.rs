@@ -103,11 +103,6 @@ pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
                 let wide = |v: &[f32]| v.iter().map(|&x| x as f64).collect::<Vec<f64>>();
                 (ta, tb, wide(&a), wide(&b))
             };
-            let c_out = Tensor::empty(gpu, &[n, n], DType::F32)?;
-            let timing = time_gpu(gpu, repeats, |rec| {
-                matmul::matmul_into(rec, &ta, &tb, false, false, &c_out, false)
-            })?;
-            let got: Vec<f32> = c_out.read()?;
             // Sample up to 4096 entries (all of them for small n).
             let samples: Vec<(usize, usize)> = if n * n <= 4096 {
                 (0..n * n).map(|i| (i / n, i % n)).collect()
@@ -116,19 +111,41 @@ pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
             };
             let want: Vec<f64> =
                 samples.iter().map(|&(i, j)| (0..n).map(|k| a64[i * n + k] * b64[k * n + j]).sum()).collect();
-            let have: Vec<f32> = samples.iter().map(|&(i, j)| got[i * n + j]).collect();
-            let tflops = 2.0 * (n as f64).powi(3) / (timing.0 * 1e-3) / 1e12;
-            let peak = peaks.map(|p| tflops / if precision == DType::F16 { p.0 } else { p.1 });
-            let label = if precision == DType::F16 { "f16->f32" } else { "f32" };
-            let over = if samples.len() == n * n {
-                "all outputs".to_string()
-            } else {
-                format!("{} sampled outputs", samples.len())
+            // The device's choice ("matmul"), and where a cooperative product could take its
+            // large tile in 4 x 2 fragments a subgroup instead of 4 x 4, that beside it, so that
+            // a run says what the choice is worth.
+            let with_wide = |wide: bool| -> Result<String> {
+                let mut rec = gpu.recorder()?;
+                rec.set_wide_matmul_blocks(wide);
+                matmul::product_kernel(&rec, &ta, &tb, false, false)
             };
-            let (elem, roof) = if precision == DType::F16 { (2.0, roof16) } else { (4.0, roof32) };
-            let what = ("matmul".to_string(), format!("{n}x{n}x{n}"), label);
-            let r = product_record(what, &device, timing, repeats, (n, n, n), elem, roof);
-            push(r.peak(peak).against(&have, &want, over).kernel(matmul::matmul_variant(gpu, precision)));
+            let chosen = with_wide(true)?;
+            for (name, wide) in [("matmul", true), ("matmul other blocks", false)] {
+                if !wide && with_wide(false)? == chosen {
+                    continue;
+                }
+                let c_out = Tensor::empty(gpu, &[n, n], DType::F32)?;
+                let timing = time_gpu(gpu, repeats, |rec| {
+                    rec.set_wide_matmul_blocks(wide);
+                    matmul::matmul_into(rec, &ta, &tb, false, false, &c_out, false)
+                })?;
+                let got: Vec<f32> = c_out.read()?;
+                let have: Vec<f32> = samples.iter().map(|&(i, j)| got[i * n + j]).collect();
+                let tflops = 2.0 * (n as f64).powi(3) / (timing.0 * 1e-3) / 1e12;
+                let peak = peaks.map(|p| tflops / if precision == DType::F16 { p.0 } else { p.1 });
+                let label = if precision == DType::F16 { "f16->f32" } else { "f32" };
+                let over = if samples.len() == n * n {
+                    "all outputs".to_string()
+                } else {
+                    format!("{} sampled outputs", samples.len())
+                };
+                let (elem, roof) = if precision == DType::F16 { (2.0, roof16) } else { (4.0, roof32) };
+                let what = (name.to_string(), format!("{n}x{n}x{n}"), label);
+                let r = product_record(what, &device, timing, repeats, (n, n, n), elem, roof);
+                let kernel =
+                    if wide { matmul::matmul_variant(gpu, precision).to_string() } else { with_wide(false)? };
+                push(r.peak(peak).against(&have, &want, over).kernel(&kernel));
+            }
         }
     }
 
