@@ -913,7 +913,7 @@ struct CapabilityNeeds {
     float_atomics: bool,
     coop_matrix: bool,
     memory_model: bool,
-    /// `VkSubgroupFeatureFlags` bits: BASIC 1, VOTE 2, ARITHMETIC 4, SHUFFLE 16.
+    /// `VkSubgroupFeatureFlags` bits: BASIC 1, VOTE 2, ARITHMETIC 4, BALLOT 8, SHUFFLE 16.
     subgroup_ops: u32,
 }
 
@@ -933,6 +933,7 @@ fn capability_needs(words: &[u32]) -> Result<CapabilityNeeds, String> {
                 61 => needs.subgroup_ops |= 1,      // GroupNonUniform
                 62 => needs.subgroup_ops |= 1 | 2,  // ...Vote
                 63 => needs.subgroup_ops |= 1 | 4,  // ...Arithmetic
+                64 => needs.subgroup_ops |= 1 | 8,  // ...Ballot
                 65 => needs.subgroup_ops |= 1 | 16, // ...Shuffle
                 other => {
                     return Err(format!(

@@ -23,14 +23,7 @@
 // sorts (attention windows, a frame's Gaussians, the encoder's cells) took three dispatches a
 // pass, 24 for 32-bit keys.
 
-struct Params {
-    n: u32,
-    num_blocks: u32,
-    shift: u32,
-    mask: u32,
-    key_bits: u32, // `block` only: all the passes
-    iota: u32,     // 1: the values are the elements' indices (values_in is not read)
-}
+// @include sort_params.wgsl
 
 const WG: u32 = 256u;
 const ITEMS: u32 = 16u; // per invocation

@@ -27,6 +27,8 @@ pub struct Caps {
     pub subgroup_arithmetic: bool,
     /// Subgroup shuffles (subgroupShuffleXor) in compute shaders.
     pub subgroup_shuffle: bool,
+    /// Subgroup ballots (subgroupBallot) in compute shaders.
+    pub subgroup_ballot: bool,
     pub max_shared_memory: u32,
     pub max_workgroup_invocations: u32,
     pub max_workgroup_size: [u32; 3],
@@ -405,6 +407,8 @@ impl Caps {
                 subgroup_shuffle: p11
                     .subgroup_supported_operations
                     .contains(vk::SubgroupFeatureFlags::SHUFFLE)
+                    && p11.subgroup_supported_stages.contains(vk::ShaderStageFlags::COMPUTE),
+                subgroup_ballot: p11.subgroup_supported_operations.contains(vk::SubgroupFeatureFlags::BALLOT)
                     && p11.subgroup_supported_stages.contains(vk::ShaderStageFlags::COMPUTE),
                 subgroup_arithmetic: p11
                     .subgroup_supported_operations

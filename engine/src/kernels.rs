@@ -46,7 +46,7 @@ pub struct Needs {
     /// The Vulkan memory model (`vulkanMemoryModel`; naga's cooperative-matrix modules use it).
     pub memory_model: bool,
     /// Any subgroup operation, and which (`VkSubgroupFeatureFlags` bits: basic 1, vote 2,
-    /// arithmetic 4, shuffle 16), from the capabilities the module declares.
+    /// arithmetic 4, ballot 8, shuffle 16), from the capabilities the module declares.
     pub subgroups: bool,
     pub subgroup_ops: u32,
     /// The exact subgroup size the kernel is written for (`// @subgroup_size N` in its file),
@@ -93,12 +93,16 @@ impl KernelInfo {
             return Some((Feature::MemoryModel, "the Vulkan memory model (vulkanMemoryModel)".into()));
         }
         const VOTE_OR_ARITHMETIC: u32 = 2 | 4;
+        const BALLOT: u32 = 8;
         const SHUFFLE: u32 = 16;
         if (n.subgroups || n.subgroup_ops & VOTE_OR_ARITHMETIC != 0) && !c.subgroup_arithmetic {
             return Some((Feature::Subgroups, "subgroup arithmetic and votes in compute shaders".into()));
         }
         if n.subgroup_ops & SHUFFLE != 0 && !c.subgroup_shuffle {
             return Some((Feature::Subgroups, "subgroup shuffles in compute shaders".into()));
+        }
+        if n.subgroup_ops & BALLOT != 0 && !c.subgroup_ballot {
+            return Some((Feature::Subgroups, "subgroup ballots in compute shaders".into()));
         }
         if let Some(size) = n.subgroup_size {
             if !c.subgroup_size_fits(size) {

@@ -492,11 +492,12 @@ def case_for(record, dev):
     name = record["name"]
     if name == "matmul" or name.startswith("matmul "):
         return matmul_case(record, dev)
-    builders = {"softmax": softmax_case, "exclusive scan": scan_case, "radix sort pairs": sort_case,
-                "radix sort, other hist": sort_case,
+    builders = {"softmax": softmax_case, "exclusive scan": scan_case,
                 "window matmuls alone": window_matmuls_case, "encoder": encoder_case}
     if name in builders:
         return builders[name](record, dev)
+    if name.startswith("radix sort"):
+        return sort_case(record, dev)
     if name.startswith("scatter-add"):
         return scatter_case(record, dev)
     if name.startswith("gather rows"):

@@ -152,10 +152,7 @@ pub fn report(gpu: &Gpu) -> serde_json::Value {
         "scatter-add": scatter_add::variant(gpu),
         "gather": velox_engine::ops::gather::variant(gpu),
         "fps": velox_engine::ops::fps::variant(gpu).1,
-        "sort": format!(
-            "LSD radix, 4 bits a pass, {}",
-            velox_engine::ops::sort::Histogram::chosen(gpu).describe()
-        ),
+        "sort": format!("LSD radix, {}", velox_engine::ops::sort::Radix::chosen(gpu).describe()),
         "scan": "workgroup-memory block scan, multi-level",
         "raster backward": raster_backward,
         "raster backward (bench)": raster_backward_bench,
@@ -171,7 +168,7 @@ pub fn report(gpu: &Gpu) -> serde_json::Value {
         "max_storage_buffer_range": c.max_storage_buffer_range, "max_buffer_size": c.max_buffer_size,
         "f16_arithmetic": c.f16_arithmetic, "f16_storage": c.f16_storage,
         "float_atomic_add": c.float_atomic_add, "subgroup_arithmetic": c.subgroup_arithmetic,
-        "subgroup_shuffle": c.subgroup_shuffle, "coop_matrix_shapes": c.coop_matrix_shapes,
+        "subgroup_shuffle": c.subgroup_shuffle, "subgroup_ballot": c.subgroup_ballot, "coop_matrix_shapes": c.coop_matrix_shapes,
         "timestamps": c.timestamps, "push_descriptors": c.push_descriptors,
         "validation": gpu.validation().name(), "forced_fallbacks": c.forced,
         "portability_subset": c.portability_subset, "robust_buffer_access": c.robust_buffer_access,

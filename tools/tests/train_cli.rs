@@ -517,6 +517,8 @@ fn two_small_autoencoder_steps_record_at_most_half_the_dispatches_they_once_did(
     // lavapipe with them (64 more sums and 6 bias additions than the CPU kernels' 900). Both
     // counts took 8 more when the rasterisation joined the step's one recording: per view and
     // step, the fill of its tile lists' keys and the veto of the update.
+    // The GPU variants' sorts of more than one block then took 8-bit digits, half the passes:
+    // 966.
     let caps = velox_engine::Gpu::new().unwrap().caps().clone();
     let align = caps.min_storage_buffer_offset_alignment;
     let bound = match (align <= 64, caps.cpu_kernels) {

@@ -120,9 +120,9 @@ pub fn flops(n: usize, k: usize) -> u64 {
     11 * distance_evals(n, k)
 }
 
-/// Bytes [`group_by_cell`] reads and writes for `n` points and `k` cells.
-pub fn group_bytes(n: usize, k: usize) -> u64 {
-    sort::bytes_moved(n, key_bits_for(k as u64)) + 4 * (2 * n as u64 + k as u64 + 1)
+/// Bytes [`group_by_cell`] reads and writes on `gpu` for `n` points and `k` cells.
+pub fn group_bytes(gpu: &crate::Gpu, n: usize, k: usize) -> u64 {
+    sort::bytes_moved(gpu, n, key_bits_for(k as u64)) + 4 * (2 * n as u64 + k as u64 + 1)
 }
 
 /// The CPU versions the kernels are checked against.

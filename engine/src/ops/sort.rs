@@ -1,37 +1,47 @@
-//! Stable LSD radix sort of u32 keys with 32-bit values. Kernels: `shaders/sort.wgsl`.
+//! Stable LSD radix sort of u32 keys with 32-bit values. Kernels: `shaders/sort.wgsl` (4-bit
+//! digits) and `shaders/sort_bytes.wgsl` (8-bit digits, for GPUs).
 //!
-//! Sorts on the low `key_bits` bits of each key, [`RADIX_BITS`] bits a pass from the least
-//! significant digit up, so fewer key bits mean fewer passes (13 bits: 4 passes, the last on
-//! one bit). Each pass is a histogram per block of [`BLOCK`] elements (its lanes' counts added
-//! by subgroup on a GPU that can, by workgroup atomics elsewhere: [`Histogram`]), an exclusive
-//! scan of the
+//! Sorts on the low `key_bits` bits of each key, a digit a pass from the least significant up,
+//! so fewer key bits mean fewer passes (13 bits: 4 passes of 4 bits, the last on one bit, or 2
+//! of 8). Each pass is a histogram per block of [`BLOCK`] elements, an exclusive scan of the
 //! digit-major counts ([`crate::ops::scan`]) that gives every (digit, block) its place, and a
-//! stable scatter; the passes ping-pong between two buffer pairs. Every pass is stable, so the
-//! whole sort is: equal masked keys keep their input order.
+//! stable scatter; the passes ping-pong between two buffer pairs. [`Radix`] says which digits
+//! and histograms a device takes. Every pass is stable, so the whole sort is: equal masked keys
+//! keep their input order, and every way of sorting gives the same bits.
 //!
 //! Only the masked bits order the keys, but the keys come back whole, high bits included: a
 //! caller that packs a payload above `key_bits` (the rasteriser packs tile and depth) gets it
 //! back with its key, and one that wants masked keys can mask them.
 //!
 //! Tests: the harness's `sort` row (`engine/tests/ops/cases.rs`: forward against the f64 reference
-//! at awkward shapes); `engine/tests/ops/scan_sort.rs` (stability, every key width, large inputs).
+//! at awkward shapes); `engine/tests/ops/scan_sort.rs` (stability, every key width, large inputs,
+//! every [`Radix`] on one device).
 
 use crate::error::{Error, Result};
 use crate::fit_u32;
 use crate::kernels::args;
-use crate::kernels::{SORT_BLOCK, SORT_HISTOGRAM, SORT_HISTOGRAM_SUBGROUPS, SORT_SCATTER};
+use crate::kernels::{
+    SORT_BLOCK, SORT_BYTES_HISTOGRAM, SORT_BYTES_SCATTER, SORT_HISTOGRAM, SORT_HISTOGRAM_SUBGROUPS,
+    SORT_SCATTER,
+};
 use crate::ops::scan::exclusive_scan;
 use crate::recorder::Recorder;
 use crate::tensor::{DType, Tensor};
 
-/// Bits sorted per pass (16 digits); the kernels count and rank 16 digits.
+/// Bits sorted per pass of `shaders/sort.wgsl` (16 digits), which also sorts every input of one
+/// block, whatever the [`Radix`].
 pub const RADIX_BITS: u32 = 4;
-/// Elements per workgroup; must match `BLOCK` in `shaders/sort.wgsl`.
+/// Bits sorted per pass of `shaders/sort_bytes.wgsl` (256 digits).
+pub const BYTE_BITS: u32 = 8;
+/// Elements per workgroup; must match `BLOCK` in both shaders.
 pub const BLOCK: usize = 4096;
+/// The smallest and largest subgroups `shaders/sort_bytes.wgsl` ranks by: its per-subgroup
+/// counters are sized for subgroups of at least 8, and a ballot holds 128 lanes.
+const BYTE_SUBGROUPS: std::ops::RangeInclusive<u32> = 8..=128;
 
 use crate::kernels::params::SortParams as Params;
 
-/// Both histogram kernels: one set of bindings and parameters.
+/// Both 4-bit histogram kernels: one set of bindings and parameters.
 type HistogramKernel = crate::kernels::Kernel<Params, args::SortHistogramArgs<'static>>;
 
 /// Sorts `keys` (u32) with their `values` (u32, i32 or f32, moved as raw bits) by the low
@@ -43,78 +53,130 @@ pub fn sort_pairs(
     values: &Tensor,
     key_bits: u32,
 ) -> Result<(Tensor, Tensor)> {
-    sort_with(rec, keys, Some(values), key_bits, Histogram::Fastest)
+    sort_with(rec, keys, Some(values), key_bits, Radix::Fastest)
 }
 
-/// How the passes count each block's digits: by workgroup atomics, one an element, or by
-/// subgroup adds, one atomic a subgroup and digit (`histogram_subgroups` in
-/// `shaders/sort.wgsl`). [`Histogram::Fastest`] takes subgroup adds on a GPU that has them,
-/// where an element's atomic contends with the workgroup's for 16 counters; a CPU device keeps
-/// the atomics, which cost it nothing more (lavapipe, 262144 pairs of 32-bit keys: 28 ms with
-/// either, within its noise). The tests run both on one device; `velox bench kernels` times
-/// both.
+/// How the passes of a sort of more than one block cut the keys and count their digits:
+/// - 4-bit digits counted by workgroup atomics, one an element ([`Radix::Atomics`]);
+/// - 4-bit digits counted by subgroup adds, one atomic a subgroup and digit
+///   (`histogram_subgroups` in `shaders/sort.wgsl`: [`Radix::Subgroups`]);
+/// - 8-bit digits, half the passes, counted and ranked by subgroup ballots
+///   (`shaders/sort_bytes.wgsl`: [`Radix::Bytes`]).
+///
+/// [`Radix::Fastest`] takes 8-bit digits on a GPU whose subgroups can rank them (ballots, 8 to
+/// 128 lanes), else 4-bit digits with subgroup histograms on a GPU that has subgroup
+/// arithmetic; a CPU device keeps 4-bit digits and atomics, which cost it nothing more
+/// (lavapipe, 262144 pairs of 32-bit keys: 28 ms with either histogram, within its noise;
+/// docs/decisions/raster.md says why GPUs take the bytes). The tests run every one on one
+/// device; `velox bench kernels` times every one the device can run.
 #[doc(hidden)]
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Histogram {
+pub enum Radix {
     Fastest,
     Atomics,
     Subgroups,
+    Bytes,
 }
 
-impl Histogram {
-    /// What [`Histogram::Fastest`] takes on `gpu`: subgroup adds on a GPU that has them.
-    pub fn chosen(gpu: &crate::Gpu) -> Histogram {
-        if !gpu.caps().cpu_kernels && gpu.supports(SORT_HISTOGRAM_SUBGROUPS) {
-            Histogram::Subgroups
+impl Radix {
+    /// Every way of sorting but [`Radix::Fastest`].
+    pub const ALL: [Radix; 3] = [Radix::Atomics, Radix::Subgroups, Radix::Bytes];
+
+    /// What [`Radix::Fastest`] takes on `gpu`.
+    pub fn chosen(gpu: &crate::Gpu) -> Radix {
+        if gpu.caps().cpu_kernels {
+            Radix::Atomics
+        } else if Radix::Bytes.runs_on(gpu) {
+            Radix::Bytes
+        } else if Radix::Subgroups.runs_on(gpu) {
+            Radix::Subgroups
         } else {
-            Histogram::Atomics
+            Radix::Atomics
         }
     }
 
-    /// Whether `gpu` can count this way.
+    /// Whether `gpu` can sort this way.
     pub fn runs_on(self, gpu: &crate::Gpu) -> bool {
-        self.kernel(gpu).is_ok()
+        self.check(gpu).is_ok()
     }
 
-    /// The histogram kernel this way of counting takes on `gpu`; an error where the device
-    /// cannot run it.
-    fn kernel(self, gpu: &crate::Gpu) -> Result<HistogramKernel> {
+    /// Why `gpu` cannot sort this way, if it cannot.
+    fn check(self, gpu: &crate::Gpu) -> Result<()> {
         match self {
-            Histogram::Fastest => Histogram::chosen(gpu).kernel(gpu),
-            Histogram::Atomics => Ok(SORT_HISTOGRAM),
-            Histogram::Subgroups => {
-                gpu.check_supported(SORT_HISTOGRAM_SUBGROUPS)?;
-                Ok(SORT_HISTOGRAM_SUBGROUPS)
+            Radix::Fastest | Radix::Atomics => Ok(()),
+            Radix::Subgroups => gpu.check_supported(SORT_HISTOGRAM_SUBGROUPS),
+            Radix::Bytes => {
+                gpu.check_supported(SORT_BYTES_HISTOGRAM)?;
+                gpu.check_supported(SORT_BYTES_SCATTER)?;
+                let c = gpu.caps();
+                if BYTE_SUBGROUPS.contains(&c.min_subgroup_size)
+                    && BYTE_SUBGROUPS.contains(&c.max_subgroup_size)
+                {
+                    Ok(())
+                } else {
+                    Err(Error::unsupported(
+                        crate::error::Feature::SubgroupSize,
+                        format!(
+                            "8-bit radix digits need subgroups of 8 to 128 invocations; the device runs {}..={}",
+                            c.min_subgroup_size, c.max_subgroup_size
+                        ),
+                    ))
+                }
             }
+        }
+    }
+
+    /// Bits a pass sorts (of a sort of more than one block).
+    pub fn digit_bits(self, gpu: &crate::Gpu) -> u32 {
+        match self {
+            Radix::Fastest => Radix::chosen(gpu).digit_bits(gpu),
+            Radix::Bytes => BYTE_BITS,
+            Radix::Atomics | Radix::Subgroups => RADIX_BITS,
         }
     }
 
     pub fn describe(self) -> &'static str {
         match self {
-            Histogram::Fastest => "the device's fastest histograms",
-            Histogram::Atomics => "histograms by workgroup atomics",
-            Histogram::Subgroups => "histograms by subgroup adds",
+            Radix::Fastest => "the device's fastest passes",
+            Radix::Atomics => "4-bit digits, histograms by workgroup atomics",
+            Radix::Subgroups => "4-bit digits, histograms by subgroup adds",
+            Radix::Bytes => "8-bit digits, histograms and ranks by subgroup ballots",
         }
     }
 }
 
-/// [`sort_pairs`] with a chosen histogram kernel (for the tests and the benchmarks).
+/// [`sort_pairs`] a chosen way (for the tests and the benchmarks); an error where the device
+/// cannot sort that way.
 #[doc(hidden)]
 pub fn sort_pairs_with(
     rec: &mut Recorder,
     keys: &Tensor,
     values: &Tensor,
     key_bits: u32,
-    histogram: Histogram,
+    radix: Radix,
 ) -> Result<(Tensor, Tensor)> {
-    sort_with(rec, keys, Some(values), key_bits, histogram)
+    radix.check(keys.gpu())?;
+    sort_with(rec, keys, Some(values), key_bits, radix)
 }
 
 /// The keys sorted as [`sort_pairs`] sorts them, and the order that sorts them (each sorted
 /// key's index in `keys`, u32): a sort of (key, index) pairs whose indices the kernels make
 /// as they read the keys, with no pass to write them first.
 pub fn sort_indices(rec: &mut Recorder, keys: &Tensor, key_bits: u32) -> Result<(Tensor, Tensor)> {
-    sort_with(rec, keys, None, key_bits, Histogram::Fastest)
+    sort_with(rec, keys, None, key_bits, Radix::Fastest)
+}
+
+/// [`sort_indices`] a chosen way (for the tests); an error where the device cannot sort that
+/// way.
+#[doc(hidden)]
+pub fn sort_indices_with(
+    rec: &mut Recorder,
+    keys: &Tensor,
+    key_bits: u32,
+    radix: Radix,
+) -> Result<(Tensor, Tensor)> {
+    radix.check(keys.gpu())?;
+    sort_with(rec, keys, None, key_bits, radix)
 }
 
 fn sort_with(
@@ -122,7 +184,7 @@ fn sort_with(
     keys: &Tensor,
     values: Option<&Tensor>,
     key_bits: u32,
-    histogram: Histogram,
+    radix: Radix,
 ) -> Result<(Tensor, Tensor)> {
     let mut iota = values.is_none() as u32;
     // Without values the keys stand in for the bindings the kernels then do not read.
@@ -155,7 +217,7 @@ fn sort_with(
     let num_blocks = (n as usize).div_ceil(BLOCK);
     if num_blocks == 1 {
         // Every pass in one workgroup, one dispatch (`block` in the shader).
-        let tmp = if passes(key_bits) > 1 { new_pair()? } else { out.clone() };
+        let tmp = if key_bits > RADIX_BITS { new_pair()? } else { out.clone() };
         let params = Params { n, num_blocks: 1, shift: 0, mask: 0, key_bits, iota };
         let args = args::SortBlockArgs {
             keys_in: keys,
@@ -168,35 +230,58 @@ fn sort_with(
         rec.dispatch(SORT_BLOCK, [1, 1, 1], args, &params)?;
         return Ok(out);
     }
-    let histogram = histogram.kernel(gpu)?;
-    let counts = Tensor::empty(gpu, &[16 * num_blocks], DType::U32)?;
-    let offsets = Tensor::empty(gpu, &[16 * num_blocks], DType::U32)?;
+    let radix = if radix == Radix::Fastest { Radix::chosen(gpu) } else { radix };
+    let digit_bits = radix.digit_bits(gpu);
+    let digits = 1usize << digit_bits;
+    let histogram: Option<HistogramKernel> = match radix {
+        Radix::Atomics => Some(SORT_HISTOGRAM),
+        Radix::Subgroups => Some(SORT_HISTOGRAM_SUBGROUPS),
+        _ => None,
+    };
+    let counts = Tensor::empty(gpu, &[digits * num_blocks], DType::U32)?;
+    let offsets = Tensor::empty(gpu, &[digits * num_blocks], DType::U32)?;
     // A second pair is allocated only when there is a second pass.
     let mut src = (keys.clone(), values.clone());
     let mut shift = 0;
     while shift < key_bits {
-        let bits = RADIX_BITS.min(key_bits - shift);
+        let bits = digit_bits.min(key_bits - shift);
         let params =
             Params { n, num_blocks: num_blocks as u32, shift, mask: (1u32 << bits) - 1, key_bits, iota };
-        rec.dispatch_linear(
-            histogram,
-            num_blocks as u64,
-            args::SortHistogramArgs { keys_in: &src.0, counts: &counts },
-            &params,
-        )?;
+        let blocks = num_blocks as u64;
+        match histogram {
+            Some(h) => rec.dispatch_linear(
+                h,
+                blocks,
+                args::SortHistogramArgs { keys_in: &src.0, counts: &counts },
+                &params,
+            )?,
+            None => rec.dispatch_linear(
+                SORT_BYTES_HISTOGRAM,
+                blocks,
+                args::SortBytesHistogramArgs { keys_in: &src.0, counts: &counts },
+                &params,
+            )?,
+        }
         exclusive_scan(rec, &counts, &offsets)?;
-        rec.dispatch_linear(
-            SORT_SCATTER,
-            num_blocks as u64,
-            args::SortScatterArgs {
+        if histogram.is_some() {
+            let args = args::SortScatterArgs {
                 keys_in: &src.0,
                 values_in: &src.1,
                 offsets: &offsets,
                 keys_out: &out.0,
                 values_out: &out.1,
-            },
-            &params,
-        )?;
+            };
+            rec.dispatch_linear(SORT_SCATTER, blocks, args, &params)?;
+        } else {
+            let args = args::SortBytesScatterArgs {
+                keys_in: &src.0,
+                values_in: &src.1,
+                offsets: &offsets,
+                keys_out: &out.0,
+                values_out: &out.1,
+            };
+            rec.dispatch_linear(SORT_BYTES_SCATTER, blocks, args, &params)?;
+        }
         shift += bits;
         iota = 0;
         if shift < key_bits {
@@ -209,16 +294,18 @@ fn sort_with(
     Ok(out)
 }
 
-/// Number of passes for `key_bits` bits.
-pub fn passes(key_bits: u32) -> u32 {
-    key_bits.div_ceil(RADIX_BITS)
+/// Number of passes of a sort of `n` elements on `key_bits` bits on `gpu`: one workgroup's
+/// 4-bit passes for a single block, else the device's digits ([`Radix::chosen`]).
+pub fn passes(gpu: &crate::Gpu, n: usize, key_bits: u32) -> u32 {
+    let bits = if n <= BLOCK { RADIX_BITS } else { Radix::chosen(gpu).digit_bits(gpu) };
+    key_bits.div_ceil(bits)
 }
 
-/// Bytes the sort of `n` pairs reads and writes in device memory (for GB/s in benchmarks):
-/// per pass, the histogram reads the keys and the scatter reads and writes keys and values
-/// (the scan of the counts is small beside them).
-pub fn bytes_moved(n: usize, key_bits: u32) -> u64 {
-    passes(key_bits) as u64 * 5 * 4 * n as u64
+/// Bytes the sort of `n` pairs on `gpu` reads and writes in device memory (for GB/s in
+/// benchmarks): per pass, the histogram reads the keys and the scatter reads and writes keys
+/// and values (the scan of the counts is small beside them).
+pub fn bytes_moved(gpu: &crate::Gpu, n: usize, key_bits: u32) -> u64 {
+    passes(gpu, n, key_bits) as u64 * 5 * 4 * n as u64
 }
 
 /// The CPU version the kernels are checked against.

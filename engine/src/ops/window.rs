@@ -274,11 +274,13 @@ pub fn window_ids_bytes(n: usize) -> u64 {
     20 * n as u64
 }
 
-/// Bytes [`group_by_window`] reads and writes for `n` points in `num_windows` windows: the
-/// sort, the scan, and the heads and segments passes.
-pub fn group_bytes(n: usize, num_windows: u64) -> u64 {
+/// Bytes [`group_by_window`] reads and writes on `gpu` for `n` points in `num_windows` windows:
+/// the sort, the scan, and the heads and segments passes.
+pub fn group_bytes(gpu: &crate::Gpu, n: usize, num_windows: u64) -> u64 {
     let capacity = num_windows.min(n as u64);
-    sort::bytes_moved(n, key_bits_for(num_windows)) + scan::bytes_moved(n) + 4 * (5 * n as u64 + 2 * capacity)
+    sort::bytes_moved(gpu, n, key_bits_for(num_windows))
+        + scan::bytes_moved(n)
+        + 4 * (5 * n as u64 + 2 * capacity)
 }
 
 /// The CPU versions the kernels are checked against.

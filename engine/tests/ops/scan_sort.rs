@@ -1,7 +1,7 @@
 use crate::common;
 use common::*;
 use velox_engine::ops::scan::{self, exclusive_scan, exclusive_scan_items};
-use velox_engine::ops::sort::{self, sort_pairs, Histogram};
+use velox_engine::ops::sort::{self, sort_pairs, Radix};
 
 const SIZES: [usize; 9] = [0, 1, 2, 255, 256, 257, 4095, 4097, 100_003];
 
@@ -169,31 +169,66 @@ fn sort_moves_f32_values_and_keeps_shapes() {
 }
 
 #[test]
-fn sort_histograms_by_atomics_and_by_subgroups_sort_alike() {
-    // The two ways of counting a block's digits, on one device: both sorts are the reference's,
-    // over several blocks with a partial last one, on full and on narrow keys. Where the device
-    // has no subgroup adds, asking for them is an error that names the kernel.
+fn every_way_of_sorting_sorts_alike() {
+    // 4-bit digits counted by atomics and by subgroup adds, and 8-bit digits ranked by subgroup
+    // ballots, on one device: every sort is the reference's (keys and the values that say the
+    // order is stable), over several blocks with a partial last one, on full and on narrow keys
+    // (13 bits: a last 8-bit pass of 5), on keys of few values (groups of equal digits as wide
+    // as a subgroup, and runs of one digit across rounds and subgroups), with values given and
+    // with the indices the kernels make. Where the device cannot sort a way, asking for it is
+    // an error that says what it lacks.
     let gpu = gpu();
+    let c = gpu.caps();
+    let bytes_possible =
+        c.subgroup_ballot && c.subgroup_shuffle && c.min_subgroup_size >= 8 && c.max_subgroup_size <= 128;
     let mut rng = Rng::new(12);
-    for (n, bits) in [(3 * sort::BLOCK + 77, 32), (5 * sort::BLOCK, 13), (sort::BLOCK + 1, 4)] {
-        let keys: Vec<u32> = (0..n).map(|_| rng.below(1 << (bits - 1)) * 2 + rng.below(2)).collect();
+    let cases: [(usize, u32, u32); 5] = [
+        (3 * sort::BLOCK + 77, 32, 0),
+        (5 * sort::BLOCK, 13, 0),
+        (sort::BLOCK + 1, 4, 0),
+        (2 * sort::BLOCK + 999, 16, 3),
+        (3 * sort::BLOCK, 24, 1),
+    ];
+    for (n, bits, few) in cases {
+        // `few` > 0: keys of 2^few values spread over the key's bits.
+        let keys: Vec<u32> = (0..n)
+            .map(|_| match few {
+                0 => rng.below(1 << (bits - 1)) * 2 + rng.below(2),
+                _ => rng.below(1 << few).wrapping_mul(0x9e37_79b1) >> (32 - bits),
+            })
+            .collect();
         let values: Vec<u32> = (0..n as u32).collect();
         let want = sort::reference::sort_pairs(&keys, &values, bits);
         let k = Tensor::from_slice(&gpu, &[n], &keys).unwrap();
         let v = Tensor::from_slice(&gpu, &[n], &values).unwrap();
-        for histogram in [Histogram::Atomics, Histogram::Subgroups] {
-            let mut rec = gpu.recorder().unwrap();
-            let (sk, sv) = match sort::sort_pairs_with(&mut rec, &k, &v, bits, histogram) {
-                Ok(out) => out,
-                Err(e) if histogram == Histogram::Subgroups && !gpu.caps().subgroup_arithmetic => {
-                    assert!(e.to_string().contains("histogram_subgroups"), "{e}");
-                    continue;
-                }
-                Err(e) => panic!("{histogram:?}: {e}"),
-            };
-            rec.submit().unwrap();
-            let got = (sk.read::<u32>().unwrap(), sv.read::<u32>().unwrap());
-            assert!(got == want, "{histogram:?}, {n} keys of {bits} bits: not the reference's order");
+        for radix in Radix::ALL {
+            for indices in [false, true] {
+                let mut rec = gpu.recorder().unwrap();
+                let sorted = match indices {
+                    false => sort::sort_pairs_with(&mut rec, &k, &v, bits, radix),
+                    true => sort::sort_indices_with(&mut rec, &k, bits, radix),
+                };
+                let (sk, sv) = match sorted {
+                    Ok(out) => out,
+                    Err(e) if radix == Radix::Subgroups && !c.subgroup_arithmetic => {
+                        assert!(e.to_string().contains("histogram_subgroups"), "{e}");
+                        continue;
+                    }
+                    Err(e) if radix == Radix::Bytes && !bytes_possible => {
+                        assert!(e.to_string().contains("subgroup"), "{e}");
+                        continue;
+                    }
+                    Err(e) => panic!("{radix:?}: {e}"),
+                };
+                rec.submit().unwrap();
+                let got = (sk.read::<u32>().unwrap(), sv.read::<u32>().unwrap());
+                assert!(
+                    got == want,
+                    "{radix:?}, {n} keys of {bits} bits ({} values{}): not the reference's order",
+                    if few > 0 { 1 << few } else { n },
+                    if indices { ", indices made by the kernels" } else { "" }
+                );
+            }
         }
     }
 }

@@ -246,20 +246,20 @@ pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
         let tv = Tensor::from_slice(gpu, &[n], &vals)?;
         let mut order: Vec<u32> = vals.clone();
         order.sort_by_key(|&i| keys[i as usize]);
-        // The device's histograms ("radix sort pairs"), and the other way of counting beside
-        // them where the device has it, so that a run says what the choice is worth.
-        let chosen = sort::Histogram::chosen(gpu);
-        let other = match chosen {
-            sort::Histogram::Subgroups => sort::Histogram::Atomics,
-            _ => sort::Histogram::Subgroups,
-        };
-        for (name, histogram) in [("radix sort pairs", chosen), ("radix sort, other hist", other)] {
-            if !histogram.runs_on(gpu) {
-                continue;
-            }
+        // The device's way of sorting ("radix sort pairs"), and every other way it can run
+        // beside it, so that a run says what the choice is worth.
+        let chosen = sort::Radix::chosen(gpu);
+        let others = sort::Radix::ALL.into_iter().filter(|&r| r != chosen && r.runs_on(gpu));
+        for radix in std::iter::once(chosen).chain(others) {
+            let name = match radix {
+                _ if radix == chosen => "radix sort pairs",
+                sort::Radix::Bytes => "radix sort, 8-bit digits",
+                sort::Radix::Subgroups => "radix sort, 4-bit subgroup hist",
+                _ => "radix sort, 4-bit atomic hist",
+            };
             let mut res = None;
             let timing = time_gpu(gpu, repeats, |rec| {
-                res = Some(sort::sort_pairs_with(rec, &tk, &tv, bits, histogram)?);
+                res = Some(sort::sort_pairs_with(rec, &tk, &tv, bits, radix)?);
                 Ok(())
             })?;
             let (sk, sv) = res.unwrap();
@@ -278,7 +278,7 @@ pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
             );
             let over = "exact and stable: nmse = fraction wrong, max abs = count wrong";
             // Keys and values read once and written once.
-            let r = r.work(0.0, (n * 16) as f64, roof32).kernel(histogram.describe());
+            let r = r.work(0.0, (n * 16) as f64, roof32).kernel(radix.describe());
             push(r.error(wrong as f64 / n as f64, wrong as f64, over));
         }
     }
