@@ -129,9 +129,10 @@ fn capabilities(spirv: &[u8]) -> Vec<u32> {
 fn modules_declare_only_capabilities_the_engine_enables() {
     use velox_engine::kernels::{KERNELS, MODULES};
     // Shader, Float16, ImageBuffer (texel buffers: every Vulkan device has it, no feature),
-    // GroupNonUniform{,Vote,Arithmetic,Shuffle}, StorageBuffer16BitAccess, VulkanMemoryModel,
+    // GroupNonUniform{,Vote,Arithmetic,Ballot,Shuffle} (no feature: the device's supported
+    // subgroup operations, which `Caps` reads), StorageBuffer16BitAccess, VulkanMemoryModel,
     // CooperativeMatrixKHR, AtomicFloat32AddEXT.
-    let enabled = [1, 9, 47, 61, 62, 63, 65, 4433, 5345, 6022, 6033];
+    let enabled = [1, 9, 47, 61, 62, 63, 64, 65, 4433, 5345, 6022, 6033];
     for (index, m) in MODULES.iter().enumerate() {
         let caps = capabilities(m.spirv);
         assert!(caps.contains(&1), "{}: no Shader capability (not a module?)", m.name);
@@ -150,6 +151,7 @@ fn modules_declare_only_capabilities_the_engine_enables() {
             assert_eq!(n.float_atomics, caps.contains(&6033), "{name}: float-atomics need");
             assert_eq!(n.memory_model, caps.contains(&5345), "{name}: memory-model need");
             assert_eq!(n.subgroups, caps.iter().any(|c| (61..=65).contains(c)), "{name}: subgroup need");
+            assert_eq!(n.subgroup_ops & 8 != 0, caps.contains(&64), "{name}: subgroup-ballot need");
             // A module with texel buffers declares ImageBuffer, and binds them as such.
             let texel = k.bindings.iter().any(|b| b.texel);
             assert!(!texel || caps.contains(&47), "{name}: texel bindings without ImageBuffer");
