@@ -29,15 +29,8 @@ const WG: u32 = 256u;
 const ITEMS: u32 = 16u; // per invocation
 const BLOCK: u32 = 4096u; // WG * ITEMS
 
-@group(0) @binding(0) var<storage, read> keys_in: array<u32>;
-@group(0) @binding(1) var<storage, read> values_in: array<u32>;
-@group(0) @binding(2) var<storage, read_write> counts: array<u32>;
-@group(0) @binding(3) var<storage, read> offsets: array<u32>;
-@group(0) @binding(4) var<storage, read_write> keys_out: array<u32>;
-@group(0) @binding(5) var<storage, read_write> values_out: array<u32>;
 @group(0) @binding(6) var<storage, read_write> keys_tmp: array<u32>;
 @group(0) @binding(7) var<storage, read_write> values_tmp: array<u32>;
-var<immediate> pc: Params;
 
 var<workgroup> hist: array<atomic<u32>, 16>;
 

@@ -38,13 +38,6 @@ const MAX_SUBGROUPS: u32 = WG / MIN_SUBGROUP;
 // Counters are 16 bits (a block holds at most 4096 of a digit), two digits a word.
 const WORDS: u32 = DIGITS / 2u;
 
-@group(0) @binding(0) var<storage, read> keys_in: array<u32>;
-@group(0) @binding(1) var<storage, read> values_in: array<u32>;
-@group(0) @binding(2) var<storage, read_write> counts: array<u32>;
-@group(0) @binding(3) var<storage, read> offsets: array<u32>;
-@group(0) @binding(4) var<storage, read_write> keys_out: array<u32>;
-@group(0) @binding(5) var<storage, read_write> values_out: array<u32>;
-var<immediate> pc: Params;
 
 // `histogram`: the block's count of each digit.
 var<workgroup> hist: array<atomic<u32>, DIGITS>;
