@@ -253,9 +253,9 @@ pub fn run(gpu: &Gpu, set: SizeSet, repeats: u32) -> Result<Vec<Record>> {
         for radix in std::iter::once(chosen).chain(others) {
             let name = match radix {
                 _ if radix == chosen => "radix sort pairs",
-                sort::Radix::Bytes => "radix sort, 8-bit digits",
-                sort::Radix::Subgroups => "radix sort, 4-bit subgroup hist",
-                _ => "radix sort, 4-bit atomic hist",
+                sort::Radix::Bytes => "radix sort 8-bit",
+                sort::Radix::Subgroups => "radix sort 4-bit subgroup",
+                _ => "radix sort 4-bit atomics",
             };
             let mut res = None;
             let timing = time_gpu(gpu, repeats, |rec| {
