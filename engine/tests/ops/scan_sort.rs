@@ -181,6 +181,17 @@ fn every_way_of_sorting_sorts_alike() {
     let c = gpu.caps();
     let bytes_possible =
         c.subgroup_ballot && c.subgroup_shuffle && c.min_subgroup_size >= 8 && c.max_subgroup_size <= 128;
+    // The rule: a CPU device keeps 4-bit digits and atomics; a GPU that can rank bytes takes them.
+    let want_chosen = if c.cpu_kernels {
+        Radix::Atomics
+    } else if bytes_possible {
+        Radix::Bytes
+    } else if c.subgroup_arithmetic {
+        Radix::Subgroups
+    } else {
+        Radix::Atomics
+    };
+    assert_eq!(Radix::chosen(&gpu), want_chosen);
     let mut rng = Rng::new(12);
     let cases: [(usize, u32, u32); 5] = [
         (3 * sort::BLOCK + 77, 32, 0),
