@@ -92,6 +92,8 @@ pub struct Recorder {
     submitted: bool,
     precision: Precision,
     narrow_matmul: NarrowMatmul,
+    /// When the recording began (for [`Finished::host_seconds`]).
+    started: std::time::Instant,
     /// Whether the cooperative attention forward may take its 64-key tiles
     /// ([`Recorder::set_wide_key_tiles`]).
     wide_key_tiles: bool,
@@ -162,6 +164,10 @@ pub struct Finished {
     pub timestamps_ns: Vec<f64>,
     pub dispatches: usize,
     pub barriers: usize,
+    /// Seconds from the recording's start ([`Gpu::recorder`]) to its submission: the host's
+    /// work before the device could begin (recording, and whatever the caller did between),
+    /// which a recording overlapping the previous one's execution would hide.
+    pub host_seconds: f64,
 }
 
 impl Gpu {
@@ -196,6 +202,7 @@ impl Gpu {
             }
         };
         let rec = Recorder {
+            started: std::time::Instant::now(),
             gpu: self.clone(),
             pool,
             cmd,
@@ -675,6 +682,7 @@ impl Recorder {
         let device = self.gpu.device().clone();
         // The end of the last profiled dispatch.
         let profile_end = if self.profiled.is_empty() { None } else { self.timestamp() };
+        let host_seconds = self.started.elapsed().as_secs_f64();
         // The host reads results from mapped memory (tensors on unified memory, staging buffers)
         // once the fence has signalled; the fence makes the device's writes available, and this
         // barrier makes them visible to the host's reads. It also orders them before the work of
@@ -735,7 +743,7 @@ impl Recorder {
                 profile::add(kernel.name(), timestamps_ns[next] - timestamps_ns[q as usize]);
             }
         }
-        Ok(Finished { timestamps_ns, dispatches: self.dispatches, barriers: self.barriers })
+        Ok(Finished { timestamps_ns, dispatches: self.dispatches, barriers: self.barriers, host_seconds })
     }
 }
 

@@ -52,6 +52,9 @@ impl Losses {
 pub struct PassSeconds {
     pub forward: f64,
     pub backward: f64,
+    /// Host seconds from the start of each recording to its submission
+    /// ([`velox_engine::Finished::host_seconds`]), summed.
+    pub host: f64,
     /// A pass went untimed ([`PassTimer`] on a device without timestamps): the split is not
     /// reported.
     pub untimed: bool,
@@ -79,6 +82,7 @@ impl PassTimer {
     /// Adds the two passes' times in the submitted recording (`finished`) to `into`.
     pub fn add(&self, finished: &velox_engine::Finished, into: &mut PassSeconds) {
         let t = &finished.timestamps_ns;
+        into.host += finished.host_seconds;
         match self.0 {
             [Some(a), Some(b), Some(c)] if c < t.len() => {
                 into.forward += (t[b] - t[a]) / 1e9;

@@ -66,6 +66,11 @@ pub struct TimeSplit {
     pub forward: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub backward: Option<f64>,
+    /// The host's part of `compute` before the passes' submissions, when the model measures
+    /// it: recording them and the host work between (drawing, uploads), during which the
+    /// device waits.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub host: Option<f64>,
     /// The micro-batches' [`Trainable::accumulate`] calls: forward, backward and their reads.
     pub compute: f64,
     /// Gathering the losses and summing the gradients over the processes.
@@ -87,6 +92,7 @@ impl TimeSplit {
             data: self.data + o.data,
             forward: both(self.forward, o.forward),
             backward: both(self.backward, o.backward),
+            host: both(self.host, o.host),
             compute: self.compute + o.compute,
             all_reduce: self.all_reduce + o.all_reduce,
             optimiser: self.optimiser + o.optimiser,
@@ -99,6 +105,7 @@ impl TimeSplit {
             data: self.data * f,
             forward: self.forward.map(|v| v * f),
             backward: self.backward.map(|v| v * f),
+            host: self.host.map(|v| v * f),
             compute: self.compute * f,
             all_reduce: self.all_reduce * f,
             optimiser: self.optimiser * f,
@@ -306,6 +313,7 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
         if let Some(p) = self.model.take_pass_seconds() {
             self.time.forward = Some(p.forward);
             self.time.backward = Some(p.backward);
+            self.time.host = Some(p.host);
         }
         let t = Instant::now();
         // Every process runs the step again if any outgrew what its model sized ahead, unless

@@ -545,6 +545,7 @@ impl Autoencoder {
             Some(done) => {
                 self.pass_seconds.forward += (done - started).as_secs_f64();
                 self.pass_seconds.backward += done.elapsed().as_secs_f64();
+                self.pass_seconds.host += finished.host_seconds;
             }
         }
         let most =

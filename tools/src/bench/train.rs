@@ -102,13 +102,14 @@ pub fn run(
         data.cloud_host.len() / CHANNELS
     );
     println!(
-        "{:>5} {:>6} {:>10} {:>10} {:>12} {:>14} {:>13} {:>11} {:>14} {:>10}",
+        "{:>5} {:>6} {:>10} {:>10} {:>12} {:>14} {:>8} {:>13} {:>11} {:>14} {:>10}",
         "prec",
         "batch",
         "samples/s",
         "step ms",
         "compute ms",
         "(fwd / bwd)",
+        "(host)",
         "optimiser ms",
         "dispatches",
         "submits/waits",
@@ -143,9 +144,10 @@ pub fn run(
                 (Some(f), Some(b)) => format!("{f:.1} / {b:.1}"),
                 _ => "-".into(),
             };
+            let host = split.host.map_or("-".into(), |h| format!("{h:.1}"));
             let name = precision.name();
             println!(
-                "{name:>5} {batch:>6} {rate:>10.3} {median:>10.1} {:>12.1} {passes:>14} {:>13.2} {:>11} {:>14} {:>10.1}",
+                "{name:>5} {batch:>6} {rate:>10.3} {median:>10.1} {:>12.1} {passes:>14} {host:>8} {:>13.2} {:>11} {:>14} {:>10.1}",
                 split.compute,
                 split.optimiser,
                 profiled.dispatches,
@@ -177,10 +179,13 @@ pub fn run(
         }
     }
     println!(
-        "compute is the model's forward (to the end of its renders) and backward passes; on one \
-         process the backward pass records the optimiser's update too (optimiser ms is what is left \
-         outside the passes; its GPU time is the family split's 'optimiser'), and all-reduce is \
-         nothing; the family split comes from one more step with a timestamp per dispatch"
+        "compute is the model's forward (to the end of its renders) and backward passes, fwd / bwd \
+         their GPU time and host the host's time from the start of each recording to its \
+         submission (recording, drawing, uploads: the device waits meanwhile, so it is what \
+         recording a step while the last runs would hide); on one process the backward pass \
+         records the optimiser's update too (optimiser ms is what is left outside the passes; its \
+         GPU time is the family split's 'optimiser'), and all-reduce is nothing; the family split \
+         comes from one more step with a timestamp per dispatch"
     );
     Ok(out)
 }
