@@ -328,11 +328,13 @@ fn variants(path: &Path, source: &str) -> Result<Vec<(PathBuf, String, String)>,
                     names.join(", ")
                 ));
             }
+            let values = combination
+                .iter()
+                .map(|v| v.parse::<u32>().map_err(|_| format!("{shown}: variant value {v:?} is not a u32")))
+                .collect::<Result<Vec<u32>, String>>()?;
             for (p, module, text) in &out {
                 let (mut module, mut text) = (module.clone(), text.clone());
-                for ((name, (decl, line)), v) in names.iter().zip(&lines).zip(combination) {
-                    let value: u32 =
-                        v.parse().map_err(|_| format!("{shown}: variant value {v:?} is not a u32"))?;
+                for ((name, (decl, line)), value) in names.iter().zip(&lines).zip(&values) {
                     text = text.replacen(line, &format!("{decl}{value}u;"), 1);
                     module = format!("{module}_{}{value}", name.to_lowercase());
                 }

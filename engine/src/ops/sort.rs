@@ -233,11 +233,10 @@ fn sort_with(
     let radix = if radix == Radix::Fastest { Radix::chosen(gpu) } else { radix };
     let digit_bits = radix.digit_bits(gpu);
     let digits = 1usize << digit_bits;
-    let histogram: Option<HistogramKernel> = match radix {
-        Radix::Atomics => Some(SORT_HISTOGRAM),
-        Radix::Subgroups => Some(SORT_HISTOGRAM_SUBGROUPS),
-        _ => None,
-    };
+    let bytes = radix == Radix::Bytes;
+    // The 4-bit passes' histogram kernel.
+    let histogram: HistogramKernel =
+        if radix == Radix::Subgroups { SORT_HISTOGRAM_SUBGROUPS } else { SORT_HISTOGRAM };
     let counts = Tensor::empty(gpu, &[digits * num_blocks], DType::U32)?;
     let offsets = Tensor::empty(gpu, &[digits * num_blocks], DType::U32)?;
     // A second pair is allocated only when there is a second pass.
@@ -248,39 +247,22 @@ fn sort_with(
         let params =
             Params { n, num_blocks: num_blocks as u32, shift, mask: (1u32 << bits) - 1, key_bits, iota };
         let blocks = num_blocks as u64;
-        match histogram {
-            Some(h) => rec.dispatch_linear(
-                h,
-                blocks,
-                args::SortHistogramArgs { keys_in: &src.0, counts: &counts },
-                &params,
-            )?,
-            None => rec.dispatch_linear(
-                SORT_BYTES_HISTOGRAM,
-                blocks,
-                args::SortBytesHistogramArgs { keys_in: &src.0, counts: &counts },
-                &params,
-            )?,
+        if bytes {
+            let args = args::SortBytesHistogramArgs { keys_in: &src.0, counts: &counts };
+            rec.dispatch_linear(SORT_BYTES_HISTOGRAM, blocks, args, &params)?;
+        } else {
+            let args = args::SortHistogramArgs { keys_in: &src.0, counts: &counts };
+            rec.dispatch_linear(histogram, blocks, args, &params)?;
         }
         exclusive_scan(rec, &counts, &offsets)?;
-        if histogram.is_some() {
-            let args = args::SortScatterArgs {
-                keys_in: &src.0,
-                values_in: &src.1,
-                offsets: &offsets,
-                keys_out: &out.0,
-                values_out: &out.1,
-            };
-            rec.dispatch_linear(SORT_SCATTER, blocks, args, &params)?;
-        } else {
-            let args = args::SortBytesScatterArgs {
-                keys_in: &src.0,
-                values_in: &src.1,
-                offsets: &offsets,
-                keys_out: &out.0,
-                values_out: &out.1,
-            };
+        let (keys_in, values_in, keys_out, values_out) = (&src.0, &src.1, &out.0, &out.1);
+        if bytes {
+            let args =
+                args::SortBytesScatterArgs { keys_in, values_in, offsets: &offsets, keys_out, values_out };
             rec.dispatch_linear(SORT_BYTES_SCATTER, blocks, args, &params)?;
+        } else {
+            let args = args::SortScatterArgs { keys_in, values_in, offsets: &offsets, keys_out, values_out };
+            rec.dispatch_linear(SORT_SCATTER, blocks, args, &params)?;
         }
         shift += bits;
         iota = 0;
