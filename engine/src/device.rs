@@ -56,6 +56,9 @@ pub(crate) struct GpuInner {
     /// A recording never finished (see the recorder's drop): the device is left as it is at
     /// drop, since waiting for it to go idle would never return.
     pub hung: std::sync::atomic::AtomicBool,
+    /// Recordings submitted and not yet waited for, and when that count last fell to zero
+    /// (the device last seen idle): what [`crate::Finished::host_seconds`] counts from.
+    pub busy: Mutex<(usize, std::time::Instant)>,
     /// Uploads through staging buffers not yet copied to their tensors: the next submission
     /// copies them before its own work, in the same `vkQueueSubmit` (see
     /// [`crate::tensor::PendingUpload`]).
@@ -404,6 +407,7 @@ impl Gpu {
                 submits: AtomicU64::new(0),
                 wait_timeout,
                 hung: std::sync::atomic::AtomicBool::new(false),
+                busy: Mutex::new((0, std::time::Instant::now())),
                 pending_uploads: Mutex::new(Vec::new()),
                 staging_pool: Mutex::new(Default::default()),
             }),

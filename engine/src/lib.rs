@@ -24,5 +24,5 @@ pub mod validation;
 pub use caps::{Caps, Switches};
 pub use device::{list_devices, DeviceSummary, Gpu};
 pub use error::{fit_u32, Error, Feature, FileOp, Limit, Result};
-pub use recorder::{Completion, Finished, NarrowMatmul, Precision, Recorder};
+pub use recorder::{Completion, Finished, Launched, NarrowMatmul, Precision, Recorder};
 pub use tensor::{DType, Element, Readback, Tensor};

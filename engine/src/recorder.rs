@@ -15,7 +15,7 @@
 //! The last command of every recording makes the device's writes visible to the host, which
 //! reads results from mapped memory once the fence has signalled.
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::Arc;
 
 use ash::vk;
@@ -92,8 +92,14 @@ pub struct Recorder {
     submitted: bool,
     precision: Precision,
     narrow_matmul: NarrowMatmul,
-    /// When the recording began (for [`Finished::host_seconds`]).
+    /// When the recording began, and the device's wait on the host it was submitted after
+    /// ([`Finished::host_seconds`]).
     started: std::time::Instant,
+    host_seconds: f64,
+    /// Submitted and not yet counted out of the device's running recordings.
+    in_flight: bool,
+    /// With `VELOX_PROFILE`: the query written after the last dispatch.
+    profile_end: Option<usize>,
     /// Whether the cooperative attention forward may take its 64-key tiles
     /// ([`Recorder::set_wide_key_tiles`]).
     wide_key_tiles: bool,
@@ -132,15 +138,29 @@ pub fn wait_timeout() -> Result<std::time::Duration> {
     }
 }
 
-/// Whether a recording has run: what a result cached across recordings (an attention work
-/// list) checks before another recording reads it. Cloned handles share the flag.
+/// Whether a recording has been submitted and whether it has run: what a result cached across
+/// recordings (an attention work list) checks before another recording reads it. Cloned
+/// handles share the state.
 #[derive(Clone, Debug, Default)]
-pub struct Completion(Arc<AtomicBool>);
+pub struct Completion(Arc<AtomicU8>);
+
+/// The states of a [`Completion`] after recording (0), in the order a recording goes through them.
+const SUBMITTED: u8 = 1;
+const DONE: u8 = 2;
 
 impl Completion {
-    /// The recording finished on the device (its `submit` returned successfully).
+    /// The recording finished on the device (a wait for it returned successfully).
     pub fn is_done(&self) -> bool {
-        self.0.load(Ordering::Acquire)
+        self.0.load(Ordering::Acquire) == DONE
+    }
+
+    /// The recording has reached the queue (it may still be running).
+    pub fn is_submitted(&self) -> bool {
+        self.0.load(Ordering::Acquire) >= SUBMITTED
+    }
+
+    fn set(&self, state: u8) {
+        self.0.store(state, Ordering::Release);
     }
 
     /// Whether the two handles are of the same recording.
@@ -149,10 +169,11 @@ impl Completion {
     }
 
     /// Whether work recorded in the recording of `self` is visible to later dispatches of the
-    /// recording `now`: the same recording (the recorder's barriers order them), or one that
-    /// has finished.
+    /// recording `now`: the same recording (the recorder's barriers order them), or one
+    /// submitted already, which `now` can only follow on the queue, after the barrier that
+    /// ends every recording and reaches every later command.
     pub fn visible_in(&self, now: &Completion) -> bool {
-        self.same(now) || self.is_done()
+        self.same(now) || self.is_submitted()
     }
 }
 
@@ -164,9 +185,11 @@ pub struct Finished {
     pub timestamps_ns: Vec<f64>,
     pub dispatches: usize,
     pub barriers: usize,
-    /// Seconds from the recording's start ([`Gpu::recorder`]) to its submission: the host's
-    /// work before the device could begin (recording, and whatever the caller did between),
-    /// which a recording overlapping the previous one's execution would hide.
+    /// Seconds the device waited on the host for this recording: from the later of the
+    /// recording's start ([`Gpu::recorder`]) and the end of the last wait on the device (the
+    /// moment it was last seen idle) to the submission. Recording, and whatever the caller did
+    /// between; a recording made while the one before it runs ([`Recorder::launch`]) hides
+    /// its own.
     pub host_seconds: f64,
 }
 
@@ -203,6 +226,9 @@ impl Gpu {
         };
         let rec = Recorder {
             started: std::time::Instant::now(),
+            host_seconds: 0.0,
+            in_flight: false,
+            profile_end: None,
             gpu: self.clone(),
             pool,
             cmd,
@@ -678,11 +704,18 @@ impl Recorder {
     }
 
     /// Submits the recording and waits for it to finish.
-    pub fn submit(mut self) -> Result<Finished> {
+    pub fn submit(self) -> Result<Finished> {
+        self.launch()?.wait()
+    }
+
+    /// Submits the recording without waiting for it: the host may record the next while the
+    /// device runs this one ([`Launched::wait`] then waits). The queue runs submissions in
+    /// order, and the barrier that ends every recording reaches every later one, so a
+    /// recording submitted after this one sees everything it wrote.
+    pub fn launch(mut self) -> Result<Launched> {
         let device = self.gpu.device().clone();
         // The end of the last profiled dispatch.
-        let profile_end = if self.profiled.is_empty() { None } else { self.timestamp() };
-        let host_seconds = self.started.elapsed().as_secs_f64();
+        self.profile_end = if self.profiled.is_empty() { None } else { self.timestamp() };
         // The host reads results from mapped memory (tensors on unified memory, staging buffers)
         // once the fence has signalled; the fence makes the device's writes available, and this
         // barrier makes them visible to the host's reads. It also orders them before the work of
@@ -695,36 +728,78 @@ impl Recorder {
         unsafe {
             memory_barrier(&device, self.cmd, writes(), device_and_host());
             device.end_command_buffer(self.cmd).vk("vkEndCommandBuffer")?;
-            {
-                // Taken under the queue's lock, so that no other thread's submission that reads
-                // an upload can reach the queue before the copy does.
-                let gpu = self.gpu.clone();
-                let queue = gpu.inner.queue.lock().unwrap();
-                let uploads = self.record_uploads()?;
-                let cmds: Vec<vk::CommandBuffer> = uploads.into_iter().chain([self.cmd]).collect();
-                let submit = [vk::SubmitInfo::default().command_buffers(&cmds)];
-                device.queue_submit(*queue, &submit, self.fence).vk("vkQueueSubmit")?;
-            }
-            self.submitted = true;
-            profile::count_submit();
-            self.gpu.inner.submits.fetch_add(1, Ordering::Relaxed);
-            let start = std::time::Instant::now();
-            let nanos = u64::try_from(self.wait.as_nanos()).unwrap_or(u64::MAX);
-            match device.wait_for_fences(&[self.fence], true, nanos) {
-                Ok(()) => {}
-                Err(vk::Result::TIMEOUT) => {
-                    return Err(Error::Timeout { recording: self.describe(), waited: start.elapsed() })
-                }
-                Err(vk::Result::ERROR_DEVICE_LOST) => {
-                    return Err(Error::DeviceLost(format!("while waiting for {}", self.describe())))
-                }
-                Err(e) => return Err(e).vk("vkWaitForFences"),
+            // Taken under the queue's lock, so that no other thread's submission that reads an
+            // upload can reach the queue before the copy does.
+            let gpu = self.gpu.clone();
+            let queue = gpu.inner.queue.lock().unwrap();
+            let uploads = self.record_uploads()?;
+            let cmds: Vec<vk::CommandBuffer> = uploads.into_iter().chain([self.cmd]).collect();
+            let submit = [vk::SubmitInfo::default().command_buffers(&cmds)];
+            device.queue_submit(*queue, &submit, self.fence).vk("vkQueueSubmit")?;
+        }
+        self.submitted = true;
+        self.done.set(SUBMITTED);
+        {
+            let mut busy = self.gpu.inner.busy.lock().unwrap();
+            let now = std::time::Instant::now();
+            // The device idled since the later of the recording's start and its last work;
+            // with other recordings still running, it has not idled.
+            self.host_seconds = match busy.0 {
+                0 => now.duration_since(busy.1.max(self.started)).as_secs_f64(),
+                _ => 0.0,
+            };
+            busy.0 += 1;
+            self.in_flight = true;
+        }
+        profile::count_submit();
+        self.gpu.inner.submits.fetch_add(1, Ordering::Relaxed);
+        Ok(Launched(self))
+    }
+
+    /// Counts this recording out of the device's running ones, once.
+    fn landed(&mut self) {
+        if std::mem::take(&mut self.in_flight) {
+            let mut busy = self.gpu.inner.busy.lock().unwrap();
+            busy.0 -= 1;
+            if busy.0 == 0 {
+                busy.1 = std::time::Instant::now();
             }
         }
-        self.done.0.store(true, Ordering::Release);
-        self.gpu.check_validation_during(Some(self.cmd), &self.describe())?;
+    }
+}
+
+/// A recording submitted and not yet waited for ([`Recorder::launch`]). Dropped unwaited, it
+/// waits for the device before it frees what the recording uses.
+pub struct Launched(Recorder);
+
+impl Launched {
+    /// This recording's completion flag.
+    pub fn completion(&self) -> &Completion {
+        &self.0.done
+    }
+
+    /// Waits for the recording to finish and reports it.
+    pub fn wait(self) -> Result<Finished> {
+        let mut rec = self.0;
+        let device = rec.gpu.device().clone();
+        let start = std::time::Instant::now();
+        let nanos = u64::try_from(rec.wait.as_nanos()).unwrap_or(u64::MAX);
+        // SAFETY: the fence was submitted with the recording.
+        match unsafe { device.wait_for_fences(&[rec.fence], true, nanos) } {
+            Ok(()) => {}
+            Err(vk::Result::TIMEOUT) => {
+                return Err(Error::Timeout { recording: rec.describe(), waited: start.elapsed() })
+            }
+            Err(vk::Result::ERROR_DEVICE_LOST) => {
+                return Err(Error::DeviceLost(format!("while waiting for {}", rec.describe())))
+            }
+            Err(e) => return Err(e).vk("vkWaitForFences"),
+        }
+        rec.landed();
+        rec.done.set(DONE);
+        rec.gpu.check_validation_during(Some(rec.cmd), &rec.describe())?;
         let mut timestamps_ns = Vec::new();
-        if let (Some(pool), n) = (self.queries, self.timestamps) {
+        if let (Some(pool), n) = (rec.queries, rec.timestamps) {
             if n > 0 {
                 let mut raw = vec![0u64; n as usize];
                 // SAFETY: the work has finished, so every written query is available.
@@ -733,17 +808,22 @@ impl Recorder {
                         .get_query_pool_results(pool, 0, &mut raw, vk::QueryResultFlags::TYPE_64)
                         .vk("vkGetQueryPoolResults")?
                 };
-                let period = self.gpu.caps().timestamp_period_ns;
+                let period = rec.gpu.caps().timestamp_period_ns;
                 timestamps_ns = raw.iter().map(|&t| t as f64 * period).collect();
             }
         }
-        if let Some(end) = profile_end {
-            for (i, &(q, kernel)) in self.profiled.iter().enumerate() {
-                let next = self.profiled.get(i + 1).map_or(end, |p| p.0 as usize);
+        if let Some(end) = rec.profile_end {
+            for (i, &(q, kernel)) in rec.profiled.iter().enumerate() {
+                let next = rec.profiled.get(i + 1).map_or(end, |p| p.0 as usize);
                 profile::add(kernel.name(), timestamps_ns[next] - timestamps_ns[q as usize]);
             }
         }
-        Ok(Finished { timestamps_ns, dispatches: self.dispatches, barriers: self.barriers, host_seconds })
+        Ok(Finished {
+            timestamps_ns,
+            dispatches: rec.dispatches,
+            barriers: rec.barriers,
+            host_seconds: rec.host_seconds,
+        })
     }
 }
 
@@ -846,13 +926,14 @@ unsafe fn memory_barrier(device: &ash::Device, cmd: vk::CommandBuffer, src: Scop
 
 impl Drop for Recorder {
     fn drop(&mut self) {
-        let device = self.gpu.device();
-        // SAFETY: after `submit` the work has completed (or failed to start); without submit
+        let gpu = self.gpu.clone();
+        let device = gpu.device();
+        // SAFETY: after a wait the work has completed (or failed to start); without a submit
         // the command buffer never ran.
         unsafe {
             if self.submitted && device.get_fence_status(self.fence) != Ok(true) {
-                // Waiting failed or timed out in `submit`: the device may still run the
-                // commands. Wait once more, as long again; if it still has not finished (a hung
+                // Launched and never waited for, or waiting failed or timed out: the device may
+                // still run the commands. Wait, as long as a wait may; if it has not finished (a hung
                 // kernel, a lost device), the pool, fence and buffers are left alive rather than
                 // freed under the device's feet: a leak, where the process is about to report
                 // the failure.
@@ -863,6 +944,7 @@ impl Drop for Recorder {
                     return;
                 }
             }
+            self.landed();
             device.destroy_command_pool(self.pool, None);
             if self.gpu.validation() != validation::Mode::Off {
                 validation::forget_command_buffer(vk::Handle::as_raw(self.cmd));

@@ -528,7 +528,7 @@ impl Readback {
     pub fn read<T: Element>(&self) -> Result<Vec<T>> {
         if !self.done.is_done() {
             return Err(Error::Invalid(format!(
-                "{:?} read back before the recording that copies it was submitted",
+                "{:?} read back before the recording that copies it has run",
                 self.tensor
             )));
         }

@@ -101,7 +101,7 @@ fn a_read_back_comes_with_its_recording() {
     velox_engine::ops::binary::binary_into(&mut rec, &c, &tb, &c, Binary::Add).unwrap();
     let twice = rec.read_back(&c.view(0, &[7]).unwrap()).unwrap();
     let err = sum.read::<f32>().unwrap_err().to_string();
-    assert!(err.contains("before the recording that copies it was submitted"), "{err}");
+    assert!(err.contains("before the recording that copies it has run"), "{err}");
     let submits = velox_engine::profile::submits();
     rec.submit().unwrap();
     let want: Vec<f32> = a.iter().zip(&b).map(|(x, y)| x + y).collect();
@@ -110,6 +110,55 @@ fn a_read_back_comes_with_its_recording() {
     assert_eq!(twice.read::<f32>().unwrap(), want);
     assert!(sum.read::<u32>().is_err(), "a read back of another type");
     assert_eq!(velox_engine::profile::submits(), submits + 1, "a read back submitted work of its own");
+}
+
+/// Would catch: a recording submitted without a wait (`Recorder::launch`) whose results a
+/// recording made meanwhile does not see (a missing end barrier, an upload of the second
+/// copied ahead of the first's work), a wait that must come in submission order, a read back
+/// readable before its recording ran, and a device wait counted while another recording kept
+/// the device busy.
+#[test]
+fn a_recording_made_while_the_last_runs_follows_it() {
+    let (_one, gpu) = staged_device();
+    let mut rng = Rng::new(4);
+    let (a, b, e) = (rng.normal_vec(5000), rng.normal_vec(5000), rng.normal_vec(5000));
+    let ta = Tensor::from_slice(&gpu, &[5000], &a).unwrap();
+    let tb = Tensor::from_slice(&gpu, &[5000], &b).unwrap();
+    let submits = gpu.submits();
+    let mut first = gpu.recorder().unwrap();
+    let c = binary(&mut first, &ta, &tb, Binary::Add).unwrap();
+    let c_read = first.read_back(&c).unwrap();
+    let ran = first.completion().clone();
+    assert!(!ran.is_submitted());
+    let first = first.launch().unwrap();
+    assert!(ran.is_submitted() && !ran.is_done());
+    // Recorded while the first may run: it reads the first's result, and an upload of its own
+    // rides with its submission.
+    let mut second = gpu.recorder().unwrap();
+    let te = Tensor::from_slice(&gpu, &[5000], &e).unwrap();
+    let d = binary(&mut second, &c, &te, Binary::Mul).unwrap();
+    let d_read = second.read_back(&d).unwrap();
+    let err = c_read.read::<f32>().unwrap_err().to_string();
+    assert!(err.contains("before the recording that copies it has run"), "{err}");
+    let second = second.launch().unwrap();
+    // Waited for out of order.
+    let second = second.wait().unwrap();
+    assert_eq!(second.host_seconds, 0.0, "the device was busy with the first recording");
+    let first = first.wait().unwrap();
+    assert!(ran.is_done());
+    assert!(first.host_seconds > 0.0);
+    let want_c: Vec<f32> = a.iter().zip(&b).map(|(x, y)| x + y).collect();
+    let want_d: Vec<f32> = want_c.iter().zip(&e).map(|(x, y)| x * y).collect();
+    assert_eq!(c_read.read::<f32>().unwrap(), want_c);
+    assert_eq!(d_read.read::<f32>().unwrap(), want_d);
+    assert_eq!(gpu.submits(), submits + 2);
+    // A recording launched and dropped unwaited waits for the device before it frees its
+    // buffers.
+    let mut third = gpu.recorder().unwrap();
+    let f = binary(&mut third, &d, &d, Binary::Add).unwrap();
+    drop(third.launch().unwrap());
+    let want_f: Vec<f32> = want_d.iter().map(|x| x + x).collect();
+    assert_eq!(f.read::<f32>().unwrap(), want_f);
 }
 
 /// Would catch: a staging buffer made and freed for every transfer (the pool unused), or one
