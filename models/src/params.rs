@@ -393,9 +393,21 @@ pub struct ParamStore {
     vetoes: Vec<(Tensor, u32)>,
 }
 
+/// What a recorded pass leaves in the store for the host to read once it has run, and the
+/// step counter it advanced: taken out while another pass is recorded ahead of it
+/// ([`ParamStore::take_pass_state`]), and put back to finish it.
+pub struct PassState {
+    zero_pending: bool,
+    update_pending: Option<Update>,
+    update_recorded: bool,
+    vetoes: Vec<(Tensor, u32)>,
+    norm_read: Option<Readback>,
+    step: u64,
+}
+
 /// An AdamW step over the whole store, as [`ParamStore::adamw_step_scaled`] records it, then
 /// the f16 copies refreshed from the updated masters where the passes read them.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Update {
     pub adamw: AdamWConfig,
     pub lr: f64,
@@ -569,6 +581,32 @@ impl ParamStore {
     pub fn take_update(&mut self) -> bool {
         self.update_pending = None;
         std::mem::take(&mut self.update_recorded)
+    }
+
+    /// Takes out what the passes recorded since the step began have left for their finish
+    /// (and what they have yet to record: the zeroing, the update, the vetoes), leaving the
+    /// store as at a step's start with nothing asked for: the trainer records the next step's
+    /// pass while this one runs, then puts each state back to finish its pass
+    /// ([`ParamStore::restore_pass_state`]). The step counter stays as it is.
+    pub fn take_pass_state(&mut self) -> PassState {
+        PassState {
+            zero_pending: self.zero_pending.swap(false, std::sync::atomic::Ordering::Relaxed),
+            update_pending: self.update_pending.take(),
+            update_recorded: std::mem::take(&mut self.update_recorded),
+            vetoes: std::mem::take(&mut self.vetoes),
+            norm_read: self.norm_read.take(),
+            step: self.step,
+        }
+    }
+
+    /// Puts back a state [`ParamStore::take_pass_state`] took, step counter included.
+    pub fn restore_pass_state(&mut self, state: PassState) {
+        self.zero_pending.store(state.zero_pending, std::sync::atomic::Ordering::Relaxed);
+        self.update_pending = state.update_pending;
+        self.update_recorded = state.update_recorded;
+        self.vetoes = state.vetoes;
+        self.norm_read = state.norm_read;
+        self.step = state.step;
     }
 
     /// Zeroes the gradients now if [`ParamStore::zero_grads_first`] asked for it and no

@@ -128,7 +128,7 @@ fn precision_of(name: Option<&str>) -> PyResult<Option<velox_engine::Precision>>
 #[pyo3(signature = (kind, data, out, *, config = None, steps = None, seed = None, resume = false,
     init = None, steps_per_scene = None, accumulate = None, cooldown = None, precision = None,
     checkpoint_every = 200, plot_every = 25, stop_at = None, tokens = None, checkpoint = None,
-    task = "video", dinov2 = None, progress = None, device = None))]
+    task = "video", dinov2 = None, progress = None, device = None, overlap = None))]
 #[allow(clippy::too_many_arguments)]
 fn train<'py>(
     py: Python<'py>,
@@ -153,6 +153,7 @@ fn train<'py>(
     dinov2: Option<PathBuf>,
     progress: Option<Py<PyAny>>,
     device: Option<&Bound<'py, Device>>,
+    overlap: Option<bool>,
 ) -> PyResult<Bound<'py, PyDict>> {
     let begin = match (init, resume) {
         (Some(_), true) => return Err(invalid("resume and init exclude each other: give one")),
@@ -190,6 +191,7 @@ fn train<'py>(
         checkpoint_every,
         plot_every,
         stop_at,
+        overlap,
     };
     let token_data = TokenData { data: data.clone(), tokens, checkpoint };
     let gpu = gpu_of(py, device)?;

@@ -64,12 +64,13 @@ def dataset(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def trained(dataset, tmp_path_factory):
-    """A tiny autoencoder trained 3 steps from Python, and the same run from the command line."""
+    """A tiny autoencoder trained 3 steps from Python, and the same run from the command line
+    (Python's recording each step while the last runs, the command's after the last's wait)."""
     root, _ = dataset
     runs = tmp_path_factory.mktemp("runs")
     events = []
     out = velox.train("autoencoder", root / "py", runs / "py", config="tiny", steps=3, seed=5,
-                      precision="f32", progress=events.append)
+                      precision="f32", progress=events.append, overlap=True)
     cli("train", "autoencoder", "--data", root / "cli", "--out", runs / "cli", "--config", "tiny",
         "--steps", 3, "--seed", 5, "--precision", "f32")
     return runs, out, events

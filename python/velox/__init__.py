@@ -123,7 +123,7 @@ def _progress_of(progress, unit, total=None):
 def train(kind, data, out, *, config=None, steps=None, seed=None, resume=False, init=None,
           steps_per_scene=None, accumulate=None, cooldown=None, precision=None,
           checkpoint_every=200, plot_every=25, stop_at=None, tokens=None, checkpoint=None,
-          task="video", dinov2=None, progress=None, device=None):
+          task="video", dinov2=None, progress=None, device=None, overlap=None):
     """Trains `kind` ("autoencoder", "voxels", "tracker", "generator") on the dataset folder
     `data` into the run folder `out`, exactly as `velox train KIND` does with the same
     settings (the same checkpoint, bit for bit, on the same device).
@@ -132,7 +132,8 @@ def train(kind, data, out, *, config=None, steps=None, seed=None, resume=False, 
     checkpoint's). `resume=True` continues the run in `out` from its checkpoint with the
     settings it started with; `init=CHECKPOINT` starts a new run from another run's
     parameters. `seed`, `steps`, `steps_per_scene`, `accumulate`, `cooldown`, `precision`
-    ("f32" or "f16") and `stop_at` are `velox train`'s options; `tokens`, `checkpoint`, `task`
+    ("f32" or "f16"), `stop_at` and `overlap` (True, False or None for the device's
+    default: `--overlap on|off`) are `velox train`'s options; `tokens`, `checkpoint`, `task`
     and `dinov2` those of the models trained on stored tokens. `progress`: None shows a bar
     (tqdm when installed), False nothing, a callable gets each event dict.
 
@@ -147,5 +148,5 @@ def train(kind, data, out, *, config=None, steps=None, seed=None, resume=False, 
         stop_at=stop_at, tokens=None if tokens is None else str(tokens),
         checkpoint=None if checkpoint is None else str(checkpoint), task=task,
         dinov2=None if dinov2 is None else str(dinov2), progress=_progress_of(progress, "step"),
-        device=device,
+        device=device, overlap=overlap,
     )

@@ -54,6 +54,9 @@ pub struct RunSpec {
     pub plot_every: u64,
     /// Stop after this step, as a stop request does.
     pub stop_at: Option<u64>,
+    /// Whether a step is recorded while the last runs; `None`: the device's default (on
+    /// except on CPU devices; see `Trainer::set_overlap`).
+    pub overlap: Option<bool>,
 }
 
 impl RunSpec {
@@ -68,6 +71,7 @@ impl RunSpec {
             checkpoint_every: 200,
             plot_every: 25,
             stop_at: None,
+            overlap: None,
         }
     }
 
@@ -90,6 +94,7 @@ impl RunSpec {
             plot_every: self.plot_every,
             stop_at: self.stop_at,
             prefetch: 2,
+            overlap: self.overlap,
         })
     }
 }

@@ -79,6 +79,44 @@ pub fn trainer_losses<M: velox::models::train::Trainable>(
     reports.iter().map(|r| r.losses.total()).collect()
 }
 
+/// Trains two models from `make` for `steps` f16 steps of one micro-batch on `samples`, one
+/// with each step recorded while the last runs and one without, and fails unless their
+/// parameters and reports are the same to the bit and every step after the first was
+/// recorded ahead and run as recorded.
+pub fn recorded_ahead_is_the_same<M: velox::models::train::Trainable>(
+    make: impl Fn() -> M,
+    samples: &[&M::Sample],
+    steps: u64,
+) {
+    use velox::models::run::{RunRequest, RunSettings};
+    use velox::models::train::collective::SingleProcess;
+    use velox::models::train::trainer::Trainer;
+    let run = |overlap: bool| {
+        let mut model = make();
+        let request = RunRequest {
+            steps: Some(steps),
+            precision: Some(velox::engine::Precision::F16),
+            ..Default::default()
+        };
+        let names = vec!["sample".to_string()];
+        let micro = model.optimisation().batch as u64;
+        assert_eq!(samples.len() as u64, micro, "one micro-batch a step");
+        let settings = RunSettings::new(&request, names, micro, 1).unwrap();
+        let mut trainer = Trainer::new(&mut model, &SingleProcess, settings).unwrap();
+        trainer.set_overlap(overlap);
+        let reports = trainer.repeat_steps(samples, 1..steps + 1).unwrap();
+        let ahead = trainer.recorded_ahead();
+        let key: Vec<_> =
+            reports.iter().map(|r| (r.losses.total().to_bits(), r.grad_norm.to_bits())).collect();
+        (model.store().flat_params().read::<f32>().unwrap(), key, ahead)
+    };
+    let (want, want_reports, _) = run(false);
+    let (got, reports, ahead) = run(true);
+    assert_eq!(ahead, (steps - 1, steps - 1), "steps recorded ahead, and run as recorded");
+    assert!(got == want, "steps recorded ahead changed the parameters");
+    assert_eq!(reports, want_reports);
+}
+
 /// The largest and the mean relative difference of `half`'s losses from `full`'s, step by step.
 pub fn relative_gaps(full: &[f64], half: &[f64]) -> (f64, f64) {
     assert_eq!(full.len(), half.len());

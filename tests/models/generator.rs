@@ -231,6 +231,16 @@ fn it_learns_which_video_shows_which_scene() {
     }
 }
 
+/// Would catch: a generator step recorded while the last runs that differs from one recorded
+/// after it.
+#[test]
+fn steps_recorded_ahead_are_the_same_steps() {
+    let gpu = gpu();
+    let cfg = GeneratorConfig::tiny();
+    let scenes = [sample(&gpu, &cfg, 60), sample(&gpu, &cfg, 61)];
+    recorded_ahead_is_the_same(|| Generator::new(&gpu, &cfg, 7).unwrap(), &[&scenes[0], &scenes[1]], 4);
+}
+
 #[test]
 fn f16_training_follows_f32() {
     // The adaLN-single DiT with cross-attention to the condition, trained by the library

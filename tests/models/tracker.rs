@@ -305,6 +305,15 @@ fn f16_training_follows_f32() {
     assert!(end_full < 0.2 * full[0], "the run must learn: {full:?}");
 }
 
+/// Would catch: a tracker step recorded while the last runs that differs from one recorded
+/// after it.
+#[test]
+fn steps_recorded_ahead_are_the_same_steps() {
+    let gpu = gpu();
+    let s = sample(&gpu, 6, 100);
+    recorded_ahead_is_the_same(|| Tracker::new(&gpu, &TrackerConfig::tiny(), 3).unwrap(), &[&s], 4);
+}
+
 /// Would catch: a host wait added to the tracker's training step (a pass submitted on its own,
 /// a result read with a copy of its own).
 #[test]

@@ -368,6 +368,16 @@ fn frames_decode_together_as_alone() {
     assert_ne!(&together[..n], &together[n..2 * n]);
 }
 
+/// Would catch: a voxel decoder step recorded while the last runs that differs from one
+/// recorded after it.
+#[test]
+fn steps_recorded_ahead_are_the_same_steps() {
+    let gpu = gpu();
+    let (occ, _) = occupancy(&gpu, 3, "ahead");
+    let s = sample(&gpu, 7, &occ[..FRAME_WORDS]);
+    recorded_ahead_is_the_same(|| VoxelDecoder::new(&gpu, &VoxelConfig::tiny(), 1).unwrap(), &[&s], 4);
+}
+
 #[test]
 fn f16_training_follows_f32() {
     // The tiny voxel decoder trained by the library trainer 20 steps on one frame of a scene

@@ -1,7 +1,8 @@
 //! f16 training (mixed precision): the passes' products read f16 operands and accumulate in
 //! f32, the optimiser keeps f32 masters, the loss is scaled dynamically. It follows f32
 //! training; a step whose gradients overflow f16 is skipped and run again at half the scale;
-//! an f16 run stopped and resumed repeats the uninterrupted run bit for bit.
+//! an f16 run stopped and resumed repeats the uninterrupted run bit for bit. Steps recorded
+//! while the step before runs are the same steps, in either precision.
 
 use crate::common;
 use common::*;
@@ -20,7 +21,7 @@ use velox::models::run::{RunRequest, RunSettings};
 use velox::models::train::collective::SingleProcess;
 use velox::models::train::source::SampleSource;
 use velox::models::train::trainer::{train, Begin, Finished, Quiet, StepReport, TrainOptions, Trainer};
-use velox::models::train::{Losses, Optimisation, Trainable};
+use velox::models::train::{Ahead, Finish, Losses, Optimisation, Trainable};
 use velox::models::velox::autoencoder::{Autoencoder, TrainScene};
 use velox::tasks::training::HostScene;
 
@@ -33,10 +34,15 @@ fn temp_dir(name: &str) -> PathBuf {
 
 /// One small procedural scene, held on the host.
 fn host_scene(gpu: &Gpu, dir: &Path) -> HostScene {
+    host_scene_of(gpu, dir, 2)
+}
+
+/// The small procedural scene of `seed`, held on the host.
+fn host_scene_of(gpu: &Gpu, dir: &Path, seed: u64) -> HostScene {
     let opts = SynthOptions { res: 24, points: 1500, supersample: 1, tracks: 8, ..Default::default() };
-    let (_, mesh) = procedural::scene(2, None).unwrap();
-    let at = dir.join("scene");
-    write_scene(gpu, &mesh, "test", None, 2, &opts, &at, &mut |_| {}).unwrap();
+    let (_, mesh) = procedural::scene(seed, None).unwrap();
+    let at = dir.join(format!("scene-{seed}"));
+    write_scene(gpu, &mesh, "test", None, seed, &opts, &at, &mut |_| {}).unwrap();
     HostScene::new(&read_scene(&at, true).unwrap()).unwrap()
 }
 
@@ -210,6 +216,10 @@ fn f16_training_follows_f32_for_100_steps() {
 struct Toy {
     store: ParamStore,
     linear: Linear,
+    /// Which call of `record_ahead` fails (as one out of device memory would), if any, and the
+    /// calls so far.
+    refuse: Option<u32>,
+    calls: u32,
 }
 
 impl Toy {
@@ -218,7 +228,7 @@ impl Toy {
         b.add("w", &[4, 1], Init::Zeros).unwrap();
         let store = b.build(gpu, 0).unwrap();
         let linear = Linear::new(Param::from_store(&store, "w").unwrap(), None).unwrap();
-        Toy { store, linear }
+        Toy { store, linear, refuse: None, calls: 0 }
     }
 }
 
@@ -257,6 +267,83 @@ impl Trainable for Toy {
         rec.submit()?;
         Ok(Losses { terms: vec![("total", loss.read::<f32>()?[0] as f64)] })
     }
+
+    fn records_ahead(&self) -> bool {
+        true
+    }
+
+    // The same passes with the update, where asked for, and the loss read with them.
+    fn record_ahead(
+        &mut self,
+        samples: &[&(Tensor, Tensor)],
+        _: &mut [Rng],
+        weight: f64,
+    ) -> Result<Ahead<Toy>> {
+        self.calls += 1;
+        if self.refuse == Some(self.calls) {
+            return Err(velox::engine::Error::Invalid("out of device memory".into()));
+        }
+        let (x, y) = samples[0];
+        let mut rec = self.store.recorder()?;
+        let (pred, cache) = self.linear.forward(&mut rec, x)?;
+        let (loss, d) = Loss::mse().weighted(weight as f32).forward_backward(&mut rec, &pred, y)?;
+        self.linear.param_grads(&mut rec, &cache, &d)?;
+        let loss = rec.read_back(&loss)?;
+        self.store.record_update(&mut rec)?;
+        let finish: Finish<Toy> =
+            Box::new(move |_, _| Ok(Losses { terms: vec![("total", loss.read::<f32>()?[0] as f64)] }));
+        Ok(Ahead { rec, finish })
+    }
+}
+
+/// Would catch: a step recorded while the last ran that is submitted after the last
+/// overflowed (run at the scale before the halving, or not run again), or after the scale
+/// grew; and a store whose state for the running step the recording ahead overwrote.
+#[test]
+fn steps_recorded_ahead_follow_overflows_and_the_growing_scale() {
+    let gpu = gpu();
+    let x = Tensor::from_slice(&gpu, &[1, 4], &[1.0f32, 0.5, -1.0, 2.0]).unwrap();
+    let run_refusing = |target: f32, good_steps: u64, overlap: bool, refuse: Option<u32>| {
+        let y = Tensor::from_slice(&gpu, &[1, 1], &[target]).unwrap();
+        let sample = (x.clone(), y);
+        let mut toy = Toy::new(&gpu);
+        toy.refuse = refuse;
+        let scale = toy.store.loss_scale().scale;
+        *toy.store.loss_scale_mut() = LossScale { scale, good_steps };
+        let mut trainer = Trainer::new(&mut toy, &SingleProcess, settings(Precision::F16, 3)).unwrap();
+        trainer.set_overlap(overlap);
+        assert!(trainer.overlaps() == overlap);
+        let reports = trainer.repeat_steps(&[&sample], 1..4).unwrap();
+        let ahead = (trainer.recorded_ahead(), trainer.overlaps());
+        let key: Vec<_> = reports
+            .iter()
+            .map(|r| (r.losses.total().to_bits(), r.grad_norm.to_bits(), r.loss_scale, r.overflows))
+            .collect();
+        (toy.store.flat_params().read::<f32>().unwrap(), key, toy.store.loss_scale(), ahead)
+    };
+    // 11 overflows in step 1 (see above): each try records step 2 and drops it; the last
+    // try's recording of it runs, and step 2's of step 3.
+    let run = |target: f32, good_steps: u64, overlap: bool| run_refusing(target, good_steps, overlap, None);
+    let (want, want_reports, want_scale, none) = run(1000.0, 0, false);
+    assert_eq!(none, ((0, 0), false));
+    let (got, reports, scale, ahead) = run(1000.0, 0, true);
+    assert_eq!(ahead, ((13, 2), true));
+    assert!(got == want, "recorded ahead {got:?}, after {want:?}");
+    assert_eq!((reports, scale), (want_reports, want_scale));
+    // The scale doubles after step 2: step 3, recorded at the scale before, is recorded again.
+    let grows = LossScale::GROWTH_INTERVAL - 2;
+    let (want, want_reports, want_scale, _) = run(0.1, grows, false);
+    assert_eq!(want_scale.scale, 2.0 * LossScale::INITIAL);
+    let (got, reports, scale, ahead) = run(0.1, grows, true);
+    assert_eq!(ahead, ((2, 1), true));
+    assert!(got == want, "recorded ahead {got:?}, after {want:?}");
+    assert_eq!((reports, scale), (want_reports.clone(), want_scale));
+    // Step 2 cannot be recorded ahead (the toy's second recording fails, as one out of device
+    // memory would): it is recorded when due, and the run records no more ahead.
+    let (got, reports, scale, ahead) = run_refusing(0.1, grows, true, Some(2));
+    assert_eq!(ahead, ((0, 0), false));
+    assert!(got == want, "recorded ahead {got:?}, after {want:?}");
+    assert_eq!((reports, scale), (want_reports, want_scale));
 }
 
 #[test]
@@ -302,30 +389,30 @@ fn a_step_whose_gradients_overflow_f16_is_run_again_at_half_the_scale() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// One scene in host memory, uploaded when prepared.
+/// Scenes in host memory, uploaded when prepared.
 struct Memory {
     gpu: Gpu,
-    scene: HostScene,
+    scenes: Vec<HostScene>,
 }
 
 impl SampleSource for Memory {
-    type Raw = ();
+    type Raw = usize;
     type Sample = TrainScene;
 
     fn len(&self) -> usize {
-        1
+        self.scenes.len()
     }
 
-    fn name(&self, _: usize) -> String {
-        "memory".into()
+    fn name(&self, i: usize) -> String {
+        format!("memory {i}")
     }
 
-    fn read(&self, _: usize) -> Result<()> {
-        Ok(())
+    fn read(&self, i: usize) -> Result<usize> {
+        Ok(i)
     }
 
-    fn prepare(&self, _: ()) -> Result<TrainScene> {
-        Ok(upload(&self.gpu, &self.scene))
+    fn prepare(&self, i: usize) -> Result<TrainScene> {
+        Ok(upload(&self.gpu, &self.scenes[i]))
     }
 }
 
@@ -333,7 +420,7 @@ impl SampleSource for Memory {
 fn an_f16_run_stopped_and_resumed_repeats_the_uninterrupted_run() {
     let gpu = gpu();
     let dir = temp_dir("resume");
-    let memory = Memory { gpu: gpu.clone(), scene: host_scene(&gpu, &dir) };
+    let memory = Memory { gpu: gpu.clone(), scenes: vec![host_scene(&gpu, &dir)] };
     let options = |out: &Path, begin: Begin, stop_at| TrainOptions {
         out: out.to_path_buf(),
         request: RunRequest {
@@ -346,6 +433,7 @@ fn an_f16_run_stopped_and_resumed_repeats_the_uninterrupted_run() {
         plot_every: 100,
         stop_at,
         prefetch: 1,
+        overlap: None,
     };
     let run = |out: &Path, begin: Begin, stop_at| {
         let mut model = Autoencoder::new(&gpu, &AutoencoderConfig::tiny(), 7).unwrap();
@@ -376,5 +464,78 @@ fn an_f16_run_stopped_and_resumed_repeats_the_uninterrupted_run() {
     asked.request.steps = Some(6);
     let err = train(&mut model, &memory, &asked, &SingleProcess, &mut Quiet, &|| false).unwrap_err();
     assert!(err.to_string().contains("`precision` f32 differs from the f16"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Would catch: a step recorded while the last ran that differs from one recorded after it
+/// (draws, room, update, the store's state for the running step), one submitted after the
+/// last outgrew its tile lists, and a run whose next scenes, read ahead, come in another order.
+#[test]
+fn autoencoder_steps_recorded_while_the_last_runs_are_the_same_steps() {
+    // The submissions are counted where the test has its device alone.
+    let (gpu, counted) = match counting_gpu() {
+        Some(gpu) => (gpu, true),
+        None => (gpu(), false),
+    };
+    let dir = temp_dir("overlap");
+    let host = host_scene(&gpu, &dir);
+    let scene = upload(&gpu, &host);
+    for precision in [Precision::F32, Precision::F16] {
+        let run = |room: usize, overlap: bool| {
+            let mut model = Autoencoder::new(&gpu, &AutoencoderConfig::tiny(), 3).unwrap();
+            model.set_pair_room(room);
+            let mut trainer = Trainer::new(&mut model, &SingleProcess, settings(precision, 4)).unwrap();
+            trainer.set_overlap(overlap);
+            let submits = gpu.submits();
+            let reports = trainer.repeat_steps(&[&scene], 1..5).unwrap();
+            let ahead = (trainer.recorded_ahead(), gpu.submits() - submits);
+            let key: Vec<_> =
+                reports.iter().map(|r| (r.losses.total().to_bits(), r.grad_norm.to_bits())).collect();
+            (model.store.flat_params().read::<f32>().unwrap(), key, ahead)
+        };
+        let (want, want_reports, (_, want_submits)) = run(0, false);
+        // The first step sizes the lists: steps 3 and 4 are recorded ahead, with no submission
+        // of their own while the step before runs.
+        let (got, reports, (ahead, submits)) = run(0, true);
+        assert_eq!(ahead, (2, 2), "{precision:?}");
+        if counted {
+            assert_eq!((submits, want_submits), (4, 4), "{precision:?}: submissions of four steps");
+        }
+        assert!(got == want, "{precision:?}: steps recorded ahead changed the parameters");
+        assert_eq!(reports, want_reports, "{precision:?}");
+        // Room for 16 pairs: step 1 outgrows it, and step 2, recorded meanwhile, is dropped.
+        let (got, reports, (ahead, _)) = run(16, true);
+        assert_eq!(ahead, (4, 3), "{precision:?}");
+        assert!(got == want, "{precision:?}: a rerun with steps recorded ahead changed the parameters");
+        assert_eq!(reports, want_reports, "{precision:?}");
+    }
+
+    // A run of the library's trainer on two scenes, stopped and resumed, its scenes read a
+    // group ahead.
+    let memory = Memory { gpu: gpu.clone(), scenes: vec![host, host_scene_of(&gpu, &dir, 3)] };
+    let train_to = |out: &Path, begin: Begin, stop_at, overlap| {
+        let mut model = Autoencoder::new(&gpu, &AutoencoderConfig::tiny(), 7).unwrap();
+        if begin == Begin::Resume {
+            checkpoint::load(&out.join("checkpoint.safetensors"), &mut model.store).unwrap();
+        }
+        let options = TrainOptions {
+            out: out.to_path_buf(),
+            request: RunRequest { steps: Some(5), steps_per_scene: Some(2), ..Default::default() },
+            begin,
+            checkpoint_every: 100,
+            plot_every: 100,
+            stop_at,
+            prefetch: 1,
+            overlap: Some(overlap),
+        };
+        train(&mut model, &memory, &options, &SingleProcess, &mut Quiet, &|| false).unwrap()
+    };
+    let (whole, parts) = (dir.join("whole"), dir.join("parts"));
+    train_to(&whole, Begin::New, None, false);
+    let first = train_to(&parts, Begin::New, Some(3), true);
+    assert_eq!(first.steps_run, 3);
+    train_to(&parts, Begin::Resume, None, true);
+    let bytes = |d: &Path| std::fs::read(d.join("checkpoint.safetensors")).unwrap();
+    assert!(bytes(&whole) == bytes(&parts), "the run with steps recorded ahead differs from the one without");
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -157,6 +157,7 @@ fn options(out: &Path, accumulate: u64) -> TrainOptions {
         plot_every: 100,
         stop_at: None,
         prefetch: 1,
+        overlap: None,
     }
 }
 

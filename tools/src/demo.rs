@@ -158,6 +158,7 @@ pub fn run(args: &DemoArgs) -> CliResult<()> {
             cooldown: Some(steps / 4),
             stop_at: None,
             precision: None,
+            overlap: None,
         },
     };
     let summary = train_autoencoder(&gpu, &train, &Interrupt::never(), &SingleProcess)?;

@@ -166,6 +166,19 @@ pub struct RunArgs {
     /// else f32 (lavapipe's are emulated); a resumed run keeps its own].
     #[arg(long, value_enum)]
     pub precision: Option<PrecisionArg>,
+    /// Record each step while the last one runs on the device, so that the device does not
+    /// wait for the recording (one process, no --accumulate): the same steps to the bit, with
+    /// up to two steps' activations in memory at once [default: on, except on a CPU device,
+    /// where recording would take cores from the device's work].
+    #[arg(long, value_enum)]
+    pub overlap: Option<OnOff>,
+}
+
+/// A switch given on the command line.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum OnOff {
+    On,
+    Off,
 }
 
 impl RunArgs {
@@ -192,6 +205,7 @@ impl RunArgs {
             checkpoint_every: self.checkpoint_every,
             plot_every: self.plot_every,
             stop_at: self.stop_at,
+            overlap: self.overlap.map(|o| o == OnOff::On),
         }
     }
 

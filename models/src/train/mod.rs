@@ -158,6 +158,72 @@ pub trait Trainable {
     fn take_rerun(&mut self) -> Option<String> {
         None
     }
+
+    /// Whether [`Trainable::record_ahead`] can record the next micro-batch now, before the
+    /// one on the device has finished. `false` (the default) for a model that has no such
+    /// recording, or whose next recording depends on what the one running will tell (the
+    /// autoencoder's first step sizes its tile lists by its counts).
+    fn records_ahead(&self) -> bool {
+        false
+    }
+
+    /// Records a micro-batch's passes as [`Trainable::accumulate`] would, in one recording
+    /// (update included, where asked for), without submitting it: the trainer records a step
+    /// while the step before runs, submits it once that step has finished, and then calls
+    /// the returned finish with the recording's report. Called only where
+    /// [`Trainable::records_ahead`] says so. The finish must leave unchanged whatever the next
+    /// recording depends on, unless it asks for a rerun (the recording ahead is then made
+    /// again).
+    fn record_ahead(
+        &mut self,
+        _samples: &[&Self::Sample],
+        _rngs: &mut [Rng],
+        _weight: f64,
+    ) -> Result<Ahead<Self>> {
+        Err(velox_engine::Error::Invalid(format!(
+            "{} records no pass ahead",
+            self.describe()["model"].as_str().unwrap_or("this model")
+        )))
+    }
+}
+
+/// How a recorded pass ([`Trainable::record_ahead`]) is finished once it has run: it reads
+/// the pass's results and returns its losses, as [`Trainable::accumulate`] does.
+pub type Finish<M> = Box<dyn FnOnce(&mut M, &velox_engine::Finished) -> Result<Losses>>;
+
+/// A micro-batch's passes recorded and not yet submitted ([`Trainable::record_ahead`]).
+pub struct Ahead<M: ?Sized> {
+    pub rec: velox_engine::Recorder,
+    pub finish: Finish<M>,
+}
+
+impl<M: 'static> Ahead<M> {
+    /// Submits the recording, waits for it and finishes it: [`Trainable::accumulate`] of a
+    /// model that records ahead.
+    pub fn run(self, model: &mut M) -> Result<Losses> {
+        let finished = self.rec.submit()?;
+        (self.finish)(model, &finished)
+    }
+
+    /// A pass whose one loss term (`loss`, one f32) comes back with its recording: finishing
+    /// it adds the passes' times (`timer`) to the model's (`seconds`) and reads the loss,
+    /// which must be finite.
+    pub(crate) fn one_loss(
+        rec: velox_engine::Recorder,
+        timer: PassTimer,
+        loss: velox_engine::Readback,
+        seconds: fn(&mut M) -> &mut PassSeconds,
+    ) -> Ahead<M> {
+        let finish: Finish<M> = Box::new(move |model, finished| {
+            timer.add(finished, seconds(model));
+            let total = loss.read::<f32>()?[0] as f64;
+            if !total.is_finite() {
+                return Err(velox_engine::Error::Invalid(format!("the loss became non-finite ({total})")));
+            }
+            Ok(Losses { terms: vec![("total", total)] })
+        });
+        Ahead { rec, finish }
+    }
 }
 
 /// Fails unless a micro-batch of `samples` scenes has one random generator each (and at
@@ -173,8 +239,10 @@ pub(crate) fn check_micro_batch(samples: usize, rngs: usize) -> velox_engine::Re
 
 /// Implements [`Trainable`] for a Velox model: a struct with the fields `cfg` (its config,
 /// holding `peak_lr`, `warmup`, `max_grad_norm` and `batch`), `store`, `adamw` and
-/// `pass_seconds`, and an inherent `accumulate`; its checkpoints describe it as
-/// `{"model": MODEL_KIND, "config": cfg}` (the `MODEL_KIND` of the model's module).
+/// `pass_seconds`, and inherent `accumulate` and `record_pass` (what
+/// [`Trainable::record_ahead`] does; `accumulate` runs it: [`Ahead::run`]); its checkpoints describe it as `{"model": MODEL_KIND, "config":
+/// cfg}` (the `MODEL_KIND` of the model's module). The extra methods given after the sample
+/// type say at least [`Trainable::records_ahead`].
 macro_rules! trainable {
     ($model:ty, $sample:ty $(; $($more:tt)*)?) => {
         impl $crate::train::Trainable for $model {
@@ -209,6 +277,15 @@ macro_rules! trainable {
                 weight: f64,
             ) -> velox_engine::Result<$crate::train::Losses> {
                 <$model>::accumulate(self, samples, rngs, weight)
+            }
+
+            fn record_ahead(
+                &mut self,
+                samples: &[&$sample],
+                rngs: &mut [velox_engine::rng::Rng],
+                weight: f64,
+            ) -> velox_engine::Result<$crate::train::Ahead<Self>> {
+                <$model>::record_pass(self, samples, rngs, weight)
             }
 
             fn take_pass_seconds(&mut self) -> Option<$crate::train::PassSeconds> {

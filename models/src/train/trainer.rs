@@ -30,6 +30,12 @@
 //! on how `G` is split, so a run's samples are the same on one process or several, and a
 //! resumed run repeats the uninterrupted one bit for bit.
 //!
+//! With one process and one micro-batch a step, [`Trainer::run_step`] records step `s + 1`
+//! while step `s` runs on the device and submits it once `s` is known good (a step recorded
+//! with what `s` then changed, an overflow, a grown loss scale or outgrown tile lists, is
+//! recorded again), so the device does not wait for the host's recording and the steps stay
+//! the same to the bit ([`Trainer::set_overlap`]; `docs/decisions/recorder.md`).
+//!
 //! Tests: `tests/training/trainer.rs` (micro-batches, accumulation, resume to the bit),
 //! `tests/training/mixed_precision.rs` and `tools/tests/train_cli.rs`.
 
@@ -161,6 +167,22 @@ pub struct Trainer<'a, M: Trainable, C: Collective> {
     retry_of: Option<u64>,
     /// This process's micro-batches outgrew what the model sized ahead: why.
     rerun: Option<String>,
+    /// Whether [`Trainer::run_step`] records a step's pass while the step before runs
+    /// ([`Trainer::set_overlap`]).
+    overlap: bool,
+    /// The next step's pass, recorded while the last ran and not yet submitted.
+    ahead: Option<AheadStep<M>>,
+    /// Passes recorded ahead, and of them those the device ran as recorded.
+    recorded_ahead: (u64, u64),
+}
+
+/// A step's pass recorded while the step before ran ([`Trainer::run_step`]): the update it
+/// records and the store's state it left, for the check that both still hold when it is due.
+struct AheadStep<M: Trainable> {
+    step: u64,
+    update: Update,
+    pass: super::Ahead<M>,
+    state: crate::params::PassState,
 }
 
 impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
@@ -177,6 +199,8 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
             )));
         }
         model.store_mut().set_training_precision(settings.precision)?;
+        // On a CPU device the host's recording would take cores from the device's work.
+        let overlap = model.store().flat_params().gpu().caps().kind != "CPU";
         Ok(Trainer {
             model,
             collective,
@@ -187,7 +211,36 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
             overflows: 0,
             retry_of: None,
             rerun: None,
+            overlap,
+            ahead: None,
+            recorded_ahead: (0, 0),
         })
+    }
+
+    /// Has [`Trainer::run_step`] record each step's pass while the step before runs, where
+    /// the run can (one process, one micro-batch a step, a model that
+    /// [records ahead](Trainable::records_ahead)): the device then waits on the host only from
+    /// the end of a step to the next one's submission, not for its recording. On by default
+    /// except on CPU devices, where recording would take cores from the device's work. The
+    /// steps are the same to the bit either way; a pass recorded ahead holds its activations
+    /// while the step before runs (up to twice the memory of one).
+    pub fn set_overlap(&mut self, on: bool) {
+        self.overlap = on;
+        if !on {
+            self.ahead = None;
+        }
+    }
+
+    /// Whether [`Trainer::run_step`] records steps ahead ([`Trainer::set_overlap`]).
+    pub fn overlaps(&self) -> bool {
+        self.overlap && self.settings.accumulate == 1 && self.collective.size() == 1
+    }
+
+    /// How many steps' passes were recorded while the step before ran, and how many of them
+    /// ran as recorded (the others were recorded again: the step before overflowed or
+    /// outgrew its room, or the loss scale changed).
+    pub fn recorded_ahead(&self) -> (u64, u64) {
+        self.recorded_ahead
     }
 
     pub fn model(&self) -> &M {
@@ -224,7 +277,8 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
             self.overflows = 0;
         }
         self.losses = Losses::default();
-        self.time = TimeSplit::default();
+        // Seconds getting the step's samples, added before it began, stay.
+        self.time = TimeSplit { data: self.time.data, ..TimeSplit::default() };
         self.failed = None;
         self.rerun = None;
         // Recorded first by the step's first pass (no submit of its own).
@@ -287,9 +341,16 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
             self.model.store_mut().update_last(update);
         }
         let scale = self.loss_scale();
-        let weight = scale / self.settings.global_batch as f64;
         let t = Instant::now();
-        match self.model.accumulate(samples, &mut rngs, weight) {
+        let losses = self.model.accumulate(samples, &mut rngs, scale / self.settings.global_batch as f64);
+        self.add_losses(losses, scale, t.elapsed().as_secs_f64());
+        Ok(())
+    }
+
+    /// Takes in a micro-batch's losses (or its failure) at loss scale `scale`, and the seconds
+    /// its passes took.
+    fn add_losses(&mut self, losses: Result<Losses>, scale: f64, seconds: f64) {
+        match losses {
             Ok(mut l) => {
                 l.terms.iter_mut().for_each(|t| t.1 /= scale);
                 self.losses.add(&l)
@@ -297,8 +358,97 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
             Err(e) => self.fail(e),
         }
         self.rerun = self.model.take_rerun();
-        self.time.compute += t.elapsed().as_secs_f64();
-        Ok(())
+        self.time.compute += seconds;
+    }
+
+    /// Runs step `step` on `samples` (this process's, in the order of its slots): the step's
+    /// micro-batches, then [`Trainer::finish_step`]. Where the trainer
+    /// [overlaps](Trainer::overlaps), it records the pass of step `step + 1` on `next` (its
+    /// samples) while this step runs on the device, and submits it when step `step + 1` is
+    /// run, on the same samples, if the update and the state it was recorded with still hold
+    /// (else it records it again). A caller that stops after this step just does not run it.
+    pub fn run_step(
+        &mut self,
+        step: u64,
+        samples: &[&M::Sample],
+        next: Option<&[&M::Sample]>,
+    ) -> Result<Finished> {
+        let b = self.model.optimisation().batch;
+        if samples.len() as u64 != b as u64 * self.settings.accumulate {
+            return Err(Error::Invalid(format!(
+                "step {step} given {} samples for {} micro-batches of {b}",
+                samples.len(),
+                self.settings.accumulate
+            )));
+        }
+        let ahead = self.ahead.take();
+        if !self.overlaps() || !(ahead.is_some() || self.model.records_ahead()) {
+            self.begin_step(step)?;
+            for (m, mine) in samples.chunks(b).enumerate() {
+                self.micro_batch(step, m as u64, mine)?;
+            }
+            return self.finish_step(step);
+        }
+        // The pass recorded ahead, if what it recorded still holds; else it is recorded now.
+        // The step's compute time is the wall time from here to its finish, the recording of
+        // the next step included (a step recorded ahead was timed with the step before).
+        let t = Instant::now();
+        self.begin_step(step)?;
+        let scale = self.loss_scale();
+        let pass = match ahead {
+            // (begin_step has checked that the parameters are at the step before.)
+            Some(a) if a.step == step && a.update == self.update(step) => {
+                self.model.store_mut().restore_pass_state(a.state);
+                self.recorded_ahead.1 += 1;
+                Ok(a.pass)
+            }
+            _ => {
+                let update = self.update(step);
+                self.model.store_mut().update_last(update);
+                self.record_pass(step, samples, scale)
+            }
+        };
+        let launched = pass.and_then(|pass| Ok((pass.rec.launch()?, pass.finish)));
+        if let (Ok(_), Some(next)) = (&launched, next) {
+            if self.model.records_ahead() {
+                self.ahead = self.record_ahead(step + 1, next);
+            }
+        }
+        let losses = launched.and_then(|(launched, finish)| finish(self.model, &launched.wait()?));
+        self.add_losses(losses, scale, t.elapsed().as_secs_f64());
+        let finished = self.finish_step(step)?;
+        if !matches!(finished, Finished::Done(_)) {
+            self.ahead = None;
+        }
+        Ok(finished)
+    }
+
+    /// Records the pass of step `step`'s one micro-batch at loss scale `scale`, not submitted.
+    fn record_pass(&mut self, step: u64, samples: &[&M::Sample], scale: f64) -> Result<super::Ahead<M>> {
+        let mut rngs: Vec<_> = self.slots(0).map(|g| slot_rng(self.settings.seed, step, g)).collect();
+        self.model.record_ahead(samples, &mut rngs, scale / self.settings.global_batch as f64)
+    }
+
+    /// Records step `step`'s pass on `samples` while the step before runs, with the store's
+    /// state of that step taken out and put back after. `None` where the recording failed
+    /// (out of device memory with two steps' activations, a sample the model refuses): the
+    /// step records it again when it is due, after the step before has let its memory go, and
+    /// reports a failure then; the run records no more steps ahead.
+    fn record_ahead(&mut self, step: u64, samples: &[&M::Sample]) -> Option<AheadStep<M>> {
+        let running = self.model.store_mut().take_pass_state();
+        let update = self.update(step);
+        let store = self.model.store_mut();
+        store.zero_grads_first();
+        store.update_last(update);
+        let pass = self.record_pass(step, samples, update.loss_scale);
+        let state = self.model.store_mut().take_pass_state();
+        self.model.store_mut().restore_pass_state(running);
+        let Ok(pass) = pass else {
+            self.overlap = false;
+            return None;
+        };
+        self.recorded_ahead.0 += 1;
+        Some(AheadStep { step, update, pass, state })
     }
 
     /// Ends step `step`: gathers the losses and sums the gradients over the processes, then
@@ -395,7 +545,7 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
             losses: Losses { terms },
             grad_norm,
             lr,
-            time: self.time,
+            time: std::mem::take(&mut self.time),
             loss_scale: half.then_some(scale),
             overflows: self.overflows,
         }))
@@ -407,16 +557,16 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
         if samples.is_empty() {
             return Err(Error::Invalid("steps on no samples".into()));
         }
+        // Every step takes the same samples.
+        let mine: Vec<&M::Sample> = (0..self.settings.accumulate)
+            .flat_map(|m| self.slots(m))
+            .map(|g| samples[(g % samples.len() as u64) as usize])
+            .collect();
         let mut reports = Vec::new();
-        for step in steps {
+        for step in steps.clone() {
+            let next = (step + 1 < steps.end).then_some(&mine[..]);
             loop {
-                self.begin_step(step)?;
-                for m in 0..self.settings.accumulate {
-                    let mine: Vec<&M::Sample> =
-                        self.slots(m).map(|g| samples[(g % samples.len() as u64) as usize]).collect();
-                    self.micro_batch(step, m, &mine)?;
-                }
-                if let Finished::Done(report) = self.finish_step(step)? {
+                if let Finished::Done(report) = self.run_step(step, &mine, next)? {
                     reports.push(report);
                     break;
                 }
@@ -495,6 +645,9 @@ pub struct TrainOptions {
     pub stop_at: Option<u64>,
     /// Samples read ahead of the steps, per process.
     pub prefetch: usize,
+    /// Whether a step is recorded while the last runs ([`Trainer::set_overlap`]); `None`: the
+    /// device's default (on except on CPU devices). The steps are the same either way.
+    pub overlap: Option<bool>,
 }
 
 /// Why a run ended before its last step.
@@ -721,12 +874,45 @@ where
     }
     let mut log = on_root(collective, || Log::open(&folder.log, start_step))?;
     let mut trainer = Trainer::new(model, collective, settings.clone())?;
+    if let Some(on) = options.overlap {
+        trainer.set_overlap(on);
+    }
     observer.begin(&settings, start_step);
     let result = std::thread::scope(|scope| {
         run_steps(&mut trainer, source, &folder, options, scope, log.as_mut(), observer, stop, &names)
     });
     observer.end(result.is_ok());
     result
+}
+
+/// The next `b` samples from the reading thread, prepared.
+fn read_group<S: SampleSource>(
+    samples: &std::sync::mpsc::Receiver<Result<S::Raw>>,
+    b: u64,
+    source: &S,
+) -> Result<Vec<S::Sample>> {
+    (0..b)
+        .map(|_| {
+            samples
+                .recv()
+                .map_err(|_| Error::Io("the sample-reading thread stopped".into()))
+                .and_then(|raw| source.prepare(raw?))
+        })
+        .collect()
+}
+
+/// The error that stops a run at `step`, naming the checkpoint to go on from.
+fn stopped_at(step: u64, e: &Error, folder: &RunFolder) -> Error {
+    Error::Invalid(format!(
+        "training stopped at step {step}: {}; {}",
+        words(e),
+        last_good(&folder.checkpoint)
+    ))
+}
+
+/// What the log says of an f16 step that overflowed at `scale`.
+fn overflowed(step: u64, scale: f64) -> String {
+    format!("step {step}: the f16 gradients overflowed at loss scale {scale}; run again at {}", scale / 2.0)
 }
 
 /// The steps of [`train`], with the samples read ahead on a thread of `scope`.
@@ -761,8 +947,12 @@ where
         groups.flat_map(move |k| slots.clone().map(move |g| k * global + g)).map(move |p| order.at(p));
     let samples = prefetch(scope, source, indices, options.prefetch)?;
 
-    // The samples of this process's slots, kept while their group of steps lasts.
+    // The samples of this process's slots, kept while their group of steps lasts: slot by
+    // slot, or (where the trainer overlaps steps) the group's at once, and the next group's
+    // read ahead.
     let mut held: Vec<Option<S::Sample>> = (0..acc * b).map(|_| None).collect();
+    let mut group_samples: Option<(u64, Result<Vec<S::Sample>>)> = None;
+    let mut next_group: Option<(u64, Result<Vec<S::Sample>>)> = None;
     let mut group = None;
     let mut names_of_group = Vec::new();
     let mut order = Order::new(names.len(), settings.seed);
@@ -784,7 +974,49 @@ where
         // The group's last step lets its samples go once it is done (not before: an f16
         // overflow, or a model outgrowing what it sized ahead, runs the step again).
         let keep = !step.is_multiple_of(per_scene) && step < settings.steps;
+        // With one micro-batch a step, the next step's pass is recorded while this one runs
+        // (Trainer::run_step): its samples are read first, the next group's too where the
+        // next step starts one (unless the run stops after this step).
+        let overlap = trainer.overlaps();
+        let t = Instant::now();
+        if overlap && group_samples.as_ref().is_none_or(|g| g.0 != k) {
+            group_samples = Some(match next_group.take() {
+                Some((at, read)) if at == k => (k, read),
+                _ => (k, read_group(&samples, b, source)),
+            });
+        }
+        let next_k = step_position(step + 1, per_scene);
+        let last_step = step == settings.steps || options.stop_at == Some(step);
+        if overlap && !last_step && next_k != k && next_group.is_none() {
+            next_group = Some((next_k, read_group(&samples, b, source)));
+        }
+        trainer.add_data_seconds(t.elapsed().as_secs_f64());
         let report = loop {
+            if let Some((_, read)) = group_samples.as_ref().filter(|_| overlap) {
+                let finished = match read {
+                    Ok(mine) => {
+                        let mine: Vec<&S::Sample> = mine.iter().collect();
+                        let next = match &next_group {
+                            _ if last_step => None,
+                            Some((_, Ok(theirs))) => Some(theirs.iter().collect::<Vec<_>>()),
+                            Some((_, Err(_))) => None,
+                            None => Some(mine.clone()),
+                        };
+                        trainer.run_step(step, &mine, next.as_deref())
+                    }
+                    Err(e) => {
+                        trainer.begin_step(step)?;
+                        trainer.fail(Error::Invalid(words(e)));
+                        trainer.finish_step(step)
+                    }
+                };
+                match finished.map_err(|e| stopped_at(step, &e, folder))? {
+                    Finished::Done(report) => break report,
+                    Finished::Overflowed { scale } => observer.note(&overflowed(step, scale)),
+                    Finished::Rerun { why } => observer.note(&format!("step {step}: {why}; run again")),
+                }
+                continue;
+            }
             trainer.begin_step(step)?;
             for m in 0..acc {
                 let range = (m * b) as usize..((m + 1) * b) as usize;
@@ -808,21 +1040,9 @@ where
                     trainer.micro_batch(step, m, &batch)?;
                 }
             }
-            let finished = trainer.finish_step(step).map_err(|e| {
-                Error::Invalid(format!(
-                    "training stopped at step {step}: {}; {}",
-                    words(&e),
-                    last_good(&folder.checkpoint)
-                ))
-            })?;
-            match finished {
+            match trainer.finish_step(step).map_err(|e| stopped_at(step, &e, folder))? {
                 Finished::Done(report) => break report,
-                Finished::Overflowed { scale } => {
-                    let again = scale / 2.0;
-                    observer.note(&format!(
-                        "step {step}: the f16 gradients overflowed at loss scale {scale}; run again at {again}"
-                    ))
-                }
+                Finished::Overflowed { scale } => observer.note(&overflowed(step, scale)),
                 Finished::Rerun { why } => observer.note(&format!("step {step}: {why}; run again")),
             }
         };

@@ -34,12 +34,12 @@ use velox_engine::ops::raster::{
     MAX_TILES_PER_GAUSSIAN,
 };
 use velox_engine::rng::Rng;
-use velox_engine::{DType, Error, Gpu, Precision, Recorder, Result, Tensor};
+use velox_engine::{DType, Error, Finished, Gpu, Precision, Recorder, Result, Tensor};
 
 use crate::config::AutoencoderConfig;
 use crate::layers::Loss;
 use crate::params::{build, declare, ParamBuilder, ParamStore, Params, Update};
-use crate::train::{Losses, PassSeconds, PassTimer, Trainable};
+use crate::train::{Ahead, Finish, Losses, PassSeconds, PassTimer, Trainable};
 use crate::velox::encoder::Encoder;
 use crate::velox::gaussians::{occupied_voxels, GaussianDecoder, VoxelFrames};
 use crate::velox::surface::{FlowNoise, PointFrames, SampleSpec, Sampler, SurfaceDecoder};
@@ -331,6 +331,13 @@ impl Autoencoder {
     /// order whatever the batch, so a scene adds the same gradient alone or in a batch (to
     /// the summation order of the products over the batch's rows).
     pub fn accumulate(&mut self, scenes: &[&TrainScene], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
+        self.record_pass(scenes, rngs, weight)?.run(self)
+    }
+
+    /// The recording of [`Autoencoder::accumulate`], not yet submitted, and its finish. A
+    /// first step whose views' lists cannot be sized by the bound submits its forward pass
+    /// here, to size them by its counts.
+    fn record_pass(&mut self, scenes: &[&TrainScene], rngs: &mut [Rng], weight: f64) -> Result<Ahead<Self>> {
         crate::train::check_micro_batch(scenes.len(), rngs.len())?;
         let gpu = scenes[0].cloud.gpu().clone();
         let started = Instant::now();
@@ -539,17 +546,29 @@ impl Autoencoder {
         timer.end(&mut rec);
         // The step's update, where the trainer asked for it with this pass (ParamStore::update_last).
         self.store.record_update(&mut rec)?;
-        let finished = rec.submit()?;
+        let projected = rendered
+            .into_iter()
+            .flat_map(|(_, views, _)| views.into_iter().map(|(r, _)| r.projected))
+            .collect();
+        let tail = PassTail { started, timer, forward_done, first_step, room, projected, terms };
+        let finish: Finish<Self> =
+            Box::new(move |model: &mut Self, finished| model.finish_pass(finished, tail));
+        Ok(Ahead { rec, finish })
+    }
+
+    /// Reads a micro-batch's results once its recording has run (`finished`): its losses, and
+    /// whether its views outgrew their room (then it asks for a rerun, and reports no loss).
+    fn finish_pass(&mut self, finished: &Finished, tail: PassTail) -> Result<Losses> {
+        let PassTail { started, timer, forward_done, first_step, room, projected, terms } = tail;
         match forward_done {
-            None => timer.add(&finished, &mut self.pass_seconds),
+            None => timer.add(finished, &mut self.pass_seconds),
             Some(done) => {
                 self.pass_seconds.forward += (done - started).as_secs_f64();
                 self.pass_seconds.backward += done.elapsed().as_secs_f64();
                 self.pass_seconds.host += finished.host_seconds;
             }
         }
-        let most =
-            most_pairs(rendered.iter().flat_map(|(_, views, _)| views.iter().map(|(r, _)| &r.projected)))?;
+        let most = most_pairs(projected.iter())?;
         if first_step {
             self.pair_room = room_for(most);
         }
@@ -632,11 +651,29 @@ crate::train::trainable!(Autoencoder, TrainScene;
     fn take_rerun(&mut self) -> Option<String> {
         self.rerun.take()
     }
+
+    // A first step sizes its tile lists by its own counts, which the steps after it read.
+    fn records_ahead(&self) -> bool {
+        self.pair_room > 0
+    }
 );
+
+/// What [`Autoencoder::finish_pass`] reads of a recorded micro-batch: its timing, the
+/// room its views' tile lists were sized for, their projections (whose pair counts the
+/// recording reads back) and its three loss terms.
+struct PassTail {
+    started: Instant,
+    timer: PassTimer,
+    /// When a first step's forward pass, submitted alone to size the lists, finished.
+    forward_done: Option<Instant>,
+    first_step: bool,
+    room: usize,
+    projected: Vec<Projected>,
+    terms: velox_engine::Readback,
+}
+
 crate::model::model!(Autoencoder, AutoencoderConfig, "autoencoder");
 
-/// Gaussians `start .. start + len` of a set, as a set of their own (the whole set when it is
-/// all of it).
 /// The most (tile, Gaussian) pairs among projections whose recording has run.
 fn most_pairs<'a>(projected: impl Iterator<Item = &'a Projected>) -> Result<usize> {
     projected.map(Projected::intersections).try_fold(0, |most, n| Ok(most.max(n?)))
@@ -668,6 +705,8 @@ fn room_for(pairs: usize) -> usize {
     (pairs + pairs / 4 + 1).next_multiple_of(velox_engine::ops::sort::BLOCK)
 }
 
+/// Gaussians `start .. start + len` of a set, as a set of their own (the whole set when it is
+/// all of it).
 fn slice_gaussians(rec: &mut Recorder, g: &Gaussians, start: usize, len: usize) -> Result<Gaussians> {
     if start == 0 && len == g.len() {
         return Ok(g.clone());

@@ -55,7 +55,7 @@ use crate::layers::{
     Fourier, GatedResidual, GeluMlp, Linear, Loss, Modulate, MultiHeadAttention, Param, RmsNorm,
 };
 use crate::params::{build, declare, Init, ParamBuilder, ParamStore, Params};
-use crate::train::{Losses, PassSeconds, PassTimer};
+use crate::train::{Ahead, Losses, PassSeconds, PassTimer};
 use crate::velox::blocks::{mlp, norm, TimeEmbedding, TimeEmbeddingCache};
 use crate::velox::dinov2::{PATCH, PATCH_VALUES};
 use crate::velox::surface::{integrate, Sampler};
@@ -604,6 +604,11 @@ impl Generator {
     /// the sum of the scenes' losses into the store's gradients. Each scene draws its noise,
     /// flow time and condition dropout from its generator.
     pub fn accumulate(&mut self, samples: &[&GenSample], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
+        self.record_pass(samples, rngs, weight)?.run(self)
+    }
+
+    /// The recording of [`Generator::accumulate`], not yet submitted, and its finish.
+    fn record_pass(&mut self, samples: &[&GenSample], rngs: &mut [Rng], weight: f64) -> Result<Ahead<Self>> {
         crate::train::check_micro_batch(samples.len(), rngs.len())?;
         let n = self.cfg.tokens * self.cfg.token_dim;
         let (mut eps, mut t, mut keep) = (Vec::new(), Vec::new(), Vec::new());
@@ -623,13 +628,7 @@ impl Generator {
         timer.end(&mut rec);
         // The step's update, where the trainer asked for it with this pass (ParamStore::update_last).
         self.store.record_update(&mut rec)?;
-        let finished = rec.submit()?;
-        timer.add(&finished, &mut self.pass_seconds);
-        let total = loss.read::<f32>()?[0] as f64;
-        if !total.is_finite() {
-            return Err(Error::Invalid(format!("the loss became non-finite ({total})")));
-        }
-        Ok(Losses { terms: vec![("total", total)] })
+        Ok(Ahead::one_loss(rec, timer, loss, |model: &mut Generator| &mut model.pass_seconds))
     }
 
     /// The velocity `[k, token_dim]` of one scene at `x_t` and flow time `t`, in f32: under
@@ -743,4 +742,8 @@ impl GenCache {
 }
 
 crate::train::token_model_files!(Generator, GeneratorConfig, "generator");
-crate::train::trainable!(Generator, GenSample);
+crate::train::trainable!(Generator, GenSample;
+    fn records_ahead(&self) -> bool {
+        true
+    }
+);

@@ -26,7 +26,7 @@ use velox_engine::{DType, Error, Gpu, Recorder, Result, Tensor};
 use crate::config::{TrackLoss, TrackerConfig};
 use crate::layers::{Fourier, Loss};
 use crate::params::{build, declare, ParamBuilder, ParamStore, Params};
-use crate::train::{Losses, PassSeconds, PassTimer};
+use crate::train::{Ahead, Losses, PassSeconds, PassTimer};
 use crate::velox::autoencoder::FRAMES;
 use crate::velox::perceiver::{PerceiverShape, VoxelFrames, VoxelPerceiver};
 use velox_engine::ops::fourier::fourier_width;
@@ -193,6 +193,16 @@ impl Tracker {
     /// frames and coordinates) into the store's gradients. Each scene draws
     /// `queries_per_sample` of its tracks (all when it has fewer) from its generator.
     pub fn accumulate(&mut self, samples: &[&TrackSample], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
+        self.record_pass(samples, rngs, weight)?.run(self)
+    }
+
+    /// The recording of [`Tracker::accumulate`], not yet submitted, and its finish.
+    fn record_pass(
+        &mut self,
+        samples: &[&TrackSample],
+        rngs: &mut [Rng],
+        weight: f64,
+    ) -> Result<Ahead<Self>> {
         crate::train::check_micro_batch(samples.len(), rngs.len())?;
         let gpu = samples[0].tokens.gpu().clone();
         let counts = samples.iter().map(|s| self.check_tokens(&s.tokens)).collect::<Result<Vec<_>>>()?;
@@ -255,13 +265,7 @@ impl Tracker {
         timer.end(&mut rec);
         // The step's update, where the trainer asked for it with this pass (ParamStore::update_last).
         self.store.record_update(&mut rec)?;
-        let finished = rec.submit()?;
-        timer.add(&finished, &mut self.pass_seconds);
-        let total = loss.read::<f32>()?[0] as f64;
-        if !total.is_finite() {
-            return Err(Error::Invalid(format!("the loss became non-finite ({total})")));
-        }
-        Ok(Losses { terms: vec![("total", total)] })
+        Ok(Ahead::one_loss(rec, timer, loss, |model: &mut Tracker| &mut model.pass_seconds))
     }
 
     /// Numbers per query row: its position, and its colour with `query_colour`.
@@ -342,4 +346,8 @@ impl Tracker {
 }
 
 crate::train::token_model_files!(Tracker, TrackerConfig, "tracker");
-crate::train::trainable!(Tracker, TrackSample);
+crate::train::trainable!(Tracker, TrackSample;
+    fn records_ahead(&self) -> bool {
+        true
+    }
+);

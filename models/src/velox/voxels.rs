@@ -17,7 +17,7 @@ use crate::config::{OccupancyLoss, VoxelConfig, VoxelStageConfig};
 use crate::layers::linear::LinearCache;
 use crate::layers::{Fourier, Linear, Loss};
 use crate::params::{build, declare, ParamBuilder, ParamStore, Params};
-use crate::train::{Losses, PassSeconds, PassTimer};
+use crate::train::{Ahead, Finish, Losses, PassSeconds, PassTimer};
 use crate::velox::autoencoder::tau_of;
 use crate::velox::blocks::linear;
 use crate::velox::perceiver::{PerceiverShape, VoxelFrames, VoxelPerceiver};
@@ -328,6 +328,16 @@ impl VoxelDecoder {
     /// scene's generator. Returns the terms ("total", "coarse", "fine"), summed over the
     /// scenes, times `weight`.
     pub fn accumulate(&mut self, samples: &[&VoxelSample], rngs: &mut [Rng], weight: f64) -> Result<Losses> {
+        self.record_pass(samples, rngs, weight)?.run(self)
+    }
+
+    /// The recording of [`VoxelDecoder::accumulate`], not yet submitted, and its finish.
+    fn record_pass(
+        &mut self,
+        samples: &[&VoxelSample],
+        rngs: &mut [Rng],
+        weight: f64,
+    ) -> Result<Ahead<Self>> {
         crate::train::check_micro_batch(samples.len(), rngs.len())?;
         let gpu = samples[0].tokens.gpu().clone();
         let (cells, weight) = (self.cfg.cells, weight as f32);
@@ -416,20 +426,23 @@ impl VoxelDecoder {
         timer.end(&mut rec);
         // The step's update, where the trainer asked for it with this pass (ParamStore::update_last).
         self.store.record_update(&mut rec)?;
-        let finished = rec.submit()?;
-        timer.add(&finished, &mut self.pass_seconds);
-
-        let read = |t: &Readback| -> Result<f64> { Ok(t.read::<f32>()?[0] as f64) };
-        let coarse = read(&coarse)?;
-        let fine = match &fine {
-            Some(l) => read(l)?,
-            None => 0.0,
-        };
-        let total = coarse + fine;
-        if !total.is_finite() {
-            return Err(Error::Invalid(format!("the loss became non-finite (coarse {coarse}, fine {fine})")));
-        }
-        Ok(Losses { terms: vec![("total", total), ("coarse", coarse), ("fine", fine)] })
+        let finish: Finish<Self> = Box::new(move |model: &mut Self, finished| {
+            timer.add(finished, &mut model.pass_seconds);
+            let read = |t: &Readback| -> Result<f64> { Ok(t.read::<f32>()?[0] as f64) };
+            let coarse = read(&coarse)?;
+            let fine = match &fine {
+                Some(l) => read(l)?,
+                None => 0.0,
+            };
+            let total = coarse + fine;
+            if !total.is_finite() {
+                return Err(Error::Invalid(format!(
+                    "the loss became non-finite (coarse {coarse}, fine {fine})"
+                )));
+            }
+            Ok(Losses { terms: vec![("total", total), ("coarse", coarse), ("fine", fine)] })
+        });
+        Ok(Ahead { rec, finish })
     }
 
     /// The coarse stage's logits `[F cells^3, 1]` for every cell of each frame time of `taus`
@@ -517,4 +530,8 @@ impl VoxelDecoder {
 }
 
 crate::train::token_model_files!(VoxelDecoder, VoxelConfig, "voxel decoder");
-crate::train::trainable!(VoxelDecoder, VoxelSample);
+crate::train::trainable!(VoxelDecoder, VoxelSample;
+    fn records_ahead(&self) -> bool {
+        true
+    }
+);

@@ -66,6 +66,10 @@ pub struct TrainBenchArgs {
     /// encoder, on a scene's tokens.
     #[arg(long, value_enum, default_value = "autoencoder")]
     model: train::ModelArg,
+    /// Record each autoencoder step while the last runs [default: the trainer's, on except on
+    /// a CPU device]; where on, as many steps again are timed recorded apart ("apart ms").
+    #[arg(long, value_enum)]
+    overlap: Option<crate::train::OnOff>,
 }
 
 /// Which sizes a suite times.
@@ -172,7 +176,8 @@ fn run_train(t: TrainBenchArgs) -> CliResult<()> {
     let precisions: Vec<velox_engine::Precision> = t.precision.into_iter().map(Into::into).collect();
     let records = match t.model {
         train::ModelArg::Autoencoder => {
-            train::run(&gpu, quick, t.bench.repeats, &t.config, batches.as_deref(), &precisions)?
+            let overlap = t.overlap.map(|o| o == crate::train::OnOff::On);
+            train::run(&gpu, quick, t.bench.repeats, &t.config, batches.as_deref(), &precisions, overlap)?
         }
         model => train::run_token_model(&gpu, model, quick, t.bench.repeats, &t.config, &precisions)?,
     };
@@ -212,6 +217,11 @@ pub struct Record {
     /// `bench train`: the submissions a step makes, each one a host wait.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub submits_per_step: Option<u64>,
+    /// `bench train`, where the trainer records a step while the last runs (a GPU): the
+    /// median step's milliseconds without that overlap, the same steps recorded one after
+    /// the other's wait.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub step_ms_unoverlapped: Option<f64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub peak_memory_bytes: Option<u64>,
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -291,6 +301,7 @@ impl Record {
             bytes: None,
             bound_ms: None,
             kernel: None,
+            step_ms_unoverlapped: None,
         }
     }
 

@@ -88,6 +88,7 @@ pub fn run(
     config: &str,
     batches: Option<&[usize]>,
     precisions: &[Precision],
+    overlap: Option<bool>,
 ) -> Result<Vec<Record>> {
     let small = quick;
     let batches = batches.map_or(if small { vec![1, 2, 4] } else { vec![1, 2, 4, 8, 16] }, <[usize]>::to_vec);
@@ -102,11 +103,12 @@ pub fn run(
         data.cloud_host.len() / CHANNELS
     );
     println!(
-        "{:>5} {:>6} {:>10} {:>10} {:>12} {:>14} {:>8} {:>13} {:>11} {:>14} {:>10}",
+        "{:>5} {:>6} {:>10} {:>10} {:>11} {:>12} {:>14} {:>8} {:>13} {:>11} {:>14} {:>10}",
         "prec",
         "batch",
         "samples/s",
         "step ms",
+        "(apart ms)",
         "compute ms",
         "(fwd / bwd)",
         "(host)",
@@ -123,14 +125,28 @@ pub fn run(
             let mut model = Autoencoder::new(gpu, &cfg, 0)?;
             let steps = 1 + repeats as u64;
             let request =
-                RunRequest { steps: Some(steps + 1), precision: Some(precision), ..Default::default() };
+                RunRequest { steps: Some(2 * steps + 1), precision: Some(precision), ..Default::default() };
             let settings = RunSettings::new(&request, vec!["bench".into()], batch as u64, 1)?;
             let mut trainer = Trainer::new(&mut model, &SingleProcess, settings)?;
+            if let Some(on) = overlap {
+                trainer.set_overlap(on);
+            }
             trainer.repeat_steps(&[&data], 1..2)?;
             gpu.reset_peak_memory();
             let reports = trainer.repeat_steps(&[&data], 2..steps + 1)?;
             let peak = gpu.memory().1;
             let profiled = profile_step(|| trainer.repeat_steps(&[&data], steps + 1..steps + 2).map(|_| ()))?;
+            // Where steps overlap (Trainer::set_overlap), as many more without it.
+            let overlapped = trainer.overlaps();
+            let unoverlapped = if overlapped {
+                trainer.set_overlap(false);
+                let more = trainer.repeat_steps(&[&data], steps + 2..2 * steps + 1)?;
+                let mut ms: Vec<f64> = more.iter().map(|r| r.time.total() * 1e3).collect();
+                ms.sort_by(f64::total_cmp);
+                Some(ms[ms.len() / 2])
+            } else {
+                None
+            };
             let mut timed: Vec<_> = reports.iter().collect();
             timed.sort_by(|a, b| a.time.total().total_cmp(&b.time.total()));
             // The median step, with its own split (so the parts add up to its time).
@@ -145,9 +161,10 @@ pub fn run(
                 _ => "-".into(),
             };
             let host = split.host.map_or("-".into(), |h| format!("{h:.1}"));
+            let apart = unoverlapped.map_or("-".into(), |ms| format!("{ms:.1}"));
             let name = precision.name();
             println!(
-                "{name:>5} {batch:>6} {rate:>10.3} {median:>10.1} {:>12.1} {passes:>14} {host:>8} {:>13.2} {:>11} {:>14} {:>10.1}",
+                "{name:>5} {batch:>6} {rate:>10.3} {median:>10.1} {apart:>11} {:>12.1} {passes:>14} {host:>8} {:>13.2} {:>11} {:>14} {:>10.1}",
                 split.compute,
                 split.optimiser,
                 profiled.dispatches,
@@ -171,6 +188,7 @@ pub fn run(
                 dispatches_per_step: Some(profiled.dispatches),
                 submits_per_step: Some(profiled.submits),
                 peak_memory_bytes: Some(peak),
+                step_ms_unoverlapped: unoverlapped,
                 family_ms: Some(profiled.family_ms),
                 ..record
             };
@@ -180,9 +198,10 @@ pub fn run(
     }
     println!(
         "compute is the model's forward (to the end of its renders) and backward passes, fwd / bwd \
-         their GPU time and host the host's time from the start of each recording to its \
-         submission (recording, drawing, uploads: the device waits meanwhile, so it is what \
-         recording a step while the last runs would hide); on one process the backward pass \
+         their GPU time and host the time the device waited on the host before each submission \
+         (recording, drawing, uploads; where a step is recorded while the last runs, only from \
+         the last one's end: apart ms is the median step recorded after the last one's wait \
+         instead, on a device where steps overlap); on one process the backward pass \
          records the optimiser's update too (optimiser ms is what is left outside the passes; its \
          GPU time is the family split's 'optimiser'), and all-reduce is nothing; the family split \
          comes from one more step with a timestamp per dispatch"
@@ -274,6 +293,7 @@ pub fn run_token_model(
                 Precision::F32 => crate::decode::PrecisionArg::F32,
                 Precision::F16 => crate::decode::PrecisionArg::F16,
             }),
+            overlap: None,
         };
         let args = TokenModelArgs {
             data: data.clone(),
