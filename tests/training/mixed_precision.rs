@@ -5,6 +5,7 @@
 //! while the step before runs are the same steps, in either precision.
 
 use crate::common;
+use crate::trainer::Memory;
 use common::*;
 
 use std::path::{Path, PathBuf};
@@ -19,7 +20,6 @@ use velox::models::layers::{Linear, Loss, Param};
 use velox::models::params::{Init, LossScale, ParamStore};
 use velox::models::run::{RunRequest, RunSettings};
 use velox::models::train::collective::SingleProcess;
-use velox::models::train::source::SampleSource;
 use velox::models::train::trainer::{train, Begin, Finished, Quiet, StepReport, TrainOptions, Trainer};
 use velox::models::train::{Ahead, Finish, Losses, Optimisation, Trainable};
 use velox::models::velox::autoencoder::{Autoencoder, TrainScene};
@@ -387,33 +387,6 @@ fn a_step_whose_gradients_overflow_f16_is_run_again_at_half_the_scale() {
     checkpoint::load(&path, &mut other.store).unwrap();
     assert_eq!(other.store.loss_scale(), toy.store.loss_scale());
     let _ = std::fs::remove_dir_all(&dir);
-}
-
-/// Scenes in host memory, uploaded when prepared.
-struct Memory {
-    gpu: Gpu,
-    scenes: Vec<HostScene>,
-}
-
-impl SampleSource for Memory {
-    type Raw = usize;
-    type Sample = TrainScene;
-
-    fn len(&self) -> usize {
-        self.scenes.len()
-    }
-
-    fn name(&self, i: usize) -> String {
-        format!("memory {i}")
-    }
-
-    fn read(&self, i: usize) -> Result<usize> {
-        Ok(i)
-    }
-
-    fn prepare(&self, i: usize) -> Result<TrainScene> {
-        Ok(upload(&self.gpu, &self.scenes[i]))
-    }
 }
 
 #[test]

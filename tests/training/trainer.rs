@@ -94,9 +94,9 @@ impl Collective for Threads {
 }
 
 /// Scenes held in host memory, uploaded when prepared.
-struct Memory {
-    gpu: Gpu,
-    scenes: Vec<HostScene>,
+pub(crate) struct Memory {
+    pub gpu: Gpu,
+    pub scenes: Vec<HostScene>,
 }
 
 impl SampleSource for Memory {
