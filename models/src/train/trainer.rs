@@ -876,6 +876,12 @@ where
     let mut trainer = Trainer::new(model, collective, settings.clone())?;
     if let Some(on) = options.overlap {
         trainer.set_overlap(on);
+        if on && !trainer.overlaps() {
+            observer.note(
+                "each step is recorded after the last one's wait: recording a step while the last runs \
+                 takes one process and one micro-batch a step",
+            );
+        }
     }
     observer.begin(&settings, start_step);
     let result = std::thread::scope(|scope| {
