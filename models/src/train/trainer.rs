@@ -57,6 +57,13 @@ use crate::params::Update;
 use crate::run::{RunRequest, RunSettings};
 use crate::schedule::cooldown;
 
+/// Whether a trainer on `gpu` records each step while the last runs unless told
+/// ([`Trainer::set_overlap`]): on every device but a CPU one, where the host's recording would
+/// take cores from the device's work.
+pub fn overlaps_by_default(gpu: &velox_engine::Gpu) -> bool {
+    gpu.caps().kind != "CPU"
+}
+
 /// The most samples one process takes in a step (over its micro-batches): a bound on what a
 /// checkpoint's settings can make it hold.
 pub const MAX_SAMPLES_PER_PROCESS: u64 = 1 << 20;
@@ -199,8 +206,7 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
             )));
         }
         model.store_mut().set_training_precision(settings.precision)?;
-        // On a CPU device the host's recording would take cores from the device's work.
-        let overlap = model.store().flat_params().gpu().caps().kind != "CPU";
+        let overlap = overlaps_by_default(model.store().flat_params().gpu());
         Ok(Trainer {
             model,
             collective,
