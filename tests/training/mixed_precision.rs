@@ -454,10 +454,17 @@ fn autoencoder_steps_recorded_while_the_last_runs_are_the_same_steps() {
     let host = host_scene(&gpu, &dir);
     let scene = upload(&gpu, &host);
     for precision in [Precision::F32, Precision::F16] {
-        let run = |room: usize, overlap: bool| {
+        let run_accumulating = |room: usize, overlap: bool, accumulate: u64| {
             let mut model = Autoencoder::new(&gpu, &AutoencoderConfig::tiny(), 3).unwrap();
             model.set_pair_room(room);
-            let mut trainer = Trainer::new(&mut model, &SingleProcess, settings(precision, 4)).unwrap();
+            let request = RunRequest {
+                steps: Some(4),
+                precision: Some(precision),
+                accumulate: Some(accumulate),
+                ..Default::default()
+            };
+            let settings = RunSettings::new(&request, vec!["sample".into()], 1, 1).unwrap();
+            let mut trainer = Trainer::new(&mut model, &SingleProcess, settings).unwrap();
             trainer.set_overlap(overlap);
             let submits = gpu.submits();
             let reports = trainer.repeat_steps(&[&scene], 1..5).unwrap();
@@ -466,6 +473,7 @@ fn autoencoder_steps_recorded_while_the_last_runs_are_the_same_steps() {
                 reports.iter().map(|r| (r.losses.total().to_bits(), r.grad_norm.to_bits())).collect();
             (model.store.flat_params().read::<f32>().unwrap(), key, ahead)
         };
+        let run = |room: usize, overlap: bool| run_accumulating(room, overlap, 1);
         let (want, want_reports, (_, want_submits)) = run(0, false);
         // The first step sizes the lists: steps 3 and 4 are recorded ahead, with no submission
         // of their own while the step before runs.
@@ -481,6 +489,19 @@ fn autoencoder_steps_recorded_while_the_last_runs_are_the_same_steps() {
         assert_eq!(ahead, (4, 3), "{precision:?}");
         assert!(got == want, "{precision:?}: a rerun with steps recorded ahead changed the parameters");
         assert_eq!(reports, want_reports, "{precision:?}");
+        // Two micro-batches a step, each recorded while the one before runs: with room for 16
+        // pairs the first outgrows it, and the second, recorded with the update, is dropped
+        // unsubmitted (the step counter goes back).
+        let (want, want_reports, _) = run_accumulating(0, false, 2);
+        for room in [0, 16] {
+            let (got, reports, ((recorded, _), _)) = run_accumulating(room, true, 2);
+            assert!(recorded >= 2, "{precision:?}, room {room}: {recorded} steps recorded ahead");
+            assert!(
+                got == want,
+                "{precision:?}, room {room}: micro-batches recorded ahead changed the parameters"
+            );
+            assert_eq!(reports, want_reports, "{precision:?}, room {room}");
+        }
     }
 
     // A run of the library's trainer on two scenes, stopped and resumed, its scenes read a

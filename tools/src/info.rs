@@ -157,7 +157,7 @@ pub fn report(gpu: &Gpu) -> serde_json::Value {
         "raster backward": raster_backward,
         "raster backward (bench)": raster_backward_bench,
         "training steps": if velox_models::train::trainer::overlaps_by_default(gpu) {
-            "each recorded while the last runs, with one process and one micro-batch a step (train --overlap off records after its wait)"
+            "each micro-batch recorded while the last runs, with one process (train --overlap off records after its wait)"
         } else {
             "each recorded after the last one's wait: a CPU device's work shares the host's cores (train --overlap on records while the last runs)"
         },

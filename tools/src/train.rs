@@ -166,9 +166,9 @@ pub struct RunArgs {
     /// else f32 (lavapipe's are emulated); a resumed run keeps its own].
     #[arg(long, value_enum)]
     pub precision: Option<PrecisionArg>,
-    /// Record each step while the last one runs on the device, so that the device does not
-    /// wait for the recording (one process, no --accumulate): the same steps to the bit, with
-    /// up to two steps' activations in memory at once [default: on, except on a CPU device,
+    /// Record each step (each micro-batch) while the last one runs on the device, so that the
+    /// device does not wait for the recording (one process): the same steps to the bit, with
+    /// two micro-batches' activations in memory at once [default: on, except on a CPU device,
     /// where recording would take cores from the device's work].
     #[arg(long, value_enum)]
     pub overlap: Option<OnOff>,

@@ -392,18 +392,8 @@ fn accumulated_micro_batches_train_as_one_larger_micro_batch() {
     // A run with micro-batches stopped inside a pair of steps and resumed repeats it bit for bit.
     let stopped = dir.join("stopped");
     train(&stopped, &[&settings[..], &["--accumulate", "2", "--stop-at", "3"]].concat());
-    // Asked to record steps ahead, a run of two micro-batches a step says it cannot.
-    let run = velox()
-        .args(["train", "autoencoder", "--data", arg(dataset()), "--out", arg(&stopped)])
-        .args(["--resume", "--overlap", "on"])
-        .output()
-        .unwrap();
-    assert!(run.status.success(), "{}", stderr(&run));
-    assert!(
-        stderr(&run).contains("note: each step is recorded after the last one's wait"),
-        "{}",
-        stderr(&run)
-    );
+    // Resumed recording each micro-batch while the last runs (off by default on a CPU device).
+    train(&stopped, &["--resume", "--overlap", "on"]);
     assert_same_checkpoint(
         &accumulated.join("checkpoint.safetensors"),
         &stopped.join("checkpoint.safetensors"),

@@ -30,8 +30,9 @@
 //! on how `G` is split, so a run's samples are the same on one process or several, and a
 //! resumed run repeats the uninterrupted one bit for bit.
 //!
-//! With one process and one micro-batch a step, [`Trainer::run_step`] records step `s + 1`
-//! while step `s` runs on the device and submits it once `s` is known good (a step recorded
+//! With one process, [`Trainer::run_step`] records each micro-batch's pass while the one before
+//! runs on the device, step `s + 1`'s first while step `s`'s last runs, and submits it once
+//! the one before is known good (a step recorded
 //! with what `s` then changed, an overflow, a grown loss scale or outgrown tile lists, is
 //! recorded again), so the device does not wait for the host's recording and the steps stay
 //! the same to the bit ([`Trainer::set_overlap`]; `docs/decisions/recorder.md`).
@@ -224,8 +225,7 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
     }
 
     /// Has [`Trainer::run_step`] record each step's pass while the step before runs, where
-    /// the run can (one process, one micro-batch a step, a model that
-    /// [records ahead](Trainable::records_ahead)): the device then waits on the host only from
+    /// the run can (one process, a model that [records ahead](Trainable::records_ahead)): the device then waits on the host only from
     /// the end of a step to the next one's submission, not for its recording. On by default
     /// except on CPU devices, where recording would take cores from the device's work. The
     /// steps are the same to the bit either way; a pass recorded ahead holds its activations
@@ -239,7 +239,7 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
 
     /// Whether [`Trainer::run_step`] records steps ahead ([`Trainer::set_overlap`]).
     pub fn overlaps(&self) -> bool {
-        self.overlap && self.settings.accumulate == 1 && self.collective.size() == 1
+        self.overlap && self.collective.size() == 1
     }
 
     /// How many steps' passes were recorded while the step before ran, and how many of them
@@ -395,33 +395,57 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
             }
             return self.finish_step(step);
         }
-        // The pass recorded ahead, if what it recorded still holds; else it is recorded now.
-        // The step's compute time is the wall time from here to its finish, the recording of
-        // the next step included (a step recorded ahead was timed with the step before).
+        // The first micro-batch's pass recorded ahead, if what it recorded still holds; else
+        // it is recorded now. Each micro-batch's pass is then launched, the next one (or the
+        // next step's first) recorded while it runs, and it is finished before the next is
+        // launched: a micro-batch that failed or outgrew its room ends the step there. The
+        // step's compute time is the wall time from here to its finish, the recording of the
+        // next step included (a step recorded ahead was timed with the step before).
         let t = Instant::now();
         self.begin_step(step)?;
         let scale = self.loss_scale();
-        let pass = match ahead {
+        let acc = self.settings.accumulate;
+        let mut pass = match ahead {
             // (begin_step has checked that the parameters are at the step before.)
             Some(a) if a.step == step && a.update == self.update(step) => {
                 self.model.store_mut().restore_pass_state(a.state);
                 self.recorded_ahead.1 += 1;
                 Ok(a.pass)
             }
-            _ => {
-                let update = self.update(step);
-                self.model.store_mut().update_last(update);
-                self.record_pass(step, samples, scale)
-            }
+            _ => self.record_pass(step, 0, &samples[..b], scale),
         };
-        let launched = pass.and_then(|pass| Ok((pass.rec.launch()?, pass.finish)));
-        if let (Ok(_), Some(next)) = (&launched, next) {
-            if self.model.records_ahead() {
-                self.ahead = self.record_ahead(step + 1, next);
+        for m in 0..acc {
+            let launched = pass.and_then(|pass| Ok((pass.rec.launch()?, pass.finish)));
+            let next_pass = match (&launched, next) {
+                (Err(_), _) => None,
+                _ if m + 1 < acc => {
+                    let mine = &samples[(m as usize + 1) * b..(m as usize + 2) * b];
+                    Some(self.record_pass(step, m + 1, mine, scale))
+                }
+                (_, Some(next)) if self.model.records_ahead() => {
+                    self.ahead = self.record_ahead(step + 1, &next[..b]);
+                    None
+                }
+                _ => None,
+            };
+            let losses = launched.and_then(|(launched, finish)| finish(self.model, &launched.wait()?));
+            self.add_losses(losses, scale, 0.0);
+            match next_pass {
+                Some(p) if self.failed.is_none() && self.rerun.is_none() => pass = p,
+                Some(_) => {
+                    // Dropped unsubmitted: where it recorded the update, the step counter it
+                    // advanced goes back, and nothing was updated.
+                    let store = self.model.store_mut();
+                    if store.take_update() {
+                        let at = store.step();
+                        store.set_step(at - 1);
+                    }
+                    break;
+                }
+                None => break,
             }
         }
-        let losses = launched.and_then(|(launched, finish)| finish(self.model, &launched.wait()?));
-        self.add_losses(losses, scale, t.elapsed().as_secs_f64());
+        self.time.compute += t.elapsed().as_secs_f64();
         let finished = self.finish_step(step)?;
         if !matches!(finished, Finished::Done(_)) {
             self.ahead = None;
@@ -429,9 +453,20 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
         Ok(finished)
     }
 
-    /// Records the pass of step `step`'s one micro-batch at loss scale `scale`, not submitted.
-    fn record_pass(&mut self, step: u64, samples: &[&M::Sample], scale: f64) -> Result<super::Ahead<M>> {
-        let mut rngs: Vec<_> = self.slots(0).map(|g| slot_rng(self.settings.seed, step, g)).collect();
+    /// Records the pass of micro-batch `m` of step `step` at loss scale `scale`, not
+    /// submitted, the step's update with it where it is the last.
+    fn record_pass(
+        &mut self,
+        step: u64,
+        m: u64,
+        samples: &[&M::Sample],
+        scale: f64,
+    ) -> Result<super::Ahead<M>> {
+        if m + 1 == self.settings.accumulate {
+            let update = self.update(step);
+            self.model.store_mut().update_last(update);
+        }
+        let mut rngs: Vec<_> = self.slots(m).map(|g| slot_rng(self.settings.seed, step, g)).collect();
         self.model.record_ahead(samples, &mut rngs, scale / self.settings.global_batch as f64)
     }
 
@@ -443,10 +478,8 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
     fn record_ahead(&mut self, step: u64, samples: &[&M::Sample]) -> Option<AheadStep<M>> {
         let running = self.model.store_mut().take_pass_state();
         let update = self.update(step);
-        let store = self.model.store_mut();
-        store.zero_grads_first();
-        store.update_last(update);
-        let pass = self.record_pass(step, samples, update.loss_scale);
+        self.model.store_mut().zero_grads_first();
+        let pass = self.record_pass(step, 0, samples, update.loss_scale);
         let state = self.model.store_mut().take_pass_state();
         self.model.store_mut().restore_pass_state(running);
         let Ok(pass) = pass else {
@@ -885,7 +918,7 @@ where
         if on && !trainer.overlaps() {
             observer.note(
                 "each step is recorded after the last one's wait: recording a step while the last runs \
-                 takes one process and one micro-batch a step",
+                 takes one process",
             );
         }
     }
@@ -986,21 +1019,21 @@ where
         // The group's last step lets its samples go once it is done (not before: an f16
         // overflow, or a model outgrowing what it sized ahead, runs the step again).
         let keep = !step.is_multiple_of(per_scene) && step < settings.steps;
-        // With one micro-batch a step, the next step's pass is recorded while this one runs
-        // (Trainer::run_step): its samples are read first, the next group's too where the
-        // next step starts one (unless the run stops after this step).
+        // Where the trainer overlaps steps, the next step's first pass is recorded while this
+        // one runs (Trainer::run_step): its samples are read first, the next group's too where
+        // the next step starts one (unless the run stops after this step).
         let overlap = trainer.overlaps();
         let t = Instant::now();
         if overlap && group_samples.as_ref().is_none_or(|g| g.0 != k) {
             group_samples = Some(match next_group.take() {
                 Some((at, read)) if at == k => (k, read),
-                _ => (k, read_group(&samples, b, source)),
+                _ => (k, read_group(&samples, acc * b, source)),
             });
         }
         let next_k = step_position(step + 1, per_scene);
         let last_step = step == settings.steps || options.stop_at == Some(step);
         if overlap && !last_step && next_k != k && next_group.is_none() {
-            next_group = Some((next_k, read_group(&samples, b, source)));
+            next_group = Some((next_k, read_group(&samples, acc * b, source)));
         }
         trainer.add_data_seconds(t.elapsed().as_secs_f64());
         let report = loop {
