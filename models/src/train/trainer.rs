@@ -369,10 +369,11 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
 
     /// Runs step `step` on `samples` (this process's, in the order of its slots): the step's
     /// micro-batches, then [`Trainer::finish_step`]. Where the trainer
-    /// [overlaps](Trainer::overlaps), it records the pass of step `step + 1` on `next` (its
-    /// samples) while this step runs on the device, and submits it when step `step + 1` is
-    /// run, on the same samples, if the update and the state it was recorded with still hold
-    /// (else it records it again). A caller that stops after this step just does not run it.
+    /// [overlaps](Trainer::overlaps), it records each micro-batch's pass while the one before
+    /// runs on the device, and the pass of step `step + 1`'s first micro-batch on `next` (its
+    /// samples) while this step's last runs; it submits that one when step `step + 1` is run,
+    /// on the same samples, if the update and the state it was recorded with still hold (else
+    /// it records it again). A caller that stops after this step just does not run it.
     pub fn run_step(
         &mut self,
         step: u64,
