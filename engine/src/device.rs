@@ -56,9 +56,9 @@ pub(crate) struct GpuInner {
     /// A recording never finished (see the recorder's drop): the device is left as it is at
     /// drop, since waiting for it to go idle would never return.
     pub hung: std::sync::atomic::AtomicBool,
-    /// Recordings submitted and not yet waited for, and when that count last fell to zero
-    /// (the device last seen idle): what [`crate::Finished::host_seconds`] counts from.
-    pub busy: Mutex<(usize, std::time::Instant)>,
+    /// Recordings on the device, and when it was last seen idle
+    /// ([`crate::Finished::host_seconds`]).
+    pub busy: Mutex<Busy>,
     /// Uploads through staging buffers not yet copied to their tensors: the next submission
     /// copies them before its own work, in the same `vkQueueSubmit` (see
     /// [`crate::tensor::PendingUpload`]).
@@ -66,6 +66,13 @@ pub(crate) struct GpuInner {
     /// Staging buffers whose transfer has finished, kept for the next transfer of their size
     /// class and memory location (`Buffer::staging`).
     pub staging_pool: Mutex<crate::tensor::StagingPool>,
+}
+
+/// Recordings submitted and not yet waited for, and when their count last fell to zero: what
+/// [`crate::Finished::host_seconds`] counts from.
+pub(crate) struct Busy {
+    pub running: usize,
+    pub idle_since: std::time::Instant,
 }
 
 /// One line of the device list shown by `velox info`.
@@ -407,7 +414,7 @@ impl Gpu {
                 submits: AtomicU64::new(0),
                 wait_timeout,
                 hung: std::sync::atomic::AtomicBool::new(false),
-                busy: Mutex::new((0, std::time::Instant::now())),
+                busy: Mutex::new(Busy { running: 0, idle_since: std::time::Instant::now() }),
                 pending_uploads: Mutex::new(Vec::new()),
                 staging_pool: Mutex::new(Default::default()),
             }),

@@ -744,11 +744,11 @@ impl Recorder {
             let now = std::time::Instant::now();
             // The device idled since the later of the recording's start and its last work;
             // with other recordings still running, it has not idled.
-            self.host_seconds = match busy.0 {
-                0 => now.duration_since(busy.1.max(self.started)).as_secs_f64(),
+            self.host_seconds = match busy.running {
+                0 => now.duration_since(busy.idle_since.max(self.started)).as_secs_f64(),
                 _ => 0.0,
             };
-            busy.0 += 1;
+            busy.running += 1;
             self.in_flight = true;
         }
         profile::count_submit();
@@ -760,9 +760,9 @@ impl Recorder {
     fn landed(&mut self) {
         if std::mem::take(&mut self.in_flight) {
             let mut busy = self.gpu.inner.busy.lock().unwrap();
-            busy.0 -= 1;
-            if busy.0 == 0 {
-                busy.1 = std::time::Instant::now();
+            busy.running -= 1;
+            if busy.running == 0 {
+                busy.idle_since = std::time::Instant::now();
             }
         }
     }
@@ -773,11 +773,6 @@ impl Recorder {
 pub struct Launched(Recorder);
 
 impl Launched {
-    /// This recording's completion flag.
-    pub fn completion(&self) -> &Completion {
-        &self.0.done
-    }
-
     /// Waits for the recording to finish and reports it.
     pub fn wait(self) -> Result<Finished> {
         let mut rec = self.0;

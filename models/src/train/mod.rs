@@ -240,9 +240,10 @@ pub(crate) fn check_micro_batch(samples: usize, rngs: usize) -> velox_engine::Re
 /// Implements [`Trainable`] for a Velox model: a struct with the fields `cfg` (its config,
 /// holding `peak_lr`, `warmup`, `max_grad_norm` and `batch`), `store`, `adamw` and
 /// `pass_seconds`, and inherent `accumulate` and `record_pass` (what
-/// [`Trainable::record_ahead`] does; `accumulate` runs it: [`Ahead::run`]); its checkpoints describe it as `{"model": MODEL_KIND, "config":
-/// cfg}` (the `MODEL_KIND` of the model's module). The extra methods given after the sample
-/// type say at least [`Trainable::records_ahead`].
+/// [`Trainable::record_ahead`] does; `accumulate` runs it: [`Ahead::run`]); its checkpoints
+/// describe it as `{"model": MODEL_KIND, "config": cfg}` (the `MODEL_KIND` of the model's
+/// module). The extra methods given after the sample type say at least
+/// [`Trainable::records_ahead`].
 macro_rules! trainable {
     ($model:ty, $sample:ty $(; $($more:tt)*)?) => {
         impl $crate::train::Trainable for $model {

@@ -45,6 +45,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
+use velox_engine::rng::Rng;
 use velox_engine::{Error, FileOp, Precision, Result};
 
 use super::collective::Collective;
@@ -339,13 +340,7 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
         if self.failed.is_some() || self.rerun.is_some() {
             return Ok(());
         }
-        let mut rngs: Vec<_> = slots.map(|g| slot_rng(self.settings.seed, step, g)).collect();
-        // With one process, nothing comes between the last micro-batch's backward pass and the
-        // update: the pass records it at its end, one submission and one host wait fewer.
-        if m + 1 == self.settings.accumulate && self.collective.size() == 1 {
-            let update = self.update(step);
-            self.model.store_mut().update_last(update);
-        }
+        let mut rngs = self.prepare_pass(step, m);
         let scale = self.loss_scale();
         let t = Instant::now();
         let losses = self.model.accumulate(samples, &mut rngs, scale / self.settings.global_batch as f64);
@@ -454,6 +449,17 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
         Ok(finished)
     }
 
+    /// Readies the pass of micro-batch `m` of step `step`: with one process, nothing comes
+    /// between the last micro-batch's backward pass and the update, so the last pass records
+    /// it at its end (one submission and one host wait fewer). Returns the pass's generators.
+    fn prepare_pass(&mut self, step: u64, m: u64) -> Vec<Rng> {
+        if m + 1 == self.settings.accumulate && self.collective.size() == 1 {
+            let update = self.update(step);
+            self.model.store_mut().update_last(update);
+        }
+        self.slots(m).map(|g| slot_rng(self.settings.seed, step, g)).collect()
+    }
+
     /// Records the pass of micro-batch `m` of step `step` at loss scale `scale`, not
     /// submitted, the step's update with it where it is the last.
     fn record_pass(
@@ -463,11 +469,7 @@ impl<'a, M: Trainable, C: Collective> Trainer<'a, M, C> {
         samples: &[&M::Sample],
         scale: f64,
     ) -> Result<super::Ahead<M>> {
-        if m + 1 == self.settings.accumulate {
-            let update = self.update(step);
-            self.model.store_mut().update_last(update);
-        }
-        let mut rngs: Vec<_> = self.slots(m).map(|g| slot_rng(self.settings.seed, step, g)).collect();
+        let mut rngs = self.prepare_pass(step, m);
         self.model.record_ahead(samples, &mut rngs, scale / self.settings.global_batch as f64)
     }
 
@@ -931,34 +933,24 @@ where
     result
 }
 
-/// The next `b` samples from the reading thread, prepared.
+/// The next sample from the reading thread, prepared.
+fn read_one<S: SampleSource>(
+    samples: &std::sync::mpsc::Receiver<Result<S::Raw>>,
+    source: &S,
+) -> Result<S::Sample> {
+    samples
+        .recv()
+        .map_err(|_| Error::Io("the sample-reading thread stopped".into()))
+        .and_then(|raw| source.prepare(raw?))
+}
+
+/// The next `n` samples from the reading thread, prepared.
 fn read_group<S: SampleSource>(
     samples: &std::sync::mpsc::Receiver<Result<S::Raw>>,
-    b: u64,
+    n: u64,
     source: &S,
 ) -> Result<Vec<S::Sample>> {
-    (0..b)
-        .map(|_| {
-            samples
-                .recv()
-                .map_err(|_| Error::Io("the sample-reading thread stopped".into()))
-                .and_then(|raw| source.prepare(raw?))
-        })
-        .collect()
-}
-
-/// The error that stops a run at `step`, naming the checkpoint to go on from.
-fn stopped_at(step: u64, e: &Error, folder: &RunFolder) -> Error {
-    Error::Invalid(format!(
-        "training stopped at step {step}: {}; {}",
-        words(e),
-        last_good(&folder.checkpoint)
-    ))
-}
-
-/// What the log says of an f16 step that overflowed at `scale`.
-fn overflowed(step: u64, scale: f64) -> String {
-    format!("step {step}: the f16 gradients overflowed at loss scale {scale}; run again at {}", scale / 2.0)
+    (0..n).map(|_| read_one(samples, source)).collect()
 }
 
 /// The steps of [`train`], with the samples read ahead on a thread of `scope`.
@@ -1038,57 +1030,60 @@ where
         }
         trainer.add_data_seconds(t.elapsed().as_secs_f64());
         let report = loop {
-            if let Some((_, read)) = group_samples.as_ref().filter(|_| overlap) {
-                let finished = match read {
-                    Ok(mine) => {
-                        let mine: Vec<&S::Sample> = mine.iter().collect();
-                        let next = match &next_group {
-                            _ if last_step => None,
-                            Some((_, Ok(theirs))) => Some(theirs.iter().collect::<Vec<_>>()),
-                            Some((_, Err(_))) => None,
-                            None => Some(mine.clone()),
-                        };
-                        trainer.run_step(step, &mine, next.as_deref())
-                    }
-                    Err(e) => {
-                        trainer.begin_step(step)?;
-                        trainer.fail(Error::Invalid(words(e)));
-                        trainer.finish_step(step)
-                    }
-                };
-                match finished.map_err(|e| stopped_at(step, &e, folder))? {
-                    Finished::Done(report) => break report,
-                    Finished::Overflowed { scale } => observer.note(&overflowed(step, scale)),
-                    Finished::Rerun { why } => observer.note(&format!("step {step}: {why}; run again")),
+            let finished = match group_samples.as_ref().filter(|_| overlap) {
+                Some((_, Ok(mine))) => {
+                    let mine: Vec<&S::Sample> = mine.iter().collect();
+                    let next = match &next_group {
+                        _ if last_step => None,
+                        Some((_, Ok(theirs))) => Some(theirs.iter().collect::<Vec<_>>()),
+                        Some((_, Err(_))) => None,
+                        None => Some(mine.clone()),
+                    };
+                    trainer.run_step(step, &mine, next.as_deref())
                 }
-                continue;
-            }
-            trainer.begin_step(step)?;
-            for m in 0..acc {
-                let range = (m * b) as usize..((m + 1) * b) as usize;
-                let t = Instant::now();
-                for slot in range.clone() {
-                    if held[slot].is_none() && !trainer.failed() {
-                        let sample = samples
-                            .recv()
-                            .map_err(|_| Error::Io("the sample-reading thread stopped".into()))
-                            .and_then(|raw| source.prepare(raw?));
-                        match sample {
-                            Ok(s) => held[slot] = Some(s),
-                            Err(e) => trainer.fail(e),
+                Some((_, Err(e))) => {
+                    trainer.begin_step(step)?;
+                    trainer.fail(Error::Invalid(words(e)));
+                    trainer.finish_step(step)
+                }
+                None => {
+                    trainer.begin_step(step)?;
+                    for m in 0..acc {
+                        let range = (m * b) as usize..((m + 1) * b) as usize;
+                        let t = Instant::now();
+                        for slot in range.clone() {
+                            if held[slot].is_none() && !trainer.failed() {
+                                match read_one(&samples, source) {
+                                    Ok(s) => held[slot] = Some(s),
+                                    Err(e) => trainer.fail(e),
+                                }
+                            }
+                        }
+                        trainer.add_data_seconds(t.elapsed().as_secs_f64());
+                        if !trainer.failed() {
+                            let batch: Vec<&S::Sample> =
+                                held[range.clone()].iter().map(|s| s.as_ref().expect("read above")).collect();
+                            trainer.micro_batch(step, m, &batch)?;
                         }
                     }
+                    trainer.finish_step(step)
                 }
-                trainer.add_data_seconds(t.elapsed().as_secs_f64());
-                if !trainer.failed() {
-                    let batch: Vec<&S::Sample> =
-                        held[range.clone()].iter().map(|s| s.as_ref().expect("read above")).collect();
-                    trainer.micro_batch(step, m, &batch)?;
-                }
-            }
-            match trainer.finish_step(step).map_err(|e| stopped_at(step, &e, folder))? {
+            };
+            let finished = finished.map_err(|e| {
+                Error::Invalid(format!(
+                    "training stopped at step {step}: {}; {}",
+                    words(&e),
+                    last_good(&folder.checkpoint)
+                ))
+            })?;
+            match finished {
                 Finished::Done(report) => break report,
-                Finished::Overflowed { scale } => observer.note(&overflowed(step, scale)),
+                Finished::Overflowed { scale } => {
+                    let again = scale / 2.0;
+                    observer.note(&format!(
+                        "step {step}: the f16 gradients overflowed at loss scale {scale}; run again at {again}"
+                    ))
+                }
                 Finished::Rerun { why } => observer.note(&format!("step {step}: {why}; run again")),
             }
         };

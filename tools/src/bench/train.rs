@@ -137,8 +137,7 @@ pub fn run(
             let peak = gpu.memory().1;
             let profiled = profile_step(|| trainer.repeat_steps(&[&data], steps + 1..steps + 2).map(|_| ()))?;
             // Where steps overlap (Trainer::set_overlap), as many more without it.
-            let overlapped = trainer.overlaps();
-            let unoverlapped = if overlapped {
+            let unoverlapped = if trainer.overlaps() {
                 trainer.set_overlap(false);
                 let more = trainer.repeat_steps(&[&data], steps + 2..2 * steps + 1)?;
                 let mut ms: Vec<f64> = more.iter().map(|r| r.time.total() * 1e3).collect();
